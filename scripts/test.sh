@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# The test command: sets up the environment, then runs the whole suite.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="$("$here/scripts/setup.sh" | tail -n 1)"
+cd "$here"
+export MUJOCO_GL="${MUJOCO_GL:-egl}"
+exec "$venv/bin/python" -m pytest "$@"

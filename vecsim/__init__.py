@@ -1,0 +1,3 @@
+"""vecsim: robot simulation served over HTTP to RL trainers."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,207 @@
+"""Data models shared by the pod, the controller, the runner and the client.
+
+Pure pydantic: no I/O except :func:`load_job_config`, which reads one YAML file. Every model
+forbids unknown fields so that a typo in a config is an error naming the field, not a silent
+default.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+RenderPreset = Literal["full", "fast", "lean"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CameraConfig(_Model):
+    """Which cameras every env of a job renders, and at what size (uint8 HxWx3 each)."""
+
+    names: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
+    height: int = Field(128, ge=8, le=1024)
+    width: int = Field(128, ge=8, le=1024)
+
+    @field_validator("names")
+    @classmethod
+    def _unique_names(cls, names: tuple[str, ...]) -> tuple[str, ...]:
+        if len(set(names)) != len(names):
+            raise ValueError(f"camera names must be unique, got {list(names)}")
+        return names
+
+
+class TaskBlock(_Model):
+    """A contiguous block of a pod's envs that all run one task."""
+
+    task_id: str
+    env_start: int = Field(ge=0)
+    num_envs: int = Field(ge=0)
+
+
+class Assignment(_Model):
+    """What the controller tells one pod to run (``PUT /v1/assignment``)."""
+
+    generation: int = Field(ge=0)
+    job_id: str = "default"
+    pod: str
+    stage_id: int = Field(ge=0)
+    tasks: tuple[TaskBlock, ...] = ()
+    camera: CameraConfig = CameraConfig()
+    render: RenderPreset = "lean"
+    seed: int = 0
+    envs_per_worker: int = Field(1, ge=1, le=256)
+    max_episode_steps: int = Field(300, ge=1)
+
+    @model_validator(mode="after")
+    def _blocks_are_contiguous(self) -> "Assignment":
+        expected = 0
+        for block in self.tasks:
+            if block.env_start != expected:
+                raise ValueError(
+                    f"tasks: block for {block.task_id!r} starts at env {block.env_start}, "
+                    f"expected {expected} (blocks must be contiguous, in order)"
+                )
+            expected += block.num_envs
+        return self
+
+    @property
+    def num_envs(self) -> int:
+        return sum(b.num_envs for b in self.tasks)
+
+    def same_envs(self, other: "Assignment | None") -> bool:
+        """True when ``other`` would build exactly the same envs (only the generation differs)."""
+        if other is None:
+            return False
+        return self.model_dump(exclude={"generation"}) == other.model_dump(exclude={"generation"})
+
+
+class JobSpec(_Model):
+    """The desired job (``PUT /v1/job``): what to simulate, over how many stages and pods."""
+
+    job_id: str = "default"
+    suite: str | None = None
+    tasks: tuple[str, ...] = ()
+    group_size: int = Field(4, ge=0, description="envs per task per stage")
+    num_stages: int = Field(2, ge=1)
+    pods_per_stage: int = Field(1, ge=1)
+    camera: CameraConfig = CameraConfig()
+    render: RenderPreset = "lean"
+    seed: int = 0
+    envs_per_worker: int = Field(1, ge=1, le=256)
+    max_episode_steps: int = Field(300, ge=1)
+
+    @model_validator(mode="after")
+    def _suite_or_tasks(self) -> "JobSpec":
+        if self.suite is None and not self.tasks:
+            raise ValueError("give either 'suite' or a non-empty 'tasks' list")
+        if len(set(self.tasks)) != len(self.tasks):
+            raise ValueError(f"tasks: duplicate task ids in {list(self.tasks)}")
+        return self
+
+    @property
+    def pods_needed(self) -> int:
+        return self.num_stages * self.pods_per_stage
+
+
+class PodCapacity(_Model):
+    max_envs: int = Field(64, ge=0)
+    gpu: bool = False
+
+
+class PodRegistration(_Model):
+    name: str = Field(min_length=1, max_length=63, pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$")
+    url: str
+    capacity: PodCapacity = PodCapacity()
+
+
+class PodRecord(_Model):
+    name: str
+    url: str
+    capacity: PodCapacity = PodCapacity()
+    stage_id: int | None = None
+    ready: bool = False
+    generation: int | None = None
+    last_seen: float = 0.0
+
+
+class RoutedPod(_Model):
+    pod: str
+    url: str
+    num_envs: int
+    tasks: tuple[TaskBlock, ...]
+
+
+class RoutedStage(_Model):
+    stage_id: int
+    pods: tuple[RoutedPod, ...]
+
+    @property
+    def num_envs(self) -> int:
+        return sum(p.num_envs for p in self.pods)
+
+
+class RoutingTable(_Model):
+    generation: int
+    job_id: str
+    ready: bool
+    stages: tuple[RoutedStage, ...]
+
+    @property
+    def num_envs(self) -> int:
+        return sum(s.num_envs for s in self.stages)
+
+
+class PodsConfig(_Model):
+    replicas: int = Field(2, ge=0)
+    host: str = "127.0.0.1"
+    base_port: int = Field(8100, ge=1024, le=65000)
+    max_envs: int = Field(64, ge=0)
+
+
+class ControllerConfig(_Model):
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1024, le=65535)
+    heartbeat_interval_s: float = Field(1.0, gt=0)
+    heartbeat_ttl_s: float = Field(5.0, gt=0)
+    reconcile_interval_s: float = Field(0.5, gt=0)
+
+
+class RunnerConfig(_Model):
+    """A whole local job: the YAML that ``vecsim up -c`` and ``configs/*.yaml`` hold."""
+
+    job: JobSpec
+    pods: PodsConfig = PodsConfig()
+    controller: ControllerConfig = ControllerConfig()
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; the message names the file and the field."""
+
+
+def load_job_config(path: str | Path) -> RunnerConfig:
+    """Read a job config YAML into a :class:`RunnerConfig`.
+
+    Raises:
+        ConfigError: the file is missing, is not YAML, or a field is wrong (named in the message).
+    """
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping with a 'job' key, got {type(raw).__name__}")
+    try:
+        return RunnerConfig.model_validate(raw)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in exc.errors()
+        )
+        raise ConfigError(f"{path}: {problems}") from exc
