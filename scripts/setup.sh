@@ -11,6 +11,16 @@ py="${PYTHON:-python3}"
 stamp_src="$(cat "$here/pyproject.toml" "$here/scripts/setup.sh" | sha256sum | cut -c1-16)"
 stamp="$venv/.vecsim-setup-$stamp_src"
 
+# MuJoCo renders offscreen through EGL (Mesa on CPU machines, the NVIDIA driver on GPU nodes).
+if ! ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1'; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "[setup] installing EGL/Mesa libraries" >&2
+    apt-get update -qq && apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libglvnd0 >/dev/null
+  else
+    echo "[setup] warning: libEGL.so.1 not found; install libegl1 + a Mesa or NVIDIA EGL driver" >&2
+  fi
+fi
+
 if [ ! -x "$venv/bin/python" ]; then
   echo "[setup] creating venv at $venv" >&2
   mkdir -p "$(dirname "$venv")"

@@ -1,0 +1,593 @@
+"""A pod's engine: task-grouped envs in worker processes, stepped and reset by env index.
+
+:class:`TaskGroupedVectorEnv` runs the envs of one :class:`~vecsim.config.Assignment` as contiguous
+blocks, one per task, on a gymnasium ``AsyncVectorEnv`` (shared memory, no copies, no autoreset,
+``forkserver`` processes: the default fork context hangs once the parent holds an EGL context).
+
+gymnasium steps every worker on every call, so each worker's env takes a command-carrying action
+``{"cmd": noop|step|reset, "state_id", "action"}`` per slot: one call carries the resets or steps
+of exactly the named envs, and every other env returns its last observation without advancing.
+A worker hosts a block of ``envs_per_worker`` envs of one task (the last worker of a block may
+have idle, padded slots), and returns per-slot rewards and flags inside its observation, since
+gymnasium's reward and flags are one scalar per worker.
+
+Every argument is validated before any worker is touched, so a rejected call changes nothing.
+Module-level code imports nothing heavy and starts nothing: it is safe under ``forkserver``.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium.vector import AsyncVectorEnv, AutoresetMode
+from gymnasium.vector.utils import create_empty_array
+
+from vecsim.config import Assignment, CameraConfig
+from vecsim.tasks import TaskEnv, get_task, make_env, task_spaces
+
+log = logging.getLogger("vecsim.sim")
+
+NOOP, STEP, RESET = 0, 1, 2
+_MAX_STATE_ID = 2**31 - 1
+_PROGRESS_EVERY_S = 10.0
+
+
+class UnknownEnvError(LookupError):
+    """An env index this pod does not have (HTTP 404)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class InvalidRequestError(ValueError):
+    """A request that cannot be served as given: shape, dtype, value or length (HTTP 422)."""
+
+
+class SimCrashedError(RuntimeError):
+    """A worker process died, hung or failed; the envs must be rebuilt (pod not ready)."""
+
+
+class SimBuildError(RuntimeError):
+    """Building the envs failed; the message names the task and what went wrong."""
+
+
+@dataclass(frozen=True)
+class _WorkerSpec:
+    """What one worker process hosts: ``len(env_indices)`` envs of one task in ``slots`` slots."""
+
+    task_id: str
+    env_indices: tuple[int, ...]
+    slots: int
+    camera: CameraConfig
+    render: str
+    max_episode_steps: int
+    observation_space: gymnasium.spaces.Dict
+    action_space: gymnasium.spaces.Box
+
+
+def _stacked(space: gymnasium.Space, slots: int) -> gymnasium.Space:
+    if isinstance(space, gymnasium.spaces.Dict):
+        return gymnasium.spaces.Dict({key: _stacked(sub, slots) for key, sub in space.spaces.items()})
+    if isinstance(space, gymnasium.spaces.Box):
+        shape = (slots, *space.shape)
+        return gymnasium.spaces.Box(
+            np.broadcast_to(space.low, shape), np.broadcast_to(space.high, shape), shape, space.dtype
+        )
+    raise TypeError(f"cannot stack a {type(space).__name__} space")
+
+
+def _zeros(space: gymnasium.Space) -> Any:
+    if isinstance(space, gymnasium.spaces.Dict):
+        return {key: _zeros(sub) for key, sub in space.spaces.items()}
+    return np.zeros(space.shape, dtype=space.dtype)
+
+
+def _write_slot(out: dict[str, Any], slot: int, value: dict[str, Any]) -> None:
+    for key, item in value.items():
+        if isinstance(item, dict):
+            _write_slot(out[key], slot, item)
+        else:
+            out[key][slot] = item
+
+
+def _gather(tree: Any, workers: np.ndarray, slots: np.ndarray) -> Any:
+    # Fancy indexing copies, so results never alias the shared memory the next call overwrites.
+    if isinstance(tree, dict):
+        return {key: _gather(sub, workers, slots) for key, sub in tree.items()}
+    return tree[workers, slots]
+
+
+class _WorkerEnv(gymnasium.Env):
+    """The env of one worker process: a block of envs of one task, driven by per-slot commands.
+
+    Construction is cheap (gymnasium makes one in the parent process just to read its spaces);
+    :meth:`build` makes the envs, in the worker, and puts each in state 0.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, worker: _WorkerSpec) -> None:
+        self.worker = worker
+        slots = worker.slots
+        flags = gymnasium.spaces.MultiBinary(slots)
+        self.observation_space = gymnasium.spaces.Dict(
+            {
+                "obs": _stacked(worker.observation_space, slots),
+                "reward": gymnasium.spaces.Box(-np.inf, np.inf, (slots,), np.float32),
+                "terminated": flags,
+                "truncated": flags,
+                "success": flags,
+            }
+        )
+        self.action_space = gymnasium.spaces.Dict(
+            {
+                "cmd": gymnasium.spaces.MultiDiscrete([3] * slots),
+                "state_id": gymnasium.spaces.Box(0, _MAX_STATE_ID, (slots,), np.int64),
+                "action": _stacked(worker.action_space, slots),
+            }
+        )
+        self._envs: list[TaskEnv] = []
+        self._out: dict[str, Any] = _zeros(self.observation_space)
+
+    def build(self) -> int:
+        """Make this worker's envs and reset each to state 0; return how many were made.
+
+        Raises:
+            SimBuildError: an env could not be made or reset; the message names task and envs.
+        """
+        worker = self.worker
+        try:
+            for _ in worker.env_indices:
+                env = make_env(worker.task_id, worker.camera, worker.render, worker.max_episode_steps)
+                self._envs.append(env)
+                spaces = (env.observation_space, env.action_space)
+                if spaces != (worker.observation_space, worker.action_space):
+                    raise ValueError(
+                        f"its env's spaces differ from the ones the task declares: "
+                        f"{env.observation_space}, {env.action_space}"
+                    )
+            for slot in range(len(self._envs)):
+                self._reset_slot(slot, 0)
+        except Exception as exc:
+            raise SimBuildError(
+                f"{worker.task_id} (envs {worker.env_indices[0]}-{worker.env_indices[-1]}): "
+                f"{type(exc).__name__}: {exc}"
+            ) from exc
+        return len(self._envs)
+
+    def _reset_slot(self, slot: int, state_id: int) -> None:
+        observation, info = self._envs[slot].reset(options={"state_id": state_id})
+        _write_slot(self._out["obs"], slot, observation)
+        self._out["reward"][slot] = 0.0
+        self._out["terminated"][slot] = 0
+        self._out["truncated"][slot] = 0
+        self._out["success"][slot] = info["success"]
+
+    def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
+        """Run each slot's command; return the block's observation (reward and flags inside it)."""
+        for slot, env in enumerate(self._envs):
+            cmd = int(command["cmd"][slot])
+            if cmd == RESET:
+                self._reset_slot(slot, int(command["state_id"][slot]))
+            elif cmd == STEP:
+                observation, reward, terminated, truncated, info = env.step(command["action"][slot])
+                _write_slot(self._out["obs"], slot, observation)
+                self._out["reward"][slot] = reward
+                self._out["terminated"][slot] = terminated
+                self._out["truncated"][slot] = truncated
+                self._out["success"][slot] = info["success"]
+        return self._out, 0.0, False, False, {}
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict]:
+        """Return the last observation: envs are reset through ``step`` commands only."""
+        super().reset(seed=seed)
+        return self._out, {}
+
+    def close(self) -> None:
+        """Close every env of the block. Returns None."""
+        for env in self._envs:
+            env.close()
+        self._envs = []
+
+
+def _empty_spaces() -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+    return gymnasium.spaces.Dict({}), gymnasium.spaces.Box(-1.0, 1.0, (0,), np.float32)
+
+
+def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+    """Check that ``assignment`` can be built; return its ``(observation_space, action_space)``.
+
+    Cheap (no env is built, except that a gym task's env is made to read its spaces), so a pod
+    can answer a bad assignment at once. An assignment with no tasks has an empty Dict
+    observation space and a zero-length action Box.
+
+    Raises:
+        UnknownTaskError: a task id no provider knows.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+        InvalidRequestError: the tasks do not share one observation space and one action space.
+        ValueError: a gym task with non-Box spaces.
+    """
+    first: tuple[str, gymnasium.spaces.Dict, gymnasium.spaces.Box] | None = None
+    for block in assignment.tasks:
+        observation_space, action_space = task_spaces(block.task_id, assignment.camera)
+        if first is None:
+            first = (block.task_id, observation_space, action_space)
+        elif (observation_space, action_space) != first[1:]:
+            raise InvalidRequestError(
+                f"tasks: {block.task_id!r} and {first[0]!r} have different observation or action "
+                "spaces; one pod's tasks must share them"
+            )
+    return _empty_spaces() if first is None else first[1:]
+
+
+class TaskGroupedVectorEnv:
+    """The envs of one assignment, in worker processes, addressed by env index.
+
+    Env indices run ``0..num_envs-1`` in contiguous blocks, one per task block of the assignment.
+    After construction every env is in state 0. Thread-safe: calls are serialised.
+
+    Args:
+        assignment: what to run (tasks and their env counts, camera, render preset,
+            ``envs_per_worker``, ``max_episode_steps``).
+        context: multiprocessing start method for the workers.
+        timeout_s: longest wait for the workers on one reset or step; None waits forever.
+        build_timeout_s: longest wait for the workers to build; None waits forever.
+
+    Raises:
+        UnknownTaskError: a task id no provider knows.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+        InvalidRequestError: the tasks do not share their spaces.
+        SimBuildError: a worker failed to build its envs (the message names the task).
+    """
+
+    def __init__(
+        self,
+        assignment: Assignment,
+        *,
+        context: str = "forkserver",
+        timeout_s: float | None = None,
+        build_timeout_s: float | None = None,
+    ) -> None:
+        self.assignment = assignment
+        self.single_observation_space, self.single_action_space = assignment_spaces(assignment)
+        self.num_envs = assignment.num_envs
+        self.task_ids: list[str] = []
+        self._num_states = np.zeros(self.num_envs, dtype=np.int64)
+        self._timeout_s = timeout_s
+        self._lock = threading.Lock()
+        self._broken: str | None = None
+        self._closed = False
+        self._vec: AsyncVectorEnv | None = None
+
+        slots = assignment.envs_per_worker
+        specs: list[_WorkerSpec] = []
+        locations: list[tuple[int, int]] = []
+        for block in assignment.tasks:
+            task = get_task(block.task_id)
+            self.task_ids += [task.task_id] * block.num_envs
+            self._num_states[block.env_start : block.env_start + block.num_envs] = task.num_states
+            for first in range(0, block.num_envs, slots):
+                hosted = range(block.env_start + first, block.env_start + min(first + slots, block.num_envs))
+                locations += [(len(specs), slot) for slot in range(len(hosted))]
+                specs.append(
+                    _WorkerSpec(
+                        task_id=task.task_id,
+                        env_indices=tuple(hosted),
+                        slots=slots,
+                        camera=assignment.camera,
+                        render=assignment.render,
+                        max_episode_steps=assignment.max_episode_steps,
+                        observation_space=self.single_observation_space,
+                        action_space=self.single_action_space,
+                    )
+                )
+        self._workers = specs
+        self._location = np.array(locations, dtype=np.int64).reshape(-1, 2)
+        if specs:
+            self._start(context, build_timeout_s)
+
+    @property
+    def num_workers(self) -> int:
+        """Number of worker processes (0 for a spare pod)."""
+        return len(self._workers)
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the workers, in worker order."""
+        return [] if self._vec is None else [process.pid for process in self._vec.processes]
+
+    def _start(self, context: str, build_timeout_s: float | None) -> None:
+        counts = Counter(self.task_ids)
+        log.info(
+            "building %d envs (%s) in %d worker processes, %d envs per worker",
+            self.num_envs,
+            ", ".join(f"{task} x{n}" for task, n in counts.items()),
+            len(self._workers),
+            self.assignment.envs_per_worker,
+        )
+        started = time.monotonic()
+        self._vec = AsyncVectorEnv(
+            [functools.partial(_WorkerEnv, worker) for worker in self._workers],
+            shared_memory=True,
+            copy=False,
+            context=context,
+            daemon=True,
+            autoreset_mode=AutoresetMode.DISABLED,
+        )
+        try:
+            self._vec.call_async("build")
+            self._wait_for_build(started, build_timeout_s)
+            self._vec.call_wait(timeout=0)
+        except SimBuildError:
+            self._vec.close(terminate=True)
+            raise
+        except Exception as exc:
+            self._vec.close(terminate=True)
+            raise SimBuildError(f"building envs failed: {exc}") from exc
+        log.info("built %d envs in %.1f s", self.num_envs, time.monotonic() - started)
+
+    def _wait_for_build(self, started: float, build_timeout_s: float | None) -> None:
+        assert self._vec is not None
+        pipes = {pipe: index for index, pipe in enumerate(self._vec.parent_pipes)}
+        pending = set(pipes)
+        last_report = started
+        while pending:
+            elapsed = time.monotonic() - started
+            if build_timeout_s is not None and elapsed > build_timeout_s:
+                raise SimBuildError(
+                    f"building envs took over {build_timeout_s} s; "
+                    f"{len(pipes) - len(pending)} of {len(pipes)} workers were ready"
+                )
+            wait_s = _PROGRESS_EVERY_S
+            if build_timeout_s is not None:
+                wait_s = min(wait_s, max(build_timeout_s - elapsed, 0.0))
+            for pipe in multiprocessing.connection.wait(list(pending), timeout=wait_s):
+                pending.discard(pipe)
+                worker = self._workers[pipes[pipe]]
+                log.info(
+                    "worker %d/%d ready: %s envs %d-%d (%.1f s)",
+                    pipes[pipe] + 1,
+                    len(pipes),
+                    worker.task_id,
+                    worker.env_indices[0],
+                    worker.env_indices[-1],
+                    time.monotonic() - started,
+                )
+            if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
+                last_report = time.monotonic()
+                log.info(
+                    "still building: %d of %d workers ready after %.0f s",
+                    len(pipes) - len(pending),
+                    len(pipes),
+                    last_report - started,
+                )
+
+    # Validation: everything is checked before any worker is touched.
+
+    def _env_ids(self, env_ids: Any) -> np.ndarray:
+        ids = _int_array("env_ids", env_ids)
+        if ids.size:
+            bad = ids[(ids < 0) | (ids >= self.num_envs)]
+            if bad.size:
+                have = f"envs 0..{self.num_envs - 1}" if self.num_envs else "no envs"
+                raise UnknownEnvError(f"env_ids: env {int(bad[0])} does not exist; this pod has {have}")
+            values, counts = np.unique(ids, return_counts=True)
+            if (counts > 1).any():
+                twice = int(values[counts > 1][0])
+                raise InvalidRequestError(f"env_ids: env {twice} is named more than once")
+        return ids.astype(np.int64)
+
+    def _state_ids(self, state_ids: Any, ids: np.ndarray) -> np.ndarray:
+        states = _int_array("state_ids", state_ids)
+        if states.size != ids.size:
+            raise InvalidRequestError(f"state_ids: {states.size} state ids for {ids.size} env_ids")
+        if ids.size:
+            limits = self._num_states[ids]
+            bad = np.flatnonzero((states < 0) | (states >= limits))
+            if bad.size:
+                i = int(bad[0])
+                env = int(ids[i])
+                raise InvalidRequestError(
+                    f"state_ids: state {int(states[i])} for env {env} is out of range "
+                    f"0..{int(limits[i]) - 1} of task {self.task_ids[env]!r}"
+                )
+        return states.astype(np.int64)
+
+    def _actions(self, actions: Any, ids: np.ndarray) -> np.ndarray:
+        space = self.single_action_space
+        try:
+            values = np.asarray(actions)
+        except ValueError as exc:
+            raise InvalidRequestError(f"actions: not a rectangular array: {exc}") from None
+        if ids.size == 0 and values.size == 0:
+            return np.zeros((0, *space.shape), dtype=space.dtype)
+        if values.dtype.kind not in "fiu":
+            raise InvalidRequestError(f"actions: expected numbers, got dtype {values.dtype}")
+        expected = (ids.size, *space.shape)
+        if values.shape != expected:
+            raise InvalidRequestError(f"actions: expected shape {expected}, got {values.shape}")
+        cast = values.astype(space.dtype)
+        finite = np.isfinite(cast.reshape(ids.size, -1)).all(axis=1)
+        if not finite.all():
+            env = int(ids[np.flatnonzero(~finite)[0]])
+            raise InvalidRequestError(
+                f"actions: the action for env {env} is not finite (NaN, inf or too large)"
+            )
+        return cast
+
+    # Calls.
+
+    def reset_envs(self, env_ids: Any, state_ids: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Reset the named envs to the named fixed initial states; no other env changes.
+
+        Returns:
+            ``(obs, info)``: ``obs`` batched over the named envs in the given order, ``info``
+            ``{"success": bool[n], "task_id": list[str]}``. Empty ``env_ids``: empty results.
+
+        Raises:
+            UnknownEnvError: an env index out of range.
+            InvalidRequestError: duplicate env ids, non-integer ids, lengths that differ, or a
+                state id out of its task's range.
+            SimCrashedError: a worker died, hung or failed (the pod must rebuild).
+        """
+        ids = self._env_ids(env_ids)
+        states = self._state_ids(state_ids, ids)
+        if ids.size == 0:
+            return self._empty_obs(), {"success": np.zeros(0, dtype=bool), "task_id": []}
+        command = self._command()
+        workers, slots = self._location[ids].T
+        command["cmd"][workers, slots] = RESET
+        command["state_id"][workers, slots] = states
+        obs, out = self._run(command, workers, slots)
+        return obs, {"success": out["success"], "task_id": [self.task_ids[i] for i in ids]}
+
+    def step_envs(
+        self, env_ids: Any, actions: Any
+    ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step the named envs one control step each; no other env advances.
+
+        Returns:
+            ``(obs, reward float32[n], terminated bool[n], truncated bool[n], {"success": bool[n]})``
+            over the named envs in the given order. Empty ``env_ids``: empty results.
+
+        Raises:
+            UnknownEnvError: an env index out of range.
+            InvalidRequestError: duplicate env ids, non-integer ids, actions of the wrong shape or
+                dtype, or a NaN or infinite action.
+            SimCrashedError: a worker died, hung or failed (the pod must rebuild).
+        """
+        ids = self._env_ids(env_ids)
+        values = self._actions(actions, ids)
+        if ids.size == 0:
+            empty = np.zeros(0, dtype=bool)
+            return self._empty_obs(), np.zeros(0, np.float32), empty, empty.copy(), {"success": empty.copy()}
+        command = self._command()
+        workers, slots = self._location[ids].T
+        command["cmd"][workers, slots] = STEP
+        command["action"][workers, slots] = values
+        obs, out = self._run(command, workers, slots)
+        return obs, out["reward"], out["terminated"], out["truncated"], {"success": out["success"]}
+
+    def frame(self, env_id: int, camera: str) -> np.ndarray:
+        """Return a copy of the uint8 HxWx3 image ``camera`` of env ``env_id`` saw last.
+
+        Raises:
+            UnknownEnvError: no env ``env_id``.
+            InvalidRequestError: the envs have no camera ``camera``.
+            SimCrashedError: the workers crashed or were closed.
+        """
+        ids = self._env_ids(np.array([env_id]))
+        images = self.single_observation_space.spaces.get("images")
+        cameras = [] if images is None else list(images.spaces)
+        if camera not in cameras:
+            raise InvalidRequestError(f"camera: no camera {camera!r}; cameras: {cameras}")
+        worker, slot = self._location[ids[0]]
+        with self._lock:
+            self._check_usable()
+            assert self._vec is not None
+            return np.array(self._vec.observations["obs"]["images"][camera][worker, slot])
+
+    def close(self) -> None:
+        """Stop the worker processes. Idempotent. Returns None."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._vec is not None:
+                # Terminating cannot hang on a stuck worker, and the workers hold nothing to save.
+                self._vec.close(terminate=True)
+                log.info("closed %d worker processes", len(self._workers))
+
+    def __enter__(self) -> TaskGroupedVectorEnv:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # Internals.
+
+    def _empty_obs(self) -> dict[str, Any]:
+        return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
+
+    def _command(self) -> dict[str, np.ndarray]:
+        workers, slots = len(self._workers), self.assignment.envs_per_worker
+        action = self.single_action_space
+        return {
+            "cmd": np.full((workers, slots), NOOP, dtype=np.int64),
+            "state_id": np.zeros((workers, slots), dtype=np.int64),
+            "action": np.zeros((workers, slots, *action.shape), action.dtype),
+        }
+
+    def _dead_worker(self) -> str | None:
+        assert self._vec is not None
+        for index, process in enumerate(self._vec.processes):
+            if not process.is_alive():
+                worker = self._workers[index]
+                envs = f"{worker.env_indices[0]}-{worker.env_indices[-1]}"
+                return f"worker {index} ({worker.task_id} envs {envs}) died with exit code {process.exitcode}"
+        return None
+
+    def _check_usable(self) -> None:
+        if self._closed:
+            raise SimCrashedError("the envs are closed")
+        if self._broken is None:
+            self._broken = self._dead_worker()
+        if self._broken is not None:
+            raise SimCrashedError(self._broken)
+
+    def _failure(self, exc: Exception) -> str:
+        # A worker that failed is exiting; give it a moment so the message can name it.
+        deadline = time.monotonic() + 1.0
+        dead = self._dead_worker()
+        while dead is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+            dead = self._dead_worker()
+        return f"{dead or 'a worker failed'}: {type(exc).__name__}: {exc}"
+
+    def _run(
+        self, command: dict[str, np.ndarray], workers: np.ndarray, slots: np.ndarray
+    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        with self._lock:
+            self._check_usable()
+            assert self._vec is not None
+            try:
+                self._vec.step_async(command)
+                out, _, _, _, _ = self._vec.step_wait(timeout=self._timeout_s)
+            except multiprocessing.TimeoutError as exc:
+                self._broken = f"the workers did not answer within {self._timeout_s} s"
+                raise SimCrashedError(self._broken) from exc
+            except Exception as exc:
+                self._broken = self._failure(exc)
+                raise SimCrashedError(self._broken) from exc
+            obs = _gather(out["obs"], workers, slots)
+            flags = {
+                "reward": out["reward"][workers, slots].astype(np.float32),
+                "terminated": out["terminated"][workers, slots].astype(bool),
+                "truncated": out["truncated"][workers, slots].astype(bool),
+                "success": out["success"][workers, slots].astype(bool),
+            }
+        return obs, flags
+
+
+def _int_array(name: str, values: Any) -> np.ndarray:
+    try:
+        array = np.asarray(values)
+    except ValueError as exc:
+        raise InvalidRequestError(f"{name}: not a flat list of integers: {exc}") from None
+    if array.ndim != 1:
+        raise InvalidRequestError(f"{name}: expected a 1-d list of integers, got shape {array.shape}")
+    if array.size and array.dtype.kind not in "iu":
+        raise InvalidRequestError(f"{name}: expected integers, got dtype {array.dtype}")
+    return array

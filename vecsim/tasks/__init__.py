@@ -1,0 +1,149 @@
+"""The task registry: named, reproducible scenes with instructions, grouped into suites.
+
+Task ids are ``<suite>/<name>``:
+
+- LIBERO: ``libero_10/0`` … (suites ``libero_10``, ``libero_spatial``, ``libero_object``,
+  ``libero_goal``, ``libero_90``; LIBERO's order, instructions and 50 init states per task);
+- robosuite: ``robosuite/Lift``, ``robosuite/Stack``, ``robosuite/PickPlace[Milk|Bread|Cereal|Can]``,
+  ``robosuite/NutAssembly[Square|Round]``, ``robosuite/Door`` (Panda, OSC_POSE; 50 fixed initial
+  states generated from seeds and cached);
+- ``tiny``: ``tiny/lift``, ``tiny/stack``, ``tiny/door``, robosuite scenes with 50-step episodes;
+- any gymnasium id as ``gym/<id>`` (``gym:<id>`` is accepted and normalised).
+
+All tasks of a suite share one observation space and one action space (docs/api.md); so do all
+robot tasks (LIBERO, robosuite, tiny) under one camera config. Importing this module imports
+neither robosuite nor LIBERO: they load when an env is made (or, for LIBERO, listed).
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+from vecsim.config import CameraConfig, RenderPreset
+from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, UnknownTaskError, cache_dir, derive_seed
+from vecsim.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
+from vecsim.tasks._libero import LIBERO_SUITES, libero_specs, make_libero_env
+from vecsim.tasks._robot import (
+    PROPRIO_KEYS,
+    RobotTaskEnv,
+    make_robosuite_env,
+    robosuite_specs,
+    robot_action_space,
+    robot_observation_space,
+    states_path,
+)
+
+__all__ = [
+    "PROPRIO_KEYS",
+    "GymTaskEnv",
+    "RobotTaskEnv",
+    "TaskEnv",
+    "TaskSetupError",
+    "TaskSpec",
+    "UnknownTaskError",
+    "cache_dir",
+    "derive_seed",
+    "get_task",
+    "list_suites",
+    "make_env",
+    "normalize_task_id",
+    "robot_action_space",
+    "robot_observation_space",
+    "states_path",
+    "suite_tasks",
+    "task_spaces",
+]
+
+_ROBOSUITE_SUITES = ("robosuite", "tiny")
+
+
+def list_suites() -> list[str]:
+    """Return the names of the suites (gymnasium ids are tasks of no suite listing)."""
+    return [*LIBERO_SUITES, *_ROBOSUITE_SUITES]
+
+
+def normalize_task_id(task_id: str) -> str:
+    """Return ``task_id`` with a ``gym:`` prefix written as ``gym/``; anything else unchanged."""
+    if task_id.startswith("gym:"):
+        return "gym/" + task_id[len("gym:") :]
+    return task_id
+
+
+def _unknown(what: str) -> UnknownTaskError:
+    return UnknownTaskError(f"{what}; suites: {', '.join(list_suites())}, or gym/<gymnasium id>")
+
+
+def suite_tasks(suite: str) -> list[TaskSpec]:
+    """Return the tasks of ``suite`` in the suite's order.
+
+    Raises:
+        UnknownTaskError: no suite of that name.
+        TaskSetupError: a LIBERO suite, and LIBERO is not installed or lacks its assets.
+    """
+    if suite in LIBERO_SUITES:
+        return libero_specs(suite)
+    if suite in _ROBOSUITE_SUITES:
+        return robosuite_specs()[suite]
+    raise _unknown(f"unknown suite {suite!r}")
+
+
+def get_task(task_id: str) -> TaskSpec:
+    """Return the :class:`TaskSpec` of ``task_id`` (``gym:<id>`` accepted).
+
+    Raises:
+        UnknownTaskError: no provider knows ``task_id``; the message names it and lists the suites.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+    """
+    normalized = normalize_task_id(task_id)
+    suite, _, name = normalized.partition("/")
+    if suite == "gym" and name:
+        spec = gym_spec(normalized)
+        if spec is not None:
+            return spec
+    elif suite in LIBERO_SUITES or suite in _ROBOSUITE_SUITES:
+        for spec in suite_tasks(suite):
+            if spec.task_id == normalized:
+                return spec
+    raise _unknown(f"unknown task {task_id!r}")
+
+
+def task_spaces(task_id: str, camera: CameraConfig) -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+    """Return ``(observation_space, action_space)`` of ``task_id``'s envs under ``camera``.
+
+    Robot tasks need no env for this; a gym task's env is made (without rendering) and closed.
+
+    Raises:
+        UnknownTaskError: unknown task id.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+        ValueError: a gym task whose spaces are not Box spaces.
+    """
+    task = get_task(task_id)
+    if task.suite == "gym":
+        return gym_spaces(task, camera)
+    return robot_observation_space(camera), robot_action_space()
+
+
+def make_env(
+    task_id: str,
+    camera: CameraConfig | None = None,
+    render: RenderPreset = "lean",
+    max_episode_steps: int | None = None,
+) -> TaskEnv:
+    """Build the env of ``task_id``: a :class:`TaskEnv` (a ``gymnasium.Env``).
+
+    ``camera`` defaults to ``CameraConfig()``; ``max_episode_steps`` to the task's own.
+    ``reset(options={"state_id": k})`` puts the env in fixed initial state ``k``.
+
+    Raises:
+        UnknownTaskError: unknown task id.
+        TaskSetupError: LIBERO is not installed or lacks its assets.
+        ValueError: a camera the scene lacks, an unknown render preset, or unsupported spaces.
+    """
+    task = get_task(task_id)
+    camera = CameraConfig() if camera is None else camera
+    steps = task.max_episode_steps if max_episode_steps is None else max_episode_steps
+    if task.suite == "gym":
+        return GymTaskEnv(task, camera, render, steps)
+    if task.suite in LIBERO_SUITES:
+        return make_libero_env(task, camera, render, steps)
+    return make_robosuite_env(task, camera, render, steps)
