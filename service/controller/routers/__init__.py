@@ -1,0 +1,1 @@
+"""One router per resource: pods, job, routing, health (with metrics)."""

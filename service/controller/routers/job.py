@@ -1,0 +1,47 @@
+"""``/v1/job``: the desired job."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+
+from vecsim.config import JobSpec
+
+from ..deps import get_state
+from ..jobs import check_job
+from ..models import JobProblems, Problem
+from ..state import ControllerState
+
+router = APIRouter(prefix="/v1/job", tags=["job"])
+
+
+@router.put(
+    "",
+    response_model=JobSpec,
+    responses={422: {"model": JobProblems, "description": "the job cannot run; each problem says what to change"}},
+    summary="Set the desired job",
+)
+async def put_job(job: JobSpec, state: ControllerState = Depends(get_state)) -> JobSpec | JSONResponse:
+    """Validates the job against the task registry and the registered pods, then plans it.
+
+    The same job again changes nothing; another job keeps the pods in their slots and moves the
+    generation on.
+    """
+    # Reading a gym task's spaces makes an env: keep that off the event loop.
+    tasks, problems = await asyncio.to_thread(check_job, job, state.records())
+    if problems:
+        return JSONResponse(
+            {"detail": f"job {job.job_id!r} rejected: " + "; ".join(problems), "problems": problems}, status_code=422
+        )
+    state.set_job(job, tasks)
+    return job
+
+
+@router.get("", response_model=JobSpec, responses={404: {"model": Problem}}, summary="The desired job")
+async def get_job(state: ControllerState = Depends(get_state)) -> JobSpec | JSONResponse:
+    """The job last accepted by ``PUT /v1/job`` (or given at start-up)."""
+    if state.job is None:
+        return JSONResponse({"detail": "no job: PUT /v1/job first"}, status_code=404)
+    return state.job

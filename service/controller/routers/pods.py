@@ -1,0 +1,50 @@
+"""``/v1/pods``: registration, heartbeats, and the registry."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Path
+from fastapi.responses import JSONResponse
+
+from vecsim.config import PodRecord, PodRegistration
+
+from ..deps import get_state
+from ..models import Heartbeat, HeartbeatAnswer, Problem
+from ..state import ControllerState, UnknownPodError
+
+router = APIRouter(prefix="/v1/pods", tags=["pods"])
+
+POD_NAME = Path(
+    min_length=1, max_length=63, pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$", description="stable pod name, e.g. sim-0"
+)
+
+
+@router.post("", response_model=PodRecord, summary="Register a pod (again, after a restart)")
+async def register(registration: PodRegistration, state: ControllerState = Depends(get_state)) -> PodRecord:
+    """Adds the pod to the registry; a pod of the same name is replaced (a new process)."""
+    return state.register(registration)
+
+
+@router.get("", response_model=list[PodRecord], summary="Every registered pod")
+async def list_pods(state: ControllerState = Depends(get_state)) -> list[PodRecord]:
+    """Pods heard from within the heartbeat TTL, by name, with their stage from the plan."""
+    return state.records()
+
+
+@router.post(
+    "/{name}/heartbeat",
+    response_model=HeartbeatAnswer,
+    responses={404: {"model": Problem, "description": "unknown pod: register first"}, 422: {"model": Problem}},
+    summary="Report what a pod runs",
+)
+async def heartbeat(
+    body: Heartbeat, name: str = POD_NAME, state: ControllerState = Depends(get_state)
+) -> HeartbeatAnswer | JSONResponse:
+    """Keeps the pod registered and records its assignment and readiness."""
+    if body.assignment is not None and body.generation is not None and body.generation != body.assignment.generation:
+        detail = f"generation: {body.generation} differs from assignment.generation {body.assignment.generation}"
+        return JSONResponse({"detail": detail}, status_code=422)
+    try:
+        generation = state.heartbeat(name, body.url, body.assignment, body.ready)
+    except UnknownPodError as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+    return HeartbeatAnswer(generation=generation)

@@ -1,0 +1,53 @@
+"""The controller's settings: where it listens, how long pods live without a heartbeat, how
+often it reconciles, and optionally the job it starts with."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from vecsim.config import JobSpec, RunnerConfig
+
+
+class ControllerSettings(BaseModel):
+    """Everything the controller needs before it starts serving."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    heartbeat_interval_s: float = Field(1.0, gt=0, description="how often pods are expected to heartbeat")
+    heartbeat_ttl_s: float = Field(5.0, gt=0, description="a pod not heard from for this long is dropped")
+    reconcile_interval_s: float = Field(0.5, gt=0)
+    push_timeout_s: float = Field(10.0, gt=0, description="bound on one PUT /v1/assignment to a pod")
+    push_backoff_max_s: float = Field(5.0, gt=0, description="longest wait before retrying a failed push")
+    repush_after_s: float = Field(
+        5.0, gt=0, description="push again when a pod accepted an assignment but has not reported it since"
+    )
+    adopt_grace_s: float = Field(
+        30.0,
+        ge=0,
+        description="after a start, how long to wait for pods to report what they run before planning "
+        "anew; pods retry an unreachable controller with a backoff of up to 10 s, so this spans a few of "
+        "their retries and a restarted controller hears every pod before it plans",
+    )
+    job: JobSpec | None = None
+    access_log: bool = False
+    log_level: str = "info"
+
+    @classmethod
+    def from_runner_config(cls, config: RunnerConfig, **overrides: object) -> ControllerSettings:
+        """Returns settings taken from a job config's ``controller`` section and ``job``.
+
+        ``overrides`` whose value is ``None`` are ignored (unset command-line flags).
+        """
+        c = config.controller
+        values: dict[str, object] = dict(
+            host=c.host,
+            port=c.port,
+            heartbeat_interval_s=c.heartbeat_interval_s,
+            heartbeat_ttl_s=c.heartbeat_ttl_s,
+            reconcile_interval_s=c.reconcile_interval_s,
+            job=config.job,
+        )
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls.model_validate(values)

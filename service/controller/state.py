@@ -1,0 +1,302 @@
+"""The controller's state: the pod registry (kept by heartbeats), the job, and its plan.
+
+Everything here is synchronous and runs on the app's event loop, so a request handler and the
+reconcile loop never see each other's half-made changes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from vecsim.config import Assignment, JobSpec, PodCapacity, PodRecord, PodRegistration, RoutingTable
+from vecsim.plan import Plan, Slot, adopt, plan
+
+from .metrics import ControllerMetrics, Gauges
+from .reconcile import Action, Desired, Observed, ObservedPod, desired_assignments, safe_generation
+from .settings import ControllerSettings
+
+log = logging.getLogger(__name__)
+
+
+class UnknownPodError(LookupError):
+    """A heartbeat from a pod that is not registered (it should register again)."""
+
+
+class NoJobError(LookupError):
+    """The controller has no job yet."""
+
+
+class NoPlanError(RuntimeError):
+    """The controller has a job but no plan yet (it waits for pods to report)."""
+
+
+@dataclass
+class PodEntry:
+    """One registered pod: what it said about itself and what the controller did to it."""
+
+    name: str
+    url: str
+    capacity: PodCapacity
+    last_seen: float  # wall clock, for people
+    seen_at: float  # the controller's clock, for the TTL
+    heard: bool = False  # a heartbeat arrived since it registered
+    ready: bool = False
+    reported: Assignment | None = None
+    acked: Assignment | None = None
+    acked_at: float | None = None
+    push_failures: int = 0
+    retry_at: float = 0.0
+
+    @property
+    def generation(self) -> int | None:
+        return self.reported.generation if self.reported is not None else None
+
+
+class ControllerState:
+    """Registry, job and plan of one controller."""
+
+    def __init__(
+        self,
+        settings: ControllerSettings,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.settings = settings
+        self.clock = clock
+        self.wall = wall
+        self.started_at = clock()
+        self.pods: dict[str, PodEntry] = {}
+        self.job: JobSpec | None = None
+        self.tasks: tuple[str, ...] = ()
+        self.plan: Plan | None = None
+        # Slot holders that registered again while still registered: new processes, new envs.
+        self.restarted: set[str] = set()
+        self.wake = asyncio.Event()
+        self.metrics = ControllerMetrics()
+        self.metrics.watch(self.gauges)
+
+    # Registry
+
+    def register(self, registration: PodRegistration) -> PodRecord:
+        """Adds a pod, or replaces a pod of the same name (a restarted process). Returns its record."""
+        now = self.clock()
+        if registration.name in self.pods and self.plan is not None and self.plan.slot_of(registration.name):
+            log.info("pod %s registered again while holding a slot: treating it as restarted", registration.name)
+            self.restarted.add(registration.name)
+        self.pods[registration.name] = PodEntry(
+            name=registration.name,
+            url=registration.url.rstrip("/"),
+            capacity=registration.capacity,
+            last_seen=self.wall(),
+            seen_at=now,
+        )
+        self.metrics.registrations.inc()
+        log.info(
+            "pod %s registered at %s (max_envs %d)", registration.name, registration.url, registration.capacity.max_envs
+        )
+        self.wake.set()
+        return self.record(registration.name)
+
+    def heartbeat(self, name: str, url: str, assignment: Assignment | None, ready: bool) -> int | None:
+        """Records what a pod reports. Returns the plan's generation (``None`` without a plan).
+
+        Raises:
+            UnknownPodError: ``name`` is not registered.
+        """
+        entry = self.pods.get(name)
+        if entry is None:
+            ttl = self.settings.heartbeat_ttl_s
+            raise UnknownPodError(
+                f"pod {name!r} is not registered (or was silent for over {ttl} s): POST /v1/pods first"
+            )
+        changed = entry.reported != assignment or entry.ready != ready or not entry.heard or entry.url != url
+        entry.url = url.rstrip("/")
+        entry.reported = assignment
+        entry.ready = ready
+        entry.heard = True
+        entry.seen_at = self.clock()
+        entry.last_seen = self.wall()
+        self.metrics.heartbeats.inc()
+        if changed:
+            self.wake.set()
+        return self.plan.generation if self.plan is not None else None
+
+    def expire(self) -> list[str]:
+        """Drops pods not heard from within the TTL. Returns their names."""
+        now = self.clock()
+        gone = [n for n, e in self.pods.items() if now - e.seen_at > self.settings.heartbeat_ttl_s]
+        for name in gone:
+            del self.pods[name]
+            self.restarted.discard(name)
+            self.metrics.expired.inc()
+            log.warning("pod %s dropped: no heartbeat for over %s s", name, self.settings.heartbeat_ttl_s)
+        return gone
+
+    def record(self, name: str) -> PodRecord:
+        """Returns the public record of one registered pod (stage from the plan)."""
+        entry = self.pods[name]
+        slot = self.plan.slot_of(name) if self.plan is not None else None
+        return PodRecord(
+            name=entry.name,
+            url=entry.url,
+            capacity=entry.capacity,
+            stage_id=slot.stage_id if slot is not None else None,
+            ready=entry.ready,
+            generation=entry.generation,
+            last_seen=entry.last_seen,
+        )
+
+    def records(self) -> list[PodRecord]:
+        """Returns every registered pod's record, by name."""
+        return [self.record(name) for name in sorted(self.pods)]
+
+    # Job and plan
+
+    def set_job(self, job: JobSpec, tasks: Sequence[str]) -> None:
+        """Makes ``job`` (with its resolved ``tasks``) the desired job; the next pass plans it."""
+        if job != self.job or tuple(tasks) != self.tasks:
+            log.info(
+                "job %s: %d tasks, %d stages x %d pods", job.job_id, len(tasks), job.num_stages, job.pods_per_stage
+            )
+        self.job = job
+        self.tasks = tuple(tasks)
+        self.wake.set()
+
+    def _may_plan_first(self, job: JobSpec, adopted: Plan | None) -> bool:
+        # A fresh controller waits for pods to say what they run, so that it adopts their layout
+        # instead of reshuffling it: it plans at once only when every slot was adopted, or when
+        # enough pods have reported and none runs anything to adopt; else after the grace period.
+        if adopted is not None and not adopted.unfilled:
+            return True
+        if self.clock() - self.started_at >= self.settings.adopt_grace_s:
+            return True
+        heard = [e for e in self.pods.values() if e.heard]
+        return adopted is None and len(heard) == len(self.pods) and len(heard) >= job.pods_needed
+
+    def replan(self) -> Plan | None:
+        """Brings the plan up to date with the job and the live pods. Returns it (``None``: not yet)."""
+        if self.job is None:
+            return None
+        previous = self.plan
+        if previous is None:
+            reports = {n: e.reported for n, e in self.pods.items() if e.heard}
+            previous = adopt(self.job, self.tasks, reports)
+            if not self._may_plan_first(self.job, previous):
+                return None
+            if previous is not None:
+                log.info("adopted %d slots at generation %d from pod reports", len(previous.pods), previous.generation)
+        live = [PodRecord(name=e.name, url=e.url, capacity=e.capacity) for e in self.pods.values()]
+        new = plan(self.job, live, previous, self.tasks, restarted=self.restarted)
+        generation = safe_generation(new, {n: e.reported for n, e in self.pods.items()})
+        if generation != new.generation:
+            new = new.with_generation(generation)
+        if previous is None or new.generation != previous.generation:
+            log.info(
+                "plan generation %d: %s; unfilled %s",
+                new.generation,
+                ", ".join(f"{s.pod}=stage {s.stage_id} slot {s.index}" for s in new.slots if s.pod) or "no pods",
+                [s.key for s in new.unfilled] or "none",
+            )
+        self.plan = new
+        self.restarted.clear()
+        return new
+
+    # Reconcile inputs and outcomes
+
+    def desired(self) -> Desired:
+        """Returns every live pod's desired assignment (empty when there is no plan)."""
+        if self.plan is None:
+            return Desired(assignments={}, repush_after_s=self.settings.repush_after_s)
+        return Desired(
+            assignments=desired_assignments(self.plan, self.pods), repush_after_s=self.settings.repush_after_s
+        )
+
+    def observed(self) -> Observed:
+        """Returns what is known of the live pods now."""
+        pods = {
+            n: ObservedPod(url=e.url, reported=e.reported, acked=e.acked, acked_at=e.acked_at, retry_at=e.retry_at)
+            for n, e in self.pods.items()
+        }
+        return Observed(now=self.clock(), pods=pods)
+
+    def record_push(self, action: Action, *, ok: bool, detail: str = "") -> None:
+        """Notes how a push went: an accepted one is remembered, a failed one backs off."""
+        entry = self.pods.get(action.pod)
+        self.metrics.pushes.labels(result="ok" if ok else "failed").inc()
+        if entry is None:
+            return
+        if ok:
+            entry.acked, entry.acked_at = action.assignment, self.clock()
+            entry.push_failures, entry.retry_at = 0, 0.0
+            log.info("pod %s accepted generation %d", action.pod, action.assignment.generation)
+            return
+        entry.push_failures += 1
+        delay = min(self.settings.push_backoff_max_s, 0.25 * 2 ** (entry.push_failures - 1))
+        entry.retry_at = self.clock() + delay
+        log.warning(
+            "push of generation %d to pod %s failed (%s); retrying in %.2f s",
+            action.assignment.generation,
+            action.pod,
+            detail,
+            delay,
+        )
+
+    # Readiness and routing
+
+    def problems(self) -> list[str]:
+        """Returns why the job is not ready (empty: every slot's pod runs the plan and is ready)."""
+        if self.job is None:
+            return ["no job: PUT /v1/job"]
+        if self.plan is None:
+            return ["no plan yet: waiting for pods to register and report what they run"]
+        problems = [self._unfilled_problem(self.plan, slot) for slot in self.plan.unfilled]
+        for slot in self.plan.slots:
+            if slot.pod is None:
+                continue
+            entry = self.pods[slot.pod]
+            want = self.plan.assignment_for(slot)
+            if entry.reported != want:
+                have = "nothing" if entry.reported is None else f"generation {entry.reported.generation}"
+                problems.append(f"pod {slot.pod} runs {have}, the plan is generation {want.generation}")
+            elif not entry.ready:
+                problems.append(f"pod {slot.pod} is not ready (building its envs)")
+        return problems
+
+    def _unfilled_problem(self, plan: Plan, slot: Slot) -> str:
+        small = sorted(
+            n for n, e in self.pods.items() if plan.slot_of(n) is None and e.capacity.max_envs < slot.num_envs
+        )
+        why = f" (pods {', '.join(small)} have max_envs below the {slot.num_envs} envs it needs)" if small else ""
+        return f"stage {slot.stage_id} slot {slot.index} has no pod{why}"
+
+    @property
+    def ready(self) -> bool:
+        return not self.problems()
+
+    def routing(self) -> RoutingTable:
+        """Returns the routing table of the current plan.
+
+        Raises:
+            NoJobError: no job was set.
+            NoPlanError: the job is not planned yet.
+        """
+        if self.job is None:
+            raise NoJobError("no job: PUT /v1/job first")
+        if self.plan is None:
+            raise NoPlanError("no plan yet: waiting for pods to register and report what they run")
+        return self.plan.routing_table({n: e.url for n, e in self.pods.items()}, ready=self.ready)
+
+    def gauges(self) -> Gauges:
+        """Returns the values the metrics report at a scrape."""
+        return Gauges(
+            pods=len(self.pods),
+            ready_pods=sum(e.ready for e in self.pods.values()),
+            generation=self.plan.generation if self.plan is not None else 0,
+            unfilled_slots=len(self.plan.unfilled) if self.plan is not None else 0,
+            job_ready=self.ready,
+        )

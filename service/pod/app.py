@@ -1,0 +1,93 @@
+"""The pod's FastAPI app: ``create_app(settings)`` wires state, routers, errors and lifespan."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+import vecsim
+
+from .agent import ControllerAgent, Heartbeat
+from .bodies import BodyLimitMiddleware
+from .errors import InvalidRequestError, PodError
+from .metrics import PodMetrics
+from .models import describe_validation_error
+from .routers import assignment, envs, health, info, metrics
+from .settings import PodSettings
+from .state import PodState
+
+log = logging.getLogger(__name__)
+
+
+def heartbeat_of(state: PodState) -> Heartbeat:
+    """What the pod tells the controller about itself now."""
+    return Heartbeat(
+        url=state.settings.url,
+        generation=state.generation,
+        assignment=state.assignment,
+        ready=state.ready,
+    )
+
+
+def create_app(settings: PodSettings) -> FastAPI:
+    """A pod app for ``settings``; serve it once (its lifespan closes its envs and worker).
+
+    At start-up it builds ``settings.assignment`` if one is given (standalone mode) and starts
+    the controller agent if ``settings.controller_url`` is set.
+
+    Returns:
+        The FastAPI app, with the pod's state in ``app.state.pod``.
+    """
+    state = PodState(settings, PodMetrics())
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.assignment is not None:
+            await state.assign(settings.assignment)
+        agent_task = None
+        if settings.controller_url:
+            agent = ControllerAgent(settings, lambda: heartbeat_of(state))
+            agent_task = asyncio.create_task(agent.run(), name=f"{settings.name}-agent")
+        log.info("pod %s (namespace %s) serving at %s", settings.name, settings.namespace, settings.url)
+        try:
+            yield
+        finally:
+            if agent_task is not None:
+                agent_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await agent_task
+            await state.close()
+            log.info("pod %s stopped", settings.name)
+
+    app = FastAPI(
+        title=f"vecsim pod {settings.name}",
+        version=vecsim.__version__,
+        description="One sim pod: task-grouped MuJoCo envs served over HTTP (see docs/api.md).",
+        lifespan=lifespan,
+    )
+    app.state.pod = state
+
+    @app.exception_handler(PodError)
+    async def _pod_error(request: Request, exc: PodError) -> JSONResponse:
+        state.metrics.errors.labels(exc.kind).inc()
+        log.debug("%s %s -> %d: %s", request.method, request.url.path, exc.status_code, exc.detail)
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return await _pod_error(request, InvalidRequestError(describe_validation_error(exc)))
+
+    app.add_middleware(
+        BodyLimitMiddleware,
+        limit=settings.max_body_bytes,
+        on_refused=state.metrics.errors.labels("body_too_large").inc,
+    )
+    for router in (health.router, info.router, assignment.router, envs.router, metrics.router):
+        app.include_router(router)
+    return app

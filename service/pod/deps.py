@@ -1,0 +1,19 @@
+"""FastAPI dependencies handing routes the pod's shared state (kept on ``app.state``, never in
+module globals, so that several pod apps can live in one process)."""
+
+from __future__ import annotations
+
+from fastapi import Request
+
+from .metrics import PodMetrics
+from .state import PodState
+
+
+def get_state(request: Request) -> PodState:
+    """The pod's state: assignment, envs and worker thread."""
+    return request.app.state.pod
+
+
+def get_metrics(request: Request) -> PodMetrics:
+    """The pod's metrics and their registry."""
+    return request.app.state.pod.metrics

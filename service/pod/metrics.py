@@ -1,0 +1,31 @@
+"""The pod's Prometheus metrics, in a registry of their own so that several apps can live in one
+process (tests, the local runner) without clashing in the global registry."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+
+class PodMetrics:
+    """Counters, gauges and the step latency histogram of one pod app."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.env_steps = Counter(
+            "vecsim_pod_env_steps", "Env steps simulated (one per env per step request).",
+            registry=self.registry,
+        )
+        self.env_resets = Counter(
+            "vecsim_pod_env_resets", "Env resets done (one per env per reset request).",
+            registry=self.registry,
+        )
+        self.step_seconds = Histogram(
+            "vecsim_pod_step_seconds", "Time one step request spends in the simulation worker.",
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0),
+            registry=self.registry,
+        )
+        self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
+        self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
+        self.errors = Counter(
+            "vecsim_pod_errors", "Requests refused or failed, by kind.", ["kind"], registry=self.registry,
+        )

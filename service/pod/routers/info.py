@@ -1,0 +1,42 @@
+"""What the pod is and what it runs."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from vecsim.spaces import space_to_json
+from vecsim.tasks import get_task
+
+from ..deps import get_state
+from ..models import InfoResponse, TaskInfo
+from ..state import PodState
+
+router = APIRouter(tags=["info"])
+
+
+@router.get("/v1/info", response_model=InfoResponse, summary="The pod's assignment, tasks and spaces")
+async def info(state: PodState = Depends(get_state)) -> InfoResponse:
+    """The pod's name, stage, generation, readiness, its task blocks with their instructions and,
+    once the envs are built, the observation and action space of one env."""
+    assignment = state.assignment
+    env = state.env
+    tasks = [] if assignment is None else [
+        TaskInfo(
+            task_id=block.task_id,
+            instruction=get_task(block.task_id).instruction,
+            env_start=block.env_start,
+            num_envs=block.num_envs,
+        )
+        for block in assignment.tasks
+    ]
+    return InfoResponse(
+        pod=state.settings.name,
+        stage_id=None if assignment is None else assignment.stage_id,
+        generation=state.generation,
+        ready=state.ready,
+        num_envs=0 if assignment is None else assignment.num_envs,
+        tasks=tasks,
+        observation_space=None if env is None else space_to_json(env.single_observation_space),
+        action_space=None if env is None else space_to_json(env.single_action_space),
+        instance=state.instance,
+    )

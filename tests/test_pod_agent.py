@@ -1,0 +1,217 @@
+"""The pod's controller agent, against a stand-in controller: a small real FastAPI app on
+loopback that records every registration and heartbeat it receives and can be told to forget a
+pod or to fail. The pods are real pod apps served by uvicorn in this process, with no envs (a
+spare assignment), so each test stays cheap.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+from fastapi import FastAPI, Response
+
+from service.pod.agent import backoff_delay
+from service.pod.app import create_app
+from service.pod.settings import PodSettings
+from vecsim.config import Assignment, PodRecord, PodRegistration
+
+HEARTBEAT_S = 0.05
+WAIT_S = 30.0
+
+
+def wait_until(predicate: Any, what: str, timeout_s: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
+
+
+class StandInController:
+    """Records what pods send; forgets pods or answers 500 when a test says so."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.registrations: list[dict[str, Any]] = []
+        self.heartbeats: list[dict[str, Any]] = []
+        self.known: set[str] = set()
+        self.failing = False
+        self.refused = 0
+        self.app = FastAPI()
+
+        @self.app.post("/v1/pods")
+        async def register(registration: PodRegistration) -> Any:
+            with self.lock:
+                if self.failing:
+                    self.refused += 1
+                    return Response(status_code=500)
+                self.registrations.append(registration.model_dump(mode="json"))
+                self.known.add(registration.name)
+            return PodRecord(name=registration.name, url=registration.url, capacity=registration.capacity)
+
+        @self.app.post("/v1/pods/{name}/heartbeat")
+        async def heartbeat(name: str, body: dict[str, Any]) -> Any:
+            with self.lock:
+                if self.failing:
+                    self.refused += 1
+                    return Response(status_code=500)
+                if name not in self.known:
+                    return Response(status_code=404)
+                self.heartbeats.append({"name": name, **body})
+            return {"generation": body.get("generation")}
+
+    def forget(self, name: str) -> None:
+        with self.lock:
+            self.known.discard(name)
+
+    def last_heartbeat(self) -> dict[str, Any] | None:
+        with self.lock:
+            return self.heartbeats[-1] if self.heartbeats else None
+
+    def count(self, what: str) -> int:
+        with self.lock:
+            return len(getattr(self, what))
+
+
+class ServerThread:
+    """An ASGI app served by uvicorn on a loopback socket, in a thread of this process."""
+
+    def __init__(self, app: Any, sock: socket.socket) -> None:
+        self.port = sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, daemon=True)
+        self.thread.start()
+        wait_until(lambda: self.server.started or not self.thread.is_alive(), f"server on port {self.port}")
+        assert self.server.started, f"server on port {self.port} did not start"
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=30)
+
+
+def loopback_socket(port: int = 0) -> socket.socket:
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", port))
+    return sock
+
+
+@pytest.fixture
+def controller() -> Iterator[tuple[StandInController, ServerThread]]:
+    stand_in = StandInController()
+    server = ServerThread(stand_in.app, loopback_socket())
+    try:
+        yield stand_in, server
+    finally:
+        server.stop()
+
+
+def serve_pod(name: str, controller_url: str) -> ServerThread:
+    sock = loopback_socket()
+    settings = PodSettings(
+        name=name, port=sock.getsockname()[1], controller_url=controller_url, heartbeat_s=HEARTBEAT_S,
+        max_backoff_s=4 * HEARTBEAT_S, max_envs=3, gpu=False,
+    )
+    return ServerThread(create_app(settings), sock)
+
+
+@pytest.fixture
+def pod(controller: tuple[StandInController, ServerThread]) -> Iterator[ServerThread]:
+    server = serve_pod("sim-3", controller[1].url)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+def test_pod_registers_with_its_name_url_and_capacity(
+    controller: tuple[StandInController, ServerThread], pod: ServerThread
+) -> None:
+    stand_in, _ = controller
+    wait_until(lambda: stand_in.count("registrations") >= 1, "a registration")
+    assert stand_in.registrations[0] == {
+        "name": "sim-3", "url": pod.url, "capacity": {"max_envs": 3, "gpu": False},
+    }
+
+
+def test_heartbeats_say_unassigned_and_not_ready_before_an_assignment(
+    controller: tuple[StandInController, ServerThread], pod: ServerThread
+) -> None:
+    stand_in, _ = controller
+    wait_until(lambda: stand_in.count("heartbeats") >= 2, "two heartbeats")
+    beat = stand_in.last_heartbeat()
+    assert beat == {"name": "sim-3", "url": pod.url, "generation": None, "assignment": None, "ready": False}
+
+
+def test_heartbeats_report_the_assignment_generation_and_readiness(
+    controller: tuple[StandInController, ServerThread], pod: ServerThread
+) -> None:
+    stand_in, _ = controller
+    spare = Assignment(generation=5, job_id="agent-tests", pod="sim-3", stage_id=0, tasks=())
+    response = httpx.put(f"{pod.url}/v1/assignment", json=spare.model_dump(mode="json"), timeout=30)
+    assert response.status_code == 200
+    wait_until(lambda: (stand_in.last_heartbeat() or {}).get("ready") is True, "a heartbeat saying ready")
+    beat = stand_in.last_heartbeat()
+    assert beat is not None
+    assert beat["generation"] == 5
+    assert Assignment.model_validate(beat["assignment"]) == spare
+
+
+def test_pod_registers_again_when_the_controller_forgets_it(
+    controller: tuple[StandInController, ServerThread], pod: ServerThread
+) -> None:
+    stand_in, _ = controller
+    wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat")
+    stand_in.forget("sim-3")
+    wait_until(lambda: stand_in.count("registrations") >= 2, "a second registration")
+    beats = stand_in.count("heartbeats")
+    wait_until(lambda: stand_in.count("heartbeats") > beats, "heartbeats after registering again")
+
+
+def test_controller_errors_leave_the_pod_serving_and_heartbeats_resume(
+    controller: tuple[StandInController, ServerThread], pod: ServerThread
+) -> None:
+    stand_in, _ = controller
+    wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat")
+    with stand_in.lock:
+        stand_in.failing = True
+    wait_until(lambda: stand_in.refused >= 3, "three refused heartbeats")
+    assert httpx.get(f"{pod.url}/healthz", timeout=10).status_code == 200
+    beats = stand_in.count("heartbeats")
+    with stand_in.lock:
+        stand_in.failing = False
+    wait_until(lambda: stand_in.count("heartbeats") > beats, "heartbeats after the errors stop")
+
+
+def test_pod_finds_a_controller_that_starts_after_it() -> None:
+    reserved = loopback_socket()
+    controller_url = f"http://127.0.0.1:{reserved.getsockname()[1]}"
+    pod = serve_pod("sim-4", controller_url)
+    stand_in = StandInController()
+    try:
+        assert httpx.get(f"{pod.url}/healthz", timeout=10).status_code == 200
+        # The controller comes up on the address the pod has been retrying all along.
+        server = ServerThread(stand_in.app, reserved)
+        try:
+            wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat from the early pod")
+            assert stand_in.registrations[0]["name"] == "sim-4"
+        finally:
+            server.stop()
+    finally:
+        pod.stop()
+        reserved.close()
+
+
+def test_backoff_doubles_per_failure_up_to_its_cap() -> None:
+    delays = [backoff_delay(failures, 0.5, 10.0) for failures in range(8)]
+    assert delays == [0.5, 1.0, 2.0, 4.0, 8.0, 10.0, 10.0, 10.0]
+    assert backoff_delay(10_000, 0.5, 10.0) == 10.0
