@@ -1,0 +1,308 @@
+"""Transport benchmark: how fast large response bodies reach the client, per HTTP client stack.
+
+A real uvicorn server (FastAPI, in its own process, on a loopback port the kernel picked) serves
+1, 4 and 16 MiB bodies. The contenders fetch them one after another over a keep-alive
+connection, on one event loop:
+
+- ``httpx``: httpx's default ``AsyncClient()`` (the baseline),
+- ``aiohttp``: a plain ``aiohttp.ClientSession()``,
+- ``vecsim-asyncio`` and ``vecsim-aiohttp``: ``vecsim.transport.make_async_client(kind)``,
+- ``vecsim-asyncio-bare``: the asyncio transport called directly, without httpx's client
+  layer (URL parsing, cookies, models): what that layer costs, for the record.
+
+Rounds interleave the contenders (and rotate their order) so that load from other processes
+hits all alike; ratios are taken within each round and the median over rounds is reported.
+
+    python bench/bench_transport.py [--rounds 8] [--loop asyncio|uvloop] [--profile]
+
+Prints ``RESULT {json}``, writes out/bench/bench_transport[_uvloop].json and the plot
+docs/img/bench_transport[_uvloop].png. ``--profile`` also writes a cProfile of the fast
+transport on 16 MiB bodies to out/bench/bench_transport_profile.txt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import cProfile
+import io
+import math
+import pstats
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
+
+import aiohttp
+import httpx
+import numpy as np
+import psutil
+from common import img_dir, machine_info, out_dir, spread, write_result
+
+from vecsim.transport import FAST_KIND, AsyncioHTTPTransport, make_async_client
+
+MIB = 1 << 20
+SIZES = (1 * MIB, 4 * MIB, 16 * MIB)
+MAX_BODY = 64 * MIB
+FAST = f"vecsim-{FAST_KIND}"
+
+Fetch = Callable[[str], Awaitable[bytes]]
+
+
+def body_of(n: int) -> bytes:
+    """The ``n`` bytes the server sends for ``/bytes/n`` (random: nothing to compress)."""
+    return np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes()
+
+
+def serve(fd: int) -> None:
+    """Run the benchmark server on the listening socket ``fd`` (in the child process)."""
+    import uvicorn
+    from fastapi import FastAPI, HTTPException
+    from fastapi.responses import Response
+
+    app = FastAPI()
+    bodies: dict[int, bytes] = {}
+
+    @app.get("/bytes/{n}")
+    def get_bytes(n: int) -> Response:
+        if not 0 <= n <= MAX_BODY:
+            raise HTTPException(422, f"n must be in 0..{MAX_BODY}")
+        if n not in bodies:
+            bodies[n] = body_of(n)
+        return Response(bodies[n], media_type="application/octet-stream")
+
+    # Not uvicorn's fd=: it takes the socket for AF_UNIX, so accepted connections miss
+    # TCP_NODELAY and small answers stall on Nagle + delayed ACK (40 ms each).
+    config = uvicorn.Config(app, log_level="warning", access_log=False)
+    uvicorn.Server(config).run(sockets=[socket.socket(fileno=fd)])
+
+
+@contextmanager
+def server_process() -> Iterator[tuple[str, psutil.Process]]:
+    """Start the server in a child process on a free loopback port; yield its URL and process."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(64)
+    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+    child = subprocess.Popen([sys.executable, __file__, "--serve-fd", str(sock.fileno())], pass_fds=[sock.fileno()])
+    try:
+        with httpx.Client(timeout=2) as probe:
+            for _ in range(300):
+                if child.poll() is not None:
+                    raise SystemExit(f"benchmark server exited with {child.returncode}")
+                try:
+                    if probe.get(f"{url}/bytes/1").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    time.sleep(0.1)
+            else:
+                raise SystemExit("benchmark server did not answer within 30 s")
+        yield url, psutil.Process(child.pid)
+    finally:
+        child.terminate()
+        try:
+            child.wait(10)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+        sock.close()
+
+
+Table = dict[str, dict[int, list[float]]]
+
+
+def _cpu(process: psutil.Process) -> float:
+    times = process.cpu_times()
+    return times.user + times.system
+
+
+async def measure(
+    url: str, server: psutil.Process, sizes: tuple[int, ...], rounds: int, min_bytes: int
+) -> tuple[Table, Table, Table]:
+    """Per contender per body size, one figure per round: GB/s, and the CPU milliseconds per
+    request spent by the client process and by the server process (these in clock ticks of
+    10 ms: average them over all rounds, not per round)."""
+    httpx_default = httpx.AsyncClient()
+    aiohttp_plain = aiohttp.ClientSession()
+    ours = {kind: make_async_client(kind) for kind in ("asyncio", "aiohttp")}
+    bare = AsyncioHTTPTransport()
+
+    async def via_httpx(target: str) -> bytes:
+        return (await httpx_default.get(target)).content
+
+    async def via_aiohttp(target: str) -> bytes:
+        async with aiohttp_plain.get(target) as response:
+            return await response.read()
+
+    def via_ours(kind: str) -> Fetch:
+        async def fetch(target: str) -> bytes:
+            return (await ours[kind].get(target)).content
+
+        return fetch
+
+    async def via_bare_transport(target: str) -> bytes:
+        response = await bare.handle_async_request(httpx.Request("GET", target))
+        return await response.aread()
+
+    contenders: dict[str, Fetch] = {
+        "httpx": via_httpx,
+        "aiohttp": via_aiohttp,
+        "vecsim-asyncio": via_ours("asyncio"),
+        "vecsim-aiohttp": via_ours("aiohttp"),
+        "vecsim-asyncio-bare": via_bare_transport,
+    }
+    expected = {n: body_of(n) for n in sizes}
+    gbps: Table = {name: {n: [] for n in sizes} for name in contenders}
+    client_ms: Table = {name: {n: [] for n in sizes} for name in contenders}
+    server_ms: Table = {name: {n: [] for n in sizes} for name in contenders}
+    me = psutil.Process()
+    names = list(contenders)
+    try:
+        for n in sizes:  # warm-up: connections open, server bodies built, every answer checked
+            for name, fetch in contenders.items():
+                if await fetch(f"{url}/bytes/{n}") != expected[n]:
+                    raise SystemExit(f"{name}: wrong body for {n} bytes")
+        for r in range(rounds):
+            for n in sizes:
+                reps = max(2, math.ceil(min_bytes / n))
+                for name in names[r % len(names) :] + names[: r % len(names)]:
+                    fetch = contenders[name]
+                    cpu_client, cpu_server = _cpu(me), _cpu(server)
+                    start = time.perf_counter()
+                    for _ in range(reps):
+                        if len(await fetch(f"{url}/bytes/{n}")) != n:
+                            raise SystemExit(f"{name}: short body for {n} bytes")
+                    gbps[name][n].append(reps * n / (time.perf_counter() - start) / 1e9)
+                    client_ms[name][n].append((_cpu(me) - cpu_client) / reps * 1e3)
+                    server_ms[name][n].append((_cpu(server) - cpu_server) / reps * 1e3)
+            print(f"round {r + 1}/{rounds} done", file=sys.stderr, flush=True)
+    finally:
+        await httpx_default.aclose()
+        await aiohttp_plain.close()
+        for client in ours.values():
+            await client.aclose()
+        await bare.aclose()
+    return gbps, client_ms, server_ms
+
+
+async def profile_fast(url: str, sizes: tuple[int, ...], reps: int) -> str:
+    """cProfile of the fast client fetching each body size, top functions by own time."""
+    text = io.StringIO()
+    async with make_async_client("fast") as client:
+        for n in sizes:
+            await client.get(f"{url}/bytes/{n}")
+            profiler = cProfile.Profile()
+            profiler.enable()
+            for _ in range(reps):
+                await client.get(f"{url}/bytes/{n}")
+            profiler.disable()
+            text.write(f"==== {FAST}, {reps} x {n // MIB} MiB ====\n")
+            pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
+    return text.getvalue()
+
+
+def plot(medians: dict[str, dict[int, dict[str, float]]], sizes: tuple[int, ...], path: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(medians)
+    width = 0.8 / len(names)
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for i, name in enumerate(names):
+        xs = [j + (i - (len(names) - 1) / 2) * width for j in range(len(sizes))]
+        mid = [medians[name][n]["median"] for n in sizes]
+        low = [m - medians[name][n]["min"] for m, n in zip(mid, sizes)]
+        high = [medians[name][n]["max"] - m for m, n in zip(mid, sizes)]
+        ax.bar(xs, mid, width, yerr=[low, high], capsize=3, label=name)
+    ax.set_xticks(range(len(sizes)), [f"{n // MIB} MiB" for n in sizes])
+    ax.set_xlabel("response body")
+    ax.set_ylabel("GB/s received (median over rounds, bars: min-max)")
+    ax.set_title(title, fontsize=10)
+    ax.legend()
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rounds", type=int, default=8, help="interleaved rounds (default 8)")
+    parser.add_argument("--min-mib", type=int, default=48, help="MiB fetched per contender per size per round")
+    parser.add_argument("--sizes-mib", type=int, nargs="+", default=[n // MIB for n in SIZES], help="body sizes")
+    parser.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="client event loop")
+    parser.add_argument("--profile", action="store_true", help="also profile the fast transport")
+    parser.add_argument("--serve-fd", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.serve_fd is not None:
+        serve(args.serve_fd)
+        return
+
+    if args.loop == "uvloop":
+        import uvloop
+
+        runner: Callable[..., object] = uvloop.run
+    else:
+        runner = asyncio.run
+    name = "bench_transport" if args.loop == "asyncio" else f"bench_transport_{args.loop}"
+
+    sizes = tuple(n * MIB for n in args.sizes_mib)
+    with server_process() as (url, server):
+        gbps, client_ms, server_ms = runner(measure(url, server, sizes, args.rounds, args.min_mib * MIB))
+        profile = runner(profile_fast(url, sizes, 6)) if args.profile else None
+
+    medians = {c: {n: spread(v) for n, v in per_size.items()} for c, per_size in gbps.items()}
+
+    def per_size(table: Table, reduce: Callable[[list[float]], float], digits: int = 2) -> dict[str, dict[str, float]]:
+        return {c: {f"{n // MIB}MiB": round(reduce(v[n]), digits) for n in sizes} for c, v in table.items()}
+
+    def ratio(a: str, b: str) -> dict[str, float]:
+        return {
+            f"{n // MIB}MiB": round(spread([x / y for x, y in zip(gbps[a][n], gbps[b][n])])["median"], 2)
+            for n in sizes
+        }
+
+    summary = {
+        "loop": args.loop,
+        "fast_kind": FAST_KIND,
+        "GBps_median": per_size(gbps, statistics.median, digits=3),
+        "fast_vs_httpx": ratio(FAST, "httpx"),
+        "fast_vs_aiohttp": ratio(FAST, "aiohttp"),
+        "vecsim_aiohttp_vs_httpx": ratio("vecsim-aiohttp", "httpx"),
+        "aiohttp_vs_httpx": ratio("aiohttp", "httpx"),
+        "bare_asyncio_vs_aiohttp": ratio("vecsim-asyncio-bare", "aiohttp"),
+        # CPU per request (ms), mean over all rounds: where the time goes on shared cores.
+        "client_cpu_ms": per_size(client_ms, statistics.fmean),
+        "server_cpu_ms": per_size(server_ms, statistics.fmean),
+        "target": f"{FAST} >= 3x httpx default and >= plain aiohttp at every size",
+    }
+    summary["target_met"] = all(v >= 3.0 for v in summary["fast_vs_httpx"].values()) and all(
+        v >= 1.0 for v in summary["fast_vs_aiohttp"].values()
+    )
+    machine = machine_info()
+    png = img_dir() / f"{name}.png"
+    plot(
+        medians,
+        sizes,
+        str(png),
+        f"Response bodies from uvicorn on loopback, {args.loop} client loop\n"
+        f"{machine['cores']} cores ({machine['cpu']}), {machine['date'][:10]}, load {machine['load_avg_1m']}",
+    )
+    summary["plot"] = str(png.relative_to(img_dir().parent.parent))
+    if profile is not None:
+        (out_dir() / f"{name}_profile.txt").write_text(profile)
+    details = {
+        "rounds": args.rounds,
+        "min_mib_per_round": args.min_mib,
+        "GBps_per_round": {c: {f"{n // MIB}MiB": v for n, v in per_size.items()} for c, per_size in gbps.items()},
+    }
+    write_result(name, summary, details)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# The demo command: sets up the environment, then starts a local job (controller + pods),
+# runs a pipelined rollout on it, prints a summary and writes a plot and videos to out/demo.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="$("$here/scripts/setup.sh" | tail -n 1)"
+cd "$here"
+export MUJOCO_GL="${MUJOCO_GL:-egl}"
+exec "$venv/bin/vecsim" demo "$@"

@@ -1,0 +1,520 @@
+"""vecsim.transport: httpx clients on each transport against real uvicorn servers on loopback.
+
+The servers are real uvicorn servers on real sockets, each in a thread of the test process, on a
+port the kernel picked. Every transport kind must give the same answers and raise the same httpx
+exceptions, so most tests run once per kind (``httpx`` being the reference).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import socket
+import threading
+import weakref
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
+
+from vecsim import wire
+from vecsim.transport import (
+    FAST_KIND,
+    AiohttpTransport,
+    AsyncioHTTPTransport,
+    TotalTimeout,
+    make_async_client,
+    make_transport,
+)
+
+KINDS = ["asyncio", "aiohttp", "httpx"]
+T = TypeVar("T")
+
+
+def pattern(n: int) -> bytes:
+    """``n`` bytes that differ from any shifted copy of themselves, so misplaced bytes show."""
+    return (np.arange(n, dtype=np.uint64) * 2654435761 >> 7).astype(np.uint8).tobytes()
+
+
+app = FastAPI()
+
+
+@app.api_route("/bytes/{n}", methods=["GET", "HEAD"])
+def get_bytes(n: int) -> Response:
+    return Response(content=pattern(n), media_type="application/octet-stream")
+
+
+@app.post("/echo")
+async def echo(request: Request) -> Response:
+    body = await request.body()
+    return Response(
+        content=body,
+        media_type=request.headers.get("content-type", "application/octet-stream"),
+        headers={
+            "x-echo-test": request.headers.get("x-test", ""),
+            "x-echo-transfer-encoding": request.headers.get("transfer-encoding", ""),
+        },
+    )
+
+
+@app.get("/status/{code}")
+def status(code: int) -> Response:
+    if code in (204, 304):
+        return Response(status_code=code)
+    return JSONResponse({"detail": f"status {code} as asked"}, status_code=code)
+
+
+@app.get("/sleep")
+async def sleep(seconds: float) -> Response:
+    await asyncio.sleep(seconds)
+    return PlainTextResponse("done")
+
+
+@app.get("/drip")
+def drip(chunks: int, interval: float, size: int = 1000) -> StreamingResponse:
+    async def body() -> AsyncIterator[bytes]:
+        for i in range(chunks):
+            if interval:
+                await asyncio.sleep(interval)
+            yield bytes([i % 256]) * size
+
+    return StreamingResponse(body(), media_type="application/octet-stream")
+
+
+@app.get("/peer")
+async def peer(request: Request, hold: float = 0.0) -> Response:
+    await asyncio.sleep(hold)
+    return PlainTextResponse(f"{request.client.host}:{request.client.port}")
+
+
+@app.get("/close")
+def close() -> Response:
+    return PlainTextResponse("bye", headers={"connection": "close"})
+
+
+@contextmanager
+def uvicorn_server(**config: Any) -> Iterator[str]:
+    """A uvicorn server for ``app`` on a free loopback port; yields its base URL."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(
+        uvicorn.Config(app, log_level="warning", lifespan="off", timeout_graceful_shutdown=1, **config)
+    )
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    try:
+        for _ in range(200):
+            if server.started or not thread.is_alive():
+                break
+            thread.join(0.05)
+        assert server.started, "uvicorn did not start"
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        sock.close()
+
+
+@contextmanager
+def raw_server(reply: bytes) -> Iterator[str]:
+    """A TCP server that reads one request per connection, sends ``reply`` and closes."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    listener.settimeout(0.1)
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                conn.settimeout(5)
+                conn.recv(65536)
+                conn.sendall(reply)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+    finally:
+        stop.set()
+        thread.join(5)
+        listener.close()
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[str]:
+    with uvicorn_server() as url:
+        yield url
+
+
+def run_with(kind: str, use: Callable[[httpx.AsyncClient], Awaitable[T]], **client_kwargs: Any) -> T:
+    """Run ``use(client)`` on a fresh event loop with a client of ``kind``, closing both after."""
+
+    async def main() -> T:
+        async with make_async_client(kind, **client_kwargs) as client:
+            return await use(client)
+
+    return asyncio.run(main())
+
+
+# ------------------------------------------------------------------------------- bodies
+
+
+@pytest.mark.parametrize("size", [0, 1, 70_000, 4 << 20])
+@pytest.mark.parametrize("kind", KINDS)
+def test_response_body_arrives_byte_for_byte(server: str, kind: str, size: int) -> None:
+    response = run_with(kind, lambda c: c.get(f"{server}/bytes/{size}"))
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "application/octet-stream"
+    assert response.content == pattern(size)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_request_body_and_headers_reach_the_server(server: str, kind: str) -> None:
+    body = pattern(300_000)
+    response = run_with(
+        kind,
+        lambda c: c.post(
+            f"{server}/echo", content=body, headers={"content-type": "application/x-test", "x-test": "abc"}
+        ),
+    )
+    assert response.content == body
+    assert response.headers["content-type"] == "application/x-test"
+    assert response.headers["x-echo-test"] == "abc"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_wire_parts_sent_as_a_stream_arrive_as_one_message(server: str, kind: str) -> None:
+    message = {"actions": np.linspace(-1, 1, 16 * 7, dtype=np.float32).reshape(16, 7), "generation": 3}
+    parts = wire.encode_parts(message)
+
+    async def stream() -> AsyncIterator[bytes | memoryview]:
+        for part in parts:
+            yield part
+
+    headers = {"content-type": wire.CONTENT_TYPE, "content-length": str(sum(len(p) for p in parts))}
+    response = run_with(kind, lambda c: c.post(f"{server}/echo", content=stream(), headers=headers))
+    assert response.headers["x-echo-transfer-encoding"] == ""
+    decoded = wire.decode(response.content)
+    assert decoded["generation"] == 3 and np.array_equal(decoded["actions"], message["actions"])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_body_of_unknown_length_arrives_whole(server: str, kind: str) -> None:
+    async def stream() -> AsyncIterator[bytes]:
+        for i in range(5):
+            yield pattern(10_000 + i)
+
+    response = run_with(kind, lambda c: c.post(f"{server}/echo", content=stream()))
+    assert response.content == b"".join(pattern(10_000 + i) for i in range(5))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_chunked_response_is_reassembled(server: str, kind: str) -> None:
+    response = run_with(kind, lambda c: c.get(f"{server}/drip", params={"chunks": 50, "interval": 0, "size": 3000}))
+    assert response.content == b"".join(bytes([i]) * 3000 for i in range(50))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_head_request_has_headers_and_no_body(server: str, kind: str) -> None:
+    response = run_with(kind, lambda c: c.head(f"{server}/bytes/1000"))
+    assert response.status_code == 200
+    assert response.headers["content-length"] == "1000"
+    assert response.content == b""
+
+
+@pytest.mark.parametrize("code", [404, 409, 500])
+@pytest.mark.parametrize("kind", KINDS)
+def test_error_status_and_its_json_detail_pass_through(server: str, kind: str, code: int) -> None:
+    response = run_with(kind, lambda c: c.get(f"{server}/status/{code}"))
+    assert response.status_code == code
+    assert response.json() == {"detail": f"status {code} as asked"}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_no_content_status_has_an_empty_body(server: str, kind: str) -> None:
+    response = run_with(kind, lambda c: c.get(f"{server}/status/204"))
+    assert response.status_code == 204 and response.content == b""
+
+
+# ------------------------------------------------------------------------- connections
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_sequential_requests_reuse_one_keep_alive_connection(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> list[str]:
+        return [(await client.get(f"{server}/peer")).text for _ in range(3)]
+
+    peers = run_with(kind, use)
+    assert len(set(peers)) == 1
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_requests_in_flight_together_each_hold_their_own_connection(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> list[str]:
+        responses = await asyncio.gather(*(client.get(f"{server}/peer", params={"hold": 0.3}) for _ in range(4)))
+        return [r.text for r in responses]
+
+    assert len(set(run_with(kind, use))) == 4
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_server_that_says_connection_close_gets_a_new_connection_next_time(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> tuple[str, str, str]:
+        before = (await client.get(f"{server}/peer")).text
+        bye = (await client.get(f"{server}/close")).text
+        after = (await client.get(f"{server}/peer")).text
+        return before, bye, after
+
+    before, bye, after = run_with(kind, use)
+    assert bye == "bye" and before != after
+
+
+@pytest.mark.parametrize("kind", ["asyncio", "aiohttp"])
+def test_connection_the_server_closed_while_idle_is_not_reused(kind: str) -> None:
+    with uvicorn_server(timeout_keep_alive=1) as url:
+
+        async def use(client: httpx.AsyncClient) -> list[int]:
+            first = await client.get(f"{url}/peer")
+            await asyncio.sleep(1.5)  # past the server's keep-alive: it closes the idle connection
+            second = await client.get(f"{url}/peer")
+            return [first.status_code, second.status_code]
+
+        assert run_with(kind, use) == [200, 200]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_concurrent_requests_to_several_servers_all_get_their_own_answers(kind: str) -> None:
+    with uvicorn_server() as a, uvicorn_server() as b, uvicorn_server() as c:
+        urls = [a, b, c]
+
+        async def use(client: httpx.AsyncClient) -> list[tuple[str, int, bytes]]:
+            jobs = [(url, 100_000 * (i + 1) + j) for i, url in enumerate(urls) for j in range(4)]
+            responses = await asyncio.gather(*(client.get(f"{url}/bytes/{n}") for url, n in jobs))
+            return [(url, n, r.content) for (url, n), r in zip(jobs, responses)]
+
+        for url, n, content in run_with(kind, use):
+            assert content == pattern(n), f"{url}/bytes/{n}"
+
+
+def test_asyncio_transport_gives_back_connections_beyond_max_keepalive(server: str) -> None:
+    async def use(client: httpx.AsyncClient) -> list[str]:
+        return [(await client.get(f"{server}/peer")).text for _ in range(2)]
+
+    peers = run_with("asyncio", use, limits=httpx.Limits(max_connections=4, max_keepalive_connections=0))
+    assert peers[0] != peers[1]
+
+
+# ----------------------------------------------------------------------------- timeouts
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_slow_answer_raises_read_timeout(server: str, kind: str) -> None:
+    with pytest.raises(httpx.ReadTimeout):
+        run_with(kind, lambda c: c.get(f"{server}/sleep", params={"seconds": 3}), timeout=httpx.Timeout(5, read=0.2))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_body_that_keeps_trickling_meets_the_total_timeout(server: str, kind: str) -> None:
+    # Every chunk comes well within the read timeout; only the whole-request deadline can fire.
+    with pytest.raises(TotalTimeout) as caught:
+        run_with(
+            kind,
+            lambda c: c.get(f"{server}/drip", params={"chunks": 40, "interval": 0.1}),
+            timeout=httpx.Timeout(5, read=2),
+            total_timeout=0.5,
+        )
+    assert isinstance(caught.value, httpx.TimeoutException)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_total_timeout_can_be_set_per_request(server: str, kind: str) -> None:
+    with pytest.raises(TotalTimeout):
+        run_with(kind, lambda c: c.get(f"{server}/sleep", params={"seconds": 3}, extensions={"total_timeout": 0.2}))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_client_keeps_working_after_a_timeout(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> bytes:
+        with pytest.raises(httpx.ReadTimeout):
+            await client.get(f"{server}/sleep", params={"seconds": 3}, timeout=httpx.Timeout(5, read=0.2))
+        return (await client.get(f"{server}/bytes/5000")).content
+
+    assert run_with(kind, use) == pattern(5000)
+
+
+@pytest.mark.parametrize("kind", ["asyncio", "httpx"])
+def test_waiting_for_a_free_connection_raises_pool_timeout(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> None:
+        slow = asyncio.ensure_future(client.get(f"{server}/sleep", params={"seconds": 1}))
+        await asyncio.sleep(0.2)
+        try:
+            await client.get(f"{server}/bytes/10", timeout=httpx.Timeout(5, pool=0.1))
+        finally:
+            await slow
+
+    with pytest.raises(httpx.PoolTimeout):
+        run_with(kind, use, limits=httpx.Limits(max_connections=1))
+
+
+@pytest.fixture
+def full_backlog() -> Iterator[str]:
+    """A loopback port whose accept queue is full, so a new connection hangs in SYN."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)
+    port = listener.getsockname()[1]
+    fillers = []
+    try:
+        for _ in range(3):
+            filler = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            filler.setblocking(False)
+            fillers.append(filler)
+            try:
+                filler.connect(("127.0.0.1", port))
+            except BlockingIOError:
+                pass
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        for filler in fillers:
+            filler.close()
+        listener.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_connect_that_hangs_raises_connect_timeout(full_backlog: str, kind: str) -> None:
+    with pytest.raises(httpx.ConnectTimeout):
+        run_with(kind, lambda c: c.get(f"{full_backlog}/"), timeout=httpx.Timeout(5, connect=0.3))
+
+
+@pytest.fixture
+def deaf_server() -> Iterator[str]:
+    """A loopback server that accepts connections and never reads from them."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    listener.settimeout(0.1)
+    held: list[socket.socket] = []
+    stop = threading.Event()
+
+    def accept() -> None:
+        while not stop.is_set():
+            try:
+                held.append(listener.accept()[0])
+            except TimeoutError:
+                continue
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+    finally:
+        stop.set()
+        thread.join(5)
+        for conn in held:
+            conn.close()
+        listener.close()
+
+
+@pytest.mark.parametrize("kind", ["asyncio", "httpx"])
+def test_body_the_server_does_not_take_raises_write_timeout(deaf_server: str, kind: str) -> None:
+    body = bytes(64 << 20)  # far more than the loopback socket buffers hold
+    with pytest.raises(httpx.WriteTimeout):
+        run_with(kind, lambda c: c.post(f"{deaf_server}/echo", content=body), timeout=httpx.Timeout(5, write=0.3))
+
+
+# ------------------------------------------------------------------------ broken servers
+
+
+@pytest.fixture
+def refusing_port() -> Iterator[int]:
+    """A loopback port that is bound but not listening: connections are refused."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_refused_connection_raises_connect_error(refusing_port: int, kind: str) -> None:
+    with pytest.raises(httpx.ConnectError):
+        run_with(kind, lambda c: c.get(f"http://127.0.0.1:{refusing_port}/"))
+
+
+@pytest.mark.parametrize(
+    "reply",
+    [b"", b"NOT HTTP AT ALL\r\n\r\n", b"HTTP/1.1 200 OK\r\nContent-Length: 100\r\n\r\nonly this"],
+    ids=["no-answer", "garbage", "truncated-body"],
+)
+@pytest.mark.parametrize("kind", KINDS)
+def test_broken_answer_raises_remote_protocol_error(kind: str, reply: bytes) -> None:
+    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError):
+        run_with(kind, lambda c: c.get(f"{url}/"))
+
+
+def test_asyncio_transport_refuses_https_as_unsupported() -> None:
+    with pytest.raises(httpx.UnsupportedProtocol, match="plain http only"):
+        run_with("asyncio", lambda c: c.get("https://127.0.0.1:1/"))
+
+
+def test_asyncio_transport_refuses_header_values_with_line_breaks(server: str) -> None:
+    with pytest.raises(httpx.LocalProtocolError, match="line break"):
+        run_with("asyncio", lambda c: c.get(f"{server}/peer", headers={"x-test": "a\r\nInjected: yes"}))
+
+
+# ---------------------------------------------------------------------------- factories
+
+
+def test_fast_kind_is_the_benchmarked_transport() -> None:
+    expected = {"asyncio": AsyncioHTTPTransport, "aiohttp": AiohttpTransport}[FAST_KIND]
+    assert isinstance(make_transport("fast"), expected)
+
+
+def test_unknown_kind_is_refused_naming_it() -> None:
+    with pytest.raises(ValueError, match="kind: 'grpc' is not one of"):
+        make_async_client("grpc")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_read_response_is_freed_as_soon_as_it_is_dropped(server: str, kind: str) -> None:
+    async def use(client: httpx.AsyncClient) -> weakref.ref[httpx.Response]:
+        response = await client.get(f"{server}/bytes/100000")
+        return weakref.ref(response)
+
+    gc.disable()  # only reference counting may free it: no cycle may hold the body
+    try:
+        assert run_with(kind, use)() is None
+    finally:
+        gc.enable()
+
+
+def test_relative_urls_and_params_resolve_against_base_url(server: str) -> None:
+    async def use(client: httpx.AsyncClient) -> list[bytes]:
+        first = await client.get("/drip", params={"chunks": 2, "interval": 0, "size": 3})
+        second = await client.get("/drip", params={"chunks": 3, "interval": 0, "size": 1})
+        return [first.content, second.content]
+
+    assert run_with("fast", use, base_url=server) == [b"\x00\x00\x00\x01\x01\x01", b"\x00\x01\x02"]
+
+
+def test_asyncio_transport_works_under_uvloop(server: str) -> None:
+    uvloop = pytest.importorskip("uvloop")
+
+    async def main() -> bytes:
+        async with make_async_client("asyncio") as client:
+            return (await client.get(f"{server}/bytes/{3 << 20}")).content
+
+    assert uvloop.run(main()) == pattern(3 << 20)

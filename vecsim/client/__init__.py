@@ -1,0 +1,53 @@
+"""The trainer side of vecsim: a per-stage async client and a gymnasium ``VectorEnv`` over pods.
+
+- :class:`StageClient`: places trajectories on pod envs (``reset_trajectories``) and resets or
+  steps them one pipeline stage at a time (``reset_stage``/``step_stage``), all pods of a stage
+  concurrently.
+- :class:`HTTPVectorEnv`: every env of a job as one ``gymnasium.vector.VectorEnv``; registered as
+  ``vecsim/HTTPVectorEnv-v0``, so ``gymnasium.make_vec("vecsim/HTTPVectorEnv-v0",
+  controller_url=...)`` builds one once this module is imported (or name the module in the id:
+  ``"vecsim.client:vecsim/HTTPVectorEnv-v0"``).
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+from vecsim.client.errors import (
+    CapacityError,
+    ClientError,
+    PodRequestError,
+    PodUnavailableError,
+    RoutingChangedError,
+    StaleGenerationError,
+)
+from vecsim.client.routing import EnvSlot, TrajRoute, env_slots, place_requests
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
+from vecsim.client.vector_env import HTTPVectorEnv
+
+__all__ = [
+    "CapacityError",
+    "ClientError",
+    "EnvSlot",
+    "HTTPVectorEnv",
+    "PendingCall",
+    "PodRequestError",
+    "PodUnavailableError",
+    "RoutingChangedError",
+    "StageBatch",
+    "StageClient",
+    "StaleGenerationError",
+    "TrajRoute",
+    "env_slots",
+    "fetch_routing",
+    "place_requests",
+]
+
+ENV_ID = "vecsim/HTTPVectorEnv-v0"
+
+if ENV_ID not in gymnasium.registry:
+    # num_envs=None in the spec: make_vec would otherwise pass its default of 1, and the job,
+    # not the caller, decides how many envs there are.
+    gymnasium.register(
+        id=ENV_ID, vector_entry_point="vecsim.client.vector_env:HTTPVectorEnv", kwargs={"num_envs": None}
+    )

@@ -1,0 +1,85 @@
+"""Errors of the trainer-side client; each names the pod, stage, task or traj_keys at fault."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+__all__ = [
+    "CapacityError",
+    "ClientError",
+    "PodRequestError",
+    "PodUnavailableError",
+    "RoutingChangedError",
+    "StaleGenerationError",
+]
+
+
+def _keys(keys: Iterable[str], limit: int = 8) -> str:
+    keys = list(keys)
+    shown = ", ".join(keys[:limit])
+    return shown + (f", ... ({len(keys)} in all)" if len(keys) > limit else "")
+
+
+class ClientError(Exception):
+    """Base of the client's errors."""
+
+
+class CapacityError(ClientError, ValueError):
+    """A batch asks a stage for more envs of a task than its pods hold (or for a task it lacks)."""
+
+    def __init__(self, task_id: str, stage_id: int, capacity: int, requested: list[int], pods: list[str]) -> None:
+        self.task_id, self.stage_id, self.capacity, self.requested, self.pods = (
+            task_id,
+            stage_id,
+            capacity,
+            requested,
+            pods,
+        )
+        where = f"on pods {', '.join(pods)}" if pods else "on no pod"
+        super().__init__(
+            f"stage {stage_id} has {capacity} env(s) of task {task_id!r} ({where}) but the batch puts "
+            f"{len(requested)} request(s) of it there (requests {_keys(map(str, requested))}); draw "
+            "batches with TaskBalancedSampler(max_per_task <= group_size, stage_num = the job's stages) "
+            "or raise the job's group_size"
+        )
+
+
+class PodUnavailableError(ClientError):
+    """Pods that did not answer in time (dead, partitioned, rebuilding); names the traj_keys they held."""
+
+    def __init__(self, held: Mapping[str, list[str]], reason: str) -> None:
+        self.held = {pod: list(keys) for pod, keys in held.items()}
+        self.pods = list(self.held)
+        self.traj_keys = [k for keys in self.held.values() for k in keys]
+        self.reason = reason
+        parts = "; ".join(f"pod {pod} (traj_keys: {_keys(keys) or 'none'})" for pod, keys in self.held.items())
+        super().__init__(f"unavailable: {parts}: {reason}")
+
+
+class PodRequestError(ClientError):
+    """A pod refused a request (4xx other than 409) or answered something malformed."""
+
+    def __init__(self, pod: str, status: int | None, detail: str) -> None:
+        self.pod, self.status, self.detail = pod, status, detail
+        code = f" ({status})" if status is not None else ""
+        super().__init__(f"pod {pod} refused the request{code}: {detail}")
+
+
+class StaleGenerationError(ClientError):
+    """A pod still answers 409 after the routing table was re-read (or cannot be re-read)."""
+
+    def __init__(self, pod: str, generation: int, detail: str) -> None:
+        self.pod, self.generation, self.detail = pod, generation, detail
+        super().__init__(f"pod {pod} refused generation {generation} (409): {detail}")
+
+
+class RoutingChangedError(ClientError):
+    """The routing table changed under live trajectories; they must be reset on their new envs."""
+
+    def __init__(self, generation: int, traj_keys: list[str]) -> None:
+        self.generation, self.traj_keys = generation, list(traj_keys)
+        super().__init__(
+            f"routing changed at generation {generation} under live trajectories "
+            f"{_keys(self.traj_keys)}: their envs moved or went away; place and reset them again "
+            "(StageClient.reset_trajectories)"
+        )

@@ -1,0 +1,176 @@
+"""How the client reaches pods: one keep-alive HTTP client per pod, on one background event loop.
+
+The client code above this module sees three calls per pod (``info``, ``reset``, ``step``) and
+three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no answer in
+time), :class:`_Stale` (409, the caller re-reads the routing table) and
+:class:`~vecsim.client.errors.PodRequestError` (the pod refused the request). Which transport
+carries the bytes is decided in :func:`new_http_client` alone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import threading
+from collections.abc import Coroutine
+from typing import Any, TypeVar
+
+import httpx
+import numpy as np
+
+from vecsim import wire
+from vecsim.auth import bearer_headers
+from vecsim.client.errors import PodRequestError, PodUnavailableError
+from vecsim.transport import TransportKind, make_async_client
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+# uvicorn speaks HTTP/1.1: a call in flight holds a connection, so a few per pod suffice.
+_MAX_CONNECTIONS_PER_POD = 4
+
+
+def new_http_client(timeout_s: float, transport: TransportKind = "fast") -> httpx.AsyncClient:
+    """Return a keep-alive ``httpx.AsyncClient`` for one pod; the one place that picks a transport.
+
+    Every request, body included, must finish within ``timeout_s``.
+    """
+    return make_async_client(
+        transport,
+        timeout=timeout_s,
+        total_timeout=timeout_s,
+        limits=httpx.Limits(
+            max_connections=_MAX_CONNECTIONS_PER_POD, max_keepalive_connections=_MAX_CONNECTIONS_PER_POD
+        ),
+    )
+
+
+class EventLoopThread:
+    """An asyncio event loop running in a daemon thread, so sync code can keep calls in flight."""
+
+    def __init__(self, name: str = "vecsim-client") -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name=name, daemon=True)
+        self.thread.start()
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
+        """Schedule ``coro`` on the loop; return a future of its result."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop)
+
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+        """Run ``coro`` on the loop and return its result (raises what it raises)."""
+        return self.submit(coro).result(timeout)
+
+    def close(self) -> None:
+        """Stop the loop and join its thread; safe to call twice."""
+        if self.loop.is_closed():
+            return
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join()
+        self.loop.close()
+
+
+class _Stale(Exception):
+    """A pod answered 409: it holds another generation than the one the request carried."""
+
+    def __init__(self, pod: str, detail: str) -> None:
+        super().__init__(detail)
+        self.pod, self.detail = pod, detail
+
+
+def _detail(response: httpx.Response) -> str:
+    try:
+        body = response.json()
+    except ValueError:
+        return response.text[:500] or response.reason_phrase
+    if isinstance(body, dict) and "detail" in body:
+        return str(body["detail"])
+    return str(body)[:500]
+
+
+class PodConnection:
+    """One pod's data plane: ``POST /v1/reset``, ``POST /v1/step`` in wire format, ``GET /v1/info``.
+
+    Lives on the client's event loop; every call is bounded by ``timeout_s``. Resets and steps
+    carry the job's ``token`` (``Authorization: Bearer``) when one is given.
+    """
+
+    def __init__(
+        self, name: str, url: str, timeout_s: float, transport: TransportKind = "fast", token: str | None = None
+    ) -> None:
+        self.name = name
+        self.url = url.rstrip("/")
+        self.timeout_s = timeout_s
+        self.transport = transport
+        self._auth = bearer_headers(token)
+        self._http: httpx.AsyncClient | None = None
+
+    def _client(self) -> httpx.AsyncClient:
+        if self._http is None:
+            self._http = new_http_client(self.timeout_s, self.transport)
+        return self._http
+
+    async def aclose(self) -> None:
+        """Close the pod's connections."""
+        if self._http is not None:
+            await self._http.aclose()
+            self._http = None
+
+    async def _request(self, method: str, path: str, held: list[str], **kwargs: Any) -> httpx.Response:
+        try:
+            return await asyncio.wait_for(
+                self._client().request(method, f"{self.url}{path}", **kwargs), timeout=self.timeout_s
+            )
+        except (TimeoutError, httpx.TransportError) as exc:
+            reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
+            raise PodUnavailableError({self.name: held}, reason) from None
+
+    async def info(self) -> dict[str, Any]:
+        """Return the pod's ``GET /v1/info`` answer.
+
+        Raises:
+            PodUnavailableError, PodRequestError.
+        """
+        response = await self._request("GET", "/v1/info", [])
+        if response.status_code != 200:
+            raise PodRequestError(self.name, response.status_code, _detail(response))
+        return response.json()
+
+    async def call(self, op: str, body: dict[str, Any], held: list[str]) -> dict[str, Any]:
+        """POST ``body`` to ``/v1/<op>`` in wire format and return the decoded answer.
+
+        ``held`` names the traj_keys this call carries, for the error if the pod is unavailable.
+
+        Raises:
+            PodUnavailableError: no answer within the timeout, or 503 (envs not built).
+            _Stale: 409, the pod holds another generation.
+            PodRequestError: any other refusal, or an answer that is not valid wire.
+        """
+        response = await self._request(
+            "POST",
+            f"/v1/{op}",
+            held,
+            content=wire.encode(body),
+            headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **self._auth},
+        )
+        if response.status_code == 409:
+            raise _Stale(self.name, _detail(response))
+        if response.status_code == 503:
+            raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
+        if response.status_code != 200:
+            raise PodRequestError(self.name, response.status_code, _detail(response))
+        try:
+            answer = wire.decode(response.content)
+        except wire.WireError as exc:
+            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not valid wire: {exc}") from None
+        if not isinstance(answer, dict):
+            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not a mapping")
+        sent = np.asarray(body["env_ids"])
+        got = np.asarray(answer.get("env_ids", ()))
+        if got.shape != sent.shape or not np.array_equal(got, sent):
+            raise PodRequestError(
+                self.name, None, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
+            )
+        return answer

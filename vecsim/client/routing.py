@@ -1,0 +1,253 @@
+"""Pure routing: where each trajectory runs, given a routing table. No I/O here.
+
+A trajectory is placed once, on a free env of its task on a pod of its stage, and the answer is
+explicit: ``traj_key -> TrajRoute(pod, env_index, task_id, stage_id, state_id)``. Nothing
+downstream recomputes it from a convention.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from vecsim.client.errors import CapacityError
+from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
+from vecsim.sampler import stage_of
+
+__all__ = [
+    "EnvSlot",
+    "TrajRoute",
+    "changed_routes",
+    "env_slots",
+    "place_requests",
+    "routing_from_pod_infos",
+    "stage_by_id",
+    "validate_routes",
+]
+
+
+@dataclass(frozen=True)
+class TrajRoute:
+    """Where one trajectory runs for its whole episode."""
+
+    pod: str
+    env_index: int
+    task_id: str
+    stage_id: int
+    state_id: int
+
+
+@dataclass(frozen=True)
+class EnvSlot:
+    """One env of a job: ``(pod, env_index)``, its task and its stage."""
+
+    pod: str
+    env_index: int
+    task_id: str
+    stage_id: int
+
+
+def stage_by_id(table: RoutingTable) -> dict[int, RoutedStage]:
+    """Return the table's stages keyed by stage id.
+
+    Raises:
+        ValueError: the stage ids are not exactly ``0..S-1``, or a pod appears in two stages.
+    """
+    stages = {stage.stage_id: stage for stage in table.stages}
+    if sorted(stages) != list(range(len(table.stages))):
+        raise ValueError(
+            f"routing table generation {table.generation}: stage ids must be 0..{len(table.stages) - 1}, "
+            f"got {[s.stage_id for s in table.stages]}"
+        )
+    owner: dict[str, int] = {}
+    for stage in table.stages:
+        for pod in stage.pods:
+            if pod.pod in owner:
+                raise ValueError(
+                    f"routing table generation {table.generation}: pod {pod.pod} is in stages "
+                    f"{owner[pod.pod]} and {stage.stage_id}; a pod belongs to one stage"
+                )
+            owner[pod.pod] = stage.stage_id
+    return stages
+
+
+def env_slots(table: RoutingTable) -> list[EnvSlot]:
+    """Return every env of the table in stage-major order: stage, then pod, then env index.
+
+    Raises:
+        ValueError: as :func:`stage_by_id`.
+    """
+    stages = stage_by_id(table)
+    slots = []
+    for stage_id in sorted(stages):
+        for pod in stages[stage_id].pods:
+            for block in pod.tasks:
+                slots.extend(
+                    EnvSlot(pod.pod, env, block.task_id, stage_id)
+                    for env in range(block.env_start, block.env_start + block.num_envs)
+                )
+    return slots
+
+
+def _task_at(pod: RoutedPod, env_index: int) -> str | None:
+    for block in pod.tasks:
+        if block.env_start <= env_index < block.env_start + block.num_envs:
+            return block.task_id
+    return None
+
+
+def _check_request(i: int, request: Any) -> tuple[str, int]:
+    if not isinstance(request, (tuple, list)) or len(request) != 2:
+        raise ValueError(f"request {i}: expected a (task_id, state_id) pair, got {request!r}")
+    task_id, state_id = request
+    if not isinstance(task_id, str) or not task_id:
+        raise ValueError(f"request {i}: task_id must be a non-empty str, got {task_id!r}")
+    if isinstance(state_id, bool) or not hasattr(state_id, "__index__") or int(state_id) < 0:
+        raise ValueError(f"request {i}: state_id must be an int >= 0, got {state_id!r}")
+    return task_id, int(state_id)
+
+
+def place_requests(
+    table: RoutingTable, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str]
+) -> dict[str, TrajRoute]:
+    """Place request ``i`` on a free env of its task on a pod of stage ``stage_of(i, S)``.
+
+    Within a stage a request goes to the pod with free envs of its task that holds the fewest
+    trajectories of the batch so far (the pods of a stage step in parallel, so even loads finish
+    together), then the one with the most free envs of the task, then the first; it takes that
+    pod's lowest free env index of the task. Placement is a pure function of table and batch.
+    Returns ``{traj_keys[i]: TrajRoute}`` in request order.
+
+    Raises:
+        ValueError: a malformed request, mismatched or duplicate traj_keys, or a table without
+            stages for a non-empty batch (the message names the request or key).
+        CapacityError: a stage lacks free envs of a task (names the task, the stage and the
+            requests).
+    """
+    if len(traj_keys) != len(requests):
+        raise ValueError(f"got {len(traj_keys)} traj_keys for {len(requests)} requests")
+    if len(set(traj_keys)) != len(traj_keys):
+        raise ValueError("traj_keys must be unique")
+    checked = [_check_request(i, r) for i, r in enumerate(requests)]
+    if not checked:
+        return {}
+    stages = stage_by_id(table)
+    if not stages:
+        raise ValueError(f"routing table generation {table.generation} has no stages; is the job ready?")
+
+    # free[stage][task][pod] = env indices not yet taken, lowest first (popped from the end)
+    free: dict[int, dict[str, dict[str, list[int]]]] = {}
+    for stage_id, stage in stages.items():
+        by_task: dict[str, dict[str, list[int]]] = {}
+        for pod in stage.pods:
+            for block in pod.tasks:
+                envs = list(range(block.env_start + block.num_envs - 1, block.env_start - 1, -1))
+                by_task.setdefault(block.task_id, {}).setdefault(pod.pod, []).extend(envs)
+        free[stage_id] = by_task
+
+    wanted: dict[tuple[int, str], list[int]] = {}
+    for i, (task_id, _) in enumerate(checked):
+        wanted.setdefault((stage_of(i, len(stages)), task_id), []).append(i)
+    for (stage_id, task_id), indices in wanted.items():
+        pods = free[stage_id].get(task_id, {})
+        capacity = sum(len(envs) for envs in pods.values())
+        if len(indices) > capacity:
+            raise CapacityError(task_id, stage_id, capacity, indices, sorted(pods))
+
+    load: dict[str, int] = {}
+    routes = {}
+    for i, (task_id, state_id) in enumerate(checked):
+        stage_id = stage_of(i, len(stages))
+        pods = free[stage_id][task_id]
+        pod = min((name for name in pods if pods[name]), key=lambda name: (load.get(name, 0), -len(pods[name])))
+        load[pod] = load.get(pod, 0) + 1
+        routes[traj_keys[i]] = TrajRoute(pod, pods[pod].pop(), task_id, stage_id, state_id)
+    return routes
+
+
+def validate_routes(table: RoutingTable, routes: Mapping[str, TrajRoute]) -> None:
+    """Check that every route names an env of its task on a pod of its stage, none shared.
+
+    Raises:
+        ValueError: naming the first traj_key whose route does not fit the table.
+    """
+    stages = stage_by_id(table)
+    pods = {pod.pod: (stage_id, pod) for stage_id, stage in stages.items() for pod in stage.pods}
+    taken: dict[tuple[str, int], str] = {}
+    for key, route in routes.items():
+        if route.pod not in pods:
+            raise ValueError(f"traj_key {key}: pod {route.pod} is not in routing generation {table.generation}")
+        stage_id, pod = pods[route.pod]
+        if stage_id != route.stage_id:
+            raise ValueError(f"traj_key {key}: pod {route.pod} is on stage {stage_id}, not {route.stage_id}")
+        task = _task_at(pod, route.env_index)
+        if task != route.task_id:
+            raise ValueError(
+                f"traj_key {key}: env {route.env_index} of pod {route.pod} runs {task!r}, not {route.task_id!r}"
+            )
+        if route.state_id < 0:
+            raise ValueError(f"traj_key {key}: state_id must be >= 0, got {route.state_id}")
+        other = taken.setdefault((route.pod, route.env_index), key)
+        if other != key:
+            raise ValueError(f"traj_keys {other} and {key} share env {route.env_index} of pod {route.pod}")
+
+
+def changed_routes(old: RoutingTable, new: RoutingTable, routes: Mapping[str, TrajRoute]) -> list[str]:
+    """Return the traj_keys whose pod is not the same in ``new`` as in ``old``.
+
+    A pod is the same when it keeps its stage, its URL and all its task blocks; any change to its
+    blocks makes it rebuild its envs, so every trajectory on it is gone.
+    """
+
+    def index(table: RoutingTable) -> dict[str, tuple[int, RoutedPod]]:
+        return {pod.pod: (stage.stage_id, pod) for stage in table.stages for pod in stage.pods}
+
+    before, after = index(old), index(new)
+    moved = []
+    for key, route in routes.items():
+        was, now = before.get(route.pod), after.get(route.pod)
+        if (
+            was is None
+            or now is None
+            or was[0] != now[0]
+            or was[1].url != now[1].url
+            or was[1].tasks != now[1].tasks
+            or _task_at(now[1], route.env_index) != route.task_id
+        ):
+            moved.append(key)
+    return moved
+
+
+def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_id: str = "standalone") -> RoutingTable:
+    """Build a routing table from pods' ``GET /v1/info`` answers, given as ``(url, info)`` pairs.
+
+    For pods started without a controller (``vecsim pod --stage K ...``).
+
+    Raises:
+        ValueError: a pod without a stage, pods on different generations, or a duplicate pod name.
+    """
+    generations = {info.get("generation") for _, info in infos}
+    if len(generations) > 1:
+        raise ValueError(f"pods disagree on the generation: {sorted(map(str, generations))}")
+    by_stage: dict[int, list[RoutedPod]] = {}
+    seen: set[str] = set()
+    for url, info in infos:
+        name = info["pod"]
+        if name in seen:
+            raise ValueError(f"two pods are named {name}")
+        seen.add(name)
+        if info.get("stage_id") is None:
+            raise ValueError(f"pod {name} at {url} has no stage")
+        blocks = tuple(
+            TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
+        )
+        routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
+        by_stage.setdefault(int(info["stage_id"]), []).append(routed)
+    generation = generations.pop() if generations else 0
+    return RoutingTable(
+        generation=int(generation or 0),
+        job_id=job_id,
+        ready=all(bool(info.get("ready")) for _, info in infos),
+        stages=tuple(RoutedStage(stage_id=s, pods=tuple(by_stage[s])) for s in sorted(by_stage)),
+    )

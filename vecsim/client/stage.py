@@ -1,0 +1,763 @@
+"""StageClient: trajectories routed to pods, stepped one pipeline stage at a time.
+
+Usage, top to bottom::
+
+    client = StageClient.from_controller("http://127.0.0.1:8000")
+    routes = client.reset_trajectories([("tiny/lift", 0), ("tiny/stack", 3), ...])
+    first = client.reset_stage(0).result()          # or: await client.reset_stage(0)
+    pending = client.step_stage(0, {key: action for key, action in ...})
+    ...                                             # work on another stage meanwhile
+    batch = pending.result()
+
+Every call returns a :class:`PendingCall` at once (awaitable, or ``.result()`` from sync code);
+the HTTP runs on the client's own event loop thread, all pods of a call concurrently, over one
+keep-alive connection pool per pod, and the answers land in batch arrays allocated before the
+requests go out. Each stage is a small state machine like gymnasium's ``AsyncVectorEnv``: idle, or
+waiting on one call; a second call on a waiting stage raises ``AlreadyPendingCallError``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import dataclasses
+import itertools
+import logging
+import math
+import threading
+import time
+from collections.abc import Coroutine, Generator, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import httpx
+import numpy as np
+from gymnasium import Space
+from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
+from gymnasium.vector.utils import create_empty_array
+
+from vecsim.auth import token_from_env
+from vecsim.client.errors import (
+    PodRequestError,
+    PodUnavailableError,
+    RoutingChangedError,
+    StaleGenerationError,
+)
+from vecsim.client.pods import EventLoopThread, PodConnection, _Stale
+from vecsim.client.routing import (
+    TrajRoute,
+    changed_routes,
+    place_requests,
+    routing_from_pod_infos,
+    stage_by_id,
+    validate_routes,
+)
+from vecsim.config import RoutingTable
+from vecsim.spaces import space_from_json
+from vecsim.transport import TransportKind
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["PendingCall", "StageBatch", "StageClient", "fetch_routing"]
+
+T = TypeVar("T")
+
+
+@dataclass
+class StageBatch:
+    """The answer to one reset or step call: row ``j`` belongs to ``traj_keys[j]``.
+
+    ``state_ids`` are the trajectories' state ids (the ones just reset to, after a reset). After
+    a reset ``reward`` is 0 and ``terminated``/``truncated`` are False. ``submitted_at`` and
+    ``finished_at`` are ``time.perf_counter()`` stamps of the call.
+    """
+
+    traj_keys: list[str]
+    task_ids: list[str]
+    state_ids: np.ndarray
+    obs: dict[str, Any]
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    success: np.ndarray
+    submitted_at: float = 0.0
+    finished_at: float = 0.0
+
+    @property
+    def n(self) -> int:
+        return len(self.traj_keys)
+
+
+class PendingCall(Generic[T]):
+    """A call in flight on the client's loop: ``await`` it, or block on :meth:`result`.
+
+    ``pick``, when given, selects one item of the call's answer (a tuple) as the result.
+    """
+
+    def __init__(self, future: concurrent.futures.Future[Any], pick: int | None = None) -> None:
+        self._future = future
+        self._pick = pick
+
+    def done(self) -> bool:
+        """Return True once the call has finished (answered or failed)."""
+        return self._future.done()
+
+    def result(self, timeout: float | None = None) -> T:
+        """Wait for the call and return its answer.
+
+        Raises:
+            TimeoutError: not finished within ``timeout`` seconds (the call stays in flight).
+            Whatever the call raised (``PodUnavailableError``, ``PodRequestError``, ...).
+        """
+        answer = self._future.result(timeout)
+        return answer if self._pick is None else answer[self._pick]
+
+    def cancel(self) -> None:
+        """Stop waiting for the call (what the pods already did stays done)."""
+        self._future.cancel()
+
+    def __await__(self) -> Generator[Any, None, T]:
+        answer = yield from asyncio.wrap_future(self._future).__await__()
+        return answer if self._pick is None else answer[self._pick]
+
+
+def _completed(value: Any, pick: int | None) -> PendingCall[Any]:
+    future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+    future.set_result(value)
+    return PendingCall(future, pick)
+
+
+def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: float = 0.0) -> RoutingTable:
+    """Return the controller's routing table (``GET /v1/routing``).
+
+    With ``wait_ready_s > 0``, polls until the table says ready or the time is up.
+
+    Raises:
+        PodUnavailableError: the controller did not answer (named as pod ``controller``).
+        TimeoutError: the table was not ready within ``wait_ready_s``.
+        PodRequestError: the controller refused the request or answered something invalid.
+    """
+    url = f"{controller_url.rstrip('/')}/v1/routing"
+    deadline = time.monotonic() + wait_ready_s
+    while True:
+        try:
+            response = httpx.get(url, timeout=timeout_s)
+        except httpx.TransportError as exc:
+            raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
+        if response.status_code != 200:
+            raise PodRequestError("controller", response.status_code, response.text[:500])
+        try:
+            table = RoutingTable.model_validate(response.json())
+        except ValueError as exc:
+            raise PodRequestError("controller", None, f"invalid routing table: {exc}") from None
+        if table.ready or time.monotonic() >= deadline:
+            if wait_ready_s > 0 and not table.ready:
+                raise TimeoutError(
+                    f"routing table at {url} not ready after {wait_ready_s} s (generation {table.generation})"
+                )
+            return table
+        time.sleep(0.2)
+
+
+def _fill_rows(dst: Any, src: Any, rows: np.ndarray, where: str, pod: str) -> None:
+    """Copy a pod's batched answer ``src`` into rows ``rows`` of the preallocated ``dst``."""
+    if isinstance(dst, dict):
+        if not isinstance(src, dict) or set(src) != set(dst):
+            got = sorted(src) if isinstance(src, dict) else type(src).__name__
+            raise PodRequestError(pod, None, f"answer {where} has keys {got}, expected {sorted(dst)}")
+        for key in dst:
+            _fill_rows(dst[key], src[key], rows, f"{where}.{key}", pod)
+        return
+    src = np.asarray(src)
+    if src.shape != (len(rows), *dst.shape[1:]):
+        raise PodRequestError(
+            pod, None, f"answer {where} has shape {list(src.shape)}, expected {[len(rows), *dst.shape[1:]]}"
+        )
+    dst[rows] = src
+
+
+@dataclass
+class _PodWork:
+    """What one call asks of one pod: resets first, then steps (rows index the call's batches)."""
+
+    reset_rows: list[int] = field(default_factory=list)
+    step_rows: list[int] = field(default_factory=list)
+
+
+class StageClient:
+    """Routes trajectories to pod envs and steps them stage by stage (see the module docstring).
+
+    ``routing`` is the job's routing table; ``controller_url``, when given, is where the table is
+    re-read after a pod answers 409 (stale generation). ``timeout_s`` bounds every HTTP request:
+    a pod that does not answer within it raises :class:`PodUnavailableError`. ``transport`` picks
+    how bytes reach the pods (``vecsim.transport``: ``"fast"``, ``"asyncio"``, ``"aiohttp"``,
+    ``"httpx"``). ``token`` is the job's shared token, sent with every reset and step; left out,
+    ``VECSIM_TOKEN`` is used (none: the pods must run without one).
+    """
+
+    def __init__(
+        self,
+        routing: RoutingTable,
+        *,
+        controller_url: str | None = None,
+        timeout_s: float = 30.0,
+        transport: TransportKind = "fast",
+        token: str | None = None,
+    ) -> None:
+        if not (timeout_s > 0 and math.isfinite(timeout_s)):
+            raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
+        stage_by_id(routing)
+        self.controller_url = controller_url.rstrip("/") if controller_url else None
+        self.timeout_s = float(timeout_s)
+        self.transport = transport
+        self._token = token if token is not None else token_from_env()
+        self._lock = threading.Lock()
+        self._table = routing
+        self._pods: dict[str, PodConnection] = {}
+        self._routes: dict[str, TrajRoute] = {}
+        self._pending: dict[int, PendingCall[Any]] = {}
+        self._batches = itertools.count()
+        self._spaces: tuple[Space, Space] | None = None
+        self._instructions: dict[str, str] = {}
+        self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
+        self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
+        self._closed = False
+        self._loop = EventLoopThread()
+        self._refresh_lock: asyncio.Lock | None = None
+        self._sync_pods()
+
+    @classmethod
+    def from_controller(
+        cls,
+        controller_url: str,
+        *,
+        timeout_s: float = 30.0,
+        wait_ready_s: float = 0.0,
+        transport: TransportKind = "fast",
+        token: str | None = None,
+    ) -> StageClient:
+        """Return a client over the controller's routing table (see :func:`fetch_routing`).
+
+        Raises:
+            PodUnavailableError, PodRequestError, TimeoutError: as :func:`fetch_routing`.
+        """
+        table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
+        return cls(table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, token=token)
+
+    @classmethod
+    def from_pods(
+        cls,
+        urls: Sequence[str],
+        *,
+        timeout_s: float = 30.0,
+        transport: TransportKind = "fast",
+        token: str | None = None,
+    ) -> StageClient:
+        """Return a client over standalone pods (no controller), reading each pod's ``/v1/info``.
+
+        Raises:
+            PodUnavailableError: a pod did not answer.
+            ValueError: the pods do not make a routing table (names the problem).
+        """
+
+        def info(url: str) -> tuple[str, dict[str, Any]]:
+            try:
+                response = httpx.get(f"{url.rstrip('/')}/v1/info", timeout=timeout_s)
+            except httpx.TransportError as exc:
+                raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
+            if response.status_code != 200:
+                raise PodRequestError(url, response.status_code, response.text[:500])
+            return url.rstrip("/"), response.json()
+
+        infos = [info(u) for u in urls]
+        client = cls(routing_from_pod_infos(infos), timeout_s=timeout_s, transport=transport, token=token)
+        try:
+            client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
+        except BaseException:
+            client.close()
+            raise
+        return client
+
+    # -- what the client routes over ------------------------------------------------------------
+
+    @property
+    def routing(self) -> RoutingTable:
+        """The routing table in use (re-read after a 409 when a controller is known)."""
+        return self._table
+
+    @property
+    def num_stages(self) -> int:
+        return len(self._table.stages)
+
+    @property
+    def routes(self) -> dict[str, TrajRoute]:
+        """A copy of the live trajectories' routes, in placement order."""
+        with self._lock:
+            return dict(self._routes)
+
+    def stage_traj_keys(self, stage_id: int) -> list[str]:
+        """Return the live traj_keys of a stage, in placement order.
+
+        Raises:
+            ValueError: no such stage.
+        """
+        self._check_stage(stage_id)
+        with self._lock:
+            return [key for key, route in self._routes.items() if route.stage_id == stage_id]
+
+    @property
+    def observation_space(self) -> Space | None:
+        """One env's observation space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
+        spaces = self._load_info()
+        return spaces[0] if spaces else None
+
+    @property
+    def action_space(self) -> Space | None:
+        """One env's action space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
+        spaces = self._load_info()
+        return spaces[1] if spaces else None
+
+    @property
+    def instructions(self) -> dict[str, str]:
+        """Each task's instruction, read from the pods' ``/v1/info``."""
+        self._load_info()
+        return dict(self._instructions)
+
+    # -- placing trajectories -------------------------------------------------------------------
+
+    def reset_trajectories(
+        self, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str] | None = None
+    ) -> dict[str, TrajRoute]:
+        """Place a new batch of trajectories: request ``i`` on stage ``stage_of(i, S)``.
+
+        Replaces the live trajectories (no HTTP here; :meth:`reset_stage` puts the envs in their
+        state ids). ``traj_keys`` defaults to fresh keys ``"<batch>-<i>"``. Returns
+        ``{traj_key: TrajRoute}`` in request order. An empty batch is a no-op returning ``{}``.
+
+        Raises:
+            CapacityError: a stage lacks envs for a task (names task, stage and requests).
+            ValueError: a malformed request or traj_keys.
+            AlreadyPendingCallError: a call is still in flight.
+            ClosedEnvironmentError: the client is closed.
+        """
+        self._check_open()
+        batch = next(self._batches)
+        keys = list(traj_keys) if traj_keys is not None else [f"{batch}-{i}" for i in range(len(requests))]
+        routes = place_requests(self._table, requests, keys)
+        self._replace_routes(routes)
+        return dict(routes)
+
+    def set_routes(self, routes: Mapping[str, TrajRoute]) -> None:
+        """Make ``routes`` the live trajectories, as given (for callers that place envs themselves).
+
+        Raises:
+            ValueError: a route that does not fit the routing table, or two sharing an env.
+            AlreadyPendingCallError, ClosedEnvironmentError: as :meth:`reset_trajectories`.
+        """
+        self._check_open()
+        validate_routes(self._table, routes)
+        self._replace_routes(dict(routes))
+
+    def _replace_routes(self, routes: dict[str, TrajRoute]) -> None:
+        with self._lock:
+            if self._pending:
+                raise AlreadyPendingCallError(
+                    f"stages {sorted(self._pending)} have calls in flight; wait for them before placing a new batch",
+                    "reset",
+                )
+            self._routes = routes
+            self._lost = {}
+
+    # -- calls ----------------------------------------------------------------------------------
+
+    def reset_stage(self, stage_id: int, traj_keys: Sequence[str] | None = None) -> PendingCall[StageBatch]:
+        """Reset a stage's trajectories (all, or ``traj_keys``) to their state ids; don't wait.
+
+        A stage without trajectories (or an empty ``traj_keys``) is a no-op: an empty batch.
+
+        Raises:
+            ValueError: no such stage, or a key not live on it.
+            RoutingChangedError: a key whose env went away when the routing changed.
+            AlreadyPendingCallError: the stage already waits on a call.
+            ClosedEnvironmentError: the client is closed.
+
+        The result raises what the call met: ``PodUnavailableError`` (no answer within
+        ``timeout_s``), ``PodRequestError`` (refused), ``StaleGenerationError`` (409 after a
+        re-read, or no controller to re-read from), ``RoutingChangedError`` (the re-read routing
+        moved these trajectories' envs).
+        """
+        self._check_stage(stage_id)
+        keys = self.stage_traj_keys(stage_id) if traj_keys is None else list(traj_keys)
+        self._check_keys(keys, stage_id)
+        return self._submit(reset=keys, step={}, pick=0)
+
+    def step_stage(self, stage_id: int, actions_by_traj_key: Mapping[str, Any]) -> PendingCall[StageBatch]:
+        """Step the given trajectories of a stage, one action each; don't wait.
+
+        An empty mapping is a no-op (an empty batch). Rows of the answer follow the mapping's order.
+
+        Raises:
+            ValueError: no such stage, a key not live on it, or an action of the wrong shape or
+                not finite (names the traj_key).
+            RoutingChangedError, AlreadyPendingCallError, ClosedEnvironmentError: as
+                :meth:`reset_stage`, whose notes on the result's errors hold here too.
+        """
+        self._check_stage(stage_id)
+        self._check_keys(list(actions_by_traj_key), stage_id)
+        return self._submit(reset=(), step=actions_by_traj_key, pick=1)
+
+    def call(
+        self,
+        *,
+        reset: Sequence[str] | Mapping[str, int] = (),
+        step: Mapping[str, Any] | None = None,
+    ) -> PendingCall[tuple[StageBatch, StageBatch]]:
+        """Reset some trajectories and step others in one round, over any stages; don't wait.
+
+        ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
+        state ids (their routes take them on success). ``step`` maps traj_keys to actions. Each
+        pod gets its resets first, then its steps; pods run concurrently. The result is the pair
+        ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches.
+
+        Raises:
+            ValueError: unknown traj_keys, a key both reset and stepped, bad state ids or actions.
+            RoutingChangedError: a key whose env went away when the routing changed.
+            AlreadyPendingCallError: a stage involved already waits on a call.
+            ClosedEnvironmentError: the client is closed.
+        """
+        return self._submit(reset=reset, step=step or {}, pick=None)
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
+        """Run ``coro`` on the client's event loop and return its pending result.
+
+        For chaining calls without a round trip through the caller: inside ``coro``, ``await``
+        the client's calls (``await client.call(...)``).
+
+        Raises:
+            ClosedEnvironmentError: the client is closed.
+        """
+        self._check_open()
+        return PendingCall(self._loop.submit(coro))
+
+    def _submit(
+        self, *, reset: Sequence[str] | Mapping[str, int], step: Mapping[str, Any], pick: int | None
+    ) -> PendingCall[Any]:
+        self._check_open()
+        step = dict(step)
+        reset_map = dict(reset) if isinstance(reset, Mapping) else None
+        reset_keys = list(reset)
+        both = set(reset_keys) & set(step)
+        if both:
+            raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
+        if len(set(reset_keys)) != len(reset_keys) or len(set(step)) != len(step):
+            raise ValueError("traj_keys repeat within one call")
+        self._check_lost([*reset_keys, *step])
+        with self._lock:
+            routes = dict(self._routes)
+        for key in itertools.chain(reset_keys, step):
+            if key not in routes:
+                raise ValueError(f"traj_key {key!r} is not a live trajectory; place it with reset_trajectories first")
+        state_ids = np.array(
+            [reset_map[k] if reset_map is not None else routes[k].state_id for k in reset_keys], dtype=np.int64
+        )
+        if reset_map is not None:
+            for key, sid in zip(reset_keys, state_ids):
+                if sid < 0:
+                    raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
+        # Spaces first, so even an empty answer has the job's observation structure (0 rows).
+        self._load_info()
+        if not reset_keys and not step:
+            return _completed((self._empty_batch(), self._empty_batch()), pick)
+        actions = self._check_actions(step) if step else None
+        stages = {routes[k].stage_id for k in itertools.chain(reset_keys, step)}
+        with self._lock:
+            busy = sorted(stages & set(self._pending))
+            if busy:
+                raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
+            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions))
+            pending: PendingCall[Any] = PendingCall(future, pick)
+            for stage in stages:
+                self._pending[stage] = pending
+        future.add_done_callback(lambda _f: self._release(stages, pending))
+        return pending
+
+    def _release(self, stages: set[int], pending: PendingCall[Any]) -> None:
+        with self._lock:
+            for stage in stages:
+                if self._pending.get(stage) is pending:
+                    del self._pending[stage]
+
+    def close(self) -> None:
+        """Close every pod connection and the loop thread; later calls raise ClosedEnvironmentError."""
+        if self._closed:
+            return
+        self._closed = True
+        with self._lock:
+            pending, self._pending = list(self._pending.values()), {}
+        for call in pending:
+            call.cancel()
+        if self._loop.thread.is_alive():  # not so at interpreter exit, when daemon threads are gone
+            try:
+                self._loop.run(self._aclose(), timeout=min(self.timeout_s, 5.0))
+            except (TimeoutError, RuntimeError) as exc:
+                logger.warning("closing pod connections: %s", exc)
+        self._loop.close()
+
+    async def _aclose(self) -> None:
+        await asyncio.gather(*(pod.aclose() for pod in self._pods.values()), return_exceptions=True)
+
+    def __enter__(self) -> StageClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- checks ---------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ClosedEnvironmentError("the StageClient is closed")
+
+    def _check_stage(self, stage_id: int) -> None:
+        self._check_open()
+        if stage_id not in {s.stage_id for s in self._table.stages}:
+            raise ValueError(f"stage {stage_id} is not in the routing table (stages 0..{self.num_stages - 1})")
+
+    def _check_keys(self, keys: list[str], stage_id: int) -> None:
+        self._check_lost(keys)
+        with self._lock:
+            for key in keys:
+                route = self._routes.get(key)
+                if route is None:
+                    raise ValueError(
+                        f"traj_key {key!r} is not a live trajectory; place it with reset_trajectories first"
+                    )
+                if route.stage_id != stage_id:
+                    raise ValueError(f"traj_key {key!r} runs on stage {route.stage_id}, not stage {stage_id}")
+
+    def _check_lost(self, keys: list[str]) -> None:
+        with self._lock:
+            lost = [key for key in keys if key in self._lost]
+        if lost:
+            raise RoutingChangedError(self._lost[lost[0]], lost)
+
+    def _check_actions(self, step: Mapping[str, Any]) -> np.ndarray:
+        space = self.action_space
+        shape = tuple(space.shape) if space is not None and space.shape is not None else None
+        rows = []
+        for key, action in step.items():
+            try:
+                row = np.asarray(action, dtype=np.float32)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
+            if shape is not None and row.shape != shape:
+                raise ValueError(f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)}")
+            if not np.all(np.isfinite(row)):
+                raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
+            rows.append(row.reshape(-1))
+        return np.stack(rows)
+
+    # -- what runs on the loop ------------------------------------------------------------------
+
+    def _sync_pods(self) -> list[PodConnection]:
+        """Make one connection per pod of the table; return the connections it replaced."""
+        replaced = []
+        for stage in self._table.stages:
+            for routed in stage.pods:
+                known = self._pods.get(routed.pod)
+                if known is None or known.url != routed.url.rstrip("/"):
+                    if known is not None:
+                        replaced.append(known)
+                    self._pods[routed.pod] = PodConnection(
+                        routed.pod, routed.url, self.timeout_s, self.transport, self._token
+                    )
+        return replaced
+
+    def _load_info(self) -> tuple[Space, Space] | None:
+        if self._spaces is None:
+            self._check_open()
+            if threading.current_thread() is self._loop.thread:
+                raise RuntimeError("the pods' spaces must be read before calls are made from the client's loop")
+            self._loop.run(self._fetch_info())
+        return self._spaces or None
+
+    async def _fetch_info(self) -> None:
+        pods = [p.pod for s in self._table.stages for p in s.pods if p.num_envs > 0]
+        infos = await asyncio.gather(*(self._pods[p].info() for p in pods))
+        self._adopt_info(dict(zip(pods, infos)))
+
+    def _adopt_info(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
+        """Take instructions and spaces from pods' ``/v1/info`` answers (pods with envs only)."""
+        spaces_json = None
+        first = next(iter(infos), None)
+        for pod, info in infos.items():
+            self._instances[pod] = info.get("instance")
+            for task in info.get("tasks", []):
+                self._instructions.setdefault(task["task_id"], task.get("instruction", ""))
+            here = (info.get("observation_space"), info.get("action_space"))
+            if here[0] is None or here[1] is None:
+                raise PodUnavailableError({pod: []}, "envs not built yet (no spaces in /v1/info)")
+            if spaces_json is None:
+                spaces_json = here
+            elif here != spaces_json:
+                raise PodRequestError(pod, None, f"its spaces differ from pod {first}'s; one job, one space")
+        if spaces_json is not None:
+            self._spaces = (space_from_json(spaces_json[0]), space_from_json(spaces_json[1]))
+        else:
+            self._spaces = ()  # type: ignore[assignment]
+
+    def _empty_batch(self, keys: list[str] | None = None, routes: Mapping[str, TrajRoute] | None = None) -> StageBatch:
+        # Only cached spaces: this runs on the loop, and a no-op must not need the network.
+        keys = keys or []
+        n = len(keys)
+        space = self._spaces[0] if self._spaces else None
+        obs = create_empty_array(space, n=n, fn=np.zeros) if space is not None else {}
+        return StageBatch(
+            traj_keys=keys,
+            task_ids=[routes[k].task_id for k in keys] if routes else [],
+            state_ids=np.array([routes[k].state_id for k in keys] if routes else [], dtype=np.int64),
+            obs=obs,
+            reward=np.zeros(n, dtype=np.float32),
+            terminated=np.zeros(n, dtype=bool),
+            truncated=np.zeros(n, dtype=bool),
+            success=np.zeros(n, dtype=bool),
+        )
+
+    async def _run(
+        self,
+        reset_keys: list[str],
+        state_ids: np.ndarray,
+        step_keys: list[str],
+        actions: np.ndarray | None,
+    ) -> tuple[StageBatch, StageBatch]:
+        submitted = time.perf_counter()
+        routes = self.routes
+        reset_batch = self._empty_batch(reset_keys, routes)
+        reset_batch.state_ids = state_ids.copy()
+        step_batch = self._empty_batch(step_keys, routes)
+        work: dict[str, _PodWork] = {}
+        for row, key in enumerate(reset_keys):
+            work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
+        for row, key in enumerate(step_keys):
+            work.setdefault(routes[key].pod, _PodWork()).step_rows.append(row)
+
+        async def one_pod(pod: str, todo: _PodWork) -> None:
+            if todo.reset_rows:
+                rows = np.asarray(todo.reset_rows)
+                keys = [reset_keys[r] for r in rows]
+                body = {
+                    "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
+                    "state_ids": state_ids[rows],
+                }
+                answer = await self._post(pod, "reset", body, keys)
+                self._fill(reset_batch, answer, rows, pod, check_tasks=True)
+            if todo.step_rows:
+                rows = np.asarray(todo.step_rows)
+                keys = [step_keys[r] for r in rows]
+                body = {
+                    "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
+                    "actions": actions[rows],
+                }
+                answer = await self._post(pod, "step", body, keys)
+                self._fill(step_batch, answer, rows, pod, check_tasks=False)
+
+        results = await asyncio.gather(*(one_pod(p, w) for p, w in work.items()), return_exceptions=True)
+        self._raise_first(results)
+        if reset_keys:
+            with self._lock:
+                for key, sid in zip(reset_keys, state_ids):
+                    if key in self._routes:
+                        self._routes[key] = dataclasses.replace(self._routes[key], state_id=int(sid))
+        finished = time.perf_counter()
+        for batch in (reset_batch, step_batch):
+            batch.submitted_at, batch.finished_at = submitted, finished
+        return reset_batch, step_batch
+
+    @staticmethod
+    def _raise_first(results: list[Any]) -> None:
+        errors = [r for r in results if isinstance(r, BaseException)]
+        if not errors:
+            return
+        unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]
+        others = [e for e in errors if not isinstance(e, PodUnavailableError)]
+        if others:
+            raise others[0]
+        held = {pod: keys for e in unavailable for pod, keys in e.held.items()}
+        raise PodUnavailableError(held, "; ".join(e.reason for e in unavailable))
+
+    def _fill(self, batch: StageBatch, answer: dict[str, Any], rows: np.ndarray, pod: str, check_tasks: bool) -> None:
+        _fill_rows(batch.obs, answer.get("obs"), rows, "obs", pod)
+        info = answer.get("info") or {}
+        _fill_rows(batch.success, info.get("success"), rows, "info.success", pod)
+        if check_tasks:
+            said = list(info.get("task_id") or [])
+            expected = [batch.task_ids[r] for r in rows]
+            if said != expected:
+                raise PodRequestError(pod, None, f"reset envs run tasks {said}, the routing table says {expected}")
+        else:
+            _fill_rows(batch.reward, answer.get("reward"), rows, "reward", pod)
+            _fill_rows(batch.terminated, answer.get("terminated"), rows, "terminated", pod)
+            _fill_rows(batch.truncated, answer.get("truncated"), rows, "truncated", pod)
+
+    async def _post(self, pod: str, op: str, body: dict[str, Any], keys: list[str]) -> dict[str, Any]:
+        """POST to one pod with the current generation; after a 409, re-read routing and retry once."""
+        generation = self._table.generation
+        try:
+            return await self._pods[pod].call(op, {"generation": generation, **body}, keys)
+        except _Stale as stale:
+            await self._refresh_after_stale(pod, generation, stale.detail, keys)
+        try:
+            return await self._pods[pod].call(op, {"generation": self._table.generation, **body}, keys)
+        except _Stale as stale:
+            raise StaleGenerationError(pod, self._table.generation, stale.detail) from None
+
+    async def _refresh_after_stale(self, pod: str, generation: int, detail: str, keys: list[str]) -> None:
+        """Re-read the routing table once per generation; raise if ``keys`` (or others) lost their envs."""
+        if self._refresh_lock is None:
+            self._refresh_lock = asyncio.Lock()
+        async with self._refresh_lock:
+            if self._table.generation == generation:
+                await self._adopt_new_routing(pod, generation, detail)
+        with self._lock:
+            lost = [key for key in keys if key in self._lost]
+        if lost:
+            raise RoutingChangedError(self._lost[lost[0]], lost)
+
+    async def _adopt_new_routing(self, pod: str, generation: int, detail: str) -> None:
+        if self.controller_url is None:
+            raise StaleGenerationError(
+                pod, generation, f"{detail} (no controller_url to re-read the routing table from)"
+            )
+        url = f"{self.controller_url}/v1/routing"
+        try:
+            async with httpx.AsyncClient(timeout=self.timeout_s) as http:
+                response = await http.get(url)
+        except httpx.TransportError as exc:
+            raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
+        if response.status_code != 200:
+            raise PodRequestError("controller", response.status_code, response.text[:500])
+        new = RoutingTable.model_validate(response.json())
+        logger.info(
+            "pod %s answered 409 at generation %d; routing table now at generation %d", pod, generation, new.generation
+        )
+        with self._lock:
+            moved = changed_routes(self._table, new, self._routes)
+            self._table = new
+            replaced = self._sync_pods()
+            holders = sorted({r.pod for k, r in self._routes.items() if k not in moved})
+        await asyncio.gather(*(connection.aclose() for connection in replaced), return_exceptions=True)
+        # Same blocks, new generation: the envs survived unless the pod built them anew (restart).
+        infos = await asyncio.gather(*(self._pods[name].info() for name in holders), return_exceptions=True)
+        with self._lock:
+            for name, info in zip(holders, infos):
+                if isinstance(info, BaseException):
+                    continue  # an unreachable pod fails the retry itself, naming its trajectories
+                before, now = self._instances.get(name), info.get("instance")
+                if before is not None and now is not None and before != now:
+                    moved.extend(k for k, r in self._routes.items() if r.pod == name)
+                self._instances[name] = now
+            for key in moved:
+                del self._routes[key]
+                self._lost[key] = new.generation
+        if moved:
+            logger.warning("routing generation %d: trajectories %s lost their envs", new.generation, moved)

@@ -1,0 +1,434 @@
+"""HTTPVectorEnv: a gymnasium ``VectorEnv`` over every env of a vecsim job.
+
+Env ``i`` of the vector env is one fixed ``(pod, env_index)`` for the env's whole life, in
+stage-major order (stage, then pod, then env index: :func:`vecsim.client.routing.env_slots`).
+Pods never autoreset; this class does gymnasium's three autoreset modes on the client, with
+explicit pod resets. The async protocol is an explicit state machine like ``AsyncVectorEnv``'s.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
+from gymnasium.utils import seeding
+from gymnasium.vector.async_vector_env import AsyncState
+from gymnasium.vector.utils import batch_space, create_empty_array
+from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
+
+from vecsim.client.routing import TrajRoute, env_slots
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
+from vecsim.config import RoutingTable, RunnerConfig, load_job_config
+from vecsim.tasks import get_task
+from vecsim.transport import TransportKind
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["HTTPVectorEnv"]
+
+_RESET_OPTIONS = {"reset_mask", "state_ids"}
+
+
+def _row(obs: Any, i: int) -> Any:
+    """One env's observation out of a batched one (a copy)."""
+    if isinstance(obs, dict):
+        return {key: _row(value, i) for key, value in obs.items()}
+    return np.array(obs[i])
+
+
+def _put_rows(dst: Any, src: Any, rows: np.ndarray) -> None:
+    if isinstance(dst, dict):
+        for key in dst:
+            _put_rows(dst[key], src[key], rows)
+    else:
+        dst[rows] = src
+
+
+def _controller_url_of(job_config: RunnerConfig | str | Path) -> str:
+    config = job_config if isinstance(job_config, RunnerConfig) else load_job_config(job_config)
+    return f"http://{config.controller.host}:{config.controller.port}"
+
+
+class HTTPVectorEnv(VectorEnv):
+    """Every env of a vecsim job as one gymnasium vector env.
+
+    Give exactly one of ``controller_url``, ``job_config`` (a :class:`RunnerConfig` or its YAML
+    path; the controller is at its ``controller.host:port``), ``routing`` (a routing table) or
+    ``pod_urls`` (standalone pods). ``num_envs`` is set by the job; passing it only checks it.
+    ``timeout_s`` bounds every request to a pod; ``transport`` and ``token`` are as in
+    :class:`StageClient`.
+
+    Observations are the pods' (``{"images": {...}, "proprio": ...}``); ``info`` after reset and
+    step holds ``success`` and ``task_id`` with gymnasium's ``_key`` masks. ``reset`` takes
+    ``seed`` (int: env ``i`` starts from state id drawn with seed ``seed + i``; list: one seed per
+    env) and ``options`` ``reset_mask`` (bool array, reset only those envs) and ``state_ids``
+    (one state id per env; with a mask only the masked ones are used). Autoresets draw state ids
+    from :attr:`np_random`, seeded by ``reset(seed=int)``.
+    """
+
+    def __init__(
+        self,
+        controller_url: str | None = None,
+        *,
+        job_config: RunnerConfig | str | Path | None = None,
+        routing: RoutingTable | None = None,
+        pod_urls: Sequence[str] | None = None,
+        num_envs: int | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        timeout_s: float = 30.0,
+        wait_ready_s: float = 60.0,
+        transport: TransportKind = "fast",
+        token: str | None = None,
+    ) -> None:
+        """Connect to the job and read its envs and spaces.
+
+        Raises:
+            ValueError: not exactly one source given, a ``num_envs`` that is not the job's, a job
+                without envs, or an unknown autoreset mode.
+            PodUnavailableError, PodRequestError: the controller or a pod did not answer well.
+            TimeoutError: the controller's routing table was not ready within ``wait_ready_s``.
+        """
+        sources = {"controller_url": controller_url, "job_config": job_config, "routing": routing, "pod_urls": pod_urls}
+        given = [name for name, value in sources.items() if value is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of {', '.join(sources)}; got {given or 'none'}")
+        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        if job_config is not None:
+            controller_url = _controller_url_of(job_config)
+        if controller_url is not None:
+            table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
+            self.client = StageClient(
+                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, token=token
+            )
+        elif routing is not None:
+            self.client = StageClient(routing, timeout_s=timeout_s, transport=transport, token=token)
+        else:
+            self.client = StageClient.from_pods(
+                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, token=token
+            )
+        try:
+            self._setup(num_envs)
+        except BaseException:
+            self.client.close()
+            raise
+
+    def _setup(self, num_envs: int | None) -> None:
+        self.slots = env_slots(self.client.routing)
+        if not self.slots:
+            raise ValueError(
+                f"routing table generation {self.client.routing.generation} has no envs; is the job ready?"
+            )
+        if num_envs is not None and num_envs != len(self.slots):
+            raise ValueError(f"num_envs={num_envs} but the job has {len(self.slots)} envs; leave num_envs out")
+        self.num_envs = len(self.slots)
+        self.single_observation_space = self.client.observation_space
+        self.single_action_space = self.client.action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.metadata = {"autoreset_mode": self.autoreset_mode}
+        self.render_mode = None
+        self.task_ids = [slot.task_id for slot in self.slots]
+        self._num_states = {t: get_task(t).num_states for t in set(self.task_ids)}
+        self._keys = [f"env{i}" for i in range(self.num_envs)]
+        self._key_index = {key: i for i, key in enumerate(self._keys)}
+        self.client.set_routes(
+            {
+                key: TrajRoute(slot.pod, slot.env_index, slot.task_id, slot.stage_id, 0)
+                for key, slot in zip(self._keys, self.slots)
+            }
+        )
+        self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
+        self._ever_reset = np.zeros(self.num_envs, dtype=bool)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._state = AsyncState.DEFAULT
+        self._pending: PendingCall[Any] | None = None
+        self._pending_mask: np.ndarray | None = None
+
+    # -- reset ----------------------------------------------------------------------------------
+
+    def reset(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset all envs (or ``options["reset_mask"]``'s) and return ``(obs, info)``.
+
+        Raises:
+            as :meth:`reset_async` and :meth:`reset_wait`.
+        """
+        self.reset_async(seed=seed, options=options)
+        return self.reset_wait()
+
+    def reset_async(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> None:
+        """Send the reset and return at once; :meth:`reset_wait` takes the answer.
+
+        Raises:
+            ClosedEnvironmentError: the env is closed.
+            AlreadyPendingCallError: a reset or step is still waiting to be taken.
+            TypeError, ValueError: a bad seed, ``reset_mask`` or ``state_ids`` (named), or an
+                unknown option.
+        """
+        self._assert_open()
+        if self._state != AsyncState.DEFAULT:
+            raise AlreadyPendingCallError(
+                f"calling reset_async while waiting for a pending call to `{self._state.value}` to complete",
+                str(self._state.value),
+            )
+        options = dict(options or {})
+        unknown = set(options) - _RESET_OPTIONS
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; HTTPVectorEnv takes {sorted(_RESET_OPTIONS)}")
+        mask = self._reset_mask(options.get("reset_mask"))
+        state_ids = self._state_ids_for_reset(seed, options.get("state_ids"), mask)
+        indices = np.flatnonzero(mask)
+        self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
+        self._pending_mask = mask
+        self._state = AsyncState.WAITING_RESET
+
+    def reset_wait(self, timeout: float | None = None) -> tuple[Any, dict[str, Any]]:
+        """Wait for the reset sent by :meth:`reset_async`; return ``(obs, info)``.
+
+        Raises:
+            ClosedEnvironmentError: the env is closed.
+            NoAsyncCallError: no reset is pending.
+            TimeoutError: not answered within ``timeout`` seconds (the reset stays pending).
+            PodUnavailableError, PodRequestError, RoutingChangedError: from the client.
+        """
+        self._assert_open()
+        if self._state != AsyncState.WAITING_RESET:
+            raise NoAsyncCallError(
+                "calling reset_wait without any prior call to reset_async", AsyncState.WAITING_RESET.value
+            )
+        batch, _ = self._take(timeout)
+        mask = self._pending_mask
+        rows = np.flatnonzero(mask)
+        _put_rows(self._obs, batch.obs, rows)
+        self._ever_reset[rows] = True
+        self._autoreset[rows] = False
+        info: dict[str, Any] = {}
+        self._add_batch_info(info, batch, rows, with_state_ids=True)
+        return copy.deepcopy(self._obs), info
+
+    def _reset_mask(self, mask: Any) -> np.ndarray:
+        if mask is None:
+            return np.ones(self.num_envs, dtype=bool)
+        if not isinstance(mask, np.ndarray):
+            raise TypeError(f"options['reset_mask'] must be a numpy array, got {type(mask).__name__}")
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+        if mask.dtype != np.bool_:
+            raise TypeError(f"options['reset_mask'] must have dtype bool, got {mask.dtype}")
+        if not mask.any():
+            raise ValueError("options['reset_mask'] must have at least one True value")
+        return mask.copy()
+
+    def _state_ids_for_reset(self, seed: Any, state_ids: Any, mask: np.ndarray) -> np.ndarray:
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            self._np_random, self._np_random_seed = seeding.np_random(int(seed))
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"a list of seeds must have num_envs={self.num_envs} entries, got {len(seeds)}")
+            for i, s in enumerate(seeds):
+                if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer))):
+                    raise TypeError(f"seed for env {i} must be an int or None, got {s!r}")
+        if state_ids is not None:
+            ids = np.asarray(state_ids)
+            if ids.shape != (self.num_envs,) or ids.dtype.kind not in "iu":
+                raise ValueError(
+                    f"options['state_ids'] must be {self.num_envs} ints (one per env), "
+                    f"got {ids.dtype} {list(ids.shape)}"
+                )
+            ids = ids.astype(np.int64)
+        else:
+            ids = np.array(
+                [self._draw_state_id(i, s) if m else 0 for i, (s, m) in enumerate(zip(seeds, mask))], dtype=np.int64
+            )
+        for i in np.flatnonzero(mask):
+            limit = self._num_states[self.task_ids[i]]
+            if not 0 <= ids[i] < limit:
+                raise ValueError(f"state id {ids[i]} for env {i} ({self.task_ids[i]}) is outside 0..{limit - 1}")
+        return ids
+
+    def _draw_state_id(self, i: int, seed: int | None) -> int:
+        limit = self._num_states[self.task_ids[i]]
+        rng = self.np_random if seed is None else np.random.default_rng(seed)
+        return int(rng.integers(limit))
+
+    # -- step -----------------------------------------------------------------------------------
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every env with its row of ``actions``; autoreset per :attr:`autoreset_mode`.
+
+        Raises:
+            as :meth:`step_async` and :meth:`step_wait`.
+        """
+        self.step_async(actions)
+        return self.step_wait()
+
+    def step_async(self, actions: Any) -> None:
+        """Send the step and return at once; :meth:`step_wait` takes the answer.
+
+        NEXT_STEP resets (instead of stepping) the envs that ended on the previous step;
+        SAME_STEP steps all and resets those that end, in the same call; DISABLED steps all and
+        refuses envs that ended and were not reset with ``reset(options={"reset_mask": ...})``.
+
+        Raises:
+            ClosedEnvironmentError: the env is closed.
+            AlreadyPendingCallError: a reset or step is still waiting to be taken.
+            ResetNeeded: an env was never reset, or (DISABLED) ended and was not reset.
+            ValueError: ``actions`` of the wrong shape or not finite (names the env).
+        """
+        self._assert_open()
+        if self._state != AsyncState.DEFAULT:
+            raise AlreadyPendingCallError(
+                f"calling step_async while waiting for a pending call to `{self._state.value}` to complete",
+                str(self._state.value),
+            )
+        if not self._ever_reset.all():
+            raise ResetNeeded(f"envs {np.flatnonzero(~self._ever_reset).tolist()} were never reset; call reset() first")
+        actions = np.asarray(actions, dtype=np.float32)
+        expected = (self.num_envs, *self.single_action_space.shape)
+        if actions.shape != expected:
+            raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
+        if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
+            raise ResetNeeded(
+                f"envs {np.flatnonzero(self._autoreset).tolist()} ended and autoreset is disabled; "
+                "reset them with reset(options={'reset_mask': mask}) before stepping"
+            )
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            resetting = self._autoreset.copy()
+        else:
+            resetting = np.zeros(self.num_envs, dtype=bool)
+        step = {self._keys[i]: actions[i] for i in np.flatnonzero(~resetting)}
+        reset = {self._keys[i]: self._draw_state_id(i, None) for i in np.flatnonzero(resetting)}
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            self._pending = self.client.submit(self._step_then_reset(step))
+        else:
+            self._pending = self.client.call(reset=reset, step=step)
+        self._state = AsyncState.WAITING_STEP
+
+    async def _step_then_reset(self, step: dict[str, np.ndarray]) -> tuple[StageBatch, StageBatch]:
+        _, stepped = await self.client.call(step=step)
+        ended = [key for j, key in enumerate(stepped.traj_keys) if stepped.terminated[j] or stepped.truncated[j]]
+        reset = {key: self._draw_state_id(self._key_index[key], None) for key in ended}
+        again, _ = await self.client.call(reset=reset)
+        return again, stepped
+
+    def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Wait for the step sent by :meth:`step_async`; return ``(obs, reward, terminated, truncated, info)``.
+
+        Raises:
+            ClosedEnvironmentError: the env is closed.
+            NoAsyncCallError: no step is pending.
+            TimeoutError: not answered within ``timeout`` seconds (the step stays pending).
+            PodUnavailableError, PodRequestError, RoutingChangedError: from the client.
+        """
+        self._assert_open()
+        if self._state != AsyncState.WAITING_STEP:
+            raise NoAsyncCallError(
+                "calling step_wait without any prior call to step_async", AsyncState.WAITING_STEP.value
+            )
+        reset_batch, step_batch = self._take(timeout)
+        reward = np.zeros(self.num_envs, dtype=np.float64)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        info: dict[str, Any] = {}
+
+        stepped = np.array([self._key_index[k] for k in step_batch.traj_keys], dtype=np.int64)
+        reset = np.array([self._key_index[k] for k in reset_batch.traj_keys], dtype=np.int64)
+        reward[stepped] = step_batch.reward
+        terminated[stepped] = step_batch.terminated
+        truncated[stepped] = step_batch.truncated
+        _put_rows(self._obs, step_batch.obs, stepped)
+
+        if self.autoreset_mode == AutoresetMode.SAME_STEP and len(reset):
+            # The stepped obs of an env that ended goes to final_obs; its reset obs replaces it.
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
+            for i in reset:
+                final_obs[i] = _row(step_batch.obs, rows_of[self._keys[i]])
+            final_info: dict[str, Any] = {}
+            ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
+            self._add_rows_info(final_info, step_batch, ended_rows, reset)
+            done = np.zeros(self.num_envs, dtype=bool)
+            done[reset] = True
+            info["final_obs"], info["_final_obs"] = final_obs, done
+            info["final_info"], info["_final_info"] = final_info, done.copy()
+
+        _put_rows(self._obs, reset_batch.obs, reset)
+        self._add_batch_info(info, step_batch, stepped)
+        self._add_batch_info(info, reset_batch, reset, with_state_ids=True)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            self._autoreset[:] = False
+        else:
+            self._autoreset = terminated | truncated
+        return copy.deepcopy(self._obs), reward, terminated, truncated, info
+
+    # -- shared ---------------------------------------------------------------------------------
+
+    def _take(self, timeout: float | None) -> tuple[StageBatch, StageBatch]:
+        try:
+            answer = self._pending.result(timeout)  # type: ignore[union-attr]
+        except TimeoutError:
+            raise TimeoutError(
+                f"the call to `{self._state.value}_wait` timed out after {timeout} s; it is still pending"
+            ) from None
+        except BaseException:
+            self._state, self._pending = AsyncState.DEFAULT, None
+            raise
+        self._state, self._pending = AsyncState.DEFAULT, None
+        return answer
+
+    def _add_batch_info(
+        self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray, with_state_ids: bool = False
+    ) -> None:
+        self._add_rows_info(info, batch, np.arange(batch.n), envs)
+        if with_state_ids and len(envs):
+            # Like the task envs' own reset info, which names the state id they reset to.
+            if "state_id" not in info:
+                info["state_id"] = np.zeros(self.num_envs, dtype=np.int64)
+                info["_state_id"] = np.zeros(self.num_envs, dtype=bool)
+            info["state_id"][envs] = batch.state_ids
+            info["_state_id"][envs] = True
+
+    def _add_rows_info(self, info: dict[str, Any], batch: StageBatch, rows: np.ndarray, envs: np.ndarray) -> None:
+        """Put ``success`` and ``task_id`` of batch rows ``rows`` at env indices ``envs``, with masks."""
+        if len(envs) == 0:
+            return
+        if "success" not in info:
+            info["success"], info["_success"] = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=bool)
+            info["task_id"] = np.full(self.num_envs, None, dtype=object)
+            info["_task_id"] = np.zeros(self.num_envs, dtype=bool)
+        info["success"][envs] = batch.success[rows]
+        info["_success"][envs] = True
+        for i in envs:
+            info["task_id"][i] = self.task_ids[i]
+        info["_task_id"][envs] = True
+
+    def _assert_open(self) -> None:
+        if self.closed:
+            raise ClosedEnvironmentError(f"trying to operate on {type(self).__name__} after it was closed")
+
+    def close_extras(self, **kwargs: Any) -> None:
+        """Close the client: pod connections and its event loop thread."""
+        self._state, self._pending = AsyncState.DEFAULT, None
+        self.client.close()
+
+    def __del__(self) -> None:
+        if not getattr(self, "closed", True) and hasattr(self, "client"):
+            self.close()
+
+    @property
+    def routes(self) -> Mapping[int, TrajRoute]:
+        """Env index -> its fixed ``(pod, env_index, task_id, stage_id, state_id)``."""
+        routes = self.client.routes
+        return {i: routes[key] for i, key in enumerate(self._keys)}

@@ -1,0 +1,198 @@
+"""``vecsim demo``: start a local job, run one pipelined rollout on it, show what happened.
+
+Top to bottom: load a job config, start the controller and the pods (the local runner), wait
+until every pod is ready, draw a task-balanced batch of trajectory requests, roll a small CNN
+policy out over the stages with :class:`vecsim.rollout.EnvLoop`, then print a summary and write
+a timeline plot, per-task success and videos under ``--out``. Everything started is stopped on
+the way out, Ctrl-C included.
+
+The runner lives in ``service``; it is imported inside :func:`main` so that importing the
+library never imports ``service``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import socket
+import time
+from pathlib import Path
+
+import torch
+
+from vecsim.client import StageClient
+from vecsim.config import RunnerConfig, load_job_config
+from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
+from vecsim.sampler import TaskBalancedSampler, TaskInstances
+
+logger = logging.getLogger("vecsim.demo")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="vecsim demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("-c", "--config", default="configs/tiny.yaml", help="job config (default configs/tiny.yaml)")
+    p.add_argument("--out", default="out/demo", help="where plots, videos and summary.json go (default out/demo)")
+    p.add_argument("--batch", type=int, default=0, help="trajectories in the batch (default: one per env)")
+    p.add_argument("--horizon", type=int, default=0, help="steps per trajectory at most (default: the job's max)")
+    p.add_argument("--videos", type=int, default=2, help="how many trajectories to record (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="sampler and policy seed (default 0)")
+    p.add_argument("--ready-timeout", type=float, default=300.0, help="seconds to wait for the pods (default 300)")
+    p.add_argument("--log-level", default="info", help="logging level (default info)")
+    return p
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def _port_taken(host: str, port: int) -> bool:
+    with socket.socket() as sock:
+        try:
+            sock.bind((host, port))
+        except OSError:
+            return True
+    return False
+
+
+def with_free_ports(config: RunnerConfig) -> RunnerConfig:
+    """Return ``config`` moved to free ports when its own are taken (a demo should just run).
+
+    Pods need ``replicas`` consecutive ports from ``base_port``; the first free block of
+    ephemeral ports found is used.
+    """
+    host, pods = config.controller.host, config.pods
+    taken = _port_taken(host, config.controller.port) or any(
+        _port_taken(pods.host, pods.base_port + i) for i in range(pods.replicas)
+    )
+    if not taken:
+        return config
+    controller_port = _free_port(host)
+    for _ in range(50):
+        base = _free_port(pods.host)
+        block = range(base, base + pods.replicas)
+        if base + pods.replicas < 65000 and controller_port not in block and not any(
+            _port_taken(pods.host, p) for p in block
+        ):
+            logger.info("default ports are taken: controller on %d, pods from %d", controller_port, base)
+            return config.model_copy(
+                update={
+                    "controller": config.controller.model_copy(update={"port": controller_port}),
+                    "pods": pods.model_copy(update={"base_port": base}),
+                }
+            )
+    raise RuntimeError("found no block of free ports for the pods; free some ports and retry")
+
+
+def summary_lines(result: RolloutResult, num_stages: int) -> list[str]:
+    """The summary table the demo prints: throughput, overlap, per-task success."""
+    s = result.stats
+    lines = [
+        f"{'trajectories':<28}{s.num_trajectories}",
+        f"{'pipeline stages':<28}{num_stages}",
+        f"{'env-steps':<28}{s.env_steps}",
+        f"{'wall time':<28}{s.wall_s:.1f} s",
+        f"{'env-steps/s':<28}{s.env_steps_per_s:.1f}",
+        f"{'policy (generation) time':<28}{s.generation_s:.2f} s",
+        f"{'simulation in flight':<28}{s.simulation_s:.2f} s",
+        f"{'policy time overlapped':<28}{100 * s.overlap_fraction:.0f} % (simulation ran while the policy worked)",
+        "",
+        f"{'task':<28}{'trajectories':>12}{'success':>10}",
+    ]
+    counts: dict[str, int] = {}
+    for trajectory in result.trajectories.values():
+        counts[trajectory.route.task_id] = counts.get(trajectory.route.task_id, 0) + 1
+    for task, rate in sorted(s.success_per_task.items()):
+        lines.append(f"{task:<28}{counts.get(task, 0):>12}{100 * rate:>9.0f}%")
+    return lines
+
+
+def plot_timeline(result: RolloutResult, num_stages: int, path: Path) -> Path:
+    """Draw when the policy ran and when each stage simulated: the picture of pipelining."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 1.2 + 0.9 * num_stages))
+    colors = {"sim": "#4C72B0", "policy": "#DD8452"}
+    for what, stage, begin, end in result.stats.timeline:
+        y = stage + (0.22 if what == "policy" else -0.22)
+        ax.barh(y, end - begin, left=begin, height=0.4, color=colors[what], linewidth=0)
+    ax.set_yticks(range(num_stages), [f"stage {s}" for s in range(num_stages)])
+    ax.set_xlabel("seconds since the rollout began")
+    ax.invert_yaxis()
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()]
+    ax.legend(handles, ["pods simulating", "policy forward pass"], loc="upper right", ncol=2, fontsize=8)
+    s = result.stats
+    ax.set_title(
+        f"{s.env_steps} env-steps at {s.env_steps_per_s:.0f}/s; "
+        f"{100 * s.overlap_fraction:.0f}% of policy time overlapped simulation",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the rest
+    from service.runner import LocalJob, format_status  # a service; see the module docstring
+
+    config = with_free_ports(load_job_config(args.config))
+    job = config.job
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+
+    with LocalJob(config, log_dir=out / "logs") as local:
+        started = time.perf_counter()
+        logger.info("starting %d pods and the controller (logs in %s)", config.pods.replicas, out / "logs")
+        table = local.wait_ready(timeout=args.ready_timeout)
+        logger.info("job %r ready in %.0f s: generation %d", job.job_id, time.perf_counter() - started, table.generation)
+        for line in format_status(local.status()).splitlines():
+            logger.info("%s", line)
+
+        client = StageClient.from_controller(local.controller_url)
+        try:
+            tasks = sorted({block.task_id for stage in table.stages for pod in stage.pods for block in pod.tasks})
+            dataset = TaskInstances.from_tasks(tasks, num_states=10)
+            batch_size = args.batch or table.num_envs
+            sampler = TaskBalancedSampler.for_job(dataset, job, batch_size=batch_size, seed=args.seed)
+            requests = [dataset[i] for i in next(iter(sampler))]
+            policy = ExampleCNNPolicy(client.observation_space, client.action_space, noise_std=0.3)
+            loop = EnvLoop(
+                client,
+                policy,
+                horizon=args.horizon or job.max_episode_steps,
+                record=args.videos,
+                video_dir=out / "videos",
+                log_every_s=5.0,
+            )
+            logger.info("rolling out %d trajectories over %d stages", len(requests), job.num_stages)
+            result = loop.run(requests)
+        finally:
+            client.close()
+
+    lines = summary_lines(result, job.num_stages)
+    timeline = plot_timeline(result, job.num_stages, out / "timeline.png")
+    summary = {
+        "config": args.config,
+        "stats": {k: v for k, v in vars(result.stats).items() if k != "timeline"},
+        "routes": {key: vars(t.route) for key, t in result.trajectories.items()},
+        "videos": {key: str(p) for key, p in result.videos.items()},
+        "timeline_png": str(timeline),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    print("\n".join(["", "vecsim demo: pipelined rollout", "-" * 60, *lines, "-" * 60]))
+    print(f"timeline plot: {timeline}")
+    for key, path in result.videos.items():
+        print(f"video of {key}: {path}")
+    print(f"summary: {out / 'summary.json'}")
+    return 0

@@ -1,0 +1,199 @@
+"""gymnasium spaces to and from JSON, for ``/v1/info`` and the client that reads it.
+
+Supported: ``Box``, ``Discrete``, ``MultiBinary``, ``MultiDiscrete`` and (nested) ``Dict``.
+Every space is an object with a ``"type"`` key::
+
+    {"type": "Box", "dtype": "float32", "shape": [39], "low": "-Infinity", "high": "Infinity"}
+    {"type": "Discrete", "n": 4, "start": 0, "dtype": "int64"}
+    {"type": "MultiBinary", "n": [2, 3]}
+    {"type": "MultiDiscrete", "nvec": [3, 4], "start": [0, 0], "dtype": "int64"}
+    {"type": "Dict", "spaces": {"images": {...}, "proprio": {...}}}
+
+A Box bound is one number when every element is equal (an image Box stays small), else a
+nested list. Infinities use the spellings of :func:`vecsim.wire.to_jsonable` (``"Infinity"``,
+``"-Infinity"``), so the result passes ``json.dumps(..., allow_nan=False)``. Dict keys keep
+their order. Seeds and RNG state are not carried.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from vecsim.wire import WireError, from_jsonable, to_jsonable
+
+__all__ = ["space_from_json", "space_to_json"]
+
+_FIELDS = {
+    "Box": {"type", "dtype", "shape", "low", "high"},
+    "Discrete": {"type", "n", "start", "dtype"},
+    "MultiBinary": {"type", "n"},
+    "MultiDiscrete": {"type", "nvec", "start", "dtype"},
+    "Dict": {"type", "spaces"},
+}
+
+
+def _bound(values: np.ndarray) -> Any:
+    flat = values.reshape(-1)
+    if flat.size and (flat == flat[0]).all():
+        return to_jsonable(flat[0])
+    return to_jsonable(values)
+
+
+def _to_json(space: spaces.Space, where: str) -> dict[str, Any]:
+    # Exact types: a subclass may carry state that these fields would silently drop.
+    kind = type(space)
+    if kind is spaces.Box:
+        return {
+            "type": "Box",
+            "dtype": space.dtype.name,
+            "shape": list(space.shape),
+            "low": _bound(space.low),
+            "high": _bound(space.high),
+        }
+    if kind is spaces.Discrete:
+        return {"type": "Discrete", "n": int(space.n), "start": int(space.start), "dtype": space.dtype.name}
+    if kind is spaces.MultiBinary:
+        n = space.n
+        return {"type": "MultiBinary", "n": int(n) if np.ndim(n) == 0 else [int(k) for k in n]}
+    if kind is spaces.MultiDiscrete:
+        return {
+            "type": "MultiDiscrete",
+            "nvec": space.nvec.tolist(),
+            "start": space.start.tolist(),
+            "dtype": space.dtype.name,
+        }
+    if kind is spaces.Dict:
+        out = {}
+        for key, sub in space.spaces.items():
+            if not isinstance(key, str):
+                raise ValueError(f"{where}: Dict key {key!r} is not a str")
+            out[key] = _to_json(sub, f"{where}.spaces.{key}")
+        return {"type": "Dict", "spaces": out}
+    raise ValueError(
+        f"{where}: {kind.__name__} is not supported (Box, Discrete, MultiBinary, MultiDiscrete, Dict)"
+    )
+
+
+def space_to_json(space: spaces.Space) -> dict[str, Any]:
+    """Describe ``space`` as JSON data.
+
+    Returns:
+        a dict of plain JSON values (see the module docstring for the layout).
+
+    Raises:
+        ValueError: ``space`` (or a space nested in it, named by path) is of an unsupported type.
+    """
+    return _to_json(space, "space")
+
+
+def _dtype(value: Any, where: str, kinds: str) -> np.dtype:
+    try:
+        dtype = np.dtype(value) if isinstance(value, str) else None
+    except TypeError:
+        dtype = None
+    if dtype is None or dtype.kind not in kinds:
+        raise ValueError(f"{where}.dtype: {value!r:.50} is not a usable dtype here")
+    return dtype
+
+
+def _ints(value: Any, where: str, *, scalar: bool = False) -> Any:
+    """``value`` as an int (``scalar``) or a rectangular int array, else ValueError naming ``where``."""
+    try:
+        arr = from_jsonable(value, like=np.int64)
+    except WireError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    if scalar:
+        if arr.ndim:
+            raise ValueError(f"{where}: expected an int, got {value!r:.50}")
+        return int(arr)
+    return arr
+
+
+def _require(d: Any, where: str) -> str:
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{where}: expected an object, got {type(d).__name__}")
+    kind = d.get("type")
+    if kind not in _FIELDS:
+        raise ValueError(f"{where}.type: {kind!r:.50} is not one of {sorted(_FIELDS)}")
+    missing = _FIELDS[kind] - set(d)
+    extra = set(d) - _FIELDS[kind]
+    if missing or extra:
+        raise ValueError(
+            f"{where}: a {kind} needs exactly the fields {sorted(_FIELDS[kind])}; "
+            f"missing {sorted(missing)}, unknown {sorted(extra)}"
+        )
+    return kind
+
+
+def _construct(where: str, kind: str, make: Callable[[], spaces.Space]) -> spaces.Space:
+    try:
+        return make()
+    except (ValueError, TypeError, AssertionError) as exc:
+        # gymnasium's own checks (n > 0, low <= high, shapes that broadcast) name no field.
+        raise ValueError(f"{where}: not a valid {kind}: {exc}") from None
+
+
+def _bounds(d: Mapping[str, Any], where: str, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    out = []
+    for name in ("low", "high"):
+        try:
+            bound = from_jsonable(d[name], like=dtype)
+        except WireError as exc:
+            raise ValueError(f"{where}.{name}: {exc}") from None
+        if dtype.kind == "f" and np.isnan(bound).any():
+            raise ValueError(f"{where}.{name}: NaN is not a bound")
+        out.append(bound)
+    return out[0], out[1]
+
+
+def _from_json(d: Any, where: str) -> spaces.Space:
+    kind = _require(d, where)
+    if kind == "Box":
+        dtype = _dtype(d["dtype"], where, "biuf")
+        if not isinstance(d["shape"], list):
+            raise ValueError(f"{where}.shape: expected a list of ints, got {d['shape']!r:.50}")
+        shape = tuple(int(k) for k in _ints(d["shape"], f"{where}.shape"))
+        low, high = _bounds(d, where, dtype)
+
+        def make_box() -> spaces.Box:
+            # gymnasium takes a Python scalar for a uniform bound but not a 0-d array.
+            full_low = np.full(shape, low, dtype=dtype) if low.ndim == 0 else low
+            full_high = np.full(shape, high, dtype=dtype) if high.ndim == 0 else high
+            return spaces.Box(low=full_low, high=full_high, shape=shape, dtype=dtype)
+
+        return _construct(where, kind, make_box)
+    if kind == "Discrete":
+        dtype = _dtype(d["dtype"], where, "iu")
+        n = _ints(d["n"], f"{where}.n", scalar=True)
+        start = _ints(d["start"], f"{where}.start", scalar=True)
+        return _construct(where, kind, lambda: spaces.Discrete(n, start=start, dtype=dtype))
+    if kind == "MultiBinary":
+        n = _ints(d["n"], f"{where}.n")
+        return _construct(where, kind, lambda: spaces.MultiBinary(int(n) if n.ndim == 0 else n.tolist()))
+    if kind == "MultiDiscrete":
+        dtype = _dtype(d["dtype"], where, "iu")
+        nvec = _ints(d["nvec"], f"{where}.nvec")
+        start = _ints(d["start"], f"{where}.start")
+        return _construct(where, kind, lambda: spaces.MultiDiscrete(nvec, dtype=dtype, start=start))
+    children = d["spaces"]
+    if not isinstance(children, Mapping):
+        raise ValueError(f"{where}.spaces: expected an object, got {type(children).__name__}")
+    # A sequence of pairs keeps the order that JSON gave (a plain dict would be sorted).
+    return spaces.Dict([(key, _from_json(sub, f"{where}.spaces.{key}")) for key, sub in children.items()])
+
+
+def space_from_json(d: Mapping[str, Any]) -> spaces.Space:
+    """Build the space that :func:`space_to_json` described.
+
+    Returns:
+        a gymnasium space equal to the one that was described.
+
+    Raises:
+        ValueError: ``d`` is not a valid description; the message names the field (for
+            example ``space.spaces.images.low``).
+    """
+    return _from_json(d, "space")
