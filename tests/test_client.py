@@ -405,7 +405,7 @@ def _step_all(client: StageClient, stage: int):
 
 
 def test_a_client_from_the_controller_routes_over_the_jobs_pods(job):
-    with StageClient.from_controller(job.controller_url) as client:
+    with StageClient.from_controller(job.controller_url, token=job.token) as client:
         assert [[p.pod for p in s.pods] for s in client.routing.stages] == [["sim-0"], ["sim-1"]]
         client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1), (PENDULUM, 2)])
         assert client.reset_stage(0).result(timeout=60).n == 2
@@ -416,7 +416,7 @@ def test_http_vector_env_comes_from_a_controller_url_or_a_job_config(job, tmp_pa
     path = tmp_path / "job.yaml"
     path.write_text(yaml.safe_dump(job.config.model_dump(mode="json")))
     for source in ({"controller_url": job.controller_url}, {"job_config": job.config}, {"job_config": path}):
-        env = HTTPVectorEnv(**source)
+        env = HTTPVectorEnv(**source, token=job.token)
         try:
             assert env.num_envs == 4
             assert env.reset(seed=0)[0]["proprio"].shape == (4, 4)
@@ -425,12 +425,12 @@ def test_http_vector_env_comes_from_a_controller_url_or_a_job_config(job, tmp_pa
 
 
 def test_a_changed_job_raises_routing_changed_naming_the_lost_trajectories(fresh_job):
-    with StageClient.from_controller(fresh_job.controller_url) as client:
+    with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         routes = client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
         client.reset_stage(0).result(timeout=60)
         generation = client.routing.generation
         bigger = {**JOB, "group_size": 3}
-        assert httpx.put(f"{fresh_job.controller_url}/v1/job", json=bigger, timeout=30).status_code == 200
+        assert httpx.put(f"{fresh_job.controller_url}/v1/job", json=bigger, timeout=30, headers={"Authorization": f"Bearer {fresh_job.token}"}).status_code == 200
         new_generation = wait_for_generation(fresh_job.controller_url, generation)
         stage0 = client.stage_traj_keys(0)
         with pytest.raises(RoutingChangedError, match=f"generation {new_generation}") as caught:
@@ -445,7 +445,7 @@ def test_a_changed_job_raises_routing_changed_naming_the_lost_trajectories(fresh
 
 
 def test_after_a_pod_restart_the_other_stage_retries_at_the_new_generation(fresh_job):
-    with StageClient.from_controller(fresh_job.controller_url) as client:
+    with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
         client.reset_stage(0).result(timeout=60)
         client.reset_stage(1).result(timeout=60)
@@ -457,7 +457,7 @@ def test_after_a_pod_restart_the_other_stage_retries_at_the_new_generation(fresh
 
 
 def test_after_a_pod_restart_its_trajectories_raise_routing_changed(fresh_job):
-    with StageClient.from_controller(fresh_job.controller_url) as client:
+    with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         if httpx.get(f"{client.routing.stages[0].pods[0].url}/v1/info", timeout=10).json().get("instance") is None:
             pytest.skip("the pods do not report 'instance' in /v1/info (docs/api.md), so a restart is invisible")
         client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])

@@ -38,7 +38,7 @@ def job(tmp_path_factory):
 
 @pytest.fixture
 def client(job):
-    with StageClient.from_controller(job.controller_url, timeout_s=60) as c:
+    with StageClient.from_controller(job.controller_url, timeout_s=60, token=job.token) as c:
         yield c
 
 

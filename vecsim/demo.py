@@ -159,7 +159,7 @@ def main(argv: list[str]) -> int:
         for line in format_status(local.status()).splitlines():
             logger.info("%s", line)
 
-        client = StageClient.from_controller(local.controller_url)
+        client = StageClient.from_controller(local.controller_url, token=local.token)
         try:
             tasks = sorted({block.task_id for stage in table.stages for pod in stage.pods for block in pod.tasks})
             dataset = TaskInstances.from_tasks(tasks, num_states=10)

@@ -9,6 +9,12 @@ by traj_key, plus timing stats and, for chosen trajectories, videos of a camera.
 Batches whose size is not a multiple of the number of stages are accepted: request ``i`` goes to
 stage ``i % S`` (:func:`vecsim.sampler.stage_of`), so stage sizes differ by at most one. An empty
 batch is a no-op, and a stage without trajectories is never called.
+
+A pod that dies, hangs past the client's timeout or rebuilds its envs mid-episode does not fail
+the rollout: the trajectories of the call that met it are reported lost by traj_key
+(:attr:`RolloutResult.lost`, with their route, to resample) and every other trajectory runs on.
+The client answers a stage call whole or not at all, so with several pods per stage the other
+pods' trajectories of that same call are lost with it.
 """
 
 from __future__ import annotations
@@ -27,11 +33,26 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
-from vecsim.client import PendingCall, StageBatch, StageClient, TrajRoute
+from vecsim.client import (
+    PendingCall,
+    PodUnavailableError,
+    RoutingChangedError,
+    StageBatch,
+    StageClient,
+    TrajRoute,
+)
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EnvLoop", "ExampleCNNPolicy", "RolloutResult", "RolloutStats", "Trajectory", "write_video"]
+__all__ = [
+    "EnvLoop",
+    "ExampleCNNPolicy",
+    "LostTrajectory",
+    "RolloutResult",
+    "RolloutStats",
+    "Trajectory",
+    "write_video",
+]
 
 # policy(observations, instructions, task_ids) -> actions [n, action_dim]
 Policy = Callable[[dict[str, Any], list[str], list[str]], torch.Tensor]
@@ -159,13 +180,27 @@ class RolloutStats:
     timeline: list[tuple[str, int, float, float]] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class LostTrajectory:
+    """A trajectory whose env went away mid-episode: its pod died, did not answer within the
+    client's timeout, or rebuilt its envs. ``route`` names what to resample (its task and state
+    id); ``steps`` is how many actions it had taken; ``reason`` is the client's error."""
+
+    traj_key: str
+    route: TrajRoute
+    steps: int
+    reason: str
+
+
 @dataclass
 class RolloutResult:
-    """Trajectories keyed by traj_key (in request order), stats, and the videos written."""
+    """Finished trajectories keyed by traj_key (in request order), the lost ones (neither
+    finished nor failed the rollout: resample them), stats, and the videos written."""
 
     trajectories: dict[str, Trajectory]
     stats: RolloutStats
     videos: dict[str, Path] = field(default_factory=dict)
+    lost: dict[str, LostTrajectory] = field(default_factory=dict)
 
 
 # -- the loop ------------------------------------------------------------------------------------
@@ -223,11 +258,14 @@ class EnvLoop:
     def run(self, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str] | None = None) -> RolloutResult:
         """Roll out one trajectory per request ``(task_id, state_id)``; return them with stats.
 
+        Trajectories whose pod went away (``PodUnavailableError``, ``RoutingChangedError``) end
+        up in the result's ``lost``, not in its ``trajectories``.
+
         Raises:
             CapacityError: a stage lacks envs for a task (see ``StageClient.reset_trajectories``).
             ValueError: a malformed request, or videos of trajectories or a camera that are not
                 there.
-            PodUnavailableError, PodRequestError, RoutingChangedError: from the client.
+            PodRequestError, StaleGenerationError: from the client (a refused request).
         """
         started = time.perf_counter()
         routes = self.client.reset_trajectories(requests, traj_keys)
@@ -244,9 +282,15 @@ class EnvLoop:
             for stage in range(self.client.num_stages)
             if self.client.stage_traj_keys(stage)
         }
+        carried = {stage: self.client.stage_traj_keys(stage) for stage in pending}
+        lost: dict[str, LostTrajectory] = {}
         while pending:
             for stage in list(pending):
-                batch = clock.wait(stage, pending.pop(stage))  # stage s's observations
+                try:
+                    batch = clock.wait(stage, pending.pop(stage))  # stage s's observations
+                except (PodUnavailableError, RoutingChangedError) as exc:
+                    lost.update(self._lose(carried[stage], buffers, exc))
+                    continue
                 live = []
                 for row, key in enumerate(batch.traj_keys):
                     buffers[key].add(batch, row)
@@ -260,12 +304,35 @@ class EnvLoop:
                 step = {batch.traj_keys[row]: actions[row] for row in live}
                 for key, action in step.items():
                     buffers[key].act(action)
-                pending[stage] = self.client.step_stage(stage, step)  # don't wait: on to stage s+1
+                try:
+                    pending[stage] = self.client.step_stage(stage, step)  # don't wait: on to stage s+1
+                except RoutingChangedError as exc:
+                    lost.update(self._lose(list(step), buffers, exc))
+                    continue
+                carried[stage] = list(step)
             clock.maybe_log(buffers)
 
-        trajectories = {key: buffer.finish() for key, buffer in buffers.items()}
+        trajectories = {key: buffer.finish() for key, buffer in buffers.items() if key not in lost}
         videos = self._write_videos(recorder)
-        return RolloutResult(trajectories, clock.stats(trajectories), videos)
+        return RolloutResult(trajectories, clock.stats(trajectories), videos, lost)
+
+    @staticmethod
+    def _lose(
+        keys: list[str], buffers: Mapping[str, _Buffer], error: PodUnavailableError | RoutingChangedError
+    ) -> dict[str, LostTrajectory]:
+        """The trajectories of a failed call, as lost: the ones the error names and, the call's
+        answer being gone, the rest of the call too."""
+        named = set(error.traj_keys)
+        logger.warning("rollout: %d trajectories lost: %s", len(keys), error)
+        return {
+            key: LostTrajectory(
+                traj_key=key,
+                route=buffers[key].route,
+                steps=len(buffers[key].actions),
+                reason=str(error) if key in named else f"lost with its stage's call, which failed: {error}",
+            )
+            for key in keys
+        }
 
     def _act(self, batch: StageBatch, rows: list[int], instructions: Mapping[str, str]) -> dict[int, np.ndarray]:
         """Run the policy on rows ``rows`` of a batch; return ``{row: action}`` as float32 arrays."""

@@ -10,9 +10,14 @@ import time
 from collections.abc import AsyncIterator, Callable
 
 import httpx
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 
+from service.pod.bodies import BodyLimitMiddleware
+from service.pod.models import describe_validation_error
 from vecsim import __version__
+from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
 
 from .jobs import check_job
 from .reconcile import Reconciler
@@ -46,11 +51,16 @@ def create_app(
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.token is None:
+            log.warning(
+                "no %s set: anyone who can reach the controller may register pods and change the job "
+                "(fine for local development only)", TOKEN_ENV,
+            )
         if not reconcile:
             yield
             return
         stop = asyncio.Event()
-        async with httpx.AsyncClient() as client:
+        async with httpx.AsyncClient(headers=bearer_headers(settings.token)) as client:
             task = asyncio.create_task(Reconciler(state, client).run(stop))
             try:
                 yield
@@ -65,6 +75,27 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.controller = state
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # One line naming each field at fault, like every other refusal (docs/api.md).
+        return JSONResponse({"detail": describe_validation_error(exc)}, status_code=422)
+
+    app.add_middleware(
+        BodyLimitMiddleware,
+        limit=settings.max_body_bytes,
+        on_refused=state.metrics.refused.labels(reason="body_too_large").inc,
+        server="the controller",
+    )
+    # Added last, so it runs first: a request without the token is refused before its body is read.
+    app.add_middleware(
+        BearerTokenMiddleware,
+        token=settings.token,
+        server="the controller",
+        on_refused=state.metrics.refused.labels(reason="unauthorized").inc,
+    )
     for module in (pods, job, routing, health):
         app.include_router(module.router)
+    default_openapi = app.openapi
+    app.openapi = lambda: document_bearer_security(default_openapi())  # type: ignore[method-assign]
     return app

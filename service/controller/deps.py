@@ -1,5 +1,6 @@
 """FastAPI dependencies: the controller's state lives on ``app.state``, never in module globals,
-so that several controller apps can live in one process (tests do)."""
+so that several controller apps can live in one process (tests do). ``async``, because FastAPI
+runs a plain ``def`` dependency on a thread pool: a thread hop on every heartbeat."""
 
 from __future__ import annotations
 
@@ -8,6 +9,6 @@ from fastapi import Request
 from .state import ControllerState
 
 
-def get_state(request: Request) -> ControllerState:
+async def get_state(request: Request) -> ControllerState:
     """Returns the controller's registry, job and plan."""
     return request.app.state.controller

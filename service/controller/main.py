@@ -8,6 +8,7 @@ import sys
 
 import uvicorn
 
+from vecsim.auth import token_from_env
 from vecsim.config import ConfigError, load_job_config
 
 from .app import create_app
@@ -27,17 +28,25 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--adopt-grace", type=float, dest="adopt_grace_s", help="wait this long for pod reports at start (s)"
     )
+    p.add_argument(
+        "--max-body-bytes", type=int, dest="max_body_bytes", help="largest request body (default 1 MiB)"
+    )
     p.add_argument("--access-log", action="store_true", default=None, help="log every request")
     p.add_argument("--log-level", default="info", help="logging level (default info)")
     return p
 
 
 def main(argv: list[str]) -> int:
-    """Runs the controller until it is stopped. Returns the exit code (2: bad config or flags)."""
+    """Runs the controller until it is stopped. Returns the exit code (2: bad config or flags).
+
+    The shared token comes from the environment (``VECSIM_TOKEN``), never from a flag, which
+    anyone on the machine could read in the process list.
+    """
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     overrides = {k: v for k, v in vars(args).items() if k not in ("config",)}
     try:
+        overrides["token"] = token_from_env()
         if args.config:
             settings = ControllerSettings.from_runner_config(load_job_config(args.config), **overrides)
         else:

@@ -57,6 +57,12 @@ class ControllerMetrics:
         self.pushes = Counter(
             "vecsim_controller_pushes", "Assignment pushes by result.", ["result"], registry=self.registry
         )
+        self.refused = Counter(
+            "vecsim_controller_refused_requests",
+            "Requests refused before any route saw them, by reason.",
+            ["reason"],
+            registry=self.registry,
+        )
         self.reconcile_seconds = Histogram(
             "vecsim_controller_reconcile_seconds",
             "Duration of one reconcile pass, pushes included.",

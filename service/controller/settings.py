@@ -3,9 +3,13 @@ often it reconciles, and optionally the job it starts with."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from vecsim.auth import check_token
 from vecsim.config import JobSpec, RunnerConfig
+
+# Registrations, heartbeats and job specs are small JSON documents.
+DEFAULT_MAX_BODY_BYTES = 1024 * 1024
 
 
 class ControllerSettings(BaseModel):
@@ -31,8 +35,20 @@ class ControllerSettings(BaseModel):
         "their retries and a restarted controller hears every pod before it plans",
     )
     job: JobSpec | None = None
+    token: str | None = Field(
+        None,
+        repr=False,
+        description="the job's shared token (VECSIM_TOKEN): required on every request that changes state, "
+        "and sent with every assignment pushed to a pod; None turns checking off",
+    )
+    max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="largest request body accepted (413 above)")
     access_log: bool = False
     log_level: str = "info"
+
+    @field_validator("token")
+    @classmethod
+    def _usable_token(cls, token: str | None) -> str | None:
+        return check_token(token)
 
     @classmethod
     def from_runner_config(cls, config: RunnerConfig, **overrides: object) -> ControllerSettings:

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import httpx
 
 from service.controller.models import Heartbeat
+from vecsim.auth import bearer_headers
 from vecsim.config import PodCapacity, PodRegistration
 
 from .settings import PodSettings
@@ -36,7 +37,8 @@ def backoff_delay(failures: int, base_s: float, cap_s: float) -> float:
 
 class ControllerAgent:
     """Registers one pod with the controller at ``settings.controller_url`` and heartbeats
-    every ``settings.heartbeat_s`` seconds with what ``report()`` says."""
+    every ``settings.heartbeat_s`` seconds with what ``report()`` says, sending the job's token
+    (``settings.token``) with each."""
 
     def __init__(self, settings: PodSettings, report: Callable[[], Heartbeat]) -> None:
         if not settings.controller_url:
@@ -49,7 +51,8 @@ class ControllerAgent:
     async def run(self) -> None:
         """Register and heartbeat until cancelled; never raises anything but cancellation."""
         failures = 0
-        async with httpx.AsyncClient(base_url=self.base_url, timeout=5.0) as client:
+        headers = bearer_headers(self.settings.token)
+        async with httpx.AsyncClient(base_url=self.base_url, timeout=5.0, headers=headers) as client:
             while True:
                 try:
                     await self.beat(client)

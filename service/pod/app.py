@@ -12,6 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 import vecsim
+from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
 
 from .agent import ControllerAgent, Heartbeat
 from .bodies import BodyLimitMiddleware
@@ -50,6 +51,11 @@ def create_app(settings: PodSettings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.assignment is not None:
             await state.assign(settings.assignment)
+        if settings.token is None:
+            log.warning(
+                "pod %s: no %s set: anyone who can reach it may assign, reset and step it "
+                "(fine for local development only)", settings.name, TOKEN_ENV,
+            )
         agent_task = None
         if settings.controller_url:
             agent = ControllerAgent(settings, lambda: heartbeat_of(state))
@@ -87,7 +93,17 @@ def create_app(settings: PodSettings) -> FastAPI:
         BodyLimitMiddleware,
         limit=settings.max_body_bytes,
         on_refused=state.metrics.errors.labels("body_too_large").inc,
+        server=f"pod {settings.name}",
+    )
+    # Added last, so it runs first: a request without the token is refused before its body is read.
+    app.add_middleware(
+        BearerTokenMiddleware,
+        token=settings.token,
+        server=f"pod {settings.name}",
+        on_refused=state.metrics.errors.labels("unauthorized").inc,
     )
     for router in (health.router, info.router, assignment.router, envs.router, metrics.router):
         app.include_router(router)
+    default_openapi = app.openapi
+    app.openapi = lambda: document_bearer_security(default_openapi())  # type: ignore[method-assign]
     return app

@@ -42,13 +42,16 @@ class BodyLimitMiddleware:
     it: at once when ``Content-Length`` says so, else as soon as the bytes read pass the limit.
 
     The body is read whole here and replayed to the app, so routes read it with
-    ``await request.body()``.
+    ``await request.body()``. ``server`` names whose limit it is in the 413's detail.
     """
 
-    def __init__(self, app: ASGIApp, limit: int, on_refused: Callable[[], None]) -> None:
+    def __init__(
+        self, app: ASGIApp, limit: int, on_refused: Callable[[], None], server: str = "this pod"
+    ) -> None:
         self.app = app
         self.limit = limit
         self.on_refused = on_refused
+        self.server = server
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -57,7 +60,7 @@ class BodyLimitMiddleware:
         declared = Headers(scope=scope).get("content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.limit:
             await self._refuse(
-                scope, receive, send, f"body of {declared} bytes exceeds this pod's limit of {self.limit} bytes"
+                scope, receive, send, f"body of {declared} bytes exceeds {self.server}'s limit of {self.limit} bytes"
             )
             return
         chunks: list[bytes] = []
@@ -69,7 +72,7 @@ class BodyLimitMiddleware:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > self.limit:
-                await self._refuse(scope, receive, send, f"body exceeds this pod's limit of {self.limit} bytes")
+                await self._refuse(scope, receive, send, f"body exceeds {self.server}'s limit of {self.limit} bytes")
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):

@@ -1,5 +1,6 @@
 """FastAPI dependencies handing routes the pod's shared state (kept on ``app.state``, never in
-module globals, so that several pod apps can live in one process)."""
+module globals, so that several pod apps can live in one process). They are ``async`` because
+FastAPI runs a plain ``def`` dependency on a thread pool: a thread hop on every reset and step."""
 
 from __future__ import annotations
 
@@ -9,11 +10,11 @@ from .metrics import PodMetrics
 from .state import PodState
 
 
-def get_state(request: Request) -> PodState:
+async def get_state(request: Request) -> PodState:
     """The pod's state: assignment, envs and worker thread."""
     return request.app.state.pod
 
 
-def get_metrics(request: Request) -> PodMetrics:
+async def get_metrics(request: Request) -> PodMetrics:
     """The pod's metrics and their registry."""
     return request.app.state.pod.metrics

@@ -11,8 +11,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from vecsim.auth import check_token
 from vecsim.config import Assignment
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
@@ -58,8 +59,9 @@ class PodSettings(BaseModel):
     port: int = Field(8100, ge=1, le=65535)
     advertise_url: str | None = None
     controller_url: str | None = None
-    # Reserved for authenticating the controller; not checked yet.
-    token: str | None = None
+    # The job's shared token: required on PUT /v1/assignment, POST /v1/reset and /v1/step, and
+    # sent to the controller. None turns checking off (local development).
+    token: str | None = Field(None, repr=False)
     max_envs: int = Field(64, ge=0)
     gpu: bool | None = None
     heartbeat_s: float = Field(1.0, gt=0)
@@ -72,6 +74,11 @@ class PodSettings(BaseModel):
     access_log: bool = False
     log_level: str = "info"
     assignment: Assignment | None = None
+
+    @field_validator("token")
+    @classmethod
+    def _usable_token(cls, token: str | None) -> str | None:
+        return check_token(token)
 
     @property
     def bind_host(self) -> str:

@@ -2,8 +2,10 @@
 
 Pods are named ``sim-0 … sim-N-1``, listen on ``base_port + ordinal``, and get the environment
 a pod gets in Kubernetes (POD_NAME, POD_NAMESPACE, POD_IP, VECSIM_ADVERTISE_URL, CONTROLLER_URL,
-VECSIM_PORT, VECSIM_MAX_ENVS). Every process is probed and restarted like a container; each
-(re)start of the controller is followed by ``PUT /v1/job``.
+VECSIM_PORT, VECSIM_MAX_ENVS, VECSIM_TOKEN). Every process is probed and restarted like a
+container; each (re)start of the controller is followed by ``PUT /v1/job``. Every process gets
+the job's shared token (``VECSIM_TOKEN``): the one given, else a random one made per job, which
+trainers read from :attr:`LocalJob.token`.
 
     with LocalJob(load_job_config("configs/tiny.yaml")) as job:
         table = job.wait_ready(timeout=300)
@@ -15,6 +17,7 @@ from __future__ import annotations
 import atexit
 import logging
 import os
+import secrets
 import socket
 import sys
 import tempfile
@@ -25,6 +28,7 @@ from pathlib import Path
 import httpx
 
 from service.controller.jobs import check_job
+from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
 from vecsim.config import PodCapacity, PodRecord, RoutingTable, RunnerConfig
 from vecsim.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
@@ -59,7 +63,12 @@ class LocalJob:
 
     Use as a context manager, or call :meth:`start` and :meth:`stop`. ``log_dir`` receives one
     log file per process (default: a new temporary directory); ``env`` adds environment variables
-    to every process; ``grace_s`` is the SIGTERM-to-SIGKILL grace period.
+    to every process; ``grace_s`` is the SIGTERM-to-SIGKILL grace period. ``token`` is the job's
+    shared token; left out, ``VECSIM_TOKEN`` from ``env`` or the environment is used, and
+    without one a random token is made for this job.
+
+    Raises:
+        ValueError: the token given cannot travel in an HTTP header.
     """
 
     def __init__(
@@ -72,6 +81,7 @@ class LocalJob:
         python: str = sys.executable,
         backoff: Backoff = Backoff(),
         grace_s: float = TERMINATION_GRACE_S,
+        token: str | None = None,
     ) -> None:
         self.config = config
         self.log_dir = Path(log_dir) if log_dir is not None else Path(tempfile.mkdtemp(prefix="vecsim-up-"))
@@ -82,6 +92,9 @@ class LocalJob:
         self._backoff = backoff
         self._base_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self._base_env.setdefault("MUJOCO_GL", "egl")
+        given = check_token(token, "token") or check_token(self._base_env.get(TOKEN_ENV))
+        self.token: str = given or secrets.token_urlsafe(32)
+        self._base_env[TOKEN_ENV] = self.token
         self.processes: dict[str, ManagedProcess] = {}
         self._started = False
 
@@ -208,7 +221,9 @@ class LocalJob:
         body = self.config.job.model_dump(mode="json")
         for attempt in range(5):
             try:
-                response = httpx.put(f"{self.controller_url}/v1/job", json=body, timeout=30)
+                response = httpx.put(
+                    f"{self.controller_url}/v1/job", json=body, headers=bearer_headers(self.token), timeout=30
+                )
             except httpx.HTTPError as exc:
                 log.warning("PUT /v1/job failed (%s), attempt %d", exc, attempt + 1)
                 time.sleep(0.5 * 2**attempt)

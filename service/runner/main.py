@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
 import time
 from types import FrameType
 
+from vecsim.auth import TOKEN_ENV
 from vecsim.config import ConfigError, load_job_config
 
 from .job import JobRejectedError, LocalJob
@@ -59,6 +61,8 @@ def main(argv: list[str]) -> int:
     try:
         print(f"job {config.job.job_id}: controller {job.controller_url}, logs in {job.log_dir}", flush=True)
         print(f"  watch it: curl {job.controller_url}/v1/pods ; curl {job.controller_url}/v1/routing", flush=True)
+        if not os.environ.get(TOKEN_ENV):
+            print(f"  trainers need the job's token: export {TOKEN_ENV}=$(cat {_write_token(job)})", flush=True)
         shown, was_ready, next_table = "", False, 0.0
         while not stop.wait(0.5):
             if job.job_error is not None:
@@ -82,3 +86,13 @@ def main(argv: list[str]) -> int:
         job.stop(args.grace)
         print("stopped.", flush=True)
     return code
+
+
+def _write_token(job: LocalJob) -> str:
+    """Write the token the job made for itself to ``<log dir>/token``, readable by its owner
+    only. Returns the file's path."""
+    path = job.log_dir / "token"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(job.token + "\n")
+    return str(path)

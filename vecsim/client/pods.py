@@ -120,9 +120,9 @@ class PodConnection:
 
     async def _request(self, method: str, path: str, held: list[str], **kwargs: Any) -> httpx.Response:
         try:
-            return await asyncio.wait_for(
-                self._client().request(method, f"{self.url}{path}", **kwargs), timeout=self.timeout_s
-            )
+            # asyncio.timeout, not wait_for: wait_for wraps every request in a task of its own.
+            async with asyncio.timeout(self.timeout_s):
+                return await self._client().request(method, f"{self.url}{path}", **kwargs)
         except (TimeoutError, httpx.TransportError) as exc:
             reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
             raise PodUnavailableError({self.name: held}, reason) from None

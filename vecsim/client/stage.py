@@ -360,9 +360,10 @@ class StageClient:
 
     def _replace_routes(self, routes: dict[str, TrajRoute]) -> None:
         with self._lock:
-            if self._pending:
+            busy = self._busy_stages(set(self._pending))
+            if busy:
                 raise AlreadyPendingCallError(
-                    f"stages {sorted(self._pending)} have calls in flight; wait for them before placing a new batch",
+                    f"stages {busy} have calls in flight; wait for them before placing a new batch",
                     "reset",
                 )
             self._routes = routes
@@ -471,7 +472,7 @@ class StageClient:
         actions = self._check_actions(step) if step else None
         stages = {routes[k].stage_id for k in itertools.chain(reset_keys, step)}
         with self._lock:
-            busy = sorted(stages & set(self._pending))
+            busy = self._busy_stages(stages)
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
             future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions))
@@ -480,6 +481,12 @@ class StageClient:
                 self._pending[stage] = pending
         future.add_done_callback(lambda _f: self._release(stages, pending))
         return pending
+
+    def _busy_stages(self, stages: set[int]) -> list[int]:
+        """Those of ``stages`` whose call is still running (call with the lock held). A finished
+        call counts as over even before its done-callback has released its stages: a caller whose
+        ``result()`` returned may call again at once."""
+        return sorted(s for s in stages if s in self._pending and not self._pending[s].done())
 
     def _release(self, stages: set[int], pending: PendingCall[Any]) -> None:
         with self._lock:
@@ -552,10 +559,14 @@ class StageClient:
                 raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
             if shape is not None and row.shape != shape:
                 raise ValueError(f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)}")
-            if not np.all(np.isfinite(row)):
-                raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
             rows.append(row.reshape(-1))
-        return np.stack(rows)
+        actions = np.stack(rows)
+        # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
+        finite = np.isfinite(actions).all(axis=1)
+        if not finite.all():
+            key = list(step)[int(np.flatnonzero(~finite)[0])]
+            raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
+        return actions
 
     # -- what runs on the loop ------------------------------------------------------------------
 
