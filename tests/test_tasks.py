@@ -53,6 +53,24 @@ def _episode(env: TaskEnv, state_id: int, actions: np.ndarray = ACTIONS) -> list
     return frames
 
 
+def _robosuite_render(env: TaskEnv, preset: str, camera: str) -> np.ndarray:
+    """What robosuite's own renderer shows of ``env`` now, bottom row first as robosuite gives it."""
+    from robosuite.utils.binding_utils import MjRenderContextOffscreen
+
+    sim = env.inner.sim
+    context = MjRenderContextOffscreen(sim, device_id=-1)
+    context.vopt.geomgroup[0] = 0
+    render.apply_to_robosuite(sim, preset)
+    try:
+        context.gl_ctx.make_current()
+        return sim.render(camera_name=camera, width=env.camera.width, height=env.camera.height)
+    finally:
+        context.gl_ctx.make_current()
+        context.con.free()
+        context.gl_ctx.free()
+        sim._render_context_offscreen = None
+
+
 @pytest.fixture(scope="module")
 def lift() -> Iterator[TaskEnv]:
     env = make_env("tiny/lift", TINY_CAMERA, "lean")
@@ -158,7 +176,7 @@ def test_robot_observation_is_upright_images_and_23_proprio_floats(lift: TaskEnv
     assert set(obs["images"]) == {"agentview", "robot0_eye_in_hand"}
     assert info == {"success": False, "task_id": "tiny/lift", "state_id": 0}
     raw = lift.inner._get_observations()
-    assert np.array_equal(obs["images"]["agentview"], raw["agentview_image"][::-1])
+    assert np.array_equal(obs["images"]["agentview"], _robosuite_render(lift, "lean", "agentview")[::-1])
     assert np.array_equal(obs["proprio"], np.concatenate([raw[k] for k in PROPRIO_KEYS]).astype(np.float32))
 
 
@@ -297,10 +315,11 @@ def test_unknown_render_preset_is_a_value_error() -> None:
 
 
 def test_presets_set_the_shadow_map_and_scene_flags_on_a_robosuite_env(lift: TaskEnv) -> None:
-    context = lift.inner.sim._render_context_offscreen
-    assert lift.inner.sim.model.vis.quality.shadowsize == 0
-    assert context.con.shadowSize == 0
-    flags = context.scn.flags
+    lift.render_images()
+    context, scene = lift.renderer.context_of(lift.inner.sim.model._model)
+    assert lift.renderer.preset == "lean"
+    assert context.shadowSize == 0
+    flags = scene.flags
     assert (flags[mujoco.mjtRndFlag.mjRND_SHADOW], flags[mujoco.mjtRndFlag.mjRND_REFLECTION]) == (0, 0)
     assert flags[mujoco.mjtRndFlag.mjRND_SKYBOX] == 0
 
@@ -316,7 +335,7 @@ def test_each_preset_renders_deterministically_and_presets_differ() -> None:
             assert np.array_equal(first, again)
             images[preset] = first
             expected_size = {"full": 4096, "fast": 1024, "lean": 0}[preset]
-            assert env.inner.sim._render_context_offscreen.con.shadowSize == expected_size
+            assert env.renderer.context_of(env.inner.sim.model._model)[0].shadowSize == expected_size
         finally:
             env.close()
     assert not np.array_equal(images["full"], images["lean"])

@@ -12,6 +12,12 @@ Mesa's software renderer. Its size is read from ``model.vis.quality.shadowsize``
 render context (``MjrContext``) is made, so it must be set before that; the scene flags can change
 at any time. Rendering is deterministic for a given model, state and preset.
 
+vecsim's envs render through :mod:`vecsim.batch_render`, which applies a preset with
+:func:`apply_to_model` (to a render context it makes) and :func:`apply_to_scene`.
+:func:`apply_to_robosuite` and :func:`apply_to_gymnasium` apply one to robosuite's and
+gymnasium's own renderers: the default path, which tests and benchmarks compare against.
+``docs/benchmarks.md`` shows frames of each preset and what each pass costs.
+
 This module only touches MuJoCo objects; it imports robosuite and gymnasium nothing.
 """
 
@@ -27,12 +33,18 @@ from vecsim.config import RenderPreset
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """What one preset turns on; ``shadow_size`` None keeps the model's own shadow map size."""
+    """What one preset turns on.
+
+    ``shadow_size`` None keeps the model's own shadow map size; ``multisamples`` None keeps the
+    model's own multisampling of offscreen buffers (MuJoCo's default is 4 samples a pixel).
+    Benchmarks build other settings than the presets' to measure what each pass costs.
+    """
 
     shadows: bool
     reflections: bool
     skybox: bool
     shadow_size: int | None
+    multisamples: int | None = None
 
 
 PRESETS: dict[str, RenderSettings] = {
@@ -42,32 +54,36 @@ PRESETS: dict[str, RenderSettings] = {
 }
 
 
-def settings(preset: RenderPreset | str) -> RenderSettings:
-    """Return the :class:`RenderSettings` of ``preset``.
+def settings(preset: RenderPreset | str | RenderSettings) -> RenderSettings:
+    """Return the :class:`RenderSettings` of ``preset`` (``preset`` itself if it is one).
 
     Raises:
         ValueError: ``preset`` is not one of ``full``, ``fast``, ``lean``.
     """
+    if isinstance(preset, RenderSettings):
+        return preset
     try:
         return PRESETS[preset]
     except KeyError:
         raise ValueError(f"render: unknown preset {preset!r}; choose one of {sorted(PRESETS)}") from None
 
 
-def apply_to_model(model: mujoco.MjModel, preset: RenderPreset | str) -> None:
-    """Set the model-side settings of ``preset`` (the shadow map size).
+def apply_to_model(model: mujoco.MjModel, preset: RenderPreset | str | RenderSettings) -> None:
+    """Set the model-side settings of ``preset`` (shadow map size, multisampling).
 
-    Only render contexts made after this call see the new size. Returns None.
+    Only render contexts made after this call see them. Returns None.
 
     Raises:
         ValueError: unknown preset.
     """
-    wanted = settings(preset).shadow_size
-    if wanted is not None:
-        model.vis.quality.shadowsize = wanted
+    chosen = settings(preset)
+    if chosen.shadow_size is not None:
+        model.vis.quality.shadowsize = chosen.shadow_size
+    if chosen.multisamples is not None:
+        model.vis.quality.offsamples = chosen.multisamples
 
 
-def apply_to_scene(scene: mujoco.MjvScene, preset: RenderPreset | str) -> None:
+def apply_to_scene(scene: mujoco.MjvScene, preset: RenderPreset | str | RenderSettings) -> None:
     """Set the scene flags of ``preset`` (shadows, reflections, skybox) on ``scene``. Returns None.
 
     Raises:
@@ -89,6 +105,7 @@ def apply_to_robosuite(sim: Any, preset: RenderPreset | str) -> None:
     Raises:
         ValueError: unknown preset.
     """
+    settings(preset)
     model = sim.model._model
     before = model.vis.quality.shadowsize
     apply_to_model(model, preset)

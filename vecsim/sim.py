@@ -8,8 +8,11 @@ gymnasium steps every worker on every call, so each worker's env takes a command
 ``{"cmd": noop|step|reset, "state_id", "action"}`` per slot: one call carries the resets or steps
 of exactly the named envs, and every other env returns its last observation without advancing.
 A worker hosts a block of ``envs_per_worker`` envs of one task (the last worker of a block may
-have idle, padded slots), and returns per-slot rewards and flags inside its observation, since
-gymnasium's reward and flags are one scalar per worker.
+have idle, padded slots; ``envs_per_worker`` 0 lets :func:`auto_envs_per_worker` pick it, since for
+cheap scenes a process per env costs more than the physics), and returns per-slot rewards and flags inside its observation, since
+gymnasium's reward and flags are one scalar per worker. Camera images are rendered after every
+command of a call has run, for exactly the envs reset or stepped, all their cameras in one batch
+of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per worker, one readback).
 
 Every argument is validated before any worker is touched, so a rejected call changes nothing.
 Module-level code imports nothing heavy and starts nothing: it is safe under ``forkserver``.
@@ -19,12 +22,16 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
+import os
 import threading
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -32,7 +39,7 @@ import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim.config import Assignment, CameraConfig
+from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig
 from vecsim.tasks import TaskEnv, get_task, make_env, task_spaces
 
 log = logging.getLogger("vecsim.sim")
@@ -127,6 +134,10 @@ class _WorkerEnv(gymnasium.Env):
                 "terminated": flags,
                 "truncated": flags,
                 "success": flags,
+                # Seconds this worker spent in the last call on physics (resets and steps) and
+                # on rendering: the pod's time split, per call.
+                "physics_s": gymnasium.spaces.Box(0.0, np.inf, (1,), np.float64),
+                "render_s": gymnasium.spaces.Box(0.0, np.inf, (1,), np.float64),
             }
         )
         self.action_space = gymnasium.spaces.Dict(
@@ -156,8 +167,11 @@ class _WorkerEnv(gymnasium.Env):
                         f"its env's spaces differ from the ones the task declares: "
                         f"{env.observation_space}, {env.action_space}"
                     )
+            for env in self._envs:
+                env.defer_images = True
             for slot in range(len(self._envs)):
                 self._reset_slot(slot, 0)
+            self._render(list(range(len(self._envs))))
         except Exception as exc:
             raise SimBuildError(
                 f"{worker.task_id} (envs {worker.env_indices[0]}-{worker.env_indices[-1]}): "
@@ -175,10 +189,13 @@ class _WorkerEnv(gymnasium.Env):
 
     def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
         """Run each slot's command; return the block's observation (reward and flags inside it)."""
+        started = time.perf_counter()
+        touched = []
         for slot, env in enumerate(self._envs):
             cmd = int(command["cmd"][slot])
             if cmd == RESET:
                 self._reset_slot(slot, int(command["state_id"][slot]))
+                touched.append(slot)
             elif cmd == STEP:
                 observation, reward, terminated, truncated, info = env.step(command["action"][slot])
                 _write_slot(self._out["obs"], slot, observation)
@@ -186,7 +203,23 @@ class _WorkerEnv(gymnasium.Env):
                 self._out["terminated"][slot] = terminated
                 self._out["truncated"][slot] = truncated
                 self._out["success"][slot] = info["success"]
+                touched.append(slot)
+        stepped = time.perf_counter()
+        self._render(touched)
+        self._out["physics_s"][0] = stepped - started
+        self._out["render_s"][0] = time.perf_counter() - stepped
         return self._out, 0.0, False, False, {}
+
+    def _render(self, slots: list[int]) -> None:
+        # Every env of a worker renders at one size and preset, so they share one renderer.
+        if not slots or self._envs[0].renderer is None:
+            return
+        names = self._envs[0].image_names
+        views = [self._envs[slot].camera_views[camera] for camera in range(len(names)) for slot in slots]
+        frames = self._envs[0].renderer.render(views)
+        images = self._out["obs"]["images"]
+        for index, name in enumerate(names):
+            images[name][slots] = frames[index * len(slots) : (index + 1) * len(slots)]
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -232,15 +265,59 @@ def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.spaces.Dict, gy
     return _empty_spaces() if first is None else first[1:]
 
 
+def available_cores() -> int:
+    """Return how many cores this process may use: its CPU affinity, capped by a cgroup v2
+    CPU quota (a Kubernetes CPU limit) when one is set. At least 1."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()
+        if quota != "max":
+            cores = min(cores, math.ceil(int(quota) / int(period)))
+    except (OSError, ValueError):
+        pass
+    return max(cores, 1)
+
+
+def auto_envs_per_worker(block_sizes: Sequence[int], cores: int) -> int:
+    """Return the fewest envs per worker that keep a pod's workers within ``cores``.
+
+    A worker hosts envs of one task only, so each non-empty block needs a worker of its own:
+    the answer keeps the number of workers at most ``max(cores, non-empty blocks)``, as evenly
+    filled as that allows. No envs at all: 1.
+    """
+    sizes = [n for n in block_sizes if n > 0]
+    if not sizes:
+        return 1
+    budget = max(cores, len(sizes))
+    # Workers needed only fall as envs per worker grow, so the first fit is the fewest per worker;
+    # at max(sizes) every block has one worker, which always fits.
+    return next(
+        per_worker
+        for per_worker in range(1, max(sizes) + 1)
+        if sum(math.ceil(n / per_worker) for n in sizes) <= budget
+    )
+
+
+@dataclass(frozen=True)
+class CallTiming:
+    """Worker seconds of one reset or step call, summed over the pod's workers: ``physics_s``
+    in the scenes' resets and steps, ``render_s`` rendering their cameras."""
+
+    physics_s: float = 0.0
+    render_s: float = 0.0
+
+
 class TaskGroupedVectorEnv:
     """The envs of one assignment, in worker processes, addressed by env index.
 
     Env indices run ``0..num_envs-1`` in contiguous blocks, one per task block of the assignment.
     After construction every env is in state 0. Thread-safe: calls are serialised.
+    ``last_timing`` (:class:`CallTiming`) tells where the workers spent the last call's time.
 
     Args:
         assignment: what to run (tasks and their env counts, camera, render preset,
-            ``envs_per_worker``, ``max_episode_steps``).
+            ``envs_per_worker`` (0: :func:`auto_envs_per_worker` over :func:`available_cores`),
+            ``max_episode_steps``).
         context: multiprocessing start method for the workers.
         timeout_s: longest wait for the workers on one reset or step; None waits forever.
         build_timeout_s: longest wait for the workers to build; None waits forever.
@@ -270,8 +347,12 @@ class TaskGroupedVectorEnv:
         self._broken: str | None = None
         self._closed = False
         self._vec: AsyncVectorEnv | None = None
+        self.last_timing = CallTiming()
 
         slots = assignment.envs_per_worker
+        if slots == AUTO_ENVS_PER_WORKER:
+            slots = auto_envs_per_worker([b.num_envs for b in assignment.tasks], available_cores())
+        self.envs_per_worker = slots
         specs: list[_WorkerSpec] = []
         locations: list[tuple[int, int]] = []
         for block in assignment.tasks:
@@ -315,7 +396,7 @@ class TaskGroupedVectorEnv:
             self.num_envs,
             ", ".join(f"{task} x{n}" for task, n in counts.items()),
             len(self._workers),
-            self.assignment.envs_per_worker,
+            self.envs_per_worker,
         )
         started = time.monotonic()
         self._vec = AsyncVectorEnv(
@@ -522,7 +603,7 @@ class TaskGroupedVectorEnv:
         return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
 
     def _command(self) -> dict[str, np.ndarray]:
-        workers, slots = len(self._workers), self.assignment.envs_per_worker
+        workers, slots = len(self._workers), self.envs_per_worker
         action = self.single_action_space
         return {
             "cmd": np.full((workers, slots), NOOP, dtype=np.int64),
@@ -572,6 +653,7 @@ class TaskGroupedVectorEnv:
                 self._broken = self._failure(exc)
                 raise SimCrashedError(self._broken) from exc
             obs = _gather(out["obs"], workers, slots)
+            self.last_timing = CallTiming(float(out["physics_s"].sum()), float(out["render_s"].sum()))
             flags = {
                 "reward": out["reward"][workers, slots].astype(np.float32),
                 "terminated": out["terminated"][workers, slots].astype(bool),

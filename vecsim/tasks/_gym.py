@@ -2,7 +2,9 @@
 
 State id ``k`` is ``reset(seed=derive_seed(task_id, k))``. ``proprio`` is the env's own
 observation, flattened, as float32; with cameras asked for, ``images`` holds one ``render``
-frame of the configured size (MuJoCo envs only, rendered upright by gymnasium).
+frame of the configured size (MuJoCo envs only, upright): the picture gymnasium's
+``env.render()`` gives, drawn by vecsim's batch renderer from gymnasium's camera settings, so no
+gymnasium viewer (and no GL context of its own) is ever made.
 """
 
 from __future__ import annotations
@@ -10,9 +12,11 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium
+import mujoco
 import numpy as np
 
 from vecsim import render as render_presets
+from vecsim.batch_render import BatchRenderer, CameraView, shared_renderer
 from vecsim.config import CameraConfig
 from vecsim.tasks._base import TaskEnv, TaskSpec, derive_seed, ensure_gl_backend
 
@@ -73,8 +77,50 @@ def _observation_space(task: TaskSpec, env: gymnasium.Env, camera: CameraConfig)
     return gymnasium.spaces.Dict(spaces)
 
 
+def gymnasium_camera(env: gymnasium.Env) -> CameraView:
+    """Return the camera view gymnasium's ``render()`` of ``env`` draws, as gymnasium sets it up.
+
+    gymnasium's offscreen viewer starts from a free camera looking at the median geom position
+    from ``model.stat.extent`` away, then applies the env's ``default_camera_config``; a named
+    or numbered camera makes it a fixed camera. Call it before the first step, as gymnasium
+    makes its viewer on the first ``render()`` of a fresh env.
+
+    Raises:
+        ValueError: ``env`` is not a gymnasium MuJoCo env rendering rgb arrays.
+    """
+    base = env.unwrapped
+    renderer = getattr(base, "mujoco_renderer", None)
+    if renderer is None or base.render_mode != "rgb_array":
+        raise ValueError(
+            f"render: {base.spec.id if base.spec else type(base).__name__} is not a MuJoCo env "
+            "rendering rgb arrays"
+        )
+    model, data = base.model, base.data
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.fixedcamid = -1
+    camera.lookat[:] = np.median(data.geom_xpos, axis=0)
+    camera.distance = model.stat.extent
+    for key, value in (renderer.default_cam_config or {}).items():
+        if isinstance(value, np.ndarray):
+            getattr(camera, key)[:] = value
+        else:
+            setattr(camera, key, value)
+    if renderer.camera_id is not None and renderer.camera_id != -1:
+        camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        camera.fixedcamid = renderer.camera_id
+    option = mujoco.MjvOption()
+    for flag, value in renderer._vopt.items():
+        option.flags[flag] = value
+    return CameraView(model, data, camera, option)
+
+
 class GymTaskEnv(TaskEnv):
-    """A gymnasium env behind vecsim's observation and reset contract."""
+    """A gymnasium env behind vecsim's observation and reset contract.
+
+    With cameras, :attr:`camera_views` holds gymnasium's camera and :attr:`renderer` draws it;
+    with :attr:`defer_images` set, observations leave ``images`` out for a batch to fill.
+    """
 
     def __init__(self, task: TaskSpec, camera: CameraConfig, render: str, max_episode_steps: int) -> None:
         super().__init__(task, max_episode_steps)
@@ -92,15 +138,26 @@ class GymTaskEnv(TaskEnv):
                 f"{task.task_id}: cannot render camera images of it (only gymnasium MuJoCo envs "
                 f"take a width and height): {exc}"
             ) from exc
-        self._viewer: Any = None
+        self.defer_images = False
+        self.image_names: tuple[str, ...] = (RENDER_CAMERA,) if camera.names else ()
+        self.camera_views: list[CameraView] = []
+        self.renderer: BatchRenderer | None = None
         try:
             self.observation_space = _observation_space(task, self.inner, camera)
             self.action_space = _check_box(task, "action", self.inner.action_space)
             if camera.names:
-                self._viewer = render_presets.apply_to_gymnasium(self.inner, render)
+                self.camera_views = [gymnasium_camera(self.inner)]
+                self.renderer = shared_renderer(camera.height, camera.width, render)
+                self.renderer.attach(self.camera_views[0].model, 1)
         except BaseException:
             self.inner.close()
             raise
+
+    def render_images(self) -> dict[str, np.ndarray]:
+        """Render the env as it is now; return ``{"render": HxWx3 uint8}`` (empty without cameras)."""
+        if self.renderer is None:
+            return {}
+        return dict(zip(self.image_names, self.renderer.render(self.camera_views)))
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
         raw, info = self.inner.reset(seed=derive_seed(self.task.task_id, state_id))
@@ -112,13 +169,14 @@ class GymTaskEnv(TaskEnv):
 
     def _observation(self, raw: Any) -> dict[str, Any]:
         observation: dict[str, Any] = {}
-        if self._viewer is not None:
-            # Each env has its own GL context and gymnasium does not switch to it by itself.
-            self._viewer.make_context_current()
-            observation["images"] = {RENDER_CAMERA: self.inner.render()}
+        if self.renderer is not None and not self.defer_images:
+            observation["images"] = self.render_images()
         observation["proprio"] = np.asarray(raw, dtype=np.float32).reshape(-1)
         return observation
 
     def close(self) -> None:
-        """Close the gymnasium env. Returns None."""
+        """Close the gymnasium env and release its share of the renderer. Returns None."""
+        if self.renderer is not None:
+            self.renderer.detach(self.camera_views[0].model, 1)
+            self.renderer = None
         self.inner.close()

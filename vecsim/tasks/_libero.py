@@ -172,7 +172,7 @@ def make_libero_env(
     render_presets.apply_to_robosuite(inner.sim, render)
     try:
         states = init_states(task)
-        return RobotTaskEnv(task, inner, states, camera, max_episode_steps, owner=wrapper)
+        return RobotTaskEnv(task, inner, states, camera, max_episode_steps, owner=wrapper, render=render)
     except BaseException:
         wrapper.close()
         raise

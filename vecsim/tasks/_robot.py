@@ -10,6 +10,13 @@ solver warmstart, the arm controller's goals and nullspace posture, the gripper'
 command, step counters, object placements LIBERO writes into the model), so a reset reruns
 robosuite's own reset under a seed derived from (task, state id), clears MuJoCo's history, sets
 the flattened state, and only then makes the controllers, which read the state they start from.
+
+Cameras are drawn by vecsim's batch renderer (:mod:`vecsim.batch_render`), not by robosuite:
+robosuite's camera observables and its own render context are switched off, and each env's
+images are rendered once per reset or step, of the sim as the action's last physics substep
+leaves it (where robosuite's camera observables render, with no extra ``mj_forward``, so the
+pictures are robosuite's own). Standing alone, an env renders its own cameras as one batch; a pod's worker sets
+``defer_images`` and renders every env it just stepped in one batch instead.
 """
 
 from __future__ import annotations
@@ -23,10 +30,12 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium
+import mujoco
 import numpy as np
 
 from vecsim import render as render_presets
-from vecsim.config import CameraConfig
+from vecsim.batch_render import BatchRenderer, CameraView, fixed_camera, shared_renderer
+from vecsim.config import CameraConfig, RenderPreset
 from vecsim.tasks._base import (
     TaskEnv,
     TaskSetupError,
@@ -122,7 +131,16 @@ class RobotTaskEnv(TaskEnv):
     """A robosuite (or LIBERO) env behind vecsim's observation, action and reset contract.
 
     ``states`` holds one flattened MuJoCo state per state id. ``terminated`` is success, as in
-    LIBERO; the reward is the env's own (sparse) reward.
+    LIBERO; the reward is the env's own (sparse) reward. ``render`` is the render preset; None
+    takes the one :func:`vecsim.render.apply_to_robosuite` gave ``inner.sim`` (else ``lean``).
+
+    Camera images come from :attr:`renderer`, this process's batch renderer for the camera size
+    and preset; :attr:`camera_views` holds one view per camera name. With :attr:`defer_images`
+    set, observations leave ``images`` out and whoever set it renders them (in a batch).
+
+    Raises:
+        TaskSetupError: ``states`` do not fit the scene.
+        ValueError: a camera the scene does not have, or an unknown render preset.
     """
 
     def __init__(
@@ -133,6 +151,7 @@ class RobotTaskEnv(TaskEnv):
         camera: CameraConfig,
         max_episode_steps: int,
         owner: Any = None,
+        render: RenderPreset | None = None,
     ) -> None:
         super().__init__(task, max_episode_steps)
         if states.ndim != 2 or states.shape[0] < task.num_states or states.shape[1] != state_width(inner):
@@ -140,6 +159,8 @@ class RobotTaskEnv(TaskEnv):
                 f"{task.task_id}: expected {task.num_states} initial states of {state_width(inner)} "
                 f"floats, got an array of shape {states.shape}"
             )
+        preset = render or "lean"
+        render_presets.settings(preset)
         self.inner = inner
         self.states = states
         self.camera = camera
@@ -147,17 +168,24 @@ class RobotTaskEnv(TaskEnv):
         self.action_space = robot_action_space()
         # LIBERO's wrapper owns the robosuite env; closing it closes both.
         self._owner = owner
-        context = inner.sim._render_context_offscreen
-        self._gl = context.gl_ctx if camera.names and context is not None else None
+        self.defer_images = False
+        self.image_names: tuple[str, ...] = tuple(camera.names)
+        _release_robosuite_cameras(inner)
+        self.camera_views = _camera_views(task, inner, camera.names)
+        self.renderer: BatchRenderer | None = None
+        if camera.names:
+            self.renderer = shared_renderer(camera.height, camera.width, preset)
+            self.renderer.attach(inner.sim.model._model, len(camera.names))
 
-    def _make_gl_current(self) -> None:
-        # Each env has its own GL context and robosuite renders into whichever is current.
-        if self._gl is not None:
-            self._gl.make_current()
+    def render_images(self) -> dict[str, np.ndarray]:
+        """Render this env's cameras as the scene is now; return ``{camera name: HxWx3 uint8}``."""
+        if self.renderer is None:
+            return {}
+        frames = self.renderer.render(self.camera_views)
+        return dict(zip(self.image_names, frames))
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
         inner = self.inner
-        self._make_gl_current()
         _seeded_reset(self.task.task_id, state_id, inner)
         data = inner.sim.data._data
         data.qacc_warmstart[:] = 0.0
@@ -184,29 +212,61 @@ class RobotTaskEnv(TaskEnv):
         return observation, bool(inner._check_success())
 
     def _step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, bool]:
-        self._make_gl_current()
         raw, reward, _, _ = self.inner.step(np.asarray(action, dtype=np.float64))
         success = bool(self.inner._check_success())
         return self._observation(raw), float(reward), success, False, success
 
     def _observation(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
         observation: dict[str, Any] = {}
-        if self.camera.names:
-            # MuJoCo reads pixels bottom row first; flip so row 0 is the top of the picture.
-            observation["images"] = {
-                name: np.ascontiguousarray(raw[f"{name}_image"][::-1]) for name in self.camera.names
-            }
+        if self.camera.names and not self.defer_images:
+            observation["images"] = self.render_images()
         observation["proprio"] = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
         return observation
 
     def close(self) -> None:
-        """Free the sim and its render context. Returns None."""
+        """Free the sim and release its share of the renderer. Returns None."""
+        if self.renderer is not None and self.inner is not None:
+            self.renderer.detach(self.inner.sim.model._model, len(self.image_names))
+            self.renderer = None
         if self._owner is not None:
             self._owner.close()
         elif self.inner is not None and self.inner.sim is not None:
             self.inner.close()
         self.inner = None
         self._owner = None
+
+
+def _release_robosuite_cameras(inner: Any) -> None:
+    """Switch off robosuite's own camera path: its image observables and its render context."""
+    for name, observable in inner._observables.items():
+        if name.endswith("_image") and observable.modality == "image":
+            inner.modify_observable(name, "enabled", False)
+    context = inner.sim._render_context_offscreen
+    if context is not None:
+        # Freed with its own GL context current: freeing GL objects in another context would
+        # delete that context's objects of the same names.
+        context.gl_ctx.make_current()
+        context.con.free()
+        context.gl_ctx.free()
+        inner.sim._render_context_offscreen = None
+    # robosuite's reset makes a new render context whenever it has none and this is set.
+    inner.has_offscreen_renderer = False
+
+
+def _camera_views(task: TaskSpec, inner: Any, names: tuple[str, ...]) -> list[CameraView]:
+    model, data = inner.sim.model._model, inner.sim.data._data
+    views = []
+    for name in names:
+        try:
+            camera = fixed_camera(model, name)
+        except ValueError as exc:
+            raise ValueError(f"{task.task_id}: cannot build it with cameras {list(names)}: {exc}") from None
+        # robosuite's renderer shows visual meshes and hides collision meshes (geom groups 1, 0).
+        option = mujoco.MjvOption()
+        option.geomgroup[0] = int(bool(inner.render_collision_mesh))
+        option.geomgroup[1] = int(bool(inner.render_visual_mesh))
+        views.append(CameraView(model, data, camera, option))
+    return views
 
 
 # robosuite task name -> (robosuite env, scene, instruction)
@@ -279,34 +339,26 @@ def make_robosuite_env(
     ensure_gl_backend()
     import robosuite
 
-    cameras = list(camera.names)
-    try:
-        with seeded_global_rngs(scene_seed(task.task_id)):
-            inner = robosuite.make(
-                robosuite_env_name(task),
-                robots="Panda",
-                controller_configs=robosuite.load_controller_config(default_controller="OSC_POSE"),
-                has_renderer=False,
-                has_offscreen_renderer=bool(cameras),
-                use_camera_obs=bool(cameras),
-                camera_names=cameras,
-                camera_heights=camera.height,
-                camera_widths=camera.width,
-                reward_shaping=False,
-                hard_reset=False,
-                ignore_done=True,
-                horizon=max_episode_steps,
-            )
-    except ValueError as exc:
-        raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
-    if cameras:
-        render_presets.apply_to_robosuite(inner.sim, render)
+    # vecsim renders the cameras itself (RobotTaskEnv), so robosuite makes no render context.
+    with seeded_global_rngs(scene_seed(task.task_id)):
+        inner = robosuite.make(
+            robosuite_env_name(task),
+            robots="Panda",
+            controller_configs=robosuite.load_controller_config(default_controller="OSC_POSE"),
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            reward_shaping=False,
+            hard_reset=False,
+            ignore_done=True,
+            horizon=max_episode_steps,
+        )
     try:
         states = generated_states(task, inner)
+        return RobotTaskEnv(task, inner, states, camera, max_episode_steps, render=render)
     except BaseException:
         inner.close()
         raise
-    return RobotTaskEnv(task, inner, states, camera, max_episode_steps)
 
 
 def states_path(task: TaskSpec) -> Path:
