@@ -42,6 +42,12 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
+# The editable install points at one checkout; a clone elsewhere (CI) re-points it, cheaply.
+if [ "$("$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Path(vecsim.__file__).resolve().parents[1])' 2>/dev/null)" != "$here" ]; then
+  echo "[setup] pointing the venv's vecsim at $here" >&2
+  "$venv/bin/python" -m pip install -q --no-deps -e "$here"
+fi
+
 # LIBERO looks for assets in its own package folder first; point that at the assets packages.
 "$venv/bin/python" - <<'PY'
 import importlib.util, os, pathlib
