@@ -177,6 +177,19 @@ def controller_server(workdir: Path, *, args: Sequence[str] = (), token: str | N
     return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log")
 
 
+def controller_server_on(
+    host: str, workdir: Path, *, args: Sequence[str] = (), token: str | None = None, **env: str
+) -> Server:
+    """A ``vecsim controller`` process listening on ``host`` (an address of this machine other
+    than loopback, e.g. a veth's, for pods in other network namespaces), on a free port."""
+    port = free_port()
+    extra = dict(env)
+    if token is not None:
+        extra["VECSIM_TOKEN"] = token
+    argv = ["controller", "--host", host, "--port", str(port), *args]
+    return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log", host=host)
+
+
 def assignment_file(
     workdir: Path,
     pod: str,
