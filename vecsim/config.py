@@ -7,6 +7,7 @@ default.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -35,6 +36,18 @@ class CameraConfig(_Model):
         return names
 
 
+# 0 (the default) asks the pod to choose (vecsim.sim.resolve_envs_per_worker); YAML and JSON may say "auto".
+AUTO_ENVS_PER_WORKER = 0
+ENVS_PER_WORKER_DOC = (
+    "envs hosted by one worker process; 0 or 'auto': the pod picks (cheap gym scenes without "
+    "cameras: the fewest that keep its workers within its cores; anything else: 1)"
+)
+
+
+def _auto_to_zero(value: object) -> object:
+    return AUTO_ENVS_PER_WORKER if value == "auto" else value
+
+
 class TaskBlock(_Model):
     """A contiguous block of a pod's envs that all run one task."""
 
@@ -54,8 +67,10 @@ class Assignment(_Model):
     camera: CameraConfig = CameraConfig()
     render: RenderPreset = "lean"
     seed: int = 0
-    envs_per_worker: int = Field(1, ge=1, le=256)
+    envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
     max_episode_steps: int = Field(300, ge=1)
+
+    _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 
     @model_validator(mode="after")
     def _blocks_are_contiguous(self) -> "Assignment":
@@ -92,8 +107,10 @@ class JobSpec(_Model):
     camera: CameraConfig = CameraConfig()
     render: RenderPreset = "lean"
     seed: int = 0
-    envs_per_worker: int = Field(1, ge=1, le=256)
+    envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
     max_episode_steps: int = Field(300, ge=1)
+
+    _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 
     @model_validator(mode="after")
     def _suite_or_tasks(self) -> "JobSpec":
@@ -156,11 +173,51 @@ class RoutingTable(_Model):
         return sum(s.num_envs for s in self.stages)
 
 
+# One CPU list in ``taskset -c`` syntax: "3", "0-3", "0,2,4-7".
+_CPU_LIST = re.compile(r"^\d+(-\d+)?(,\d+(-\d+)?)*$")
+
+
+def parse_cpu_list(text: str) -> set[int]:
+    """Return the CPUs a ``taskset -c`` list names ("0-3,8" -> {0, 1, 2, 3, 8}).
+
+    Raises:
+        ValueError: not such a list, or a range that runs backwards.
+    """
+    if not _CPU_LIST.match(text):
+        raise ValueError(f"{text!r} is not a CPU list like '3', '0-3' or '0,2,4-7'")
+    cpus: set[int] = set()
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        low, high = int(first), int(last or first)
+        if high < low:
+            raise ValueError(f"{text!r}: the range {part!r} runs backwards")
+        cpus.update(range(low, high + 1))
+    return cpus
+
+
 class PodsConfig(_Model):
     replicas: int = Field(2, ge=0)
     host: str = "127.0.0.1"
     base_port: int = Field(8100, ge=1024, le=65000)
     max_envs: int = Field(64, ge=0)
+    cpu_affinity: tuple[str, ...] = Field(
+        (),
+        description=(
+            "CPU lists (taskset -c syntax) to pin pods to, as a CPU limit confines a pod in "
+            "Kubernetes: pod i (its env workers too) runs on cpu_affinity[i % len]; empty: unpinned"
+        ),
+    )
+
+    @field_validator("cpu_affinity")
+    @classmethod
+    def _cpu_lists(cls, lists: tuple[str, ...]) -> tuple[str, ...]:
+        for text in lists:
+            parse_cpu_list(text)
+        return lists
+
+    def cpus_of(self, ordinal: int) -> str | None:
+        """Return the CPU list pod ``ordinal`` is pinned to, or None when pods are not pinned."""
+        return self.cpu_affinity[ordinal % len(self.cpu_affinity)] if self.cpu_affinity else None
 
 
 class ControllerConfig(_Model):

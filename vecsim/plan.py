@@ -13,6 +13,7 @@ slot -> pod mapping or a slot's content changes, or when a slot's pod was restar
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Collection, Container, Iterable, Mapping, Sequence
@@ -75,10 +76,17 @@ class Plan:
 
     def slot_of(self, pod: str) -> Slot | None:
         """Returns the slot ``pod`` holds, or ``None`` when it holds none (a spare pod)."""
+        return self._slot_by_pod.get(pod)
+
+    @functools.cached_property
+    def _slot_by_pod(self) -> dict[str, Slot]:
+        # Looked up once per pod by the registry and the readiness check: a scan per lookup
+        # made those quadratic in the number of pods.
+        held: dict[str, Slot] = {}
         for slot in self.slots:
-            if slot.pod == pod:
-                return slot
-        return None
+            if slot.pod is not None:
+                held.setdefault(slot.pod, slot)
+        return held
 
     def assignment_for(self, slot: Slot, pod: str | None = None) -> Assignment:
         """Returns the assignment that the holder of ``slot`` (or ``pod``) runs at this generation."""
@@ -87,9 +95,10 @@ class Plan:
             raise ValueError(f"slot {slot.key} has no pod; name the pod to build its assignment for")
         return _assignment(self.job, self.generation, name, slot.stage_id, slot.tasks)
 
-    @property
+    @functools.cached_property
     def assignments(self) -> dict[str, Assignment]:
-        """Returns the assignment of every slot holder, by pod name."""
+        """Returns the assignment of every slot holder, by pod name (built once per plan: the
+        controller reads it on every reconcile pass). Treat it as read-only."""
         return {slot.pod: self.assignment_for(slot) for slot in self.slots if slot.pod is not None}
 
     def spare_assignment(self, pod: str) -> Assignment:
@@ -236,6 +245,10 @@ def _changed(previous: Plan, new: Plan, restarted: Collection[str]) -> bool:
         return True
     if [(s.key, s.pod) for s in previous.slots] != [(s.key, s.pod) for s in new.slots]:
         return True
+    if previous.job == new.job:
+        # Same job, same holders in the same slots: assignments differ only where tasks do (and
+        # comparing task blocks is far cheaper than building two assignments per slot).
+        return any(old.tasks != slot.tasks for old, slot in zip(previous.slots, new.slots))
     before = {slot.key: previous.assignment_for(slot, slot.pod or "") for slot in previous.slots}
     after = {slot.key: new.assignment_for(slot, slot.pod or "") for slot in new.slots}
     return any(not after[key].same_envs(before[key]) for key in after)

@@ -7,10 +7,12 @@ blocks, one per task, on a gymnasium ``AsyncVectorEnv`` (shared memory, no copie
 gymnasium steps every worker on every call, so each worker's env takes a command-carrying action
 ``{"cmd": noop|step|reset, "state_id", "action"}`` per slot: one call carries the resets or steps
 of exactly the named envs, and every other env returns its last observation without advancing.
+Per-slot rewards and flags come back in one float64 array (each array written to shared memory
+costs microseconds per worker and call, which cheap scenes feel).
 A worker hosts a block of ``envs_per_worker`` envs of one task (the last worker of a block may
-have idle, padded slots; ``envs_per_worker`` 0 lets :func:`auto_envs_per_worker` pick it, since for
-cheap scenes a process per env costs more than the physics), and returns per-slot rewards and flags inside its observation, since
-gymnasium's reward and flags are one scalar per worker. Camera images are rendered after every
+have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick, :func:`resolve_envs_per_worker`),
+and returns per-slot rewards and flags inside its observation, since gymnasium's reward and flags
+are one scalar per worker. Camera images are rendered after every
 command of a call has run, for exactly the envs reset or stepped, all their cameras in one batch
 of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per worker, one readback).
 
@@ -46,6 +48,8 @@ log = logging.getLogger("vecsim.sim")
 
 NOOP, STEP, RESET = 0, 1, 2
 _MAX_STATE_ID = 2**31 - 1
+# Columns of a worker's per-slot result rows.
+_REWARD, _TERMINATED, _TRUNCATED, _SUCCESS = 0, 1, 2, 3
 _PROGRESS_EVERY_S = 10.0
 
 
@@ -126,18 +130,14 @@ class _WorkerEnv(gymnasium.Env):
     def __init__(self, worker: _WorkerSpec) -> None:
         self.worker = worker
         slots = worker.slots
-        flags = gymnasium.spaces.MultiBinary(slots)
         self.observation_space = gymnasium.spaces.Dict(
             {
                 "obs": _stacked(worker.observation_space, slots),
-                "reward": gymnasium.spaces.Box(-np.inf, np.inf, (slots,), np.float32),
-                "terminated": flags,
-                "truncated": flags,
-                "success": flags,
+                # Per slot: reward, terminated, truncated, success.
+                "flags": gymnasium.spaces.Box(-np.inf, np.inf, (slots, 4), np.float64),
                 # Seconds this worker spent in the last call on physics (resets and steps) and
                 # on rendering: the pod's time split, per call.
-                "physics_s": gymnasium.spaces.Box(0.0, np.inf, (1,), np.float64),
-                "render_s": gymnasium.spaces.Box(0.0, np.inf, (1,), np.float64),
+                "timing": gymnasium.spaces.Box(0.0, np.inf, (2,), np.float64),
             }
         )
         self.action_space = gymnasium.spaces.Dict(
@@ -182,13 +182,10 @@ class _WorkerEnv(gymnasium.Env):
     def _reset_slot(self, slot: int, state_id: int) -> None:
         observation, info = self._envs[slot].reset(options={"state_id": state_id})
         _write_slot(self._out["obs"], slot, observation)
-        self._out["reward"][slot] = 0.0
-        self._out["terminated"][slot] = 0
-        self._out["truncated"][slot] = 0
-        self._out["success"][slot] = info["success"]
+        self._out["flags"][slot] = (0.0, 0.0, 0.0, info["success"])
 
     def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
-        """Run each slot's command; return the block's observation (reward and flags inside it)."""
+        """Run each slot's command; return the block's observation (rewards and flags inside it)."""
         started = time.perf_counter()
         touched = []
         for slot, env in enumerate(self._envs):
@@ -199,15 +196,11 @@ class _WorkerEnv(gymnasium.Env):
             elif cmd == STEP:
                 observation, reward, terminated, truncated, info = env.step(command["action"][slot])
                 _write_slot(self._out["obs"], slot, observation)
-                self._out["reward"][slot] = reward
-                self._out["terminated"][slot] = terminated
-                self._out["truncated"][slot] = truncated
-                self._out["success"][slot] = info["success"]
+                self._out["flags"][slot] = (reward, terminated, truncated, info["success"])
                 touched.append(slot)
         stepped = time.perf_counter()
         self._render(touched)
-        self._out["physics_s"][0] = stepped - started
-        self._out["render_s"][0] = time.perf_counter() - stepped
+        self._out["timing"][:] = (stepped - started, time.perf_counter() - stepped)
         return self._out, 0.0, False, False, {}
 
     def _render(self, slots: list[int]) -> None:
@@ -298,6 +291,23 @@ def auto_envs_per_worker(block_sizes: Sequence[int], cores: int) -> int:
     )
 
 
+def resolve_envs_per_worker(assignment: Assignment, cores: int | None = None) -> int:
+    """Return the envs per worker a pod runs ``assignment`` with.
+
+    Its ``envs_per_worker``, or for 0 (auto): when every scene is cheap (a ``gym/*`` task with no
+    camera), :func:`auto_envs_per_worker` over ``cores`` (default :func:`available_cores`); else 1.
+    A worker costs about a tenth of a millisecond of pipe and shared-memory traffic per call:
+    more than a physics-only gym step, nothing next to a robot scene's physics or any rendering,
+    where one env per worker spreads the work over the cores most evenly.
+    """
+    if assignment.envs_per_worker != AUTO_ENVS_PER_WORKER:
+        return assignment.envs_per_worker
+    cheap = not assignment.camera.names and all(get_task(b.task_id).suite == "gym" for b in assignment.tasks)
+    if not cheap:
+        return 1
+    return auto_envs_per_worker([b.num_envs for b in assignment.tasks], cores or available_cores())
+
+
 @dataclass(frozen=True)
 class CallTiming:
     """Worker seconds of one reset or step call, summed over the pod's workers: ``physics_s``
@@ -316,7 +326,7 @@ class TaskGroupedVectorEnv:
 
     Args:
         assignment: what to run (tasks and their env counts, camera, render preset,
-            ``envs_per_worker`` (0: :func:`auto_envs_per_worker` over :func:`available_cores`),
+            ``envs_per_worker`` (0: :func:`resolve_envs_per_worker` picks),
             ``max_episode_steps``).
         context: multiprocessing start method for the workers.
         timeout_s: longest wait for the workers on one reset or step; None waits forever.
@@ -349,10 +359,7 @@ class TaskGroupedVectorEnv:
         self._vec: AsyncVectorEnv | None = None
         self.last_timing = CallTiming()
 
-        slots = assignment.envs_per_worker
-        if slots == AUTO_ENVS_PER_WORKER:
-            slots = auto_envs_per_worker([b.num_envs for b in assignment.tasks], available_cores())
-        self.envs_per_worker = slots
+        slots = self.envs_per_worker = resolve_envs_per_worker(assignment)
         specs: list[_WorkerSpec] = []
         locations: list[tuple[int, int]] = []
         for block in assignment.tasks:
@@ -653,12 +660,14 @@ class TaskGroupedVectorEnv:
                 self._broken = self._failure(exc)
                 raise SimCrashedError(self._broken) from exc
             obs = _gather(out["obs"], workers, slots)
-            self.last_timing = CallTiming(float(out["physics_s"].sum()), float(out["render_s"].sum()))
+            physics_s, render_s = out["timing"].sum(axis=0)
+            self.last_timing = CallTiming(float(physics_s), float(render_s))
+            rows = out["flags"][workers, slots]
             flags = {
-                "reward": out["reward"][workers, slots].astype(np.float32),
-                "terminated": out["terminated"][workers, slots].astype(bool),
-                "truncated": out["truncated"][workers, slots].astype(bool),
-                "success": out["success"][workers, slots].astype(bool),
+                "reward": rows[:, _REWARD].astype(np.float32),
+                "terminated": rows[:, _TERMINATED].astype(bool),
+                "truncated": rows[:, _TRUNCATED].astype(bool),
+                "success": rows[:, _SUCCESS].astype(bool),
             }
         return obs, flags
 

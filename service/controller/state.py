@@ -16,7 +16,7 @@ from vecsim.config import Assignment, JobSpec, PodCapacity, PodRecord, PodRegist
 from vecsim.plan import Plan, Slot, adopt, plan
 
 from .metrics import ControllerMetrics, Gauges
-from .reconcile import Action, Desired, Observed, ObservedPod, desired_assignments, safe_generation
+from .reconcile import Action, Desired, Observed, ObservedPod, desired_assignments, safe_generation, satisfied
 from .settings import ControllerSettings
 
 log = logging.getLogger(__name__)
@@ -77,6 +77,14 @@ class ControllerState:
         # Slot holders that registered again while still registered: new processes, new envs.
         self.restarted: set[str] = set()
         self.wake = asyncio.Event()
+        # Counts every change that can alter the plan or the pushes; a reconcile pass that left
+        # every pod running its assignment records the count, and passes skip until it moves.
+        self.changes = 0
+        self._settled_at: int | None = None
+        # Counts changes of what a plan is made of (the job, the live pods, restarts): while it
+        # stands still, re-planning would give the same plan, and heartbeats alone do not move it.
+        self._members = 0
+        self._planned_at: int | None = None
         self.metrics = ControllerMetrics()
         self.metrics.watch(self.gauges)
 
@@ -99,6 +107,8 @@ class ControllerState:
         log.info(
             "pod %s registered at %s (max_envs %d)", registration.name, registration.url, registration.capacity.max_envs
         )
+        self.changes += 1
+        self._members += 1
         self.wake.set()
         return self.record(registration.name)
 
@@ -123,6 +133,7 @@ class ControllerState:
         entry.last_seen = self.wall()
         self.metrics.heartbeats.inc()
         if changed:
+            self.changes += 1
             self.wake.set()
         return self.plan.generation if self.plan is not None else None
 
@@ -135,6 +146,9 @@ class ControllerState:
             self.restarted.discard(name)
             self.metrics.expired.inc()
             log.warning("pod %s dropped: no heartbeat for over %s s", name, self.settings.heartbeat_ttl_s)
+        if gone:
+            self.changes += 1
+            self._members += 1
         return gone
 
     def record(self, name: str) -> PodRecord:
@@ -165,6 +179,8 @@ class ControllerState:
             )
         self.job = job
         self.tasks = tuple(tasks)
+        self.changes += 1
+        self._members += 1
         self.wake.set()
 
     def _may_plan_first(self, job: JobSpec, adopted: Plan | None) -> bool:
@@ -190,8 +206,12 @@ class ControllerState:
                 return None
             if previous is not None:
                 log.info("adopted %d slots at generation %d from pod reports", len(previous.pods), previous.generation)
-        live = [PodRecord(name=e.name, url=e.url, capacity=e.capacity) for e in self.pods.values()]
-        new = plan(self.job, live, previous, self.tasks, restarted=self.restarted)
+        if self.plan is not None and self._planned_at == self._members:
+            new = self.plan
+        else:
+            live = [PodRecord(name=e.name, url=e.url, capacity=e.capacity) for e in self.pods.values()]
+            new = plan(self.job, live, previous, self.tasks, restarted=self.restarted)
+            self._planned_at = self._members
         generation = safe_generation(new, {n: e.reported for n, e in self.pods.items()})
         if generation != new.generation:
             new = new.with_generation(generation)
@@ -224,10 +244,27 @@ class ControllerState:
         }
         return Observed(now=self.clock(), pods=pods)
 
+    @property
+    def settled(self) -> bool:
+        """True when nothing changed since a pass found every live pod running its assignment:
+        another pass would find the same plan and push nothing (no retry or re-push is pending,
+        as those only concern pods that do not run their assignment)."""
+        return self._settled_at == self.changes
+
+    def note_pass(self, desired: Desired, observed: Observed, actions: Sequence[Action]) -> None:
+        """Records whether a pass left the state settled (see :attr:`settled`)."""
+        done = (
+            self.plan is not None
+            and not actions
+            and all(satisfied(want, observed.pods[name].reported) for name, want in desired.assignments.items())
+        )
+        self._settled_at = self.changes if done else None
+
     def record_push(self, action: Action, *, ok: bool, detail: str = "") -> None:
         """Notes how a push went: an accepted one is remembered, a failed one backs off."""
         entry = self.pods.get(action.pod)
         self.metrics.pushes.labels(result="ok" if ok else "failed").inc()
+        self.changes += 1
         if entry is None:
             return
         if ok:
@@ -254,12 +291,16 @@ class ControllerState:
             return ["no job: PUT /v1/job"]
         if self.plan is None:
             return ["no plan yet: waiting for pods to register and report what they run"]
-        problems = [self._unfilled_problem(self.plan, slot) for slot in self.plan.unfilled]
+        # Spares are found once, not once per unfilled slot: with a thousand pods the readiness
+        # check runs on every GET /v1/routing and /readyz, on the event loop.
+        spares = sorted((n, e.capacity.max_envs) for n, e in self.pods.items() if self.plan.slot_of(n) is None)
+        problems = [self._unfilled_problem(slot, spares) for slot in self.plan.unfilled]
+        assignments = self.plan.assignments
         for slot in self.plan.slots:
             if slot.pod is None:
                 continue
             entry = self.pods[slot.pod]
-            want = self.plan.assignment_for(slot)
+            want = assignments[slot.pod]
             if entry.reported != want:
                 have = "nothing" if entry.reported is None else f"generation {entry.reported.generation}"
                 problems.append(f"pod {slot.pod} runs {have}, the plan is generation {want.generation}")
@@ -267,10 +308,8 @@ class ControllerState:
                 problems.append(f"pod {slot.pod} is not ready (building its envs)")
         return problems
 
-    def _unfilled_problem(self, plan: Plan, slot: Slot) -> str:
-        small = sorted(
-            n for n, e in self.pods.items() if plan.slot_of(n) is None and e.capacity.max_envs < slot.num_envs
-        )
+    def _unfilled_problem(self, slot: Slot, spares: list[tuple[str, int]]) -> str:
+        small = [name for name, max_envs in spares if max_envs < slot.num_envs]
         why = f" (pods {', '.join(small)} have max_envs below the {slot.num_envs} envs it needs)" if small else ""
         return f"stage {slot.stage_id} slot {slot.index} has no pod{why}"
 

@@ -24,6 +24,16 @@ class PodMetrics:
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0),
             registry=self.registry,
         )
+        self.physics_seconds = Counter(
+            "vecsim_pod_physics_seconds",
+            "Worker seconds of step requests spent in physics, summed over the pod's workers.",
+            registry=self.registry,
+        )
+        self.render_seconds = Counter(
+            "vecsim_pod_render_seconds",
+            "Worker seconds of step requests spent rendering cameras, summed over the pod's workers.",
+            registry=self.registry,
+        )
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
         self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
         self.errors = Counter(

@@ -2,8 +2,9 @@
 
 Pods are named ``sim-0 … sim-N-1``, listen on ``base_port + ordinal``, and get the environment
 a pod gets in Kubernetes (POD_NAME, POD_NAMESPACE, POD_IP, VECSIM_ADVERTISE_URL, CONTROLLER_URL,
-VECSIM_PORT, VECSIM_MAX_ENVS, VECSIM_TOKEN). Every process is probed and restarted like a
-container; each (re)start of the controller is followed by ``PUT /v1/job``. Every process gets
+VECSIM_PORT, VECSIM_MAX_ENVS, VECSIM_TOKEN); ``pods.cpu_affinity`` pins them to CPUs (``taskset``).
+Every process is probed and restarted like a container; each (re)start of the controller is
+followed by ``PUT /v1/job``. Every process gets
 the job's shared token (``VECSIM_TOKEN``): the one given, else a random one made per job, which
 trainers read from :attr:`LocalJob.token`.
 
@@ -18,6 +19,7 @@ import atexit
 import logging
 import os
 import secrets
+import shutil
 import socket
 import sys
 import tempfile
@@ -29,7 +31,7 @@ import httpx
 
 from service.controller.jobs import check_job
 from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
-from vecsim.config import PodCapacity, PodRecord, RoutingTable, RunnerConfig
+from vecsim.config import PodCapacity, PodRecord, RoutingTable, RunnerConfig, parse_cpu_list
 from vecsim.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
 from .process import Backoff, ManagedProcess
@@ -161,12 +163,36 @@ class LocalJob:
         for field, host, port in ports:
             if not _port_free(host, port):
                 problems.append(f"{field}: port {port} on {host} is in use by another process; choose another {field}")
+        problems += self._affinity_problems()
         if pods.replicas < job.pods_needed:
             problems.append(
                 f"pods.replicas: {pods.replicas} pods cannot fill {job.num_stages} stages x {job.pods_per_stage} "
                 f"pods_per_stage = {job.pods_needed} slots; raise pods.replicas to at least {job.pods_needed}"
             )
         return problems
+
+    def _affinity_problems(self) -> list[str]:
+        lists = self.config.pods.cpu_affinity
+        if not lists:
+            return []
+        problems = []
+        if shutil.which("taskset") is None:
+            problems.append("pods.cpu_affinity: pinning pods needs the taskset command (util-linux), not found")
+        count = os.cpu_count() or 1
+        for text in lists:
+            missing = sorted(cpu for cpu in parse_cpu_list(text) if cpu >= count)
+            if missing:
+                problems.append(
+                    f"pods.cpu_affinity: {text!r} names CPUs {missing}, but this machine has CPUs 0-{count - 1}"
+                )
+        return problems
+
+    def pod_argv(self, name: str) -> list[str]:
+        """Returns the command that runs pod ``name``: ``vecsim pod``, under ``taskset -c`` when
+        ``pods.cpu_affinity`` pins it (its env workers inherit the pin)."""
+        argv = [self._python, "-m", "vecsim.cli", "pod"]
+        cpus = self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]))
+        return argv if cpus is None else ["taskset", "-c", cpus, *argv]
 
     def start(self) -> LocalJob:
         """Starts the controller and every pod. Returns at once; see :meth:`wait_ready`.
@@ -205,7 +231,7 @@ class LocalJob:
         for name in self.pod_names:
             self.processes[name] = ManagedProcess(
                 name,
-                [self._python, "-m", "vecsim.cli", "pod"],
+                self.pod_argv(name),
                 env={**self._base_env, **self.pod_env(name)},
                 log_path=self.log_dir / f"{name}.log",
                 url=self.pod_url(name),

@@ -115,10 +115,12 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
 
-    def work() -> tuple[Response, float]:
+    def work() -> tuple[Response, float, sim.CallTiming]:
         start = time.perf_counter()
         obs, reward, terminated, truncated, info = env.step_envs(req.env_ids, req.actions)
         elapsed = time.perf_counter() - start
+        # Read on this thread, before another call can replace it.
+        timing = env.last_timing
         answer = encode_answer(
             {
                 "env_ids": req.env_ids.astype(np.int32),
@@ -130,11 +132,13 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             },
             as_json,
         )
-        return answer, elapsed
+        return answer, elapsed, timing
 
-    response, elapsed = await _simulate(state, env, work)
+    response, elapsed, timing = await _simulate(state, env, work)
     state.metrics.env_steps.inc(len(req.env_ids))
     state.metrics.step_seconds.observe(elapsed)
+    state.metrics.physics_seconds.inc(timing.physics_s)
+    state.metrics.render_seconds.inc(timing.render_s)
     return response
 
 
