@@ -48,24 +48,17 @@ def _free_port(host: str) -> int:
         return int(sock.getsockname()[1])
 
 
-def _port_taken(host: str, port: int) -> bool:
-    with socket.socket() as sock:
-        try:
-            sock.bind((host, port))
-        except OSError:
-            return True
-    return False
-
-
 def with_free_ports(config: RunnerConfig) -> RunnerConfig:
     """Return ``config`` moved to free ports when its own are taken (a demo should just run).
 
     Pods need ``replicas`` consecutive ports from ``base_port``; the first free block of
     ephemeral ports found is used.
     """
+    from service.runner.job import port_free  # a service; see the module docstring
+
     host, pods = config.controller.host, config.pods
-    taken = _port_taken(host, config.controller.port) or any(
-        _port_taken(pods.host, pods.base_port + i) for i in range(pods.replicas)
+    taken = not port_free(host, config.controller.port) or not all(
+        port_free(pods.host, pods.base_port + i) for i in range(pods.replicas)
     )
     if not taken:
         return config
@@ -73,8 +66,8 @@ def with_free_ports(config: RunnerConfig) -> RunnerConfig:
     for _ in range(50):
         base = _free_port(pods.host)
         block = range(base, base + pods.replicas)
-        if base + pods.replicas < 65000 and controller_port not in block and not any(
-            _port_taken(pods.host, p) for p in block
+        if base + pods.replicas < 65000 and controller_port not in block and all(
+            port_free(pods.host, p) for p in block
         ):
             logger.info("default ports are taken: controller on %d, pods from %d", controller_port, base)
             return config.model_copy(

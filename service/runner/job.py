@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 CONTROLLER_NAME = "controller"
 
 
-def _port_free(host: str, port: int) -> bool:
+def port_free(host: str, port: int) -> bool:
+    """Return whether ``port`` on ``host`` can be bound now."""
     with socket.socket() as sock:
         try:
             sock.bind((host, port))
@@ -161,7 +162,7 @@ class LocalJob:
         ports = [("controller.port", self.config.controller.host, self.config.controller.port)]
         ports += [("pods.base_port", pods.host, pods.base_port + i) for i in range(pods.replicas)]
         for field, host, port in ports:
-            if not _port_free(host, port):
+            if not port_free(host, port):
                 problems.append(f"{field}: port {port} on {host} is in use by another process; choose another {field}")
         problems += self._affinity_problems()
         if pods.replicas < job.pods_needed:
