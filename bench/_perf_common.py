@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import psutil
+
+from common import spread
 
 from vecsim.config import Assignment, RunnerConfig
 
@@ -194,6 +195,8 @@ class PeakRSS:
 
     def sample(self) -> int:
         """Return the summed RSS of the trees now (and update the peaks)."""
+        import psutil  # here, not at the top: the scaling bench also runs where psutil is missing
+
         roots = self._roots() if callable(self._roots) else self._roots
         seen: dict[int, psutil.Process] = {}
         for pid in roots:
@@ -276,13 +279,8 @@ def paired_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> di
 
 
 def rate_spread(values: Sequence[float]) -> dict[str, float]:
-    """Return median, min, max (rounded) and count of per-round figures."""
-    return {
-        "median": round(statistics.median(values), 2),
-        "min": round(min(values), 2),
-        "max": round(max(values), 2),
-        "n": len(values),
-    }
+    """Return ``common.spread`` of per-round figures (median, min, max, n), rounded for the record."""
+    return {key: round(value, 2) for key, value in spread(values).items()}
 
 
 def wait_for_quiet(max_load: float = 1.5, timeout_s: float = 0.0, poll_s: float = 10.0) -> float:

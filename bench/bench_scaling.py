@@ -130,8 +130,6 @@ def main() -> None:
         results["cheap"] = measure("gym/HalfCheetah-v5", 16, CameraConfig(names=()), counts, 100, args.rounds)
     fractions = {name: result["fraction_of_linear"][max(counts)]["median"] for name, result in results.items()}
     path = img_dir() / "bench_scaling.png"
-    if not args.quick:
-        plot(results, path)
     summary = {
         "baseline": "one pod (linear: pods x one pod's figure in the same round)",
         "pods": max(counts),
@@ -145,6 +143,8 @@ def main() -> None:
         **{name: {k: v for k, v in result.items() if k != "per_round"} for name, result in results.items()},
     }
     write_result("bench_scaling", summary, results)
+    if not args.quick:  # after the record: a machine without matplotlib still keeps the figures
+        plot(results, path)
 
 
 if __name__ == "__main__":
