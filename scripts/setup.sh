@@ -43,7 +43,8 @@ if [ ! -f "$stamp" ]; then
 fi
 
 # The editable install points at one checkout; a clone elsewhere (CI) re-points it, cheaply.
-if [ "$("$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Path(vecsim.__file__).resolve().parents[1])' 2>/dev/null)" != "$here" ]; then
+# (asked from / so that the current directory's own vecsim/ cannot answer for the venv)
+if [ "$(cd / && "$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Path(vecsim.__file__).resolve().parents[1])' 2>/dev/null)" != "$here" ]; then
   echo "[setup] pointing the venv's vecsim at $here" >&2
   "$venv/bin/python" -m pip install -q --no-deps -e "$here"
 fi
