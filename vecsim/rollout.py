@@ -11,10 +11,9 @@ stage ``i % S`` (:func:`vecsim.sampler.stage_of`), so stage sizes differ by at m
 batch is a no-op, and a stage without trajectories is never called.
 
 A pod that dies, hangs past the client's timeout or rebuilds its envs mid-episode does not fail
-the rollout: the trajectories of the call that met it are reported lost by traj_key
-(:attr:`RolloutResult.lost`, with their route, to resample) and every other trajectory runs on.
-The client answers a stage call whole or not at all, so with several pods per stage the other
-pods' trajectories of that same call are lost with it.
+the rollout: its trajectories are reported lost by traj_key (:attr:`RolloutResult.lost`, with
+their route, to resample) and every other trajectory runs on, those of the other pods of the
+same stage call included (the client's error carries their rows: ``error.answered``).
 """
 
 from __future__ import annotations
@@ -259,7 +258,8 @@ class EnvLoop:
         """Roll out one trajectory per request ``(task_id, state_id)``; return them with stats.
 
         Trajectories whose pod went away (``PodUnavailableError``, ``RoutingChangedError``) end
-        up in the result's ``lost``, not in its ``trajectories``.
+        up in the result's ``lost``, not in its ``trajectories``; the trajectories of the pods
+        that answered the same call go on.
 
         Raises:
             CapacityError: a stage lacks envs for a task (see ``StageClient.reset_trajectories``).
@@ -289,8 +289,13 @@ class EnvLoop:
                 try:
                     batch = clock.wait(stage, pending.pop(stage))  # stage s's observations
                 except (PodUnavailableError, RoutingChangedError) as exc:
-                    lost.update(self._lose(carried[stage], buffers, exc))
-                    continue
+                    # The failed pods' trajectories are lost; the pods that answered go on.
+                    batch = exc.answered
+                    answered = set(batch.traj_keys) if batch is not None else set()
+                    lost.update(self._lose([k for k in carried[stage] if k not in answered], buffers, exc))
+                    if not answered:
+                        continue
+                    clock.simulated(stage, batch)
                 live = []
                 for row, key in enumerate(batch.traj_keys):
                     buffers[key].add(batch, row)
@@ -302,26 +307,49 @@ class EnvLoop:
                 with clock.generating(stage):
                     actions = self._act(batch, live, instructions)  # the policy, on stage s
                 step = {batch.traj_keys[row]: actions[row] for row in live}
-                for key, action in step.items():
-                    buffers[key].act(action)
-                try:
-                    pending[stage] = self.client.step_stage(stage, step)  # don't wait: on to stage s+1
-                except RoutingChangedError as exc:
-                    lost.update(self._lose(list(step), buffers, exc))
-                    continue
-                carried[stage] = list(step)
+                sent = self._send(stage, step, buffers, lost)  # don't wait: on to stage s+1
+                if sent is not None:
+                    pending[stage], carried[stage] = sent
             clock.maybe_log(buffers)
 
         trajectories = {key: buffer.finish() for key, buffer in buffers.items() if key not in lost}
         videos = self._write_videos(recorder)
         return RolloutResult(trajectories, clock.stats(trajectories), videos, lost)
 
+    def _send(
+        self,
+        stage: int,
+        step: dict[str, np.ndarray],
+        buffers: Mapping[str, _Buffer],
+        lost: dict[str, LostTrajectory],
+    ) -> tuple[PendingCall[StageBatch], list[str]] | None:
+        """Send a stage's actions; return the call and the traj_keys it carries (None: nothing left).
+
+        Trajectories whose envs went away when another stage's call re-read the routing are
+        refused before anything is sent: they are lost, and the rest is sent without them.
+        """
+        while step:
+            try:
+                call = self.client.step_stage(stage, step)
+            except RoutingChangedError as exc:
+                named = set(exc.traj_keys)
+                gone = [key for key in step if key in named]
+                if not gone:
+                    raise  # not about these trajectories: sending again would meet it again
+                lost.update(self._lose(gone, buffers, exc))
+                step = {key: action for key, action in step.items() if key not in gone}
+                continue
+            for key, action in step.items():
+                buffers[key].act(action)
+            return call, list(step)
+        return None
+
     @staticmethod
     def _lose(
         keys: list[str], buffers: Mapping[str, _Buffer], error: PodUnavailableError | RoutingChangedError
     ) -> dict[str, LostTrajectory]:
-        """The trajectories of a failed call, as lost: the ones the error names and, the call's
-        answer being gone, the rest of the call too."""
+        """The trajectories of a failed call that got no answer, as lost: the ones the error names
+        and any other the call carried without an answer (a call that met several failures)."""
         named = set(error.traj_keys)
         logger.warning("rollout: %d trajectories lost: %s", len(keys), error)
         return {
@@ -474,11 +502,17 @@ class _Clock:
 
     def wait(self, stage: int, call: PendingCall[StageBatch]) -> StageBatch:
         begin = time.perf_counter()
-        batch = call.result()
-        self.wait_s += time.perf_counter() - begin
+        try:
+            batch = call.result()
+        finally:
+            self.wait_s += time.perf_counter() - begin
+        self.simulated(stage, batch)
+        return batch
+
+    def simulated(self, stage: int, batch: StageBatch) -> None:
+        """Record the interval a stage call's answer spent in flight."""
         self.simulation.append((batch.submitted_at, batch.finished_at))
         self.timeline.append(("sim", stage, batch.submitted_at - self.started, batch.finished_at - self.started))
-        return batch
 
     def generating(self, stage: int) -> _Interval:
         return _Interval(self.generation, lambda begin, end: self.timeline.append(

@@ -28,6 +28,15 @@ from .state import ControllerState
 log = logging.getLogger(__name__)
 
 
+async def _ticker(state: ControllerState, stop: asyncio.Event) -> None:
+    """Ticks the state often enough that a gap between ticks means the loop itself stalled."""
+    period = state.settings.stall_after_s / 4
+    while not stop.is_set():
+        state.tick()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), timeout=period)
+
+
 def create_app(
     settings: ControllerSettings,
     *,
@@ -63,12 +72,15 @@ def create_app(
         # vecsim's lean transport: httpx's own costs about a millisecond of this event loop per
         # request, and a new generation pushes an assignment to every pod at once.
         async with make_async_client("fast", headers=bearer_headers(settings.token)) as client:
-            task = asyncio.create_task(Reconciler(state, client).run(stop))
+            tasks = [
+                asyncio.create_task(Reconciler(state, client).run(stop)),
+                asyncio.create_task(_ticker(state, stop)),
+            ]
             try:
                 yield
             finally:
                 stop.set()
-                await task
+                await asyncio.gather(*tasks)
 
     app = FastAPI(
         title="vecsim controller",

@@ -54,6 +54,16 @@ class ControllerMetrics:
         self.expired = Counter(
             "vecsim_controller_pods_expired", "Pods dropped for missing heartbeats.", registry=self.registry
         )
+        self.stalls = Counter(
+            "vecsim_controller_stalls",
+            "Stalls of the controller's own event loop (gaps over its stall threshold).",
+            registry=self.registry,
+        )
+        self.stalled_seconds = Counter(
+            "vecsim_controller_stalled_seconds",
+            "Time the controller's event loop stalled; not counted against pods' heartbeat TTL.",
+            registry=self.registry,
+        )
         self.pushes = Counter(
             "vecsim_controller_pushes", "Assignment pushes by result.", ["result"], registry=self.registry
         )

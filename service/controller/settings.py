@@ -22,6 +22,12 @@ class ControllerSettings(BaseModel):
     heartbeat_interval_s: float = Field(1.0, gt=0, description="how often pods are expected to heartbeat")
     heartbeat_ttl_s: float = Field(5.0, gt=0, description="a pod not heard from for this long is dropped")
     reconcile_interval_s: float = Field(0.5, gt=0)
+    stall_threshold_s: float = Field(
+        1.0,
+        gt=0,
+        description="a gap this long (at most half the TTL) in which the controller's own event loop did not "
+        "run is a stall: pods could not be heard meanwhile, so their heartbeat deadlines move on by it",
+    )
     push_timeout_s: float = Field(10.0, gt=0, description="bound on one PUT /v1/assignment to a pod")
     push_backoff_max_s: float = Field(5.0, gt=0, description="longest wait before retrying a failed push")
     repush_after_s: float = Field(
@@ -49,6 +55,11 @@ class ControllerSettings(BaseModel):
     @classmethod
     def _usable_token(cls, token: str | None) -> str | None:
         return check_token(token)
+
+    @property
+    def stall_after_s(self) -> float:
+        """The gap between two ticks of the controller's loop that counts as a stall."""
+        return min(self.stall_threshold_s, self.heartbeat_ttl_s / 2)
 
     @classmethod
     def from_runner_config(cls, config: RunnerConfig, **overrides: object) -> ControllerSettings:

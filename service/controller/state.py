@@ -85,6 +85,8 @@ class ControllerState:
         # stands still, re-planning would give the same plan, and heartbeats alone do not move it.
         self._members = 0
         self._planned_at: int | None = None
+        # When the controller's loop last ran (see tick); None until the loop starts ticking.
+        self._ticked_at: float | None = None
         self.metrics = ControllerMetrics()
         self.metrics.watch(self.gauges)
 
@@ -137,8 +139,37 @@ class ControllerState:
             self.wake.set()
         return self.plan.generation if self.plan is not None else None
 
+    def tick(self) -> float:
+        """Notes that the controller's event loop runs now; returns the stall it ended (0.0: none).
+
+        A gap since the last tick longer than ``settings.stall_after_s`` is a stall of the
+        controller itself (GC, a long pass, an overloaded machine): no heartbeat could be taken in
+        meanwhile, so that time is not counted against the pods, whose heartbeat deadlines move on
+        by the whole gap. The first tick starts the watch; a state that is never ticked (no loop,
+        as in tests driving it pass by pass) counts every second against the pods.
+        """
+        now = self.clock()
+        last, self._ticked_at = self._ticked_at, now
+        gap = 0.0 if last is None else now - last
+        if gap <= self.settings.stall_after_s:
+            return 0.0
+        for entry in self.pods.values():
+            entry.seen_at += gap
+        self.metrics.stalls.inc()
+        self.metrics.stalled_seconds.inc(gap)
+        log.warning(
+            "the controller did not run for %.1f s; %d pods' heartbeat deadlines move on by as much",
+            gap,
+            len(self.pods),
+        )
+        return gap
+
     def expire(self) -> list[str]:
-        """Drops pods not heard from within the TTL. Returns their names."""
+        """Drops pods not heard from within the TTL, not counting the controller's own stalls
+        (see :meth:`tick`). Returns their names."""
+        if self._ticked_at is not None:
+            # A pass may run before the loop's ticker after a stall: measure the stall first.
+            self.tick()
         now = self.clock()
         gone = [n for n, e in self.pods.items() if now - e.seen_at > self.settings.heartbeat_ttl_s]
         for name in gone:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 __all__ = [
     "CapacityError",
@@ -45,13 +46,20 @@ class CapacityError(ClientError, ValueError):
 
 
 class PodUnavailableError(ClientError):
-    """Pods that did not answer in time (dead, partitioned, rebuilding); names the traj_keys they held."""
+    """Pods that did not answer in time (dead, partitioned, rebuilding); names the traj_keys they held.
 
-    def __init__(self, held: Mapping[str, list[str]], reason: str) -> None:
+    ``answered``, when the error ends a stage call, is what the pods that did answer returned:
+    the call's result (a ``StageBatch``, or the ``(reset_batch, step_batch)`` pair of
+    ``StageClient.call``) holding only their trajectories' rows. Those envs did reset or step, so
+    their trajectories go on from these rows. ``None`` for errors outside a stage call.
+    """
+
+    def __init__(self, held: Mapping[str, list[str]], reason: str, *, answered: Any = None) -> None:
         self.held = {pod: list(keys) for pod, keys in held.items()}
         self.pods = list(self.held)
         self.traj_keys = [k for keys in self.held.values() for k in keys]
         self.reason = reason
+        self.answered = answered
         parts = "; ".join(f"pod {pod} (traj_keys: {_keys(keys) or 'none'})" for pod, keys in self.held.items())
         super().__init__(f"unavailable: {parts}: {reason}")
 
@@ -74,10 +82,15 @@ class StaleGenerationError(ClientError):
 
 
 class RoutingChangedError(ClientError):
-    """The routing table changed under live trajectories; they must be reset on their new envs."""
+    """The routing table changed under live trajectories; they must be reset on their new envs.
 
-    def __init__(self, generation: int, traj_keys: list[str]) -> None:
+    ``answered``: as :class:`PodUnavailableError`'s (the rows of the trajectories whose pods did
+    answer the stage call; ``None`` when the call was refused before it was sent).
+    """
+
+    def __init__(self, generation: int, traj_keys: list[str], *, answered: Any = None) -> None:
         self.generation, self.traj_keys = generation, list(traj_keys)
+        self.answered = answered
         super().__init__(
             f"routing changed at generation {generation} under live trajectories "
             f"{_keys(self.traj_keys)}: their envs moved or went away; place and reset them again "

@@ -14,6 +14,10 @@ the HTTP runs on the client's own event loop thread, all pods of a call concurre
 keep-alive connection pool per pod, and the answers land in batch arrays allocated before the
 requests go out. Each stage is a small state machine like gymnasium's ``AsyncVectorEnv``: idle, or
 waiting on one call; a second call on a waiting stage raises ``AlreadyPendingCallError``.
+
+A pod that fails a call (no answer in time, refused connection, 503, envs moved by the routing)
+fails it for its own trajectories only: the error names them and carries the rows of the pods
+that did answer (``error.answered``), whose envs have advanced and must not be lost.
 """
 
 from __future__ import annotations
@@ -174,6 +178,50 @@ def _fill_rows(dst: Any, src: Any, rows: np.ndarray, where: str, pod: str) -> No
             pod, None, f"answer {where} has shape {list(src.shape)}, expected {[len(rows), *dst.shape[1:]]}"
         )
     dst[rows] = src
+
+
+def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
+    """Return the batch of rows ``rows`` of ``batch`` (in that order), timing stamps included."""
+    index = np.asarray(rows, dtype=np.int64)
+
+    def take(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {key: take(item) for key, item in value.items()}
+        return value[index]
+
+    return StageBatch(
+        traj_keys=[batch.traj_keys[r] for r in rows],
+        task_ids=[batch.task_ids[r] for r in rows],
+        state_ids=batch.state_ids[index],
+        obs=take(batch.obs),
+        reward=batch.reward[index],
+        terminated=batch.terminated[index],
+        truncated=batch.truncated[index],
+        success=batch.success[index],
+        submitted_at=batch.submitted_at,
+        finished_at=batch.finished_at,
+    )
+
+
+def _call_error(errors: list[BaseException], answered: Any) -> BaseException:
+    """The one error a stage call raises for what its pods raised.
+
+    Pods that were unavailable, or whose envs moved with the routing, fail alone: the error
+    names their trajectories and carries ``answered``, the other pods' rows. Anything else (a
+    refusal, a malformed answer, a 409 after the re-read) fails the call whole, as a bug or a
+    broken contract would. When both kinds of lone failure meet in one call, the
+    ``PodUnavailableError`` is raised; ``answered`` still holds exactly the rows delivered.
+    """
+    unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]
+    moved = [e for e in errors if isinstance(e, RoutingChangedError)]
+    others = [e for e in errors if not isinstance(e, (PodUnavailableError, RoutingChangedError))]
+    if others:
+        return others[0]
+    if unavailable:
+        held = {pod: keys for e in unavailable for pod, keys in e.held.items()}
+        return PodUnavailableError(held, "; ".join(e.reason for e in unavailable), answered=answered)
+    keys = [key for e in moved for key in e.traj_keys]
+    return RoutingChangedError(max(e.generation for e in moved), keys, answered=answered)
 
 
 @dataclass
@@ -385,7 +433,9 @@ class StageClient:
         The result raises what the call met: ``PodUnavailableError`` (no answer within
         ``timeout_s``), ``PodRequestError`` (refused), ``StaleGenerationError`` (409 after a
         re-read, or no controller to re-read from), ``RoutingChangedError`` (the re-read routing
-        moved these trajectories' envs).
+        moved these trajectories' envs). A ``PodUnavailableError`` or ``RoutingChangedError``
+        names only the failed pods' trajectories and carries the other pods' rows in its
+        ``answered`` (a ``StageBatch``): their envs did reset or step, and they go on from there.
         """
         self._check_stage(stage_id)
         keys = self.stage_traj_keys(stage_id) if traj_keys is None else list(traj_keys)
@@ -418,7 +468,8 @@ class StageClient:
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
         state ids (their routes take them on success). ``step`` maps traj_keys to actions. Each
         pod gets its resets first, then its steps; pods run concurrently. The result is the pair
-        ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches.
+        ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches. The
+        result's errors are :meth:`reset_stage`'s; ``answered`` is a pair here too.
 
         Raises:
             ValueError: unknown traj_keys, a key both reset and stepped, bad state ids or actions.
@@ -475,7 +526,7 @@ class StageClient:
             busy = self._busy_stages(stages)
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
-            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions))
+            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick))
             pending: PendingCall[Any] = PendingCall(future, pick)
             for stage in stages:
                 self._pending[stage] = pending
@@ -640,6 +691,7 @@ class StageClient:
         state_ids: np.ndarray,
         step_keys: list[str],
         actions: np.ndarray | None,
+        pick: int | None,
     ) -> tuple[StageBatch, StageBatch]:
         submitted = time.perf_counter()
         routes = self.routes
@@ -651,50 +703,57 @@ class StageClient:
             work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
         for row, key in enumerate(step_keys):
             work.setdefault(routes[key].pod, _PodWork()).step_rows.append(row)
+        # Rows whose pod answered: they are delivered even when another pod of the call fails.
+        answered = _PodWork()
 
         async def one_pod(pod: str, todo: _PodWork) -> None:
-            if todo.reset_rows:
-                rows = np.asarray(todo.reset_rows)
-                keys = [reset_keys[r] for r in rows]
-                body = {
-                    "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
-                    "state_ids": state_ids[rows],
-                }
-                answer = await self._post(pod, "reset", body, keys)
-                self._fill(reset_batch, answer, rows, pod, check_tasks=True)
-            if todo.step_rows:
-                rows = np.asarray(todo.step_rows)
-                keys = [step_keys[r] for r in rows]
-                body = {
-                    "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
-                    "actions": actions[rows],
-                }
-                answer = await self._post(pod, "step", body, keys)
-                self._fill(step_batch, answer, rows, pod, check_tasks=False)
+            reset_done = False
+            try:
+                if todo.reset_rows:
+                    rows = np.asarray(todo.reset_rows)
+                    keys = [reset_keys[r] for r in rows]
+                    body = {
+                        "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
+                        "state_ids": state_ids[rows],
+                    }
+                    answer = await self._post(pod, "reset", body, keys)
+                    self._fill(reset_batch, answer, rows, pod, check_tasks=True)
+                    answered.reset_rows.extend(todo.reset_rows)
+                    reset_done = True
+                if todo.step_rows:
+                    rows = np.asarray(todo.step_rows)
+                    keys = [step_keys[r] for r in rows]
+                    body = {
+                        "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
+                        "actions": actions[rows],
+                    }
+                    answer = await self._post(pod, "step", body, keys)
+                    self._fill(step_batch, answer, rows, pod, check_tasks=False)
+                    answered.step_rows.extend(todo.step_rows)
+            except PodUnavailableError as exc:
+                # Name everything of this call the pod did not answer: after a failed reset, its
+                # steps were never sent.
+                unanswered = [] if reset_done else [reset_keys[r] for r in todo.reset_rows]
+                unanswered += [step_keys[r] for r in todo.step_rows]
+                raise PodUnavailableError({pod: unanswered}, exc.reason) from None
 
         results = await asyncio.gather(*(one_pod(p, w) for p, w in work.items()), return_exceptions=True)
-        self._raise_first(results)
-        if reset_keys:
-            with self._lock:
-                for key, sid in zip(reset_keys, state_ids):
-                    if key in self._routes:
-                        self._routes[key] = dataclasses.replace(self._routes[key], state_id=int(sid))
+        with self._lock:
+            for row in answered.reset_rows:
+                key = reset_keys[row]
+                if key in self._routes:
+                    self._routes[key] = dataclasses.replace(self._routes[key], state_id=int(state_ids[row]))
         finished = time.perf_counter()
         for batch in (reset_batch, step_batch):
             batch.submitted_at, batch.finished_at = submitted, finished
-        return reset_batch, step_batch
-
-    @staticmethod
-    def _raise_first(results: list[Any]) -> None:
         errors = [r for r in results if isinstance(r, BaseException)]
-        if not errors:
-            return
-        unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]
-        others = [e for e in errors if not isinstance(e, PodUnavailableError)]
-        if others:
-            raise others[0]
-        held = {pod: keys for e in unavailable for pod, keys in e.held.items()}
-        raise PodUnavailableError(held, "; ".join(e.reason for e in unavailable))
+        if errors:
+            partial = (
+                _take_rows(reset_batch, sorted(answered.reset_rows)),
+                _take_rows(step_batch, sorted(answered.step_rows)),
+            )
+            raise _call_error(errors, partial if pick is None else partial[pick])
+        return reset_batch, step_batch
 
     def _fill(self, batch: StageBatch, answer: dict[str, Any], rows: np.ndarray, pod: str, check_tasks: bool) -> None:
         _fill_rows(batch.obs, answer.get("obs"), rows, "obs", pod)
