@@ -1,6 +1,6 @@
-"""``envs_per_worker: auto`` (0): a pod packs cheap scenes several to a worker process, choosing how
-many from its cores, keeps one env per worker for costly ones, and serves the same observations
-as with one env per worker."""
+"""``envs_per_worker: auto`` (0): a pod packs its envs, of every kind of scene and across tasks,
+into at most one worker process per core, and serves the same observations as with one env per
+worker."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ CHEETAH = "gym/HalfCheetah-v5"
 
 
 def _workers(sizes: list[int], per_worker: int) -> int:
-    return sum(math.ceil(n / per_worker) for n in sizes if n > 0)
+    return math.ceil(sum(sizes) / per_worker)
 
 
 def test_one_block_is_split_evenly_over_the_cores() -> None:
@@ -31,8 +31,8 @@ def test_fewer_envs_than_cores_get_a_worker_each() -> None:
     assert auto_envs_per_worker([3], cores=4) == 1
 
 
-def test_every_task_block_gets_a_worker_even_beyond_the_cores() -> None:
-    assert auto_envs_per_worker([2, 2, 2], cores=2) == 2
+def test_task_blocks_pack_together_within_the_cores() -> None:
+    assert auto_envs_per_worker([2, 2, 2], cores=2) == 3
 
 
 def test_no_envs_means_one_env_per_worker() -> None:
@@ -42,7 +42,7 @@ def test_no_envs_means_one_env_per_worker() -> None:
 @given(st.lists(st.integers(0, 64), max_size=6), st.integers(1, 32))
 def test_auto_is_the_fewest_envs_per_worker_that_fit_the_cores(sizes: list[int], cores: int) -> None:
     per_worker = auto_envs_per_worker(sizes, cores)
-    budget = max(cores, sum(1 for n in sizes if n > 0))
+    budget = cores
     assert per_worker >= 1
     assert _workers(sizes, per_worker) <= budget
     assert per_worker == 1 or _workers(sizes, per_worker - 1) > budget
@@ -79,10 +79,10 @@ def test_auto_packs_cheap_gym_scenes_over_the_cores() -> None:
     assert resolve_envs_per_worker(_assignment(AUTO_ENVS_PER_WORKER, num_envs=32), cores=2) == 16
 
 
-def test_auto_keeps_one_env_per_worker_for_robot_scenes_and_for_cameras() -> None:
+def test_auto_packs_robot_scenes_and_cameras_over_the_cores_too() -> None:
     robot = _assignment(AUTO_ENVS_PER_WORKER, task_id="tiny/lift", num_envs=8)
     rendered = _assignment(AUTO_ENVS_PER_WORKER, num_envs=8, camera=CameraConfig(height=8, width=8))
-    assert resolve_envs_per_worker(robot, cores=2) == resolve_envs_per_worker(rendered, cores=2) == 1
+    assert resolve_envs_per_worker(robot, cores=2) == resolve_envs_per_worker(rendered, cores=2) == 4
 
 
 def test_an_explicit_envs_per_worker_is_kept() -> None:

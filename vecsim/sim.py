@@ -9,12 +9,18 @@ gymnasium steps every worker on every call, so each worker's env takes a command
 of exactly the named envs, and every other env returns its last observation without advancing.
 Per-slot rewards and flags come back in one float64 array (each array written to shared memory
 costs microseconds per worker and call, which cheap scenes feel).
-A worker hosts a block of ``envs_per_worker`` envs of one task (the last worker of a block may
-have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick, :func:`resolve_envs_per_worker`),
-and returns per-slot rewards and flags inside its observation, since gymnasium's reward and flags
-are one scalar per worker. Camera images are rendered after every
-command of a call has run, for exactly the envs reset or stepped, all their cameras in one batch
-of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per worker, one readback).
+A worker hosts ``envs_per_worker`` consecutive env indices, whatever their tasks: a run of envs
+may cross from one task block into the next, each slot's env built for its own task (the last
+worker may have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick,
+:func:`resolve_envs_per_worker`). A worker returns per-slot rewards and flags inside its
+observation, since gymnasium's reward and flags are one scalar per worker. Camera images are
+rendered after every command of a call has run, for exactly the envs reset or stepped, all their
+cameras in one batch of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per
+worker; envs of one scene share a render context, and each scene's views are read back at once).
+
+Once its envs are built, a worker frees what MuJoCo's XML compiler keeps for the life of the
+process (the last model's parsed spec and the asset cache): for a LIBERO scene that is ~950 MB of
+a worker's ~2.4 GB, paid once per process however many envs it then builds (``docs/pod.md``).
 
 Every argument is validated before any worker is touched, so a rejected call changes nothing.
 Module-level code imports nothing heavy and starts nothing: it is safe under ``forkserver``.
@@ -22,7 +28,10 @@ Module-level code imports nothing heavy and starts nothing: it is safe under ``f
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import functools
+import glob
 import logging
 import math
 import multiprocessing
@@ -72,11 +81,23 @@ class SimBuildError(RuntimeError):
     """Building the envs failed; the message names the task and what went wrong."""
 
 
+def _describe(task_ids: Sequence[str], env_indices: Sequence[int]) -> str:
+    """Name the envs of a run of env indices by task: ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
+    runs: list[tuple[str, int, int]] = []
+    for task_id, env in zip(task_ids, env_indices):
+        if runs and runs[-1][0] == task_id:
+            runs[-1] = (task_id, runs[-1][1], env)
+        else:
+            runs.append((task_id, env, env))
+    return ", ".join(f"{task_id} (envs {first}-{last})" for task_id, first, last in runs)
+
+
 @dataclass(frozen=True)
 class _WorkerSpec:
-    """What one worker process hosts: ``len(env_indices)`` envs of one task in ``slots`` slots."""
+    """What one worker process hosts: env ``env_indices[i]`` of task ``task_ids[i]`` in slot ``i``,
+    of ``slots`` slots (the ones beyond ``len(env_indices)`` idle)."""
 
-    task_id: str
+    task_ids: tuple[str, ...]
     env_indices: tuple[int, ...]
     slots: int
     camera: CameraConfig
@@ -84,6 +105,34 @@ class _WorkerSpec:
     max_episode_steps: int
     observation_space: gymnasium.spaces.Dict
     action_space: gymnasium.spaces.Box
+
+    def describe(self) -> str:
+        """Return the hosted envs by task, e.g. ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
+        return _describe(self.task_ids, self.env_indices)
+
+
+def _release_compiler_memory() -> None:
+    """Free what MuJoCo's XML compiler holds after a model is made, and give freed heap back.
+
+    ``mj_loadXML`` keeps the last model's parsed spec (meshes and textures decoded) for
+    ``mj_saveLastXML``, and the compiler caches assets (500 MB by default): for a LIBERO scene
+    ~950 MB that no built env uses. Only ``mj_saveLastXML`` (robosuite's ``MjModel.get_xml``)
+    needs the spec, and no worker calls it. The Python bindings do not wrap ``mj_freeLastXML``,
+    so it is called in the library they load.
+    """
+    import mujoco
+
+    mujoco.mj_clearCache(mujoco.mj_getCache())
+    libraries = sorted(glob.glob(os.path.join(os.path.dirname(mujoco.__file__), "libmujoco.so*")))
+    if libraries:
+        ctypes.CDLL(libraries[0]).mj_freeLastXML()
+    else:
+        log.debug("no libmujoco beside the mujoco package: the last model's spec stays in memory")
+    libc_name = ctypes.util.find_library("c")
+    libc = ctypes.CDLL(libc_name) if libc_name else None
+    # glibc keeps freed heap pages mapped until trimmed; other C libraries have no malloc_trim.
+    if libc is not None and hasattr(libc, "malloc_trim"):
+        libc.malloc_trim(0)
 
 
 def _stacked(space: gymnasium.Space, slots: int) -> gymnasium.Space:
@@ -119,7 +168,7 @@ def _gather(tree: Any, workers: np.ndarray, slots: np.ndarray) -> Any:
 
 
 class _WorkerEnv(gymnasium.Env):
-    """The env of one worker process: a block of envs of one task, driven by per-slot commands.
+    """The env of one worker process: a run of envs (of one task or several), driven by per-slot commands.
 
     Construction is cheap (gymnasium makes one in the parent process just to read its spaces);
     :meth:`build` makes the envs, in the worker, and puts each in state 0.
@@ -154,12 +203,14 @@ class _WorkerEnv(gymnasium.Env):
         """Make this worker's envs and reset each to state 0; return how many were made.
 
         Raises:
-            SimBuildError: an env could not be made or reset; the message names task and envs.
+            SimBuildError: an env could not be made or reset; the message names its task and env
+                index (``tiny/door (envs 2-2)``), or all the worker's envs when rendering failed.
         """
         worker = self.worker
+        slot = 0
         try:
-            for _ in worker.env_indices:
-                env = make_env(worker.task_id, worker.camera, worker.render, worker.max_episode_steps)
+            for slot, task_id in enumerate(worker.task_ids):
+                env = make_env(task_id, worker.camera, worker.render, worker.max_episode_steps)
                 self._envs.append(env)
                 spaces = (env.observation_space, env.action_space)
                 if spaces != (worker.observation_space, worker.action_space):
@@ -171,12 +222,13 @@ class _WorkerEnv(gymnasium.Env):
                 env.defer_images = True
             for slot in range(len(self._envs)):
                 self._reset_slot(slot, 0)
+            slot = -1
             self._render(list(range(len(self._envs))))
         except Exception as exc:
-            raise SimBuildError(
-                f"{worker.task_id} (envs {worker.env_indices[0]}-{worker.env_indices[-1]}): "
-                f"{type(exc).__name__}: {exc}"
-            ) from exc
+            failed = slice(None) if slot < 0 else slice(slot, slot + 1)
+            where = _describe(worker.task_ids[failed], worker.env_indices[failed])
+            raise SimBuildError(f"{where}: {type(exc).__name__}: {exc}") from exc
+        _release_compiler_memory()
         return len(self._envs)
 
     def _reset_slot(self, slot: int, state_id: int) -> None:
@@ -185,7 +237,7 @@ class _WorkerEnv(gymnasium.Env):
         self._out["flags"][slot] = (0.0, 0.0, 0.0, info["success"])
 
     def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
-        """Run each slot's command; return the block's observation (rewards and flags inside it)."""
+        """Run each slot's command; return the worker's observation (rewards and flags inside it)."""
         started = time.perf_counter()
         touched = []
         for slot, env in enumerate(self._envs):
@@ -222,7 +274,7 @@ class _WorkerEnv(gymnasium.Env):
         return self._out, {}
 
     def close(self) -> None:
-        """Close every env of the block. Returns None."""
+        """Close every env of the worker. Returns None."""
         for env in self._envs:
             env.close()
         self._envs = []
@@ -274,37 +326,26 @@ def available_cores() -> int:
 def auto_envs_per_worker(block_sizes: Sequence[int], cores: int) -> int:
     """Return the fewest envs per worker that keep a pod's workers within ``cores``.
 
-    A worker hosts envs of one task only, so each non-empty block needs a worker of its own:
-    the answer keeps the number of workers at most ``max(cores, non-empty blocks)``, as evenly
-    filled as that allows. No envs at all: 1.
+    A worker hosts consecutive envs whatever their tasks, so the blocks pack as one run:
+    ``ceil(envs / cores)`` envs per worker, ``ceil(envs / that)`` workers (at most ``cores``).
+    No envs at all: 1.
     """
-    sizes = [n for n in block_sizes if n > 0]
-    if not sizes:
-        return 1
-    budget = max(cores, len(sizes))
-    # Workers needed only fall as envs per worker grow, so the first fit is the fewest per worker;
-    # at max(sizes) every block has one worker, which always fits.
-    return next(
-        per_worker
-        for per_worker in range(1, max(sizes) + 1)
-        if sum(math.ceil(n / per_worker) for n in sizes) <= budget
-    )
+    envs = sum(max(n, 0) for n in block_sizes)
+    return max(1, math.ceil(envs / max(cores, 1)))
 
 
 def resolve_envs_per_worker(assignment: Assignment, cores: int | None = None) -> int:
     """Return the envs per worker a pod runs ``assignment`` with.
 
-    Its ``envs_per_worker``, or for 0 (auto): when every scene is cheap (a ``gym/*`` task with no
-    camera), :func:`auto_envs_per_worker` over ``cores`` (default :func:`available_cores`); else 1.
-    A worker costs about a tenth of a millisecond of pipe and shared-memory traffic per call:
-    more than a physics-only gym step, nothing next to a robot scene's physics or any rendering,
-    where one env per worker spreads the work over the cores most evenly.
+    Its ``envs_per_worker``, or for 0 (auto) :func:`auto_envs_per_worker` over its task blocks and
+    ``cores`` (default :func:`available_cores`): at most one worker per core, whatever the scenes.
+    Cheap gym scenes gain most (a worker costs ~0.1 ms of pipe and shared-memory traffic per call,
+    more than their physics); robot scenes with cameras step about as fast as with one env per
+    worker (the cores are busy either way) in a fraction of the memory, since most of a worker's
+    memory is paid once per process (``docs/pod.md``: a LIBERO worker ~1.2 GB, ~0.3 GB per env).
     """
     if assignment.envs_per_worker != AUTO_ENVS_PER_WORKER:
         return assignment.envs_per_worker
-    cheap = not assignment.camera.names and all(get_task(b.task_id).suite == "gym" for b in assignment.tasks)
-    if not cheap:
-        return 1
     return auto_envs_per_worker([b.num_envs for b in assignment.tasks], cores or available_cores())
 
 
@@ -320,8 +361,8 @@ class CallTiming:
 class TaskGroupedVectorEnv:
     """The envs of one assignment, in worker processes, addressed by env index.
 
-    Env indices run ``0..num_envs-1`` in contiguous blocks, one per task block of the assignment.
-    After construction every env is in state 0. Thread-safe: calls are serialised.
+    Env indices run ``0..num_envs-1`` in contiguous blocks, one per task block of the assignment;
+    worker ``w`` hosts envs ``w * envs_per_worker`` onwards, across blocks. After construction every env is in state 0. Thread-safe: calls are serialised.
     ``last_timing`` (:class:`CallTiming`) tells where the workers spent the last call's time.
 
     Args:
@@ -360,30 +401,27 @@ class TaskGroupedVectorEnv:
         self.last_timing = CallTiming()
 
         slots = self.envs_per_worker = resolve_envs_per_worker(assignment)
-        specs: list[_WorkerSpec] = []
-        locations: list[tuple[int, int]] = []
         for block in assignment.tasks:
             task = get_task(block.task_id)
             self.task_ids += [task.task_id] * block.num_envs
             self._num_states[block.env_start : block.env_start + block.num_envs] = task.num_states
-            for first in range(0, block.num_envs, slots):
-                hosted = range(block.env_start + first, block.env_start + min(first + slots, block.num_envs))
-                locations += [(len(specs), slot) for slot in range(len(hosted))]
-                specs.append(
-                    _WorkerSpec(
-                        task_id=task.task_id,
-                        env_indices=tuple(hosted),
-                        slots=slots,
-                        camera=assignment.camera,
-                        render=assignment.render,
-                        max_episode_steps=assignment.max_episode_steps,
-                        observation_space=self.single_observation_space,
-                        action_space=self.single_action_space,
-                    )
-                )
-        self._workers = specs
-        self._location = np.array(locations, dtype=np.int64).reshape(-1, 2)
-        if specs:
+        # Worker w hosts envs w*slots ... (w+1)*slots - 1, across task boundaries.
+        self._workers = [
+            _WorkerSpec(
+                task_ids=tuple(self.task_ids[first : first + slots]),
+                env_indices=tuple(range(first, min(first + slots, self.num_envs))),
+                slots=slots,
+                camera=assignment.camera,
+                render=assignment.render,
+                max_episode_steps=assignment.max_episode_steps,
+                observation_space=self.single_observation_space,
+                action_space=self.single_action_space,
+            )
+            for first in range(0, self.num_envs, slots)
+        ]
+        envs = np.arange(self.num_envs, dtype=np.int64)
+        self._location = np.stack(divmod(envs, slots), axis=1).reshape(-1, 2)
+        if self._workers:
             self._start(context, build_timeout_s)
 
     @property
@@ -445,12 +483,10 @@ class TaskGroupedVectorEnv:
                 pending.discard(pipe)
                 worker = self._workers[pipes[pipe]]
                 log.info(
-                    "worker %d/%d ready: %s envs %d-%d (%.1f s)",
+                    "worker %d/%d ready: %s (%.1f s)",
                     pipes[pipe] + 1,
                     len(pipes),
-                    worker.task_id,
-                    worker.env_indices[0],
-                    worker.env_indices[-1],
+                    worker.describe(),
                     time.monotonic() - started,
                 )
             if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
@@ -622,9 +658,8 @@ class TaskGroupedVectorEnv:
         assert self._vec is not None
         for index, process in enumerate(self._vec.processes):
             if not process.is_alive():
-                worker = self._workers[index]
-                envs = f"{worker.env_indices[0]}-{worker.env_indices[-1]}"
-                return f"worker {index} ({worker.task_id} envs {envs}) died with exit code {process.exitcode}"
+                hosted = self._workers[index].describe()
+                return f"worker {index} hosting {hosted} died with exit code {process.exitcode}"
         return None
 
     def _check_usable(self) -> None:
