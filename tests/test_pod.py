@@ -29,6 +29,7 @@ from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 from trainer_pods import free_port
 
+from service.pod.state import steps_on_event_loop
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig, TaskBlock
 
@@ -37,6 +38,8 @@ GROUP_SIZE = 2
 NUM_ENVS = len(TASKS) * GROUP_SIZE
 ACTION_DIM = 6
 CAMERA = CameraConfig(names=("render",), height=16, width=24)
+# Without a camera the scenes are cheap: the pod steps them on its event loop, not its worker thread.
+NO_CAMERA = CameraConfig(names=())
 BODY_LIMIT = 64 * 1024
 JSON_TYPE = "application/json"
 START_TIMEOUT_S = 120.0
@@ -144,12 +147,12 @@ class Pod:
         return 0.0
 
 
-def assignment_for(pod: str, generation: int = 0) -> Assignment:
+def assignment_for(pod: str, generation: int = 0, camera: CameraConfig = CAMERA) -> Assignment:
     blocks = tuple(
         TaskBlock(task_id=task_id, env_start=i * GROUP_SIZE, num_envs=GROUP_SIZE) for i, task_id in enumerate(TASKS)
     )
     return Assignment(
-        generation=generation, job_id="pod-tests", pod=pod, stage_id=0, tasks=blocks, camera=CAMERA,
+        generation=generation, job_id="pod-tests", pod=pod, stage_id=0, tasks=blocks, camera=camera,
         render="lean", seed=0, envs_per_worker=GROUP_SIZE, max_episode_steps=50,
     )
 
@@ -633,8 +636,9 @@ def test_failed_build_leaves_the_pod_unready_saying_why_until_a_new_assignment(f
     assert fresh_pod.info()["num_envs"] == NUM_ENVS
 
 
-def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod) -> None:
-    assignment = assignment_for("sim-2", generation=1)
+@pytest.mark.parametrize("camera", [CAMERA, NO_CAMERA], ids=["worker-thread", "event-loop"])
+def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod, camera: CameraConfig) -> None:
+    assignment = assignment_for("sim-2", generation=1, camera=camera)
     assert put_assignment(fresh_pod, assignment).status_code == 200
     fresh_pod.wait_ready()
     instance = fresh_pod.info()["instance"]
@@ -652,6 +656,45 @@ def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod) -> None
     reset = {"generation": 1, "env_ids": [0, 3], "state_ids": [0, 0]}
     answer = fresh_pod.call("reset", reset, send="json", accept="json")
     assert answer["env_ids"] == [0, 3]
+
+
+@pytest.mark.parametrize(
+    ("tasks", "camera", "on_loop"),
+    [
+        (TASKS, NO_CAMERA, True),
+        (TASKS, CAMERA, False),
+        (("tiny/lift",), NO_CAMERA, False),
+        ((), NO_CAMERA, True),
+    ],
+    ids=["gym-no-camera", "gym-camera", "robot", "spare"],
+)
+def test_only_cheap_scenes_are_stepped_on_the_event_loop(
+    tasks: tuple[str, ...], camera: CameraConfig, on_loop: bool
+) -> None:
+    blocks = tuple(TaskBlock(task_id=t, env_start=i * GROUP_SIZE, num_envs=GROUP_SIZE) for i, t in enumerate(tasks))
+    assignment = Assignment(generation=0, job_id="pod-tests", pod="sim-0", stage_id=0, tasks=blocks, camera=camera)
+    assert steps_on_event_loop(assignment) is on_loop
+
+
+def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_thread(
+    fresh_pod: Pod, pod_b: Pod
+) -> None:
+    assert put_assignment(fresh_pod, assignment_for("sim-2", generation=0, camera=NO_CAMERA)).status_code == 200
+    fresh_pod.wait_ready()
+    pod_b.wait_ready()
+    env_ids = list(range(NUM_ENVS))
+    answers = []
+    for pod in (fresh_pod, pod_b):
+        first = pod.reset(env_ids, [1, 2, 1, 3])
+        steps = [pod.step(env_ids, actions_for(env_ids, seed)) for seed in range(3)]
+        answers.append((first, steps))
+    (cheap_reset, cheap_steps), (reference_reset, reference_steps) = answers
+    assert "images" not in cheap_reset["obs"]
+    assert_same_tree(cheap_reset["obs"]["proprio"], reference_reset["obs"]["proprio"], "reset obs.proprio")
+    for i, (cheap, reference) in enumerate(zip(cheap_steps, reference_steps)):
+        for key in ("env_ids", "reward", "terminated", "truncated"):
+            assert_same_tree(cheap[key], reference[key], f"step {i} {key}")
+        assert_same_tree(cheap["obs"]["proprio"], reference["obs"]["proprio"], f"step {i} obs.proprio")
 
 
 # --- the command line --------------------------------------------------------------------------

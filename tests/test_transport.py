@@ -98,6 +98,23 @@ def close() -> Response:
     return PlainTextResponse("bye", headers={"connection": "close"})
 
 
+@app.api_route("/headers", methods=["GET", "POST", "PUT"])
+async def headers_seen(request: Request) -> JSONResponse:
+    """The request's head as the server saw it: every header line in order, and the body's size."""
+    body = await request.body()
+    return JSONResponse({"headers": [[k.decode(), v.decode()] for k, v in request.scope["headers"]], "body": len(body)})
+
+
+@app.get("/redirect")
+def redirect() -> Response:
+    return Response(status_code=307, headers={"location": "/bytes/3"})
+
+
+@app.get("/cookie")
+def cookie() -> Response:
+    return PlainTextResponse("set", headers={"set-cookie": "session=abc; Path=/"})
+
+
 @contextmanager
 def uvicorn_server(**config: Any) -> Iterator[str]:
     """A uvicorn server for ``app`` on a free loopback port; yields its base URL."""
@@ -510,6 +527,12 @@ def test_relative_urls_and_params_resolve_against_base_url(server: str) -> None:
     assert run_with("fast", use, base_url=server) == [b"\x00\x00\x00\x01\x01\x01", b"\x00\x01\x02"]
 
 
+def test_relative_url_on_the_lean_path_resolves_against_base_url(server: str) -> None:
+    response = run_with("fast", lambda c: c.get("/bytes/3"), base_url=server)
+    assert response.request.url == f"{server}/bytes/3"
+    assert response.content == pattern(3)
+
+
 def test_asyncio_transport_works_under_uvloop(server: str) -> None:
     uvloop = pytest.importorskip("uvloop")
 
@@ -518,3 +541,102 @@ def test_asyncio_transport_works_under_uvloop(server: str) -> None:
             return (await client.get(f"{server}/bytes/{3 << 20}")).content
 
     assert uvloop.run(main()) == pattern(3 << 20)
+
+
+# ------------------------------------------------------- VecsimAsyncClient's lean request path
+
+
+async def _seen_by_server(client: httpx.AsyncClient, server: str) -> list[Any]:
+    calls = [
+        client.get(f"{server}/headers"),
+        client.post(f"{server}/headers", content=b"\x00" * 1000, headers={"Content-Type": "application/x-test"}),
+        client.put(f"{server}/headers", json={"generation": 3}, headers={"X-Test": "per-call"}),
+    ]
+    return [(await call).json() for call in calls]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_lean_path_sends_the_same_head_and_body_as_httpx(server: str, kind: str) -> None:
+    auth = {"Authorization": "Bearer secret-token"}
+
+    async def both() -> tuple[list[Any], list[Any]]:
+        async with make_async_client(kind, headers=auth) as ours, httpx.AsyncClient(
+            transport=make_transport(kind), headers=auth
+        ) as reference:
+            return await _seen_by_server(ours, server), await _seen_by_server(reference, server)
+
+    ours, reference = asyncio.run(both())
+    assert ours == reference
+    assert ["authorization", "Bearer secret-token"] in ours[0]["headers"]
+    assert [seen["body"] for seen in ours] == [0, 1000, len(b'{"generation":3}')]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_timeout_given_to_one_call_overrides_the_clients(server: str, kind: str) -> None:
+    with pytest.raises(httpx.ReadTimeout):
+        run_with(kind, lambda c: c.get(f"{server}/sleep?seconds=2", timeout=0.2), timeout=30.0)
+
+
+def test_lean_response_knows_its_request_and_elapsed_time(server: str) -> None:
+    response = run_with("fast", lambda c: c.get(f"{server}/bytes/10"))
+    assert response.request.method == "GET"
+    assert response.request.url == f"{server}/bytes/10"
+    assert response.elapsed.total_seconds() > 0
+    assert response.is_closed
+
+
+def test_redirect_is_not_followed_and_names_the_next_request(server: str) -> None:
+    response = run_with("fast", lambda c: c.get(f"{server}/redirect"))
+    assert response.status_code == 307
+    assert response.next_request is not None
+    assert response.next_request.url == f"{server}/bytes/3"
+
+
+def test_cookie_the_server_sets_is_kept_and_sent_back(server: str) -> None:
+    async def use(client: httpx.AsyncClient) -> tuple[str | None, list[Any]]:
+        await client.get(f"{server}/cookie")
+        return client.cookies.get("session"), (await client.get(f"{server}/headers")).json()["headers"]
+
+    kept, headers = run_with("fast", use)
+    assert kept == "abc"
+    assert ["cookie", "session=abc"] in headers
+
+
+def test_event_hooks_still_run(server: str) -> None:
+    seen: list[str] = []
+
+    async def on_request(request: httpx.Request) -> None:
+        seen.append(f"request {request.url.path}")
+
+    async def on_response(response: httpx.Response) -> None:
+        seen.append(f"response {response.status_code}")
+
+    hooks = {"request": [on_request], "response": [on_response]}
+    run_with("fast", lambda c: c.get(f"{server}/bytes/1"), event_hooks=hooks)
+    assert seen == ["request /bytes/1", "response 200"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_transport_errors_name_the_request(refusing_port: int, kind: str) -> None:
+    url = f"http://127.0.0.1:{refusing_port}/v1/step"
+    with pytest.raises(httpx.ConnectError) as caught:
+        run_with(kind, lambda c: c.post(url, content=b"x"))
+    assert caught.value.request.url == url
+
+
+def test_streamed_response_still_arrives_chunk_by_chunk(server: str) -> None:
+    async def use(client: httpx.AsyncClient) -> list[bytes]:
+        async with client.stream("GET", f"{server}/drip", params={"chunks": 3, "interval": 0, "size": 2}) as response:
+            return [chunk async for chunk in response.aiter_raw()]
+
+    assert b"".join(run_with("fast", use)) == b"\x00\x00\x01\x01\x02\x02"
+
+
+def test_closed_client_refuses_requests(server: str) -> None:
+    async def main() -> None:
+        client = make_async_client("fast")
+        await client.aclose()
+        await client.get(f"{server}/bytes/1")
+
+    with pytest.raises(RuntimeError, match="client has been closed"):
+        asyncio.run(main())

@@ -10,7 +10,8 @@ The client speaks httpx (``httpx.AsyncClient``); the transport underneath is swa
 
 ``make_async_client(kind="fast")`` picks :data:`FAST_KIND`, chosen by ``bench/bench_transport.py``
 (see docs/benchmarks.md), and returns a :class:`VecsimAsyncClient`: an ``httpx.AsyncClient`` that
-frees read bodies promptly and parses each URL string once. Whatever the transport, failures
+sends plain requests on a lean path past httpx's auth, redirect and stream layers, frees read
+bodies promptly and parses each URL string once. Whatever the transport, failures
 surface as httpx exceptions:
 ``httpx.ConnectError``, ``httpx.ConnectTimeout``, ``httpx.ReadTimeout``, ``httpx.WriteTimeout``,
 ``httpx.PoolTimeout``, ``httpx.RemoteProtocolError``, ``httpx.ReadError``, and
@@ -23,14 +24,17 @@ HTTP/1.1 only, so every in-flight call holds one keep-alive connection to its po
 from __future__ import annotations
 
 import asyncio
+import datetime
 import io
 import logging
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Literal
 
 import aiohttp
 import httpx
+from httpx._exceptions import request_context
 from yarl import URL
 
 __all__ = [
@@ -48,6 +52,8 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+# httpx logs every request it sends at INFO; the lean path logs the same line.
+_httpx_logger = logging.getLogger("httpx")
 
 TransportKind = Literal["fast", "asyncio", "aiohttp", "httpx"]
 
@@ -698,6 +704,15 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
 class VecsimAsyncClient(httpx.AsyncClient):
     """``httpx.AsyncClient`` tuned for many calls to the same few URLs with large answers.
 
+    - A lean path for the requests vecsim makes: :meth:`request` (and so ``get``, ``post``,
+      ``put``, ...) without ``data``, ``files``, ``params``, ``cookies``, ``auth`` or
+      ``follow_redirects``, on a client without auth, params, cookies, event hooks, mounts or
+      redirect following, builds the request once and hands it to the transport directly,
+      skipping httpx's auth flow, redirect loop, stream wrapper and chunked read. What callers
+      see stays httpx's: the same request (client headers merged, Host, Content-Length, the
+      client's or the call's timeouts), the same response (``request``, ``elapsed``,
+      ``next_request`` for a redirect, cookies the server sets kept by the client), the same
+      exceptions. Anything else takes httpx's own path.
     - A read response lets go of its body as soon as you do. httpx links a response and its
       stream both ways, so a response, and its body, live on until the next garbage
       collection; with bodies of megabytes that means fresh memory (page faults) for every
@@ -710,6 +725,18 @@ class VecsimAsyncClient(httpx.AsyncClient):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._parsed_urls: dict[str, httpx.URL] = {}
+        # URL strings merged with base_url for the lean path, valid while base_url is the same object.
+        self._merged_urls: dict[str, httpx.URL] = {}
+        self._merged_for: httpx.URL | None = None
+        self._timeout_dict: tuple[httpx.Timeout, dict[str, float | None]] | None = None
+
+    def _parse(self, url: str) -> httpx.URL:
+        parsed = self._parsed_urls.get(url)
+        if parsed is None:
+            if len(self._parsed_urls) >= _URL_CACHE_SIZE:
+                self._parsed_urls.clear()
+            parsed = self._parsed_urls[url] = httpx.URL(url)
+        return parsed
 
     def build_request(self, method: str, url: httpx.URL | str, **kwargs: Any) -> httpx.Request:
         """Build a request as ``httpx.AsyncClient.build_request`` does, with ``url`` parsed once.
@@ -721,13 +748,129 @@ class VecsimAsyncClient(httpx.AsyncClient):
             whatever ``httpx.AsyncClient.build_request`` raises.
         """
         if isinstance(url, str):
-            parsed = self._parsed_urls.get(url)
-            if parsed is None:
-                if len(self._parsed_urls) >= _URL_CACHE_SIZE:
-                    self._parsed_urls.clear()
-                parsed = self._parsed_urls[url] = httpx.URL(url)
-            url = parsed
+            url = self._parse(url)
         return super().build_request(method, url, **kwargs)
+
+    def _lean_url(self, url: httpx.URL | str) -> httpx.URL:
+        if not isinstance(url, str):
+            return self._merge_url(url)
+        if self._merged_for is not self.base_url:
+            self._merged_urls.clear()
+            self._merged_for = self.base_url
+        merged = self._merged_urls.get(url)
+        if merged is None:
+            if len(self._merged_urls) >= _URL_CACHE_SIZE:
+                self._merged_urls.clear()
+            merged = self._merged_urls[url] = self._merge_url(self._parse(url))
+        return merged
+
+    def _lean_timeout(self, timeout: Any) -> dict[str, float | None]:
+        if timeout is not httpx.USE_CLIENT_DEFAULT:
+            return httpx.Timeout(timeout).as_dict()
+        cached = self._timeout_dict
+        if cached is None or cached[0] is not self.timeout:
+            cached = self._timeout_dict = (self.timeout, self.timeout.as_dict())
+        return dict(cached[1])
+
+    def _lean_applies(self) -> bool:
+        """The client holds nothing that httpx's full path would act on per request."""
+        return (
+            self.auth is None
+            and not self.follow_redirects
+            and not self.params
+            and not self.cookies
+            and not self._mounts
+            and not self.event_hooks["request"]
+            and not self.event_hooks["response"]
+        )
+
+    async def request(  # type: ignore[override]
+        self,
+        method: str,
+        url: httpx.URL | str,
+        *,
+        content: Any = None,
+        data: Any = None,
+        files: Any = None,
+        json: Any = None,
+        params: Any = None,
+        headers: Any = None,
+        cookies: Any = None,
+        auth: Any = httpx.USE_CLIENT_DEFAULT,
+        follow_redirects: Any = httpx.USE_CLIENT_DEFAULT,
+        timeout: Any = httpx.USE_CLIENT_DEFAULT,
+        extensions: dict[str, Any] | None = None,
+    ) -> httpx.Response:
+        """Build and send a request, as ``httpx.AsyncClient.request`` does; the lean path when
+        nothing in the call or the client needs httpx's full one (see the class).
+
+        Returns:
+            the response, read and closed.
+
+        Raises:
+            RuntimeError: the client is closed; the transport's httpx exceptions, as
+            ``httpx.AsyncClient.request`` raises them.
+        """
+        if (
+            data is not None
+            or files is not None
+            or params is not None
+            or cookies is not None
+            or auth is not httpx.USE_CLIENT_DEFAULT
+            or follow_redirects is not httpx.USE_CLIENT_DEFAULT
+            or not self._lean_applies()
+        ):
+            return await super().request(
+                method,
+                url,
+                content=content,
+                data=data,
+                files=files,
+                json=json,
+                params=params,
+                headers=headers,
+                cookies=cookies,
+                auth=auth,
+                follow_redirects=follow_redirects,
+                timeout=timeout,
+                extensions=extensions,
+            )
+        if self.is_closed:
+            raise RuntimeError("Cannot send a request, as the client has been closed.")
+        merged = httpx.Headers(self.headers)
+        if headers is not None:
+            merged.update(headers)
+        extensions = {} if extensions is None else dict(extensions)
+        if "timeout" not in extensions:
+            extensions["timeout"] = self._lean_timeout(timeout)
+        request = httpx.Request(
+            method, self._lean_url(url), content=content, json=json, headers=merged, extensions=extensions
+        )
+        start = time.perf_counter()
+        with request_context(request=request):  # errors carry the request, as httpx's path gives them
+            response = await self._transport.handle_async_request(request)
+        try:
+            response.request = request
+            response.default_encoding = self._default_encoding
+            await response.aread()
+        finally:
+            await response.aclose()
+        response.elapsed = datetime.timedelta(seconds=time.perf_counter() - start)
+        response.stream = httpx.ByteStream(b"")
+        if "set-cookie" in response.headers:
+            self.cookies.extract_cookies(response)
+        if response.has_redirect_location:
+            response.next_request = self._build_redirect_request(request, response)
+        if _httpx_logger.isEnabledFor(logging.INFO):
+            _httpx_logger.info(
+                'HTTP Request: %s %s "%s %d %s"',
+                request.method,
+                request.url,
+                response.http_version,
+                response.status_code,
+                response.reason_phrase,
+            )
+        return response
 
     async def send(self, request: httpx.Request, *, stream: bool = False, **kwargs: Any) -> httpx.Response:
         """Send ``request`` as ``httpx.AsyncClient.send`` does.

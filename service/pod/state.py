@@ -2,7 +2,9 @@
 
 All simulation work (building, stepping, rendering, closing) runs on one worker thread, in the
 order it was submitted, so env access is serialised and the event loop stays free for health
-checks. The assignment, the phase and the current env are changed only on the event loop.
+checks; except that cheap scenes are reset and stepped on the event loop itself
+(:func:`steps_on_event_loop`). The assignment, the phase and the current env are changed only on
+the event loop.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Literal, TypeVar
 from vecsim.config import Assignment
 from vecsim.sim import InvalidRequestError as SimInvalidRequestError
 from vecsim.sim import TaskGroupedVectorEnv, assignment_spaces
-from vecsim.tasks import TaskSetupError, UnknownTaskError
+from vecsim.tasks import TaskSetupError, UnknownTaskError, get_task
 
 from .errors import GenerationConflictError, InvalidRequestError, NotReadyError
 from .metrics import PodMetrics
@@ -51,6 +53,22 @@ def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
         raise InvalidRequestError(message if message.startswith("tasks:") else f"tasks: {message}") from None
 
 
+def steps_on_event_loop(assignment: Assignment) -> bool:
+    """Whether the pod resets and steps ``assignment``'s envs on its event loop rather than on
+    its worker thread: when every scene is cheap (a ``gym/*`` task, no camera), as
+    ``vecsim.sim.resolve_envs_per_worker`` calls them.
+
+    A call of cheap scenes takes the workers a millisecond or two, and the hand-over to the worker
+    thread and back about 0.2 ms of it (docs/benchmarks.md, the per-call budget); blocking the loop
+    for that long delays a health check no more than a busy loop would. Robot scenes and cameras
+    take tens to hundreds of milliseconds a call, so they stay on the worker thread. A worker
+    that hangs holds the loop with it, up to the pod's step timeout: health checks and heartbeats
+    wait too, and the controller may give the slot to a spare. Returns the decision; raises
+    nothing (tasks were checked when the assignment was taken).
+    """
+    return not assignment.camera.names and all(get_task(b.task_id).suite == "gym" for b in assignment.tasks)
+
+
 class PodState:
     """One pod's assignment and envs; the app keeps one in ``app.state.pod``."""
 
@@ -64,6 +82,8 @@ class PodState:
         # Names one build of the envs: new whenever they are built anew, kept when only the
         # generation moves on, so a client can tell whether its trajectories survived.
         self.instance: str | None = None
+        # Whether data-plane calls run on the event loop (cheap scenes); set with each build.
+        self.inline = False
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{settings.name}-sim")
         self._build_task: asyncio.Task[None] | None = None
         self._building_for: Assignment | None = None
@@ -187,6 +207,7 @@ class PodState:
 
     def _start_build(self) -> None:
         self.env = None
+        self.inline = False
         self.instance = None
         self.phase = "building"
         self.detail = "building envs"
@@ -215,6 +236,7 @@ class PodState:
                 continue
             if target.same_envs(self.assignment):
                 self.env = env
+                self.inline = steps_on_event_loop(target)
                 self.instance = uuid.uuid4().hex
                 self.phase = "ready"
                 self.detail = f"serving generation {self.generation}"

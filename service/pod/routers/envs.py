@@ -58,8 +58,11 @@ def _answer_doc(model: type[Any]) -> dict[int | str, dict[str, Any]]:
 
 
 async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
-    """Run ``work`` on the worker thread, turning the simulation's errors into HTTP errors."""
+    """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
+    turning the simulation's errors into HTTP errors."""
     try:
+        if state.inline:
+            return work()
         return await state.run(work)
     except sim.UnknownEnvError as exc:
         raise UnknownEnvError(f"pod {state.settings.name}: {exc}") from None
