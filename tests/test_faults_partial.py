@@ -119,7 +119,8 @@ def test_the_vector_env_raises_for_a_killed_pod_and_hands_over_the_other_pods_en
     env = HTTPVectorEnv(pod_urls=[p.url for p in pods], timeout_s=10, token=TOKEN)
     try:
         env.reset(seed=0)
-        on_sim_1 = sorted(f"env{i}" for i, route in env.routes.items() if route.pod == "sim-1")
+        failed = sorted(i for i, route in env.routes.items() if route.pod == "sim-1")
+        on_sim_1 = [f"env{i}" for i in failed]
         doomed.signal_group(signal.SIGKILL)
         with pytest.raises(PodUnavailableError) as caught:
             env.step(np.zeros((env.num_envs, 1), np.float32))
@@ -127,4 +128,5 @@ def test_the_vector_env_raises_for_a_killed_pod_and_hands_over_the_other_pods_en
     finally:
         env.close()
     assert caught.value.pods == ["sim-1"] and sorted(caught.value.traj_keys) == on_sim_1
+    assert caught.value.failed_envs == failed
     assert sorted(stepped.traj_keys) == sorted(set(f"env{i}" for i in range(env.num_envs)) - set(on_sim_1))

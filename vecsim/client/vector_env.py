@@ -21,8 +21,9 @@ from gymnasium.vector.async_vector_env import AsyncState
 from gymnasium.vector.utils import batch_space, create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
+from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError
 from vecsim.client.routing import TrajRoute, env_slots
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, _call_error, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.tasks import get_task
 from vecsim.transport import TransportKind
@@ -32,6 +33,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["HTTPVectorEnv"]
 
 _RESET_OPTIONS = {"reset_mask", "state_ids"}
+# The errors that fail a call for one pod's envs alone, handing over the other pods' rows.
+_PARTIAL = (PodUnavailableError, RoutingChangedError)
 
 
 def _row(obs: Any, i: int) -> Any:
@@ -41,12 +44,13 @@ def _row(obs: Any, i: int) -> Any:
     return np.array(obs[i])
 
 
-def _put_rows(dst: Any, src: Any, rows: np.ndarray) -> None:
+def _put_rows(dst: Any, src: Any, rows: np.ndarray, take: np.ndarray | None = None) -> None:
+    """Write ``src`` (its rows ``take``, or all) into rows ``rows`` of ``dst``."""
     if isinstance(dst, dict):
         for key in dst:
-            _put_rows(dst[key], src[key], rows)
+            _put_rows(dst[key], src[key], rows, take)
     else:
-        dst[rows] = src
+        dst[rows] = src if take is None else src[take]
 
 
 def _controller_url_of(job_config: RunnerConfig | str | Path) -> str:
@@ -69,6 +73,15 @@ class HTTPVectorEnv(VectorEnv):
     env) and ``options`` ``reset_mask`` (bool array, reset only those envs) and ``state_ids``
     (one state id per env; with a mask only the masked ones are used). Autoresets draw state ids
     from :attr:`np_random`, seeded by ``reset(seed=int)``.
+
+    A step or reset answers every env or raises. When pods of the call fail alone
+    (``PodUnavailableError``, ``RoutingChangedError``), the envs of the pods that answered did
+    step or reset: their rows go into the vector env's observation buffer and autoreset
+    bookkeeping before the error is raised, and the error carries ``failed_envs`` (the sorted
+    indices of the envs without an answer) and ``result`` (what the call would have returned,
+    with only the answered envs' rows meaningful and only theirs marked in the info's ``_key``
+    masks). The failed envs must then be reset (``reset(options={"reset_mask": m})`` with ``m``
+    covering them) before the next step; the others go on as they are.
     """
 
     def __init__(
@@ -145,6 +158,7 @@ class HTTPVectorEnv(VectorEnv):
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
         self._ever_reset = np.zeros(self.num_envs, dtype=bool)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._failed = np.zeros(self.num_envs, dtype=bool)  # no answer in their last call: reset them
         self._state = AsyncState.DEFAULT
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
@@ -186,6 +200,7 @@ class HTTPVectorEnv(VectorEnv):
         mask = self._reset_mask(options.get("reset_mask"))
         state_ids = self._state_ids_for_reset(seed, options.get("state_ids"), mask)
         indices = np.flatnonzero(mask)
+        self._place_lost_envs(mask)
         self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
         self._pending_mask = mask
         self._state = AsyncState.WAITING_RESET
@@ -197,22 +212,73 @@ class HTTPVectorEnv(VectorEnv):
             ClosedEnvironmentError: the env is closed.
             NoAsyncCallError: no reset is pending.
             TimeoutError: not answered within ``timeout`` seconds (the reset stays pending).
-            PodUnavailableError, PodRequestError, RoutingChangedError: from the client.
+            PodUnavailableError, PodRequestError, RoutingChangedError: from the client. The first
+                and last carry ``failed_envs`` and ``result`` (see the class docstring); the
+                envs that answered are reset.
         """
         self._assert_open()
         if self._state != AsyncState.WAITING_RESET:
             raise NoAsyncCallError(
                 "calling reset_wait without any prior call to reset_async", AsyncState.WAITING_RESET.value
             )
-        batch, _ = self._take(timeout)
         mask = self._pending_mask
-        rows = np.flatnonzero(mask)
-        _put_rows(self._obs, batch.obs, rows)
-        self._ever_reset[rows] = True
-        self._autoreset[rows] = False
+        try:
+            batch, _ = self._take(timeout)
+        except _PARTIAL as error:
+            answered = error.answered[0] if error.answered is not None else None
+            result, done = self._apply_reset(answered)
+            self._fail(error, mask & ~done, result)
+            raise
+        return self._apply_reset(batch)[0]
+
+    def _apply_reset(self, batch: StageBatch | None) -> tuple[tuple[Any, dict[str, Any]], np.ndarray]:
+        """Take the reset rows of ``batch`` (all or some of the call's); return ``(obs, info)`` and
+        the mask of the envs it reset."""
+        done = np.zeros(self.num_envs, dtype=bool)
         info: dict[str, Any] = {}
-        self._add_batch_info(info, batch, rows, with_state_ids=True)
-        return copy.deepcopy(self._obs), info
+        if batch is not None:
+            rows = np.array([self._key_index[k] for k in batch.traj_keys], dtype=np.int64)
+            _put_rows(self._obs, batch.obs, rows)
+            self._ever_reset[rows] = True
+            self._autoreset[rows] = False
+            self._failed[rows] = False
+            self._add_batch_info(info, batch, rows, with_state_ids=True)
+            done[rows] = True
+        return (copy.deepcopy(self._obs), info), done
+
+    def _fail(self, error: ClientError, failed: np.ndarray, result: tuple[Any, ...] | None) -> None:
+        """Mark the envs of a call that got no answer and tell the caller through ``error``."""
+        self._failed |= failed
+        self._autoreset[failed] = False
+        envs = np.flatnonzero(failed).tolist()
+        error.failed_envs = envs  # type: ignore[attr-defined]
+        error.result = result  # type: ignore[attr-defined]
+        logger.warning("envs %s got no answer and must be reset: %s", envs, error)
+
+    def _place_lost_envs(self, mask: np.ndarray) -> None:
+        """Route the masked envs whose pod's envs went away with a routing change back to their
+        slots, if the job still has the same env slots (a pod that came back into its slot).
+
+        Raises:
+            ClientError: the job's envs are no longer this vector env's (names the generation).
+        """
+        live = self.client.routes
+        lost = [int(i) for i in np.flatnonzero(mask) if self._keys[i] not in live]
+        if not lost:
+            return
+        table = self.client.routing
+        if env_slots(table) != self.slots:
+            raise ClientError(
+                f"the job's envs changed at routing generation {table.generation}: envs {lost} "
+                f"({', '.join(self._keys[i] for i in lost)}) lost their slots; close this HTTPVectorEnv "
+                "and make a new one"
+            )
+        self.client.set_routes(
+            {
+                key: live.get(key) or TrajRoute(slot.pod, slot.env_index, slot.task_id, slot.stage_id, 0)
+                for key, slot in zip(self._keys, self.slots)
+            }
+        )
 
     def _reset_mask(self, mask: Any) -> np.ndarray:
         if mask is None:
@@ -284,7 +350,8 @@ class HTTPVectorEnv(VectorEnv):
         Raises:
             ClosedEnvironmentError: the env is closed.
             AlreadyPendingCallError: a reset or step is still waiting to be taken.
-            ResetNeeded: an env was never reset, or (DISABLED) ended and was not reset.
+            ResetNeeded: an env was never reset, got no answer in its last call, or (DISABLED)
+                ended and was not reset.
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
         """
         self._assert_open()
@@ -295,6 +362,12 @@ class HTTPVectorEnv(VectorEnv):
             )
         if not self._ever_reset.all():
             raise ResetNeeded(f"envs {np.flatnonzero(~self._ever_reset).tolist()} were never reset; call reset() first")
+        if self._failed.any():
+            failed = np.flatnonzero(self._failed).tolist()
+            raise ResetNeeded(
+                f"envs {failed} got no answer in their last call (their pod failed); reset them with "
+                "reset(options={'reset_mask': mask}) before stepping"
+            )
         actions = np.asarray(actions, dtype=np.float32)
         expected = (self.num_envs, *self.single_action_space.shape)
         if actions.shape != expected:
@@ -317,10 +390,27 @@ class HTTPVectorEnv(VectorEnv):
         self._state = AsyncState.WAITING_STEP
 
     async def _step_then_reset(self, step: dict[str, np.ndarray]) -> tuple[StageBatch, StageBatch]:
-        _, stepped = await self.client.call(step=step)
+        # A pod failing either call fails only its envs: the answered envs that ended are reset
+        # all the same, and one error names every env left without an answer.
+        errors: list[BaseException] = []
+        try:
+            _, stepped = await self.client.call(step=step)
+        except _PARTIAL as error:
+            if error.answered is None:
+                raise
+            errors.append(error)
+            stepped = error.answered[1]
         ended = [key for j, key in enumerate(stepped.traj_keys) if stepped.terminated[j] or stepped.truncated[j]]
         reset = {key: self._draw_state_id(self._key_index[key], None) for key in ended}
-        again, _ = await self.client.call(reset=reset)
+        try:
+            again, _ = await self.client.call(reset=reset)
+        except _PARTIAL as error:
+            if error.answered is None:
+                raise
+            errors.append(error)
+            again = error.answered[0]
+        if errors:
+            raise _call_error(errors, (again, stepped))
         return again, stepped
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -330,25 +420,52 @@ class HTTPVectorEnv(VectorEnv):
             ClosedEnvironmentError: the env is closed.
             NoAsyncCallError: no step is pending.
             TimeoutError: not answered within ``timeout`` seconds (the step stays pending).
-            PodUnavailableError, PodRequestError, RoutingChangedError: from the client.
+            PodUnavailableError, PodRequestError, RoutingChangedError: from the client. The first
+                and last carry ``failed_envs`` and ``result`` (see the class docstring); the
+                envs that answered have stepped (or autoreset) and go on from there.
         """
         self._assert_open()
         if self._state != AsyncState.WAITING_STEP:
             raise NoAsyncCallError(
                 "calling step_wait without any prior call to step_async", AsyncState.WAITING_STEP.value
             )
-        reset_batch, step_batch = self._take(timeout)
+        try:
+            reset_batch, step_batch = self._take(timeout)
+        except _PARTIAL as error:
+            if error.answered is None:
+                result, done = None, np.zeros(self.num_envs, dtype=bool)
+            else:
+                result, done = self._apply_step(*error.answered)
+            self._fail(error, ~done, result)
+            raise
+        return self._apply_step(reset_batch, step_batch)[0]
+
+    def _apply_step(
+        self, reset_batch: StageBatch, step_batch: StageBatch
+    ) -> tuple[tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], np.ndarray]:
+        """Take a step call's answer (all or some of its envs'); return what ``step_wait`` returns
+        and the mask of the envs the answer covers (a step, or a reset in its place)."""
         reward = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         info: dict[str, Any] = {}
 
-        stepped = np.array([self._key_index[k] for k in step_batch.traj_keys], dtype=np.int64)
+        ended = step_batch.terminated | step_batch.truncated
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            # An env that ended is answered only once its reset is: its step row alone would
+            # leave it ended, which SAME_STEP never shows.
+            reset_keys = set(reset_batch.traj_keys)
+            take = np.array(
+                [j for j, k in enumerate(step_batch.traj_keys) if not ended[j] or k in reset_keys], dtype=np.int64
+            )
+        else:
+            take = np.arange(step_batch.n, dtype=np.int64)
+        stepped = np.array([self._key_index[step_batch.traj_keys[j]] for j in take], dtype=np.int64)
         reset = np.array([self._key_index[k] for k in reset_batch.traj_keys], dtype=np.int64)
-        reward[stepped] = step_batch.reward
-        terminated[stepped] = step_batch.terminated
-        truncated[stepped] = step_batch.truncated
-        _put_rows(self._obs, step_batch.obs, stepped)
+        reward[stepped] = step_batch.reward[take]
+        terminated[stepped] = step_batch.terminated[take]
+        truncated[stepped] = step_batch.truncated[take]
+        _put_rows(self._obs, step_batch.obs, stepped, take)
 
         if self.autoreset_mode == AutoresetMode.SAME_STEP and len(reset):
             # The stepped obs of an env that ended goes to final_obs; its reset obs replaces it.
@@ -365,13 +482,17 @@ class HTTPVectorEnv(VectorEnv):
             info["final_info"], info["_final_info"] = final_info, done.copy()
 
         _put_rows(self._obs, reset_batch.obs, reset)
-        self._add_batch_info(info, step_batch, stepped)
+        self._add_rows_info(info, step_batch, take, stepped)
         self._add_batch_info(info, reset_batch, reset, with_state_ids=True)
+        answered = np.zeros(self.num_envs, dtype=bool)
+        answered[stepped] = True
+        answered[reset] = True
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            self._autoreset[:] = False
+            self._autoreset[answered] = False
         else:
-            self._autoreset = terminated | truncated
-        return copy.deepcopy(self._obs), reward, terminated, truncated, info
+            self._autoreset[answered] = (terminated | truncated)[answered]
+        self._failed[answered] = False
+        return (copy.deepcopy(self._obs), reward, terminated, truncated, info), answered
 
     # -- shared ---------------------------------------------------------------------------------
 
@@ -429,6 +550,7 @@ class HTTPVectorEnv(VectorEnv):
 
     @property
     def routes(self) -> Mapping[int, TrajRoute]:
-        """Env index -> its fixed ``(pod, env_index, task_id, stage_id, state_id)``."""
+        """Env index -> its fixed ``(pod, env_index, task_id, stage_id, state_id)``; an env whose
+        pod's envs went away with a routing change is left out until it is reset."""
         routes = self.client.routes
-        return {i: routes[key] for i, key in enumerate(self._keys)}
+        return {i: routes[key] for i, key in enumerate(self._keys) if key in routes}
