@@ -1,32 +1,41 @@
-"""At scale on a GPU machine: LIBERO-10 at 256x256 x 2 cameras, pinned pods, a bf16 vision policy.
+"""At scale on a GPU machine: LIBERO-10 at 256x256 x 2 cameras, pinned pods, bf16 vision policies.
 
-One command starts a local job (``service.runner.LocalJob``: the controller and ``--pods`` pods,
-each pod and its env workers pinned to one core with ``pods.cpu_affinity``, rendering with
-``MUJOCO_GL=egl``) and a trainer in this process, pinned to the cores left over, that runs a
-ResNet-18-style vision policy (one encoder per camera, proprio MLP, MLP head; bf16 on the GPU)
-through the pipelined ``EnvLoop``. Each pod serves one task of the suite, ``--envs-per-task``
-envs of it in one worker process; pods beyond the suite's task count (12 pods, 10 LIBERO-10
-tasks) are standalone pods serving its tasks again, joined to the job's routing table at its
-generation. The trainer groups pods into stages itself, so one build serves every measurement:
+Two measurements, one invocation each (``--only``), each starting its own local job
+(``service.runner.LocalJob``: the controller and its pods, each pod and its env worker pinned
+with ``pods.cpu_affinity``, rendering with ``MUJOCO_GL=egl``) and a trainer in this process,
+pinned to the cores left over. Every pod serves the SAME task mix (``--tasks-per-pod`` tasks of
+``--tasks``, ``--envs-per-task`` envs each; default: the ten LIBERO-10 tasks, one env each, and
+for the pipeline's 2C pods the first five), all its envs in ONE worker process, so pods carry
+equal load. The job has one stage per pod (so the
+controller gives every pod the whole mix); the trainer groups pods into its own stages.
 
-- scaling: env-steps/s of a 1-stage rollout over the first P pods, P in ``--pod-counts``
-  (interleaved rounds; linear = P x the 1-pod figure of the same round);
-- pipelining: 1 against 2 stages over all pods, with the ResNet-18 policy, and with a
-  ViT-B/16-style policy whose depth is calibrated so that its forward pass on one stage takes
-  as long as that stage's simulation (a stand-in for a VLA-sized policy: where pipelining pays);
-- time per step, split: policy (the rollout's stats), and from the pods' ``/metrics``: physics
-  and rendering (worker seconds), the pod's step wall time, and serving (the client's call
-  time beyond the pod's: HTTP, codec, waiting for the slowest pod);
-- rendering: the GL renderer of the pods' EGL (must be NVIDIA's with ``--gpu``), and, when
-  Mesa's libEGL is on the machine, one pod of the same assignment rendering through Mesa
-  (software) against the GPU pod.
+- ``--only scaling``: pods pinned one per core, physical cores first (hyperthread siblings
+  last; the CPU topology is recorded). For P in ``--pod-counts``, over the first P pods, one
+  stage: (a) the service alone: a StageClient stepping every env with scripted actions, no
+  policy; (b) the pipelined EnvLoop with a ResNet-18 policy (bf16, one CUDA graph per batch
+  size). Interleaved rounds; linear = P x the 1-pod figure of the same round. Per stage call
+  the client's per-pod round trips are recorded: their mean and the slowest pod's, so the cost
+  of waiting for the slowest pod is known; the pods' ``/metrics`` split a pod's time into
+  physics, rendering and the rest.
+- ``--only pipeline``: ``--pipeline-cores`` C cores, 2C pods, pod i and pod i+C on core i.
+  1 stage = all 2C pods (both pods of a core simulate at once); 2 stages = pods 0..C-1 against
+  C..2C-1 (one stage simulates while the other's observations are in the policy). The policy is
+  a ViT-B/16-style encoder per camera (bf16) whose depth is calibrated so that its forward pass
+  on the 1-stage batch lasts as long as the 1-stage simulation call (the service alone), captured
+  in a CUDA graph per batch size, so its launches cost the trainer's Python thread little.
 
-    source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --copy-to "$OUT"
-    python bench/bench_gpu_scale.py --gpu --dry        # probe the machine only: fails fast
-    python bench/bench_gpu_scale.py --cpu-small        # here: 2 pods, 2 LIBERO tasks, 64x64
+Commands::
 
-Writes out/bench/bench_gpu_scale[_cpu|_dry].json and docs/img/gpu_scale*.png, prints
-``RESULT {json}``; ``--copy-to`` also copies them into a folder.
+    source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only scaling --copy-to "$OUT"
+    source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only pipeline --copy-to "$OUT"
+    python bench/bench_gpu_scale.py --gpu --only pipeline --dry   # probe: 1 core, tiny policy; fails fast
+    python bench/bench_gpu_scale.py --cpu-small --only scaling     # here: 2 pods, 2 LIBERO tasks, 64x64
+
+Each writes out/bench/bench_gpu_scale_<scaling|pipeline>[_cpu|_dry].json and its plots under
+docs/img/, and prints one ``RESULT {json}`` line; ``--copy-to`` also copies them into a folder,
+with a failed job's logs (``<job id>-logs.tar.gz``). Rounds stop being added at ``--deadline``
+seconds after the start; the job's start-up is bounded by it too, and memory in use above
+``--max-memory-gib`` while the pods build stops the run.
 
 ``--render-compare`` measures GPU against software rendering on the same pod setup instead: one
 pinned pod of one scene (default LIBERO-10 task 0, 256x256, two cameras, 4 envs), first with the
@@ -47,6 +56,7 @@ and ..._frames.png (the two renderers' images and their difference):
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import contextlib
 import ctypes.util
@@ -62,31 +72,24 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
+import psutil
 import torch
 import torch.nn.functional as F
-import psutil
-from _perf_common import (
-    free_port,
-    free_port_block,
-    paired_ratio,
-    rate_spread,
-    setup_logging,
-    standalone_pods,
-    wait_until_ready,
-)
+from _perf_common import free_port, free_port_block, paired_ratio, rate_spread, setup_logging
 from common import img_dir, write_result
 from gymnasium import spaces
 from torch import nn
 
 from vecsim.client import StageClient, fetch_routing
-from vecsim.config import Assignment, RoutedPod, RoutedStage, RoutingTable, RunnerConfig, TaskBlock
+from vecsim.config import RoutedStage, RoutingTable, RunnerConfig
 from vecsim.rollout import EnvLoop, RolloutStats
 
 log = logging.getLogger("bench.gpu_scale")
@@ -98,27 +101,41 @@ MESA_VENDOR_GLOBS = ("/usr/share/glvnd/egl_vendor.d/*mesa*.json", "/etc/glvnd/eg
 NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json",
                        "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")  # fmt: skip
 GL_LIBRARY = re.compile(r"EGL|GLX|GLdispatch|nvidia|mesa|LLVM|_dri\.so|gallium|gbm|glapi")
+MAX_EPISODE_STEPS = 520
 
 
 @dataclasses.dataclass(frozen=True)
 class Plan:
-    """What one run builds and measures."""
+    """What one run builds and measures. ``tasks`` is every pod's task mix (one block per task,
+    ``envs_per_task`` envs each, all in one worker process)."""
 
+    mode: str  # "scaling", "pipeline" or "render"
     tasks: tuple[str, ...]
     size: int
+    envs_per_task: int
     pods: int
     pod_counts: tuple[int, ...]
-    envs_per_task: int
+    pipeline_cores: int
     horizon: int
+    service_steps: int
     rounds: int
     device: str
     dtype: str
-    heavy: bool
-    soft_horizon: int
+    vit_width: int
+    vit_max_depth: int
+    max_memory_gib: float
     deadline_s: float
 
+    @property
+    def envs_per_pod(self) -> int:
+        return len(self.tasks) * self.envs_per_task
 
-# -- the policy ----------------------------------------------------------------------------------
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return torch.bfloat16 if self.dtype == "bfloat16" else torch.float32
+
+
+# -- the policies --------------------------------------------------------------------------------
 
 
 class BasicBlock(nn.Module):
@@ -202,8 +219,9 @@ class ViTEncoder(nn.Module):
 class VisionPolicy(nn.Module):
     """One image encoder per camera, a proprio MLP and an MLP head to actions in the action bounds.
 
-    ``encoder`` is ``"resnet18"`` or ``"vit"`` (ViT-B/16-style, ``vit_depth`` blocks). Runs in
-    eval mode (batch norm uses its running statistics) in ``dtype`` on ``device``.
+    ``encoder`` is ``"resnet18"`` or ``"vit"`` (ViT-B/16-style, ``vit_depth`` blocks ``vit_width``
+    wide). Runs in eval mode (batch norm uses its running statistics) in ``dtype`` on ``device``;
+    the weights are made on ``device`` (a deep ViT's initialisation on the CPU would take minutes).
     """
 
     def __init__(
@@ -213,6 +231,7 @@ class VisionPolicy(nn.Module):
         *,
         encoder: str = "resnet18",
         vit_depth: int = 12,
+        vit_width: int = 768,
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> None:
@@ -222,15 +241,18 @@ class VisionPolicy(nn.Module):
         size = images[self.cameras[0]].shape[0] if self.cameras else 16
 
         def make() -> nn.Module:
-            return ResNet18Encoder() if encoder == "resnet18" else ViTEncoder(size, depth=vit_depth)
+            if encoder == "resnet18":
+                return ResNet18Encoder()
+            return ViTEncoder(size, width=vit_width, depth=vit_depth, heads=max(vit_width // 64, 1))
 
-        self.encoders = nn.ModuleDict({camera: make() for camera in self.cameras})
-        feature = sum(e.out_dim for e in self.encoders.values())
-        proprio = int(np.prod(observation_space["proprio"].shape))
-        self.proprio = nn.Sequential(nn.Linear(proprio, 128), nn.GELU())
-        actions = int(np.prod(action_space.shape))
-        self.head = nn.Sequential(nn.Linear(feature + 128, 512), nn.GELU(), nn.Linear(512, 256), nn.GELU(),
-                                  nn.Linear(256, actions))  # fmt: skip
+        with torch.device(device):
+            self.encoders = nn.ModuleDict({camera: make() for camera in self.cameras})
+            feature = sum(e.out_dim for e in self.encoders.values())
+            proprio = int(np.prod(observation_space["proprio"].shape))
+            self.proprio = nn.Sequential(nn.Linear(proprio, 128), nn.GELU())
+            actions = int(np.prod(action_space.shape))
+            self.head = nn.Sequential(nn.Linear(feature + 128, 512), nn.GELU(), nn.Linear(512, 256), nn.GELU(),
+                                      nn.Linear(256, actions))  # fmt: skip
         low, high = np.asarray(action_space.low, np.float32), np.asarray(action_space.high, np.float32)
         bounded = np.isfinite(low) & np.isfinite(high)
         self.register_buffer("center", torch.from_numpy(np.where(bounded, (low + high) / 2, 0.0).astype(np.float32)))
@@ -275,6 +297,61 @@ def forward_ms(policy: nn.Module, space: spaces.Dict, batch: int, calls: int, de
     return 1000 * statistics.median(times[2:])
 
 
+class GraphedPolicy:
+    """A policy replayed from one CUDA graph per batch size (static input buffers), so a forward
+    pass costs the calling Python thread a few copies and one replay instead of every kernel
+    launch; eager where there is no CUDA. Call it as the policy: ``(obs, instructions, task_ids)``.
+    A batch size not captured up front is captured when first seen (logged)."""
+
+    def __init__(self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int]) -> None:
+        self.policy = policy
+        self.space = space
+        self.device = device
+        self.graphed = device.startswith("cuda")
+        self.graphs: dict[int, tuple[torch.cuda.CUDAGraph, dict[str, Any], torch.Tensor]] = {}
+        for batch in sorted(set(batch_sizes)):
+            self.capture(batch)
+
+    def capture(self, batch: int) -> None:
+        """Capture the forward pass on ``batch`` observations (a no-op without CUDA)."""
+        if not self.graphed or batch in self.graphs or batch < 1:
+            return
+        static = dummy_obs(self.space, batch, self.device)
+        blanks = [""] * batch
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.no_grad(), torch.cuda.stream(side):
+            for _ in range(3):  # warm-up off the capture: cuDNN/cuBLAS pick their kernels
+                self.policy(static, blanks, blanks)
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.no_grad(), torch.cuda.graph(graph):  # a private memory pool per graph
+            out = self.policy(static, blanks, blanks)
+        torch.cuda.synchronize()
+        self.graphs[batch] = (graph, static, out)
+
+    def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
+        """Return ``[n, action_dim]`` float32 actions for ``n = len(task_ids)`` observations."""
+        if not self.graphed:
+            return self.policy(obs, instructions, task_ids)
+        batch = len(task_ids)
+        if batch not in self.graphs:
+            log.info("capturing the policy's CUDA graph for a batch of %d (not captured up front)", batch)
+            self.capture(batch)
+        graph, static, out = self.graphs[batch]
+        for camera, image in obs["images"].items():
+            static["images"][camera].copy_(image, non_blocking=True)
+        static["proprio"].copy_(obs["proprio"], non_blocking=True)
+        graph.replay()
+        return out.clone()
+
+
+def parameters_m(policy: nn.Module) -> float:
+    """Return the policy's parameter count in millions."""
+    return round(sum(p.numel() for p in policy.parameters()) / 1e6, 2)
+
+
+
 # -- the machine ---------------------------------------------------------------------------------
 
 
@@ -308,15 +385,69 @@ def gpu_name() -> str | None:
     return done.stdout.strip() or None
 
 
-def split_cores(pods: int) -> tuple[list[str], list[int]]:
-    """Return each pod's CPU list and the trainer's cores: one core per pod while cores last,
-    the rest to the trainer; with too few cores the trainer keeps the first and pods share the
-    others."""
-    cores = sorted(os.sched_getaffinity(0))
-    if len(cores) > pods:
-        return [str(c) for c in cores[:pods]], cores[pods:]
-    rest = cores[1:] or cores
-    return [str(rest[i % len(rest)]) for i in range(pods)], cores[:1]
+def _read(path: str) -> str | None:
+    try:
+        return Path(path).read_text().strip()
+    except OSError:
+        return None
+
+
+def cpu_topology() -> dict[str, Any]:
+    """Return the CPUs this process may use and how they sit on physical cores: per CPU its
+    package, core and hyperthread siblings (``/sys/devices/system/cpu``), the number of physical
+    cores, threads per core, and lscpu's model name and counts."""
+    allowed = sorted(os.sched_getaffinity(0))
+    cpus: dict[int, dict[str, Any]] = {}
+    for cpu in allowed:
+        base = f"/sys/devices/system/cpu/cpu{cpu}/topology"
+        cpus[cpu] = {
+            "package": _read(f"{base}/physical_package_id"),
+            "core": _read(f"{base}/core_id"),
+            "siblings": _read(f"{base}/thread_siblings_list"),
+        }
+    cores = {(c["package"], c["core"]) if c["core"] is not None else ("cpu", n) for n, c in cpus.items()}
+    lscpu: dict[str, str] = {}
+    with contextlib.suppress(OSError, subprocess.SubprocessError):
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=20).stdout
+        for line in out.splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() in ("Model name", "CPU(s)", "Thread(s) per core", "Core(s) per socket", "Socket(s)",
+                               "NUMA node(s)", "Hypervisor vendor"):  # fmt: skip
+                lscpu[key.strip()] = value.strip()
+    return {
+        "cpus": len(allowed),
+        "physical_cores": len(cores),
+        "threads_per_core": round(len(allowed) / max(len(cores), 1), 2),
+        "per_cpu": {str(n): c for n, c in cpus.items()},
+        "lscpu": lscpu,
+    }
+
+
+def cores_first(topology: dict[str, Any]) -> list[int]:
+    """The usable CPUs ordered so that one thread of every physical core comes before any second
+    thread of a core (hyperthread siblings last), each group in CPU order."""
+    seen: dict[tuple[Any, Any], int] = {}
+    rounds: list[tuple[int, int]] = []
+    for name, cpu in sorted(topology["per_cpu"].items(), key=lambda item: int(item[0])):
+        key = (cpu["package"], cpu["core"]) if cpu["core"] is not None else ("cpu", name)
+        rounds.append((seen.get(key, 0), int(name)))
+        seen[key] = seen.get(key, 0) + 1
+    return [cpu for _, cpu in sorted(rounds)]
+
+
+def split_cores(order: Sequence[int], pinned: int) -> tuple[list[str], list[int]]:
+    """Return the CPU lists of ``pinned`` pod cores and the trainer's cores: the first ``pinned``
+    of ``order`` and the rest; with too few CPUs the trainer keeps the first and the pods share
+    the others (as on a 2-core development machine)."""
+    if len(order) > pinned:
+        return [str(c) for c in order[:pinned]], sorted(order[pinned:])
+    rest = list(order[1:]) or list(order)
+    return [str(rest[i % len(rest)]) for i in range(pinned)], [order[0]]
+
+
+def memory_gib() -> float:
+    """Return the machine's memory in use, GiB."""
+    return round(psutil.virtual_memory().used / 2**30, 1)
 
 
 # -- the job -------------------------------------------------------------------------------------
@@ -328,28 +459,28 @@ def camera(plan: Plan) -> dict[str, Any]:
     return {"names": list(names), "height": plan.size, "width": plan.size}
 
 
-def runner_config(plan: Plan, pins: Sequence[str], job_id: str, tasks: Sequence[str]) -> RunnerConfig:
-    """One stage of one pod per task, ``envs_per_task`` envs of it in one worker process: a
-    worker hosts envs of one task, so this is the fewest processes (a pod serving all ten tasks
-    needs ten workers, and 12 such pods did not build within 9 minutes on the GPU machine)."""
+def runner_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -> RunnerConfig:
+    """``replicas`` pods, each serving the plan's whole task mix (``envs_per_task`` envs of each
+    task) in one worker process: one job stage per pod, since the controller gives every stage
+    every task. Pod ``i`` is pinned to ``pins[i % len(pins)]``."""
     return RunnerConfig.model_validate(
         {
             "job": {
                 "job_id": job_id,
-                "tasks": list(tasks),
+                "tasks": list(plan.tasks),
                 "group_size": plan.envs_per_task,
-                "num_stages": 1,
-                "pods_per_stage": len(tasks),
+                "num_stages": replicas,
+                "pods_per_stage": 1,
                 "camera": camera(plan),
                 "render": "lean",
-                "envs_per_worker": plan.envs_per_task,
-                "max_episode_steps": 520,
+                "envs_per_worker": plan.envs_per_pod,
+                "max_episode_steps": MAX_EPISODE_STEPS,
             },
             "pods": {
-                "replicas": len(tasks),
-                "base_port": free_port_block(len(tasks)),
-                "max_envs": max(64, plan.envs_per_task),
-                "cpu_affinity": list(pins[: len(tasks)]),
+                "replicas": replicas,
+                "base_port": free_port_block(replicas),
+                "max_envs": max(64, plan.envs_per_pod),
+                "cpu_affinity": list(pins),
             },
             "controller": {
                 "port": free_port(),
@@ -359,36 +490,6 @@ def runner_config(plan: Plan, pins: Sequence[str], job_id: str, tasks: Sequence[
             },
         }
     )
-
-
-def extra_assignments(plan: Plan, job_id: str) -> list[Assignment]:
-    """Pods beyond one per task (LIBERO-10 has 10 tasks; 12 pods are measured): standalone pods
-    serving the suite's tasks again from its start, joined to the job's routing table."""
-    first = min(plan.pods, len(plan.tasks))
-    return [
-        Assignment(
-            generation=0, job_id=job_id, pod=f"sim-{i}", stage_id=0,
-            tasks=(TaskBlock(task_id=plan.tasks[i % len(plan.tasks)], env_start=0, num_envs=plan.envs_per_task),),
-            camera=camera(plan), render="lean", envs_per_worker=plan.envs_per_task, max_episode_steps=520,
-        )  # fmt: skip
-        for i in range(first, plan.pods)
-    ]
-
-
-def join_extra(table: RoutingTable, assignments: Sequence[Assignment], pods: Sequence[Any]) -> RoutingTable:
-    """Move the standalone pods to the job's generation (same envs: no rebuild) and return the
-    job's routing table with them added to its one stage."""
-    routed = []
-    for assignment, pod in zip(assignments, pods):
-        moved = assignment.model_copy(update={"generation": table.generation})
-        response = httpx.put(f"{pod.url}/v1/assignment", json=moved.model_dump(mode="json"), timeout=30)
-        if response.status_code != 200 or response.json().get("rebuilt"):
-            raise RuntimeError(f"{assignment.pod}: moving to generation {table.generation}: {response.text}")
-        routed.append(RoutedPod(pod=assignment.pod, url=pod.url, num_envs=assignment.num_envs, tasks=assignment.tasks))
-    for pod in pods:
-        wait_until_ready(pod.url, pod, pod.log_path, 60)
-    stage = table.stages[0]
-    return table.model_copy(update={"stages": (stage.model_copy(update={"pods": (*stage.pods, *routed)}),)})
 
 
 @contextlib.contextmanager
@@ -412,6 +513,82 @@ def running_job(
         job.stop()
 
 
+class MemoryWatch:
+    """Samples the machine's memory in use every ``every_s`` in a thread while the body runs;
+    once it passes ``limit_gib`` it interrupts the main thread, which the body's exit turns into
+    :class:`MemoryError` (so the job is torn down before the machine runs out). Keeps the peak."""
+
+    def __init__(self, limit_gib: float, every_s: float = 2.0) -> None:
+        self.limit_gib = limit_gib
+        self.every_s = every_s
+        self.peak_gib = memory_gib()
+        self.tripped: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="memory-watch", daemon=True)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(self.every_s):
+            used = memory_gib()
+            self.peak_gib = max(self.peak_gib, used)
+            if used > self.limit_gib:
+                self.tripped = used
+                _thread.interrupt_main()
+                return
+
+    def __enter__(self) -> MemoryWatch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        if self.tripped is not None and (kind is None or issubclass(kind, KeyboardInterrupt)):
+            raise MemoryError(f"{self.tripped} GiB of memory in use, above --max-memory-gib {self.limit_gib}: "
+                              "run fewer pods, tasks per pod or envs")  # fmt: skip
+
+
+def wait_for_job(job: Any, timeout_s: float) -> RoutingTable:
+    """Wait for the job to be ready, at most ``timeout_s``, failing as soon as a pod says its
+    envs failed to build (its ``/readyz`` detail) rather than at the timeout.
+
+    Raises:
+        RuntimeError: a pod's build failed (names the pod and its error).
+        TimeoutError, CrashLoopError, JobRejectedError: as ``LocalJob.wait_ready``.
+    """
+    end = time.monotonic() + timeout_s
+    while True:
+        left = end - time.monotonic()
+        try:
+            return job.wait_ready(timeout=max(min(5.0, left), 0.5))
+        except TimeoutError:
+            if left <= 5.0:
+                raise
+        for name in job.pod_names:
+            with contextlib.suppress(httpx.HTTPError, ValueError):
+                answer = httpx.get(f"{job.pod_url(name)}/readyz", timeout=5)
+                detail = str(answer.json().get("detail", "")) if answer.status_code == 503 else ""
+                if "failed" in detail:
+                    raise RuntimeError(f"{name}: {detail}")
+
+
+def pod_processes(job: Any) -> dict[str, dict[str, Any]]:
+    """Per pod: its processes (the server and its env workers, the forkserver included) and
+    their summed resident memory, GiB."""
+    out = {}
+    for name in job.pod_names:
+        pid = job.processes[name].pid
+        tree: list[psutil.Process] = []
+        with contextlib.suppress(psutil.Error, TypeError):
+            root = psutil.Process(pid)
+            tree = [root, *root.children(recursive=True)]
+        rss = 0
+        for process in tree:
+            with contextlib.suppress(psutil.Error):
+                rss += process.memory_info().rss
+        out[name] = {"processes": len(tree), "rss_gib": round(rss / 2**30, 2)}
+    return out
+
+
 def regroup(table: RoutingTable, pods: Sequence[str], stages: int) -> RoutingTable:
     """The trainer's view: the named pods of the job's table, in order, in ``stages`` stages."""
     by_name = {p.pod: p for stage in table.stages for p in stage.pods}
@@ -433,6 +610,30 @@ def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
     return [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]
 
 
+class TimedStageClient(StageClient):
+    """A StageClient that records every request to a pod: ``(pod, op, begin, end)``
+    (``time.perf_counter()``), the round trip as the client sees it (HTTP, the pod's work,
+    decoding), so a stage call's per-pod times and its slowest pod are known."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        if not callable(getattr(StageClient, "_post", None)):  # the hook below would never run
+            raise TypeError("StageClient has no _post(pod, op, body, keys) to time per pod any more")
+        super().__init__(*args, **kwargs)
+        self.pod_calls: list[tuple[str, str, float, float]] = []
+
+    async def _post(self, pod: str, op: str, body: dict[str, Any], keys: list[str]) -> dict[str, Any]:
+        begin = time.perf_counter()
+        try:
+            return await super()._post(pod, op, body, keys)
+        finally:
+            self.pod_calls.append((pod, op, begin, time.perf_counter()))
+
+    def take_pod_calls(self) -> list[tuple[str, str, float, float]]:
+        """Return the requests recorded since the last take, and forget them."""
+        calls, self.pod_calls = self.pod_calls, []
+        return calls
+
+
 _METRIC = re.compile(r"^(vecsim_pod_[a-z_]+?)(?:\{[^}]*\})? (\S+)$", re.M)
 POD_COUNTERS = (
     "vecsim_pod_env_steps_total",
@@ -443,39 +644,119 @@ POD_COUNTERS = (
 )
 
 
-def scrape(urls: Sequence[str]) -> dict[str, float]:
-    """Return the pods' step counters (``POD_COUNTERS``), summed over ``urls``."""
-    totals = dict.fromkeys(POD_COUNTERS, 0.0)
+def scrape_per_pod(urls: Sequence[str]) -> dict[str, dict[str, float]]:
+    """Return each pod's step counters (``POD_COUNTERS``), by URL."""
+    out = {}
     for url in urls:
-        text = httpx.get(f"{url}/metrics", timeout=10).text
-        for name, value in _METRIC.findall(text):
+        totals = dict.fromkeys(POD_COUNTERS, 0.0)
+        for name, value in _METRIC.findall(httpx.get(f"{url}/metrics", timeout=10).text):
             if name in totals:
                 totals[name] += float(value)
-    return totals
+        out[url] = totals
+    return out
+
+
+def scrape(urls: Sequence[str]) -> dict[str, float]:
+    """Return the pods' step counters (``POD_COUNTERS``), summed over ``urls``."""
+    per_pod = scrape_per_pod(urls)
+    return {name: sum(pod[name] for pod in per_pod.values()) for name in POD_COUNTERS}
 
 
 @dataclasses.dataclass
 class Measured:
-    """One rollout: its stats and the pods' counters over it."""
+    """One rollout: its stats, the pods' counters over it (summed, and per pod name) and the
+    client's per-pod requests."""
 
     stats: RolloutStats
     pods: dict[str, float]
+    per_pod: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
+    pod_calls: list[tuple[str, str, float, float]] = dataclasses.field(default_factory=list)
+    stage_of_pod: dict[str, int] = dataclasses.field(default_factory=dict)
 
     @property
     def env_steps_per_s(self) -> float:
         return self.stats.env_steps_per_s
 
 
-def rollout(client: StageClient, policy: nn.Module, requests: list[tuple[str, int]], horizon: int,
-            device: str) -> Measured:  # fmt: skip
-    """Run one EnvLoop rollout; return its stats with the pods' counters over it."""
-    urls = [p.url for stage in client.routing.stages for p in stage.pods]
-    before = scrape(urls)
-    result = EnvLoop(client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60).run(requests)
-    after = scrape(urls)
+def _pod_urls(client: StageClient) -> dict[str, str]:
+    return {p.pod: p.url for stage in client.routing.stages for p in stage.pods}
+
+
+@contextlib.contextmanager
+def counted(client: StageClient) -> Iterator[dict[str, Any]]:
+    """Scrape the client's pods before and after the body; yield a dict that then holds
+    ``pods`` (the counters' increase, summed), ``per_pod`` (by pod name), ``pod_calls`` (the
+    client's requests, when it is a TimedStageClient) and ``stage_of_pod``."""
+    urls = _pod_urls(client)
+    if isinstance(client, TimedStageClient):
+        client.take_pod_calls()
+    before = scrape_per_pod(list(urls.values()))
+    out: dict[str, Any] = {}
+    yield out
+    after = scrape_per_pod(list(urls.values()))
+    out["per_pod"] = {pod: {k: after[url][k] - before[url][k] for k in POD_COUNTERS} for pod, url in urls.items()}
+    out["pods"] = {k: sum(p[k] for p in out["per_pod"].values()) for k in POD_COUNTERS}
+    out["pod_calls"] = client.take_pod_calls() if isinstance(client, TimedStageClient) else []
+    out["stage_of_pod"] = {p.pod: stage.stage_id for stage in client.routing.stages for p in stage.pods}
+
+
+def loop_rollout(client: StageClient, policy: Callable[..., torch.Tensor], horizon: int, device: str) -> Measured:
+    """Run one EnvLoop rollout (reset, then ``horizon`` steps of every env); return its stats
+    with the pods' counters and the client's per-pod requests over it.
+
+    Raises:
+        RuntimeError: trajectories were lost (a pod failed).
+    """
+    with counted(client) as seen:
+        result = EnvLoop(client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60).run(
+            requests_for(client.routing))
     if result.lost:
         raise RuntimeError(f"{len(result.lost)} trajectories lost: {next(iter(result.lost.values())).reason}")
-    return Measured(result.stats, {name: after[name] - before[name] for name in POD_COUNTERS})
+    return Measured(result.stats, **seen)
+
+
+def scripted_actions(space: spaces.Box, step: int, n: int) -> np.ndarray:
+    """``[n, action_dim]`` open-loop actions of step ``step``: a slow sine per dimension."""
+    low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
+    bounded = np.isfinite(low) & np.isfinite(high)
+    center, scale = np.where(bounded, (low + high) / 2, 0.0), np.where(bounded, (high - low) / 2, 1.0)
+    action = center + 0.5 * scale * np.sin(0.35 * step + 0.9 * np.arange(len(low)))
+    return np.broadcast_to(action.astype(np.float32), (n, len(low)))
+
+
+def service_rollout(client: StageClient, steps: int, timeout_s: float) -> Measured:
+    """The service alone, no policy: reset every env of the client's table, then ``steps`` calls
+    stepping all of them with scripted actions (every stage's call sent at once, then all
+    awaited). Env-steps/s count the steps' time only; the stats' timeline holds every call.
+
+    Raises:
+        TimeoutError: a call took longer than ``timeout_s``.
+    """
+    routes = client.reset_trajectories(requests_for(client.routing))
+    stages = [s for s in range(client.num_stages) if client.stage_traj_keys(s)]
+    action_space = client.action_space
+    timeline: list[tuple[str, int, float, float]] = []
+    with counted(client) as seen:
+        started = time.perf_counter()
+        for stage, batch in zip(stages, [c.result(timeout_s) for c in [client.reset_stage(s) for s in stages]]):
+            timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
+        stepping = time.perf_counter()
+        for step in range(steps):
+            keys = {s: client.stage_traj_keys(s) for s in stages}
+            calls = {s: client.step_stage(s, dict(zip(keys[s], scripted_actions(action_space, step, len(keys[s])))))
+                     for s in stages}  # fmt: skip
+            for stage, call in calls.items():
+                batch = call.result(timeout_s)
+                timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
+                if batch.terminated.any() or batch.truncated.any():  # stepped on all the same: the pod's work
+                    log.warning("stage %d: %d envs ended at step %d", stage,
+                                int((batch.terminated | batch.truncated).sum()), step)
+        ended = time.perf_counter()
+    env_steps = steps * len(routes)
+    stats = RolloutStats(num_trajectories=len(routes), env_steps=env_steps, wall_s=ended - started,
+                         env_steps_per_s=env_steps / max(ended - stepping, 1e-9), simulation_s=ended - started,
+                         timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
+    return Measured(stats, **seen)
 
 
 def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
@@ -514,6 +795,54 @@ def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
     return {key: round(statistics.median(r[key] for r in rows), 2) for key in rows[0]}
 
 
+def slowest_pod(measured: Sequence[Measured]) -> dict[str, Any]:
+    """What waiting for the slowest pod costs. Per stage call (steps only): the client's round
+    trips to the call's pods, their mean and the slowest one, medians over every call of the
+    rollouts; ``wait_for_slowest_ms`` = slowest - mean. Also how often each pod was the slowest,
+    and each pod's mean step wall time by its own ``/metrics`` (no HTTP)."""
+    means, worsts, waits = [], [], []
+    slowest_counts: dict[str, int] = {}
+    sums: dict[str, list[float]] = {}
+    for m in measured:
+        by_pod: dict[str, list[float]] = {}
+        for pod, op, begin, end in m.pod_calls:
+            if op == "step":
+                by_pod.setdefault(pod, []).append(end - begin)
+        stages: dict[int, list[str]] = {}
+        for pod in by_pod:
+            stages.setdefault(m.stage_of_pod.get(pod, 0), []).append(pod)
+        for pods in stages.values():
+            for k in range(min(len(by_pod[p]) for p in pods)):
+                times = {p: by_pod[p][k] for p in pods}
+                mean, worst = statistics.mean(times.values()), max(times.values())
+                means.append(mean)
+                worsts.append(worst)
+                waits.append(worst - mean)
+                name = max(times, key=lambda p: times[p])
+                slowest_counts[name] = slowest_counts.get(name, 0) + 1
+        for pod, counters in m.per_pod.items():
+            total = sums.setdefault(pod, [0.0, 0.0])
+            total[0] += counters["vecsim_pod_step_seconds_sum"]
+            total[1] += counters["vecsim_pod_step_seconds_count"]
+    step_ms = {pod: round(1000 * s / c, 2) for pod, (s, c) in sums.items() if c > 0}
+
+    def ms(values: list[float]) -> float | None:
+        return round(1000 * statistics.median(values), 2) if values else None
+
+    return {
+        "calls": len(means),
+        "pod_round_trip_mean_ms": ms(means),
+        "pod_round_trip_slowest_ms": ms(worsts),
+        "wait_for_slowest_ms": ms(waits),
+        "slowest_pod_counts": dict(sorted(slowest_counts.items(), key=lambda item: -item[1])),
+        "pod_step_ms_by_pod": step_ms,
+        "pod_step_ms_spread": (
+            {"min": min(step_ms.values()), "mean": round(statistics.mean(step_ms.values()), 2),
+             "max": max(step_ms.values())} if step_ms else {}  # fmt: skip
+        ),
+    }
+
+
 class Deadline:
     """Seconds left of the run's budget; measurements stop adding rounds once it is spent."""
 
@@ -524,151 +853,192 @@ class Deadline:
         return self.end - time.monotonic()
 
 
-def interleave(
-    contenders: dict[str, Any], rounds: int, deadline: Deadline, reserve_s: float
-) -> dict[str, list[Measured]]:
-    """Run each contender once per round, the order rotating; stop after a round once less than
-    ``reserve_s`` is left (at least one round always runs)."""
+def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadline: Deadline,
+               reserve_s: float) -> dict[str, list[Measured]]:  # fmt: skip
+    """Run each contender once per round, the order rotating; start another round only while
+    the last round's duration plus ``reserve_s`` fits in what is left (one round always runs)."""
     names = list(contenders)
     out: dict[str, list[Measured]] = {name: [] for name in names}
+    last_s = 0.0
     for r in range(rounds):
-        if r and deadline.left() < reserve_s:
-            log.warning("deadline near: %d of %d rounds run", r, rounds)
+        if r and deadline.left() < 1.1 * last_s + reserve_s:
+            log.warning("deadline near (%.0f s left, a round takes %.0f s): %d of %d rounds run",
+                        deadline.left(), last_s, r, rounds)  # fmt: skip
             break
+        began = time.monotonic()
         for name in names[r % len(names):] + names[: r % len(names)]:
             out[name].append(contenders[name]())
-        log.info("round %d: %s", r + 1, {n: round(v[-1].env_steps_per_s, 1) for n, v in out.items()})
+        last_s = time.monotonic() - began
+        log.info("round %d (%.0f s): %s", r + 1, last_s, {n: round(v[-1].env_steps_per_s, 1) for n, v in out.items()})
     return out
 
 
-# -- the measurements ----------------------------------------------------------------------------
+def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
+    """Env-steps/s of one contender's rounds, its time split and the slowest-pod figures."""
+    return {
+        "env_steps_per_s": rate_spread([m.env_steps_per_s for m in runs]),
+        "time_split_ms": breakdown(runs),
+        "slowest_pod": slowest_pod(runs),
+        "overlap_fraction": round(statistics.median(m.stats.overlap_fraction for m in runs), 3),
+    }
 
 
-def measure_job(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
-    """Scaling, pipelining and the time split on one running job (``table``: its routing)."""
+# -- scaling -------------------------------------------------------------------------------------
+
+
+def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
+    """For each pod count P, the first P pods in one stage: the service alone (scripted actions)
+    and the EnvLoop with the graphed ResNet-18 policy, interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
-    clients: dict[str, StageClient] = {}
+    clients: dict[int, TimedStageClient] = {}
     try:
         for p in plan.pod_counts:
-            clients[f"pods={p}"] = StageClient(regroup(table, names[:p], 1), token=job.token, timeout_s=300)
-        clients["stages=2"] = StageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
-        full = clients[f"pods={plan.pods}"]
+            clients[p] = TimedStageClient(regroup(table, names[:p], 1), token=job.token, timeout_s=300)
+        full = clients[plan.pods]
         space, action = full.observation_space, full.action_space
-        dtype = torch.bfloat16 if plan.dtype == "bfloat16" else torch.float32
-        policy = VisionPolicy(space, action, device=plan.device, dtype=dtype)
-        envs_all = len(requests_for(regroup(table, names, 1)))
+        policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
+        sizes = {p: len(requests_for(clients[p].routing)) for p in plan.pod_counts}
+        graphed = GraphedPolicy(policy, space, plan.device, list(sizes.values()))
         policy_info = {
             "name": "ResNet-18 per camera + proprio MLP + MLP head",
-            "parameters_m": round(sum(p.numel() for p in policy.parameters()) / 1e6, 2),
+            "parameters_m": parameters_m(policy),
             "dtype": plan.dtype,
             "device": plan.device,
-            "forward_ms": {b: round(forward_ms(policy, space, b, 5, plan.device), 2)
-                           for b in sorted({1, max(envs_all // 2, 1), envs_all})},  # fmt: skip
+            "cuda_graphs": graphed.graphed,
+            "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
+                           for b in sorted(set(sizes.values()))},  # fmt: skip
         }
         log.info("policy: %s", policy_info)
-
-        def run(name: str, with_policy: nn.Module, horizon: int = plan.horizon) -> Measured:
-            client = clients[name] if name != "stages=1" else full
-            return rollout(client, with_policy, requests_for(client.routing), horizon, plan.device)
-
-        for name in clients:  # warm-up: kernels picked, connections open, caches filled
-            run(name, policy, horizon=min(plan.horizon, 3))
-        scaling = interleave({f"pods={p}": (lambda p=p: run(f"pods={p}", policy)) for p in plan.pod_counts},
-                             plan.rounds, deadline, reserve_s=0.45 * max(deadline.left(), 0))  # fmt: skip
-        stages = interleave({"stages=1": lambda: run("stages=1", policy), "stages=2": lambda: run("stages=2", policy)},
-                            plan.rounds, deadline, reserve_s=0.3 * max(deadline.left(), 0))  # fmt: skip
-        heavy: dict[str, Any] = {}
-        if plan.heavy and deadline.left() > 60:
-            target_ms = breakdown(stages["stages=2"])["stage_call_ms"]
-            heavy = measure_heavy(plan, len(clients["stages=2"].stage_traj_keys(0)), target_ms, space, action, dtype,
-                                  run, deadline)  # fmt: skip
+        for p, client in clients.items():  # warm-up: connections open, caches filled, kernels picked
+            service_rollout(client, min(plan.service_steps, 2), 300)
+            loop_rollout(client, graphed, min(plan.horizon, 2), plan.device)
+        log.info("warm-up done, %.0f s left", deadline.left())
+        contenders: dict[str, Callable[[], Measured]] = {}
+        for p, client in clients.items():
+            contenders[f"service/pods={p}"] = lambda c=client: service_rollout(c, plan.service_steps, 300)
+            contenders[f"loop/pods={p}"] = lambda c=client: loop_rollout(c, graphed, plan.horizon, plan.device)
+        runs = interleave(contenders, plan.rounds, deadline, reserve_s=20)
     finally:
         for client in clients.values():
             client.close()
-    one = [m.env_steps_per_s for m in scaling["pods=1"]]
+    result: dict[str, Any] = {"policy": policy_info}
+    for kind in ("service", "loop"):
+        one = [m.env_steps_per_s for m in runs[f"{kind}/pods=1"]] if 1 in plan.pod_counts else None
+        section: dict[str, Any] = {}
+        for p in plan.pod_counts:
+            rounds = runs[f"{kind}/pods={p}"]
+            section[f"pods={p}"] = summarise(rounds)
+            if one is not None:
+                section[f"pods={p}"]["fraction_of_linear"] = paired_ratio(
+                    [m.env_steps_per_s for m in rounds], [p * x for x in one])
+        result[kind] = section
+    result["per_round"] = {name: [round(m.env_steps_per_s, 2) for m in v] for name, v in runs.items()}
+    return result
+
+
+# -- pipelining ----------------------------------------------------------------------------------
+
+
+def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int, target_ms: float,
+                  batch_sizes: Sequence[int]) -> tuple[GraphedPolicy, dict[str, Any]]:  # fmt: skip
+    """Return a ViT policy, graphed for ``batch_sizes``, whose forward pass on ``batch``
+    observations lasts about ``target_ms``, and what the calibration found. The depth is
+    extrapolated from two shallow ViTs, then corrected once by the time the first pick takes;
+    never above ``plan.vit_max_depth``."""
+
+    def build(depth: int, sizes: Sequence[int]) -> GraphedPolicy:
+        policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, vit_width=plan.vit_width,
+                              device=plan.device, dtype=plan.torch_dtype)  # fmt: skip
+        return GraphedPolicy(policy, space, plan.device, sizes)
+
+    def release() -> None:
+        if plan.device.startswith("cuda"):
+            torch.cuda.synchronize()
+            torch.cuda.empty_cache()
+
+    def timed(depth: int) -> float:
+        probe = build(depth, [batch])
+        ms = forward_ms(probe, space, batch, 3, plan.device)
+        del probe
+        release()
+        return ms
+
+    low_depth, high_depth = 1, min(5, max(plan.vit_max_depth, 2))
+    low, high = timed(low_depth), timed(high_depth)
+    per_block = max((high - low) / (high_depth - low_depth), 1e-3)
+    wanted = round(low_depth + (target_ms - low) / per_block)
+    picks: list[tuple[int, float]] = []
+    for attempt in range(3):  # pick, time, and correct by the time taken (about linear in depth)
+        depth = int(min(max(wanted, 1), plan.vit_max_depth))
+        graphed = build(depth, batch_sizes)
+        achieved = {str(b): round(forward_ms(graphed, space, b, 3, plan.device), 2) for b in sorted(set(batch_sizes))}
+        took = achieved[str(batch)]
+        picks.append((depth, took))
+        wanted = round(depth * target_ms / max(took, 1e-3))
+        if abs(took - target_ms) <= 0.1 * target_ms or attempt == 2:
+            break
+        if int(min(max(wanted, 1), plan.vit_max_depth)) == depth:
+            break  # the cap (or depth 1) stops it here
+        graphed = None  # type: ignore[assignment]  # its weights and graphs go before the next build
+        release()
+    info = {
+        "name": f"ViT-B/16-style per camera (width {plan.vit_width}, {depth} blocks) + proprio MLP + MLP head",
+        "parameters_m": parameters_m(graphed.policy),
+        "dtype": plan.dtype,
+        "device": plan.device,
+        "cuda_graphs": graphed.graphed,
+        "target_ms": round(target_ms, 2),
+        "target_batch": batch,
+        "depth": depth,
+        "depth_wanted": wanted,
+        "capped": wanted > plan.vit_max_depth,
+        "ms_per_block": round(per_block, 3),
+        "picks_depth_ms": picks,
+        "forward_ms": achieved,
+    }
+    if plan.device.startswith("cuda"):
+        info["gpu_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 1)
+    log.info("calibrated policy: %s", info)
+    return graphed, info
+
+
+def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
+    """2C pods on C cores (pods i and i+C share core i): the service alone in one stage and one
+    half alone (the target of the calibration), then the EnvLoop with the calibrated graphed ViT
+    in 1 stage (all pods) against 2 stages (pods 0..C-1, C..2C-1), interleaved rounds."""
+    names = [f"sim-{i}" for i in range(plan.pods)]
+    half = plan.pods // 2
+    clients: dict[str, TimedStageClient] = {}
+    try:
+        clients["stages=1"] = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300)
+        clients["stages=2"] = TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
+        clients["half"] = TimedStageClient(regroup(table, names[:half], 1), token=job.token, timeout_s=300)
+        one, two = clients["stages=1"], clients["stages=2"]
+        for client in (one, clients["half"]):  # warm-up
+            service_rollout(client, min(plan.service_steps, 2), 300)
+        service = interleave({"service/stages=1": lambda: service_rollout(one, plan.service_steps, 300),
+                              "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300)},
+                             plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))  # fmt: skip
+        target_ms = breakdown(service["service/stages=1"])["stage_call_ms"]
+        batch = one.routing.num_envs
+        stage_sizes = [stage.num_envs for stage in two.routing.stages]
+        space, action = one.observation_space, one.action_space
+        graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes])
+        for name in ("stages=1", "stages=2"):  # warm-up of the loop
+            loop_rollout(clients[name], graphed, min(plan.horizon, 2), plan.device)
+        log.info("warm-up done, %.0f s left", deadline.left())
+        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, graphed, plan.horizon, plan.device))
+                            for name in ("stages=1", "stages=2")}, plan.rounds, deadline, reserve_s=20)  # fmt: skip
+    finally:
+        for client in clients.values():
+            client.close()
+    rates = {name: [m.env_steps_per_s for m in runs] for name, runs in loops.items()}
     return {
         "policy": policy_info,
-        "envs_per_pod": plan.envs_per_task,
-        "scaling": {
-            "env_steps_per_s": {k: rate_spread([m.env_steps_per_s for m in v]) for k, v in scaling.items()},
-            "fraction_of_linear": {
-                k: paired_ratio([m.env_steps_per_s for m in v], [int(k.split("=")[1]) * x for x in one])
-                for k, v in scaling.items()
-            },
-            "time_split_ms": {k: breakdown(v) for k, v in scaling.items()},
-        },
-        "stages": summarise_stages(stages),
-        "heavy_policy": heavy,
-        "per_round": {
-            "scaling": {k: [m.env_steps_per_s for m in v] for k, v in scaling.items()},
-            "stages": {k: [m.env_steps_per_s for m in v] for k, v in stages.items()},
-        },
-    }
-
-
-def summarise_stages(stages: dict[str, list[Measured]]) -> dict[str, Any]:
-    """Env-steps/s of 1 and 2 stages, the paired speed-up, overlap and time split."""
-    return {
-        "env_steps_per_s": {k: rate_spread([m.env_steps_per_s for m in v]) for k, v in stages.items()},
-        "speedup_2_vs_1": paired_ratio([m.env_steps_per_s for m in stages["stages=2"]],
-                                       [m.env_steps_per_s for m in stages["stages=1"]]),  # fmt: skip
-        "overlap_fraction": {
-            k: round(statistics.median(m.stats.overlap_fraction for m in v), 3) for k, v in stages.items()
-        },
-        "time_split_ms": {k: breakdown(v) for k, v in stages.items()},
-    }
-
-
-def measure_heavy(plan: Plan, batch: int, target_ms: float, space: spaces.Dict, action: spaces.Box,
-                  dtype: torch.dtype, run: Any, deadline: Deadline) -> dict[str, Any]:  # fmt: skip
-    """1 vs 2 stages with a ViT-B/16-style policy whose forward on one stage (``batch``
-    observations) of the 2-stage split lasts ``target_ms``, that stage's simulation call."""
-    shallow = forward_ms(VisionPolicy(space, action, encoder="vit", vit_depth=1, device=plan.device, dtype=dtype),
-                         space, batch, 3, plan.device)  # fmt: skip
-    deeper = forward_ms(VisionPolicy(space, action, encoder="vit", vit_depth=5, device=plan.device, dtype=dtype),
-                        space, batch, 3, plan.device)  # fmt: skip
-    per_block = max((deeper - shallow) / 4, 0.05)
-    depth = int(min(max(round(1 + (target_ms - shallow) / per_block), 1), 96))
-    policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, device=plan.device, dtype=dtype)
-    achieved = forward_ms(policy, space, batch, 3, plan.device)
-    log.info("heavy policy: stage call %.1f ms; ViT depth %d forwards in %.1f ms", target_ms, depth, achieved)
-    stages = interleave({"stages=1": lambda: run("stages=1", policy), "stages=2": lambda: run("stages=2", policy)},
-                        plan.rounds, deadline, reserve_s=60)  # fmt: skip
-    return {
-        "name": f"ViT-B/16-style per camera (width 768, {depth} blocks) + MLP head",
-        "parameters_m": round(sum(p.numel() for p in policy.parameters()) / 1e6, 1),
-        "stage_call_ms_target": target_ms,
-        "depth": depth,
-        "forward_ms_one_stage": round(achieved, 2),
-        **summarise_stages(stages),
-    }
-
-
-def measure_software(plan: Plan, pins: Sequence[str], mesa: dict[str, Any], gpu_pod: dict[str, Any]) -> dict[str, Any]:
-    """One pod of the same assignment as sim-0, on sim-0's core, rendering through Mesa's EGL."""
-    env = {"__EGL_VENDOR_LIBRARY_FILENAMES": mesa["vendor_files"][0]}
-    gl = gl_probe(env)
-    if "error" in gl:
-        return {"skipped": f"Mesa's EGL made no context: {gl['error']}", "gl": gl}
-    config = runner_config(plan, pins, "gpu-scale-mesa", plan.tasks[:1])
-    with running_job(config, env=env) as job:
-        job.wait_ready(timeout=600)
-        table = fetch_routing(job.controller_url, wait_ready_s=30)
-        with StageClient(table, token=job.token, timeout_s=600) as client:
-            policy = VisionPolicy(client.observation_space, client.action_space, device=plan.device,
-                                  dtype=torch.bfloat16 if plan.dtype == "bfloat16" else torch.float32)  # fmt: skip
-            measured = rollout(client, policy, requests_for(table), plan.soft_horizon, plan.device)
-    split = breakdown([measured])
-    return {
-        "gl": gl,
-        "horizon": plan.soft_horizon,
-        "env_steps_per_s": round(measured.env_steps_per_s, 2),
-        "time_split_ms": split,
-        "gpu_pod_env_steps_per_s": gpu_pod["env_steps_per_s"],
-        "gpu_pod_render_ms_per_env_step": gpu_pod["render_ms_per_env_step"],
-        "render_speedup_gpu_vs_software": round(
-            split["render_ms_per_env_step"] / max(gpu_pod["render_ms_per_env_step"], 1e-6), 1
-        ),
+        "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
+        "loop": {name: summarise(runs) for name, runs in loops.items()},
+        "speedup_2_vs_1": paired_ratio(rates["stages=2"], rates["stages=1"]),
+        "per_round": {name: [round(m.env_steps_per_s, 2) for m in runs] for name, runs in {**service, **loops}.items()},
     }
 
 
@@ -749,9 +1119,9 @@ def render_rollouts(plan: Plan, pins: Sequence[str], name: str, env: dict[str, s
     """Start a one-pod job of ``plan.tasks[0]`` with ``env`` on core ``pins[0]``; run a warm-up
     and then ``rounds`` rollouts of ``plan.horizon`` steps (fewer once the deadline nears; at
     least one); return them and the first one's observations, ``{traj_key: observations}``."""
-    config = runner_config(plan, pins, f"render-{name}", plan.tasks[:1])
+    config = runner_config(plan, pins, f"render-{name}", 1)
     with running_job(config, env=env) as job:
-        job.wait_ready(timeout=max(60.0, min(600.0, deadline.left())))
+        table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         table = fetch_routing(job.controller_url, wait_ready_s=30)
         requests = requests_for(table)
         with StageClient(table, token=job.token, timeout_s=600) as client:
@@ -876,11 +1246,12 @@ def render_compare(args: argparse.Namespace) -> int:
     deadline = Deadline(args.deadline)
     task = args.tasks.split(",")[0] if args.tasks else "libero_10/0"
     plan = Plan(
-        tasks=(task,), size=args.size or 256, pods=1, pod_counts=(1,), envs_per_task=args.envs_per_task or 4,
-        horizon=args.horizon or 10, rounds=args.rounds or 3, device="cpu", dtype="float32", heavy=False,
-        soft_horizon=args.horizon or 10, deadline_s=args.deadline,
+        mode="render", tasks=(task,), size=args.size or 256, envs_per_task=args.envs_per_task or 4, pods=1,
+        pod_counts=(1,), pipeline_cores=0, horizon=args.horizon or 10, service_steps=0, rounds=args.rounds or 3,
+        device="cpu", dtype="float32", vit_width=768, vit_max_depth=0, max_memory_gib=args.max_memory_gib,
+        deadline_s=args.deadline,
     )  # fmt: skip
-    pins, trainer = split_cores(1)
+    pins, trainer = split_cores(cores_first(cpu_topology()), 1)
     os.sched_setaffinity(0, set(trainer))
     soft_env, soft_source = software_egl_env()
     contenders: dict[str, tuple[dict[str, str] | None, str, int]] = {
@@ -946,73 +1317,82 @@ def render_compare(args: argparse.Namespace) -> int:
     return 0 if both else 2
 
 
+
+
 # -- plots ---------------------------------------------------------------------------------------
 
 
-def plot(result: dict[str, Any], tag: str) -> list[Path]:
-    """Draw scaling, stages and the time split; return the PNG paths."""
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    paths = []
-    scaling = result["scaling"]
-    counts = sorted(int(k.split("=")[1]) for k in scaling["env_steps_per_s"])
-    med = [scaling["env_steps_per_s"][f"pods={p}"]["median"] for p in counts]
-    low = [m - scaling["env_steps_per_s"][f"pods={p}"]["min"] for p, m in zip(counts, med)]
-    high = [scaling["env_steps_per_s"][f"pods={p}"]["max"] - m for p, m in zip(counts, med)]
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    ax.plot(counts, [med[0] * p for p in counts], "--", color="grey", label="linear")
-    target = [SCALING_TARGET * med[0] * p for p in counts]
-    ax.plot(counts, target, ":", color="grey", label=f"{SCALING_TARGET} x linear")
-    ax.errorbar(counts, med, yerr=[low, high], marker="o", capsize=3, label="measured (median, min-max)")
+    return plt
+
+
+def plot_scaling(summary: dict[str, Any], tag: str) -> list[Path]:
+    """Env-steps/s against pods (service alone and the loop, each against its linear), and
+    where a step's time goes; return the PNG paths."""
+    plt = _pyplot()
+    setup = summary["setup"]
+    counts = list(setup["pod_counts"])
+    fig, ax = plt.subplots(figsize=(6.0, 4.0))
+    for kind, color, label in (("service", "tab:blue", "service alone (scripted actions)"),
+                               ("loop", "tab:orange", "EnvLoop + ResNet-18 (graphed)")):  # fmt: skip
+        rates = [summary[kind][f"pods={p}"]["env_steps_per_s"] for p in counts]
+        med = [r["median"] for r in rates]
+        ax.errorbar(counts, med, yerr=[[m - r["min"] for m, r in zip(med, rates)], [r["max"] - m for m, r in
+                    zip(med, rates)]], marker="o", capsize=3, color=color, label=label)  # fmt: skip
+        if counts[0] == 1:
+            ax.plot(counts, [med[0] * p for p in counts], "--", color=color, alpha=0.5, label=f"linear ({kind})")
+    physical = summary["topology"]["physical_cores"]
+    if counts[-1] > physical:
+        ax.axvline(physical + 0.5, color="grey", linestyle=":", label=f"{physical} physical cores")
     ax.set_xticks(counts)
-    ax.set_xlabel("pods (one core each)")
+    ax.set_xlabel("pods (one CPU each)")
     ax.set_ylabel("env-steps/s")
-    ax.set_title(f"{result['setup']['suite']}, {result['setup']['size']}px x 2 cameras, 1 stage")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths.append(img_dir() / f"gpu_scale{tag}_pods.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    groups = {"ResNet-18": result["stages"]}
-    if result.get("heavy_policy"):
-        groups[f"ViT x{result['heavy_policy']['depth']} (calibrated)"] = result["heavy_policy"]
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for offset, (label, data) in enumerate(groups.items()):
-        values = [data["env_steps_per_s"][f"stages={s}"]["median"] for s in (1, 2)]
-        bars = ax.bar(np.arange(2) + 0.4 * offset, values, 0.4, label=label)
-        ax.bar_label(bars, fmt="%.0f", fontsize=7)
-    ax.set_xticks(np.arange(2) + 0.2 * (len(groups) - 1), ["1 stage", "2 stages"])
-    ax.set_ylabel("env-steps/s")
-    ax.set_title("pipelining: all pods, the policy on the GPU")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    paths.append(img_dir() / f"gpu_scale{tag}_stages.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    split = scaling["time_split_ms"]
-    parts = [("policy", "policy_ms"), ("physics", "physics_ms_per_pod"), ("render", "render_ms_per_pod")]
-    fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    bottom = np.zeros(len(counts))
-    for label, key in parts:
-        values = np.array([split[f"pods={p}"][key] for p in counts])
-        ax.bar(range(len(counts)), values, bottom=bottom, label=label)
-        bottom += values
-    other = np.array([max(split[f"pods={p}"]["pod_step_ms"] - split[f"pods={p}"]["physics_ms_per_pod"]
-                          - split[f"pods={p}"]["render_ms_per_pod"], 0) for p in counts])  # fmt: skip
-    ax.bar(range(len(counts)), other, bottom=bottom, label="pod: rest (IPC, waiting)")
-    bottom += other
-    serving = np.array([split[f"pods={p}"]["serving_ms"] for p in counts])
-    ax.bar(range(len(counts)), serving, bottom=bottom, label="serving (HTTP, codec, slowest pod)")
-    ax.set_xticks(range(len(counts)), [str(p) for p in counts])
-    ax.set_xlabel("pods")
-    ax.set_ylabel("ms per loop step")
-    ax.set_title("where a step's time goes (physics/render: worker s per pod)")
+    ax.set_title(f"{setup['suite']}: {setup['envs_per_pod']} envs/pod ({len(setup['tasks'])} tasks), "
+                 f"{setup['size']}px x {len(camera_names(setup))} cameras", fontsize=9)  # fmt: skip
     ax.legend(fontsize=7)
+    fig.tight_layout()
+    paths = [img_dir() / f"gpu_scale{tag}_pods.png"]
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10.0, 4.0))
+    x = np.arange(len(counts))
+    split = [summary["loop"][f"pods={p}"]["time_split_ms"] for p in counts]
+    bottom = np.zeros(len(counts))
+    for label, values in (
+        ("policy", [s["policy_ms"] for s in split]),
+        ("physics", [s["physics_ms_per_pod"] for s in split]),
+        ("render", [s["render_ms_per_pod"] for s in split]),
+        ("pod: rest (IPC)", [max(s["pod_step_ms"] - s["physics_ms_per_pod"] - s["render_ms_per_pod"], 0)
+                             for s in split]),
+        ("serving (HTTP, codec, slowest pod)", [s["serving_ms"] for s in split]),
+    ):
+        left.bar(x, values, bottom=bottom, label=label)
+        bottom += np.array(values)
+    left.set_xticks(x, [str(p) for p in counts])
+    left.set_xlabel("pods")
+    left.set_ylabel("ms per loop step")
+    left.set_title("EnvLoop: where a step goes (physics/render: worker s per pod)", fontsize=9)
+    left.legend(fontsize=7)
+    service = [summary["service"][f"pods={p}"] for p in counts]
+    width = 0.27
+    for offset, (label, values) in enumerate((
+        ("pod step (its /metrics)", [s["time_split_ms"]["pod_step_ms"] for s in service]),
+        ("round trip, mean pod", [s["slowest_pod"]["pod_round_trip_mean_ms"] or 0 for s in service]),
+        ("round trip, slowest pod", [s["slowest_pod"]["pod_round_trip_slowest_ms"] or 0 for s in service]),
+    )):  # fmt: skip
+        right.bar(x + (offset - 1) * width, values, width, label=label)
+    right.plot(x, [s["time_split_ms"]["stage_call_ms"] for s in service], "k_", markersize=18, label="stage call")
+    right.set_xticks(x, [str(p) for p in counts])
+    right.set_xlabel("pods")
+    right.set_ylabel("ms per call")
+    right.set_title("service alone: a call waits for its slowest pod", fontsize=9)
+    right.legend(fontsize=7)
     fig.tight_layout()
     paths.append(img_dir() / f"gpu_scale{tag}_split.png")
     fig.savefig(paths[-1], dpi=110)
@@ -1020,76 +1400,106 @@ def plot(result: dict[str, Any], tag: str) -> list[Path]:
     return paths
 
 
+def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
+    """1 against 2 stages (env-steps/s) and the per-call times behind them; return the PNG path."""
+    plt = _pyplot()
+    loop, policy = summary["loop"], summary["policy"]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10.0, 4.0))
+    rates = [loop[f"stages={s}"]["env_steps_per_s"]["median"] for s in (1, 2)]
+    bars = left.bar(["1 stage\n(all pods)", "2 stages\n(pods sharing cores split)"], rates,
+                    color=["tab:blue", "tab:orange"])  # fmt: skip
+    left.bar_label(bars, fmt="%.1f", fontsize=8)
+    left.set_ylabel("env-steps/s")
+    left.set_title(f"pipelining: {summary['speedup_2_vs_1']['median']:.2f}x (target {PIPELINE_TARGET}x)", fontsize=9)
+    labels = ["1 stage", "2 stages"]
+    x = np.arange(2)
+    width = 0.27
+    alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0),
+             statistics.mean(policy["forward_ms"].get(str(b), 0) for b in summary["setup"]["stage_envs"])]
+    for offset, (label, values) in enumerate((
+        ("stage call (loop)", [loop[f"stages={s}"]["time_split_ms"]["stage_call_ms"] for s in (1, 2)]),
+        ("policy per call (loop)", [loop[f"stages={s}"]["time_split_ms"]["policy_ms"] for s in (1, 2)]),
+        ("policy alone" + (" (CUDA graph)" if policy["cuda_graphs"] else " (eager)"), alone),
+    )):  # fmt: skip
+        right.bar(x + (offset - 1) * width, values, width, label=label)
+    right.set_xticks(x, labels)
+    right.set_ylabel("ms")
+    right.set_title(f"{policy['name'].split(' + ')[0]}", fontsize=8)
+    right.legend(fontsize=7)
+    fig.tight_layout()
+    path = img_dir() / f"gpu_scale{tag}_stages.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def camera_names(setup: dict[str, Any]) -> list[str]:
+    """The cameras of a run's setup."""
+    return list(setup["camera"]["names"])
+
+
 # -- main ----------------------------------------------------------------------------------------
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
-    """The run's sizes: ``--gpu`` (12 pods, LIBERO-10, 256x256) or ``--cpu-small``, then overrides."""
+    """The run's sizes: ``--gpu`` or ``--cpu-small`` defaults, ``--dry`` shrinks, then overrides."""
     from vecsim.tasks import suite_tasks
 
-    gpu = args.gpu
+    gpu, dry = args.gpu, args.dry
     if args.tasks:
         tasks = tuple(t for t in args.tasks.split(",") if t)
     else:
         every = tuple(t.task_id for t in suite_tasks("libero_10"))
         tasks = every if gpu else every[:2]
-    pods = args.pods or (12 if gpu else 2)
-    counts = tuple(int(c) for c in args.pod_counts.split(",")) if args.pod_counts else (
-        (1, 2, 4, 8, 12) if gpu else (1, 2))  # fmt: skip
-    counts = tuple(sorted({c for c in counts if 1 <= c <= pods} | {pods}))
+    # 2C pods of ten LIBERO tasks each (~5 GiB a pod, estimated) would crowd 125 GiB: pipelining
+    # serves five by default on the GPU machine.
+    per_pod = args.tasks_per_pod or (min(5, len(tasks)) if gpu and args.only == "pipeline" else len(tasks))
+    if not 1 <= per_pod <= len(tasks):
+        raise SystemExit(f"--tasks-per-pod must be 1..{len(tasks)} (the tasks given), got {per_pod}")
+    cores = 1 if dry else args.pipeline_cores or (8 if gpu else 1)
+    if args.only == "pipeline":
+        pods, counts = 2 * cores, (2 * cores,)
+    else:
+        pods = 1 if dry else args.pods or (12 if gpu else 2)
+        given = tuple(int(c) for c in args.pod_counts.split(",")) if args.pod_counts else (
+            (1, 2, 4, 8, 12) if gpu else (1, 2))  # fmt: skip
+        counts = tuple(sorted({c for c in given if 1 <= c <= pods} | {1, pods}))
     cuda = torch.cuda.is_available()
-    if args.dry:
-        tasks, pods, counts = tasks[:1], 1, (1,)
+    max_depth = args.vit_max_depth or (512 if gpu else 256)
     return Plan(
-        tasks=tasks,
+        mode=args.only,
+        tasks=tasks[:per_pod],
         size=args.size or (256 if gpu else 64),
+        envs_per_task=args.envs_per_task or 1,
         pods=pods,
         pod_counts=counts,
-        envs_per_task=args.envs_per_task or (4 if gpu else 2),
-        horizon=args.horizon or (2 if args.dry else 30 if gpu else 4),
-        rounds=args.rounds or (2 if gpu else 1),
+        pipeline_cores=cores,
+        horizon=2 if dry else args.horizon or (30 if gpu else 3),
+        service_steps=2 if dry else args.service_steps or (30 if gpu else 3),
+        rounds=1 if dry else args.rounds or (3 if gpu else 1),
         device="cuda" if cuda else "cpu",
         dtype="bfloat16" if cuda else "float32",
-        heavy=(gpu if args.heavy is None else args.heavy) and not args.dry,
-        soft_horizon=args.soft_horizon,
+        vit_width=args.vit_width or (768 if gpu else 192),
+        vit_max_depth=min(max_depth, 4) if dry else max_depth,
+        max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
     )
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--gpu", action="store_true", help="12 pods, LIBERO-10, 256x256; GL must be NVIDIA's")
-    mode.add_argument("--cpu-small", action="store_true", help="2 pods, 2 LIBERO-10 tasks, 64x64 (Mesa)")
-    mode.add_argument("--render-compare", action="store_true",
-                      help="one pod of one scene (default libero_10/0, 256x256, 4 envs): default EGL, then Mesa's")
-    parser.add_argument("--dry", action="store_true", help="probe GL, Mesa, torch and a 1-pod job; fails fast")
-    parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10; --cpu-small: its first 2)")
-    parser.add_argument("--pods", type=int)
-    parser.add_argument("--pod-counts", help="comma-separated pod counts to measure (default 1,2,4,8,12)")
-    parser.add_argument("--envs-per-task", type=int, help="envs per pod, of its one task (default 4; --cpu-small 2)")
-    parser.add_argument("--size", type=int, help="camera height and width")
-    parser.add_argument("--horizon", type=int, help="steps per trajectory in each rollout")
-    parser.add_argument("--rounds", type=int)
-    parser.add_argument("--heavy", action=argparse.BooleanOptionalAction, default=None,
-                        help="also 1 vs 2 stages with a calibrated ViT policy (default: with --gpu)")
-    parser.add_argument("--soft-horizon", type=int, default=2, help="steps of the Mesa (software) pod's rollout")
-    parser.add_argument("--deadline", type=float, default=480.0, help="seconds: stop adding rounds after this")
-    parser.add_argument("--soft-rounds", type=int, default=1, help="--render-compare: rollouts with Mesa")
-    parser.add_argument("--copy-to", type=Path, help="also copy the JSON and plots into this folder")
-    args = parser.parse_args()
-    setup_logging()
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    if args.render_compare:
-        return render_compare(args)
+def physical_core_of(topology: dict[str, Any], cpu: str) -> str:
+    """``package:core`` of a CPU (the CPU itself where the topology does not say)."""
+    info = topology["per_cpu"].get(cpu, {})
+    return f"{info.get('package')}:{info.get('core')}" if info.get("core") is not None else f"cpu{cpu}"
+
+
+def run_mode(args: argparse.Namespace) -> int:
+    """``--only scaling`` or ``--only pipeline`` (with ``--gpu``, ``--cpu-small``, ``--dry``)."""
     deadline = Deadline(args.deadline)
     plan = make_plan(args)
     tag = "_dry" if args.dry else "" if args.gpu else "_cpu"
-
     gl = gl_probe()
-    mesa = mesa_egl()
     gpu = gpu_name()
-    log.info("GL: %s; Mesa EGL: %s; GPU: %s; torch %s on %s", gl, mesa, gpu, torch.__version__, plan.device)
+    log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu, torch.__version__, plan.device)
     if args.gpu and "NVIDIA" not in gl.get("renderer", "").upper():
         log.error("GL_RENDERER is %r, not NVIDIA's: not measuring", gl.get("renderer", gl))
         return 2
@@ -1097,71 +1507,141 @@ def main() -> int:
         log.error("torch sees no CUDA device: not measuring")
         return 2
 
-    pins, trainer = split_cores(plan.pods)
+    topology = cpu_topology()
+    pinned = plan.pods if plan.mode == "scaling" else plan.pipeline_cores
+    pins, trainer = split_cores(cores_first(topology), pinned)
+    pod_pins = [pins[i % len(pins)] for i in range(plan.pods)]
     # Pinned before the client's threads start, so they and torch inherit it; the controller too.
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
-    log.info("pods pinned to %s; trainer on cores %s", pins, trainer)
+    log.info("topology: %d CPUs, %d physical cores; pods pinned to %s; trainer on %s", topology["cpus"],
+             topology["physical_cores"], pod_pins, trainer)  # fmt: skip
 
     started = time.monotonic()
-    job_tasks = plan.tasks[: min(plan.pods, len(plan.tasks))]
-    extra = extra_assignments(plan, "gpu-scale")
-    with contextlib.ExitStack() as stack:
-        job = stack.enter_context(running_job(runner_config(plan, pins, "gpu-scale", job_tasks), args.copy_to))
-        extra_pods = stack.enter_context(standalone_pods(extra, cores=pins[len(job_tasks):])) if extra else []
-        job.wait_ready(timeout=max(60.0, min(600.0, deadline.left())))
-        table = join_extra(fetch_routing(job.controller_url, wait_ready_s=30), extra, extra_pods)
+    config = runner_config(plan, pins, f"gpu-{plan.mode}", plan.pods)
+    with running_job(config, args.copy_to) as job, MemoryWatch(plan.max_memory_gib) as memory:
+        table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
-        memory = psutil.virtual_memory()
-        log.info("%d pods ready in %.0f s; memory used %.1f GiB", plan.pods, build_s, memory.used / 2**30)
-        measured = measure_job(plan, job, table, deadline)
-    one_pod = measured["scaling"]["time_split_ms"]["pods=1"]
-    gpu_pod = {"env_steps_per_s": measured["scaling"]["env_steps_per_s"]["pods=1"]["median"], **one_pod}
-    if not mesa["present"]:
-        software: dict[str, Any] = {"skipped": "Mesa's libEGL is not on this machine (no glvnd vendor file for it)"}
-    elif args.dry or deadline.left() < 60:
-        software = {"skipped": "dry run" if args.dry else "no time left"}
-    else:
-        software = measure_software(plan, pins, mesa, gpu_pod)
+        used = memory_gib()
+        processes = pod_processes(job)
+        log.info("%d pods ready in %.0f s; memory used %.1f GiB; per pod %s", plan.pods, build_s, used,
+                 next(iter(processes.values())))  # fmt: skip
+        if plan.mode == "scaling":
+            measured = measure_scaling(plan, job, table, deadline)
+        else:
+            measured = measure_pipeline(plan, job, table, deadline)
+        used_end = memory_gib()
 
-    scaling = measured["scaling"]["fraction_of_linear"][f"pods={plan.pods}"]["median"]
-    pipelining = measured["stages"]["speedup_2_vs_1"]["median"]
-    heavy = measured["heavy_policy"].get("speedup_2_vs_1", {}).get("median") if measured["heavy_policy"] else None
-    summary = {
-        "baseline": "1 pod (scaling) and 1 stage (pipelining), same job, same policy",
-        "ratio": scaling,
-        "ratio_pipelining": pipelining,
-        "ratio_pipelining_heavy_policy": heavy,
-        "target": f"scaling >= {SCALING_TARGET} of linear at {plan.pods} pods; 2 stages >= {PIPELINE_TARGET}x 1 stage",
-        "met": {"scaling": scaling >= SCALING_TARGET, "pipelining": pipelining >= PIPELINE_TARGET,
-                "pipelining_heavy_policy": None if heavy is None else heavy >= PIPELINE_TARGET},  # fmt: skip
-        "quick": not args.gpu,
-        "dry": args.dry,
-        "setup": {
-            **dataclasses.asdict(plan),
-            "suite": "libero_10" if plan.tasks[0].startswith("libero_10/") else plan.tasks[0].split("/")[0],
-            "pods_pinned_to": pins,
-            "trainer_cores": trainer,
-            "torch": torch.__version__,
-            "job_build_s": round(build_s, 1),
-            "memory_used_gib_at_ready": round(memory.used / 2**30, 1),
-            "extra_standalone_pods": [a.pod for a in extra],
-        },
-        "gpu": gpu,
-        "gl": gl,
-        "mesa_egl": mesa,
-        "software_rendering": software,
-        **{k: v for k, v in measured.items() if k != "per_round"},
+    cores_of_pods = [physical_core_of(topology, cpu) for cpu in pod_pins]
+    setup = {
+        **dataclasses.asdict(plan),
+        "suite": "libero_10" if plan.tasks[0].startswith("libero_10/") else plan.tasks[0].split("/")[0],
+        "envs_per_pod": plan.envs_per_pod,
+        "camera": camera(plan),
+        "pods_pinned_to": pod_pins,
+        "pods_physical_cores": cores_of_pods,
+        "trainer_cores": trainer,
+        "torch": torch.__version__,
+        "job_build_s": round(build_s, 1),
+        "memory_used_gib_at_ready": used,
+        "memory_used_gib_at_end": used_end,
+        "memory_used_gib_peak": memory.peak_gib,
+        "memory_total_gib": round(psutil.virtual_memory().total / 2**30, 1),
+        "pod_processes": processes,
+        "pod_tasks": {p.pod: [f"{b.task_id} x{b.num_envs}" for b in p.tasks] for st in table.stages for p in st.pods},
     }
-    plots = [] if args.dry else plot(summary, tag)
+    setup["how"] = {
+        "service": "service_rollout: reset every env, then service_steps calls stepping all of them with scripted "
+        "actions, no policy; env-steps/s over the step calls only",
+        "loop": "one EnvLoop.run: reset, then `horizon` steps of every trajectory; env-steps/s over the whole run",
+        "slowest_pod": "per stage call, the client's round trip to each pod (HTTP + the pod's work + decoding): "
+        "the mean over the call's pods and the slowest; medians over calls",
+    }
+    details = {"per_round": measured.pop("per_round")}
+    summary: dict[str, Any] = {"quick": not args.gpu, "dry": args.dry}
+    if plan.mode == "scaling":
+        physical = topology["physical_cores"]
+        top = f"pods={plan.pods}"
+        within = [p for p in plan.pod_counts if len(set(cores_of_pods[:p])) == p]
+        service = measured["service"][top].get("fraction_of_linear", {}).get("median")
+        loop = measured["loop"][top].get("fraction_of_linear", {}).get("median")
+        at_cores = f"pods={max(within)}" if within else None
+        summary.update({
+            "baseline": "1 pod of the same job (same task mix), same round; linear = pods x that",
+            "ratio": service,
+            "ratio_loop": loop,
+            "ratio_at_physical_cores": measured["service"][at_cores].get("fraction_of_linear", {}).get("median")
+            if at_cores else None,
+            "largest_pod_count_on_distinct_physical_cores": max(within) if within else None,
+            "pod_counts_beyond_physical_cores": [p for p in plan.pod_counts if p not in within],
+            "target": f"scaling >= {SCALING_TARGET} of linear at {plan.pods} pods ({physical} physical cores)",
+            "met": {"scaling_service": service is not None and service >= SCALING_TARGET,
+                    "scaling_loop": loop is not None and loop >= SCALING_TARGET},
+        })  # fmt: skip
+    else:
+        speedup = measured["speedup_2_vs_1"]["median"]
+        setup["stage_envs"] = [plan.envs_per_pod * (plan.pods // 2)] * 2
+        summary.update({
+            "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy",
+            "ratio": speedup,
+            "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage",
+            "met": {"pipelining": speedup >= PIPELINE_TARGET},
+        })  # fmt: skip
+    summary.update({"setup": setup, "topology": topology, "gpu": gpu, "gl": gl, **measured})
+    if args.dry:
+        plots: list[Path] = []
+    elif plan.mode == "scaling":
+        plots = plot_scaling(summary, tag)
+    else:
+        plots = plot_pipeline(summary, tag)
     summary["plots"] = [str(p.relative_to(img_dir().parent.parent)) for p in plots]
-    path = write_result(f"bench_gpu_scale{tag}", summary, {"per_round": measured["per_round"]})
+    path = write_result(f"bench_gpu_scale_{plan.mode}{tag}", summary, details)
     if args.copy_to:
         args.copy_to.mkdir(parents=True, exist_ok=True)
         for item in (path, *plots):
             shutil.copy(item, args.copy_to / item.name)
     return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--gpu", action="store_true", help="LIBERO-10 at 256x256 with its defaults; GL must be NVIDIA's")
+    mode.add_argument("--cpu-small", action="store_true", help="2 LIBERO-10 tasks per pod, 64x64, few pods (Mesa)")
+    mode.add_argument("--render-compare", action="store_true",
+                      help="one pod of one scene (default libero_10/0, 256x256, 4 envs): default EGL, then Mesa's")
+    parser.add_argument("--only", choices=("scaling", "pipeline"),
+                        help="which measurement (one job each; required with --gpu and --cpu-small)")
+    parser.add_argument("--dry", action="store_true",
+                        help="the same code at the smallest size (1 pod / 1 core, 2 steps, a 4-block ViT): fails fast")
+    parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10; --cpu-small: its first 2)")
+    parser.add_argument("--tasks-per-pod", type=int,
+                        help="how many of --tasks every pod serves (default: all; --gpu --only pipeline: 5)")
+    parser.add_argument("--envs-per-task", type=int, help="envs per task per pod (default 1; --render-compare 4)")
+    parser.add_argument("--pods", type=int, help="scaling: the most pods (default 12; --cpu-small 2)")
+    parser.add_argument("--pod-counts", help="scaling: comma-separated pod counts (default 1,2,4,8,12)")
+    parser.add_argument("--pipeline-cores", type=int, help="pipeline: C cores, 2C pods (default 8; --cpu-small 1)")
+    parser.add_argument("--size", type=int, help="camera height and width")
+    parser.add_argument("--horizon", type=int, help="steps per trajectory in each EnvLoop rollout")
+    parser.add_argument("--service-steps", type=int, help="steps per service-alone rollout")
+    parser.add_argument("--rounds", type=int)
+    parser.add_argument("--vit-width", type=int, help="pipeline: the ViT's width (default 768; --cpu-small 192)")
+    parser.add_argument("--vit-max-depth", type=int,
+                        help="pipeline: the calibration's cap (default 512; --cpu-small 256)")
+    parser.add_argument("--max-memory-gib", type=float, default=100.0,
+                        help="stop when memory in use passes this while the pods build")
+    parser.add_argument("--deadline", type=float, default=480.0, help="seconds: stop adding rounds after this")
+    parser.add_argument("--soft-rounds", type=int, default=1, help="--render-compare: rollouts with Mesa")
+    parser.add_argument("--copy-to", type=Path, help="also copy the JSON and plots (and a failed job's logs) here")
+    args = parser.parse_args()
+    setup_logging()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    if args.render_compare:
+        return render_compare(args)
+    if args.only is None:
+        parser.error("--only scaling or --only pipeline: each measurement is its own run")
+    return run_mode(args)
 
 
 if __name__ == "__main__":

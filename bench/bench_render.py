@@ -7,7 +7,8 @@ barrier before each measurement), runs each configuration for ``--seconds``:
 - ``render``: frames/s of rendering every camera of every env once per round, through the
   default path (robosuite's or gymnasium's own renderer: one GL context and one readback per
   camera, MuJoCo's default passes) and through vecsim's batched path under each preset (all the
-  process's cameras in one batch, one readback), with 1 process and with ``--procs``;
+  process's cameras in one batch, one readback; ``lowpoly`` with simplified meshes), with 1
+  process and with ``--procs``;
 - ``passes``: frames/s of the batched path (1 process) with one pass at a time switched off,
   to tell which pass costs what;
 - ``step``: env-steps/s of ``--procs`` processes stepping their envs with physics only, and
@@ -49,7 +50,7 @@ from common import img_dir, out_dir, write_result
 log = logging.getLogger("bench_render")
 
 SCENES = {"lift": "robosuite/Lift", "libero": "libero_10/0", "pusher": "gym/Pusher-v5"}
-PRESETS = ("full", "fast", "lean")
+PRESETS = ("full", "fast", "lean", "lowpoly")
 # Pass variants: the full preset with one thing taken away at a time.
 PASSES: dict[str, dict[str, Any]] = {
     "full": {},
@@ -440,7 +441,7 @@ def plot(summary: dict[str, Any], plan: Plan, tag: str) -> list[Path]:
     fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.6), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         steps = summary[scene]["env_steps_per_s"]
-        colors = ["grey", "tab:red", "tab:blue", "tab:cyan", "tab:green"]
+        colors = ["grey", "tab:red", "tab:blue", "tab:cyan", "tab:green", "tab:purple"]
         ax.bar(list(steps), [v or 0 for v in steps.values()], color=colors)
         ax.set_title(f"{scene}: env-steps/s, {plan.procs} processes")
     fig.suptitle(f"physics only vs physics + rendering ({tag}, {size})")

@@ -9,6 +9,10 @@ at a time:
 - ``no_textures``: the same with MuJoCo's texture flag off;
 - ``no_multisampling``: the offscreen buffer without its 4 samples a pixel;
 - ``no_visual_meshes``: geom group 1 hidden (robosuite's visual meshes), what the rest costs;
+- ``lowpoly``: the ``lowpoly`` preset as shipped (lean's passes, meshes simplified on a grid of
+  ``vecsim.render.LOWPOLY_CELL``), and ``cell=X``: the same on a grid of X metres (``--cells``);
+  each also with its picture's quality against ``lean`` (PSNR and mean absolute difference per
+  camera, one state) and the triangles its meshes keep;
 - ``faces/K``: the visual meshes keep every K-th triangle (a timing proxy for lighter meshes:
   the pictures are not meant to be looked at);
 - ``scene_update``: ``mjv_updateScene`` alone (the CPU side of a frame).
@@ -40,11 +44,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco
 import numpy as np
 import psutil
+from bench_lowpoly import quality
 from common import write_result
 
+from vecsim import mesh_lod
 from vecsim.batch_render import BatchRenderer, CameraView, gl_info
 from vecsim.config import CameraConfig
-from vecsim.render import PRESETS
+from vecsim.render import LOWPOLY_CELL, PRESETS
 from vecsim.tasks import make_env
 
 log = logging.getLogger("bench.profile_render")
@@ -150,7 +156,9 @@ def scene_update_ms(views: list[CameraView], seconds: float) -> float:
     return 1e3 * (time.perf_counter() - started) / count
 
 
-def measure(task: str, size: int, views_per_batch: int, seconds: float, keep_every: list[int]) -> dict[str, Any]:
+def measure(
+    task: str, size: int, views_per_batch: int, seconds: float, keep_every: list[int], cells: list[float]
+) -> dict[str, Any]:
     memory = {"start": rss_mib()}
     camera = CameraConfig(names=CAMERAS, height=size, width=size)
     env = make_env(task, camera, "lean")
@@ -178,6 +186,16 @@ def measure(task: str, size: int, views_per_batch: int, seconds: float, keep_eve
     no_visual = [dataclasses.replace(v, option=_copy_option(v.option, hide_group=VISUAL_GROUP)) for v in views]
     variant("no_visual_meshes", "lean", no_visual)
     out["scene_update_ms"] = scene_update_ms(views, seconds)
+    reference = _picture(size, "lean", model, base_views)
+    for name, cell in [("lowpoly", LOWPOLY_CELL), *((f"cell={c:g}", c) for c in cells)]:
+        preset = "lowpoly" if name == "lowpoly" else dataclasses.replace(PRESETS["lowpoly"], mesh_cell=cell)
+        started = time.perf_counter()
+        simplified = mesh_lod.simplify_meshes(model, cell)
+        simplify_s = time.perf_counter() - started
+        variant(name, preset, views)
+        out[name].update(quality(reference, _picture(size, preset, model, base_views)))
+        out[name].update({"cell_m": cell, "faces_kept": simplified.faces_after, "faces_all": simplified.faces_before,
+                          "simplify_s": round(simplify_s, 3)})  # fmt: skip
     faces_before = geometry(model)["faces_by_geom_group"].get(str(VISUAL_GROUP), 0)
     done = 1
     for k in sorted(keep_every):
@@ -190,6 +208,15 @@ def measure(task: str, size: int, views_per_batch: int, seconds: float, keep_eve
     out["memory_mib"] = memory
     env.close()
     return out
+
+
+def _picture(size: int, preset: Any, model: mujoco.MjModel, views: list[CameraView]) -> np.ndarray:
+    renderer = BatchRenderer(size, size, preset)
+    renderer.attach(model, len(views))
+    try:
+        return renderer.render(views)
+    finally:
+        renderer.detach(model, len(views))
 
 
 def _copy_option(option: mujoco.MjvOption, textures: bool = True, hide_group: int | None = None) -> mujoco.MjvOption:
@@ -209,11 +236,13 @@ def main() -> int:
     parser.add_argument("--views", type=int, default=16, help="views per batch")
     parser.add_argument("--seconds", type=float, default=1.5, help="per variant")
     parser.add_argument("--keep-every", default="4,16", help="thinning factors of the faces/K variants")
+    parser.add_argument("--cells", default="0.002,0.004,0.006", help="grids (metres) of the cell=X variants")
     parser.add_argument("--tag", default="", help="suffix of the JSON's name")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep = [int(k) for k in args.keep_every.split(",") if k]
-    result = measure(args.task, args.size, args.views, args.seconds, keep)
+    cells = [float(c) for c in args.cells.split(",") if c]
+    result = measure(args.task, args.size, args.views, args.seconds, keep, cells)
     base = result["lean"]["frames_per_s"]
     summary = {
         "task": args.task,
@@ -226,6 +255,11 @@ def main() -> int:
             if isinstance(result[name], dict) and "frames_per_s" in result[name]
         },
         "scene_update_ms": round(result["scene_update_ms"], 4),
+        "lowpoly_quality": {
+            name: {key: result[name][key] for key in ("cell_m", "faces_kept", "psnr_db", "mean_abs_diff")}
+            for name in result
+            if isinstance(result[name], dict) and "psnr_db" in result[name]
+        },
     }
     details = {"result": result, "cpu": cpu_topology(), "python": platform.python_version(), "args": vars(args)}
     write_result("profile_render" + (f"_{args.tag}" if args.tag else ""), summary, details)

@@ -22,7 +22,7 @@ from vecsim.config import Assignment, CameraConfig, TaskBlock
 from vecsim.sim import RESET, STEP, _WorkerEnv, _WorkerSpec, assignment_spaces
 from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
 
-PRESETS = ("full", "fast", "lean")
+PRESETS = ("full", "fast", "lean", "lowpoly")
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 HEIGHT, WIDTH = 24, 32
 CAMERA = CameraConfig(names=CAMERAS, height=HEIGHT, width=WIDTH)
@@ -216,7 +216,7 @@ def test_a_worker_renders_only_the_envs_it_reset_or_stepped_in_one_readback() ->
         envs_per_worker=3,
     )
     observation_space, action_space = assignment_spaces(assignment)
-    spec = _WorkerSpec("tiny/lift", (0, 1, 2), 3, CAMERA, "lean", 10, observation_space, action_space)
+    spec = _WorkerSpec(("tiny/lift",) * 3, (0, 1, 2), 3, CAMERA, "lean", 10, observation_space, action_space)
     worker = _WorkerEnv(spec)
     try:
         worker.build()
@@ -318,5 +318,5 @@ def test_scene_flags_follow_the_preset(lifts: list[RobotTaskEnv]) -> None:
             assert scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] == chosen.shadows
             assert scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] == chosen.reflections
             assert scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] == chosen.skybox
-            expected = {"full": views[0].model.vis.quality.shadowsize, "fast": 1024, "lean": 0}[preset]
+            expected = {"full": views[0].model.vis.quality.shadowsize, "fast": 1024, "lean": 0, "lowpoly": 0}[preset]
             assert context.shadowSize == expected

@@ -68,7 +68,7 @@ WRONG_FIELDS = [
     wrong("job.camera.names", ["agentview", "agentview"], "unique"),
     wrong("job.camera.height", 4, "greater than or equal to 8"),
     wrong("job.camera.width", 4096, "less than or equal to 1024"),
-    wrong("job.render", "ultra", "'full', 'fast' or 'lean'"),
+    wrong("job.render", "ultra", "'full', 'fast', 'lean' or 'lowpoly'"),
     wrong("job.seed", 1.5, "valid integer"),
     wrong("job.envs_per_worker", -1, "greater than or equal to 0"),
     wrong("job.envs_per_worker", 1000, "less than or equal to 256"),

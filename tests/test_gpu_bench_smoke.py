@@ -1,11 +1,17 @@
-"""The GPU-machine benchmark keeps working here: ``bench/bench_gpu_scale.py --cpu-small`` on a
-cheap gym scene runs a real job (controller, a pinned pod, a standalone extra pod), the vision
-policy through the pipelined EnvLoop, and the software-rendering pod, and prints one
-``RESULT {json}`` line with every figure docs/benchmarks.md's GPU section is built from.
+"""The GPU-machine benchmark keeps working here. ``bench/bench_gpu_scale.py --cpu-small`` on a
+cheap gym scene runs each of its two measurements as a person would run them: a real job
+(controller, pinned pods that all serve the same task mix), the service alone and the EnvLoop
+with a vision policy, and prints one ``RESULT {json}`` line with every figure docs/benchmarks.md's
+GPU section is built from.
 
-It runs as a person would run it, from a copy of ``bench/`` in a temporary directory (so that its
-JSON and plots land there, not over the recorded ones), with the repository on ``PYTHONPATH``.
-No timing is asserted: the figures depend on the machine and its load.
+- ``--only scaling``: env-steps/s against pods, the service alone and the loop, the fraction of
+  linear, the slowest pod's round trip against the mean, the CPU topology and memory.
+- ``--only pipeline``: two pods pinned to one core, 1 stage against 2 stages, with a ViT policy
+  calibrated to the 1-stage simulation call.
+
+It runs from a copy of ``bench/`` in a temporary directory (so that its JSON and plots land
+there, not over the recorded ones), with the repository on ``PYTHONPATH``. No timing is asserted:
+the figures depend on the machine and its load.
 """
 
 from __future__ import annotations
@@ -21,67 +27,122 @@ from typing import Any
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
+GYM = ["--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--horizon", "3", "--rounds", "1"]
 
 
-@pytest.fixture(scope="module")
-def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
-    root = tmp_path_factory.mktemp("gpu-bench")
-    shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
+def run_bench(root: Path, *args: str, timeout: float = 170) -> subprocess.CompletedProcess[str]:
+    if not (root / "bench").exists():
+        shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
     env.pop("VECSIM_TOKEN", None)
-    done = subprocess.run(
-        [sys.executable, str(root / "bench" / "bench_gpu_scale.py"), "--cpu-small", "--tasks", "gym/HalfCheetah-v5",
-         "--size", "16", "--horizon", "3", "--rounds", "1", "--no-heavy"],
-        cwd=root, env=env, capture_output=True, text=True, timeout=170,
-    )  # fmt: skip
+    return subprocess.run([sys.executable, str(root / "bench" / "bench_gpu_scale.py"), *args], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+
+
+def result_of(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
     assert done.returncode == 0, f"bench_gpu_scale.py failed:\n{done.stderr[-3000:]}"
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
     assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    return json.loads(lines[0].removeprefix("RESULT ")), root
+    return json.loads(lines[0].removeprefix("RESULT "))
+
+
+@pytest.fixture(scope="module")
+def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    root = tmp_path_factory.mktemp("gpu-bench-scaling")
+    return result_of(run_bench(root, "--cpu-small", "--only", "scaling", *GYM)), root
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    root = tmp_path_factory.mktemp("gpu-bench-pipeline")
+    return result_of(run_bench(root, "--cpu-small", "--only", "pipeline", *GYM)), root
 
 
 @pytest.mark.timeout(180)
-def test_the_result_names_its_targets_and_the_machine(result):
-    summary, root = result
-    assert summary["name"] == "bench_gpu_scale_cpu" and summary["quick"] is True and summary["dry"] is False
-    assert isinstance(summary["ratio"], float) and summary["ratio"] > 0
-    assert isinstance(summary["ratio_pipelining"], float) and summary["ratio_pipelining"] > 0
-    assert set(summary["met"]) == {"scaling", "pipelining", "pipelining_heavy_policy"}
+def test_scaling_names_its_target_the_machine_and_its_record(scaling):
+    summary, root = scaling
+    assert summary["name"] == "bench_gpu_scale_scaling_cpu" and summary["quick"] is True and summary["dry"] is False
+    assert isinstance(summary["ratio"], float) and isinstance(summary["ratio_loop"], float)
+    assert set(summary["met"]) == {"scaling_service", "scaling_loop"}
     assert {"date", "cores", "load_avg_1m"} <= set(summary["machine"])
-    assert json.loads((root / "out" / "bench" / "bench_gpu_scale_cpu.json").read_text())["name"] == summary["name"]
-
-
-@pytest.mark.timeout(180)
-def test_scaling_covers_every_pod_count_with_a_pinned_job_pod_and_an_extra_pod(result):
-    summary, _ = result
-    assert set(summary["scaling"]["env_steps_per_s"]) == {"pods=1", "pods=2"}
-    assert all(v["median"] > 0 for v in summary["scaling"]["env_steps_per_s"].values())
-    assert summary["setup"]["extra_standalone_pods"] == ["sim-1"]
-    assert len(summary["setup"]["pods_pinned_to"]) == 2
-
-
-@pytest.mark.timeout(180)
-def test_the_time_split_has_policy_physics_render_and_serving(result):
-    summary, _ = result
-    split = summary["scaling"]["time_split_ms"]["pods=2"]
-    assert split["policy_ms"] > 0 and split["physics_ms_per_pod"] > 0 and split["render_ms_per_pod"] > 0
-    assert split["serving_ms"] >= 0 and split["pods_per_call"] == 2
-
-
-@pytest.mark.timeout(180)
-def test_pipelining_compares_one_and_two_stages_with_the_vision_policy(result):
-    summary, _ = result
-    assert set(summary["stages"]["env_steps_per_s"]) == {"stages=1", "stages=2"}
-    assert summary["policy"]["name"].startswith("ResNet-18") and summary["policy"]["parameters_m"] > 10
-
-
-@pytest.mark.timeout(180)
-def test_rendering_reports_the_gl_renderer_and_the_software_pod(result):
-    summary, root = result
-    assert summary["gl"]["backend"] == "egl" and summary["gl"]["renderer"]
-    software = summary["software_rendering"]
-    assert ("env_steps_per_s" in software) == summary["mesa_egl"]["present"], software
-    assert {Path(p).name for p in summary["plots"]} == {
-        "gpu_scale_cpu_pods.png", "gpu_scale_cpu_stages.png", "gpu_scale_cpu_split.png",
+    record = json.loads((root / "out" / "bench" / "bench_gpu_scale_scaling_cpu.json").read_text())
+    assert record["name"] == summary["name"] and set(record["details"]["per_round"]) == {
+        "service/pods=1", "service/pods=2", "loop/pods=1", "loop/pods=2",
     }  # fmt: skip
+
+
+@pytest.mark.timeout(180)
+def test_scaling_measures_the_service_alone_and_the_loop_at_every_pod_count(scaling):
+    summary, _ = scaling
+    for kind in ("service", "loop"):
+        assert set(summary[kind]) == {"pods=1", "pods=2"}
+        for figures in summary[kind].values():
+            assert figures["env_steps_per_s"]["median"] > 0
+            assert figures["fraction_of_linear"]["n"] == 1
+    assert summary["service"]["pods=2"]["time_split_ms"]["policy_ms"] == 0
+    assert summary["loop"]["pods=2"]["time_split_ms"]["policy_ms"] > 0
+    assert summary["policy"]["name"].startswith("ResNet-18")
+
+
+@pytest.mark.timeout(180)
+def test_scaling_records_the_slowest_pod_next_to_the_mean(scaling):
+    summary, _ = scaling
+    slowest = summary["service"]["pods=2"]["slowest_pod"]
+    assert slowest["calls"] == 3  # the service rollout's three steps
+    assert slowest["pod_round_trip_slowest_ms"] >= slowest["pod_round_trip_mean_ms"] > 0
+    assert slowest["wait_for_slowest_ms"] >= 0
+    assert set(slowest["pod_step_ms_by_pod"]) == {"sim-0", "sim-1"}
+    assert sum(slowest["slowest_pod_counts"].values()) == 3
+
+
+@pytest.mark.timeout(180)
+def test_scaling_records_the_cpu_topology_pins_memory_and_every_pods_task_mix(scaling):
+    summary, root = scaling
+    topology, setup = summary["topology"], summary["setup"]
+    assert topology["cpus"] >= 1 and topology["physical_cores"] >= 1 and topology["threads_per_core"] >= 1
+    assert len(setup["pods_pinned_to"]) == 2 and len(setup["pods_physical_cores"]) == 2
+    assert set(setup["pod_tasks"]) == {"sim-0", "sim-1"}
+    assert all(tasks == ["gym/HalfCheetah-v5 x2"] for tasks in setup["pod_tasks"].values())
+    assert setup["memory_used_gib_at_ready"] > 0 and setup["memory_used_gib_peak"] > 0
+    assert all(pod["processes"] >= 2 for pod in setup["pod_processes"].values())
+    assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_pods.png", "gpu_scale_cpu_split.png"}
     assert all((root / p).is_file() for p in summary["plots"])
+
+
+@pytest.mark.timeout(180)
+def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_stages(pipeline):
+    summary, root = pipeline
+    assert summary["name"] == "bench_gpu_scale_pipeline_cpu" and isinstance(summary["ratio"], float)
+    assert set(summary["met"]) == {"pipelining"}
+    setup = summary["setup"]
+    assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
+    assert set(summary["loop"]) == {"stages=1", "stages=2"}
+    assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
+    assert summary["speedup_2_vs_1"]["n"] == 1
+    assert summary["loop"]["stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
+    assert all((root / p).is_file() for p in summary["plots"])
+
+
+@pytest.mark.timeout(180)
+def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
+    summary, _ = pipeline
+    service, policy = summary["service"], summary["policy"]
+    assert set(service) == {"stages=1", "half"}
+    assert policy["target_ms"] == service["stages=1"]["time_split_ms"]["stage_call_ms"] > 0
+    assert policy["name"].startswith("ViT") and 1 <= policy["depth"] <= summary["setup"]["vit_max_depth"]
+    assert policy["capped"] == (policy["depth_wanted"] > summary["setup"]["vit_max_depth"])
+    assert policy["target_batch"] == 4 and set(policy["forward_ms"]) == {"2", "4"}
+
+
+@pytest.mark.timeout(60)
+def test_a_run_without_only_is_refused_naming_the_option(tmp_path):
+    done = run_bench(tmp_path, "--cpu-small", *GYM, timeout=50)
+    assert done.returncode == 2 and "--only" in done.stderr
+
+
+@pytest.mark.timeout(60)
+def test_gpu_mode_refuses_a_renderer_that_is_not_nvidias(tmp_path):
+    done = run_bench(tmp_path, "--gpu", "--only", "scaling", "--dry", *GYM, timeout=50)
+    assert done.returncode == 2 and "not NVIDIA" in done.stderr
+    assert "RESULT" not in done.stdout

@@ -25,6 +25,7 @@ process renders from one thread.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
 import logging
 import math
@@ -36,6 +37,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from vecsim import mesh_lod
 from vecsim import render as render_presets
 from vecsim.config import RenderPreset
 from vecsim.render import RenderSettings
@@ -218,6 +220,8 @@ class _SharedContext:
         self.context: mujoco.MjrContext | None = None
         self.columns = 0
         self.rows = 0
+        # Built on the first context that wants them and kept: a bigger grid makes a new context.
+        self.simplified: mesh_lod.SimplifiedMeshes | None = None
 
     @property
     def capacity(self) -> int:
@@ -389,7 +393,8 @@ class BatchRenderer:
             vis.global_.offwidth = columns * self.width
             vis.global_.offheight = rows * self.height
             render_presets.apply_to_model(model, self.settings)
-            shared.context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            with self._meshes(shared):
+                shared.context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
         finally:
             vis.global_.offwidth, vis.global_.offheight, vis.quality.shadowsize, vis.quality.offsamples = saved
         shared.columns, shared.rows = columns, rows
@@ -397,6 +402,18 @@ class BatchRenderer:
         log.debug(
             "render context %dx%d tiles of %dx%d (%s preset)", columns, rows, self.width, self.height, self.preset
         )
+
+    def _meshes(self, shared: _SharedContext) -> contextlib.AbstractContextManager[None]:
+        cell = self.settings.mesh_cell
+        if cell is None:
+            return contextlib.nullcontext()
+        if shared.simplified is None or shared.simplified.cell != cell:
+            shared.simplified = mesh_lod.simplify_meshes(shared.model, cell)
+            log.debug(
+                "meshes simplified on a %.4g m grid: %d of %d triangles kept",
+                cell, shared.simplified.faces_after, shared.simplified.faces_before,
+            )
+        return mesh_lod.drawn_with(shared.model, shared.simplified)
 
     def _tile_origin(self, shared: _SharedContext, tile: int) -> tuple[int, int]:
         row, column = divmod(tile + _DRAWING_TILES, shared.columns)

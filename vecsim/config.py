@@ -14,7 +14,7 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-RenderPreset = Literal["full", "fast", "lean"]
+RenderPreset = Literal["full", "fast", "lean", "lowpoly"]
 
 
 class _Model(BaseModel):
@@ -39,8 +39,8 @@ class CameraConfig(_Model):
 # 0 (the default) asks the pod to choose (vecsim.sim.resolve_envs_per_worker); YAML and JSON may say "auto".
 AUTO_ENVS_PER_WORKER = 0
 ENVS_PER_WORKER_DOC = (
-    "envs hosted by one worker process; 0 or 'auto': the pod picks (cheap gym scenes without "
-    "cameras: the fewest that keep its workers within its cores; anything else: 1)"
+    "envs hosted by one worker process, consecutive env indices of one task or several; 0 or "
+    "'auto': the pod picks the fewest that keep its workers within its cores"
 )
 
 

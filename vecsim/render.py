@@ -1,11 +1,14 @@
 """Render presets: how much of MuJoCo's rendering pipeline an env pays for.
 
-Three presets, named in :class:`vecsim.config.Assignment` (``render``):
+Four presets, named in :class:`vecsim.config.Assignment` (``render``):
 
 - ``full``: MuJoCo's and robosuite's defaults, untouched (shadows with the model's shadow map,
   usually 4096x4096; reflections; skybox).
 - ``fast``: shadows on a 1024x1024 shadow map; no reflections.
 - ``lean``: no shadows (and no shadow map at all), no reflections, no skybox.
+- ``lowpoly``: ``lean``'s passes, drawing meshes simplified on a grid of ``LOWPOLY_CELL`` metres
+  (:mod:`vecsim.mesh_lod`). Physics keeps the model's meshes; only the render context gets the
+  lighter ones. For scenes bound by triangle count (LIBERO's scanned objects and backgrounds).
 
 The default 4096x4096 shadow map is what makes default rendering slow, on a GPU as much as in
 Mesa's software renderer. Its size is read from ``model.vis.quality.shadowsize`` when the MuJoCo
@@ -23,11 +26,13 @@ This module only touches MuJoCo objects; it imports robosuite and gymnasium noth
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Any
 
 import mujoco
 
+from vecsim import mesh_lod
 from vecsim.config import RenderPreset
 
 
@@ -36,7 +41,9 @@ class RenderSettings:
     """What one preset turns on.
 
     ``shadow_size`` None keeps the model's own shadow map size; ``multisamples`` None keeps the
-    model's own multisampling of offscreen buffers (MuJoCo's default is 4 samples a pixel).
+    model's own multisampling of offscreen buffers (MuJoCo's default is 4 samples a pixel);
+    ``mesh_cell`` None draws the model's own meshes, a length (metres) draws meshes simplified on
+    a grid of that cell (:mod:`vecsim.mesh_lod`).
     Benchmarks build other settings than the presets' to measure what each pass costs.
     """
 
@@ -45,12 +52,17 @@ class RenderSettings:
     skybox: bool
     shadow_size: int | None
     multisamples: int | None = None
+    mesh_cell: float | None = None
 
+
+# The grid (metres) ``lowpoly`` simplifies meshes on: chosen by measurement, see docs/benchmarks.md.
+LOWPOLY_CELL = 0.005
 
 PRESETS: dict[str, RenderSettings] = {
     "full": RenderSettings(shadows=True, reflections=True, skybox=True, shadow_size=None),
     "fast": RenderSettings(shadows=True, reflections=False, skybox=True, shadow_size=1024),
     "lean": RenderSettings(shadows=False, reflections=False, skybox=False, shadow_size=0),
+    "lowpoly": RenderSettings(shadows=False, reflections=False, skybox=False, shadow_size=0, mesh_cell=LOWPOLY_CELL),
 }
 
 
@@ -58,7 +70,7 @@ def settings(preset: RenderPreset | str | RenderSettings) -> RenderSettings:
     """Return the :class:`RenderSettings` of ``preset`` (``preset`` itself if it is one).
 
     Raises:
-        ValueError: ``preset`` is not one of ``full``, ``fast``, ``lean``.
+        ValueError: ``preset`` is not one of ``full``, ``fast``, ``lean``, ``lowpoly``.
     """
     if isinstance(preset, RenderSettings):
         return preset
@@ -99,8 +111,8 @@ def apply_to_robosuite(sim: Any, preset: RenderPreset | str) -> None:
     """Apply ``preset`` to a robosuite ``MjSim`` and its offscreen render context, if it has one.
 
     robosuite makes its render context while the env is constructed, before a caller can set
-    the shadow map size, so when the size changes the context's ``MjrContext`` is made again
-    (with the GL context current). Returns None.
+    the shadow map size, so when the size changes, or the preset draws simplified meshes, the
+    context's ``MjrContext`` is made again (with the GL context current). Returns None.
 
     Raises:
         ValueError: unknown preset.
@@ -112,10 +124,12 @@ def apply_to_robosuite(sim: Any, preset: RenderPreset | str) -> None:
     context = sim._render_context_offscreen
     if context is None:
         return
-    if model.vis.quality.shadowsize != before:
+    cell = settings(preset).mesh_cell
+    if model.vis.quality.shadowsize != before or cell is not None:
         context.gl_ctx.make_current()
         context.con.free()
-        context._set_mujoco_context_and_buffers()
+        with _meshes(model, cell):
+            context._set_mujoco_context_and_buffers()
     apply_to_scene(context.scn, preset)
 
 
@@ -136,6 +150,14 @@ def apply_to_gymnasium(env: Any, preset: RenderPreset | str) -> Any:
             "rendering rgb arrays"
         )
     apply_to_model(base.model, preset)
-    viewer = renderer._get_viewer(render_mode="rgb_array")
+    with _meshes(base.model, settings(preset).mesh_cell):
+        viewer = renderer._get_viewer(render_mode="rgb_array")
     apply_to_scene(viewer.scn, preset)
     return viewer
+
+
+def _meshes(model: mujoco.MjModel, cell: float | None) -> contextlib.AbstractContextManager[None]:
+    """Hold meshes simplified on a ``cell`` grid in ``model`` while a render context is made (None: no change)."""
+    if cell is None:
+        return contextlib.nullcontext()
+    return mesh_lod.drawn_with(model, mesh_lod.simplify_meshes(model, cell))
