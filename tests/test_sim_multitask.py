@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from vecsim.batch_render import shared_renderer
-from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
+from vecsim.config import AUTO_ENVS_PER_WORKER
 from vecsim.sim import (
     RESET,
     STEP,
@@ -30,26 +30,10 @@ from vecsim.sim import (
     assignment_spaces,
     resolve_envs_per_worker,
 )
+from test_sim import CAMERAS, NO_CAMERA, TINY_CAMERA, _assignment, _rows
 
 CHEETAH_V5 = "gym/HalfCheetah-v5"
 CHEETAH_V4 = "gym/HalfCheetah-v4"
-NO_CAMERA = CameraConfig(names=())
-TINY_CAMERA = CameraConfig(height=8, width=8)
-CAMERAS = ("agentview", "robot0_eye_in_hand")
-
-
-def _assignment(blocks: list[tuple[str, int]], camera: CameraConfig = NO_CAMERA, **fields: Any) -> Assignment:
-    tasks, start = [], 0
-    for task_id, count in blocks:
-        tasks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=count))
-        start += count
-    return Assignment(generation=1, pod="sim-0", stage_id=0, tasks=tuple(tasks), camera=camera, **fields)
-
-
-def _rows(obs: dict[str, Any]) -> list[bytes]:
-    """One byte string per env of a batched observation: equal strings mean bit-identical envs."""
-    leaves = [obs["proprio"]] + [obs["images"][name] for name in sorted(obs.get("images", {}))]
-    return [b"".join(leaf[i].tobytes() for leaf in leaves) for i in range(len(obs["proprio"]))]
 
 
 def _actions(n: int, size: int, seed: int = 0) -> np.ndarray:

@@ -706,29 +706,23 @@ class StageClient:
         # Rows whose pod answered: they are delivered even when another pod of the call fails.
         answered = _PodWork()
 
+        async def send(pod: str, op: str, row_list: list[int], all_keys: Sequence[str], field: str,
+                       values: np.ndarray, batch: StageBatch) -> None:  # fmt: skip
+            rows = np.asarray(row_list)
+            keys = [all_keys[r] for r in rows]
+            body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64), field: values[rows]}
+            answer = await self._post(pod, op, body, keys)
+            self._fill(batch, answer, rows, pod, check_tasks=op == "reset")
+
         async def one_pod(pod: str, todo: _PodWork) -> None:
             reset_done = False
             try:
                 if todo.reset_rows:
-                    rows = np.asarray(todo.reset_rows)
-                    keys = [reset_keys[r] for r in rows]
-                    body = {
-                        "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
-                        "state_ids": state_ids[rows],
-                    }
-                    answer = await self._post(pod, "reset", body, keys)
-                    self._fill(reset_batch, answer, rows, pod, check_tasks=True)
+                    await send(pod, "reset", todo.reset_rows, reset_keys, "state_ids", state_ids, reset_batch)
                     answered.reset_rows.extend(todo.reset_rows)
                     reset_done = True
                 if todo.step_rows:
-                    rows = np.asarray(todo.step_rows)
-                    keys = [step_keys[r] for r in rows]
-                    body = {
-                        "env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64),
-                        "actions": actions[rows],
-                    }
-                    answer = await self._post(pod, "step", body, keys)
-                    self._fill(step_batch, answer, rows, pod, check_tasks=False)
+                    await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch)
                     answered.step_rows.extend(todo.step_rows)
             except PodUnavailableError as exc:
                 # Name everything of this call the pod did not answer: after a failed reset, its
