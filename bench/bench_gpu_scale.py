@@ -29,6 +29,8 @@ Commands::
     source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only scaling --copy-to "$OUT"
     source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only pipeline --copy-to "$OUT"
     python bench/bench_gpu_scale.py --gpu --only pipeline --dry   # probe: 1 core, tiny policy; fails fast
+    # a machine of 2 GPUs: pods render on GPU 1, the policy runs on GPU 0
+    python bench/bench_gpu_scale.py --gpu --only pipeline --render-gpu 1 --tag render-gpu1 --copy-to "$OUT"
     python bench/bench_gpu_scale.py --cpu-small --only scaling     # here: 2 pods, 2 LIBERO tasks, 64x64
 
 Each writes out/bench/bench_gpu_scale_<scaling|pipeline>[_cpu|_dry].json and its plots under
@@ -125,6 +127,8 @@ class Plan:
     vit_max_depth: int
     max_memory_gib: float
     deadline_s: float
+    render_preset: str = "lean"
+    render_gpu: int | None = None  # the EGL device pods render on (None: the default one)
 
     @property
     def envs_per_pod(self) -> int:
@@ -385,6 +389,18 @@ def gpu_name() -> str | None:
     return done.stdout.strip() or None
 
 
+def gpu_process_table() -> list[str] | None:
+    """Return nvidia-smi's table of the processes on each GPU (type G: a GL context, C: CUDA),
+    which shows the GPU the pods render on; None without nvidia-smi."""
+    try:
+        done = subprocess.run(["nvidia-smi"], capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    lines = done.stdout.splitlines()
+    start = next((i for i, line in enumerate(lines) if "Processes:" in line), None)
+    return lines[start:] if start is not None else lines[-40:]
+
+
 def _read(path: str) -> str | None:
     try:
         return Path(path).read_text().strip()
@@ -472,7 +488,7 @@ def runner_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -
                 "num_stages": replicas,
                 "pods_per_stage": 1,
                 "camera": camera(plan),
-                "render": "lean",
+                "render": plan.render_preset,
                 "envs_per_worker": plan.envs_per_pod,
                 "max_episode_steps": MAX_EPISODE_STEPS,
             },
@@ -481,6 +497,7 @@ def runner_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -
                 "base_port": free_port_block(replicas),
                 "max_envs": max(64, plan.envs_per_pod),
                 "cpu_affinity": list(pins),
+                "render_gpus": [] if plan.render_gpu is None else [plan.render_gpu],
             },
             "controller": {
                 "port": free_port(),
@@ -1483,6 +1500,8 @@ def make_plan(args: argparse.Namespace) -> Plan:
         vit_max_depth=min(max_depth, 4) if dry else max_depth,
         max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
+        render_preset=args.render_preset,
+        render_gpu=args.render_gpu,
     )
 
 
@@ -1496,7 +1515,7 @@ def run_mode(args: argparse.Namespace) -> int:
     """``--only scaling`` or ``--only pipeline`` (with ``--gpu``, ``--cpu-small``, ``--dry``)."""
     deadline = Deadline(args.deadline)
     plan = make_plan(args)
-    tag = "_dry" if args.dry else "" if args.gpu else "_cpu"
+    tag = ("_dry" if args.dry else "" if args.gpu else "_cpu") + (f"_{args.tag}" if args.tag else "")
     gl = gl_probe()
     gpu = gpu_name()
     log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu, torch.__version__, plan.device)
@@ -1525,6 +1544,7 @@ def run_mode(args: argparse.Namespace) -> int:
         build_s = time.monotonic() - started
         used = memory_gib()
         processes = pod_processes(job)
+        gpu_processes = gpu_process_table()
         log.info("%d pods ready in %.0f s; memory used %.1f GiB; per pod %s", plan.pods, build_s, used,
                  next(iter(processes.values())))  # fmt: skip
         if plan.mode == "scaling":
@@ -1549,6 +1569,7 @@ def run_mode(args: argparse.Namespace) -> int:
         "memory_used_gib_peak": memory.peak_gib,
         "memory_total_gib": round(psutil.virtual_memory().total / 2**30, 1),
         "pod_processes": processes,
+        "gpu_processes_at_ready": gpu_processes,
         "pod_tasks": {p.pod: [f"{b.task_id} x{b.num_envs}" for b in p.tasks] for st in table.stages for p in st.pods},
     }
     setup["how"] = {
@@ -1631,6 +1652,11 @@ def main() -> int:
                         help="pipeline: the calibration's cap (default 512; --cpu-small 256)")
     parser.add_argument("--max-memory-gib", type=float, default=100.0,
                         help="stop when memory in use passes this while the pods build")
+    parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"),
+                        help="the pods' render preset (default lean)")
+    parser.add_argument("--render-gpu", type=int,
+                        help="the EGL device (GPU index) pods render on (pods.render_gpus); the policy stays on cuda:0")
+    parser.add_argument("--tag", help="suffix of the output files' names (e.g. lowpoly)")
     parser.add_argument("--deadline", type=float, default=480.0, help="seconds: stop adding rounds after this")
     parser.add_argument("--soft-rounds", type=int, default=1, help="--render-compare: rollouts with Mesa")
     parser.add_argument("--copy-to", type=Path, help="also copy the JSON and plots (and a failed job's logs) here")

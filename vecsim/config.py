@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -208,6 +208,15 @@ class PodsConfig(_Model):
         ),
     )
 
+    render_gpus: tuple[Annotated[int, Field(ge=0)], ...] = Field(
+        (),
+        description=(
+            "GPUs (EGL device indices) pods render on: pod i renders on render_gpus[i % len] "
+            "(MUJOCO_EGL_DEVICE_ID), so cameras can stay off the GPU a local trainer's policy uses; "
+            "empty: the default EGL device. Kubernetes gives each pod its own GPU instead"
+        ),
+    )
+
     @field_validator("cpu_affinity")
     @classmethod
     def _cpu_lists(cls, lists: tuple[str, ...]) -> tuple[str, ...]:
@@ -218,6 +227,10 @@ class PodsConfig(_Model):
     def cpus_of(self, ordinal: int) -> str | None:
         """Return the CPU list pod ``ordinal`` is pinned to, or None when pods are not pinned."""
         return self.cpu_affinity[ordinal % len(self.cpu_affinity)] if self.cpu_affinity else None
+
+    def render_gpu_of(self, ordinal: int) -> int | None:
+        """Return the EGL device pod ``ordinal`` renders on, or None for the default device."""
+        return self.render_gpus[ordinal % len(self.render_gpus)] if self.render_gpus else None
 
 
 class ControllerConfig(_Model):

@@ -125,6 +125,9 @@ class LocalJob:
         """Returns the environment variables pod ``name`` gets (as from the downward API)."""
         pods = self.config.pods
         url = self.pod_url(name)
+        gpu = pods.render_gpu_of(int(name.rsplit("-", 1)[1]))
+        # MuJoCo's EGL context opens this device; unset, it takes the first one that works.
+        render = {} if gpu is None else {"MUJOCO_EGL_DEVICE_ID": str(gpu)}
         return {
             "POD_NAME": name,
             "POD_NAMESPACE": self.namespace,
@@ -136,6 +139,7 @@ class LocalJob:
             "VECSIM_HEARTBEAT_S": str(self.config.controller.heartbeat_interval_s),
             # Locally, listen on the advertised address only, not on every interface.
             "VECSIM_HOST": pods.host,
+            **render,
         }
 
     def _controller_argv(self) -> list[str]:
