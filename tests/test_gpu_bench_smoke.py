@@ -55,7 +55,8 @@ def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], P
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("gpu-bench-pipeline")
-    return result_of(run_bench(root, "--cpu-small", "--only", "pipeline", *GYM)), root
+    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0", *GYM)
+    return result_of(run_bench(root, *args)), root
 
 
 @pytest.mark.timeout(180)
@@ -133,6 +134,30 @@ def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
     assert policy["name"].startswith("ViT") and 1 <= policy["depth"] <= summary["setup"]["vit_max_depth"]
     assert policy["capped"] == (policy["depth_wanted"] > summary["setup"]["vit_max_depth"])
     assert policy["target_batch"] == 4 and set(policy["forward_ms"]) == {"2", "4"}
+
+
+@pytest.mark.timeout(180)
+def test_pipeline_records_the_pods_render_preset_and_render_gpu(pipeline):
+    summary, _ = pipeline
+    setup = summary["setup"]
+    assert setup["render_preset"] == "fast" and setup["render_gpu"] == 0
+    assert "gpu_processes_at_ready" in setup  # nvidia-smi's process table; None without nvidia-smi
+
+
+@pytest.mark.timeout(120)
+def test_physics_scaling_reports_each_process_count_against_linear(tmp_path):
+    shutil.copytree(REPO / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    args = ["--procs", "1,2", "--tasks", "gym/HalfCheetah-v5,gym/Hopper-v5", "--seconds", "0.3", "--rounds", "1"]
+    done = subprocess.run([sys.executable, str(tmp_path / "bench" / "bench_physics_scaling.py"), *args],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=100)  # fmt: skip
+    summary = result_of(done)
+    assert summary["name"] == "bench_physics_scaling" and summary["setup"]["envs_per_process"] == 2
+    assert set(summary["rows"]) == {"1", "2"} and summary["rows"]["1"]["ratio_to_linear"] == 1.0
+    row = summary["rows"]["2"]
+    assert row["per_process_min"] <= row["per_process_mean"] <= row["per_process_max"]
+    assert summary["ratio"] == row["ratio_to_linear"] > 0
+    assert (tmp_path / "out" / "bench" / "bench_physics_scaling.json").is_file()
 
 
 @pytest.mark.timeout(60)

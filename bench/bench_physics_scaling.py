@@ -1,0 +1,153 @@
+"""The machine's own scaling: MuJoCo physics in P pinned processes, no vecsim in between.
+
+The baseline for "scaling >= 0.8 of linear": if P processes that only step physics (no HTTP, no
+rendering, no pods) already fall short of P x one process, the shortfall is the machine's (shared
+caches, memory bandwidth, a virtual machine's CPUs), and no serving layer can make it up.
+
+Each of ``max(--procs)`` processes is pinned to a core of its own (``os.sched_setaffinity``),
+builds the same task mix (``--tasks``, one env each, no cameras) and then, in lockstep (a barrier
+before each measurement), the first P of them step their envs with small random actions for
+``--seconds``; rounds interleave the values of P. Per P: env-steps/s of all processes, of the
+slowest and the fastest process, and the ratio to P x the 1-process figure of the same round.
+
+    python bench/bench_physics_scaling.py                         # LIBERO-10's ten tasks, P = 1,2,4,8,12
+    python bench/bench_physics_scaling.py --procs 1,2 --tasks libero_10/0,libero_10/1 --seconds 2
+
+Writes out/bench/bench_physics_scaling[_<tag>].json and prints ``RESULT {json}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import multiprocessing
+import os
+import statistics
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+from common import write_result
+
+log = logging.getLogger("bench_physics_scaling")
+
+
+def worker(index: int, cpu: int, tasks: list[str], counts: list[int], rounds: int, seconds: float,
+           barrier: Any, results: Any) -> None:  # fmt: skip
+    """Pin to ``cpu``, build the envs, then measure each (round, P) in lockstep with the others."""
+    logging.basicConfig(level=logging.WARNING)
+    try:
+        os.sched_setaffinity(0, {cpu})
+        from vecsim.config import CameraConfig
+        from vecsim.tasks import make_env
+
+        envs = [make_env(task, CameraConfig(names=()), "lean") for task in tasks]
+        for env in envs:
+            env.reset(options={"state_id": 0})
+        rng = np.random.default_rng(index)
+        actions = [rng.uniform(-0.3, 0.3, (64, *env.action_space.shape)).astype(np.float32) for env in envs]
+
+        def step_all(turn: int) -> None:
+            for env, table in zip(envs, actions):
+                _, _, terminated, truncated, _ = env.step(table[turn % len(table)])
+                if terminated or truncated:
+                    env.reset(options={"state_id": 0})
+
+        step_all(0)  # warm-up
+        results.put(("built", index, None))
+        for round_ in range(rounds):
+            for count in counts:
+                barrier.wait(timeout=900)
+                if index < count:
+                    turns, started = 0, time.perf_counter()
+                    while time.perf_counter() - started < seconds:
+                        step_all(turns)
+                        turns += 1
+                    rate = turns * len(envs) / (time.perf_counter() - started)
+                    results.put(("rate", index, (round_, count, rate)))
+                barrier.wait(timeout=900)
+    except Exception:
+        results.put(("error", index, traceback.format_exc()))
+        barrier.abort()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10's ten)")
+    parser.add_argument("--procs", default="1,2,4,8,12", help="comma-separated process counts")
+    parser.add_argument("--seconds", type=float, default=6.0, help="length of each measurement")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--tag", help="suffix of the output file's name")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    if args.tasks:
+        tasks = [t for t in args.tasks.split(",") if t]
+    else:
+        from vecsim.tasks import suite_tasks
+
+        tasks = [t.task_id for t in suite_tasks("libero_10")]
+    counts = sorted({int(c) for c in args.procs.split(",")} | {1})
+    cpus = sorted(os.sched_getaffinity(0))
+    if counts[-1] > len(cpus):
+        raise SystemExit(f"--procs asks for {counts[-1]} processes, this process may run on {len(cpus)} CPUs")
+
+    context = multiprocessing.get_context("spawn")
+    barrier, results = context.Barrier(counts[-1]), context.Queue()
+    procs = [
+        context.Process(target=worker, args=(i, cpus[i], tasks, counts, args.rounds, args.seconds, barrier, results))
+        for i in range(counts[-1])
+    ]
+    started = time.monotonic()
+    for proc in procs:
+        proc.start()
+    rates: dict[tuple[int, int], list[float]] = {}
+    built = 0
+    expected = args.rounds * sum(counts)
+    got = 0
+    deadline = started + 1800
+    while got < expected:
+        kind, index, payload = results.get(timeout=max(1.0, deadline - time.monotonic()))
+        if kind == "error":
+            for proc in procs:
+                proc.kill()
+            raise SystemExit(f"process {index} failed:\n{payload}")
+        if kind == "built":
+            built += 1
+            if built == len(procs):
+                log.info("%d processes built %d envs each in %.0f s", built, len(tasks), time.monotonic() - started)
+            continue
+        round_, count, rate = payload
+        rates.setdefault((round_, count), []).append(rate)
+        got += 1
+        if len(rates[(round_, count)]) == count:
+            log.info("round %d, %d processes: %.1f env-steps/s", round_ + 1, count, sum(rates[(round_, count)]))
+    for proc in procs:
+        proc.join(timeout=60)
+
+    rows = {}
+    for count in counts:
+        totals = [sum(rates[(r, count)]) for r in range(args.rounds)]
+        ratios = [sum(rates[(r, count)]) / (count * rates[(r, 1)][0]) for r in range(args.rounds)]
+        per_proc = [x for r in range(args.rounds) for x in rates[(r, count)]]
+        rows[str(count)] = {
+            "env_steps_per_s": round(statistics.median(totals), 1),
+            "per_process_mean": round(statistics.mean(per_proc), 2),
+            "per_process_min": round(min(per_proc), 2),
+            "per_process_max": round(max(per_proc), 2),
+            "ratio_to_linear": round(statistics.median(ratios), 3),
+        }
+    summary = {
+        "baseline": "1 process of the same task mix, same round; linear = P x that",
+        "ratio": rows[str(counts[-1])]["ratio_to_linear"],
+        "setup": {"tasks": tasks, "envs_per_process": len(tasks), "cameras": "none (physics only)",
+                  "procs": counts, "pinned_to": cpus[: counts[-1]], "seconds": args.seconds, "rounds": args.rounds},
+        "rows": rows,
+        "seconds_total": round(time.monotonic() - started, 1),
+    }  # fmt: skip
+    write_result("bench_physics_scaling" + (f"_{args.tag}" if args.tag else ""), summary)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
