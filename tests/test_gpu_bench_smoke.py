@@ -64,24 +64,27 @@ def test_scaling_names_its_target_the_machine_and_its_record(scaling):
     summary, root = scaling
     assert summary["name"] == "bench_gpu_scale_scaling_cpu" and summary["quick"] is True and summary["dry"] is False
     assert isinstance(summary["ratio"], float) and isinstance(summary["ratio_loop"], float)
-    assert set(summary["met"]) == {"scaling_service", "scaling_loop"}
+    assert set(summary["met"]) == {"scaling_service", "scaling_loop", "scaling_loop_stage_per_pod"}
+    assert isinstance(summary["ratio_loop_stage_per_pod"], float)
     assert {"date", "cores", "load_avg_1m"} <= set(summary["machine"])
     record = json.loads((root / "out" / "bench" / "bench_gpu_scale_scaling_cpu.json").read_text())
     assert record["name"] == summary["name"] and set(record["details"]["per_round"]) == {
-        "service/pods=1", "service/pods=2", "loop/pods=1", "loop/pods=2",
+        "service/pods=1", "service/pods=2", "loop/pods=1", "loop/pods=2", "loop_per_pod/pods=1", "loop_per_pod/pods=2",
     }  # fmt: skip
 
 
 @pytest.mark.timeout(180)
 def test_scaling_measures_the_service_alone_and_the_loop_at_every_pod_count(scaling):
     summary, _ = scaling
-    for kind in ("service", "loop"):
+    for kind in ("service", "loop", "loop_per_pod"):
         assert set(summary[kind]) == {"pods=1", "pods=2"}
         for figures in summary[kind].values():
             assert figures["env_steps_per_s"]["median"] > 0
             assert figures["fraction_of_linear"]["n"] == 1
     assert summary["service"]["pods=2"]["time_split_ms"]["policy_ms"] == 0
     assert summary["loop"]["pods=2"]["time_split_ms"]["policy_ms"] > 0
+    assert summary["loop"]["pods=2"]["time_split_ms"]["pods_per_call"] == 2
+    assert summary["loop_per_pod"]["pods=2"]["time_split_ms"]["pods_per_call"] == 1  # a stage per pod
     assert summary["policy"]["name"].startswith("ResNet-18")
 
 

@@ -1,8 +1,11 @@
 """EnvLoop: the pipelined rollout. Read :meth:`EnvLoop.run` top to bottom.
 
 Reset every trajectory, then loop over the stages: wait for stage s's observations, run the
-policy on them, send stage s's actions without waiting, and go on to stage s+1, so the policy
-works on one stage while the pods simulate the others. A trajectory ends on termination,
+policy on them, send stage s's actions without waiting, and go on to the next stage, so the policy
+works on one stage while the pods simulate the others. The next stage is the first in turn
+(s+1, s+2, ...) whose observations are already in; only when none is does the loop wait, for
+whichever lands first. So a slow pod holds up its own stage only: with a stage per pod (or per
+group of pods), fast pods step on while a slow one finishes. A trajectory ends on termination,
 truncation or the horizon and is not stepped again. The result is per-trajectory tensors keyed
 by traj_key, plus timing stats and, for chosen trajectories, videos of a camera.
 
@@ -284,33 +287,35 @@ class EnvLoop:
         }
         carried = {stage: self.client.stage_traj_keys(stage) for stage in pending}
         lost: dict[str, LostTrajectory] = {}
+        turn = -1  # the stage served last
         while pending:
-            for stage in list(pending):
-                try:
-                    batch = clock.wait(stage, pending.pop(stage))  # stage s's observations
-                except (PodUnavailableError, RoutingChangedError) as exc:
-                    # The failed pods' trajectories are lost; the pods that answered go on.
-                    batch = exc.answered
-                    answered = set(batch.traj_keys) if batch is not None else set()
-                    lost.update(self._lose([k for k in carried[stage] if k not in answered], buffers, exc))
-                    if not answered:
-                        continue
-                    clock.simulated(stage, batch)
-                live = []
-                for row, key in enumerate(batch.traj_keys):
-                    buffers[key].add(batch, row)
-                    recorder.add(key, batch, row)
-                    if not buffers[key].ended(self.horizon):
-                        live.append(row)
-                if not live:
-                    continue  # this stage is finished
-                with clock.generating(stage):
-                    actions = self._act(batch, live, instructions)  # the policy, on stage s
-                step = {batch.traj_keys[row]: actions[row] for row in live}
-                sent = self._send(stage, step, buffers, lost)  # don't wait: on to stage s+1
-                if sent is not None:
-                    pending[stage], carried[stage] = sent
+            stage = clock.next_ready(pending, turn)  # the next stage in turn whose answer is in
+            turn = stage
+            try:
+                batch = clock.take(stage, pending.pop(stage))  # stage s's observations
+            except (PodUnavailableError, RoutingChangedError) as exc:
+                # The failed pods' trajectories are lost; the pods that answered go on.
+                batch = exc.answered
+                answered = set(batch.traj_keys) if batch is not None else set()
+                lost.update(self._lose([k for k in carried[stage] if k not in answered], buffers, exc))
+                if not answered:
+                    continue
+                clock.simulated(stage, batch)
+            live = []
+            for row, key in enumerate(batch.traj_keys):
+                buffers[key].add(batch, row)
+                recorder.add(key, batch, row)
+                if not buffers[key].ended(self.horizon):
+                    live.append(row)
             clock.maybe_log(buffers)
+            if not live:
+                continue  # this stage is finished
+            with clock.generating(stage):
+                actions = self._act(batch, live, instructions)  # the policy, on stage s
+            step = {batch.traj_keys[row]: actions[row] for row in live}
+            sent = self._send(stage, step, buffers, lost)  # don't wait: on to the next stage
+            if sent is not None:
+                pending[stage], carried[stage] = sent
 
         trajectories = {key: buffer.finish() for key, buffer in buffers.items() if key not in lost}
         videos = self._write_videos(recorder)
@@ -500,12 +505,23 @@ class _Clock:
         self.timeline: list[tuple[str, int, float, float]] = []
         self.wait_s = 0.0
 
-    def wait(self, stage: int, call: PendingCall[StageBatch]) -> StageBatch:
+    def next_ready(self, pending: Mapping[int, PendingCall[StageBatch]], after: int) -> int:
+        """Return the first stage after ``after``, in turn, whose call has finished; when none
+        has, wait (timed as waiting) until one does."""
+        order = sorted(pending, key=lambda stage: (stage <= after, stage))
         begin = time.perf_counter()
         try:
-            batch = call.result()
+            while True:
+                for stage in order:
+                    if pending[stage].done():
+                        return stage
+                PendingCall.wait_any([pending[stage] for stage in order])
         finally:
             self.wait_s += time.perf_counter() - begin
+
+    def take(self, stage: int, call: PendingCall[StageBatch]) -> StageBatch:
+        """The answer of a finished call (raising what the call raised), recorded."""
+        batch = call.result()
         self.simulated(stage, batch)
         return batch
 

@@ -120,6 +120,12 @@ class PendingCall(Generic[T]):
         """Stop waiting for the call (what the pods already did stays done)."""
         self._future.cancel()
 
+    @staticmethod
+    def wait_any(calls: Sequence[PendingCall[Any]], timeout: float | None = None) -> bool:
+        """Block until at least one of ``calls`` has finished; return False on ``timeout``."""
+        done, _ = concurrent.futures.wait([c._future for c in calls], timeout, concurrent.futures.FIRST_COMPLETED)
+        return bool(done)
+
     def __await__(self) -> Generator[Any, None, T]:
         answer = yield from asyncio.wrap_future(self._future).__await__()
         return answer if self._pick is None else answer[self._pick]
