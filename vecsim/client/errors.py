@@ -22,7 +22,15 @@ def _keys(keys: Iterable[str], limit: int = 8) -> str:
 
 
 class ClientError(Exception):
-    """Base of the client's errors."""
+    """Base of the client's errors.
+
+    ``failed_envs`` and ``result`` are set by ``HTTPVectorEnv`` on an error that ends its reset or
+    step: the indices of the envs that got no answer, and the call's result for the others (see
+    its docstring). ``None`` for errors raised anywhere else.
+    """
+
+    failed_envs: list[int] | None = None
+    result: Any = None
 
 
 class CapacityError(ClientError, ValueError):
@@ -96,3 +104,24 @@ class RoutingChangedError(ClientError):
             f"{_keys(self.traj_keys)}: their envs moved or went away; place and reset them again "
             "(StageClient.reset_trajectories)"
         )
+
+
+def call_error(errors: list[BaseException], answered: Any) -> BaseException:
+    """The one error a stage call raises for what its pods raised.
+
+    Pods that were unavailable, or whose envs moved with the routing, fail alone: the error
+    names their trajectories and carries ``answered``, the other pods' rows. Anything else (a
+    refusal, a malformed answer, a 409 after the re-read) fails the call whole, as a bug or a
+    broken contract would. When both kinds of lone failure meet in one call, the
+    ``PodUnavailableError`` is raised; ``answered`` still holds exactly the rows delivered.
+    """
+    unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]
+    moved = [e for e in errors if isinstance(e, RoutingChangedError)]
+    others = [e for e in errors if not isinstance(e, (PodUnavailableError, RoutingChangedError))]
+    if others:
+        return others[0]
+    if unavailable:
+        held = {pod: keys for e in unavailable for pod, keys in e.held.items()}
+        return PodUnavailableError(held, "; ".join(e.reason for e in unavailable), answered=answered)
+    keys = [key for e in moved for key in e.traj_keys]
+    return RoutingChangedError(max(e.generation for e in moved), keys, answered=answered)

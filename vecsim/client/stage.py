@@ -46,6 +46,7 @@ from vecsim.client.errors import (
     PodUnavailableError,
     RoutingChangedError,
     StaleGenerationError,
+    call_error,
 )
 from vecsim.client.pods import EventLoopThread, PodConnection, _Stale
 from vecsim.client.routing import (
@@ -207,27 +208,6 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         submitted_at=batch.submitted_at,
         finished_at=batch.finished_at,
     )
-
-
-def _call_error(errors: list[BaseException], answered: Any) -> BaseException:
-    """The one error a stage call raises for what its pods raised.
-
-    Pods that were unavailable, or whose envs moved with the routing, fail alone: the error
-    names their trajectories and carries ``answered``, the other pods' rows. Anything else (a
-    refusal, a malformed answer, a 409 after the re-read) fails the call whole, as a bug or a
-    broken contract would. When both kinds of lone failure meet in one call, the
-    ``PodUnavailableError`` is raised; ``answered`` still holds exactly the rows delivered.
-    """
-    unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]
-    moved = [e for e in errors if isinstance(e, RoutingChangedError)]
-    others = [e for e in errors if not isinstance(e, (PodUnavailableError, RoutingChangedError))]
-    if others:
-        return others[0]
-    if unavailable:
-        held = {pod: keys for e in unavailable for pod, keys in e.held.items()}
-        return PodUnavailableError(held, "; ".join(e.reason for e in unavailable), answered=answered)
-    keys = [key for e in moved for key in e.traj_keys]
-    return RoutingChangedError(max(e.generation for e in moved), keys, answered=answered)
 
 
 @dataclass
@@ -752,7 +732,7 @@ class StageClient:
                 _take_rows(reset_batch, sorted(answered.reset_rows)),
                 _take_rows(step_batch, sorted(answered.step_rows)),
             )
-            raise _call_error(errors, partial if pick is None else partial[pick])
+            raise call_error(errors, partial if pick is None else partial[pick])
         return reset_batch, step_batch
 
     def _fill(self, batch: StageBatch, answer: dict[str, Any], rows: np.ndarray, pod: str, check_tasks: bool) -> None:

@@ -21,9 +21,9 @@ from gymnasium.vector.async_vector_env import AsyncState
 from gymnasium.vector.utils import batch_space, create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
-from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError
+from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, call_error
 from vecsim.client.routing import TrajRoute, env_slots
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, _call_error, fetch_routing
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.tasks import get_task
 from vecsim.transport import TransportKind
@@ -251,8 +251,8 @@ class HTTPVectorEnv(VectorEnv):
         self._failed |= failed
         self._autoreset[failed] = False
         envs = np.flatnonzero(failed).tolist()
-        error.failed_envs = envs  # type: ignore[attr-defined]
-        error.result = result  # type: ignore[attr-defined]
+        error.failed_envs = envs
+        error.result = result
         logger.warning("envs %s got no answer and must be reset: %s", envs, error)
 
     def _place_lost_envs(self, mask: np.ndarray) -> None:
@@ -410,7 +410,7 @@ class HTTPVectorEnv(VectorEnv):
             errors.append(error)
             again = error.answered[0]
         if errors:
-            raise _call_error(errors, (again, stepped))
+            raise call_error(errors, (again, stepped))
         return again, stepped
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
