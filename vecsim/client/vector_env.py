@@ -393,22 +393,21 @@ class HTTPVectorEnv(VectorEnv):
         # A pod failing either call fails only its envs: the answered envs that ended are reset
         # all the same, and one error names every env left without an answer.
         errors: list[BaseException] = []
-        try:
-            _, stepped = await self.client.call(step=step)
-        except _PARTIAL as error:
-            if error.answered is None:
-                raise
-            errors.append(error)
-            stepped = error.answered[1]
+
+        async def answered(pick: int, **work: Any) -> StageBatch:
+            """Item ``pick`` of the call's answer; after a lone failure, its answered rows."""
+            try:
+                return (await self.client.call(**work))[pick]
+            except _PARTIAL as error:
+                if error.answered is None:
+                    raise
+                errors.append(error)
+                return error.answered[pick]
+
+        stepped = await answered(1, step=step)
         ended = [key for j, key in enumerate(stepped.traj_keys) if stepped.terminated[j] or stepped.truncated[j]]
         reset = {key: self._draw_state_id(self._key_index[key], None) for key in ended}
-        try:
-            again, _ = await self.client.call(reset=reset)
-        except _PARTIAL as error:
-            if error.answered is None:
-                raise
-            errors.append(error)
-            again = error.answered[0]
+        again = await answered(0, reset=reset)
         if errors:
             raise call_error(errors, (again, stepped))
         return again, stepped
