@@ -13,6 +13,7 @@ import os
 import re
 import signal
 from collections.abc import Iterator
+from contextlib import closing
 
 import httpx
 import numpy as np
@@ -67,19 +68,15 @@ def restart(server: Server) -> None:
 
 def reference(pods: tuple[Server, Server], mode: AutoresetMode, actions: list[float]) -> list[tuple]:
     """A fault-free run from STATE_IDS: the reset's answer, then each step's."""
-    env = vector_env(pods, mode)
-    try:
+    with closing(vector_env(pods, mode)) as env:
         answers = [env.reset(options={"state_ids": STATE_IDS})]
         return answers + [env.step(act(env, a)) for a in actions]
-    finally:
-        env.close()
 
 
 def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_their_true_rows(pods):
     _, doomed = pods
     ref = reference(pods, AutoresetMode.NEXT_STEP, [FIRST, SECOND, FIRST])
-    env = vector_env(pods)
-    try:
+    with closing(vector_env(pods)) as env:
         healthy, failed = on_pod(env, "sim-0"), on_pod(env, "sim-1")
         env.reset(options={"state_ids": STATE_IDS})
         env.step(act(env, FIRST))
@@ -107,14 +104,11 @@ def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_thei
         assert np.array_equal(obs["proprio"][healthy], ref[3][0]["proprio"][healthy])
         assert np.array_equal(obs["proprio"][failed], ref[1][0]["proprio"][failed])
         assert np.array_equal(reward, np.where(mask, ref[1][1], ref[3][1]))
-    finally:
-        env.close()
 
 
 def test_a_step_before_the_failed_envs_are_reset_is_refused_naming_them(pods):
     _, doomed = pods
-    env = vector_env(pods)
-    try:
+    with closing(vector_env(pods)) as env:
         failed = on_pod(env, "sim-1")
         env.reset(seed=0)
         kill(doomed)
@@ -122,14 +116,11 @@ def test_a_step_before_the_failed_envs_are_reset_is_refused_naming_them(pods):
             env.step(act(env, FIRST))
         with pytest.raises(ResetNeeded, match=re.escape(f"envs {failed} got no answer")):
             env.step(act(env, FIRST))
-    finally:
-        env.close()
 
 
 def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(pods):
     _, doomed = pods
-    env = vector_env(pods)
-    try:
+    with closing(vector_env(pods)) as env:
         healthy, failed = on_pod(env, "sim-0"), on_pod(env, "sim-1")
         before, _ = env.reset(seed=0)
         kill(doomed)
@@ -145,16 +136,13 @@ def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(
         restart(doomed)
         env.reset(options={"reset_mask": mask})
         assert env.step(act(env, FIRST))[4]["_success"].all()
-    finally:
-        env.close()
 
 
 @pytest.mark.parametrize("pods", [2], indirect=True)
 def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods):
     _, doomed = pods
     ref = reference(pods, AutoresetMode.SAME_STEP, [FIRST, SECOND])
-    env = vector_env(pods, AutoresetMode.SAME_STEP)
-    try:
+    with closing(vector_env(pods, AutoresetMode.SAME_STEP)) as env:
         healthy, failed = on_pod(env, "sim-0"), on_pod(env, "sim-1")
         env.reset(options={"state_ids": STATE_IDS})
         env.step(act(env, FIRST))
@@ -173,8 +161,6 @@ def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods
         env.reset(options={"reset_mask": ~truncated})
         _, _, terminated, truncated, info = env.step(act(env, FIRST))
         assert info["_success"].all() and not (terminated | truncated).any()
-    finally:
-        env.close()
 
 
 JOB = {"job_id": "vector-faults", "tasks": [PENDULUM], "group_size": 2, "num_stages": 2, "camera": {"names": []}}
@@ -182,8 +168,7 @@ JOB = {"job_id": "vector-faults", "tasks": [PENDULUM], "group_size": 2, "num_sta
 
 def test_a_pod_restarted_into_its_slot_takes_its_envs_back_after_a_reset_of_them(tmp_path):
     with local_job(job_config(JOB, replicas=2), tmp_path) as job:
-        env = HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)
-        try:
+        with closing(HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)) as env:
             healthy, failed = on_pod(env, "sim-1"), on_pod(env, "sim-0")
             env.reset(options={"state_ids": STATE_IDS})
             generation = env.client.routing.generation
@@ -199,14 +184,11 @@ def test_a_pod_restarted_into_its_slot_takes_its_envs_back_after_a_reset_of_them
             env.reset(options={"reset_mask": mask, "state_ids": STATE_IDS})
             assert sorted(env.routes) == list(range(env.num_envs))
             assert env.step(act(env, FIRST))[4]["_success"].all()
-        finally:
-            env.close()
 
 
 def test_a_reset_after_the_jobs_envs_changed_is_refused_naming_the_generation(tmp_path):
     with local_job(job_config(JOB, replicas=2), tmp_path) as job:
-        env = HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)
-        try:
+        with closing(HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)) as env:
             env.reset(seed=0)
             generation = env.client.routing.generation
             bigger = {**JOB, "group_size": 3}
@@ -219,5 +201,3 @@ def test_a_reset_after_the_jobs_envs_changed_is_refused_naming_the_generation(tm
             assert caught.value.failed_envs == list(range(env.num_envs))
             with pytest.raises(ClientError, match=f"generation {new_generation}.*make a new one"):
                 env.reset()
-        finally:
-            env.close()
