@@ -5,18 +5,22 @@ blocks, one per task, on a gymnasium ``AsyncVectorEnv`` (shared memory, no copie
 ``forkserver`` processes: the default fork context hangs once the parent holds an EGL context).
 
 gymnasium steps every worker on every call, so each worker's env takes a command-carrying action
-``{"cmd": noop|step|reset, "state_id", "action"}`` per slot: one call carries the resets or steps
-of exactly the named envs, and every other env returns its last observation without advancing.
-Per-slot rewards and flags come back in one float64 array (each array written to shared memory
-costs microseconds per worker and call, which cheap scenes feel).
+``{"cmd": noop|step|reset, "state_id", "action", "record"}`` per slot: one call carries the resets
+or steps of exactly the named envs, and every other env returns its last observation without
+advancing. A step carries a chunk of K actions per env (``action`` ``[slots, K, ...]``, K from 1
+to ``max_chunk``): the worker applies them in order and stops an env at its first termination or
+truncation. Per-slot, per-action rewards and flags come back in one float64 array (each array
+written to shared memory costs microseconds per worker and call, which cheap scenes feel).
 A worker hosts ``envs_per_worker`` consecutive env indices, whatever their tasks: a run of envs
 may cross from one task block into the next, each slot's env built for its own task (the last
 worker may have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick,
 :func:`resolve_envs_per_worker`). A worker returns per-slot rewards and flags inside its
 observation, since gymnasium's reward and flags are one scalar per worker. Camera images are
-rendered after every command of a call has run, for exactly the envs reset or stepped, all their
-cameras in one batch of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per
+rendered once, after every command of a call has run (after an env's last applied action), for
+exactly the envs reset or stepped, all their cameras in one batch of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per
 worker; envs of one scene share a render context, and each scene's views are read back at once).
+An env whose frames are recorded (``record``) is also rendered after each of its other applied
+actions; those frames travel back through the worker's pipe, not shared memory.
 
 Once its envs are built, a worker frees what MuJoCo's XML compiler keeps for the life of the
 process (the last model's parsed spec and the asset cache): for a LIBERO scene that is ~950 MB of
@@ -57,8 +61,10 @@ log = logging.getLogger("vecsim.sim")
 
 NOOP, STEP, RESET = 0, 1, 2
 _MAX_STATE_ID = 2**31 - 1
-# Columns of a worker's per-slot result rows.
+# Columns of a worker's per-slot, per-action result rows.
 _REWARD, _TERMINATED, _TRUNCATED, _SUCCESS = 0, 1, 2, 3
+# The longest chunk a pod takes by default: the chunk axis of a worker's shared result rows.
+DEFAULT_MAX_CHUNK = 64
 _PROGRESS_EVERY_S = 10.0
 
 
@@ -105,6 +111,7 @@ class _WorkerSpec:
     max_episode_steps: int
     observation_space: gymnasium.spaces.Dict
     action_space: gymnasium.spaces.Box
+    max_chunk: int = DEFAULT_MAX_CHUNK
 
     def describe(self) -> str:
         """Return the hosted envs by task, e.g. ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
@@ -182,18 +189,22 @@ class _WorkerEnv(gymnasium.Env):
         self.observation_space = gymnasium.spaces.Dict(
             {
                 "obs": _stacked(worker.observation_space, slots),
-                # Per slot: reward, terminated, truncated, success.
-                "flags": gymnasium.spaces.Box(-np.inf, np.inf, (slots, 4), np.float64),
+                # Per slot and chunk action: reward, terminated, truncated, success (zeros
+                # after the action an env stopped at).
+                "flags": gymnasium.spaces.Box(-np.inf, np.inf, (slots, worker.max_chunk, 4), np.float64),
                 # Seconds this worker spent in the last call on physics (resets and steps) and
-                # on rendering: the pod's time split, per call.
-                "timing": gymnasium.spaces.Box(0.0, np.inf, (2,), np.float64),
+                # on rendering: the pod's time split, per call; and how many env renders (all of
+                # an env's cameras drawn once) it made.
+                "timing": gymnasium.spaces.Box(0.0, np.inf, (3,), np.float64),
             }
         )
+        # A call sends the chunk axis of ``action`` only as long as its chunk (K), not max_chunk.
         self.action_space = gymnasium.spaces.Dict(
             {
                 "cmd": gymnasium.spaces.MultiDiscrete([3] * slots),
                 "state_id": gymnasium.spaces.Box(0, _MAX_STATE_ID, (slots,), np.int64),
-                "action": _stacked(worker.action_space, slots),
+                "action": _stacked(_stacked(worker.action_space, worker.max_chunk), slots),
+                "record": gymnasium.spaces.MultiBinary(slots),
             }
         )
         self._envs: list[TaskEnv] = []
@@ -234,37 +245,72 @@ class _WorkerEnv(gymnasium.Env):
     def _reset_slot(self, slot: int, state_id: int) -> None:
         observation, info = self._envs[slot].reset(options={"state_id": state_id})
         _write_slot(self._out["obs"], slot, observation)
-        self._out["flags"][slot] = (0.0, 0.0, 0.0, info["success"])
+        self._out["flags"][slot] = 0.0
+        self._out["flags"][slot, 0, _SUCCESS] = info["success"]
+
+    def _step_slot(self, slot: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
+        """Apply ``chunk``'s actions to one env until it terminates or truncates; return the
+        frames recorded after each applied action but the last, and the seconds spent drawing them."""
+        env = self._envs[slot]
+        rows = self._out["flags"][slot]
+        rows[:] = 0.0
+        frames: list[dict[str, np.ndarray]] = []
+        render_s = 0.0
+        observation = None
+        for k, action in enumerate(chunk):
+            observation, reward, terminated, truncated, info = env.step(action)
+            rows[k] = (reward, terminated, truncated, info["success"])
+            if terminated or truncated:
+                break
+            if record and k + 1 < len(chunk) and env.renderer is not None:
+                drawn = time.perf_counter()
+                frames.append(self._draw([slot]))
+                render_s += time.perf_counter() - drawn
+        if observation is not None:
+            _write_slot(self._out["obs"], slot, observation)
+        return frames, render_s
 
     def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
-        """Run each slot's command; return the worker's observation (rewards and flags inside it)."""
+        """Run each slot's command; return the worker's observation (rewards and flags inside it)
+        and, in ``info["frames"]``, ``[(slot, [{camera: image}, ...]), ...]`` for recorded slots."""
         started = time.perf_counter()
         touched = []
-        for slot, env in enumerate(self._envs):
+        recorded: list[tuple[int, list[dict[str, np.ndarray]]]] = []
+        render_s = 0.0
+        for slot in range(len(self._envs)):
             cmd = int(command["cmd"][slot])
             if cmd == RESET:
                 self._reset_slot(slot, int(command["state_id"][slot]))
                 touched.append(slot)
             elif cmd == STEP:
-                observation, reward, terminated, truncated, info = env.step(command["action"][slot])
-                _write_slot(self._out["obs"], slot, observation)
-                self._out["flags"][slot] = (reward, terminated, truncated, info["success"])
+                record = bool(command["record"][slot])
+                frames, drawing_s = self._step_slot(slot, command["action"][slot], record)
+                render_s += drawing_s
+                if record:
+                    recorded.append((slot, frames))
                 touched.append(slot)
         stepped = time.perf_counter()
+        physics_s = stepped - started - render_s
         self._render(touched)
-        self._out["timing"][:] = (stepped - started, time.perf_counter() - stepped)
-        return self._out, 0.0, False, False, {}
+        render_s += time.perf_counter() - stepped
+        renders = sum(len(frames) for _, frames in recorded) + (len(touched) if self._envs[0].renderer else 0)
+        self._out["timing"][:] = (physics_s, render_s, renders)
+        return self._out, 0.0, False, False, {"frames": recorded} if recorded else {}
 
-    def _render(self, slots: list[int]) -> None:
+    def _draw(self, slots: list[int]) -> dict[str, np.ndarray]:
+        """Render every camera of ``slots``' envs in one batch; return ``{camera: uint8[len(slots), H, W, 3]}``."""
         # Every env of a worker renders at one size and preset, so they share one renderer.
-        if not slots or self._envs[0].renderer is None:
-            return
         names = self._envs[0].image_names
         views = [self._envs[slot].camera_views[camera] for camera in range(len(names)) for slot in slots]
         frames = self._envs[0].renderer.render(views)
+        return {name: frames[index * len(slots) : (index + 1) * len(slots)] for index, name in enumerate(names)}
+
+    def _render(self, slots: list[int]) -> None:
+        if not slots or self._envs[0].renderer is None:
+            return
         images = self._out["obs"]["images"]
-        for index, name in enumerate(names):
-            images[name][slots] = frames[index * len(slots) : (index + 1) * len(slots)]
+        for name, frames in self._draw(slots).items():
+            images[name][slots] = frames
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -352,10 +398,33 @@ def resolve_envs_per_worker(assignment: Assignment, cores: int | None = None) ->
 @dataclass(frozen=True)
 class CallTiming:
     """Worker seconds of one reset or step call, summed over the pod's workers: ``physics_s``
-    in the scenes' resets and steps, ``render_s`` rendering their cameras."""
+    in the scenes' resets and steps, ``render_s`` rendering their cameras; and ``renders``, how
+    many env renders (all of one env's cameras drawn once) the call made."""
 
     physics_s: float = 0.0
     render_s: float = 0.0
+    renders: int = 0
+
+
+@dataclass(frozen=True)
+class ChunkResult:
+    """What one chunk step answers, over the named envs in the given order (n envs, chunk K).
+
+    ``reward`` float32, ``terminated``, ``truncated``, ``success`` bool, all ``[n, K]``: entry
+    ``[i, k]`` belongs to env i's action k, zero/false from the action after env i stopped on.
+    ``num_steps`` int32 ``[n]``: actions applied (K unless the env terminated or truncated first).
+    ``obs``: the observation after each env's last applied action, batched ``[n, ...]``.
+    ``frames``: ``{camera: uint8[m, K, H, W, 3]}`` for the m recorded envs, in the order asked,
+    the frame after each applied action (zeros after the env stopped); empty when none is recorded.
+    """
+
+    obs: dict[str, Any]
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    success: np.ndarray
+    num_steps: np.ndarray
+    frames: dict[str, np.ndarray]
 
 
 class TaskGroupedVectorEnv:
@@ -372,6 +441,7 @@ class TaskGroupedVectorEnv:
         context: multiprocessing start method for the workers.
         timeout_s: longest wait for the workers on one reset or step; None waits forever.
         build_timeout_s: longest wait for the workers to build; None waits forever.
+        max_chunk: the most actions per env one step call takes (:meth:`chunk_step_envs`).
 
     Raises:
         UnknownTaskError: a task id no provider knows.
@@ -387,8 +457,12 @@ class TaskGroupedVectorEnv:
         context: str = "forkserver",
         timeout_s: float | None = None,
         build_timeout_s: float | None = None,
+        max_chunk: int = DEFAULT_MAX_CHUNK,
     ) -> None:
+        if max_chunk < 1:
+            raise ValueError(f"max_chunk: must be at least 1, got {max_chunk}")
         self.assignment = assignment
+        self.max_chunk = max_chunk
         self.single_observation_space, self.single_action_space = assignment_spaces(assignment)
         self.num_envs = assignment.num_envs
         self.task_ids: list[str] = []
@@ -416,6 +490,7 @@ class TaskGroupedVectorEnv:
                 max_episode_steps=assignment.max_episode_steps,
                 observation_space=self.single_observation_space,
                 action_space=self.single_action_space,
+                max_chunk=max_chunk,
             )
             for first in range(0, self.num_envs, slots)
         ]
@@ -530,26 +605,64 @@ class TaskGroupedVectorEnv:
         return states.astype(np.int64)
 
     def _actions(self, actions: Any, ids: np.ndarray) -> np.ndarray:
+        """Return ``actions`` (one per env, ``[n, *action shape]``) as a chunk of one per env."""
         space = self.single_action_space
+        values = self._numbers(actions)
+        if ids.size == 0 and values.size == 0:
+            return np.zeros((0, 1, *space.shape), dtype=space.dtype)
+        expected = (ids.size, *space.shape)
+        if values.shape != expected:
+            raise InvalidRequestError(f"actions: expected shape {expected}, got {values.shape}")
+        return self._finite(values[:, None], ids)
+
+    def _chunk(self, actions: Any, ids: np.ndarray) -> np.ndarray:
+        """Return ``actions`` (``[n, K, *action shape]``, K from 0 to ``max_chunk``) checked."""
+        space = self.single_action_space
+        values = self._numbers(actions)
+        if ids.size == 0 and values.size == 0 and values.ndim != 2 + len(space.shape):
+            return np.zeros((0, 0, *space.shape), dtype=space.dtype)
+        if values.ndim != 2 + len(space.shape) or values.shape[0] != ids.size or values.shape[2:] != space.shape:
+            expected = f"({ids.size}, K, {', '.join(map(str, space.shape))})"
+            raise InvalidRequestError(f"actions: expected a chunk of shape {expected}, got {values.shape}")
+        if values.shape[1] > self.max_chunk:
+            raise InvalidRequestError(
+                f"actions: a chunk of {values.shape[1]} actions per env exceeds this pod's limit of {self.max_chunk}"
+            )
+        return self._finite(values, ids)
+
+    def _numbers(self, actions: Any) -> np.ndarray:
         try:
             values = np.asarray(actions)
         except ValueError as exc:
             raise InvalidRequestError(f"actions: not a rectangular array: {exc}") from None
-        if ids.size == 0 and values.size == 0:
-            return np.zeros((0, *space.shape), dtype=space.dtype)
-        if values.dtype.kind not in "fiu":
+        if values.size and values.dtype.kind not in "fiu":
             raise InvalidRequestError(f"actions: expected numbers, got dtype {values.dtype}")
-        expected = (ids.size, *space.shape)
-        if values.shape != expected:
-            raise InvalidRequestError(f"actions: expected shape {expected}, got {values.shape}")
-        cast = values.astype(space.dtype)
-        finite = np.isfinite(cast.reshape(ids.size, -1)).all(axis=1)
+        return values
+
+    def _finite(self, chunk: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        cast = chunk.astype(self.single_action_space.dtype)
+        finite = np.isfinite(cast.reshape(*cast.shape[:2], math.prod(cast.shape[2:]))).all(axis=2)
         if not finite.all():
-            env = int(ids[np.flatnonzero(~finite)[0]])
+            row, k = (int(i[0]) for i in np.nonzero(~finite))
+            where = f"action {k} of the chunk" if chunk.shape[1] > 1 else "the action"
             raise InvalidRequestError(
-                f"actions: the action for env {env} is not finite (NaN, inf or too large)"
+                f"actions: {where} for env {int(ids[row])} is not finite (NaN, inf or too large)"
             )
         return cast
+
+    def _record(self, record_env_ids: Any, ids: np.ndarray) -> np.ndarray:
+        """Return the rows of ``ids`` that ``record_env_ids`` names, in its order."""
+        record = _int_array("record_env_ids", record_env_ids)
+        if record.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        values, counts = np.unique(record, return_counts=True)
+        if (counts > 1).any():
+            raise InvalidRequestError(f"record_env_ids: env {int(values[counts > 1][0])} is named more than once")
+        rows = {int(env): row for row, env in enumerate(ids)}
+        missing = [int(env) for env in record if int(env) not in rows]
+        if missing:
+            raise InvalidRequestError(f"record_env_ids: env {missing[0]} is not one of the env_ids stepped")
+        return np.array([rows[int(env)] for env in record], dtype=np.int64)
 
     # Calls.
 
@@ -574,8 +687,8 @@ class TaskGroupedVectorEnv:
         workers, slots = self._location[ids].T
         command["cmd"][workers, slots] = RESET
         command["state_id"][workers, slots] = states
-        obs, out = self._run(command, workers, slots)
-        return obs, {"success": out["success"], "task_id": [self.task_ids[i] for i in ids]}
+        obs, rows, _ = self._run(command, workers, slots)
+        return obs, {"success": rows[:, 0, _SUCCESS] != 0, "task_id": [self.task_ids[i] for i in ids]}
 
     def step_envs(
         self, env_ids: Any, actions: Any
@@ -593,16 +706,89 @@ class TaskGroupedVectorEnv:
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
         ids = self._env_ids(env_ids)
-        values = self._actions(actions, ids)
-        if ids.size == 0:
-            empty = np.zeros(0, dtype=bool)
-            return self._empty_obs(), np.zeros(0, np.float32), empty, empty.copy(), {"success": empty.copy()}
-        command = self._command()
+        result = self._step_chunks(ids, self._actions(actions, ids), np.zeros(0, dtype=np.int64))
+        return (
+            result.obs,
+            result.reward[:, 0],
+            result.terminated[:, 0],
+            result.truncated[:, 0],
+            {"success": result.success[:, 0]},
+        )
+
+    def chunk_step_envs(self, env_ids: Any, actions: Any, record_env_ids: Any = ()) -> ChunkResult:
+        """Apply a chunk of K actions to each named env, in order; no other env advances.
+
+        Env ``env_ids[i]`` takes ``actions[i, 0]``, ``actions[i, 1]``, ... and stops at its first
+        termination or truncation (its later actions are not applied). Cameras are rendered once
+        per env, after its last applied action; the envs in ``record_env_ids`` (a subset of
+        ``env_ids``) are also rendered after each of their other applied actions. K = 0 moves
+        nothing and answers the envs' current observations.
+
+        Returns:
+            :class:`ChunkResult` over the named envs in the given order. Empty ``env_ids``: empty
+            results.
+
+        Raises:
+            UnknownEnvError: an env index out of range.
+            InvalidRequestError: duplicate env ids, non-integer ids, a chunk of the wrong shape or
+                dtype or longer than ``max_chunk``, a NaN or infinite action (the message names
+                the env and the chunk index), or ``record_env_ids`` not among ``env_ids``.
+            SimCrashedError: a worker died, hung or failed (the pod must rebuild).
+        """
+        ids = self._env_ids(env_ids)
+        chunk = self._chunk(actions, ids)
+        return self._step_chunks(ids, chunk, self._record(record_env_ids, ids))
+
+    def _step_chunks(self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray) -> ChunkResult:
+        n, k = chunk.shape[:2]
         workers, slots = self._location[ids].T
+        if n == 0 or k == 0:
+            obs = self._empty_obs() if n == 0 else self._current(workers, slots)
+            return self._result(obs, np.zeros((n, k, 4)), recorded, {})
+        command = self._command(k)
         command["cmd"][workers, slots] = STEP
-        command["action"][workers, slots] = values
-        obs, out = self._run(command, workers, slots)
-        return obs, out["reward"], out["terminated"], out["truncated"], {"success": out["success"]}
+        command["action"][workers, slots] = chunk
+        command["record"][workers[recorded], slots[recorded]] = 1
+        obs, rows, info = self._run(command, workers, slots)
+        result = self._result(obs, rows[:, :k], recorded, {})
+        # gymnasium gathers each worker's info["frames"] into an object array, None where a
+        # worker recorded nothing.
+        drawn: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
+        for worker, entries in enumerate(info.get("frames", ())):
+            for slot, frames in entries or ():
+                drawn[(worker, slot)] = frames
+        for index, row in enumerate(recorded):
+            before_last = drawn[(int(workers[row]), int(slots[row]))]
+            last = int(result.num_steps[row]) - 1
+            for camera, out in result.frames.items():
+                for step, frame in enumerate(before_last):
+                    out[index, step] = frame[camera][0]
+                out[index, last] = obs["images"][camera][row]
+        return result
+
+    def _result(
+        self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray, frames: dict[str, np.ndarray]
+    ) -> ChunkResult:
+        n, k = rows.shape[:2]
+        stopped = (rows[:, :, _TERMINATED] != 0) | (rows[:, :, _TRUNCATED] != 0)
+        # An env stops at its first termination or truncation; one that never did applied all K.
+        first_stop = np.argmax(stopped, axis=1) if k else np.zeros(n, dtype=np.int64)
+        num_steps = np.where(stopped.any(axis=1), first_stop + 1, k).astype(np.int32)
+        images = self.single_observation_space.spaces.get("images")
+        if images is not None and recorded.size:
+            frames = {
+                camera: np.zeros((recorded.size, k, *space.shape), dtype=space.dtype)
+                for camera, space in images.spaces.items()
+            }
+        return ChunkResult(
+            obs=obs,
+            reward=rows[:, :, _REWARD].astype(np.float32),
+            terminated=rows[:, :, _TERMINATED] != 0,
+            truncated=rows[:, :, _TRUNCATED] != 0,
+            success=rows[:, :, _SUCCESS] != 0,
+            num_steps=num_steps,
+            frames=frames,
+        )
 
     def frame(self, env_id: int, camera: str) -> np.ndarray:
         """Return a copy of the uint8 HxWx3 image ``camera`` of env ``env_id`` saw last.
@@ -645,14 +831,22 @@ class TaskGroupedVectorEnv:
     def _empty_obs(self) -> dict[str, Any]:
         return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
 
-    def _command(self) -> dict[str, np.ndarray]:
+    def _command(self, chunk: int = 1) -> dict[str, np.ndarray]:
         workers, slots = len(self._workers), self.envs_per_worker
         action = self.single_action_space
         return {
             "cmd": np.full((workers, slots), NOOP, dtype=np.int64),
             "state_id": np.zeros((workers, slots), dtype=np.int64),
-            "action": np.zeros((workers, slots, *action.shape), action.dtype),
+            "action": np.zeros((workers, slots, chunk, *action.shape), action.dtype),
+            "record": np.zeros((workers, slots), dtype=np.int8),
         }
+
+    def _current(self, workers: np.ndarray, slots: np.ndarray) -> dict[str, Any]:
+        """The named envs' observations as they stand, without a worker call."""
+        with self._lock:
+            self._check_usable()
+            assert self._vec is not None
+            return _gather(self._vec.observations["obs"], workers, slots)
 
     def _dead_worker(self) -> str | None:
         assert self._vec is not None
@@ -681,13 +875,15 @@ class TaskGroupedVectorEnv:
 
     def _run(
         self, command: dict[str, np.ndarray], workers: np.ndarray, slots: np.ndarray
-    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    ) -> tuple[dict[str, Any], np.ndarray, dict[str, Any]]:
+        """Send ``command`` to every worker; return the named envs' observations, their result
+        rows ``[n, max_chunk, 4]`` and the workers' gathered info."""
         with self._lock:
             self._check_usable()
             assert self._vec is not None
             try:
                 self._vec.step_async(command)
-                out, _, _, _, _ = self._vec.step_wait(timeout=self._timeout_s)
+                out, _, _, _, info = self._vec.step_wait(timeout=self._timeout_s)
             except multiprocessing.TimeoutError as exc:
                 self._broken = f"the workers did not answer within {self._timeout_s} s"
                 raise SimCrashedError(self._broken) from exc
@@ -695,16 +891,10 @@ class TaskGroupedVectorEnv:
                 self._broken = self._failure(exc)
                 raise SimCrashedError(self._broken) from exc
             obs = _gather(out["obs"], workers, slots)
-            physics_s, render_s = out["timing"].sum(axis=0)
-            self.last_timing = CallTiming(float(physics_s), float(render_s))
+            physics_s, render_s, renders = out["timing"].sum(axis=0)
+            self.last_timing = CallTiming(float(physics_s), float(render_s), int(renders))
             rows = out["flags"][workers, slots]
-            flags = {
-                "reward": rows[:, _REWARD].astype(np.float32),
-                "terminated": rows[:, _TERMINATED].astype(bool),
-                "truncated": rows[:, _TRUNCATED].astype(bool),
-                "success": rows[:, _SUCCESS].astype(bool),
-            }
-        return obs, flags
+        return obs, rows, info
 
 
 def _int_array(name: str, values: Any) -> np.ndarray:

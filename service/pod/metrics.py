@@ -12,7 +12,7 @@ class PodMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
         self.env_steps = Counter(
-            "vecsim_pod_env_steps", "Env steps simulated (one per env per step request).",
+            "vecsim_pod_env_steps", "Env steps simulated (one per action applied to an env).",
             registry=self.registry,
         )
         self.env_resets = Counter(
@@ -32,6 +32,12 @@ class PodMetrics:
         self.render_seconds = Counter(
             "vecsim_pod_render_seconds",
             "Worker seconds of step requests spent rendering cameras, summed over the pod's workers.",
+            registry=self.registry,
+        )
+        self.env_renders = Counter(
+            "vecsim_pod_env_renders",
+            "Env renders of step requests (all of one env's cameras drawn once): one per env per "
+            "request, plus one per recorded frame.",
             registry=self.registry,
         )
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)

@@ -52,10 +52,18 @@ IntVector = Annotated[
     PlainValidator(_int_vector),
     WithJsonSchema({"type": "array", "items": {"type": "integer"}}),
 ]
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
 ActionMatrix = Annotated[
     np.ndarray,
     PlainValidator(_action_matrix),
-    WithJsonSchema({"type": "array", "items": {"type": "array", "items": {"type": "number"}}}),
+    WithJsonSchema(
+        {
+            "oneOf": [
+                {"type": "array", "items": _NUMBERS, "description": "[n, action dim]: one action per env"},
+                {"type": "array", "items": {"type": "array", "items": _NUMBERS}, "description": "[n, K, action dim]: a chunk per env"},
+            ]
+        }
+    ),
 ]
 
 
@@ -72,11 +80,19 @@ class ResetRequest(_Request):
 
 
 class StepRequest(_Request):
-    """``POST /v1/step``: apply ``actions[i]`` to ``env_ids[i]``; other envs do not move."""
+    """``POST /v1/step``: apply ``actions[i]`` (one action, or a chunk of K in order) to
+    ``env_ids[i]``; other envs do not move."""
 
     generation: Generation = Field(description="the assignment generation the caller routes by")
     env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
-    actions: ActionMatrix = Field(description="[n, action dim] finite numbers (float32 on the wire)")
+    actions: ActionMatrix = Field(
+        description="[n, action dim], or a chunk [n, K, action dim] with K up to /v1/info's max_chunk; "
+        "finite numbers (float32 on the wire)"
+    )
+    record_env_ids: IntVector = Field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64),
+        description="chunks only: env ids (among env_ids) whose camera frame after every applied action is answered in frames",
+    )
 
 
 class ResetInfo(BaseModel):
@@ -107,6 +123,26 @@ class StepResponse(BaseModel):
     info: StepInfo
 
 
+class ChunkStepInfo(BaseModel):
+    success: list[list[bool]]
+
+
+class ChunkStepResponse(BaseModel):
+    """JSON form of the answer to a chunk step (``actions`` ``[n, K, action dim]``): entry
+    ``[i][k]`` belongs to action k of env i, 0/false after env i stopped."""
+
+    env_ids: list[int]
+    obs: dict[str, Any] = Field(description="observation after each env's last applied action, leading dim n")
+    reward: list[list[float]] = Field(description="[n, K]")
+    terminated: list[list[bool]] = Field(description="[n, K]")
+    truncated: list[list[bool]] = Field(description="[n, K]")
+    num_steps: list[int] = Field(description="[n] actions applied: K unless the env terminated or truncated first")
+    info: ChunkStepInfo
+    frames: dict[str, Any] | None = Field(
+        None, description="with record_env_ids: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action"
+    )
+
+
 class TaskInfo(BaseModel):
     task_id: str
     instruction: str
@@ -126,6 +162,7 @@ class InfoResponse(BaseModel):
     tasks: list[TaskInfo]
     observation_space: dict[str, Any] | None
     action_space: dict[str, Any] | None
+    max_chunk: int = Field(description="the most actions per env one POST /v1/step takes (a chunk's K)")
     instance: str | None = Field(
         description="names this build of the envs: new when they are built anew, kept when only the generation moves on"
     )

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from vecsim.auth import check_token
 from vecsim.config import Assignment
+from vecsim.sim import DEFAULT_MAX_CHUNK
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
 # The device node the NVIDIA driver creates: present exactly where a GPU is usable for EGL.
@@ -36,6 +37,7 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_MAX_BODY_BYTES": "max_body_bytes",
     "VECSIM_STEP_TIMEOUT_S": "step_timeout_s",
     "VECSIM_BUILD_TIMEOUT_S": "build_timeout_s",
+    "VECSIM_MAX_CHUNK": "max_chunk",
 }
 
 
@@ -71,6 +73,8 @@ class PodSettings(BaseModel):
     step_timeout_s: float = Field(120.0, gt=0)
     # LIBERO scenes take minutes to build on a CPU.
     build_timeout_s: float = Field(900.0, gt=0)
+    # The most actions per env one step call takes (stated in /v1/info).
+    max_chunk: int = Field(DEFAULT_MAX_CHUNK, ge=1)
     access_log: bool = False
     log_level: str = "info"
     assignment: Assignment | None = None

@@ -255,6 +255,7 @@ class PodState:
             assignment,
             timeout_s=self.settings.step_timeout_s,
             build_timeout_s=self.settings.build_timeout_s,
+            max_chunk=self.settings.max_chunk,
         )
         self._live_envs.append(env)
         return env

@@ -16,7 +16,7 @@ from vecsim import sim, wire
 from ..bodies import JSON_TYPE, encode_answer, parse_body, wants_json
 from ..deps import get_state
 from ..errors import InvalidRequestError, SimCrashedError, UnknownEnvError
-from ..models import ErrorResponse, ResetRequest, ResetResponse, StepRequest, StepResponse
+from ..models import ChunkStepResponse, ErrorResponse, ResetRequest, ResetResponse, StepRequest, StepResponse
 from ..state import PodState
 
 router = APIRouter(tags=["envs"])
@@ -106,39 +106,73 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
 @router.post(
     "/v1/step",
     response_class=Response,
-    responses=_answer_doc(StepResponse),
+    responses={
+        **_answer_doc(StepResponse),
+        200: {
+            **_answer_doc(StepResponse)[200],
+            "description": f"StepResponse for one action per env, ChunkStepResponse for chunks; "
+            f"wire ({wire.CONTENT_TYPE}) unless Accept asks for {JSON_TYPE}",
+            "content": {
+                JSON_TYPE: {"schema": {"oneOf": [StepResponse.model_json_schema(), ChunkStepResponse.model_json_schema()]}},
+                wire.CONTENT_TYPE: {"schema": {"type": "string", "format": "binary"}},
+            },
+        },
+    },
     openapi_extra=_body_doc(StepRequest),
-    summary="Step some envs one action each",
+    summary="Step some envs one action or one chunk of actions each",
 )
 async def step(request: Request, state: PodState = Depends(get_state)) -> Response:
     """Apply ``actions[i]`` to ``env_ids[i]``; answers their observations, rewards, termination
-    and truncation flags and success. Other envs do not move; the pod never autoresets; no env
-    ids is a no-op answering empty arrays."""
+    and truncation flags and success. A chunk (``actions`` ``[n, K, action dim]``) is applied in
+    order, each env stopping at its first termination or truncation, its cameras rendered once
+    after its last applied action; the answer's per-action arrays are ``[n, K]`` and
+    ``num_steps`` says how many actions each env took. Other envs do not move; the pod never
+    autoresets; no env ids (or K = 0) is a no-op."""
     req = parse_body(request, await request.body(), StepRequest)
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
+    is_chunk = req.actions.ndim == len(env.single_action_space.shape) + 2
+    if req.record_env_ids.size and not is_chunk:
+        raise InvalidRequestError(
+            f"record_env_ids: pod {state.settings.name} records frames of chunks only; send actions as [n, K, action dim]"
+        )
 
-    def work() -> tuple[Response, float, sim.CallTiming]:
+    def work() -> tuple[Response, float, sim.CallTiming, int]:
         start = time.perf_counter()
-        obs, reward, terminated, truncated, info = env.step_envs(req.env_ids, req.actions)
-        elapsed = time.perf_counter() - start
-        # Read on this thread, before another call can replace it.
-        timing = env.last_timing
-        answer = encode_answer(
-            {
+        if is_chunk:
+            result = env.chunk_step_envs(req.env_ids, req.actions, req.record_env_ids)
+            elapsed = time.perf_counter() - start
+            answer: dict[str, Any] = {
+                "env_ids": req.env_ids.astype(np.int32),
+                "obs": result.obs,
+                "reward": result.reward,
+                "terminated": result.terminated,
+                "truncated": result.truncated,
+                "num_steps": result.num_steps,
+                "info": {"success": result.success},
+            }
+            if req.record_env_ids.size:
+                answer["frames"] = result.frames
+            applied = int(result.num_steps.sum())
+        else:
+            obs, reward, terminated, truncated, info = env.step_envs(req.env_ids, req.actions)
+            elapsed = time.perf_counter() - start
+            answer = {
                 "env_ids": req.env_ids.astype(np.int32),
                 "obs": obs,
                 "reward": np.asarray(reward, dtype=np.float32),
                 "terminated": np.asarray(terminated, dtype=bool),
                 "truncated": np.asarray(truncated, dtype=bool),
                 "info": {"success": np.asarray(info["success"], dtype=bool)},
-            },
-            as_json,
-        )
-        return answer, elapsed, timing
+            }
+            applied = len(req.env_ids)
+        # Read on this thread, before another call can replace it.
+        timing = env.last_timing
+        return encode_answer(answer, as_json), elapsed, timing, applied
 
-    response, elapsed, timing = await _simulate(state, env, work)
-    state.metrics.env_steps.inc(len(req.env_ids))
+    response, elapsed, timing, applied = await _simulate(state, env, work)
+    state.metrics.env_steps.inc(applied)
+    state.metrics.env_renders.inc(timing.renders)
     state.metrics.step_seconds.observe(elapsed)
     state.metrics.physics_seconds.inc(timing.physics_s)
     state.metrics.render_seconds.inc(timing.render_s)

@@ -38,5 +38,6 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
         tasks=tasks,
         observation_space=None if env is None else space_to_json(env.single_observation_space),
         action_space=None if env is None else space_to_json(env.single_action_space),
+        max_chunk=state.settings.max_chunk,
         instance=state.instance,
     )
