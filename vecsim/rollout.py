@@ -9,6 +9,12 @@ group of pods), fast pods step on while a slow one finishes. A trajectory ends o
 truncation or the horizon and is not stepped again. The result is per-trajectory tensors keyed
 by traj_key, plus timing stats and, for chosen trajectories, videos of a camera.
 
+A policy may act in chunks: returning ``[n, K, action_dim]``, each trajectory's K actions go to
+its pod in one call (applied in order, stopping at a termination or truncation, rendered once).
+The loop records every applied action and its reward; the horizon counts actions, not calls (a
+chunk that would pass it is cut to fit). Videos of a chunked rollout carry every action's frame:
+the pods render those frames for the recorded trajectories only.
+
 Batches whose size is not a multiple of the number of stages are accepted: request ``i`` goes to
 stage ``i % S`` (:func:`vecsim.sampler.stage_of`), so stage sizes differ by at most one. An empty
 batch is a no-op, and a stage without trajectories is never called.
@@ -56,7 +62,7 @@ __all__ = [
     "write_video",
 ]
 
-# policy(observations, instructions, task_ids) -> actions [n, action_dim]
+# policy(observations, instructions, task_ids) -> actions [n, action_dim] or chunks [n, K, action_dim]
 Policy = Callable[[dict[str, Any], list[str], list[str]], torch.Tensor]
 
 
@@ -136,11 +142,13 @@ class ExampleCNNPolicy(nn.Module):
 
 @dataclass
 class Trajectory:
-    """One finished trajectory: ``observations`` has one more step than ``actions``.
+    """One finished trajectory of T actions, taken over C policy calls.
 
     ``observations`` holds the kept keys of the observation (``images`` and/or ``proprio``),
-    each ``[T+1, ...]``; ``actions`` ``[T, A]``; ``rewards`` ``[T]``; ``dones`` ``[T]`` (True at
-    the last step). ``success``: the task was solved at some step.
+    each ``[C+1, ...]``: what the policy saw at each call, and the last one; ``actions``
+    ``[T, A]``; ``rewards`` ``[T]``; ``dones`` ``[T]`` (True at the last step); ``num_steps``
+    ``[C]``: the actions applied after each observation (all ones, and C = T, for a policy of
+    one action per call). ``success``: the task was solved at some step.
     """
 
     traj_key: str
@@ -152,6 +160,7 @@ class Trajectory:
     terminated: bool
     truncated: bool
     success: bool
+    num_steps: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.int32))
 
     @property
     def length(self) -> int:
@@ -276,7 +285,8 @@ class EnvLoop:
             return RolloutResult({}, RolloutStats())
         instructions = self.client.instructions
         buffers = {key: _Buffer(key, route, self.keep_obs) for key, route in routes.items()}
-        recorder = _Recorder(self._recorded_keys(list(routes)), self._video_camera())
+        recorded = self._recorded_keys(list(routes))
+        recorder = _Recorder(recorded, self._video_camera())
         clock = _Clock(started, self.log_every_s)
 
         # Reset every stage at once; then serve whichever stage is next in line.
@@ -312,8 +322,11 @@ class EnvLoop:
                 continue  # this stage is finished
             with clock.generating(stage):
                 actions = self._act(batch, live, instructions)  # the policy, on stage s
-            step = {batch.traj_keys[row]: actions[row] for row in live}
-            sent = self._send(stage, step, buffers, lost)  # don't wait: on to the next stage
+            # A stage's live trajectories have taken the same number of actions (one that applied
+            # fewer stopped), so one cut keeps every chunk within the horizon and of one length.
+            left = self.horizon - len(buffers[batch.traj_keys[live[0]]].actions)
+            step = {batch.traj_keys[row]: _within(actions[row], left) for row in live}
+            sent = self._send(stage, step, buffers, lost, recorded)  # don't wait: on to the next stage
             if sent is not None:
                 pending[stage], carried[stage] = sent
 
@@ -327,6 +340,7 @@ class EnvLoop:
         step: dict[str, np.ndarray],
         buffers: Mapping[str, _Buffer],
         lost: dict[str, LostTrajectory],
+        recorded: Sequence[str] = (),
     ) -> tuple[PendingCall[StageBatch], list[str]] | None:
         """Send a stage's actions; return the call and the traj_keys it carries (None: nothing left).
 
@@ -335,7 +349,9 @@ class EnvLoop:
         """
         while step:
             try:
-                call = self.client.step_stage(stage, step)
+                chunked = next(iter(step.values())).ndim == 2
+                record = [key for key in recorded if key in step] if chunked else []
+                call = self.client.step_stage(stage, step, record=record)
             except RoutingChangedError as exc:
                 named = set(exc.traj_keys)
                 gone = [key for key in step if key in named]
@@ -368,7 +384,7 @@ class EnvLoop:
         }
 
     def _act(self, batch: StageBatch, rows: list[int], instructions: Mapping[str, str]) -> dict[int, np.ndarray]:
-        """Run the policy on rows ``rows`` of a batch; return ``{row: action}`` as float32 arrays."""
+        """Run the policy on rows ``rows`` of a batch; return ``{row: action or chunk}`` as float32 arrays."""
         index = np.asarray(rows)
         obs = _to_tensors(batch.obs, index, self.device)
         task_ids = [batch.task_ids[r] for r in rows]
@@ -422,6 +438,11 @@ def _to_tensors(obs: Any, rows: np.ndarray, device: torch.device) -> Any:
     return torch.from_numpy(np.ascontiguousarray(obs[rows])).to(device)
 
 
+def _within(action: np.ndarray, left: int) -> np.ndarray:
+    """A chunk (``[K, A]``) cut to at most ``left`` actions; one action (``[A]``) as it is."""
+    return action[:left] if action.ndim == 2 else action
+
+
 def _take_row(obs: Any, row: int, keep: tuple[str, ...] | None) -> Any:
     if isinstance(obs, dict):
         return {k: _take_row(v, row, None) for k, v in obs.items() if keep is None or k in keep}
@@ -442,20 +463,32 @@ class _Buffer:
         self.observations: list[Any] = []
         self.actions: list[np.ndarray] = []
         self.rewards: list[float] = []
+        self.num_steps: list[int] = []
+        self.sent: np.ndarray | None = None  # the chunk ([K, A]) of the call in flight
         self.terminated = self.truncated = self.success = False
 
     def add(self, batch: StageBatch, row: int) -> None:
-        """Take in a reset or step answer for this trajectory."""
+        """Take in a reset or step answer for this trajectory: each applied action and its reward."""
         if self.keep_obs:
             self.observations.append(_take_row(batch.obs, row, self.keep_obs))
-        if self.actions:  # a step answer: the reward and ending of the last action
-            self.rewards.append(float(batch.reward[row]))
-            self.terminated = bool(batch.terminated[row])
-            self.truncated = bool(batch.truncated[row])
-        self.success = self.success or bool(batch.success[row])
+        if self.sent is not None:  # a step answer
+            applied = int(batch.num_steps[row])
+            per_action = [np.reshape(values[row], -1)[:applied] for values in
+                          (batch.reward, batch.terminated, batch.truncated, batch.success)]  # fmt: skip
+            reward, terminated, truncated, success = per_action
+            self.actions.extend(self.sent[:applied])
+            self.rewards.extend(float(r) for r in reward)
+            self.num_steps.append(applied)
+            self.terminated = bool(terminated[-1]) if applied else self.terminated
+            self.truncated = bool(truncated[-1]) if applied else self.truncated
+            self.success = self.success or bool(success.any())
+            self.sent = None
+        else:
+            self.success = self.success or bool(np.reshape(batch.success[row], -1).any())
 
     def act(self, action: np.ndarray) -> None:
-        self.actions.append(action)
+        """Note the action (``[A]``) or chunk (``[K, A]``) sent; :meth:`add` keeps what was applied."""
+        self.sent = action[None] if action.ndim == 1 else action
 
     def ended(self, horizon: int) -> bool:
         if len(self.actions) >= horizon and not (self.terminated or self.truncated):
@@ -478,6 +511,7 @@ class _Buffer:
             terminated=self.terminated,
             truncated=self.truncated,
             success=self.success,
+            num_steps=torch.tensor(self.num_steps, dtype=torch.int32),
         )
 
 
@@ -489,7 +523,14 @@ class _Recorder:
         self.camera = camera
 
     def add(self, key: str, batch: StageBatch, row: int) -> None:
-        if key in self.frames:
+        """Take the frames of a reset or step answer: a chunk's recorded frames, one per applied
+        action, or else the observation's."""
+        if key not in self.frames:
+            return
+        chunk = batch.frames.get(key)
+        if chunk is not None:
+            self.frames[key].extend(np.array(frame) for frame in chunk[self.camera][: int(batch.num_steps[row])])
+        else:
             self.frames[key].append(np.array(batch.obs["images"][self.camera][row]))
 
 

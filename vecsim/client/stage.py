@@ -8,6 +8,7 @@ Usage, top to bottom::
     pending = client.step_stage(0, {key: action for key, action in ...})
     ...                                             # work on another stage meanwhile
     batch = pending.result()
+    pending = client.step_stage(0, {key: chunk for key, chunk in ...})   # chunks [K, action dim]
 
 Every call returns a :class:`PendingCall` at once (awaitable, or ``.result()`` from sync code);
 the HTTP runs on the client's own event loop thread, all pods of a call concurrently, over one
@@ -75,6 +76,12 @@ class StageBatch:
     ``state_ids`` are the trajectories' state ids (the ones just reset to, after a reset). After
     a reset ``reward`` is 0 and ``terminated``/``truncated`` are False. ``submitted_at`` and
     ``finished_at`` are ``time.perf_counter()`` stamps of the call.
+
+    A step of chunks (K actions per trajectory) answers ``reward``, ``terminated``, ``truncated``
+    and ``success`` of shape ``[n, K]`` (0/false after a trajectory's env stopped), ``obs`` after
+    each one's last applied action, ``num_steps`` ``[n]`` the actions each applied, and ``frames``
+    ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded. A
+    one-action step answers ``[n]`` arrays and ``num_steps`` of ones; a reset, zeros.
     """
 
     traj_keys: list[str]
@@ -87,6 +94,8 @@ class StageBatch:
     success: np.ndarray
     submitted_at: float = 0.0
     finished_at: float = 0.0
+    num_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    frames: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def n(self) -> int:
@@ -207,6 +216,8 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         success=batch.success[index],
         submitted_at=batch.submitted_at,
         finished_at=batch.finished_at,
+        num_steps=batch.num_steps[index],
+        frames={batch.traj_keys[r]: batch.frames[batch.traj_keys[r]] for r in rows if batch.traj_keys[r] in batch.frames},
     )
 
 
@@ -428,32 +439,41 @@ class StageClient:
         self._check_keys(keys, stage_id)
         return self._submit(reset=keys, step={}, pick=0)
 
-    def step_stage(self, stage_id: int, actions_by_traj_key: Mapping[str, Any]) -> PendingCall[StageBatch]:
-        """Step the given trajectories of a stage, one action each; don't wait.
+    def step_stage(
+        self, stage_id: int, actions_by_traj_key: Mapping[str, Any], record: Sequence[str] = ()
+    ) -> PendingCall[StageBatch]:
+        """Step the given trajectories of a stage, one action or one chunk each; don't wait.
 
+        Each value is one action (``[action dim]``) or a chunk of K actions (``[K, action dim]``,
+        the same K for every trajectory of the call, at most the pods' ``max_chunk``): a chunk
+        is applied in order and stops at the trajectory's first termination or truncation, and
+        the pod renders once, after the last applied action. ``record`` names traj_keys (of a
+        chunk call) whose frame after every applied action the answer carries in ``frames``.
         An empty mapping is a no-op (an empty batch). Rows of the answer follow the mapping's order.
 
         Raises:
-            ValueError: no such stage, a key not live on it, or an action of the wrong shape or
-                not finite (names the traj_key).
+            ValueError: no such stage, a key not live on it, an action of the wrong shape or not
+                finite, or chunks of different lengths (names the traj_key).
             RoutingChangedError, AlreadyPendingCallError, ClosedEnvironmentError: as
                 :meth:`reset_stage`, whose notes on the result's errors hold here too.
         """
         self._check_stage(stage_id)
         self._check_keys(list(actions_by_traj_key), stage_id)
-        return self._submit(reset=(), step=actions_by_traj_key, pick=1)
+        return self._submit(reset=(), step=actions_by_traj_key, pick=1, record=record)
 
     def call(
         self,
         *,
         reset: Sequence[str] | Mapping[str, int] = (),
         step: Mapping[str, Any] | None = None,
+        record: Sequence[str] = (),
     ) -> PendingCall[tuple[StageBatch, StageBatch]]:
         """Reset some trajectories and step others in one round, over any stages; don't wait.
 
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
-        state ids (their routes take them on success). ``step`` maps traj_keys to actions. Each
-        pod gets its resets first, then its steps; pods run concurrently. The result is the pair
+        state ids (their routes take them on success). ``step`` maps traj_keys to actions or
+        chunks, and ``record`` names stepped keys whose every frame is wanted, as in
+        :meth:`step_stage`. Each pod gets its resets first, then its steps; pods run concurrently. The result is the pair
         ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches. The
         result's errors are :meth:`reset_stage`'s; ``answered`` is a pair here too.
 
@@ -463,7 +483,7 @@ class StageClient:
             AlreadyPendingCallError: a stage involved already waits on a call.
             ClosedEnvironmentError: the client is closed.
         """
-        return self._submit(reset=reset, step=step or {}, pick=None)
+        return self._submit(reset=reset, step=step or {}, pick=None, record=record)
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
         """Run ``coro`` on the client's event loop and return its pending result.
@@ -478,10 +498,18 @@ class StageClient:
         return PendingCall(self._loop.submit(coro))
 
     def _submit(
-        self, *, reset: Sequence[str] | Mapping[str, int], step: Mapping[str, Any], pick: int | None
+        self,
+        *,
+        reset: Sequence[str] | Mapping[str, int],
+        step: Mapping[str, Any],
+        pick: int | None,
+        record: Sequence[str] = (),
     ) -> PendingCall[Any]:
         self._check_open()
         step = dict(step)
+        recorded = set(record)
+        if recorded - set(step):
+            raise ValueError(f"record: traj_keys {sorted(recorded - set(step))} are not stepped in this call")
         reset_map = dict(reset) if isinstance(reset, Mapping) else None
         reset_keys = list(reset)
         both = set(reset_keys) & set(step)
@@ -507,12 +535,14 @@ class StageClient:
         if not reset_keys and not step:
             return _completed((self._empty_batch(), self._empty_batch()), pick)
         actions = self._check_actions(step) if step else None
+        if recorded and (actions is None or actions.ndim != 3):
+            raise ValueError("record: frames are recorded for chunk steps only; send [K, action dim] per traj_key")
         stages = {routes[k].stage_id for k in itertools.chain(reset_keys, step)}
         with self._lock:
             busy = self._busy_stages(stages)
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
-            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick))
+            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick, recorded))
             pending: PendingCall[Any] = PendingCall(future, pick)
             for stage in stages:
                 self._pending[stage] = pending
@@ -586,20 +616,33 @@ class StageClient:
             raise RoutingChangedError(self._lost[lost[0]], lost)
 
     def _check_actions(self, step: Mapping[str, Any]) -> np.ndarray:
+        """Return the call's actions as ``[n, action size]``, or its chunks as ``[n, K, action size]``."""
         space = self.action_space
         shape = tuple(space.shape) if space is not None and space.shape is not None else None
         rows = []
-        for key, action in step.items():
+        chunk: int | None = None  # K of the call's chunks; None: one action per trajectory
+        for index, (key, action) in enumerate(step.items()):
             try:
                 row = np.asarray(action, dtype=np.float32)
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
-            if shape is not None and row.shape != shape:
-                raise ValueError(f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)}")
-            rows.append(row.reshape(-1))
+            if shape is not None and row.shape != shape and row.shape[1:] != shape:
+                raise ValueError(
+                    f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)} "
+                    f"or a chunk [K, {', '.join(map(str, shape))}]"
+                )
+            this = None if shape is None or row.shape == shape else row.shape[0]
+            if index and this != chunk:
+                raise ValueError(
+                    f"traj_key {key!r}: {'a chunk of ' + str(this) if this is not None else 'one action'}, "
+                    f"the call's first traj_key sent {'chunks of ' + str(chunk) if chunk is not None else 'one action'}; "
+                    "one call, one chunk length"
+                )
+            chunk = this
+            rows.append(row.reshape(-1) if chunk is None else row.reshape(chunk, math.prod(row.shape[1:])))
         actions = np.stack(rows)
         # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
-        finite = np.isfinite(actions).all(axis=1)
+        finite = np.isfinite(actions.reshape(len(rows), -1)).all(axis=1)
         if not finite.all():
             key = list(step)[int(np.flatnonzero(~finite)[0])]
             raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
@@ -654,21 +697,28 @@ class StageClient:
         else:
             self._spaces = ()  # type: ignore[assignment]
 
-    def _empty_batch(self, keys: list[str] | None = None, routes: Mapping[str, TrajRoute] | None = None) -> StageBatch:
+    def _empty_batch(
+        self,
+        keys: list[str] | None = None,
+        routes: Mapping[str, TrajRoute] | None = None,
+        chunk: int | None = None,
+    ) -> StageBatch:
         # Only cached spaces: this runs on the loop, and a no-op must not need the network.
         keys = keys or []
         n = len(keys)
         space = self._spaces[0] if self._spaces else None
         obs = create_empty_array(space, n=n, fn=np.zeros) if space is not None else {}
+        per_action = (n,) if chunk is None else (n, chunk)
         return StageBatch(
             traj_keys=keys,
             task_ids=[routes[k].task_id for k in keys] if routes else [],
             state_ids=np.array([routes[k].state_id for k in keys] if routes else [], dtype=np.int64),
             obs=obs,
-            reward=np.zeros(n, dtype=np.float32),
-            terminated=np.zeros(n, dtype=bool),
-            truncated=np.zeros(n, dtype=bool),
-            success=np.zeros(n, dtype=bool),
+            reward=np.zeros(per_action, dtype=np.float32),
+            terminated=np.zeros(per_action, dtype=bool),
+            truncated=np.zeros(per_action, dtype=bool),
+            success=np.zeros(per_action, dtype=bool),
+            num_steps=np.zeros(n, dtype=np.int32),
         )
 
     async def _run(
@@ -678,12 +728,14 @@ class StageClient:
         step_keys: list[str],
         actions: np.ndarray | None,
         pick: int | None,
+        recorded: set[str],
     ) -> tuple[StageBatch, StageBatch]:
         submitted = time.perf_counter()
         routes = self.routes
         reset_batch = self._empty_batch(reset_keys, routes)
         reset_batch.state_ids = state_ids.copy()
-        step_batch = self._empty_batch(step_keys, routes)
+        chunk = actions.shape[1] if actions is not None and actions.ndim == 3 else None
+        step_batch = self._empty_batch(step_keys, routes, chunk)
         work: dict[str, _PodWork] = {}
         for row, key in enumerate(reset_keys):
             work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
@@ -697,8 +749,14 @@ class StageClient:
             rows = np.asarray(row_list)
             keys = [all_keys[r] for r in rows]
             body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64), field: values[rows]}
+            record = [k for k in keys if k in recorded]
+            if record:
+                body["record_env_ids"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
             answer = await self._post(pod, op, body, keys)
-            self._fill(batch, answer, rows, pod, check_tasks=op == "reset")
+            self._fill(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
+            for j, key in enumerate(record):
+                frames = answer.get("frames") or {}
+                batch.frames[key] = {camera: np.asarray(images)[j] for camera, images in frames.items()}
 
         async def one_pod(pod: str, todo: _PodWork) -> None:
             reset_done = False
@@ -735,7 +793,15 @@ class StageClient:
             raise call_error(errors, partial if pick is None else partial[pick])
         return reset_batch, step_batch
 
-    def _fill(self, batch: StageBatch, answer: dict[str, Any], rows: np.ndarray, pod: str, check_tasks: bool) -> None:
+    def _fill(
+        self,
+        batch: StageBatch,
+        answer: dict[str, Any],
+        rows: np.ndarray,
+        pod: str,
+        check_tasks: bool,
+        chunk: int | None = None,
+    ) -> None:
         _fill_rows(batch.obs, answer.get("obs"), rows, "obs", pod)
         info = answer.get("info") or {}
         _fill_rows(batch.success, info.get("success"), rows, "info.success", pod)
@@ -748,6 +814,10 @@ class StageClient:
             _fill_rows(batch.reward, answer.get("reward"), rows, "reward", pod)
             _fill_rows(batch.terminated, answer.get("terminated"), rows, "terminated", pod)
             _fill_rows(batch.truncated, answer.get("truncated"), rows, "truncated", pod)
+            if chunk is None:
+                batch.num_steps[rows] = 1
+            else:
+                _fill_rows(batch.num_steps, answer.get("num_steps"), rows, "num_steps", pod)
 
     async def _post(self, pod: str, op: str, body: dict[str, Any], keys: list[str]) -> dict[str, Any]:
         """POST to one pod with the current generation; after a 409, re-read routing and retry once."""

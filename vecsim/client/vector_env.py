@@ -53,6 +53,20 @@ def _put_rows(dst: Any, src: Any, rows: np.ndarray, take: np.ndarray | None = No
         dst[rows] = src if take is None else src[take]
 
 
+def _ended(batch: StageBatch) -> np.ndarray:
+    """Per row of a step answer: whether its env terminated or truncated (at any chunk action)."""
+    flags = batch.terminated | batch.truncated
+    return flags.reshape(batch.n, -1).any(axis=1)
+
+
+def _row_success(batch: StageBatch) -> np.ndarray:
+    """Per row: success after the row's last applied action (a chunk's), or the row's success."""
+    if batch.success.ndim == 1:
+        return batch.success
+    last = np.maximum(batch.num_steps.astype(np.int64) - 1, 0)
+    return batch.success[np.arange(batch.n), last] & (batch.num_steps > 0)
+
+
 def _controller_url_of(job_config: RunnerConfig | str | Path) -> str:
     config = job_config if isinstance(job_config, RunnerConfig) else load_job_config(job_config)
     return f"http://{config.controller.host}:{config.controller.port}"
@@ -73,6 +87,13 @@ class HTTPVectorEnv(VectorEnv):
     env) and ``options`` ``reset_mask`` (bool array, reset only those envs) and ``state_ids``
     (one state id per env; with a mask only the masked ones are used). Autoresets draw state ids
     from :attr:`np_random`, seeded by ``reset(seed=int)``.
+
+    :meth:`chunk_step` takes a chunk of K actions per env (``[num_envs, K, action dim]``), the
+    contract of VLA trainers: each env applies its actions in order and stops at its first
+    termination or truncation; rewards and flags come back per action, ``[num_envs, K]`` (0/false
+    after an env stopped), the observation after each env's last applied action, and
+    ``info["num_steps"]`` the actions each env applied; the pods render once per env per chunk.
+    Autoreset works on chunks as on single steps (an env reset in place of its chunk applies none).
 
     A step or reset answers every env or raises. When pods of the call fail alone
     (``PodUnavailableError``, ``RoutingChangedError``), the envs of the pods that answered did
@@ -162,6 +183,7 @@ class HTTPVectorEnv(VectorEnv):
         self._state = AsyncState.DEFAULT
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
+        self._pending_chunk: int | None = None  # K of the chunk step in flight; None: one action
 
     # -- reset ----------------------------------------------------------------------------------
 
@@ -340,6 +362,34 @@ class HTTPVectorEnv(VectorEnv):
         self.step_async(actions)
         return self.step_wait()
 
+    def chunk_step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every env with its chunk ``actions[i]`` (``[num_envs, K, action dim]``).
+
+        Returns:
+            ``(obs, reward float64[num_envs, K], terminated bool[num_envs, K], truncated
+            bool[num_envs, K], info)``: entries after an env stopped are 0/false; ``obs`` is after
+            each env's last applied action; ``info`` adds ``num_steps`` (actions applied, with
+            its ``_num_steps`` mask) to ``step``'s keys, ``success`` being after the last action.
+
+        Raises:
+            as :meth:`step_async` (for chunks) and :meth:`step_wait`.
+        """
+        self.chunk_step_async(actions)
+        return self.step_wait()
+
+    def chunk_step_async(self, actions: Any) -> None:
+        """Send a chunk step (``[num_envs, K, action dim]``) and return at once; :meth:`step_wait`
+        takes the answer, shaped as :meth:`chunk_step` says.
+
+        Raises:
+            as :meth:`step_async`; ``ValueError`` for a chunk of the wrong shape.
+        """
+        actions = np.asarray(actions, dtype=np.float32)
+        expected = (self.num_envs, "K", *self.single_action_space.shape)
+        if actions.ndim != len(expected) or actions.shape[0] != self.num_envs or actions.shape[2:] != expected[2:]:
+            raise ValueError(f"chunk actions must have shape {list(expected)}, got {list(actions.shape)}")
+        self._send_step(actions, chunk=actions.shape[1])
+
     def step_async(self, actions: Any) -> None:
         """Send the step and return at once; :meth:`step_wait` takes the answer.
 
@@ -354,6 +404,13 @@ class HTTPVectorEnv(VectorEnv):
                 ended and was not reset.
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
         """
+        actions = np.asarray(actions, dtype=np.float32)
+        expected = (self.num_envs, *self.single_action_space.shape)
+        if actions.shape != expected:
+            raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
+        self._send_step(actions, chunk=None)
+
+    def _send_step(self, actions: np.ndarray, chunk: int | None) -> None:
         self._assert_open()
         if self._state != AsyncState.DEFAULT:
             raise AlreadyPendingCallError(
@@ -368,10 +425,6 @@ class HTTPVectorEnv(VectorEnv):
                 f"envs {failed} got no answer in their last call (their pod failed); reset them with "
                 "reset(options={'reset_mask': mask}) before stepping"
             )
-        actions = np.asarray(actions, dtype=np.float32)
-        expected = (self.num_envs, *self.single_action_space.shape)
-        if actions.shape != expected:
-            raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
         if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
             raise ResetNeeded(
                 f"envs {np.flatnonzero(self._autoreset).tolist()} ended and autoreset is disabled; "
@@ -387,6 +440,7 @@ class HTTPVectorEnv(VectorEnv):
             self._pending = self.client.submit(self._step_then_reset(step))
         else:
             self._pending = self.client.call(reset=reset, step=step)
+        self._pending_chunk = chunk
         self._state = AsyncState.WAITING_STEP
 
     async def _step_then_reset(self, step: dict[str, np.ndarray]) -> tuple[StageBatch, StageBatch]:
@@ -405,7 +459,7 @@ class HTTPVectorEnv(VectorEnv):
                 return error.answered[pick]
 
         stepped = await answered(1, step=step)
-        ended = [key for j, key in enumerate(stepped.traj_keys) if stepped.terminated[j] or stepped.truncated[j]]
+        ended = [key for key, end in zip(stepped.traj_keys, _ended(stepped)) if end]
         reset = {key: self._draw_state_id(self._key_index[key], None) for key in ended}
         again = await answered(0, reset=reset)
         if errors:
@@ -444,12 +498,14 @@ class HTTPVectorEnv(VectorEnv):
     ) -> tuple[tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], np.ndarray]:
         """Take a step call's answer (all or some of its envs'); return what ``step_wait`` returns
         and the mask of the envs the answer covers (a step, or a reset in its place)."""
-        reward = np.zeros(self.num_envs, dtype=np.float64)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
+        # [num_envs], or [num_envs, K] for a chunk step (an all-reset chunk call steps nothing).
+        per_action = (self.num_envs,) if self._pending_chunk is None else (self.num_envs, self._pending_chunk)
+        reward = np.zeros(per_action, dtype=np.float64)
+        terminated = np.zeros(per_action, dtype=bool)
+        truncated = np.zeros(per_action, dtype=bool)
         info: dict[str, Any] = {}
 
-        ended = step_batch.terminated | step_batch.truncated
+        ended = _ended(step_batch)
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             # An env that ended is answered only once its reset is: its step row alone would
             # leave it ended, which SAME_STEP never shows.
@@ -486,10 +542,14 @@ class HTTPVectorEnv(VectorEnv):
         answered = np.zeros(self.num_envs, dtype=bool)
         answered[stepped] = True
         answered[reset] = True
+        if self._pending_chunk is not None:
+            num_steps = np.zeros(self.num_envs, dtype=np.int32)
+            num_steps[stepped] = step_batch.num_steps[take]
+            info["num_steps"], info["_num_steps"] = num_steps, answered.copy()
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._autoreset[answered] = False
         else:
-            self._autoreset[answered] = (terminated | truncated)[answered]
+            self._autoreset[answered] = (terminated | truncated).reshape(self.num_envs, -1).any(axis=1)[answered]
         self._failed[answered] = False
         return (copy.deepcopy(self._obs), reward, terminated, truncated, info), answered
 
@@ -528,7 +588,7 @@ class HTTPVectorEnv(VectorEnv):
             info["success"], info["_success"] = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=bool)
             info["task_id"] = np.full(self.num_envs, None, dtype=object)
             info["_task_id"] = np.zeros(self.num_envs, dtype=bool)
-        info["success"][envs] = batch.success[rows]
+        info["success"][envs] = _row_success(batch)[rows]
         info["_success"][envs] = True
         for i in envs:
             info["task_id"][i] = self.task_ids[i]
