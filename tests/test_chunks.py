@@ -24,7 +24,7 @@ from PIL import Image
 from trainer_pods import PodSpec, RunningPod, standalone_pods
 
 from vecsim import wire
-from vecsim.client import HTTPVectorEnv, StageClient
+from vecsim.client import HTTPVectorEnv, StageClient, VLAEnv
 from vecsim.config import CameraConfig
 from vecsim.rollout import EnvLoop
 from vecsim.sim import DEFAULT_MAX_CHUNK
@@ -245,3 +245,44 @@ def test_env_loop_records_every_applied_action_of_a_chunking_policy(pods, tmp_pa
     assert result.stats.env_steps == 20
     (video,) = result.videos.values()
     assert Image.open(video).n_frames == 1 + 5
+
+
+# -- the VLA trainers' env -----------------------------------------------------------------------
+
+
+def test_vla_env_resets_the_named_envs_to_the_named_states_and_leaves_the_others(pods):
+    with VLAEnv(pod_urls=[p.url for p in pods], keys="lerobot") as env:
+        first, _ = env.reset(state_ids=np.zeros(env.num_envs, dtype=np.int64))
+        obs, info = env.reset(env_ids=[1, 5], state_ids=[2, 2])
+        assert sorted(key for key in obs if key.startswith("observation.")) == [
+            f"observation.images.{IMAGE}",
+            "observation.state",
+        ]
+        assert obs["task"] == env.instructions and obs["task_id"] == [TASK] * env.num_envs
+        state = obs["observation.state"]
+        assert np.array_equal(state[1], state[5]) and not np.array_equal(state[1], first["observation.state"][1])
+        others = [i for i in range(env.num_envs) if i not in (1, 5)]
+        assert np.array_equal(state[others], first["observation.state"][others])
+        assert info["state_id"][[1, 5]].tolist() == [2, 2]
+
+
+def test_vla_env_chunk_step_answers_per_action_signals_of_every_env(pods):
+    with VLAEnv(pod_urls=[p.url for p in pods]) as env:
+        env.reset(state_ids=np.full(env.num_envs, 1))
+        chunk = np.broadcast_to(_chunk(1, 8, seed=7), (env.num_envs, 8, ACTION_DIM))
+        obs, rewards, terminations, truncations, infos = env.chunk_step(torch.from_numpy(chunk.copy()))
+    assert rewards.shape == terminations.shape == truncations.shape == (env.num_envs, 8)
+    assert infos["num_steps"].tolist() == [EPISODE] * env.num_envs
+    assert truncations[:, EPISODE - 1].all() and not terminations.any()
+    assert (rewards == rewards[0]).all()  # one state, one chunk: every env alike, bit for bit
+    assert obs["proprio"].shape[0] == env.num_envs and obs["instruction"] == env.instructions
+
+
+def test_vla_env_with_auto_reset_resets_envs_that_ended_inside_the_chunk(pods):
+    with VLAEnv(pod_urls=[p.url for p in pods], auto_reset=True) as env:
+        env.reset(state_ids=np.zeros(env.num_envs, dtype=np.int64), seed=0)
+        obs, _, _, truncations, infos = env.chunk_step(np.zeros((env.num_envs, 8, ACTION_DIM)))
+        assert truncations[:, EPISODE - 1].all()
+        assert infos["_final_obs"].all() and set(infos["final_obs"][0]) == {"images", "proprio"}
+        _, _, _, _, after = env.chunk_step(np.zeros((env.num_envs, 2, ACTION_DIM)))
+    assert after["num_steps"].tolist() == [2] * env.num_envs  # fresh episodes

@@ -6,7 +6,9 @@
 - :class:`HTTPVectorEnv`: every env of a job as one ``gymnasium.vector.VectorEnv``; registered as
   ``vecsim/HTTPVectorEnv-v0``, so ``gymnasium.make_vec("vecsim/HTTPVectorEnv-v0",
   controller_url=...)`` builds one once this module is imported (or name the module in the id:
-  ``"vecsim.client:vecsim/HTTPVectorEnv-v0"``).
+  ``"vecsim.client:vecsim/HTTPVectorEnv-v0"``). ``chunk_step`` takes chunks of K actions per env.
+- :class:`VLAEnv`: a job with the ``reset(env_ids, state_ids)`` / ``chunk_step`` contract of
+  VLA-RL trainers, observations under vecsim's or LeRobot's key names.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from vecsim.client.errors import (
 from vecsim.client.routing import EnvSlot, TrajRoute, env_slots, place_requests
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.client.vector_env import HTTPVectorEnv
+from vecsim.client.vla_env import VLAEnv
 
 __all__ = [
     "CapacityError",
@@ -38,6 +41,7 @@ __all__ = [
     "StageClient",
     "StaleGenerationError",
     "TrajRoute",
+    "VLAEnv",
     "env_slots",
     "fetch_routing",
     "place_requests",
