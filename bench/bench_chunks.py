@@ -1,0 +1,386 @@
+"""Action chunks at scale: env-steps/s of a node at K = 1, 4, 8, 16 actions per call, pipelining
+at K = 8, and the physics-only rate of the same cores.
+
+One job as ``bench_gpu_scale.py --only scaling`` builds it (its ``runner_config``): ``--pods``
+pods pinned one per core (physical cores first), every pod serving the same task mix in one
+worker (default LIBERO-10's ten tasks, one env each, two cameras at ``--size``, ``lean``), the
+trainer in this process on the cores left over. Contenders, in interleaved rounds, every one
+applying ``--actions`` actions per env (so every K does the same physics):
+
+- ``service/K=k``: the service alone, all pods in one stage: reset every env, then calls sending
+  a chunk of k scripted actions per env until each env applied ``--actions`` (or ended);
+  env-steps/s = actions applied / the step calls' time.
+- ``loop/K=k``: the pipelined EnvLoop, one stage, with bench_gpu_scale's graphed ResNet-18 policy
+  acting in chunks (one forward pass per chunk: its action, then k-1 more along a small sine
+  around it, as a chunk head would), horizon ``--actions``; env-steps/s over the whole run.
+- ``loop_stages=2/K=8``: the same loop at K = 8 with the pods in two stages (halves), against
+  ``loop/K=8`` (one stage): what pipelining adds with chunks.
+
+Before the job starts, ``--pods`` processes pinned to the pods' cores step the same task mix
+without cameras, HTTP or pods (``bench_physics_scaling.worker``) for ``--physics-seconds``: the
+physics-only rate of the node, the ceiling the chunked node is held against.
+
+Targets (the chunks issue): ``loop/K=8`` >= 1.5x ``loop/K=1`` (paired by round), and the node at
+K = 8 >= 0.8 of the physics-only rate.
+
+Commands::
+
+    source .device/setup.sh && python bench/bench_chunks.py --gpu --copy-to "$OUT"   # the GPU machine
+    python bench/bench_chunks.py --gpu --dry       # probe: 1 pod, K = 1 and 4, 4 actions; fails fast
+    python bench/bench_chunks.py --cpu-small       # here: 2 pods of 2 tiny tasks, 32x32, K = 1 and 4
+
+Writes out/bench/bench_chunks[_cpu|_dry].json and prints one ``RESULT {json}`` line; ``--copy-to``
+also copies it into a folder, with a failed job's logs. Rounds stop being added at ``--deadline``
+seconds after the start, and the job's start-up and the physics-only run are bounded by it too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import multiprocessing
+import os
+import queue
+import shutil
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import bench_gpu_scale as gs
+import numpy as np
+import torch
+from _perf_common import paired_ratio, setup_logging
+from bench_physics_scaling import worker as physics_worker
+from common import write_result
+from gymnasium import spaces
+
+from vecsim.client import StageClient
+from vecsim.rollout import RolloutStats
+
+log = logging.getLogger("bench.chunks")
+
+CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
+PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
+PIPELINE_K = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """What the run measures beyond the job itself (``gs.Plan``)."""
+
+    chunks: tuple[int, ...]
+    actions: int
+    physics_seconds: float
+
+
+class ChunkedPolicy:
+    """A policy of one action per call acting in chunks of ``k``: one forward pass per chunk,
+    its action followed by ``k - 1`` more along a small sine around it, within the bounds."""
+
+    def __init__(self, policy: Callable[..., torch.Tensor], action_space: spaces.Box, k: int) -> None:
+        self.policy = policy
+        self.k = k
+        low = torch.as_tensor(np.asarray(action_space.low, np.float32))
+        high = torch.as_tensor(np.asarray(action_space.high, np.float32))
+        self.low, self.high = low, high
+        steps, dims = torch.arange(k, dtype=torch.float32)[:, None], torch.arange(low.numel(), dtype=torch.float32)
+        width = torch.where(torch.isfinite(high - low), high - low, torch.ones_like(low))
+        self.offsets = 0.02 * width * torch.sin(0.35 * steps + 0.9 * dims)  # [k, action_dim]
+
+    def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
+        action = self.policy(obs, instructions, task_ids).float()  # [n, action_dim]
+        device = action.device
+        chunk = action[:, None, :] + self.offsets.to(device)
+        return torch.maximum(torch.minimum(chunk, self.high.to(device)), self.low.to(device))
+
+
+def scripted_chunk(space: spaces.Box, first: int, k: int, n: int) -> np.ndarray:
+    """``[n, k, action_dim]``: bench_gpu_scale's open-loop actions of steps ``first .. first+k-1``."""
+    return np.stack([gs.scripted_actions(space, first + j, n) for j in range(k)], axis=1)
+
+
+def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) -> gs.Measured:
+    """The service alone at chunks of ``k``: reset every env, then calls of a chunk per env
+    (every stage's call sent at once, then all awaited) until each env applied ``actions``
+    actions or ended. Env-steps/s = actions applied over the step calls' time.
+
+    Raises:
+        TimeoutError: a call took longer than ``timeout_s``.
+    """
+    routes = client.reset_trajectories(gs.requests_for(client.routing))
+    stages = [s for s in range(client.num_stages) if client.stage_traj_keys(s)]
+    space = client.action_space
+    timeline: list[tuple[str, int, float, float]] = []
+    applied = 0
+    with gs.counted(client) as seen:
+        started = time.perf_counter()
+        for stage, batch in zip(stages, [c.result(timeout_s) for c in [client.reset_stage(s) for s in stages]]):
+            timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
+        stepping = time.perf_counter()
+        live = {s: client.stage_traj_keys(s) for s in stages}
+        for first in range(0, actions, k):
+            size = min(k, actions - first)
+            calls = {s: client.step_stage(s, dict(zip(keys, scripted_chunk(space, first, size, len(keys)))))
+                     for s, keys in live.items() if keys}  # fmt: skip
+            for stage, call in calls.items():
+                batch = call.result(timeout_s)
+                timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
+                applied += int(batch.num_steps.sum())
+                ended = (batch.terminated | batch.truncated).reshape(batch.n, -1).any(axis=1)
+                live[stage] = [key for key, end in zip(batch.traj_keys, ended) if not end]
+        finished = time.perf_counter()
+    stats = RolloutStats(num_trajectories=len(routes), env_steps=applied, wall_s=finished - started,
+                         env_steps_per_s=applied / max(finished - stepping, 1e-9), simulation_s=finished - started,
+                         timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
+    return gs.Measured(stats, **seen)
+
+
+def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, timeout_s: float) -> dict[str, Any]:
+    """The node's physics-only rate: one process per pod core (``pins``), each stepping the
+    task mix without cameras for ``seconds``, all at once; env-steps/s summed over them.
+
+    Raises:
+        RuntimeError: a process failed (its traceback) or did not answer within ``timeout_s``.
+    """
+    context = multiprocessing.get_context("spawn")
+    count = len(pins)
+    barrier, results = context.Barrier(count), context.Queue()
+    procs = [
+        context.Process(target=physics_worker, args=(i, int(pin.split(",")[0]), list(tasks), [count], 1, seconds,
+                                                      barrier, results), daemon=True)  # fmt: skip
+        for i, pin in enumerate(pins)
+    ]
+    for proc in procs:
+        proc.start()
+    end = time.monotonic() + timeout_s
+    rates: list[float] = []
+    try:
+        while len(rates) < count:
+            try:
+                kind, index, payload = results.get(timeout=max(end - time.monotonic(), 0.1))
+            except queue.Empty:
+                raise RuntimeError(f"physics-only: {len(rates)} of {count} processes answered in {timeout_s:.0f} s")
+            if kind == "error":
+                raise RuntimeError(f"physics-only process {index} failed:\n{payload}")
+            if kind == "rate":
+                rates.append(payload[2])
+    finally:
+        for proc in procs:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.kill()
+    return {
+        "env_steps_per_s": round(sum(rates), 1),
+        "per_process": {"min": round(min(rates), 2), "mean": round(statistics.mean(rates), 2),
+                        "max": round(max(rates), 2)},  # fmt: skip
+        "processes": count,
+        "pinned_to": list(pins),
+        "seconds": seconds,
+    }
+
+
+def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline) -> dict[str, Any]:
+    """Every contender (module docstring) in interleaved rounds."""
+    names = [f"sim-{i}" for i in range(plan.pods)]
+    one = gs.TimedStageClient(gs.regroup(table, names, 1), token=job.token, timeout_s=300)
+    two = gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300) if plan.pods > 1 else None
+    try:
+        space, action = one.observation_space, one.action_space
+        policy = gs.VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
+        sizes = [one.routing.num_envs, *([s.num_envs for s in two.routing.stages] if two else [])]
+        graphed = gs.GraphedPolicy(policy, space, plan.device, sizes)
+        chunked = {k: ChunkedPolicy(graphed, action, k) for k in settings.chunks}
+        policy_info = {
+            "name": "ResNet-18 per camera + proprio MLP + MLP head, one forward pass per chunk",
+            "parameters_m": gs.parameters_m(policy),
+            "dtype": plan.dtype,
+            "device": plan.device,
+            "cuda_graphs": graphed.graphed,
+            "forward_ms": {str(b): round(gs.forward_ms(graphed, space, b, 5, plan.device), 2) for b in sorted(set(sizes))},
+        }
+        log.info("policy: %s", policy_info)
+        warm = min(settings.chunks[-1], settings.actions)
+        service_chunks(one, warm, settings.chunks[-1], 300)  # warm-up: connections, caches, kernels
+        gs.loop_rollout(one, chunked[settings.chunks[-1]], warm, plan.device)
+        if two is not None and PIPELINE_K in chunked:
+            gs.loop_rollout(two, chunked[PIPELINE_K], warm, plan.device)
+        log.info("warm-up done, %.0f s left", deadline.left())
+        contenders: dict[str, Callable[[], gs.Measured]] = {}
+        for k in settings.chunks:
+            contenders[f"service/K={k}"] = lambda k=k: service_chunks(one, settings.actions, k, 300)
+            contenders[f"loop/K={k}"] = lambda k=k: gs.loop_rollout(one, chunked[k], settings.actions, plan.device)
+        if two is not None and PIPELINE_K in chunked:
+            contenders[f"loop_stages=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
+                two, chunked[PIPELINE_K], settings.actions, plan.device)
+        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=10)
+    finally:
+        one.close()
+        if two is not None:
+            two.close()
+    rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
+    result: dict[str, Any] = {"policy": policy_info}
+    for kind in ("service", "loop"):
+        section = {}
+        for k in settings.chunks:
+            name = f"{kind}/K={k}"
+            section[f"K={k}"] = {
+                **gs.summarise(runs[name]),
+                "over_K=1": paired_ratio(rates[name], rates[f"{kind}/K=1"]) if 1 in settings.chunks else None,
+            }
+        result[kind] = section
+    pipelined = f"loop_stages=2/K={PIPELINE_K}"
+    if pipelined in runs:
+        result["pipeline"] = {
+            "stages=2": gs.summarise(runs[pipelined]),
+            "speedup_2_vs_1": paired_ratio(rates[pipelined], rates[f"loop/K={PIPELINE_K}"]),
+        }
+    result["per_round"] = {name: [round(x, 2) for x in values] for name, values in rates.items()}
+    return result
+
+
+def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
+    """``--gpu`` (LIBERO-10, 256x256, 12 pods) or ``--cpu-small`` defaults; ``--dry`` shrinks."""
+    from vecsim.tasks import suite_tasks
+
+    gpu, dry = args.gpu, args.dry
+    if args.tasks:
+        tasks = tuple(t for t in args.tasks.split(",") if t)
+    elif gpu:
+        tasks = tuple(t.task_id for t in suite_tasks("libero_10"))
+    else:
+        tasks = ("tiny/lift", "tiny/door")  # robot scenes with both cameras that build in seconds on a CPU
+    chunks = (1, 4) if dry or not gpu else (1, 4, 8, 16)
+    if args.chunks:
+        chunks = tuple(sorted({int(k) for k in args.chunks.split(",")} | {1}))
+    actions = args.actions or (4 if dry else 32 if gpu else 8)
+    cuda = torch.cuda.is_available()
+    pods = 1 if dry else args.pods or (12 if gpu else 2)
+    plan = gs.Plan(
+        mode="scaling",
+        tasks=tasks,
+        size=args.size or (256 if gpu else 32),
+        envs_per_task=args.envs_per_task or 1,
+        pods=pods,
+        pod_counts=(pods,),
+        pipeline_cores=1,
+        horizon=actions,
+        service_steps=actions,
+        rounds=1 if dry else args.rounds or (2 if gpu else 1),
+        device="cuda" if cuda else "cpu",
+        dtype="bfloat16" if cuda else "float32",
+        vit_width=0,
+        vit_max_depth=0,
+        max_memory_gib=args.max_memory_gib,
+        deadline_s=args.deadline,
+        render_preset=args.render_preset,
+    )
+    physics_seconds = args.physics_seconds or (1.0 if dry else 10.0 if gpu else 2.0)
+    return plan, Settings(chunks=chunks, actions=actions, physics_seconds=physics_seconds)
+
+
+def run(args: argparse.Namespace) -> int:
+    deadline = gs.Deadline(args.deadline)
+    plan, settings = make_plan(args)
+    tag = "_dry" if args.dry else "" if args.gpu else "_cpu"
+    gl = gs.gl_probe()
+    log.info("GL: %s; GPU: %s; torch %s on %s", gl, gs.gpu_name(), torch.__version__, plan.device)
+    if args.gpu and "NVIDIA" not in gl.get("renderer", "").upper():
+        log.error("GL_RENDERER is %r, not NVIDIA's: not measuring", gl.get("renderer", gl))
+        return 2
+    if args.gpu and plan.device != "cuda":
+        log.error("torch sees no CUDA device: not measuring")
+        return 2
+    topology = gs.cpu_topology()
+    pins, trainer = gs.split_cores(gs.cores_first(topology), plan.pods)
+    pod_pins = [pins[i % len(pins)] for i in range(plan.pods)]
+
+    log.info("physics only: %d processes on %s, %.0f s", plan.pods, pod_pins, settings.physics_seconds)
+    physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
+    log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
+
+    os.sched_setaffinity(0, set(trainer))
+    torch.set_num_threads(len(trainer))
+    torch.backends.cudnn.benchmark = True
+    config = gs.runner_config(plan, pins, "chunks", plan.pods)
+    started = time.monotonic()
+    with gs.running_job(config, args.copy_to) as job, gs.MemoryWatch(plan.max_memory_gib) as memory:
+        table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))
+        build_s = time.monotonic() - started
+        log.info("%d pods ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
+        measured = measure(plan, settings, job, table, deadline)
+
+    node = physics["env_steps_per_s"]
+    for kind in ("service", "loop"):
+        for row in measured[kind].values():
+            row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
+    at = f"K={PIPELINE_K}"
+    chunk_gain = measured["loop"].get(at, {}).get("over_K=1") or {}
+    node_fraction = measured["loop"].get(at, {}).get("fraction_of_physics_only")
+    summary: dict[str, Any] = {
+        "quick": not args.gpu,
+        "dry": args.dry,
+        "baseline": "K = 1 of the same job, same round (paired); and the physics-only rate of the pods' cores",
+        "ratio": chunk_gain.get("median"),
+        "ratio_of_physics_only": node_fraction,
+        "target": f"loop K={PIPELINE_K} >= {CHUNK_TARGET}x K=1, and >= {PHYSICS_TARGET} of physics-only",
+        "met": {
+            "chunks": chunk_gain.get("median") is not None and chunk_gain["median"] >= CHUNK_TARGET,
+            "physics_only": node_fraction is not None and node_fraction >= PHYSICS_TARGET,
+        },
+        "setup": {
+            **dataclasses.asdict(plan),
+            **dataclasses.asdict(settings),
+            "camera": gs.camera(plan),
+            "envs_per_pod": plan.envs_per_pod,
+            "pods_pinned_to": pod_pins,
+            "trainer_cores": trainer,
+            "job_build_s": round(build_s, 1),
+            "memory_used_gib_peak": memory.peak_gib,
+        },
+        "physics_only": physics,
+        "topology": topology,
+        "gl": gl,
+        **measured,
+    }
+    details = {"per_round": summary.pop("per_round")}
+    path = write_result(f"bench_chunks{tag}", summary, details)
+    if args.copy_to:
+        args.copy_to.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, args.copy_to / path.name)
+    return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--gpu", action="store_true", help="LIBERO-10, 256x256 x 2 cameras, 12 pods; GL must be NVIDIA's")
+    mode.add_argument("--cpu-small", action="store_true", help="2 pods of tiny/lift + tiny/door, 32x32 (Mesa)")
+    parser.add_argument("--dry", action="store_true", help="1 pod, K = 1 and 4, 4 actions, 1 round: fails fast")
+    parser.add_argument("--tasks", help="comma-separated task ids every pod serves")
+    parser.add_argument("--envs-per-task", type=int, help="envs per task per pod (default 1)")
+    parser.add_argument("--pods", type=int, help="pods, one per core (default 12; --cpu-small 2)")
+    parser.add_argument("--chunks", help="comma-separated chunk lengths K (default 1,4,8,16; K=1 always runs)")
+    parser.add_argument("--actions", type=int, help="actions per env in every rollout (default 32; --cpu-small 8)")
+    parser.add_argument("--size", type=int, help="camera height and width (default 256; --cpu-small 32)")
+    parser.add_argument("--rounds", type=int, help="interleaved rounds (default 2; --cpu-small 1)")
+    parser.add_argument("--physics-seconds", type=float, help="length of the physics-only run (default 10)")
+    parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"))
+    parser.add_argument("--max-memory-gib", type=float, default=100.0,
+                        help="stop when memory in use passes this while the pods build")
+    parser.add_argument("--deadline", type=float, default=540.0, help="seconds: stop adding rounds after this")
+    parser.add_argument("--copy-to", type=Path, help="also copy the JSON (and a failed job's logs) here")
+    args = parser.parse_args()
+    setup_logging()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    if math.isnan(args.deadline) or args.deadline <= 0:
+        parser.error("--deadline must be a positive number of seconds")
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
