@@ -131,7 +131,7 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
                 batch = call.result(timeout_s)
                 timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
                 applied += int(batch.num_steps.sum())
-                ended = (batch.terminated | batch.truncated).reshape(batch.n, -1).any(axis=1)
+                ended = (batch.terminated | batch.truncated).any(axis=1)
                 live[stage] = [key for key, end in zip(batch.traj_keys, ended) if not end]
         finished = time.perf_counter()
     stats = RolloutStats(num_trajectories=len(routes), env_steps=applied, wall_s=finished - started,

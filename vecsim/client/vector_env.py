@@ -56,7 +56,7 @@ def _put_rows(dst: Any, src: Any, rows: np.ndarray, take: np.ndarray | None = No
 def _ended(batch: StageBatch) -> np.ndarray:
     """Per row of a step answer: whether its env terminated or truncated (at any chunk action)."""
     flags = batch.terminated | batch.truncated
-    return flags.reshape(batch.n, -1).any(axis=1)
+    return flags if flags.ndim == 1 else flags.any(axis=1)
 
 
 def _row_success(batch: StageBatch) -> np.ndarray:
@@ -549,7 +549,8 @@ class HTTPVectorEnv(VectorEnv):
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._autoreset[answered] = False
         else:
-            self._autoreset[answered] = (terminated | truncated).reshape(self.num_envs, -1).any(axis=1)[answered]
+            ended = terminated | truncated
+            self._autoreset[answered] = (ended if ended.ndim == 1 else ended.any(axis=1))[answered]
         self._failed[answered] = False
         return (copy.deepcopy(self._obs), reward, terminated, truncated, info), answered
 
