@@ -36,6 +36,9 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_MAX_BODY_BYTES": "max_body_bytes",
     "VECSIM_STEP_TIMEOUT_S": "step_timeout_s",
     "VECSIM_BUILD_TIMEOUT_S": "build_timeout_s",
+    "VECSIM_HEADER_TIMEOUT_S": "header_timeout_s",
+    "VECSIM_KEEP_ALIVE_S": "keep_alive_s",
+    "VECSIM_MAX_CONNECTIONS": "max_connections",
 }
 
 
@@ -71,6 +74,12 @@ class PodSettings(BaseModel):
     step_timeout_s: float = Field(120.0, gt=0)
     # LIBERO scenes take minutes to build on a CPU.
     build_timeout_s: float = Field(900.0, gt=0)
+    # A connection must send a whole request head this soon after opening (or after its first
+    # byte, when kept alive); idle kept-alive connections close after keep_alive_s. At most
+    # max_connections are kept (lowered to half the fd limit), the idlest closed for a new one.
+    header_timeout_s: float = Field(10.0, gt=0)
+    keep_alive_s: float = Field(5.0, gt=0)
+    max_connections: int = Field(1024, ge=4)
     access_log: bool = False
     log_level: str = "info"
     assignment: Assignment | None = None
