@@ -9,10 +9,10 @@ exceptions, so most tests run once per kind (``httpx`` being the reference).
 from __future__ import annotations
 
 import asyncio
-import gc
+import gzip
 import socket
 import threading
-import weakref
+import zlib
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -71,12 +71,6 @@ def status(code: int) -> Response:
     return JSONResponse({"detail": f"status {code} as asked"}, status_code=code)
 
 
-@app.get("/sleep")
-async def sleep(seconds: float) -> Response:
-    await asyncio.sleep(seconds)
-    return PlainTextResponse("done")
-
-
 @app.get("/drip")
 def drip(chunks: int, interval: float, size: int = 1000) -> StreamingResponse:
     async def body() -> AsyncIterator[bytes]:
@@ -97,23 +91,6 @@ async def peer(request: Request, hold: float = 0.0) -> Response:
 @app.get("/close")
 def close() -> Response:
     return PlainTextResponse("bye", headers={"connection": "close"})
-
-
-@app.api_route("/headers", methods=["GET", "POST", "PUT"])
-async def headers_seen(request: Request) -> JSONResponse:
-    """The request's head as the server saw it: every header line in order, and the body's size."""
-    body = await request.body()
-    return JSONResponse({"headers": [[k.decode(), v.decode()] for k, v in request.scope["headers"]], "body": len(body)})
-
-
-@app.get("/redirect")
-def redirect() -> Response:
-    return Response(status_code=307, headers={"location": "/bytes/3"})
-
-
-@app.get("/cookie")
-def cookie() -> Response:
-    return PlainTextResponse("set", headers={"set-cookie": "session=abc; Path=/"})
 
 
 @contextmanager
@@ -326,9 +303,6 @@ def test_concurrent_requests_to_several_servers_all_get_their_own_answers(kind: 
             assert content == pattern(n), f"{url}/bytes/{n}"
 
 
-# ----------------------------------------------------------------------------- timeouts
-
-
 # ------------------------------------------------------------------------ broken servers
 
 
@@ -368,18 +342,6 @@ def test_unknown_kind_is_refused_naming_it() -> None:
         make_transport("grpc")  # type: ignore[arg-type]
 
 
-# ------------------------------------------------------- VecsimAsyncClient's lean request path
-
-
-async def _seen_by_server(client: httpx.AsyncClient, server: str) -> list[Any]:
-    calls = [
-        client.get(f"{server}/headers"),
-        client.post(f"{server}/headers", content=b"\x00" * 1000, headers={"Content-Type": "application/x-test"}),
-        client.put(f"{server}/headers", json={"generation": 3}, headers={"X-Test": "per-call"}),
-    ]
-    return [(await call).json() for call in calls]
-
-
 @pytest.mark.parametrize("kind", KINDS)
 def test_transport_errors_name_the_request(refusing_port: int, kind: str) -> None:
     url = f"http://127.0.0.1:{refusing_port}/v1/step"
@@ -404,3 +366,95 @@ def test_closed_client_refuses_requests(server: str) -> None:
 
     with pytest.raises(RuntimeError, match="client has been closed"):
         asyncio.run(main())
+
+
+# ------------------------------------------------------------------- answers under a cap
+
+
+def read_with(kind: str, url: str, max_bytes: int) -> bytes:
+    """GET ``url`` streamed and read with ``read_answer`` under ``max_bytes``."""
+
+    async def use(client: httpx.AsyncClient) -> bytes:
+        response = await client.send(client.build_request("GET", url), stream=True)
+        return await read_answer(response, max_bytes)
+
+    return run_with(kind, use)
+
+
+def gzip_reply(body: bytes, encoding: bytes = b"gzip") -> bytes:
+    packed = gzip.compress(body) if encoding == b"gzip" else zlib.compress(body)
+    return b"HTTP/1.1 200 OK\r\nContent-Encoding: %s\r\nContent-Length: %d\r\n\r\n%s" % (
+        encoding,
+        len(packed),
+        packed,
+    )
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_answer_exactly_at_the_cap_arrives_whole(server: str, kind: str) -> None:
+    assert read_with(kind, f"{server}/bytes/70000", 70_000) == pattern(70_000)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_content_length_over_the_cap_is_refused_before_the_body_is_read(kind: str) -> None:
+    reply = b"HTTP/1.1 200 OK\r\nContent-Length: 100000000000\r\n\r\n" + bytes(1000)
+    with raw_server(reply) as url, pytest.raises(AnswerTooLargeError, match="Content-Length 100000000000"):
+        read_with(kind, f"{url}/", 1 << 20)
+
+
+@pytest.mark.parametrize("length", [b"18446744073709551616", b"1" * 400, b"-1", b"12, 13"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_absurd_content_length_is_an_httpx_error(kind: str, length: bytes) -> None:
+    with raw_server(b"HTTP/1.1 200 OK\r\nContent-Length: %s\r\n\r\n" % length) as url:
+        with pytest.raises(httpx.HTTPError):
+            read_with(kind, f"{url}/", 1 << 20)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_chunk_size_past_2_64_is_an_httpx_error(kind: str) -> None:
+    reply = b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nffffffffffffffff\r\n" + bytes(1000)
+    with raw_server(reply) as url, pytest.raises(httpx.HTTPError):
+        read_with(kind, f"{url}/", 1 << 20)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_chunked_answer_that_grows_past_the_cap_stops_there(server: str, kind: str) -> None:
+    with pytest.raises(AnswerTooLargeError, match="exceeds the cap of 10000 bytes"):
+        read_with(kind, f"{server}/drip?chunks=50&interval=0&size=3000", 10_000)
+
+
+@pytest.mark.parametrize("encoding", [b"gzip", b"deflate"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_encoded_answer_is_decoded_once(kind: str, encoding: bytes) -> None:
+    with raw_server(gzip_reply(pattern(300_000), encoding)) as url:
+        assert read_with(kind, f"{url}/", 1 << 20) == pattern(300_000)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_gzip_bomb_stops_at_the_cap(kind: str) -> None:
+    with raw_server(gzip_reply(bytes(64 << 20))) as url:
+        with pytest.raises(AnswerTooLargeError, match="decoded answer exceeds the cap of 1048576 bytes"):
+            read_with(kind, f"{url}/", 1 << 20)
+
+
+@pytest.mark.parametrize(
+    ("reply", "what"),
+    [
+        (b"HTTP/1.1 200 OK\r\nContent-Encoding: gzip\r\nContent-Length: 8\r\n\r\nnot gzip", "corrupt gzip"),
+        (b"HTTP/1.1 200 OK\r\nContent-Encoding: br\r\nContent-Length: 2\r\n\r\nxx", "unsupported Content-Encoding"),
+        (b"HTTP/1.1 200 OK\r\nContent-Encoding: gzip, gzip\r\nContent-Length: 2\r\n\r\nxx", "stacked"),
+    ],
+    ids=["corrupt", "unsupported", "stacked"],
+)
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_answer_that_cannot_be_decoded_is_a_decoding_error_naming_why(kind: str, reply: bytes, what: str) -> None:
+    with raw_server(reply) as url, pytest.raises(httpx.DecodingError, match=what):
+        read_with(kind, f"{url}/", 1 << 20)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_gzip_body_cut_short_is_a_decoding_error(kind: str) -> None:
+    packed = gzip.compress(pattern(100_000))[:-20]
+    reply = b"HTTP/1.1 200 OK\r\nContent-Encoding: gzip\r\nContent-Length: %d\r\n\r\n%s" % (len(packed), packed)
+    with raw_server(reply) as url, pytest.raises(httpx.DecodingError, match="truncated gzip"):
+        read_with(kind, f"{url}/", 1 << 20)
