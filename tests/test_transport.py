@@ -27,7 +27,6 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response, Streami
 from vecsim import wire
 from vecsim.transport import (
     DEFAULT_KIND,
-    AiohttpTransport,
     AnswerTooLargeError,
     make_async_client,
     make_transport,
