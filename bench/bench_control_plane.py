@@ -171,9 +171,7 @@ class Fleet:
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
-        # Idle connections go before uvicorn's 5 s keep-alive closes them under a new request.
-        limits = httpx.Limits(max_connections=256, max_keepalive_connections=256, keepalive_expiry=2.0)
-        self._client = make_async_client("fast", timeout=30.0, total_timeout=30.0, limits=limits, headers=self.headers)
+        self._client = make_async_client(timeout=30.0, headers=self.headers)
         await asyncio.gather(*(self._register(pod) for pod in self.pods.values()))
         interval = self.timing.heartbeat_interval_s
         for i, pod in enumerate(self.pods.values()):

@@ -69,9 +69,9 @@ def create_app(
             yield
             return
         stop = asyncio.Event()
-        # vecsim's lean transport: httpx's own costs about a millisecond of this event loop per
-        # request, and a new generation pushes an assignment to every pod at once.
-        async with make_async_client("fast", headers=bearer_headers(settings.token)) as client:
+        # vecsim's default transport (vecsim.transport): a new generation pushes an assignment to
+        # every pod at once.
+        async with make_async_client(headers=bearer_headers(settings.token)) as client:
             tasks = [
                 asyncio.create_task(Reconciler(state, client).run(stop)),
                 asyncio.create_task(_ticker(state, stop)),

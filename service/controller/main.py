@@ -8,6 +8,7 @@ import sys
 
 import uvicorn
 
+from service.serving import uvicorn_limits
 from vecsim.auth import token_from_env
 from vecsim.config import ConfigError, load_job_config
 
@@ -31,6 +32,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max-body-bytes", type=int, dest="max_body_bytes", help="largest request body (default 1 MiB)"
     )
+    p.add_argument(
+        "--header-timeout", type=float, dest="header_timeout_s", help="close a connection silent this long (s)"
+    )
+    p.add_argument("--max-connections", type=int, dest="max_connections", help="connections kept at most")
     p.add_argument("--access-log", action="store_true", default=None, help="log every request")
     p.add_argument("--log-level", default="info", help="logging level (default info)")
     return p
@@ -62,5 +67,6 @@ def main(argv: list[str]) -> int:
         access_log=settings.access_log,
         log_level=settings.log_level,
         timeout_graceful_shutdown=5,
+        **uvicorn_limits(settings.header_timeout_s, settings.keep_alive_s, settings.max_connections),
     )
     return 0

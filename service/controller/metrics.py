@@ -48,6 +48,11 @@ class ControllerMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         self.heartbeats = Counter("vecsim_controller_heartbeats", "Heartbeats received.", registry=self.registry)
+        self.url_conflicts = Counter(
+            "vecsim_controller_heartbeat_url_conflicts",
+            "Heartbeats refused for naming another URL than their pod registered at.",
+            registry=self.registry,
+        )
         self.registrations = Counter(
             "vecsim_controller_registrations", "Pod registrations received.", registry=self.registry
         )

@@ -20,11 +20,15 @@ import httpx
 
 from vecsim.config import Assignment
 from vecsim.plan import Plan
+from vecsim.transport import read_answer
 
 if TYPE_CHECKING:
     from .state import ControllerState
 
 log = logging.getLogger(__name__)
+
+# A pod answers a push with a line of JSON; anything much larger is not a pod's answer.
+_MAX_PUSH_ANSWER_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -183,11 +187,14 @@ class Reconciler:
     async def _push(self, action: Action) -> tuple[bool, str]:
         url = f"{action.url}/v1/assignment"
         try:
-            response = await self._client.put(
-                url, json=action.assignment.model_dump(mode="json"), timeout=self._state.settings.push_timeout_s
-            )
-        except httpx.HTTPError as exc:
+            async with asyncio.timeout(self._state.settings.push_timeout_s):
+                request = self._client.build_request("PUT", url, json=action.assignment.model_dump(mode="json"))
+                response = await self._client.send(request, stream=True)
+                body = await read_answer(response, _MAX_PUSH_ANSWER_BYTES)
+        except TimeoutError:
+            return False, f"no answer within {self._state.settings.push_timeout_s} s"
+        except Exception as exc:  # noqa: BLE001 - whatever the pod's side did, the push failed and backs off
             return False, f"{type(exc).__name__}: {exc}"
         if response.status_code == 200:
             return True, ""
-        return False, f"HTTP {response.status_code}: {response.text[:500]}"
+        return False, f"HTTP {response.status_code}: {body[:500].decode('utf-8', 'replace')}"

@@ -48,6 +48,13 @@ class ControllerSettings(BaseModel):
         "and sent with every assignment pushed to a pod; None turns checking off",
     )
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="largest request body accepted (413 above)")
+    header_timeout_s: float = Field(
+        10.0, gt=0, description="a connection that sends no whole request head this soon is closed"
+    )
+    keep_alive_s: float = Field(5.0, gt=0, description="an idle kept-alive connection is closed after this long")
+    max_connections: int = Field(
+        1024, ge=4, description="connections kept at most (lowered to half the fd limit); the idlest goes for a new one"
+    )
     access_log: bool = False
     log_level: str = "info"
 

@@ -26,6 +26,16 @@ class UnknownPodError(LookupError):
     """A heartbeat from a pod that is not registered (it should register again)."""
 
 
+class PodUrlConflictError(ValueError):
+    """A heartbeat names another URL than the one its pod registered at.
+
+    Pods are addressed by stable names (a StatefulSet's DNS names), so a live pod's URL does not
+    change; a heartbeat that says otherwise is refused, and the pod keeps its registered URL. A
+    pod that really moved registers again (``POST /v1/pods``), which counts as a restart.
+    """
+
+
+
 class NoJobError(LookupError):
     """The controller has no job yet."""
 
@@ -119,6 +129,7 @@ class ControllerState:
 
         Raises:
             UnknownPodError: ``name`` is not registered.
+            PodUrlConflictError: ``url`` is not the one ``name`` registered at (nothing changes).
         """
         entry = self.pods.get(name)
         if entry is None:
@@ -126,8 +137,13 @@ class ControllerState:
             raise UnknownPodError(
                 f"pod {name!r} is not registered (or was silent for over {ttl} s): POST /v1/pods first"
             )
-        changed = entry.reported != assignment or entry.ready != ready or not entry.heard or entry.url != url
-        entry.url = url.rstrip("/")
+        if url.rstrip("/") != entry.url:
+            self.metrics.url_conflicts.inc()
+            raise PodUrlConflictError(
+                f"pod {name!r} is registered at {entry.url}, the heartbeat says {url.rstrip('/')}: a live pod's "
+                "URL changes only by registering again (POST /v1/pods)"
+            )
+        changed = entry.reported != assignment or entry.ready != ready or not entry.heard
         entry.reported = assignment
         entry.ready = ready
         entry.heard = True

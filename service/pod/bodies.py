@@ -109,13 +109,15 @@ def parse_body(request: Request, body: bytes, model: type[M]) -> M:
     if media_type == wire.CONTENT_TYPE:
         try:
             obj: Any = wire.decode(body)
-        except wire.WireError as exc:
-            raise MalformedBodyError(f"body is not valid {wire.CONTENT_TYPE}: {exc}") from None
+        except (wire.WireError, ValueError, RecursionError) as exc:
+            raise MalformedBodyError(f"body is not valid {wire.CONTENT_TYPE}: {_reason(exc)}") from None
     elif media_type == JSON_TYPE:
         try:
             obj = json.loads(body)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise MalformedBodyError(f"body is not valid JSON: {exc}") from None
+        # ValueError: not JSON, not UTF-8, or an integer past Python's digit limit; RecursionError:
+        # nesting deeper than the parser's stack.
+        except (ValueError, RecursionError) as exc:
+            raise MalformedBodyError(f"body is not valid JSON: {_reason(exc)}") from None
     else:
         raise UnsupportedMediaTypeError(
             f"Content-Type {media_type or '(none)'!r} is not supported; send {JSON_TYPE} or {wire.CONTENT_TYPE}"
@@ -126,6 +128,15 @@ def parse_body(request: Request, body: bytes, model: type[M]) -> M:
         return model.model_validate(obj)
     except ValidationError as exc:
         raise InvalidRequestError(describe_validation_error(exc)) from None
+    except (ValueError, RecursionError) as exc:
+        # Arrays nested past numpy's or the interpreter's depth, numbers past the digit limit.
+        raise MalformedBodyError(f"body cannot be read as a request: {_reason(exc)}") from None
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, RecursionError):
+        return "nested too deeply"
+    return str(exc)[:300]
 
 
 def encode_answer(obj: dict[str, Any], as_json: bool) -> Response:

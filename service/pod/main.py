@@ -19,6 +19,7 @@ from pathlib import Path
 import uvicorn
 from pydantic import ValidationError
 
+from service.serving import uvicorn_limits
 from vecsim.config import Assignment, ConfigError, JobSpec, load_job_config
 from vecsim.plan import Plan, slot_contents
 from vecsim.tasks import normalize_task_id, suite_tasks
@@ -157,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         log_level=settings.log_level,
         log_config=None,
         timeout_graceful_shutdown=10,
+        **uvicorn_limits(settings.header_timeout_s, settings.keep_alive_s, settings.max_connections),
     )
     server = uvicorn.Server(config)
     server.run()

@@ -38,6 +38,9 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_STEP_TIMEOUT_S": "step_timeout_s",
     "VECSIM_BUILD_TIMEOUT_S": "build_timeout_s",
     "VECSIM_MAX_CHUNK": "max_chunk",
+    "VECSIM_HEADER_TIMEOUT_S": "header_timeout_s",
+    "VECSIM_KEEP_ALIVE_S": "keep_alive_s",
+    "VECSIM_MAX_CONNECTIONS": "max_connections",
 }
 
 
@@ -75,6 +78,12 @@ class PodSettings(BaseModel):
     build_timeout_s: float = Field(900.0, gt=0)
     # The most actions per env one step call takes (stated in /v1/info).
     max_chunk: int = Field(DEFAULT_MAX_CHUNK, ge=1)
+    # A connection must send a whole request head this soon after opening (or after its first
+    # byte, when kept alive); idle kept-alive connections close after keep_alive_s. At most
+    # max_connections are kept (lowered to half the fd limit), the idlest closed for a new one.
+    header_timeout_s: float = Field(10.0, gt=0)
+    keep_alive_s: float = Field(5.0, gt=0)
+    max_connections: int = Field(1024, ge=4)
     access_log: bool = False
     log_level: str = "info"
     assignment: Assignment | None = None

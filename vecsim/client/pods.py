@@ -1,10 +1,12 @@
-"""How the client reaches pods: one keep-alive HTTP client per pod, on one background event loop.
+"""How the client reaches pods: one httpx client over one transport, on one background event loop.
 
 The client code above this module sees three calls per pod (``info``, ``reset``, ``step``) and
-three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no answer in
-time), :class:`_Stale` (409, the caller re-reads the routing table) and
-:class:`~vecsim.client.errors.PodRequestError` (the pod refused the request). Which transport
-carries the bytes is decided in :func:`new_http_client` alone.
+three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no usable
+answer in time: whatever went wrong on the way, in the connection, the HTTP, the size or the
+encoding of the answer), :class:`_Stale` (409, the caller re-reads the routing table) and
+:class:`~vecsim.client.errors.PodRequestError` (the pod refused the request, or its answer is not
+the one asked for). Which transport carries the bytes is the caller's choice
+(``vecsim.transport``).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import asyncio
 import concurrent.futures
 import logging
 import threading
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 import httpx
@@ -22,29 +24,11 @@ import numpy as np
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError
-from vecsim.transport import TransportKind, make_async_client
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, read_answer
 
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
-
-# uvicorn speaks HTTP/1.1: a call in flight holds a connection, so a few per pod suffice.
-_MAX_CONNECTIONS_PER_POD = 4
-
-
-def new_http_client(timeout_s: float, transport: TransportKind = "fast") -> httpx.AsyncClient:
-    """Return a keep-alive ``httpx.AsyncClient`` for one pod; the one place that picks a transport.
-
-    Every request, body included, must finish within ``timeout_s``.
-    """
-    return make_async_client(
-        transport,
-        timeout=timeout_s,
-        total_timeout=timeout_s,
-        limits=httpx.Limits(
-            max_connections=_MAX_CONNECTIONS_PER_POD, max_keepalive_connections=_MAX_CONNECTIONS_PER_POD
-        ),
-    )
 
 
 class EventLoopThread:
@@ -93,39 +77,49 @@ def _detail(response: httpx.Response) -> str:
 class PodConnection:
     """One pod's data plane: ``POST /v1/reset``, ``POST /v1/step`` in wire format, ``GET /v1/info``.
 
-    Lives on the client's event loop; every call is bounded by ``timeout_s``. Resets and steps
+    Lives on the client's event loop and sends through the shared ``httpx.AsyncClient`` that
+    ``http()`` returns. Every call, answer included, is bounded by ``timeout_s`` as a whole, and an
+    answer by ``max_answer_bytes`` (the client sets it from the job's spaces). Resets and steps
     carry the job's ``token`` (``Authorization: Bearer``) when one is given.
     """
 
     def __init__(
-        self, name: str, url: str, timeout_s: float, transport: TransportKind = "fast", token: str | None = None
+        self,
+        name: str,
+        url: str,
+        http: Callable[[], httpx.AsyncClient],
+        timeout_s: float,
+        token: str | None = None,
+        max_answer_bytes: int = DEFAULT_MAX_ANSWER_BYTES,
     ) -> None:
         self.name = name
         self.url = url.rstrip("/")
         self.timeout_s = timeout_s
-        self.transport = transport
+        self.max_answer_bytes = max_answer_bytes
+        self._http = http
         self._auth = bearer_headers(token)
-        self._http: httpx.AsyncClient | None = None
-
-    def _client(self) -> httpx.AsyncClient:
-        if self._http is None:
-            self._http = new_http_client(self.timeout_s, self.transport)
-        return self._http
-
-    async def aclose(self) -> None:
-        """Close the pod's connections."""
-        if self._http is not None:
-            await self._http.aclose()
-            self._http = None
 
     async def _request(self, method: str, path: str, held: list[str], **kwargs: Any) -> httpx.Response:
+        """Send one request and read its answer whole, within the timeout and the size cap.
+
+        Raises:
+            PodUnavailableError: anything that kept a usable answer from arriving.
+        """
         try:
             # asyncio.timeout, not wait_for: wait_for wraps every request in a task of its own.
             async with asyncio.timeout(self.timeout_s):
-                return await self._client().request(method, f"{self.url}{path}", **kwargs)
-        except (TimeoutError, httpx.TransportError) as exc:
+                http = self._http()
+                request = http.build_request(method, f"{self.url}{path}", **kwargs)
+                response = await http.send(request, stream=True)
+                content = await read_answer(response, self.max_answer_bytes)
+        except TimeoutError:
+            reason = f"{method} {path} at {self.url}: no answer within {self.timeout_s} s"
+            raise PodUnavailableError({self.name: held}, reason) from None
+        except Exception as exc:  # noqa: BLE001 - whatever broke the exchange, it is this pod's failure alone
             reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
             raise PodUnavailableError({self.name: held}, reason) from None
+        # The body is decoded already: the answer keeps no Content-Encoding to decode again.
+        return httpx.Response(response.status_code, content=content, request=request)
 
     async def info(self) -> dict[str, Any]:
         """Return the pod's ``GET /v1/info`` answer.
@@ -136,7 +130,13 @@ class PodConnection:
         response = await self._request("GET", "/v1/info", [])
         if response.status_code != 200:
             raise PodRequestError(self.name, response.status_code, _detail(response))
-        return response.json()
+        try:
+            info = response.json()
+        except ValueError as exc:
+            raise PodRequestError(self.name, None, f"answer to /v1/info is not JSON: {exc}") from None
+        if not isinstance(info, dict):
+            raise PodRequestError(self.name, None, "answer to /v1/info is not a JSON object")
+        return info
 
     async def call(self, op: str, body: dict[str, Any], held: list[str]) -> dict[str, Any]:
         """POST ``body`` to ``/v1/<op>`` in wire format and return the decoded answer.

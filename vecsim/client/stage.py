@@ -43,6 +43,7 @@ from gymnasium.vector.utils import create_empty_array
 
 from vecsim.auth import token_from_env
 from vecsim.client.errors import (
+    ClientError,
     PodRequestError,
     PodUnavailableError,
     RoutingChangedError,
@@ -60,13 +61,24 @@ from vecsim.client.routing import (
 )
 from vecsim.config import RoutingTable
 from vecsim.spaces import space_from_json
-from vecsim.transport import TransportKind
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, make_async_client
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["PendingCall", "StageBatch", "StageClient", "fetch_routing"]
 
 T = TypeVar("T")
+
+# Bytes an env's answer may hold besides its observation: reward, flags, env id, task id, info.
+_PER_ENV_EXTRA_BYTES = 4096
+
+
+def _leaves(value: Any) -> list[np.ndarray]:
+    """The arrays of a nested dict/tuple made by ``create_empty_array``."""
+    if isinstance(value, np.ndarray):
+        return [value]
+    items = value.values() if isinstance(value, dict) else value if isinstance(value, tuple) else ()
+    return [leaf for item in items for leaf in _leaves(item)]
 
 
 @dataclass
@@ -147,36 +159,70 @@ def _completed(value: Any, pick: int | None) -> PendingCall[Any]:
     return PendingCall(future, pick)
 
 
+def _read_routing(response: httpx.Response, url: str) -> RoutingTable:
+    """The routing table in a controller's answer to ``GET /v1/routing``.
+
+    Raises:
+        PodRequestError: a refusal or an answer that is not a routing table.
+    """
+    if response.status_code != 200:
+        raise PodRequestError("controller", response.status_code, response.text[:500])
+    try:
+        return RoutingTable.model_validate(response.json())
+    except ValueError as exc:
+        raise PodRequestError("controller", None, f"invalid routing table from {url}: {exc}") from None
+
+
+# Waiting for a controller: the first retry comes soon, later ones no more often than this.
+_WAIT_FIRST_S = 0.1
+_WAIT_MAX_S = 2.0
+
+
 def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: float = 0.0) -> RoutingTable:
     """Return the controller's routing table (``GET /v1/routing``).
 
-    With ``wait_ready_s > 0``, polls until the table says ready or the time is up.
+    With ``wait_ready_s > 0``, tries again with growing pauses (up to 2 s) until the table says
+    ready or the time is up, through a controller that is down, not listening yet, restarting
+    (no answer, 5xx) or without a plan yet (a table not ready).
 
     Raises:
-        PodUnavailableError: the controller did not answer (named as pod ``controller``).
-        TimeoutError: the table was not ready within ``wait_ready_s``.
-        PodRequestError: the controller refused the request or answered something invalid.
+        PodUnavailableError: the controller did not answer (named as pod ``controller``), and no
+            waiting was asked for.
+        TimeoutError: waited ``wait_ready_s`` without a ready table; says what it last saw.
+        PodRequestError: the controller refused the request (4xx) or answered something that
+            is not a routing table.
     """
     url = f"{controller_url.rstrip('/')}/v1/routing"
     deadline = time.monotonic() + wait_ready_s
+    pause = _WAIT_FIRST_S
+    attempts = 0
     while True:
+        attempts += 1
+        left = deadline - time.monotonic()
         try:
-            response = httpx.get(url, timeout=timeout_s)
-        except httpx.TransportError as exc:
-            raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
-        if response.status_code != 200:
-            raise PodRequestError("controller", response.status_code, response.text[:500])
-        try:
-            table = RoutingTable.model_validate(response.json())
-        except ValueError as exc:
-            raise PodRequestError("controller", None, f"invalid routing table: {exc}") from None
-        if table.ready or time.monotonic() >= deadline:
-            if wait_ready_s > 0 and not table.ready:
-                raise TimeoutError(
-                    f"routing table at {url} not ready after {wait_ready_s} s (generation {table.generation})"
-                )
-            return table
-        time.sleep(0.2)
+            # A request never outlives the wait: a controller that accepts and stalls is waited
+            # for like one that is down.
+            response = httpx.get(url, timeout=timeout_s if wait_ready_s <= 0 else max(min(timeout_s, left), 0.1))
+        except httpx.HTTPError as exc:
+            if wait_ready_s <= 0:
+                raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
+            seen = f"no answer ({type(exc).__name__}: {exc})"
+        else:
+            if response.status_code >= 500 and wait_ready_s > 0:
+                seen = f"HTTP {response.status_code}: {response.text[:200]}"
+            else:
+                table = _read_routing(response, url)
+                if table.ready or wait_ready_s <= 0:
+                    return table
+                seen = f"a routing table not ready yet (generation {table.generation}, {len(table.stages)} stage(s))"
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError(
+                f"waited {wait_ready_s} s ({attempts} tries) for a ready routing table at {url}; last saw {seen}"
+            )
+        logger.info("waiting for the controller at %s: %s", url, seen)
+        time.sleep(min(pause, left))
+        pause = min(pause * 2, _WAIT_MAX_S)
 
 
 def _fill_rows(dst: Any, src: Any, rows: np.ndarray, where: str, pod: str) -> None:
@@ -233,11 +279,15 @@ class StageClient:
     """Routes trajectories to pod envs and steps them stage by stage (see the module docstring).
 
     ``routing`` is the job's routing table; ``controller_url``, when given, is where the table is
-    re-read after a pod answers 409 (stale generation). ``timeout_s`` bounds every HTTP request:
-    a pod that does not answer within it raises :class:`PodUnavailableError`. ``transport`` picks
-    how bytes reach the pods (``vecsim.transport``: ``"fast"``, ``"asyncio"``, ``"aiohttp"``,
-    ``"httpx"``). ``token`` is the job's shared token, sent with every reset and step; left out,
-    ``VECSIM_TOKEN`` is used (none: the pods must run without one).
+    re-read after a pod answers 409 (stale generation) and before each new batch is placed.
+    ``timeout_s`` bounds every HTTP request as a whole, answer included: a pod that does not
+    answer within it raises :class:`PodUnavailableError`. ``transport`` is how bytes reach the
+    pods, any ``httpx.AsyncBaseTransport`` (``httpx.ASGITransport(app)`` runs a pod in-process);
+    left out, ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
+    caps one pod's answer; left out, each pod's cap follows from the job's observation space
+    and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
+    job's shared token, sent with every reset and step; left out, ``VECSIM_TOKEN`` is used
+    (none: the pods must run without one).
     """
 
     def __init__(
@@ -246,15 +296,20 @@ class StageClient:
         *,
         controller_url: str | None = None,
         timeout_s: float = 30.0,
-        transport: TransportKind = "fast",
+        transport: httpx.AsyncBaseTransport | None = None,
+        max_answer_bytes: int | None = None,
         token: str | None = None,
     ) -> None:
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
             raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
+        if max_answer_bytes is not None and max_answer_bytes < 1:
+            raise ValueError(f"max_answer_bytes must be a positive number of bytes, got {max_answer_bytes}")
         stage_by_id(routing)
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
-        self.transport = transport
+        self.max_answer_bytes = max_answer_bytes
+        self._transport = transport
+        self._http: httpx.AsyncClient | None = None
         self._token = token if token is not None else token_from_env()
         self._lock = threading.Lock()
         self._table = routing
@@ -278,16 +333,25 @@ class StageClient:
         *,
         timeout_s: float = 30.0,
         wait_ready_s: float = 0.0,
-        transport: TransportKind = "fast",
+        transport: httpx.AsyncBaseTransport | None = None,
+        max_answer_bytes: int | None = None,
         token: str | None = None,
     ) -> StageClient:
-        """Return a client over the controller's routing table (see :func:`fetch_routing`).
+        """Return a client over the controller's routing table (see :func:`fetch_routing`, which
+        waits up to ``wait_ready_s`` for a controller that is down, restarting or not planned).
 
         Raises:
             PodUnavailableError, PodRequestError, TimeoutError: as :func:`fetch_routing`.
         """
         table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
-        return cls(table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, token=token)
+        return cls(
+            table,
+            controller_url=controller_url,
+            timeout_s=timeout_s,
+            transport=transport,
+            max_answer_bytes=max_answer_bytes,
+            token=token,
+        )
 
     @classmethod
     def from_pods(
@@ -295,7 +359,8 @@ class StageClient:
         urls: Sequence[str],
         *,
         timeout_s: float = 30.0,
-        transport: TransportKind = "fast",
+        transport: httpx.AsyncBaseTransport | None = None,
+        max_answer_bytes: int | None = None,
         token: str | None = None,
     ) -> StageClient:
         """Return a client over standalone pods (no controller), reading each pod's ``/v1/info``.
@@ -315,7 +380,13 @@ class StageClient:
             return url.rstrip("/"), response.json()
 
         infos = [info(u) for u in urls]
-        client = cls(routing_from_pod_infos(infos), timeout_s=timeout_s, transport=transport, token=token)
+        client = cls(
+            routing_from_pod_infos(infos),
+            timeout_s=timeout_s,
+            transport=transport,
+            max_answer_bytes=max_answer_bytes,
+            token=token,
+        )
         try:
             client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
         except BaseException:
@@ -386,11 +457,52 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
+        self._refresh_routing()
         batch = next(self._batches)
         keys = list(traj_keys) if traj_keys is not None else [f"{batch}-{i}" for i in range(len(requests))]
         routes = place_requests(self._table, requests, keys)
         self._replace_routes(routes)
         return dict(routes)
+
+    def _refresh_routing(self) -> None:
+        """Before a new batch: take the controller's routing table if it has moved on and is
+        ready, so that a reassignment finished before the batch costs the batch nothing.
+
+        Without a controller, with calls in flight, or when the controller does not answer, the
+        table in use stays (a stale one is caught by the pods' 409 as before).
+        """
+        if self.controller_url is None:
+            return
+        with self._lock:
+            if self._busy_stages(set(self._pending)):
+                return
+        try:
+            new = self._loop.run(self._controller_routing())
+            stage_by_id(new)
+        except (ClientError, ValueError) as exc:
+            logger.warning(
+                "routing table not re-read before a new batch (%s); placing it on generation %d",
+                exc,
+                self._table.generation,
+            )
+            return
+        if new.generation == self._table.generation or not new.ready:
+            return
+        logger.info("routing table moved from generation %d to %d; new batches go there",
+                    self._table.generation, new.generation)  # fmt: skip
+        with self._lock:
+            self._table = new
+            self._sync_pods()
+        # The envs' builds now, so that a later 409 tells a rebuilt pod from a renumbered one.
+        pods = [p.pod for stage in new.stages for p in stage.pods if p.num_envs > 0]
+
+        async def builds() -> list[Any]:
+            return await asyncio.gather(*(self._pods[p].info() for p in pods), return_exceptions=True)
+
+        infos = self._loop.run(builds())
+        with self._lock:
+            for pod, info in zip(pods, infos):
+                self._instances[pod] = None if isinstance(info, BaseException) else info.get("instance")
 
     def set_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Make ``routes`` the live trajectories, as given (for callers that place envs themselves).
@@ -578,7 +690,10 @@ class StageClient:
         self._loop.close()
 
     async def _aclose(self) -> None:
-        await asyncio.gather(*(pod.aclose() for pod in self._pods.values()), return_exceptions=True)
+        if self._http is not None:
+            await self._http.aclose()
+        elif self._transport is not None:
+            await self._transport.aclose()
 
     def __enter__(self) -> StageClient:
         return self
@@ -650,19 +765,34 @@ class StageClient:
 
     # -- what runs on the loop ------------------------------------------------------------------
 
-    def _sync_pods(self) -> list[PodConnection]:
-        """Make one connection per pod of the table; return the connections it replaced."""
-        replaced = []
+    def _http_client(self) -> httpx.AsyncClient:
+        """The one ``httpx.AsyncClient`` every pod is reached through (made on the client's loop)."""
+        if self._http is None:
+            self._http = make_async_client(self._transport)
+        return self._http
+
+    def _sync_pods(self) -> None:
+        """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
+        with its answer cap."""
         for stage in self._table.stages:
             for routed in stage.pods:
                 known = self._pods.get(routed.pod)
                 if known is None or known.url != routed.url.rstrip("/"):
-                    if known is not None:
-                        replaced.append(known)
                     self._pods[routed.pod] = PodConnection(
-                        routed.pod, routed.url, self.timeout_s, self.transport, self._token
+                        routed.pod, routed.url, self._http_client, self.timeout_s, self._token
                     )
-        return replaced
+                self._pods[routed.pod].max_answer_bytes = self._answer_cap(routed.num_envs)
+
+    def _answer_cap(self, num_envs: int) -> int:
+        """The most bytes a pod of ``num_envs`` envs may answer with (see the class docstring)."""
+        if self.max_answer_bytes is not None:
+            return self.max_answer_bytes
+        if not self._spaces:
+            return DEFAULT_MAX_ANSWER_BYTES
+        one_env = create_empty_array(self._spaces[0], n=1, fn=np.zeros)
+        # Besides the observation, each env answers a few flags, its reward, ids and info.
+        per_env = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
+        return 2 * max(num_envs, 1) * per_env + (1 << 20)
 
     def _load_info(self) -> tuple[Space, Space] | None:
         if self._spaces is None:
@@ -696,6 +826,8 @@ class StageClient:
             self._spaces = (space_from_json(spaces_json[0]), space_from_json(spaces_json[1]))
         else:
             self._spaces = ()  # type: ignore[assignment]
+        with self._lock:
+            self._sync_pods()  # the answer caps follow from the spaces just read
 
     def _empty_batch(
         self,
@@ -843,29 +975,35 @@ class StageClient:
         if lost:
             raise RoutingChangedError(self._lost[lost[0]], lost)
 
+    async def _controller_routing(self) -> RoutingTable:
+        """The controller's routing table now.
+
+        Raises:
+            PodUnavailableError: the controller did not answer within ``timeout_s``.
+            PodRequestError: it refused, or answered something that is not a routing table.
+        """
+        url = f"{self.controller_url}/v1/routing"
+        try:
+            async with asyncio.timeout(self.timeout_s), httpx.AsyncClient(timeout=self.timeout_s) as http:
+                response = await http.get(url)
+        except (TimeoutError, httpx.HTTPError) as exc:
+            raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
+        return _read_routing(response, url)
+
     async def _adopt_new_routing(self, pod: str, generation: int, detail: str) -> None:
         if self.controller_url is None:
             raise StaleGenerationError(
                 pod, generation, f"{detail} (no controller_url to re-read the routing table from)"
             )
-        url = f"{self.controller_url}/v1/routing"
-        try:
-            async with httpx.AsyncClient(timeout=self.timeout_s) as http:
-                response = await http.get(url)
-        except httpx.TransportError as exc:
-            raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
-        if response.status_code != 200:
-            raise PodRequestError("controller", response.status_code, response.text[:500])
-        new = RoutingTable.model_validate(response.json())
+        new = await self._controller_routing()
         logger.info(
             "pod %s answered 409 at generation %d; routing table now at generation %d", pod, generation, new.generation
         )
         with self._lock:
             moved = changed_routes(self._table, new, self._routes)
             self._table = new
-            replaced = self._sync_pods()
+            self._sync_pods()
             holders = sorted({r.pod for k, r in self._routes.items() if k not in moved})
-        await asyncio.gather(*(connection.aclose() for connection in replaced), return_exceptions=True)
         # Same blocks, new generation: the envs survived unless the pod built them anew (restart).
         infos = await asyncio.gather(*(self._pods[name].info() for name in holders), return_exceptions=True)
         with self._lock:

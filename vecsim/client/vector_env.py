@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
 from gymnasium.utils import seeding
@@ -26,7 +27,6 @@ from vecsim.client.routing import TrajRoute, env_slots
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.tasks import get_task
-from vecsim.transport import TransportKind
 
 logger = logging.getLogger(__name__)
 
@@ -78,8 +78,9 @@ class HTTPVectorEnv(VectorEnv):
     Give exactly one of ``controller_url``, ``job_config`` (a :class:`RunnerConfig` or its YAML
     path; the controller is at its ``controller.host:port``), ``routing`` (a routing table) or
     ``pod_urls`` (standalone pods). ``num_envs`` is set by the job; passing it only checks it.
-    ``timeout_s`` bounds every request to a pod; ``transport`` and ``token`` are as in
-    :class:`StageClient`.
+    ``timeout_s`` bounds every request to a pod; ``transport``, ``max_answer_bytes`` and ``token``
+    are as in :class:`StageClient`. With a controller, ``wait_ready_s`` is how long to wait for
+    its routing table to be ready (through a controller that is down or restarting meanwhile).
 
     Observations are the pods' (``{"images": {...}, "proprio": ...}``); ``info`` after reset and
     step holds ``success`` and ``task_id`` with gymnasium's ``_key`` masks. ``reset`` takes
@@ -116,7 +117,8 @@ class HTTPVectorEnv(VectorEnv):
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         timeout_s: float = 30.0,
         wait_ready_s: float = 60.0,
-        transport: TransportKind = "fast",
+        transport: httpx.AsyncBaseTransport | None = None,
+        max_answer_bytes: int | None = None,
         token: str | None = None,
     ) -> None:
         """Connect to the job and read its envs and spaces.
@@ -137,13 +139,13 @@ class HTTPVectorEnv(VectorEnv):
         if controller_url is not None:
             table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
             self.client = StageClient(
-                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, token=token
+                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token
             )
         elif routing is not None:
-            self.client = StageClient(routing, timeout_s=timeout_s, transport=transport, token=token)
+            self.client = StageClient(routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token)
         else:
             self.client = StageClient.from_pods(
-                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, token=token
+                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token
             )
         try:
             self._setup(num_envs)

@@ -9,7 +9,7 @@ from vecsim.config import PodRecord, PodRegistration
 
 from ..deps import get_state
 from ..models import Heartbeat, HeartbeatAnswer, Problem
-from ..state import ControllerState, UnknownPodError
+from ..state import ControllerState, PodUrlConflictError, UnknownPodError
 
 router = APIRouter(prefix="/v1/pods", tags=["pods"])
 
@@ -33,13 +33,18 @@ async def list_pods(state: ControllerState = Depends(get_state)) -> list[PodReco
 @router.post(
     "/{name}/heartbeat",
     response_model=HeartbeatAnswer,
-    responses={404: {"model": Problem, "description": "unknown pod: register first"}, 422: {"model": Problem}},
+    responses={
+        404: {"model": Problem, "description": "unknown pod: register first"},
+        409: {"model": Problem, "description": "the heartbeat's URL is not the pod's registered one"},
+        422: {"model": Problem},
+    },
     summary="Report what a pod runs",
 )
 async def heartbeat(
     body: Heartbeat, name: str = POD_NAME, state: ControllerState = Depends(get_state)
 ) -> HeartbeatAnswer | JSONResponse:
-    """Keeps the pod registered and records its assignment and readiness."""
+    """Keeps the pod registered and records its assignment and readiness. A heartbeat cannot move
+    a pod to another URL (409): a pod that moved registers again."""
     if body.assignment is not None and body.generation is not None and body.generation != body.assignment.generation:
         detail = f"generation: {body.generation} differs from assignment.generation {body.assignment.generation}"
         return JSONResponse({"detail": detail}, status_code=422)
@@ -47,4 +52,6 @@ async def heartbeat(
         generation = state.heartbeat(name, body.url, body.assignment, body.ready)
     except UnknownPodError as exc:
         return JSONResponse({"detail": str(exc)}, status_code=404)
+    except PodUrlConflictError as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=409)
     return HeartbeatAnswer(generation=generation)

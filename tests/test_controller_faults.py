@@ -1,0 +1,105 @@
+"""The controller's side of faults, with real processes on loopback.
+
+- A pod URL that answers a push with an absurd Content-Length (a raw socket server written here)
+  costs a failed push, backed off and retried; the controller keeps serving.
+- A client that asks for the routing table while no controller listens waits, with backoff, and
+  when it gives up says what it waited for.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import httpx
+import pytest
+from service_procs import controller_server, running, wait_until
+
+from vecsim.client import StageClient
+
+HOSTILE_PUSH_ANSWER = b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 18446744073709551616\r\n\r\n"
+JOB = {
+    "job_id": "hostile",
+    "tasks": ["gym/Pendulum-v1"],
+    "group_size": 1,
+    "num_stages": 1,
+    "pods_per_stage": 1,
+    "camera": {"names": []},
+}
+
+
+@contextmanager
+def hostile_pod() -> Iterator[tuple[str, list[int]]]:
+    """A loopback server that answers every request with ``HOSTILE_PUSH_ANSWER``; yields its URL
+    and a list that grows by one per request it answered."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(16)
+    listener.settimeout(0.1)
+    stop, served = threading.Event(), []
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                conn.settimeout(5)
+                try:
+                    conn.recv(65536)
+                    conn.sendall(HOSTILE_PUSH_ANSWER)
+                except OSError:
+                    continue
+                served.append(1)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}", served
+    finally:
+        stop.set()
+        thread.join(5)
+        listener.close()
+
+
+def failed_pushes(url: str) -> float:
+    text = httpx.get(f"{url}/metrics", timeout=5).text
+    found = re.search(r'^vecsim_controller_pushes_total\{result="failed"\} (\S+)$', text, re.M)
+    return float(found.group(1)) if found else 0.0
+
+
+def test_a_push_answered_with_an_absurd_content_length_is_a_failed_push_retried_with_backoff(tmp_path):
+    with hostile_pod() as (pod_url, served), running(controller_server(tmp_path, args=["--adopt-grace", "0"])) as c:
+        assert httpx.put(f"{c.url}/v1/job", json=JOB, timeout=30).status_code == 200
+        assert httpx.post(f"{c.url}/v1/pods", json={"name": "sim-0", "url": pod_url}, timeout=10).status_code == 200
+
+        def failed_twice() -> bool:
+            httpx.post(f"{c.url}/v1/pods/sim-0/heartbeat", json={"url": pod_url, "ready": False}, timeout=10)
+            return failed_pushes(c.url) >= 2
+
+        wait_until(failed_twice, "two failed pushes recorded", timeout_s=60, every=0.5)
+        assert c.answers("/healthz")
+    # Each failed push was one request to the pod: the retries came after the failures, not in a loop.
+    assert len(served) >= 2
+
+
+@pytest.fixture
+def refusing_port() -> Iterator[int]:
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()
+
+
+def test_waiting_for_a_controller_that_never_listens_gives_up_saying_what_it_waited_for(refusing_port):
+    url = f"http://127.0.0.1:{refusing_port}"
+    with pytest.raises(TimeoutError) as caught:
+        StageClient.from_controller(url, timeout_s=1, wait_ready_s=1.5)
+    message = str(caught.value)
+    assert f"{url}/v1/routing" in message and "ready routing table" in message and "no answer" in message

@@ -1,0 +1,199 @@
+"""One pod that answers something no pod should costs that pod's trajectories alone.
+
+Two real pods serve one stage (sim-0 and sim-1, two ``gym/Pendulum-v1`` envs each). sim-1 is
+reached through a proxy written here: a raw asyncio socket server on loopback that forwards each
+request to the real sim-1 and passes its answer back, until a test tells it to answer steps with
+a hostile reply instead (an absurd Content-Length, a chunk size past 2^64, an undecodable or
+bomb-sized gzip body, bytes that are not HTTP). Every such answer must end as the client's own
+``PodUnavailableError`` naming sim-1 and its traj_keys, with sim-0's rows delivered; a rollout
+must lose sim-1's trajectories only, and the next one must run at once. A valid gzip-encoded
+answer (a compressing proxy) must work like a plain one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import torch
+from service_procs import Server, assignment_file, pod_server, running
+
+from vecsim.client import HTTPVectorEnv, PodUnavailableError, StageClient
+from vecsim.rollout import EnvLoop
+
+PENDULUM = "gym/Pendulum-v1"
+EPISODE = 12
+KEYS = ["t0", "t1", "t2", "t3"]
+REQUESTS = [(PENDULUM, k) for k in (3, 4, 5, 6)]
+
+HEAD_OK = b"HTTP/1.1 200 OK\r\nContent-Type: application/x-vecsim\r\n"
+# A body that inflates to 256 MiB from about 256 KiB: far past the cap for these small answers.
+BOMB = gzip.compress(bytes(256 << 20), compresslevel=9)
+HOSTILE = {
+    "content-length-past-2^64": HEAD_OK + b"Content-Length: 18446744073709551616\r\n\r\n",
+    "content-length-100-GB": HEAD_OK + b"Content-Length: 100000000000\r\n\r\n" + bytes(1000),
+    "chunk-size-ffffffffffffffff": HEAD_OK + b"Transfer-Encoding: chunked\r\n\r\nffffffffffffffff\r\n" + bytes(1000),
+    "undecodable-gzip": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: 12\r\n\r\nnot gzip!!!!",
+    "gzip-bomb": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: %d\r\n\r\n" % len(BOMB) + BOMB,
+    "not-http": b"SSH-2.0-OpenSSH_9.6\r\n\r\n",
+}
+
+
+class HostileProxy:
+    """A loopback proxy to ``upstream``: forwards requests and answers, except that while
+    ``reply`` is set, a ``POST /v1/step`` is answered with ``reply`` and the connection closed;
+    while ``gzip_answers`` is set, answers go back gzip-encoded."""
+
+    def __init__(self, upstream: str) -> None:
+        self.upstream = upstream
+        self.reply: bytes | None = None
+        self.gzip_answers = False
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.server = asyncio.run_coroutine_threadsafe(self._start(), self.loop).result(10)
+        self.url = f"http://127.0.0.1:{self.server.sockets[0].getsockname()[1]}"
+
+    async def _start(self) -> asyncio.Server:
+        self.http = httpx.AsyncClient(timeout=60)
+        return await asyncio.start_server(self._serve, "127.0.0.1", 0)
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while True:
+                head = await reader.readuntil(b"\r\n\r\n")
+                lines = head.decode("latin-1").split("\r\n")
+                method, path, _ = lines[0].split(" ", 2)
+                headers = dict(line.split(": ", 1) for line in lines[1:] if line)
+                length = int(next((v for k, v in headers.items() if k.lower() == "content-length"), "0"))
+                body = await reader.readexactly(length)
+                if self.reply is not None and path == "/v1/step":
+                    writer.write(self.reply)
+                    await writer.drain()
+                    return
+                sent = {k: v for k, v in headers.items() if k.lower() not in ("host", "content-length")}
+                answer = await self.http.request(method, f"{self.upstream}{path}", headers=sent, content=body)
+                content, extra = answer.content, b""
+                if self.gzip_answers:
+                    content, extra = gzip.compress(content), b"Content-Encoding: gzip\r\n"
+                writer.write(
+                    b"HTTP/1.1 %d X\r\nContent-Type: %s\r\n%sContent-Length: %d\r\n\r\n"
+                    % (answer.status_code, answer.headers.get("content-type", "").encode(), extra, len(content))
+                    + content
+                )
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    def close(self) -> None:
+        async def stop() -> None:
+            self.server.close()
+            await self.http.aclose()
+
+        asyncio.run_coroutine_threadsafe(stop(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+def pod(name: str, workdir: Path) -> Server:
+    path = assignment_file(workdir, name, [(PENDULUM, 2)], stage_id=0, max_episode_steps=EPISODE)
+    return pod_server(name, workdir, args=["--assignment", str(path)])
+
+
+@pytest.fixture(scope="module")
+def pods(tmp_path_factory) -> Iterator[tuple[Server, HostileProxy]]:
+    """sim-0 reached directly, sim-1 through the proxy (honest until a test says otherwise)."""
+    workdir = tmp_path_factory.mktemp("hostile")
+    with running(pod("sim-0", workdir), ready=True) as first, running(pod("sim-1", workdir), ready=True) as second:
+        proxy = HostileProxy(second.url)
+        try:
+            yield first, proxy
+        finally:
+            proxy.close()
+
+
+@pytest.fixture
+def proxy(pods) -> Iterator[HostileProxy]:
+    yield pods[1]
+    pods[1].reply, pods[1].gzip_answers = None, False
+
+
+def client_of(pods) -> StageClient:
+    first, proxy = pods
+    return StageClient.from_pods([first.url, proxy.url], timeout_s=10)
+
+
+def actions(keys, value: float) -> dict[str, np.ndarray]:
+    return {key: np.array([value], np.float32) for key in keys}
+
+
+@pytest.mark.parametrize("hostile", list(HOSTILE))
+def test_a_hostile_answer_fails_the_call_for_its_pods_trajectories_alone(pods, proxy, hostile):
+    with client_of(pods) as client:
+        client.reset_trajectories(REQUESTS, KEYS)
+        on_sim_1 = [k for k, r in client.routes.items() if r.pod == "sim-1"]
+        on_sim_0 = [k for k in KEYS if k not in on_sim_1]
+        client.reset_stage(0).result(timeout=60)
+        proxy.reply = HOSTILE[hostile]
+        with pytest.raises(PodUnavailableError) as caught:
+            client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60)
+        assert caught.value.pods == ["sim-1"] and sorted(caught.value.traj_keys) == sorted(on_sim_1)
+        assert caught.value.answered.traj_keys == on_sim_0
+        # The client is whole: the next call on the stage goes out at once and is answered.
+        proxy.reply = None
+        after = client.step_stage(0, actions(on_sim_0, 0.5)).result(timeout=60)
+        assert after.traj_keys == on_sim_0
+
+
+def test_a_gzip_encoded_answer_is_decoded_once_and_equals_the_plain_one(pods, proxy):
+    with client_of(pods) as client:
+        client.reset_trajectories(REQUESTS, KEYS)
+        client.reset_stage(0).result(timeout=60)
+        plain = client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60)
+        client.reset_stage(0).result(timeout=60)
+        proxy.gzip_answers = True
+        encoded = client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60)
+    assert np.array_equal(encoded.obs["proprio"], plain.obs["proprio"])
+    assert np.array_equal(encoded.reward, plain.reward)
+
+
+def test_a_rollout_loses_only_the_hostile_pods_trajectories_and_the_next_runs_at_once(pods, proxy):
+    def policy(obs, instructions, task_ids) -> torch.Tensor:
+        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+
+    with client_of(pods) as client:
+        loop = EnvLoop(client, policy, horizon=EPISODE)
+        proxy.reply = HOSTILE["content-length-past-2^64"]
+        hit = loop.run(REQUESTS, KEYS)
+        on_sim_1 = sorted(k for k, r in client.routes.items() if r.pod == "sim-1")
+        proxy.reply = None
+        clean = loop.run(REQUESTS, KEYS)
+    assert sorted(hit.lost) == on_sim_1
+    assert sorted(hit.trajectories) == sorted(set(KEYS) - set(on_sim_1))
+    assert all(t.length == EPISODE for t in hit.trajectories.values())
+    assert clean.lost == {} and sorted(clean.trajectories) == sorted(KEYS)
+
+
+def test_the_vector_env_fails_the_hostile_pods_envs_alone(pods, proxy):
+    first, _ = pods
+    env = HTTPVectorEnv(pod_urls=[first.url, proxy.url], timeout_s=10)
+    try:
+        env.reset(seed=0)
+        failed = sorted(i for i, route in env.routes.items() if route.pod == "sim-1")
+        proxy.reply = HOSTILE["chunk-size-ffffffffffffffff"]
+        with pytest.raises(PodUnavailableError) as caught:
+            env.step(np.zeros((env.num_envs, 1), np.float32))
+        proxy.reply = None
+        obs, _info = env.reset(options={"reset_mask": np.isin(np.arange(env.num_envs), failed)})
+    finally:
+        env.close()
+    assert caught.value.failed_envs == failed
+    assert obs["proprio"].shape[0] == env.num_envs
