@@ -191,7 +191,8 @@ def test_a_bad_chunk_is_refused_naming_what_is_wrong_and_changes_no_env(pod, bad
     _reset(pod, [0, 1, 2], [8, 8, 8])
     chunk = _chunk(2, 4, seed=4)
     sent = bad(chunk)
-    body = {"generation": 0, "env_ids": np.array([0, 1]), "actions": np.asarray(chunk if sent is None else sent, np.float32)}
+    actions = np.asarray(chunk if sent is None else sent, np.float32)
+    body = {"generation": 0, "env_ids": np.array([0, 1]), "actions": actions}
     response = _post(pod, "step", body)
     assert response.status_code == 422
     for word in named:
