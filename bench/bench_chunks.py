@@ -201,7 +201,8 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
             "dtype": plan.dtype,
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
-            "forward_ms": {str(b): round(gs.forward_ms(graphed, space, b, 5, plan.device), 2) for b in sorted(set(sizes))},
+            "forward_ms": {str(b): round(gs.forward_ms(graphed, space, b, 5, plan.device), 2)
+                           for b in sorted(set(sizes))},  # fmt: skip
         }
         log.info("policy: %s", policy_info)
         warm = min(settings.chunks[-1], settings.actions)

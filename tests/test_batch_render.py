@@ -226,6 +226,8 @@ def test_a_worker_renders_only_the_envs_it_reset_or_stepped_in_one_readback() ->
         command = worker.action_space.sample()
         command["cmd"][:] = [STEP, 0, RESET]
         command["state_id"][2] = 4
+        command["action"] = command["action"][:, :1]  # a chunk of one action per env
+        command["record"][:] = 0
         out, *_ = worker.step(command)
         assert renderer.views_rendered - views == 2 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 1

@@ -191,7 +191,8 @@ def test_a_bad_chunk_is_refused_naming_what_is_wrong_and_changes_no_env(pod, bad
     _reset(pod, [0, 1, 2], [8, 8, 8])
     chunk = _chunk(2, 4, seed=4)
     sent = bad(chunk)
-    body = {"generation": 0, "env_ids": np.array([0, 1]), "actions": np.asarray(chunk if sent is None else sent, np.float32)}
+    actions = np.asarray(chunk if sent is None else sent, np.float32)
+    body = {"generation": 0, "env_ids": np.array([0, 1]), "actions": actions}
     response = _post(pod, "step", body)
     assert response.status_code == 422
     for word in named:
@@ -228,6 +229,17 @@ def test_http_vector_env_chunk_step_matches_single_steps_and_stops_at_truncation
     assert info["num_steps"].tolist() == [EPISODE - 4] * 8
     assert truncated[:, EPISODE - 5].all() and not truncated[:, EPISODE - 4 :].any()
     assert np.array_equal(np.concatenate([reward, reward2[:, : EPISODE - 4]], axis=1), rewards)
+
+
+def test_http_vector_env_next_step_autoreset_resets_in_place_of_the_chunk_after_an_ending(pods):
+    with contextlib.closing(HTTPVectorEnv(pod_urls=[p.url for p in pods])) as env:  # NEXT_STEP
+        first, _ = env.reset(options={"state_ids": np.zeros(8, dtype=np.int64)})
+        _, _, _, truncated, _ = env.chunk_step(np.zeros((8, 8, ACTION_DIM)))
+        assert truncated[:, EPISODE - 1].all()
+        obs, reward, _, truncated, info = env.chunk_step(np.zeros((8, 8, ACTION_DIM)))
+    assert info["num_steps"].tolist() == [0] * 8 and info["_num_steps"].all()
+    assert reward.shape == (8, 8) and not reward.any() and not truncated.any()
+    assert info["_state_id"].all()  # each env was reset (to a drawn state) instead of stepped
 
 
 def test_env_loop_records_every_applied_action_of_a_chunking_policy(pods, tmp_path):

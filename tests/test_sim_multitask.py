@@ -201,6 +201,8 @@ def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> N
         command = worker.action_space.sample()
         command["cmd"][:] = [STEP, RESET, STEP]
         command["state_id"][1] = 5
+        command["action"] = command["action"][:, :1]  # a chunk of one action per env
+        command["record"][:] = 0
         out, *_ = worker.step(command)
         assert renderer.views_rendered - views == 3 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 2

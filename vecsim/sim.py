@@ -17,8 +17,9 @@ worker may have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick,
 :func:`resolve_envs_per_worker`). A worker returns per-slot rewards and flags inside its
 observation, since gymnasium's reward and flags are one scalar per worker. Camera images are
 rendered once, after every command of a call has run (after an env's last applied action), for
-exactly the envs reset or stepped, all their cameras in one batch of this worker's renderer (:mod:`vecsim.batch_render`: one GL context per
-worker; envs of one scene share a render context, and each scene's views are read back at once).
+exactly the envs reset or stepped, all their cameras in one batch of this worker's renderer
+(:mod:`vecsim.batch_render`: one GL context per worker; envs of one scene share a render context,
+and each scene's views are read back at once).
 An env whose frames are recorded (``record``) is also rendered after each of its other applied
 actions; those frames travel back through the worker's pipe, not shared memory.
 
@@ -744,13 +745,13 @@ class TaskGroupedVectorEnv:
         workers, slots = self._location[ids].T
         if n == 0 or k == 0:
             obs = self._empty_obs() if n == 0 else self._current(workers, slots)
-            return self._result(obs, np.zeros((n, k, 4)), recorded, {})
+            return self._result(obs, np.zeros((n, k, 4)), recorded)
         command = self._command(k)
         command["cmd"][workers, slots] = STEP
         command["action"][workers, slots] = chunk
         command["record"][workers[recorded], slots[recorded]] = 1
         obs, rows, info = self._run(command, workers, slots)
-        result = self._result(obs, rows[:, :k], recorded, {})
+        result = self._result(obs, rows[:, :k], recorded)
         # gymnasium gathers each worker's info["frames"] into an object array, None where a
         # worker recorded nothing.
         drawn: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
@@ -766,20 +767,16 @@ class TaskGroupedVectorEnv:
                 out[index, last] = obs["images"][camera][row]
         return result
 
-    def _result(
-        self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray, frames: dict[str, np.ndarray]
-    ) -> ChunkResult:
+    def _result(self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray) -> ChunkResult:
+        """The answer over result rows ``[n, K, 4]``; recorded envs' frames zeroed, to be filled."""
         n, k = rows.shape[:2]
         stopped = (rows[:, :, _TERMINATED] != 0) | (rows[:, :, _TRUNCATED] != 0)
         # An env stops at its first termination or truncation; one that never did applied all K.
         first_stop = np.argmax(stopped, axis=1) if k else np.zeros(n, dtype=np.int64)
         num_steps = np.where(stopped.any(axis=1), first_stop + 1, k).astype(np.int32)
         images = self.single_observation_space.spaces.get("images")
-        if images is not None and recorded.size:
-            frames = {
-                camera: np.zeros((recorded.size, k, *space.shape), dtype=space.dtype)
-                for camera, space in images.spaces.items()
-            }
+        cameras = images.spaces if images is not None and recorded.size else {}
+        frames = {camera: np.zeros((recorded.size, k, *space.shape), space.dtype) for camera, space in cameras.items()}
         return ChunkResult(
             obs=obs,
             reward=rows[:, :, _REWARD].astype(np.float32),

@@ -60,7 +60,11 @@ ActionMatrix = Annotated[
         {
             "oneOf": [
                 {"type": "array", "items": _NUMBERS, "description": "[n, action dim]: one action per env"},
-                {"type": "array", "items": {"type": "array", "items": _NUMBERS}, "description": "[n, K, action dim]: a chunk per env"},
+                {
+                    "type": "array",
+                    "items": {"type": "array", "items": _NUMBERS},
+                    "description": "[n, K, action dim]: a chunk per env",
+                },
             ]
         }
     ),
@@ -91,7 +95,8 @@ class StepRequest(_Request):
     )
     record_env_ids: IntVector = Field(
         default_factory=lambda: np.zeros(0, dtype=np.int64),
-        description="chunks only: env ids (among env_ids) whose camera frame after every applied action is answered in frames",
+        description="chunks only: env ids (among env_ids) whose camera frame after every applied action "
+        "is answered in frames",
     )
 
 

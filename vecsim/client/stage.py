@@ -263,7 +263,7 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         submitted_at=batch.submitted_at,
         finished_at=batch.finished_at,
         num_steps=batch.num_steps[index],
-        frames={batch.traj_keys[r]: batch.frames[batch.traj_keys[r]] for r in rows if batch.traj_keys[r] in batch.frames},
+        frames={key: batch.frames[key] for key in (batch.traj_keys[r] for r in rows) if key in batch.frames},
     )
 
 
@@ -585,7 +585,8 @@ class StageClient:
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
         state ids (their routes take them on success). ``step`` maps traj_keys to actions or
         chunks, and ``record`` names stepped keys whose every frame is wanted, as in
-        :meth:`step_stage`. Each pod gets its resets first, then its steps; pods run concurrently. The result is the pair
+        :meth:`step_stage`. Each pod gets its resets first, then its steps; pods run
+        concurrently. The result is the pair
         ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches. The
         result's errors are :meth:`reset_stage`'s; ``answered`` is a pair here too.
 
@@ -748,10 +749,10 @@ class StageClient:
                 )
             this = None if shape is None or row.shape == shape else row.shape[0]
             if index and this != chunk:
+                sent = "one action" if this is None else f"a chunk of {this}"
+                first = "one action" if chunk is None else f"chunks of {chunk}"
                 raise ValueError(
-                    f"traj_key {key!r}: {'a chunk of ' + str(this) if this is not None else 'one action'}, "
-                    f"the call's first traj_key sent {'chunks of ' + str(chunk) if chunk is not None else 'one action'}; "
-                    "one call, one chunk length"
+                    f"traj_key {key!r}: {sent}, the call's first traj_key sent {first}; one call, one chunk length"
                 )
             chunk = this
             rows.append(row.reshape(-1) if chunk is None else row.reshape(chunk, math.prod(row.shape[1:])))

@@ -519,9 +519,10 @@ class HTTPVectorEnv(VectorEnv):
             take = np.arange(step_batch.n, dtype=np.int64)
         stepped = np.array([self._key_index[step_batch.traj_keys[j]] for j in take], dtype=np.int64)
         reset = np.array([self._key_index[k] for k in reset_batch.traj_keys], dtype=np.int64)
-        reward[stepped] = step_batch.reward[take]
-        terminated[stepped] = step_batch.terminated[take]
-        truncated[stepped] = step_batch.truncated[take]
+        if len(take):  # a chunk call that only resets answers a step batch without a chunk axis
+            reward[stepped] = step_batch.reward[take]
+            terminated[stepped] = step_batch.terminated[take]
+            truncated[stepped] = step_batch.truncated[take]
         _put_rows(self._obs, step_batch.obs, stepped, take)
 
         if self.autoreset_mode == AutoresetMode.SAME_STEP and len(reset):

@@ -113,7 +113,9 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
             "description": f"StepResponse for one action per env, ChunkStepResponse for chunks; "
             f"wire ({wire.CONTENT_TYPE}) unless Accept asks for {JSON_TYPE}",
             "content": {
-                JSON_TYPE: {"schema": {"oneOf": [StepResponse.model_json_schema(), ChunkStepResponse.model_json_schema()]}},
+                JSON_TYPE: {
+                    "schema": {"oneOf": [StepResponse.model_json_schema(), ChunkStepResponse.model_json_schema()]}
+                },
                 wire.CONTENT_TYPE: {"schema": {"type": "string", "format": "binary"}},
             },
         },
@@ -134,7 +136,8 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     is_chunk = req.actions.ndim == len(env.single_action_space.shape) + 2
     if req.record_env_ids.size and not is_chunk:
         raise InvalidRequestError(
-            f"record_env_ids: pod {state.settings.name} records frames of chunks only; send actions as [n, K, action dim]"
+            f"record_env_ids: pod {state.settings.name} records frames of chunks only; "
+            "send actions as [n, K, action dim]"
         )
 
     def work() -> tuple[Response, float, sim.CallTiming, int]:
