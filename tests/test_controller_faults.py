@@ -26,7 +26,9 @@ from service_procs import controller_server, pod_server, running, wait_until
 from vecsim.client import StageClient
 from vecsim.rollout import EnvLoop
 
-HOSTILE_PUSH_ANSWER = b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 18446744073709551616\r\n\r\n"
+HOSTILE_PUSH_ANSWER = (
+    b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 18446744073709551616\r\n\r\n"
+)
 JOB = {
     "job_id": "hostile",
     "tasks": ["gym/Pendulum-v1"],
@@ -143,4 +145,5 @@ def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_rea
     assert before.lost == {} and after.lost == {}
     assert sorted(after.trajectories) == keys and all(t.length == 10 for t in after.trajectories.values())
     for key in keys:
-        assert torch.equal(after.trajectories[key].observations["proprio"], before.trajectories[key].observations["proprio"])
+        mine, theirs = after.trajectories[key], before.trajectories[key]
+        assert torch.equal(mine.observations["proprio"], theirs.observations["proprio"])

@@ -236,7 +236,9 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         async for piece in response.aiter_raw():
             received += len(piece)
             if received > max_bytes:
-                raise AnswerTooLargeError(f"{request.url}: answer exceeds the cap of {max_bytes} bytes", request=request)
+                raise AnswerTooLargeError(
+                    f"{request.url}: answer exceeds the cap of {max_bytes} bytes", request=request
+                )
             if decoder is None:
                 pieces.append(piece)
                 continue
@@ -253,7 +255,9 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
                     if piece:
                         await asyncio.sleep(0)
             except zlib.error as exc:
-                raise httpx.DecodingError(f"{request.url}: corrupt {encodings[0]} body: {exc}", request=request) from None
+                raise httpx.DecodingError(
+                    f"{request.url}: corrupt {encodings[0]} body: {exc}", request=request
+                ) from None
         if decoder is not None:
             if not decoder.eof:
                 raise httpx.DecodingError(f"{request.url}: truncated {encodings[0]} body", request=request)

@@ -309,6 +309,7 @@ class StageClient:
         self._pending: dict[int, PendingCall[Any]] = {}
         self._batches = itertools.count()
         self._spaces: tuple[Space, Space] | None = None
+        self._env_answer_bytes: int | None = None  # what one env's answer can take, from the spaces
         self._instructions: dict[str, str] = {}
         self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
@@ -463,7 +464,7 @@ class StageClient:
         ready, so that a reassignment finished before the batch costs the batch nothing.
 
         Without a controller, with calls in flight, or when the controller does not answer (within
-        ``timeout_s``, 5 s at most), the table in use stays (a stale one is caught by the pods' 409 as before).
+        ``timeout_s``, 5 s at most), the table in use stays: the pods' 409 catch a stale one.
         """
         if self.controller_url is None:
             return
@@ -751,10 +752,11 @@ class StageClient:
             return self.max_answer_bytes
         if not self._spaces:
             return DEFAULT_MAX_ANSWER_BYTES
-        one_env = create_empty_array(self._spaces[0], n=1, fn=np.zeros)
-        # Besides the observation, each env answers a few flags, its reward, ids and info.
-        per_env = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
-        return 2 * max(num_envs, 1) * per_env + (1 << 20)
+        if self._env_answer_bytes is None:
+            one_env = create_empty_array(self._spaces[0], n=1, fn=np.zeros)
+            # Besides the observation, each env answers a few flags, its reward, ids and info.
+            self._env_answer_bytes = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
+        return 2 * max(num_envs, 1) * self._env_answer_bytes + (1 << 20)
 
     def _load_info(self) -> tuple[Space, Space] | None:
         if self._spaces is None:
