@@ -55,7 +55,7 @@ from common import write_result
 
 from vecsim.auth import TOKEN_ENV, bearer_headers
 from vecsim.tasks import suite_tasks
-from vecsim.transport import make_async_client
+from vecsim.transport import AiohttpTransport, make_async_client
 
 log = logging.getLogger("bench.control_plane")
 
@@ -171,7 +171,7 @@ class Fleet:
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
-        self._client = make_async_client(timeout=30.0, headers=self.headers)
+        self._client = make_async_client(AiohttpTransport(max_connections=256), timeout=30.0, headers=self.headers)
         await asyncio.gather(*(self._register(pod) for pod in self.pods.values()))
         interval = self.timing.heartbeat_interval_s
         for i, pod in enumerate(self.pods.values()):

@@ -4,6 +4,8 @@
   costs a failed push, backed off and retried; the controller keeps serving.
 - A client that asks for the routing table while no controller listens waits, with backoff, and
   when it gives up says what it waited for.
+- A long-lived client places its next batch on the routing table of a reassignment that finished
+  before the batch: the slot of a killed pod went to the spare, and nothing of the batch is lost.
 """
 
 from __future__ import annotations
@@ -16,11 +18,17 @@ from contextlib import contextmanager
 
 import httpx
 import pytest
-from service_procs import controller_server, running, wait_until
+import signal
+
+import torch
+from service_procs import controller_server, pod_server, running, wait_until
 
 from vecsim.client import StageClient
+from vecsim.rollout import EnvLoop
 
-HOSTILE_PUSH_ANSWER = b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 18446744073709551616\r\n\r\n"
+HOSTILE_PUSH_ANSWER = (
+    b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 18446744073709551616\r\n\r\n"
+)
 JOB = {
     "job_id": "hostile",
     "tasks": ["gym/Pendulum-v1"],
@@ -103,3 +111,39 @@ def test_waiting_for_a_controller_that_never_listens_gives_up_saying_what_it_wai
         StageClient.from_controller(url, timeout_s=1, wait_ready_s=1.5)
     message = str(caught.value)
     assert f"{url}/v1/routing" in message and "ready routing table" in message and "no answer" in message
+
+
+def ready_holder(controller_url: str) -> str | None:
+    """The pod holding the job's one slot, once the routing table is ready."""
+    response = httpx.get(f"{controller_url}/v1/routing", timeout=5)
+    if response.status_code != 200 or not response.json()["ready"]:
+        return None
+    (routed,) = response.json()["stages"][0]["pods"]
+    return routed["pod"]
+
+
+def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_reassignment_made(tmp_path):
+    job = {**JOB, "group_size": 2, "max_episode_steps": 10}
+    requests, keys = [("gym/Pendulum-v1", 0), ("gym/Pendulum-v1", 1)], ["t0", "t1"]
+    controller = controller_server(tmp_path, args=["--heartbeat-interval", "0.5", "--heartbeat-ttl", "3"])
+    agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_S": "0.5", "VECSIM_MAX_ENVS": "2"}
+
+    def policy(obs, instructions, task_ids) -> torch.Tensor:
+        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+
+    with running(controller):
+        assert httpx.put(f"{controller.url}/v1/job", json=job, timeout=30).status_code == 200
+        with running(pod_server("sim-0", tmp_path, **agent)) as first:
+            wait_until(lambda: ready_holder(controller.url) == "sim-0", "the slot ready on sim-0")
+            with running(pod_server("sim-1", tmp_path, **agent)):
+                with StageClient.from_controller(controller.url, timeout_s=10, wait_ready_s=60) as client:
+                    loop = EnvLoop(client, policy, horizon=10)
+                    before = loop.run(requests, keys)
+                    first.signal_group(signal.SIGKILL)  # between batches: the spare takes the slot
+                    wait_until(lambda: ready_holder(controller.url) == "sim-1", "the slot ready on sim-1")
+                    after = loop.run(requests, keys)
+    assert before.lost == {} and after.lost == {}
+    assert sorted(after.trajectories) == keys and all(t.length == 10 for t in after.trajectories.values())
+    for key in keys:
+        mine, theirs = after.trajectories[key], before.trajectories[key]
+        assert torch.equal(mine.observations["proprio"], theirs.observations["proprio"])

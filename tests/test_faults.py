@@ -199,25 +199,6 @@ def test_a_pod_killed_mid_rollout_loses_only_its_trajectories_and_comes_back_int
         assert_identical(again.trajectories[key], reference.trajectories[key])
 
 
-def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_reassignment_made(job, reference):
-    before = routing(job)
-    process = job.processes["sim-1"]
-    with StageClient.from_controller(job.controller_url, timeout_s=10, wait_ready_s=120, token=TOKEN) as client:
-        assert client.routing.generation == before.generation
-        restarts = process.restarts
-        kill_group(process.pid)  # between batches: the runner restarts sim-1, the job re-plans
-        wait_until(lambda: process.restarts > restarts, "sim-1 restarted")
-        wait_until(
-            lambda: (table := ready_routing(job)) is not None and table.generation > before.generation,
-            "the job ready at a new generation",
-            timeout_s=180,
-        )
-        result = EnvLoop(client, ScriptedPolicy(), horizon=EPISODE).run(REQUESTS, KEYS)
-    assert result.lost == {}
-    for key in KEYS:
-        assert_identical(result.trajectories[key], reference.trajectories[key])
-
-
 def test_a_client_made_while_the_controller_restarts_waits_for_it(job, reference):
     controller = job.processes["controller"]
     restarts = controller.restarts

@@ -367,6 +367,16 @@ def test_closed_client_refuses_requests(server: str) -> None:
         asyncio.run(main())
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_answer_that_stalls_between_reads_raises_read_timeout(server: str, kind: str) -> None:
+    with pytest.raises(httpx.ReadTimeout):
+        run_with(
+            kind,
+            lambda c: c.get(f"{server}/drip", params={"chunks": 2, "interval": 3}),
+            timeout=httpx.Timeout(10, read=0.3),
+        )
+
+
 # ------------------------------------------------------------------- answers under a cap
 
 

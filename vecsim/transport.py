@@ -93,18 +93,22 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
     """aiohttp's client behind httpx's transport interface.
 
     The response's body is left unread and undecoded (``auto_decompress`` off): it streams to
-    whoever reads the httpx response. Timeouts are the caller's (``asyncio.timeout`` around the
-    whole request); aiohttp's own are off. Connections are not limited in number: uvicorn speaks
-    HTTP/1.1 only, so each call in flight holds one, and callers bound their calls. The session
-    is made on first use, on the loop that uses it.
+    whoever reads the httpx response. httpx's ``connect`` and ``read`` timeouts map to aiohttp's
+    ``sock_connect`` and ``sock_read`` (each read, as in httpx); aiohttp has no write or pool
+    timeout, so callers bound a whole request with ``asyncio.timeout``. uvicorn speaks HTTP/1.1 only, so each call in flight
+    holds a connection: ``max_connections`` bounds them in all (``None``: no bound; the client
+    bounds its calls itself). The session is made on first use, on the loop that uses it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, max_connections: int | None = None) -> None:
+        self._max_connections = max_connections
         self._session: aiohttp.ClientSession | None = None
 
     def _get_session(self) -> aiohttp.ClientSession:
         if self._session is None:
-            connector = aiohttp.TCPConnector(limit=0, limit_per_host=0, keepalive_timeout=_KEEPALIVE_S)
+            connector = aiohttp.TCPConnector(
+                limit=self._max_connections or 0, limit_per_host=0, keepalive_timeout=_KEEPALIVE_S
+            )
             self._session = aiohttp.ClientSession(
                 connector=connector,
                 auto_decompress=False,
@@ -124,6 +128,10 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
             httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError,
             httpx.UnsupportedProtocol: what aiohttp met, as httpx names it.
         """
+        phases = request.extensions.get("timeout", {})
+        timeout = aiohttp.ClientTimeout(
+            total=None, sock_connect=phases.get("connect"), sock_read=phases.get("read")
+        )
         body = b"".join([piece async for piece in request.stream])
         # The body is whole here: aiohttp sends it with its own Content-Length, never chunked.
         headers = [
@@ -138,6 +146,7 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
                 headers=headers,
                 data=body or None,
                 allow_redirects=False,
+                timeout=timeout,
                 skip_auto_headers=("User-Agent", "Accept", "Accept-Encoding", "Content-Type"),
             )
         except aiohttp.ClientError as exc:
@@ -236,7 +245,9 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         async for piece in response.aiter_raw():
             received += len(piece)
             if received > max_bytes:
-                raise AnswerTooLargeError(f"{request.url}: answer exceeds the cap of {max_bytes} bytes", request=request)
+                raise AnswerTooLargeError(
+                    f"{request.url}: answer exceeds the cap of {max_bytes} bytes", request=request
+                )
             if decoder is None:
                 pieces.append(piece)
                 continue
@@ -253,7 +264,9 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
                     if piece:
                         await asyncio.sleep(0)
             except zlib.error as exc:
-                raise httpx.DecodingError(f"{request.url}: corrupt {encodings[0]} body: {exc}", request=request) from None
+                raise httpx.DecodingError(
+                    f"{request.url}: corrupt {encodings[0]} body: {exc}", request=request
+                ) from None
         if decoder is not None:
             if not decoder.eof:
                 raise httpx.DecodingError(f"{request.url}: truncated {encodings[0]} body", request=request)

@@ -173,6 +173,8 @@ def _read_routing(response: httpx.Response, url: str) -> RoutingTable:
         raise PodRequestError("controller", None, f"invalid routing table from {url}: {exc}") from None
 
 
+# A new batch waits at most this long for a fresh routing table before it goes on the one in use.
+_REFRESH_TIMEOUT_S = 5.0
 # Waiting for a controller: the first retry comes soon, later ones no more often than this.
 _WAIT_FIRST_S = 0.1
 _WAIT_MAX_S = 2.0
@@ -318,6 +320,7 @@ class StageClient:
         self._pending: dict[int, PendingCall[Any]] = {}
         self._batches = itertools.count()
         self._spaces: tuple[Space, Space] | None = None
+        self._env_answer_bytes: int | None = None  # what one env's answer can take, from the spaces
         self._instructions: dict[str, str] = {}
         self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
@@ -373,11 +376,14 @@ class StageClient:
         def info(url: str) -> tuple[str, dict[str, Any]]:
             try:
                 response = httpx.get(f"{url.rstrip('/')}/v1/info", timeout=timeout_s)
-            except httpx.TransportError as exc:
+            except httpx.HTTPError as exc:
                 raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
             if response.status_code != 200:
                 raise PodRequestError(url, response.status_code, response.text[:500])
-            return url.rstrip("/"), response.json()
+            try:
+                return url.rstrip("/"), response.json()
+            except ValueError as exc:
+                raise PodRequestError(url, None, f"answer to /v1/info is not JSON: {exc}") from None
 
         infos = [info(u) for u in urls]
         client = cls(
@@ -468,8 +474,8 @@ class StageClient:
         """Before a new batch: take the controller's routing table if it has moved on and is
         ready, so that a reassignment finished before the batch costs the batch nothing.
 
-        Without a controller, with calls in flight, or when the controller does not answer, the
-        table in use stays (a stale one is caught by the pods' 409 as before).
+        Without a controller, with calls in flight, or when the controller does not answer (within
+        ``timeout_s``, 5 s at most), the table in use stays: the pods' 409 catch a stale one.
         """
         if self.controller_url is None:
             return
@@ -477,7 +483,7 @@ class StageClient:
             if self._busy_stages(set(self._pending)):
                 return
         try:
-            new = self._loop.run(self._controller_routing())
+            new = self._loop.run(self._controller_routing(min(self.timeout_s, _REFRESH_TIMEOUT_S)))
             stage_by_id(new)
         except (ClientError, ValueError) as exc:
             logger.warning(
@@ -790,10 +796,11 @@ class StageClient:
             return self.max_answer_bytes
         if not self._spaces:
             return DEFAULT_MAX_ANSWER_BYTES
-        one_env = create_empty_array(self._spaces[0], n=1, fn=np.zeros)
-        # Besides the observation, each env answers a few flags, its reward, ids and info.
-        per_env = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
-        return 2 * max(num_envs, 1) * per_env + (1 << 20)
+        if self._env_answer_bytes is None:
+            one_env = create_empty_array(self._spaces[0], n=1, fn=np.zeros)
+            # Besides the observation, each env answers a few flags, its reward, ids and info.
+            self._env_answer_bytes = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
+        return 2 * max(num_envs, 1) * self._env_answer_bytes + (1 << 20)
 
     def _load_info(self) -> tuple[Space, Space] | None:
         if self._spaces is None:
@@ -976,7 +983,7 @@ class StageClient:
         if lost:
             raise RoutingChangedError(self._lost[lost[0]], lost)
 
-    async def _controller_routing(self) -> RoutingTable:
+    async def _controller_routing(self, timeout_s: float) -> RoutingTable:
         """The controller's routing table now.
 
         Raises:
@@ -985,7 +992,7 @@ class StageClient:
         """
         url = f"{self.controller_url}/v1/routing"
         try:
-            async with asyncio.timeout(self.timeout_s), httpx.AsyncClient(timeout=self.timeout_s) as http:
+            async with asyncio.timeout(timeout_s), httpx.AsyncClient(timeout=timeout_s) as http:
                 response = await http.get(url)
         except (TimeoutError, httpx.HTTPError) as exc:
             raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
@@ -996,7 +1003,7 @@ class StageClient:
             raise StaleGenerationError(
                 pod, generation, f"{detail} (no controller_url to re-read the routing table from)"
             )
-        new = await self._controller_routing()
+        new = await self._controller_routing(self.timeout_s)
         logger.info(
             "pod %s answered 409 at generation %d; routing table now at generation %d", pod, generation, new.generation
         )
