@@ -298,3 +298,17 @@ def test_vla_env_with_auto_reset_resets_envs_that_ended_inside_the_chunk(pods):
         assert infos["_final_obs"].all() and set(infos["final_obs"][0]) == {"images", "proprio"}
         _, _, _, _, after = env.chunk_step(np.zeros((env.num_envs, 2, ACTION_DIM)))
     assert after["num_steps"].tolist() == [2] * env.num_envs  # fresh episodes
+
+
+def test_a_client_takes_a_long_recorded_chunk_whose_frames_outweigh_its_observations(tmp_path):
+    # 2 envs x 48 recorded 64x64 frames (~1.2 MB) are more than the default answer cap for one
+    # observation per env: the cap grows with the call's K and recorded envs.
+    spec = PodSpec("sim-0", 0, [(TASK, 2)], camera=CameraConfig(height=64, width=64), max_episode_steps=100)
+    with standalone_pods([spec], tmp_path) as (running,), StageClient.from_pods([running.url]) as client:
+        routes = client.reset_trajectories([(TASK, 0), (TASK, 1)])
+        client.reset_stage(0).result()
+        chunk = _chunk(2, 48, seed=6)
+        batch = client.step_stage(0, dict(zip(routes, chunk)), record=list(routes)).result()
+    assert batch.num_steps.tolist() == [48, 48]
+    for key in routes:
+        assert batch.frames[key][IMAGE].shape == (48, 64, 64, 3)

@@ -99,8 +99,12 @@ class PodConnection:
         self._http = http
         self._auth = bearer_headers(token)
 
-    async def _request(self, method: str, path: str, held: list[str], **kwargs: Any) -> httpx.Response:
-        """Send one request and read its answer whole, within the timeout and the size cap.
+    async def _request(
+        self, method: str, path: str, held: list[str], extra_answer_bytes: int = 0, **kwargs: Any
+    ) -> httpx.Response:
+        """Send one request and read its answer whole, within the timeout and the size cap
+        (``max_answer_bytes``, plus ``extra_answer_bytes`` for what this request asks for beyond
+        one observation per env: per-action flags and recorded frames of a chunk).
 
         Raises:
             PodUnavailableError: anything that kept a usable answer from arriving.
@@ -111,7 +115,7 @@ class PodConnection:
                 http = self._http()
                 request = http.build_request(method, f"{self.url}{path}", **kwargs)
                 response = await http.send(request, stream=True)
-                content = await read_answer(response, self.max_answer_bytes)
+                content = await read_answer(response, self.max_answer_bytes + extra_answer_bytes)
         except TimeoutError:
             reason = f"{method} {path} at {self.url}: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
@@ -138,10 +142,13 @@ class PodConnection:
             raise PodRequestError(self.name, None, "answer to /v1/info is not a JSON object")
         return info
 
-    async def call(self, op: str, body: dict[str, Any], held: list[str]) -> dict[str, Any]:
+    async def call(
+        self, op: str, body: dict[str, Any], held: list[str], extra_answer_bytes: int = 0
+    ) -> dict[str, Any]:
         """POST ``body`` to ``/v1/<op>`` in wire format and return the decoded answer.
 
-        ``held`` names the traj_keys this call carries, for the error if the pod is unavailable.
+        ``held`` names the traj_keys this call carries, for the error if the pod is unavailable;
+        ``extra_answer_bytes`` raises the answer's cap for this call (see ``_request``).
 
         Raises:
             PodUnavailableError: no answer within the timeout, or 503 (envs not built).
@@ -152,6 +159,7 @@ class PodConnection:
             "POST",
             f"/v1/{op}",
             held,
+            extra_answer_bytes,
             content=wire.encode(body),
             headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **self._auth},
         )

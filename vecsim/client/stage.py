@@ -38,6 +38,7 @@ from typing import Any, Generic, TypeVar
 import httpx
 import numpy as np
 from gymnasium import Space
+from gymnasium.spaces import Dict
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
 from gymnasium.vector.utils import create_empty_array
 
@@ -71,6 +72,8 @@ T = TypeVar("T")
 
 # Bytes an env's answer may hold besides its observation: reward, flags, env id, task id, info.
 _PER_ENV_EXTRA_BYTES = 4096
+# A chunk's answer carries reward, terminated, truncated and success per action of each env.
+_PER_ACTION_BYTES = 16
 
 
 def _leaves(value: Any) -> list[np.ndarray]:
@@ -802,6 +805,18 @@ class StageClient:
             self._env_answer_bytes = sum(leaf.nbytes for leaf in _leaves(one_env)) + _PER_ENV_EXTRA_BYTES
         return 2 * max(num_envs, 1) * self._env_answer_bytes + (1 << 20)
 
+    def _chunk_answer_bytes(self, num_envs: int, chunk: int | None, num_recorded: int) -> int:
+        """What a chunk step's answer carries beyond one observation per env: K per-action flags
+        per env and, for each recorded env, K frames of every camera."""
+        if chunk is None:
+            return 0
+        frames = 0
+        if num_recorded and self._spaces:
+            images = self._spaces[0].spaces.get("images") if isinstance(self._spaces[0], Dict) else None
+            if images is not None:
+                frames = sum(int(np.prod(space.shape)) * space.dtype.itemsize for space in images.spaces.values())
+        return chunk * (num_envs * _PER_ACTION_BYTES + num_recorded * frames)
+
     def _load_info(self) -> tuple[Space, Space] | None:
         if self._spaces is None:
             self._check_open()
@@ -892,7 +907,8 @@ class StageClient:
             record = [k for k in keys if k in recorded]
             if record:
                 body["record_env_ids"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
-            answer = await self._post(pod, op, body, keys)
+            extra = self._chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
+            answer = await self._post(pod, op, body, keys, extra)
             self._fill(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
             for j, key in enumerate(record):
                 frames = answer.get("frames") or {}
@@ -959,15 +975,18 @@ class StageClient:
             else:
                 _fill_rows(batch.num_steps, answer.get("num_steps"), rows, "num_steps", pod)
 
-    async def _post(self, pod: str, op: str, body: dict[str, Any], keys: list[str]) -> dict[str, Any]:
+    async def _post(
+        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0
+    ) -> dict[str, Any]:
         """POST to one pod with the current generation; after a 409, re-read routing and retry once."""
         generation = self._table.generation
         try:
-            return await self._pods[pod].call(op, {"generation": generation, **body}, keys)
+            return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes)
         except _Stale as stale:
             await self._refresh_after_stale(pod, generation, stale.detail, keys)
         try:
-            return await self._pods[pod].call(op, {"generation": self._table.generation, **body}, keys)
+            body = {**body, "generation": self._table.generation}
+            return await self._pods[pod].call(op, body, keys, extra_answer_bytes)
         except _Stale as stale:
             raise StaleGenerationError(pod, self._table.generation, stale.detail) from None
 
