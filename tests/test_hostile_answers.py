@@ -26,6 +26,7 @@ from service_procs import Server, assignment_file, pod_server, running
 
 from vecsim.client import HTTPVectorEnv, PodUnavailableError, StageClient
 from vecsim.rollout import EnvLoop
+from vecsim.transport import make_transport
 
 PENDULUM = "gym/Pendulum-v1"
 EPISODE = 12
@@ -126,9 +127,9 @@ def proxy(pods) -> Iterator[HostileProxy]:
     pods[1].reply, pods[1].gzip_answers = None, False
 
 
-def client_of(pods) -> StageClient:
+def client_of(pods, **kwargs) -> StageClient:
     first, proxy = pods
-    return StageClient.from_pods([first.url, proxy.url], timeout_s=10)
+    return StageClient.from_pods([first.url, proxy.url], timeout_s=10, **kwargs)
 
 
 def actions(keys, value: float) -> dict[str, np.ndarray]:
@@ -197,3 +198,15 @@ def test_the_vector_env_fails_the_hostile_pods_envs_alone(pods, proxy):
         env.close()
     assert caught.value.failed_envs == failed
     assert obs["proprio"].shape[0] == env.num_envs
+
+
+def test_the_client_runs_on_any_httpx_transport_and_answers_alike(pods, proxy):
+    answers = []
+    for transport in (None, make_transport("httpx")):
+        with client_of(pods, transport=transport) as client:
+            client.reset_trajectories(REQUESTS, KEYS)
+            client.reset_stage(0).result(timeout=60)
+            answers.append(client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60))
+    default, httpx_own = answers
+    assert np.array_equal(default.obs["proprio"], httpx_own.obs["proprio"])
+    assert np.array_equal(default.reward, httpx_own.reward)

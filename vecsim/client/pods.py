@@ -113,7 +113,7 @@ class PodConnection:
                 response = await http.send(request, stream=True)
                 content = await read_answer(response, self.max_answer_bytes)
         except TimeoutError:
-            reason = f"{method} {path} at {self.url}: no answer within {self.timeout_s} s"
+            reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
         except Exception as exc:  # noqa: BLE001 - whatever broke the exchange, it is this pod's failure alone
             reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
