@@ -4,7 +4,7 @@ Two real pods serve one stage (sim-0 and sim-1, two ``gym/Pendulum-v1`` envs eac
 reached through a proxy written here: a raw asyncio socket server on loopback that forwards each
 request to the real sim-1 and passes its answer back, until a test tells it to answer steps with
 a hostile reply instead (an absurd Content-Length, a chunk size past 2^64, an undecodable or
-bomb-sized gzip body, bytes that are not HTTP). Every such answer must end as the client's own
+bomb-sized gzip body, bytes that are not HTTP, a body that is not vecsim's wire). Every such answer must end as the client's own
 ``PodUnavailableError`` naming sim-1 and its traj_keys, with sim-0's rows delivered; a rollout
 must lose sim-1's trajectories only, and the next one must run at once. A valid gzip-encoded
 answer (a compressing proxy) must work like a plain one.
@@ -43,6 +43,7 @@ HOSTILE = {
     "undecodable-gzip": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: 12\r\n\r\nnot gzip!!!!",
     "gzip-bomb": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: %d\r\n\r\n" % len(BOMB) + BOMB,
     "not-http": b"SSH-2.0-OpenSSH_9.6\r\n\r\n",
+    "http-fine-body-not-wire": HEAD_OK + b"Content-Length: 10\r\n\r\n0123456789",
 }
 
 

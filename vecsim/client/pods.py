@@ -144,9 +144,10 @@ class PodConnection:
         ``held`` names the traj_keys this call carries, for the error if the pod is unavailable.
 
         Raises:
-            PodUnavailableError: no answer within the timeout, or 503 (envs not built).
+            PodUnavailableError: no usable answer: none within the timeout, a 503 (envs not
+                built), or a 200 whose body is not valid wire or not for the env ids asked.
             _Stale: 409, the pod holds another generation.
-            PodRequestError: any other refusal, or an answer that is not valid wire.
+            PodRequestError: any other refusal (the request was at fault).
         """
         response = await self._request(
             "POST",
@@ -161,16 +162,17 @@ class PodConnection:
             raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
         if response.status_code != 200:
             raise PodRequestError(self.name, response.status_code, _detail(response))
+        # A broken answer is this pod's failure alone, like no answer: its envs' state is unknown.
         try:
             answer = wire.decode(response.content)
         except wire.WireError as exc:
-            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not valid wire: {exc}") from None
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not valid wire: {exc}") from None
         if not isinstance(answer, dict):
-            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not a mapping")
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not a mapping")
         sent = np.asarray(body["env_ids"])
         got = np.asarray(answer.get("env_ids", ()))
         if got.shape != sent.shape or not np.array_equal(got, sent):
-            raise PodRequestError(
-                self.name, None, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
+            raise PodUnavailableError(
+                {self.name: held}, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
             )
         return answer

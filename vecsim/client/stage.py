@@ -837,7 +837,11 @@ class StageClient:
             keys = [all_keys[r] for r in rows]
             body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64), field: values[rows]}
             answer = await self._post(pod, op, body, keys)
-            self._fill(batch, answer, rows, pod, check_tasks=op == "reset")
+            try:
+                self._fill(batch, answer, rows, pod, check_tasks=op == "reset")
+            except PodRequestError as exc:
+                # An answer of the wrong shape or tasks: the pod's rows are unusable, not the call.
+                raise PodUnavailableError({pod: keys}, exc.detail) from None
 
         async def one_pod(pod: str, todo: _PodWork) -> None:
             reset_done = False
