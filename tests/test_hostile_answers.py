@@ -4,7 +4,7 @@ Two real pods serve one stage (sim-0 and sim-1, two ``gym/Pendulum-v1`` envs eac
 reached through a proxy written here: a raw asyncio socket server on loopback that forwards each
 request to the real sim-1 and passes its answer back, until a test tells it to answer steps with
 a hostile reply instead (an absurd Content-Length, a chunk size past 2^64, an undecodable or
-bomb-sized gzip body, bytes that are not HTTP). Every such answer must end as the client's own
+bomb-sized gzip body, bytes that are not HTTP, a body that is not vecsim's wire). Every such answer must end as the client's own
 ``PodUnavailableError`` naming sim-1 and its traj_keys, with sim-0's rows delivered; a rollout
 must lose sim-1's trajectories only, and the next one must run at once. A valid gzip-encoded
 answer (a compressing proxy) must work like a plain one.
@@ -26,6 +26,7 @@ from service_procs import Server, assignment_file, pod_server, running
 
 from vecsim.client import HTTPVectorEnv, PodUnavailableError, StageClient
 from vecsim.rollout import EnvLoop
+from vecsim.transport import make_transport
 
 PENDULUM = "gym/Pendulum-v1"
 EPISODE = 12
@@ -42,6 +43,7 @@ HOSTILE = {
     "undecodable-gzip": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: 12\r\n\r\nnot gzip!!!!",
     "gzip-bomb": HEAD_OK + b"Content-Encoding: gzip\r\nContent-Length: %d\r\n\r\n" % len(BOMB) + BOMB,
     "not-http": b"SSH-2.0-OpenSSH_9.6\r\n\r\n",
+    "http-fine-body-not-wire": HEAD_OK + b"Content-Length: 10\r\n\r\n0123456789",
 }
 
 
@@ -126,9 +128,9 @@ def proxy(pods) -> Iterator[HostileProxy]:
     pods[1].reply, pods[1].gzip_answers = None, False
 
 
-def client_of(pods) -> StageClient:
+def client_of(pods, **kwargs) -> StageClient:
     first, proxy = pods
-    return StageClient.from_pods([first.url, proxy.url], timeout_s=10)
+    return StageClient.from_pods([first.url, proxy.url], timeout_s=10, **kwargs)
 
 
 def actions(keys, value: float) -> dict[str, np.ndarray]:
@@ -197,3 +199,15 @@ def test_the_vector_env_fails_the_hostile_pods_envs_alone(pods, proxy):
         env.close()
     assert caught.value.failed_envs == failed
     assert obs["proprio"].shape[0] == env.num_envs
+
+
+def test_the_client_runs_on_any_httpx_transport_and_answers_alike(pods, proxy):
+    answers = []
+    for transport in (None, make_transport("httpx")):
+        with client_of(pods, transport=transport) as client:
+            client.reset_trajectories(REQUESTS, KEYS)
+            client.reset_stage(0).result(timeout=60)
+            answers.append(client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60))
+    default, httpx_own = answers
+    assert np.array_equal(default.obs["proprio"], httpx_own.obs["proprio"])
+    assert np.array_equal(default.reward, httpx_own.reward)

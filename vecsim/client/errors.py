@@ -54,7 +54,9 @@ class CapacityError(ClientError, ValueError):
 
 
 class PodUnavailableError(ClientError):
-    """Pods that did not answer in time (dead, partitioned, rebuilding); names the traj_keys they held.
+    """Pods that gave no usable answer in time (dead, partitioned, rebuilding, or answering
+    something broken: a bad HTTP message, an answer over the cap or not decodable, not valid wire,
+    of the wrong shape); names the traj_keys they held.
 
     ``answered``, when the error ends a stage call, is what the pods that did answer returned:
     the call's result (a ``StageBatch``, or the ``(reset_batch, step_batch)`` pair of
@@ -73,7 +75,8 @@ class PodUnavailableError(ClientError):
 
 
 class PodRequestError(ClientError):
-    """A pod refused a request (4xx other than 409) or answered something malformed."""
+    """A pod refused a request (4xx other than 409), or the controller or a pod's ``/v1/info``
+    answered something malformed."""
 
     def __init__(self, pod: str, status: int | None, detail: str) -> None:
         self.pod, self.status, self.detail = pod, status, detail
@@ -110,9 +113,9 @@ def call_error(errors: list[BaseException], answered: Any) -> BaseException:
     """The one error a stage call raises for what its pods raised.
 
     Pods that were unavailable, or whose envs moved with the routing, fail alone: the error
-    names their trajectories and carries ``answered``, the other pods' rows. Anything else (a
-    refusal, a malformed answer, a 409 after the re-read) fails the call whole, as a bug or a
-    broken contract would. When both kinds of lone failure meet in one call, the
+    names their trajectories and carries ``answered``, the other pods' rows (a pod whose answer
+    was broken counts as unavailable). Anything else (a refusal of the request, a 409 after the
+    re-read) fails the call whole, as a bug in the request would. When both kinds of lone failure meet in one call, the
     ``PodUnavailableError`` is raised; ``answered`` still holds exactly the rows delivered.
     """
     unavailable = [e for e in errors if isinstance(e, PodUnavailableError)]

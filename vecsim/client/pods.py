@@ -117,7 +117,7 @@ class PodConnection:
                 response = await http.send(request, stream=True)
                 content = await read_answer(response, self.max_answer_bytes + extra_answer_bytes)
         except TimeoutError:
-            reason = f"{method} {path} at {self.url}: no answer within {self.timeout_s} s"
+            reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
         except Exception as exc:  # noqa: BLE001 - whatever broke the exchange, it is this pod's failure alone
             reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
@@ -151,9 +151,10 @@ class PodConnection:
         ``extra_answer_bytes`` raises the answer's cap for this call (see ``_request``).
 
         Raises:
-            PodUnavailableError: no answer within the timeout, or 503 (envs not built).
+            PodUnavailableError: no usable answer: none within the timeout, a 503 (envs not
+                built), or a 200 whose body is not valid wire or not for the env ids asked.
             _Stale: 409, the pod holds another generation.
-            PodRequestError: any other refusal, or an answer that is not valid wire.
+            PodRequestError: any other refusal (the request was at fault).
         """
         response = await self._request(
             "POST",
@@ -169,16 +170,17 @@ class PodConnection:
             raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
         if response.status_code != 200:
             raise PodRequestError(self.name, response.status_code, _detail(response))
+        # A broken answer is this pod's failure alone, like no answer: its envs' state is unknown.
         try:
             answer = wire.decode(response.content)
         except wire.WireError as exc:
-            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not valid wire: {exc}") from None
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not valid wire: {exc}") from None
         if not isinstance(answer, dict):
-            raise PodRequestError(self.name, None, f"answer to /v1/{op} is not a mapping")
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not a mapping")
         sent = np.asarray(body["env_ids"])
         got = np.asarray(answer.get("env_ids", ()))
         if got.shape != sent.shape or not np.array_equal(got, sent):
-            raise PodRequestError(
-                self.name, None, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
+            raise PodUnavailableError(
+                {self.name: held}, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
             )
         return answer

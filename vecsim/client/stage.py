@@ -909,7 +909,11 @@ class StageClient:
                 body["record_env_ids"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
             extra = self._chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
             answer = await self._post(pod, op, body, keys, extra)
-            self._fill(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
+            try:
+                self._fill(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
+            except PodRequestError as exc:
+                # An answer of the wrong shape or tasks: the pod's rows are unusable, not the call.
+                raise PodUnavailableError({pod: keys}, exc.detail) from None
             for j, key in enumerate(record):
                 frames = answer.get("frames") or {}
                 batch.frames[key] = {camera: np.asarray(images)[j] for camera, images in frames.items()}
