@@ -18,7 +18,7 @@ import pytest
 
 from vecsim import batch_render, render
 from vecsim.batch_render import BatchRenderer, same_render_assets, shared_renderer
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
 from vecsim.sim import RESET, STEP, _WorkerEnv, _WorkerSpec, assignment_spaces
 from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
 
@@ -295,11 +295,12 @@ def test_the_gl_context_names_its_renderer() -> None:
 @pytest.mark.libero
 def test_a_libero_scene_in_a_batch_equals_robosuites_own_renderer() -> None:
     camera = CameraConfig(names=CAMERAS, height=16, width=16)
-    env = make_env("libero_10/0", camera, "full")
+    # Right after a reset with no settle steps the views' copy of the sim is the sim itself.
+    protocol = LiberoProtocol(image_orientation="upright", settle_steps=0)
+    env = make_env("libero_10/0", camera, "full", libero=protocol)
     try:
         assert env.renderer.preset == "full"
         env.reset(options={"state_id": 3})
-        env.step(ACTIONS[0])
         with robosuite_renderer(env, "full") as own:
             batched = env.renderer.render(env.camera_views)
             for image, name in zip(batched, CAMERAS):

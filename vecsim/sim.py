@@ -50,8 +50,8 @@ import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig
-from vecsim.tasks import TaskEnv, get_task, make_env, task_spaces
+from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
+from vecsim.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
 
 log = logging.getLogger("vecsim.sim")
 
@@ -101,8 +101,9 @@ class _WorkerSpec:
     env_indices: tuple[int, ...]
     slots: int
     camera: CameraConfig
-    render: str
-    max_episode_steps: int
+    render: RenderPreset | None
+    max_episode_steps: int | None
+    libero: LiberoProtocol
     observation_space: gymnasium.spaces.Dict
     action_space: gymnasium.spaces.Box
 
@@ -210,7 +211,8 @@ class _WorkerEnv(gymnasium.Env):
         slot = 0
         try:
             for slot, task_id in enumerate(worker.task_ids):
-                env = make_env(task_id, worker.camera, worker.render, worker.max_episode_steps)
+                steps = episode_limit(task_id, worker.max_episode_steps)
+                env = make_env(task_id, worker.camera, worker.render, steps, worker.libero)
                 self._envs.append(env)
                 spaces = (env.observation_space, env.action_space)
                 if spaces != (worker.observation_space, worker.action_space):
@@ -414,6 +416,7 @@ class TaskGroupedVectorEnv:
                 camera=assignment.camera,
                 render=assignment.render,
                 max_episode_steps=assignment.max_episode_steps,
+                libero=assignment.libero,
                 observation_space=self.single_observation_space,
                 action_space=self.single_action_space,
             )

@@ -199,8 +199,14 @@ class LiberoTaskEnv(RobotTaskEnv):
     env.set_init_state(init_states[k])`` on a freshly built env (``s`` the protocol's
     ``fixture_seed``), then ``settle_steps`` steps of :data:`SETTLE_ACTION`:
 
-    - the reset runs under the seed, so fixtures, which live in the model and not in the init
-      state, stand where LIBERO's reset puts them: a function of the task and the seed alone;
+    - the reset draws from numpy's generator seeded ``s``, as LIBERO's does (the arm's starting
+      pose, from which its controller is built, comes from it);
+    - fixtures (cabinets, racks, microwaves) live in the model, not in the init state, and
+      LIBERO's hard reset places each one relative to where the previous reset left it, so they
+      drift from reset to reset of one LIBERO env. ``placement`` (the model's ``body_pos`` and
+      ``body_quat``) is where the first reset of a freshly built LIBERO env after
+      ``env.seed(s)`` puts them, and every reset restores it: a function of the task and the
+      seed alone;
     - the arm's controller is the one that reset built, from the reset's own arm pose; setting
       the init state does not rebuild it (LIBERO does not);
     - the observables' clocks run as LIBERO's do: the reset and the set state each force a
@@ -219,6 +225,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         camera: CameraConfig,
         max_episode_steps: int,
         protocol: LiberoProtocol,
+        placement: tuple[np.ndarray, np.ndarray],
         owner: Any = None,
         render: RenderPreset | None = None,
     ) -> None:
@@ -226,6 +233,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         from robosuite.utils.observables import Observable, sensor
 
         self.protocol = protocol
+        self._placement = placement
         self.observation_space = libero_observation_space(camera)
         model, data = inner.sim.model._model, inner.sim.data._data
         self._frame = mujoco.MjData(model)
@@ -260,6 +268,8 @@ class LiberoTaskEnv(RobotTaskEnv):
                     continue
             else:
                 raise RuntimeError(f"{self.task.task_id}: LIBERO could not place the objects")
+        model = inner.sim.model._model
+        model.body_pos[:], model.body_quat[:] = self._placement
         # The sample env.reset() forces, then set_init_state's own.
         inner._update_observables(force=True)
         inner.sim.set_state_from_flattened(self.states[state_id])
@@ -284,8 +294,10 @@ def make_libero_env(
 ) -> LiberoTaskEnv:
     """Build a LIBERO task env through ``OffScreenRenderEnv`` (no hard reset, never done by itself).
 
-    The model is loaded under the protocol's ``fixture_seed``, as LIBERO's hard reset after
-    ``env.seed(fixture_seed)`` loads it.
+    The env is built as LIBERO builds it (hard reset on), reset once as LIBERO's evaluations
+    do (``env.seed(fixture_seed); env.reset()``: a hard reset, which reloads the model and places
+    the fixtures), and only then switched to soft resets; :class:`LiberoTaskEnv` keeps that
+    first placement.
 
     Raises:
         TaskSetupError: LIBERO is not installed or its assets are missing.
@@ -306,18 +318,25 @@ def make_libero_env(
                     camera_names=cameras,
                     camera_heights=camera.height,
                     camera_widths=camera.width,
-                    use_camera_obs=bool(cameras),
-                    hard_reset=False,
+                    use_camera_obs=False,
+                    hard_reset=True,
                     ignore_done=True,
                     horizon=max_episode_steps,
                 )
+                wrapper.seed(protocol.fixture_seed)
+                wrapper.reset()
         except ValueError as exc:
             raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
     inner = wrapper.env
+    inner.hard_reset = False
+    model = inner.sim.model._model
+    placement = (model.body_pos.copy(), model.body_quat.copy())
     render_presets.apply_to_robosuite(inner.sim, render)
     try:
         states = init_states(task)
-        return LiberoTaskEnv(task, inner, states, camera, max_episode_steps, protocol, owner=wrapper, render=render)
+        return LiberoTaskEnv(
+            task, inner, states, camera, max_episode_steps, protocol, placement, owner=wrapper, render=render
+        )
     except BaseException:
         wrapper.close()
         raise
