@@ -1,0 +1,218 @@
+"""LIBERO parity: a vecsim pod serving LIBERO tasks, over HTTP, against LIBERO itself, bit for bit.
+
+The oracle is the real ``libero`` package as published evaluations drive it: a freshly built
+``OffScreenRenderEnv``, ``env.seed(0); env.reset(); obs = env.set_init_state(init_states[k])``,
+10 steps of ``[0, 0, 0, 0, 0, 0, -1]``, then the policy's actions; images as the evaluation
+scripts turn them (``raw[::-1, ::-1]``), the 8-float state as they build it. A fresh LIBERO env
+per init state, because LIBERO's hard resets move fixtures from one reset to the next
+(docs/libero.md). vecsim runs as a real pod process with the job config's defaults (no
+``render``, no ``max_episode_steps``, the default ``libero`` protocol).
+
+What is compared, at the reset (after settling) and after every one of ``STEPS`` actions: both
+cameras' images, ``state``, ``proprio``, reward, terminated, truncated and success, for two tasks
+of every suite at 128x128 (``CASES``, one init state each, one task with two), and for
+``CASES_256`` at 256x256; and the full MuJoCo state (time, qpos, qvel) of every step of
+``CASES``, from the same env class the pod runs (in this process, without cameras).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import httpx
+import numpy as np
+import pytest
+from trainer_pods import PodSpec, standalone_pods
+
+from vecsim import wire
+from vecsim.config import CameraConfig
+from vecsim.tasks import PROPRIO_KEYS, get_task, make_env
+from vecsim.tasks._libero import SETTLE_ACTION, _benchmark, ensure_config, init_states, quat_to_axis_angle
+
+pytestmark = pytest.mark.libero
+
+CAMERAS = ("agentview", "robot0_eye_in_hand")
+STEPS = 50
+SETTLE_STEPS = 10
+# (task, init state): two tasks of every suite, and one task from two init states.
+CASES: tuple[tuple[str, int], ...] = (
+    ("libero_spatial/0", 0),
+    ("libero_spatial/7", 33),
+    ("libero_object/1", 17),
+    ("libero_object/8", 49),
+    ("libero_goal/2", 8),
+    ("libero_goal/9", 41),
+    ("libero_10/3", 25),
+    ("libero_10/9", 49),
+    ("libero_10/9", 0),
+    ("libero_90/5", 12),
+    ("libero_90/40", 46),
+)
+CASES_256: tuple[tuple[str, int], ...] = (("libero_10/9", 49), ("libero_goal/2", 8))
+ACTIONS = np.random.default_rng(13).uniform(-1.0, 1.0, (STEPS, 7))
+
+
+@dataclass
+class Frame:
+    """What LIBERO's evaluation sees after the reset or one step."""
+
+    images: dict[str, np.ndarray]
+    state: np.ndarray
+    proprio: np.ndarray
+    sim_state: np.ndarray
+    reward: float = 0.0
+    done: bool = False
+    success: bool = False
+
+
+def _frame(env, raw: dict, reward: float = 0.0, done: bool = False) -> Frame:
+    return Frame(
+        images={name: raw[f"{name}_image"][::-1, ::-1].copy() for name in CAMERAS},
+        state=np.concatenate(
+            [raw["robot0_eef_pos"], quat_to_axis_angle(raw["robot0_eef_quat"]), raw["robot0_gripper_qpos"]]
+        ).astype(np.float32),
+        proprio=np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32),
+        sim_state=env.get_sim_state().copy(),
+        reward=float(reward),
+        done=bool(done),
+        success=bool(env.check_success()),
+    )
+
+
+def libero_episode(task_id: str, state_id: int, size: int) -> list[Frame]:
+    """Run LIBERO itself: a fresh env, the evaluation's reset and settle, then ``ACTIONS``."""
+    ensure_config()
+    from libero.libero.envs import OffScreenRenderEnv
+
+    suite, index = task_id.split("/")
+    bddl = _benchmark(suite).get_task_bddl_file_path(int(index))
+    env = OffScreenRenderEnv(bddl_file_name=bddl, camera_heights=size, camera_widths=size)
+    try:
+        env.seed(0)
+        env.reset()
+        raw = env.set_init_state(init_states(get_task(task_id))[state_id])
+        for _ in range(SETTLE_STEPS):
+            raw, _, _, _ = env.step(SETTLE_ACTION.tolist())
+        frames = [_frame(env, raw)]
+        for action in ACTIONS:
+            raw, reward, done, _ = env.step(action.tolist())
+            frames.append(_frame(env, raw, reward, done))
+        return frames
+    finally:
+        env.close()
+
+
+@pytest.fixture(scope="module")
+def libero_128() -> dict[tuple[str, int], list[Frame]]:
+    return {case: libero_episode(*case, 128) for case in CASES}
+
+
+@pytest.fixture(scope="module")
+def libero_256() -> dict[tuple[str, int], list[Frame]]:
+    return {case: libero_episode(*case, 256) for case in CASES_256}
+
+
+def _tasks(cases: tuple[tuple[str, int], ...]) -> list[str]:
+    return list(dict.fromkeys(task for task, _ in cases))
+
+
+@pytest.fixture(scope="module")
+def pods(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[int, str]]:
+    """One pod per image size, each hosting its cases' tasks, one env a task; size -> url."""
+    specs = [
+        PodSpec(
+            name=f"libero-{size}",
+            stage_id=0,
+            tasks=[(task, 1) for task in _tasks(cases)],
+            camera=CameraConfig(names=CAMERAS, height=size, width=size),
+            max_episode_steps=None,
+            render=None,
+        )
+        for size, cases in ((128, CASES), (256, CASES_256))
+    ]
+    with standalone_pods(specs, tmp_path_factory.mktemp("libero-pods")) as running:
+        yield {spec.camera.height: pod.url for spec, pod in zip(specs, running)}
+
+
+def _post(url: str, op: str, body: dict) -> dict:
+    response = httpx.post(
+        f"{url}/v1/{op}",
+        content=wire.encode({"generation": 0, **body}),
+        headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE},
+        timeout=300,
+    )
+    assert response.status_code == 200, response.text
+    return wire.decode(response.content)
+
+
+def _differences(theirs: Frame, ours: dict, step: bool) -> list[str]:
+    """Name every quantity of ``ours`` (a pod's answer for one env) that differs from ``theirs``."""
+    obs = ours["obs"]
+    found = [
+        f"{name} image ({int((obs['images'][name][0] != theirs.images[name]).any(-1).sum())} pixels)"
+        for name in CAMERAS
+        if not np.array_equal(obs["images"][name][0], theirs.images[name])
+    ]
+    for key in ("state", "proprio"):
+        if not np.array_equal(obs[key][0], getattr(theirs, key)):
+            found.append(f"{key} (max abs diff {np.abs(obs[key][0] - getattr(theirs, key)).max():.3g})")
+    if bool(ours["info"]["success"][0]) != theirs.success:
+        found.append(f"success ({bool(ours['info']['success'][0])} vs LIBERO's {theirs.success})")
+    if step:
+        if float(ours["reward"][0]) != theirs.reward:
+            found.append(f"reward ({float(ours['reward'][0])} vs LIBERO's {theirs.reward})")
+        if bool(ours["terminated"][0]) != theirs.done:
+            found.append(f"terminated ({bool(ours['terminated'][0])} vs LIBERO's done {theirs.done})")
+        if bool(ours["truncated"][0]):
+            found.append("truncated (True within the suite's episode limit)")
+    return found
+
+
+def _check_pod(url: str, cases: tuple[tuple[str, int], ...], libero: dict, size: int) -> None:
+    env_of = {task: env for env, task in enumerate(_tasks(cases))}
+    failures = []
+    for task, state_id in cases:
+        frames = libero[(task, state_id)]
+        env_ids = np.array([env_of[task]], np.int64)
+        answer = _post(url, "reset", {"env_ids": env_ids, "state_ids": np.array([state_id], np.int64)})
+        failures += [f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)]
+        for step, action in enumerate(ACTIONS, start=1):
+            answer = _post(url, "step", {"env_ids": env_ids, "actions": action[None].astype(np.float32)})
+            failures += [
+                f"{task} state {state_id} {size}px step {step}: {what}"
+                for what in _differences(frames[step], answer, True)
+            ]
+    assert not failures, "vecsim differs from LIBERO:\n" + "\n".join(failures[:40])
+
+
+def test_a_pod_shows_what_libero_shows_at_128_pixels_every_step(libero_128: dict, pods: dict[int, str]) -> None:
+    _check_pod(pods[128], CASES, libero_128, 128)
+
+
+def test_a_pod_shows_what_libero_shows_at_256_pixels_every_step(libero_256: dict, pods: dict[int, str]) -> None:
+    _check_pod(pods[256], CASES_256, libero_256, 256)
+
+
+def test_the_sim_state_is_libero_s_at_every_step(libero_128: dict) -> None:
+    failures = []
+    for task in _tasks(CASES):
+        env = make_env(task, CameraConfig(names=()))
+        try:
+            for case_task, state_id in CASES:
+                if case_task != task:
+                    continue
+                frames = libero_128[(task, state_id)]
+                env.reset(options={"state_id": state_id})
+                ours = [env.inner.sim.get_state().flatten()]
+                for action in ACTIONS:
+                    env.step(action)
+                    ours.append(env.inner.sim.get_state().flatten())
+                failures += [
+                    f"{task} state {state_id} step {step}: sim state (max abs diff {np.abs(mine - frame.sim_state).max():.3g})"
+                    for step, (mine, frame) in enumerate(zip(ours, frames))
+                    if not np.array_equal(mine, frame.sim_state)
+                ]
+        finally:
+            env.close()
+    assert not failures, "vecsim's sim state differs from LIBERO's:\n" + "\n".join(failures[:40])
