@@ -349,11 +349,17 @@ def test_libero_task_resets_to_the_init_state_libero_defines(libero_env: TaskEnv
     from libero.libero import benchmark
 
     theirs = benchmark.get_benchmark_dict()["libero_10"]().get_task_init_states(0)
-    for state_id in (0, 7):
-        obs, info = libero_env.reset(options={"state_id": state_id})
-        assert np.array_equal(libero_env.inner.sim.get_state().flatten(), theirs[state_id])
-        assert libero_env.observation_space.contains(obs)
-        assert info["task_id"] == "libero_10/0"
+    # Settle steps move the objects on; without them a reset leaves LIBERO's init state.
+    settling = libero_env.protocol
+    libero_env.protocol = settling.model_copy(update={"settle_steps": 0})
+    try:
+        for state_id in (0, 7):
+            obs, info = libero_env.reset(options={"state_id": state_id})
+            assert np.array_equal(libero_env.inner.sim.get_state().flatten(), theirs[state_id])
+            assert libero_env.observation_space.contains(obs)
+            assert info["task_id"] == "libero_10/0"
+    finally:
+        libero_env.protocol = settling
     assert libero_env.task.instruction == "put both the alphabet soup and the tomato sauce in the basket"
 
 
