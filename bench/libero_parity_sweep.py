@@ -19,7 +19,7 @@ what every vecsim version offers (``make_env``, ``reset``, ``step``, ``proprio``
 frames side by side (PNG), as ``docs/libero.md`` shows them.
 
     PYTHONPATH=$PWD MUJOCO_GL=egl python bench/libero_parity_sweep.py [--tasks libero_10/0 ...]
-        [--states 0-49 | 0,25,49] [--size 128] [--steps 0] [--pictures docs/img] [--tag name]
+        [--states 0-49 | 0,25,49] [--size 128] [--steps 0] [--pictures docs/img] [--render lean] [--tag name]
 """
 
 from __future__ import annotations
@@ -155,6 +155,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128, help="camera height and width")
     parser.add_argument("--steps", type=int, default=0, help="fixed random actions after settling")
     parser.add_argument("--pictures", type=Path, default=None, help="write the first case's frames here")
+    parser.add_argument("--render", default=None, help="vecsim's render preset (default: the checkout's)")
     parser.add_argument("--tag", default="", help="suffix of the result's name (e.g. 'main')")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -168,7 +169,7 @@ def main() -> None:
     for task_id in args.tasks:
         # LIBERO's frames first: its render contexts and vecsim's never share the process at once.
         theirs = {state_id: libero_frames(task_id, state_id, args.size, actions) for state_id in states}
-        env = make_env(task_id, camera)
+        env = make_env(task_id, camera) if args.render is None else make_env(task_id, camera, args.render)
         try:
             for state_id in states:
                 obs, _ = env.reset(options={"state_id": state_id})
@@ -189,6 +190,7 @@ def main() -> None:
         "exact": sum(case["exact"] for case in cases),
         "size": args.size,
         "steps": args.steps,
+        "render": args.render,
         "worst": worst([case["worst"] for case in cases]) if cases else {},
         "seconds": round(time.perf_counter() - started, 1),
         "pictures": pictures,
