@@ -15,11 +15,15 @@ one) and of the full MuJoCo state; the summary counts the cases that are bit-ide
 against another checkout (``PYTHONPATH=/path/to/checkout``) to measure that one: it only uses
 what every vecsim version offers (``make_env``, ``reset``, ``step``, ``proprio``, ``images``).
 
+``--client-settle N`` sends N no-op steps to vecsim after its reset, as a user of a checkout
+without settle steps would; ``--render`` picks vecsim's render preset.
+
 ``--pictures DIR`` also writes, for the first case, vecsim's and LIBERO's agentview and wrist
 frames side by side (PNG), as ``docs/libero.md`` shows them.
 
     PYTHONPATH=$PWD MUJOCO_GL=egl python bench/libero_parity_sweep.py [--tasks libero_10/0 ...]
-        [--states 0-49 | 0,25,49] [--size 128] [--steps 0] [--pictures docs/img] [--render lean] [--tag name]
+        [--states 0-49 | 0,25,49] [--size 128] [--steps 0] [--pictures docs/img] [--render lean]
+        [--client-settle 10] [--tag name]
 """
 
 from __future__ import annotations
@@ -155,6 +159,12 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128, help="camera height and width")
     parser.add_argument("--steps", type=int, default=0, help="fixed random actions after settling")
     parser.add_argument("--pictures", type=Path, default=None, help="write the first case's frames here")
+    parser.add_argument(
+        "--client-settle",
+        type=int,
+        default=0,
+        help="no-op steps this script sends after vecsim's reset (to settle a checkout that does not)",
+    )
     parser.add_argument("--render", default=None, help="vecsim's render preset (default: the checkout's)")
     parser.add_argument("--tag", default="", help="suffix of the result's name (e.g. 'main')")
     args = parser.parse_args()
@@ -173,6 +183,8 @@ def main() -> None:
         try:
             for state_id in states:
                 obs, _ = env.reset(options={"state_id": state_id})
+                for _ in range(args.client_settle):
+                    obs = env.step(np.array(NO_OP))[0]
                 ours = [vecsim_frame(env, obs)]
                 for action in actions:
                     ours.append(vecsim_frame(env, env.step(action)[0]))
@@ -191,6 +203,7 @@ def main() -> None:
         "size": args.size,
         "steps": args.steps,
         "render": args.render,
+        "client_settle": args.client_settle,
         "worst": worst([case["worst"] for case in cases]) if cases else {},
         "seconds": round(time.perf_counter() - started, 1),
         "pictures": pictures,
