@@ -245,8 +245,9 @@ class LiberoTaskEnv(RobotTaskEnv):
                 np.copyto(getattr(self._frame, name), getattr(data, name))
             return 0.0
 
-        # Sampled with LIBERO's own observables (camera ones included), at their rate.
-        inner.add_observable(Observable(name="vecsim_frame", sensor=frame, sampling_rate=inner.control_freq))
+        if camera.names:
+            # Sampled with LIBERO's own observables (camera ones included), at their rate.
+            inner.add_observable(Observable(name="vecsim_frame", sensor=frame, sampling_rate=inner.control_freq))
         self.camera_views = [
             dataclasses.replace(view, data=self._frame, orientation=protocol.image_orientation)
             for view in self.camera_views
@@ -289,10 +290,24 @@ class LiberoTaskEnv(RobotTaskEnv):
         return observation
 
 
+def _first_reset(task: TaskSpec, inner: Any, seed: int) -> None:
+    """LIBERO's ``env.seed(seed); env.reset()`` (retrying placements as LIBERO does, boundedly)."""
+    from robosuite.utils.errors import RandomizationError
+
+    with seeded_global_rngs(seed), stdout_to_log():
+        for _ in range(_PLACEMENT_ATTEMPTS):
+            try:
+                inner.reset()
+                return
+            except RandomizationError:
+                continue
+    raise RuntimeError(f"{task.task_id}: LIBERO could not place the objects")
+
+
 def make_libero_env(
     task: TaskSpec, camera: CameraConfig, render: RenderPreset, max_episode_steps: int, protocol: LiberoProtocol
 ) -> LiberoTaskEnv:
-    """Build a LIBERO task env through ``OffScreenRenderEnv`` (no hard reset, never done by itself).
+    """Build a LIBERO task env through ``OffScreenRenderEnv`` (never done by itself).
 
     The env is built as LIBERO builds it (hard reset on), reset once as LIBERO's evaluations
     do (``env.seed(fixture_seed); env.reset()``: a hard reset, which reloads the model and places
@@ -323,16 +338,15 @@ def make_libero_env(
                     ignore_done=True,
                     horizon=max_episode_steps,
                 )
-                wrapper.seed(protocol.fixture_seed)
-                wrapper.reset()
         except ValueError as exc:
             raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
     inner = wrapper.env
-    inner.hard_reset = False
-    model = inner.sim.model._model
-    placement = (model.body_pos.copy(), model.body_quat.copy())
-    render_presets.apply_to_robosuite(inner.sim, render)
     try:
+        _first_reset(task, inner, protocol.fixture_seed)
+        inner.hard_reset = False
+        model = inner.sim.model._model
+        placement = (model.body_pos.copy(), model.body_quat.copy())
+        render_presets.apply_to_robosuite(inner.sim, render)
         states = init_states(task)
         return LiberoTaskEnv(
             task, inner, states, camera, max_episode_steps, protocol, placement, owner=wrapper, render=render
