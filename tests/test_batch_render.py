@@ -9,6 +9,7 @@ LIBERO scene stands for LIBERO.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Iterator
 
 import gymnasium
@@ -98,6 +99,16 @@ def test_a_batch_of_robosuite_envs_equals_robosuites_own_renderer_bit_for_bit(
             assert renderer.readbacks == 1
     for index, (ours, theirs) in enumerate(zip(batched, expected)):
         assert np.array_equal(ours, theirs), f"view {index} differs under {preset}"
+
+
+def test_a_view_lays_its_image_out_as_its_orientation_says(lifts: list[RobotTaskEnv]) -> None:
+    renderer = BatchRenderer(HEIGHT, WIDTH, "lean")
+    with attached(renderer, lifts[:1]) as views:
+        oriented = [dataclasses.replace(views[0], orientation=way) for way in ("upright", "rotate180", "raw")]
+        upright, rotated, raw = renderer.render(oriented)
+    # GL's frame (bottom row first) is ``raw``; upright is raw[::-1]; LIBERO's evaluations' is raw[::-1, ::-1].
+    assert np.array_equal(raw, upright[::-1])
+    assert np.array_equal(rotated, raw[::-1, ::-1])
 
 
 def test_without_multisampling_a_batch_still_equals_robosuites_own_renderer(lifts: list[RobotTaskEnv]) -> None:
