@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 from common import write_result
 from PIL import Image
@@ -82,6 +83,8 @@ def libero_frames(task_id: str, state_id: int, size: int, actions: np.ndarray) -
         return frames
     finally:
         env.close()
+        # MuJoCo's compiler keeps each loaded scene's assets cached (hundreds of MB for LIBERO).
+        mujoco.mj_clearCache(mujoco.mj_getCache())
 
 
 def _libero_frame(env: Any, raw: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import httpx
+import mujoco
 import numpy as np
 import pytest
 from trainer_pods import PodSpec, standalone_pods
@@ -102,6 +103,8 @@ def libero_episode(task_id: str, state_id: int, size: int) -> list[Frame]:
         return frames
     finally:
         env.close()
+        # MuJoCo's compiler keeps each loaded scene's assets cached (hundreds of MB for LIBERO).
+        mujoco.mj_clearCache(mujoco.mj_getCache())
 
 
 def _tasks(cases: tuple[tuple[str, int], ...]) -> list[str]:

@@ -103,9 +103,9 @@ class _WorkerSpec:
     camera: CameraConfig
     render: RenderPreset | None
     max_episode_steps: int | None
-    libero: LiberoProtocol
     observation_space: gymnasium.spaces.Dict
     action_space: gymnasium.spaces.Box
+    libero: LiberoProtocol = LiberoProtocol()
 
     def describe(self) -> str:
         """Return the hosted envs by task, e.g. ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
@@ -416,9 +416,9 @@ class TaskGroupedVectorEnv:
                 camera=assignment.camera,
                 render=assignment.render,
                 max_episode_steps=assignment.max_episode_steps,
-                libero=assignment.libero,
                 observation_space=self.single_observation_space,
                 action_space=self.single_action_space,
+                libero=assignment.libero,
             )
             for first in range(0, self.num_envs, slots)
         ]
