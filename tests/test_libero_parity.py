@@ -51,7 +51,8 @@ CASES: dict[str, tuple[tuple[str, int], ...]] = {
 }
 # libero_10/9 has a fixture (a microwave) that LIBERO's resets move.
 CASES_256: tuple[tuple[str, int], ...] = (("libero_10/9", 49),)
-ACTIONS = np.random.default_rng(13).uniform(-1.0, 1.0, (STEPS, 7))
+# float32, as the pod's action space has them; LIBERO gets the same values as float64.
+ACTIONS = np.random.default_rng(13).uniform(-1.0, 1.0, (STEPS, 7)).astype(np.float32)
 
 
 @dataclass
@@ -177,7 +178,7 @@ def _check_pod(url: str, cases: tuple[tuple[str, int], ...], libero: dict, size:
         answer = _post(url, "reset", {"env_ids": env_ids, "state_ids": np.array([state_id], np.int64)})
         failures += [f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)]
         for step, action in enumerate(ACTIONS, start=1):
-            answer = _post(url, "step", {"env_ids": env_ids, "actions": action[None].astype(np.float32)})
+            answer = _post(url, "step", {"env_ids": env_ids, "actions": action[None]})
             failures += [
                 f"{task} state {state_id} {size}px step {step}: {what}"
                 for what in _differences(frames[step], answer, True)
