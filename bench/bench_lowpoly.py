@@ -31,9 +31,12 @@ from common import img_dir, write_result
 
 from vecsim import mesh_lod
 from vecsim.batch_render import BatchRenderer, CameraView
-from vecsim.config import CameraConfig
+from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.render import LOWPOLY_CELL, PRESETS
 from vecsim.tasks import make_env
+
+# LIBERO scenes drawn upright at the state a reset sets, as the other scenes are (no settle steps).
+AS_SET = LiberoProtocol(image_orientation="upright", settle_steps=0)
 
 log = logging.getLogger("bench.lowpoly")
 
@@ -63,7 +66,7 @@ def quality(reference: np.ndarray, images: np.ndarray) -> dict[str, list[float]]
 
 def measure(task: str, size: int, cells: list[float], seconds: float, wall: bool) -> tuple[dict[str, Any], dict]:
     """Return one scene's rows (full meshes first, then one per cell) and its pictures by cell."""
-    env = make_env(task, CameraConfig(names=CAMERAS, height=size, width=size), "lean")
+    env = make_env(task, CameraConfig(names=CAMERAS, height=size, width=size), "lean", libero=AS_SET)
     try:
         env.reset(options={"state_id": 0})
         views = env.camera_views

@@ -108,14 +108,16 @@ class Scene:
     """One process's envs of one scene, with every render path over them."""
 
     def __init__(self, task_id: str, plan: Plan) -> None:
-        from vecsim.config import CameraConfig
+        from vecsim.config import CameraConfig, LiberoProtocol
         from vecsim.tasks import make_env
 
         self.task_id = task_id
         self.gym = task_id.startswith("gym/")
         names = ("render",) if self.gym else ("agentview", "robot0_eye_in_hand")
         self.camera = CameraConfig(names=names, height=plan.height, width=plan.width)
-        self.envs = [make_env(task_id, self.camera, "lean") for _ in range(plan.envs)]
+        # LIBERO scenes drawn as robosuite's own renderer draws them: upright, at the state set.
+        protocol = LiberoProtocol(image_orientation="upright", settle_steps=0)
+        self.envs = [make_env(task_id, self.camera, "lean", libero=protocol) for _ in range(plan.envs)]
         for index, env in enumerate(self.envs):
             env.defer_images = True
             env.reset(options={"state_id": index})

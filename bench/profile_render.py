@@ -49,9 +49,12 @@ from common import write_result
 
 from vecsim import mesh_lod
 from vecsim.batch_render import BatchRenderer, CameraView, gl_info
-from vecsim.config import CameraConfig
+from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.render import LOWPOLY_CELL, PRESETS
 from vecsim.tasks import make_env
+
+# LIBERO scenes drawn upright at the state a reset sets, as the other scenes are (no settle steps).
+AS_SET = LiberoProtocol(image_orientation="upright", settle_steps=0)
 
 log = logging.getLogger("bench.profile_render")
 
@@ -161,7 +164,7 @@ def measure(
 ) -> dict[str, Any]:
     memory = {"start": rss_mib()}
     camera = CameraConfig(names=CAMERAS, height=size, width=size)
-    env = make_env(task, camera, "lean")
+    env = make_env(task, camera, "lean", libero=AS_SET)
     env.reset(options={"state_id": 0})
     memory["env_built_and_reset"] = rss_mib()
     model = env.camera_views[0].model

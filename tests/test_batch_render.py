@@ -9,6 +9,7 @@ LIBERO scene stands for LIBERO.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Iterator
 
 import gymnasium
@@ -18,7 +19,7 @@ import pytest
 
 from vecsim import batch_render, render
 from vecsim.batch_render import BatchRenderer, same_render_assets, shared_renderer
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
 from vecsim.sim import RESET, STEP, _WorkerEnv, _WorkerSpec, assignment_spaces
 from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
 
@@ -98,6 +99,16 @@ def test_a_batch_of_robosuite_envs_equals_robosuites_own_renderer_bit_for_bit(
             assert renderer.readbacks == 1
     for index, (ours, theirs) in enumerate(zip(batched, expected)):
         assert np.array_equal(ours, theirs), f"view {index} differs under {preset}"
+
+
+def test_a_view_lays_its_image_out_as_its_orientation_says(lifts: list[RobotTaskEnv]) -> None:
+    renderer = BatchRenderer(HEIGHT, WIDTH, "lean")
+    with attached(renderer, lifts[:1]) as views:
+        oriented = [dataclasses.replace(views[0], orientation=way) for way in ("upright", "rotate180", "raw")]
+        upright, rotated, raw = renderer.render(oriented)
+    # GL's frame (bottom row first) is ``raw``; upright is raw[::-1]; LIBERO's evaluations' is raw[::-1, ::-1].
+    assert np.array_equal(raw, upright[::-1])
+    assert np.array_equal(rotated, raw[::-1, ::-1])
 
 
 def test_without_multisampling_a_batch_still_equals_robosuites_own_renderer(lifts: list[RobotTaskEnv]) -> None:
@@ -297,11 +308,12 @@ def test_the_gl_context_names_its_renderer() -> None:
 @pytest.mark.libero
 def test_a_libero_scene_in_a_batch_equals_robosuites_own_renderer() -> None:
     camera = CameraConfig(names=CAMERAS, height=16, width=16)
-    env = make_env("libero_10/0", camera, "full")
+    # Right after a reset with no settle steps the views' copy of the sim is the sim itself.
+    protocol = LiberoProtocol(image_orientation="upright", settle_steps=0)
+    env = make_env("libero_10/0", camera, "full", libero=protocol)
     try:
         assert env.renderer.preset == "full"
         env.reset(options={"state_id": 3})
-        env.step(ACTIONS[0])
         with robosuite_renderer(env, "full") as own:
             batched = env.renderer.render(env.camera_views)
             for image, name in zip(batched, CAMERAS):

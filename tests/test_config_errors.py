@@ -37,6 +37,7 @@ VALID: dict[str, Any] = {
         "seed": 0,
         "envs_per_worker": 1,
         "max_episode_steps": 20,
+        "libero": {"image_orientation": "rotate180", "settle_steps": 10, "fixture_seed": 0},
     },
     "pods": {"replicas": 1, "host": "127.0.0.1", "base_port": 8100, "max_envs": 4},
     "controller": {
@@ -73,6 +74,9 @@ WRONG_FIELDS = [
     wrong("job.envs_per_worker", -1, "greater than or equal to 0"),
     wrong("job.envs_per_worker", 1000, "less than or equal to 256"),
     wrong("job.max_episode_steps", 0, "greater than or equal to 1"),
+    wrong("job.libero.image_orientation", "flipped", "'upright', 'rotate180' or 'raw'"),
+    wrong("job.libero.settle_steps", -1, "greater than or equal to 0"),
+    wrong("job.libero.fixture_seed", -7, "greater than or equal to 0"),
     wrong("pods.replicas", -1, "greater than or equal to 0"),
     wrong("pods.host", None, "valid string"),
     wrong("pods.base_port", 80, "greater than or equal to 1024"),
@@ -84,7 +88,13 @@ WRONG_FIELDS = [
     wrong("controller.reconcile_interval_s", "often", "valid number"),
 ]
 # A misspelt field is an error naming it, never a silently ignored key.
-MISSPELT = [("job.group_sise", 2), ("pods.replica", 2), ("controller.prot", 8000), ("jobs", {})]
+MISSPELT = [
+    ("job.group_sise", 2),
+    ("job.libero.settle_step", 2),
+    ("pods.replica", 2),
+    ("controller.prot", 8000),
+    ("jobs", {}),
+]
 
 
 def changed(config: dict[str, Any], dotted: str, value: Any) -> dict[str, Any]:

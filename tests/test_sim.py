@@ -357,7 +357,7 @@ def test_a_libero_pod_reproduces_the_same_libero_scene_as_this_process() -> None
         mine += [local.step(action)[0] for action in _actions(2, 7, seed=9)]
     finally:
         local.close()
-    with TaskGroupedVectorEnv(_assignment([("libero_10/0", 1)], TINY_CAMERA)) as pod:
+    with TaskGroupedVectorEnv(_assignment([("libero_10/0", 1)], TINY_CAMERA, render="lean")) as pod:
         pod.step_envs([0], _actions(1, 7, seed=10))
         theirs = [pod.reset_envs([0], [7])[0]]
         theirs += [pod.step_envs([0], action[None])[0] for action in _actions(2, 7, seed=9)]

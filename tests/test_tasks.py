@@ -24,7 +24,9 @@ from vecsim.tasks import (
     TaskEnv,
     TaskSetupError,
     UnknownTaskError,
+    default_render,
     derive_seed,
+    episode_limit,
     get_task,
     list_suites,
     make_env,
@@ -33,7 +35,7 @@ from vecsim.tasks import (
     suite_tasks,
     task_spaces,
 )
-from vecsim.tasks._libero import check_assets
+from vecsim.tasks._libero import LIBERO_SUITES, STATE_DIM, check_assets, quat_to_axis_angle
 
 TINY_CAMERA = CameraConfig(height=8, width=8)
 ACTIONS = np.random.default_rng(7).uniform(-1.0, 1.0, (5, 7)).astype(np.float32)
@@ -144,6 +146,43 @@ def test_every_task_of_a_suite_has_the_same_spaces(suite: str) -> None:
     assert observation_space["proprio"].shape == (23,)
     assert observation_space["images"]["agentview"].shape == (8, 8, 3)
     assert action_space.shape == (7,) and action_space.dtype == np.float32
+
+
+def test_libero_tasks_add_the_8_float_state_and_the_others_do_not() -> None:
+    for suite in list_suites():
+        observation_space, _ = task_spaces(suite_tasks(suite)[0].task_id, TINY_CAMERA)
+        if suite in LIBERO_SUITES:
+            assert observation_space["state"].shape == (STATE_DIM,)
+        else:
+            assert "state" not in observation_space.spaces
+
+
+def test_a_pod_gives_each_libero_suite_its_own_episode_limit_unless_one_is_set() -> None:
+    published = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520, "libero_90": 400}
+    for suite, limit in published.items():
+        assert episode_limit(f"{suite}/0", None) == limit
+        assert episode_limit(f"{suite}/0", 77) == 77
+    assert episode_limit("tiny/lift", None) == 300
+    assert episode_limit("robosuite/Lift", None) == 300
+
+
+def test_libero_tasks_draw_with_full_and_the_others_with_lean_by_default() -> None:
+    assert [default_render(task) for task in ("libero_goal/3", "libero_90/0")] == ["full", "full"]
+    assert [default_render(task) for task in ("tiny/lift", "robosuite/Door", "gym/Pendulum-v1")] == ["lean"] * 3
+
+
+def test_the_state_axis_angle_is_robosuites_with_the_quaternions_sign_kept() -> None:
+    from robosuite.utils.transform_utils import quat2axisangle
+
+    quats = np.random.default_rng(3).normal(size=(200, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    assert (quats[:, 3] < 0).any() and (quats[:, 3] > 0).any()
+    for quat in quats:
+        assert np.array_equal(quat_to_axis_angle(quat), quat2axisangle(quat.copy()))
+    # -q is the same rotation; folding it onto w >= 0 would give another vector (the trap).
+    quat = np.array([0.9, 0.1, 0.0, -0.42]) / np.linalg.norm([0.9, 0.1, 0.0, -0.42])
+    assert np.linalg.norm(quat_to_axis_angle(quat)) > np.pi
+    assert not np.allclose(quat_to_axis_angle(quat), quat_to_axis_angle(-quat))
 
 
 def test_gym_task_takes_its_episode_length_from_gymnasium() -> None:
@@ -349,11 +388,17 @@ def test_libero_task_resets_to_the_init_state_libero_defines(libero_env: TaskEnv
     from libero.libero import benchmark
 
     theirs = benchmark.get_benchmark_dict()["libero_10"]().get_task_init_states(0)
-    for state_id in (0, 7):
-        obs, info = libero_env.reset(options={"state_id": state_id})
-        assert np.array_equal(libero_env.inner.sim.get_state().flatten(), theirs[state_id])
-        assert libero_env.observation_space.contains(obs)
-        assert info["task_id"] == "libero_10/0"
+    # Settle steps move the objects on; without them a reset leaves LIBERO's init state.
+    settling = libero_env.protocol
+    libero_env.protocol = settling.model_copy(update={"settle_steps": 0})
+    try:
+        for state_id in (0, 7):
+            obs, info = libero_env.reset(options={"state_id": state_id})
+            assert np.array_equal(libero_env.inner.sim.get_state().flatten(), theirs[state_id])
+            assert libero_env.observation_space.contains(obs)
+            assert info["task_id"] == "libero_10/0"
+    finally:
+        libero_env.protocol = settling
     assert libero_env.task.instruction == "put both the alphabet soup and the tomato sauce in the basket"
 
 

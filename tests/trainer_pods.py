@@ -22,7 +22,7 @@ from pathlib import Path
 import httpx
 
 from service.runner.job import LocalJob
-from vecsim.config import Assignment, CameraConfig, RunnerConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, RenderPreset, RunnerConfig, TaskBlock
 
 READY_TIMEOUT_S = 240.0
 NO_CAMERA = CameraConfig(names=(), height=8, width=8)
@@ -100,9 +100,10 @@ class PodSpec:
     stage_id: int
     tasks: Sequence[tuple[str, int]]
     camera: CameraConfig = NO_CAMERA
-    max_episode_steps: int = 300
+    max_episode_steps: int | None = 300
     envs_per_worker: int = 1
     generation: int = 0
+    render: RenderPreset | None = "lean"
 
     def assignment(self) -> Assignment:
         blocks, start = [], 0
@@ -116,7 +117,7 @@ class PodSpec:
             stage_id=self.stage_id,
             tasks=tuple(blocks),
             camera=self.camera,
-            render="lean",
+            render=self.render,
             max_episode_steps=self.max_episode_steps,
             envs_per_worker=self.envs_per_worker,
         )

@@ -6,7 +6,8 @@ has one GL context, and envs whose models carry the same render assets (every en
 share one MuJoCo render context (``MjrContext``: meshes, textures, shadow map, and offscreen
 buffers sized to a grid of tiles). A batch of camera views is drawn view by view
 (``mjv_updateScene``, ``mjr_render``), each copied into its own tile, and the tiles are read
-back with one ``glReadPixels`` per render context, then sliced and flipped upright.
+back with one ``glReadPixels`` per render context, then sliced and laid out as each view asks
+(upright unless it says otherwise).
 
 Each view is drawn at the buffer's origin, exactly where the default path draws it, and only
 then copied to its tile (resolving the multisampled pixels on the way, as ``mjr_readPixels``
@@ -39,7 +40,7 @@ import numpy as np
 
 from vecsim import mesh_lod
 from vecsim import render as render_presets
-from vecsim.config import RenderPreset
+from vecsim.config import ImageOrientation, RenderPreset
 from vecsim.render import RenderSettings
 
 log = logging.getLogger("vecsim.batch_render")
@@ -50,6 +51,12 @@ MAX_SCENE_GEOMS = 10_000
 MAX_BUFFER_SIDE = 8192
 # Tile 0 of every buffer is where views are drawn before they are copied to their own tiles.
 _DRAWING_TILES = 1
+# Index of a tile as GL reads it (bottom row first) that lays it out in each orientation.
+_ORIENTED: dict[str, tuple[slice, slice]] = {
+    "upright": (slice(None, None, -1), slice(None)),
+    "rotate180": (slice(None, None, -1), slice(None, None, -1)),
+    "raw": (slice(None), slice(None)),
+}
 
 # Model fields that a render context copies to the GPU when it is made: envs whose models agree
 # on all of them can share one context.
@@ -64,14 +71,16 @@ class CameraView:
     """One camera of one env: what to draw (``model``, ``data``) and from where.
 
     ``camera`` is the MuJoCo camera (fixed, or free with its own pose); ``option`` the
-    visualisation options (geom groups shown, ...). The view reads ``data`` when rendered, so it
-    always shows the env's current state.
+    visualisation options (geom groups shown, ...); ``orientation`` how the image's pixels are
+    laid out (:data:`vecsim.config.ImageOrientation`). The view reads ``data`` when rendered, so
+    it shows the state ``data`` holds then.
     """
 
     model: mujoco.MjModel
     data: mujoco.MjData
     camera: mujoco.MjvCamera
     option: mujoco.MjvOption = field(default_factory=mujoco.MjvOption)
+    orientation: ImageOrientation = "upright"
 
 
 def fixed_camera(model: mujoco.MjModel, name: str) -> mujoco.MjvCamera:
@@ -451,10 +460,9 @@ class BatchRenderer:
         GL.glReadPixels(0, 0, read_width, pixels.shape[0], GL.GL_RGB, GL.GL_UNSIGNED_BYTE, pixels)
         self.views_rendered += len(views)
         self.readbacks += 1
-        for tile, target in enumerate(targets):
+        for tile, (view, target) in enumerate(zip(views, targets)):
             x, y = self._tile_origin(shared, tile)
-            # GL reads the bottom row first: flip each tile so row 0 is the top.
-            out[target] = pixels[y : y + height, x : x + width][::-1]
+            out[target] = pixels[y : y + height, x : x + width][_ORIENTED[view.orientation]]
 
 
 _RENDERERS: dict[tuple[int, int, str], BatchRenderer] = {}

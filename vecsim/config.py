@@ -15,6 +15,11 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 RenderPreset = Literal["full", "fast", "lean", "lowpoly"]
+# How a camera image's pixels are laid out: "upright" (row 0 is the top of the picture),
+# "rotate180" (upright turned half a turn: LIBERO's raw frame as ``raw[::-1, ::-1]``, what LIBERO's
+# published evaluation scripts feed their policies), "raw" (bottom row first, as OpenGL reads it
+# back: the frame robosuite and LIBERO return themselves).
+ImageOrientation = Literal["upright", "rotate180", "raw"]
 
 
 class _Model(BaseModel):
@@ -34,6 +39,36 @@ class CameraConfig(_Model):
         if len(set(names)) != len(names):
             raise ValueError(f"camera names must be unique, got {list(names)}")
         return names
+
+
+class LiberoProtocol(_Model):
+    """The conventions LIBERO tasks follow: by default, those of LIBERO's published evaluations.
+
+    Each one is one setting, so a job can take another (docs/libero.md compares them):
+
+    - ``image_orientation``: how LIBERO tasks' camera images are laid out (:data:`ImageOrientation`).
+    - ``settle_steps``: no-op steps (arm still, gripper opening: ``[0, 0, 0, 0, 0, 0, -1]``) run
+      after every reset, before the observation is returned; they are not counted in the
+      episode's steps.
+    - ``fixture_seed``: the seed LIBERO's reset is run under (``env.seed(fixture_seed);
+      env.reset()``) before the init state is set. Fixtures (cabinets, racks, microwaves) live in
+      the model, not in the init state, so this seed places them: the same for every state id of
+      a task, on every pod, whatever ran before. LIBERO's own evaluations seed 0 (OpenVLA-OFT)
+      or 7 (openpi).
+
+    Episode limits are not here: ``max_episode_steps`` left unset gives each LIBERO suite its own.
+    """
+
+    image_orientation: ImageOrientation = "rotate180"
+    settle_steps: int = Field(10, ge=0, le=10_000)
+    fixture_seed: int = Field(0, ge=0, lt=2**32)
+
+
+MAX_EPISODE_STEPS_DOC = (
+    "steps after which every env truncates; unset: each LIBERO suite's own limit (spatial 220, "
+    "object 280, goal 300, libero_10 520, libero_90 400) for LIBERO tasks, 300 for the others"
+)
+RENDER_DOC = "render preset; unset: 'full' for LIBERO tasks (LIBERO's own pixels), 'lean' for the others"
 
 
 # 0 (the default) asks the pod to choose (vecsim.sim.resolve_envs_per_worker); YAML and JSON may say "auto".
@@ -65,10 +100,11 @@ class Assignment(_Model):
     stage_id: int = Field(ge=0)
     tasks: tuple[TaskBlock, ...] = ()
     camera: CameraConfig = CameraConfig()
-    render: RenderPreset = "lean"
+    render: RenderPreset | None = Field(None, description=RENDER_DOC)
     seed: int = 0
     envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
-    max_episode_steps: int = Field(300, ge=1)
+    max_episode_steps: int | None = Field(None, ge=1, description=MAX_EPISODE_STEPS_DOC)
+    libero: LiberoProtocol = LiberoProtocol()
 
     _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 
@@ -105,10 +141,11 @@ class JobSpec(_Model):
     num_stages: int = Field(2, ge=1)
     pods_per_stage: int = Field(1, ge=1)
     camera: CameraConfig = CameraConfig()
-    render: RenderPreset = "lean"
+    render: RenderPreset | None = Field(None, description=RENDER_DOC)
     seed: int = 0
     envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
-    max_episode_steps: int = Field(300, ge=1)
+    max_episode_steps: int | None = Field(None, ge=1, description=MAX_EPISODE_STEPS_DOC)
+    libero: LiberoProtocol = LiberoProtocol()
 
     _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 

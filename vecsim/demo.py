@@ -25,6 +25,7 @@ from vecsim.client import StageClient
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.sampler import TaskBalancedSampler, TaskInstances
+from vecsim.tasks import episode_limit
 
 logger = logging.getLogger("vecsim.demo")
 
@@ -163,7 +164,7 @@ def main(argv: list[str]) -> int:
             loop = EnvLoop(
                 client,
                 policy,
-                horizon=args.horizon or job.max_episode_steps,
+                horizon=args.horizon or max(episode_limit(task, job.max_episode_steps) for task in tasks),
                 record=args.videos,
                 video_dir=out / "videos",
                 log_every_s=5.0,

@@ -140,6 +140,7 @@ def _assignment(job: JobSpec, generation: int, pod: str, stage_id: int, tasks: t
         seed=job.seed,
         envs_per_worker=job.envs_per_worker,
         max_episode_steps=job.max_episode_steps,
+        libero=job.libero,
     )
 
 

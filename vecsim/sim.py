@@ -55,8 +55,8 @@ import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig
-from vecsim.tasks import TaskEnv, get_task, make_env, task_spaces
+from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
+from vecsim.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
 
 log = logging.getLogger("vecsim.sim")
 
@@ -108,11 +108,12 @@ class _WorkerSpec:
     env_indices: tuple[int, ...]
     slots: int
     camera: CameraConfig
-    render: str
-    max_episode_steps: int
+    render: RenderPreset | None
+    max_episode_steps: int | None
     observation_space: gymnasium.spaces.Dict
     action_space: gymnasium.spaces.Box
     max_chunk: int = DEFAULT_MAX_CHUNK
+    libero: LiberoProtocol = LiberoProtocol()
 
     def describe(self) -> str:
         """Return the hosted envs by task, e.g. ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
@@ -222,7 +223,8 @@ class _WorkerEnv(gymnasium.Env):
         slot = 0
         try:
             for slot, task_id in enumerate(worker.task_ids):
-                env = make_env(task_id, worker.camera, worker.render, worker.max_episode_steps)
+                steps = episode_limit(task_id, worker.max_episode_steps)
+                env = make_env(task_id, worker.camera, worker.render, steps, worker.libero)
                 self._envs.append(env)
                 spaces = (env.observation_space, env.action_space)
                 if spaces != (worker.observation_space, worker.action_space):
@@ -492,6 +494,7 @@ class TaskGroupedVectorEnv:
                 observation_space=self.single_observation_space,
                 action_space=self.single_action_space,
                 max_chunk=max_chunk,
+                libero=assignment.libero,
             )
             for first in range(0, self.num_envs, slots)
         ]

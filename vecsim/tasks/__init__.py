@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import gymnasium
 
-from vecsim.config import CameraConfig, RenderPreset
+from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
 from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, UnknownTaskError, cache_dir, derive_seed
 from vecsim.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
-from vecsim.tasks._libero import LIBERO_SUITES, libero_specs, make_libero_env
+from vecsim.tasks._libero import LIBERO_SUITES, libero_observation_space, libero_specs, make_libero_env
 from vecsim.tasks._robot import (
     PROPRIO_KEYS,
     RobotTaskEnv,
@@ -42,7 +42,9 @@ __all__ = [
     "TaskSpec",
     "UnknownTaskError",
     "cache_dir",
+    "default_render",
     "derive_seed",
+    "episode_limit",
     "get_task",
     "list_suites",
     "make_env",
@@ -55,6 +57,8 @@ __all__ = [
 ]
 
 _ROBOSUITE_SUITES = ("robosuite", "tiny")
+# Episode length of a pod's non-LIBERO tasks when the assignment sets none.
+POD_MAX_EPISODE_STEPS = 300
 
 
 def list_suites() -> list[str]:
@@ -120,18 +124,48 @@ def task_spaces(task_id: str, camera: CameraConfig) -> tuple[gymnasium.spaces.Di
     task = get_task(task_id)
     if task.suite == "gym":
         return gym_spaces(task, camera)
+    if task.suite in LIBERO_SUITES:
+        return libero_observation_space(camera), robot_action_space()
     return robot_observation_space(camera), robot_action_space()
+
+
+def default_render(task_id: str) -> RenderPreset:
+    """Return the render preset ``task_id``'s envs get when none is asked for.
+
+    LIBERO tasks draw with ``full`` (robosuite's defaults: LIBERO's own pixels, docs/libero.md);
+    every other task with ``lean``.
+    """
+    return "full" if normalize_task_id(task_id).partition("/")[0] in LIBERO_SUITES else "lean"
+
+
+def episode_limit(task_id: str, max_episode_steps: int | None) -> int:
+    """Return the episode length a pod gives ``task_id``'s envs under an assignment's ``max_episode_steps``.
+
+    Set, it holds for every task. Unset, a LIBERO task gets its suite's limit (the step budget
+    of LIBERO's published evaluations) and any other task ``POD_MAX_EPISODE_STEPS``.
+
+    Raises:
+        UnknownTaskError: unknown task id.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+    """
+    if max_episode_steps is not None:
+        return max_episode_steps
+    task = get_task(task_id)
+    return task.max_episode_steps if task.suite in LIBERO_SUITES else POD_MAX_EPISODE_STEPS
 
 
 def make_env(
     task_id: str,
     camera: CameraConfig | None = None,
-    render: RenderPreset = "lean",
+    render: RenderPreset | None = None,
     max_episode_steps: int | None = None,
+    libero: LiberoProtocol | None = None,
 ) -> TaskEnv:
     """Build the env of ``task_id``: a :class:`TaskEnv` (a ``gymnasium.Env``).
 
-    ``camera`` defaults to ``CameraConfig()``; ``max_episode_steps`` to the task's own.
+    ``camera`` defaults to ``CameraConfig()``; ``render`` to :func:`default_render`;
+    ``max_episode_steps`` to the task's own; ``libero`` (the conventions of LIBERO tasks, ignored
+    by the others) to ``LiberoProtocol()``, LIBERO's published evaluation.
     ``reset(options={"state_id": k})`` puts the env in fixed initial state ``k``.
 
     Raises:
@@ -141,9 +175,10 @@ def make_env(
     """
     task = get_task(task_id)
     camera = CameraConfig() if camera is None else camera
+    render = default_render(task.task_id) if render is None else render
     steps = task.max_episode_steps if max_episode_steps is None else max_episode_steps
     if task.suite == "gym":
         return GymTaskEnv(task, camera, render, steps)
     if task.suite in LIBERO_SUITES:
-        return make_libero_env(task, camera, render, steps)
+        return make_libero_env(task, camera, render, steps, LiberoProtocol() if libero is None else libero)
     return make_robosuite_env(task, camera, render, steps)

@@ -99,8 +99,8 @@ def seeded_global_rngs(seed: int) -> Iterator[None]:
         random.setstate(py_state)
 
 
-def _robosuite_reset_without_observing(inner: Any) -> None:
-    # robosuite 1.4's reset() for hard_reset=False, minus computing (rendering) observations.
+def robosuite_reset_without_observing(inner: Any) -> None:
+    """Run robosuite 1.4's ``reset()`` for ``hard_reset=False``, minus computing observations. Returns None."""
     inner.sim.reset()
     inner._reset_internal()
     inner.sim.forward()
@@ -114,7 +114,7 @@ def _seeded_reset(task_id: str, state_id: int, inner: Any) -> None:
     for attempt in range(_RESET_ATTEMPTS):
         with seeded_global_rngs(derive_seed(task_id, state_id, attempt)):
             try:
-                _robosuite_reset_without_observing(inner)
+                robosuite_reset_without_observing(inner)
                 return
             except RandomizationError:
                 continue

@@ -1,0 +1,218 @@
+"""LIBERO parity sweep: vecsim's LIBERO tasks against LIBERO itself after reset and settling.
+
+For every (task, init state) asked for (default: every LIBERO-10 task, all 50 init states), the
+oracle is what a published LIBERO evaluation shows its policy first: a freshly built
+``OffScreenRenderEnv``, ``env.seed(0); env.reset(); env.set_init_state(init_states[k])``, 10
+steps of ``[0, 0, 0, 0, 0, 0, -1]``, images turned ``raw[::-1, ::-1]``, the 8-float state
+(eef position, robosuite's axis-angle of the eef quaternion, gripper joints). vecsim is one env
+per task (``vecsim.tasks.make_env`` with the defaults of the checkout it imports), reset to
+state ``k``: what its first observation is. ``--steps N`` then applies N fixed random actions to
+both and keeps the worst difference over them.
+
+Per case it records the largest absolute difference of each camera's pixels, of the arm's
+joint angles (mrad), of the end-effector position (mm), of the 8-float state (when vecsim gives
+one) and of the full MuJoCo state; the summary counts the cases that are bit-identical. Run it
+against another checkout (``PYTHONPATH=/path/to/checkout``) to measure that one: it only uses
+what every vecsim version offers (``make_env``, ``reset``, ``step``, ``proprio``, ``images``).
+
+``--client-settle N`` sends N no-op steps to vecsim after its reset, as a user of a checkout
+without settle steps would; ``--render`` picks vecsim's render preset.
+
+``--pictures DIR`` also writes, for the first case, vecsim's and LIBERO's agentview and wrist
+frames side by side (PNG), as ``docs/libero.md`` shows them.
+
+    PYTHONPATH=$PWD MUJOCO_GL=egl python bench/libero_parity_sweep.py [--tasks libero_10/0 ...]
+        [--states 0-49 | 0,25,49] [--size 128] [--steps 0] [--pictures docs/img] [--render lean]
+        [--client-settle 10] [--tag name]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+from common import write_result
+from PIL import Image
+
+from vecsim.config import CameraConfig
+from vecsim.tasks import get_task, make_env
+from vecsim.tasks._libero import _benchmark, ensure_config, init_states
+
+log = logging.getLogger("bench.libero_parity_sweep")
+
+CAMERAS = ("agentview", "robot0_eye_in_hand")
+SETTLE_STEPS = 10
+NO_OP = [0.0] * 6 + [-1.0]
+# robot0_joint_pos_cos (7), robot0_joint_pos_sin (7), robot0_eef_pos (3) at the head of proprio.
+_COS, _SIN, _EEF = slice(0, 7), slice(7, 14), slice(14, 17)
+
+
+def axis_angle(quat: np.ndarray) -> np.ndarray:
+    """robosuite's ``quat2axisangle`` of an ``(x, y, z, w)`` quaternion, as LIBERO's evaluations use it."""
+    w = min(max(float(quat[3]), -1.0), 1.0)
+    den = math.sqrt(1.0 - w * w)
+    if math.isclose(den, 0.0):
+        return np.zeros(3)
+    return np.asarray(quat[:3], dtype=np.float64) * 2.0 * math.acos(w) / den
+
+
+def libero_frames(task_id: str, state_id: int, size: int, actions: np.ndarray) -> list[dict[str, Any]]:
+    """What LIBERO's evaluation sees after settling, then after each action."""
+    from libero.libero.envs import OffScreenRenderEnv
+
+    suite, index = task_id.split("/")
+    env = OffScreenRenderEnv(
+        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+    )
+    try:
+        env.seed(0)
+        env.reset()
+        raw = env.set_init_state(init_states(get_task(task_id))[state_id])
+        for _ in range(SETTLE_STEPS):
+            raw, _, _, _ = env.step(NO_OP)
+        frames = [_libero_frame(env, raw)]
+        for action in actions:
+            raw, _, _, _ = env.step(action.tolist())
+            frames.append(_libero_frame(env, raw))
+        return frames
+    finally:
+        env.close()
+        # MuJoCo's compiler keeps each loaded scene's assets cached (hundreds of MB for LIBERO).
+        mujoco.mj_clearCache(mujoco.mj_getCache())
+
+
+def _libero_frame(env: Any, raw: dict[str, np.ndarray]) -> dict[str, Any]:
+    return {
+        "images": {name: raw[f"{name}_image"][::-1, ::-1].copy() for name in CAMERAS},
+        # As vecsim's float32 proprio carries them, so equal sims give equal numbers.
+        "joints": np.arctan2(
+            raw["robot0_joint_pos_sin"].astype(np.float32).astype(np.float64),
+            raw["robot0_joint_pos_cos"].astype(np.float32).astype(np.float64),
+        ),
+        "eef": raw["robot0_eef_pos"].astype(np.float32).astype(np.float64),
+        "state": np.concatenate(
+            [raw["robot0_eef_pos"], axis_angle(raw["robot0_eef_quat"]), raw["robot0_gripper_qpos"]]
+        ).astype(np.float32),
+        "sim": env.get_sim_state().copy(),
+    }
+
+
+def vecsim_frame(env: Any, obs: dict[str, Any]) -> dict[str, Any]:
+    proprio = obs["proprio"].astype(np.float64)
+    return {
+        "images": {name: obs["images"][name] for name in CAMERAS},
+        "joints": np.arctan2(proprio[_SIN], proprio[_COS]),
+        "eef": proprio[_EEF],
+        "state": obs.get("state"),
+        "sim": env.inner.sim.get_state().flatten(),
+    }
+
+
+def differences(theirs: dict[str, Any], ours: dict[str, Any]) -> dict[str, float | None]:
+    """Largest absolute differences: pixels per camera, joints (mrad), eef (mm), state, sim state."""
+    found: dict[str, float | None] = {
+        f"{name}_px": float(np.abs(theirs["images"][name].astype(np.int16) - ours["images"][name]).max())
+        for name in CAMERAS
+    }
+    found["joints_mrad"] = float(np.abs(theirs["joints"] - ours["joints"]).max() * 1e3)
+    found["eef_mm"] = float(np.abs(theirs["eef"] - ours["eef"]).max() * 1e3)
+    found["state"] = None if ours["state"] is None else float(np.abs(theirs["state"] - ours["state"]).max())
+    found["sim_state"] = float(np.abs(theirs["sim"] - ours["sim"]).max())
+    return found
+
+
+def worst(rows: list[dict[str, float | None]]) -> dict[str, float | None]:
+    return {key: None if rows[0][key] is None else max(row[key] for row in rows) for key in rows[0]}
+
+
+def exact(found: dict[str, float | None]) -> bool:
+    return all(value in (0.0, None) for value in found.values())
+
+
+def write_pictures(directory: Path, task_id: str, state_id: int, theirs: dict, ours: dict) -> list[str]:
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in CAMERAS:
+        pair = np.concatenate([ours["images"][name], theirs["images"][name]], axis=1)
+        path = directory / f"libero_parity_{task_id.replace('/', '_')}_state{state_id}_{name}.png"
+        Image.fromarray(pair).save(path)
+        written.append(str(path))
+    return written
+
+
+def parse_states(text: str) -> list[int]:
+    """``"0-49"`` -> 0..49; ``"0,25,49"`` -> those three."""
+    states: list[int] = []
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        states += range(int(first), int(last or first) + 1)
+    return states
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("--tasks", nargs="*", default=[f"libero_10/{i}" for i in range(10)])
+    parser.add_argument("--states", default="0-49", help="init states: '0-49', '0,25,49'")
+    parser.add_argument("--size", type=int, default=128, help="camera height and width")
+    parser.add_argument("--steps", type=int, default=0, help="fixed random actions after settling")
+    parser.add_argument("--pictures", type=Path, default=None, help="write the first case's frames here")
+    parser.add_argument(
+        "--client-settle",
+        type=int,
+        default=0,
+        help="no-op steps this script sends after vecsim's reset (to settle a checkout that does not)",
+    )
+    parser.add_argument("--render", default=None, help="vecsim's render preset (default: the checkout's)")
+    parser.add_argument("--tag", default="", help="suffix of the result's name (e.g. 'main')")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    ensure_config()
+    states = parse_states(args.states)
+    actions = np.random.default_rng(13).uniform(-1.0, 1.0, (args.steps, 7))
+    camera = CameraConfig(names=CAMERAS, height=args.size, width=args.size)
+    cases: list[dict[str, Any]] = []
+    pictures: list[str] = []
+    started = time.perf_counter()
+    for task_id in args.tasks:
+        # LIBERO's frames first: its render contexts and vecsim's never share the process at once.
+        theirs = {state_id: libero_frames(task_id, state_id, args.size, actions) for state_id in states}
+        env = make_env(task_id, camera) if args.render is None else make_env(task_id, camera, args.render)
+        try:
+            for state_id in states:
+                obs, _ = env.reset(options={"state_id": state_id})
+                for _ in range(args.client_settle):
+                    obs = env.step(np.array(NO_OP))[0]
+                ours = [vecsim_frame(env, obs)]
+                for action in actions:
+                    ours.append(vecsim_frame(env, env.step(action)[0]))
+                rows = [differences(t, o) for t, o in zip(theirs[state_id], ours)]
+                case = {"task_id": task_id, "state_id": state_id, "reset": rows[0], "worst": worst(rows)}
+                case["exact"] = exact(case["worst"])
+                cases.append(case)
+                log.info("%s state %d: %s", task_id, state_id, case["worst"])
+                if args.pictures is not None and not pictures:
+                    pictures = write_pictures(args.pictures, task_id, state_id, theirs[state_id][0], ours[0])
+        finally:
+            env.close()
+    summary = {
+        "cases": len(cases),
+        "exact": sum(case["exact"] for case in cases),
+        "size": args.size,
+        "steps": args.steps,
+        "render": args.render,
+        "client_settle": args.client_settle,
+        "worst": worst([case["worst"] for case in cases]) if cases else {},
+        "seconds": round(time.perf_counter() - started, 1),
+        "pictures": pictures,
+    }
+    write_result(f"libero_parity_sweep{'_' + args.tag if args.tag else ''}", summary, {"cases": cases})
+
+
+if __name__ == "__main__":
+    main()
