@@ -31,6 +31,7 @@ viewer) take the ``library`` path: the env's own ``step``.
 from __future__ import annotations
 
 import functools
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -177,13 +178,11 @@ class ExactStep:
 
         steps = {MujocoEnv.step}
         pre_actions = {RobotEnv._pre_action}
-        try:
-            from libero.libero.envs.bddl_base_domain import BDDLBaseDomain
-        except ImportError:
-            pass
-        else:
-            steps.add(BDDLBaseDomain.step)
-            pre_actions.add(BDDLBaseDomain._pre_action)
+        # A LIBERO env's module is loaded already; importing LIBERO otherwise may ask on stdin.
+        libero_domain = sys.modules.get("libero.libero.envs.bddl_base_domain")
+        if libero_domain is not None:
+            steps.add(libero_domain.BDDLBaseDomain.step)
+            pre_actions.add(libero_domain.BDDLBaseDomain._pre_action)
         env_type = type(inner)
         if env_type.step not in steps or env_type._pre_action not in pre_actions:
             return f"{env_type.__name__} overrides step or _pre_action"
@@ -220,20 +219,16 @@ class ExactStep:
             raise ValueError(f"expected an action of {env.action_dim} floats, got {len(action)}")
         env.timestep += 1
         substeps = int(env.control_timestep / env.model_timestep)
-        plan = _observable_plan(env, substeps)
+        plan = self._observable_plan(substeps)
         arms = []
         cutoff = 0
         for arm in self.arms:
             _check_arm(arm.robot)
             arms.append(_ArmStep(arm, action[cutoff : cutoff + arm.action_dim], model))
             cutoff += arm.action_dim
-        warnings = data.warning
         for substep in range(substeps):
             policy_step = substep == 0
-            if policy_step:
-                mujoco.mj_forward(model, data)
-            else:
-                mujoco.mj_forwardSkip(model, data, _STAGE_NONE, self.first_forward_skipsensor)
+            self._forward(policy_step)
             for arm in arms:
                 controller = arm.arm.robot.controller
                 if controller.new_update:
@@ -242,13 +237,7 @@ class ExactStep:
                     arm.arm.robot.control(arm.action, policy_step=True)
                 else:
                     arm.control(controller, data)
-            bad = warnings[_BADQPOS].number + warnings[_BADQVEL].number
-            mujoco.mj_checkPos(model, data)
-            mujoco.mj_checkVel(model, data)
-            if warnings[_BADQPOS].number + warnings[_BADQVEL].number != bad:
-                # mj_step's checks reset the data; its forward then starts from the reset state.
-                mujoco.mj_step1(model, data)
-            mujoco.mj_step2(model, data)
+            self._integrate()
             if plan is None:
                 env._update_observables()
             else:
@@ -263,13 +252,40 @@ class ExactStep:
         }
         return observations, float(reward), success
 
-    def _update(self, arm: _Arm, controller: Any, policy_step: bool) -> None:
-        # Controller.update: its mj_forward recomputes the same position and velocity stages;
-        # only the acceleration stage (the constraint solve and its warmstart) is run again. The
-        # policy substep keeps the acceleration-stage sensors: robot.control reads the wrist's
-        # force/torque there.
+    def _forward(self, policy_step: bool) -> None:
+        # The substep's own mj_forward. On the policy substep it keeps the acceleration-stage
+        # sensors: robot.control reads the wrist's force/torque there when no update follows.
+        if policy_step:
+            mujoco.mj_forward(self.model, self.data)
+        else:
+            mujoco.mj_forwardSkip(self.model, self.data, _STAGE_NONE, self.first_forward_skipsensor)
+
+    def _controller_forward(self, policy_step: bool) -> None:
+        # Controller.update's mj_forward would recompute the same position and velocity stages;
+        # only the acceleration stage (the constraint solve and its warmstart) runs again. The
+        # policy substep keeps the acceleration-stage sensors, which robot.control reads.
+        mujoco.mj_forwardSkip(self.model, self.data, _STAGE_VEL, 0 if policy_step else 1)
+
+    def _integrate(self) -> None:
+        # mj_step = checks + mj_forward + integration; the forward's position and velocity
+        # stages are already current (only ctrl changed since), so mj_step2 finishes it.
         model, data = self.model, self.data
-        mujoco.mj_forwardSkip(model, data, _STAGE_VEL, 0 if policy_step else 1)
+        warnings = data.warning
+        bad = warnings[_BADQPOS].number + warnings[_BADQVEL].number
+        mujoco.mj_checkPos(model, data)
+        mujoco.mj_checkVel(model, data)
+        if warnings[_BADQPOS].number + warnings[_BADQVEL].number != bad:
+            # The checks reset the data; mj_step's forward then starts from the reset state.
+            mujoco.mj_step1(model, data)
+        mujoco.mj_step2(model, data)
+
+    def _observable_plan(self, substeps: int) -> _ObservablePlan | None:
+        return _observable_plan(self.env, substeps)
+
+    def _update(self, arm: _Arm, controller: Any, policy_step: bool) -> None:
+        # Controller.update with the same copies and layouts, after its forward.
+        model, data = self.model, self.data
+        self._controller_forward(policy_step)
         site = arm.site
         controller.ee_pos = np.array(data.site_xpos[site])
         controller.ee_ori_mat = np.array(data.site_xmat[site].reshape([3, 3]))
