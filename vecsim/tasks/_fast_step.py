@@ -119,6 +119,7 @@ def _robosuite() -> Any:
     # robosuite is imported when the first env is made, not with vecsim.tasks.
     import robosuite.controllers.base_controller
     import robosuite.controllers.osc
+    import robosuite.models.grippers.panda_gripper
     import robosuite.robots.manipulator
     import robosuite.robots.single_arm
     import robosuite.utils.control_utils
@@ -320,6 +321,11 @@ class _ArmStep:
         self.uncoupling = controller.uncoupling
         self.torque_low = model.actuator_ctrlrange[arm.arm_ids, 0]
         self.torque_high = model.actuator_ctrlrange[arm.arm_ids, 1]
+        gripper = arm.robot.gripper
+        self.gripper_step = None
+        if type(gripper).format_action is _robosuite().models.grippers.panda_gripper.PandaGripper.format_action:
+            # PandaGripper.format_action's increment, which depends on the action only.
+            self.gripper_step = np.array([-1.0, 1.0]) * gripper.speed * np.sign(self.gripper_action)
         ctrl_range = model.actuator_ctrlrange[arm.gripper_ids]
         self.gripper_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         self.gripper_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
@@ -350,8 +356,12 @@ class _ArmStep:
         controller.torques = torques
         controller.new_update = True
         robot.torques = np.clip(torques, self.torque_low, self.torque_high)
-        gripper = robot.gripper.format_action(self.gripper_action)
-        data.ctrl[arm.gripper_ids] = self.gripper_bias + self.gripper_weight * gripper
+        gripper = robot.gripper
+        if self.gripper_step is None:
+            gripper_action = gripper.format_action(self.gripper_action)
+        else:
+            gripper_action = gripper.current_action = np.clip(gripper.current_action + self.gripper_step, -1.0, 1.0)
+        data.ctrl[arm.gripper_ids] = self.gripper_bias + self.gripper_weight * gripper_action
         data.ctrl[arm.arm_ids] = robot.torques
 
 
