@@ -24,8 +24,11 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
 
 The policy substep (the first of each env-step) runs robosuite's own ``robot.control`` (goal
 setting, recent-value buffers) after the fast controller update. Envs this does not cover (another
-controller, interpolators, an RK4 integrator, a control callback, observables with delays, a
-viewer) take the ``library`` path: the env's own ``step``.
+controller, interpolators, an RK4 integrator, a control callback, plugins, a viewer) take the
+``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
+
+The ``approx`` path (:class:`ApproxStep`, never the default) also drops the two extra constraint
+solves per substep; it is not bit-identical (see its docstring and docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ import numpy as np
 
 from vecsim.tasks._base import log
 
-STEP_PATHS: tuple[str, ...] = ("exact", "library")
+STEP_PATHS: tuple[str, ...] = ("exact", "library", "approx")
 DEFAULT_STEP_PATH = "exact"
 
 StepFn = Callable[[np.ndarray], tuple[dict[str, Any], float, bool]]
@@ -65,18 +68,19 @@ def library_step(inner: Any) -> StepFn:
 def make_step(inner: Any, path: str) -> tuple[StepFn, str]:
     """Return ``(step function, the path it takes)`` for ``path`` on the robosuite env ``inner``.
 
-    ``exact`` falls back to ``library`` (logged) where :class:`ExactStep` does not cover the env.
+    ``exact`` and ``approx`` fall back to ``library`` (logged) where :class:`ExactStep` does not
+    cover the env.
 
     Raises:
         ValueError: ``path`` is not one of :data:`STEP_PATHS`.
     """
     if path not in STEP_PATHS:
         raise ValueError(f"step path must be one of {list(STEP_PATHS)}, got {path!r}")
-    if path == "exact":
+    if path != "library":
         reason = ExactStep.unsupported(inner)
         if reason is None:
-            return ExactStep(inner), "exact"
-        log.info("%s: the exact step path does not cover this env (%s): library step", type(inner).__name__, reason)
+            return (ExactStep(inner) if path == "exact" else ApproxStep(inner)), path
+        log.info("%s: the %s step path does not cover this env (%s): library step", type(inner).__name__, path, reason)
     return library_step(inner), "library"
 
 
@@ -423,3 +427,25 @@ def _observable_plan(env: Any, substeps: int) -> _ObservablePlan | None:
         return None
     return _ObservablePlan(env, substeps)
 
+
+class ApproxStep(ExactStep):
+    """The ``approx`` step path: one forward per physics substep, not bit-identical (opt-in).
+
+    robosuite solves the constraints three times per substep (its two forwards and mj_step's);
+    the first two solves' only lasting effect is the warmstart of the next. This path runs the
+    position and velocity stages once (``mj_step1``), the controller, then ``mj_step2``: MuJoCo's
+    own cost per substep. The constraint solver then starts from the previous substep's solution,
+    so accelerations differ within the solver's tolerance and trajectories drift apart over an
+    episode (``bench/bench_robot_step.py --parity-episodes --parity-path approx`` measures by
+    how much). The policy substep's controller reads the wrist's force/torque sensors of the
+    previous substep.
+    """
+
+    def _forward(self, policy_step: bool) -> None:
+        mujoco.mj_step1(self.model, self.data)
+
+    def _controller_forward(self, policy_step: bool) -> None:
+        pass
+
+    def _integrate(self) -> None:
+        mujoco.mj_step2(self.model, self.data)

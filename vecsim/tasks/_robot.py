@@ -180,10 +180,12 @@ class RobotTaskEnv(TaskEnv):
         self._step_fn, self.step_path = make_step(inner, DEFAULT_STEP_PATH)
 
     def set_step_path(self, path: str) -> None:
-        """Step with ``path``: ``exact`` (:mod:`vecsim.tasks._fast_step`) or ``library``. Returns None.
+        """Step with ``path`` (:mod:`vecsim.tasks._fast_step`). Returns None.
 
-        :attr:`step_path` names the path taken (``exact`` falls back to ``library`` where it
-        does not cover the env). Both give bit-identical trajectories.
+        ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
+        trajectories; ``approx`` is faster and drifts from them within the constraint solver's
+        tolerance. :attr:`step_path` names the path taken (``exact`` and ``approx`` fall back to
+        ``library`` where they do not cover the env).
 
         Raises:
             ValueError: an unknown path.
