@@ -4,6 +4,7 @@ Per task, side by side in interleaved rounds on one pinned core, no cameras:
 
 - ``exact``: vecsim's env (``make_env``) on its default step path (``vecsim.tasks._fast_step``);
 - ``library``: the same env on the ``library`` path (robosuite's own ``step``, as before);
+- ``approx``: the same env on the opt-in ``approx`` path (not bit-identical);
 - ``libero``: LIBERO's own ``OffScreenRenderEnv`` (``use_camera_obs=False``; it still makes its
   offscreen GL context, which a step does not use), after LIBERO's own ``seed(0)``, ``reset()``
   and ``set_init_state`` of the same init state;
@@ -160,6 +161,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     for round_ in range(args.rounds):
         record("exact", vecsim_run("exact"))
         record("library", vecsim_run("library"))
+        record("approx", vecsim_run("approx"))
         for name, variant in variants.items():
             record(name, vecsim_run("exact", variant))
         # The floor: the substeps those env-steps hold, on a copy of the state the exact path reached.
@@ -192,6 +194,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     row["exact_over_floor"] = round(med["exact"] / med["floor"], 3)
     row["library_over_floor"] = round(med["library"] / med["floor"], 3)
     row["library_over_exact"] = round(med["library"] / med["exact"], 3)
+    row["approx_over_floor"] = round(med["approx"] / med["floor"], 3)
     if own is not None:
         row["libero_over_floor"] = round(med["libero"] / med["floor"], 3)
         row["libero_over_exact"] = round(med["libero"] / med["exact"], 3)
@@ -315,7 +318,8 @@ def main() -> int:
         "ratio": statistics.median(row["exact_over_floor"] for row in rows.values()),
         "target": "exact <= 2x floor; LIBERO's step >= 2.5x exact",
         "across_tasks": {key: across(key) for key in (
-            "exact_over_floor", "library_over_floor", "library_over_exact", "libero_over_floor", "libero_over_exact",
+            "exact_over_floor", "library_over_floor", "library_over_exact", "approx_over_floor", "libero_over_floor",
+            "libero_over_exact",
             "reset_libero_over_vecsim")},
         "setup": {"tasks": tasks, "steps": args.steps, "rounds": args.rounds, "resets": args.resets, "pinned_to": cpu,
                   "cameras": "none", "changes": args.changes},
