@@ -105,11 +105,13 @@ class LiberoOwn:
         from vecsim.tasks import get_task
 
         suite, index = task_id.split("/", 1)
+        # _benchmark writes LIBERO's config first: importing LIBERO without it asks on stdin.
+        bddl_file = _benchmark(suite).get_task_bddl_file_path(int(index))
         with stdout_to_log():
             from libero.libero.envs import OffScreenRenderEnv
 
             self.env = OffScreenRenderEnv(
-                bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)),
+                bddl_file_name=bddl_file,
                 use_camera_obs=False,
                 camera_heights=16,
                 camera_widths=16,
