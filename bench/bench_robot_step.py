@@ -1,28 +1,29 @@
 """A LIBERO env-step: vecsim's step paths against LIBERO's own env and MuJoCo's floor, one core.
 
-Per task, side by side in interleaved rounds on one pinned core, no cameras:
+Per task, on one pinned core, no cameras, step by step:
 
 - ``exact``: vecsim's env (``make_env``) on its default step path (``vecsim.tasks._fast_step``);
 - ``library``: the same env on the ``library`` path (robosuite's own ``step``, as before);
 - ``approx``: the same env on the opt-in ``approx`` path (not bit-identical);
-- ``libero``: LIBERO's own ``OffScreenRenderEnv`` (``use_camera_obs=False``; it still makes its
-  offscreen GL context, which a step does not use), after LIBERO's own ``seed(0)``, ``reset()``
-  and ``set_init_state`` of the same init state;
-- ``floor``: ``mj_step`` on a copy of the vecsim env's state, as many as the steps hold
-  (25 per env-step at LIBERO's 500 Hz physics and 20 Hz control);
 - with ``--changes``, the exact path's changes one at a time (each a subclass of ``ExactStep``
   that puts robosuite's own calls back for what is not yet changed);
-- resets: vecsim's ``reset(options={"state_id": k})`` against LIBERO's
-  ``seed(0)`` + ``reset()`` + ``set_init_state``.
+- ``floor``: right before each of those steps, as many ``mj_step`` as the step holds (25 at
+  LIBERO's 500 Hz physics and 20 Hz control) on a copy of the state the step starts from;
+- ``libero``: after each of them, one step of LIBERO's own ``OffScreenRenderEnv``
+  (``use_camera_obs=False``; it still makes its offscreen GL context, which a step does not use),
+  reset LIBERO's way (``seed(0)``, ``reset()``, ``set_init_state`` of the same init state);
+- resets: vecsim's ``reset(options={"state_id": k})`` against LIBERO's reset.
 
-Every vecsim measurement restarts from the same reset and steps the same actions, so all vecsim
-paths run the same trajectory. ``--parity-episodes`` instead runs full-length episodes of every
+The vecsim paths take turns on one env and one trajectory, each step's time set against the
+floor taken just before it, so load that comes and goes on a shared machine moves both; the
+figures are medians over the steps, and (``fastest_*``) the fastest step of each kind, what a
+step costs when nothing else takes the core. ``--parity-episodes`` instead runs full-length episodes of every
 task on the exact and the library path side by side and compares them bit for bit at every step
 (MuJoCo state, every observable, reward, success); the first difference fails the run. With
 ``--parity-path approx`` it measures the opt-in ``approx`` path's drift from the library instead.
 
-    python bench/bench_robot_step.py                                   # LIBERO-10, 3 rounds
-    python bench/bench_robot_step.py --tasks libero_10/0 --rounds 2 --changes
+    python bench/bench_robot_step.py                                   # LIBERO-10, 160 steps each
+    python bench/bench_robot_step.py --tasks libero_10/0,libero_10/5 --changes --steps 300
     python bench/bench_robot_step.py --parity-episodes --episodes 1    # 520 steps per task
     python bench/bench_robot_step.py --parity-episodes --parity-path approx
 
@@ -32,7 +33,6 @@ Writes out/bench/bench_robot_step[_parity_<path>][_<tag>].json and prints ``RESU
 from __future__ import annotations
 
 import argparse
-import copy
 import logging
 import os
 import statistics
@@ -128,82 +128,98 @@ class LiberoOwn:
         self.env.close()
 
 
-def time_steps(step: Any, actions: np.ndarray) -> float:
-    """Return seconds per call of ``step`` over ``actions``."""
-    started = time.perf_counter()
-    for action in actions:
-        step(action)
-    return (time.perf_counter() - started) / len(actions)
-
-
 def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
-    """Measure one task's env-step paths, floor and resets in ``args.rounds`` interleaved rounds."""
+    """Measure one task's step paths against the floor, step by step, and its resets.
+
+    One vecsim env runs one trajectory; each of its steps takes the next path in turn (every
+    path but ``approx`` leaves the same state, so the trajectory is the exact path's up to the
+    first ``approx`` step). Right before each step, the floor runs the same number of
+    ``mj_step`` on a copy of the state that step starts from; a step's ratio is against that
+    floor, so load that comes and goes moves both. LIBERO's own env takes one step of its own
+    trajectory after each vecsim step. Figures are medians over the steps.
+    """
     from vecsim.config import CameraConfig
     from vecsim.tasks import make_env
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     own = LiberoOwn(task_id) if task_id.startswith("libero") else None
-    actions = action_table(args.steps, seed=1)
-    variants = change_variants() if args.changes else {}
-    model = env.inner.sim.model._model
+    paths: dict[str, Any] = {"exact": "exact", "library": "library", "approx": "approx"}
+    if args.changes:
+        paths.update(change_variants())
+    steppers = {}
+    for name, path in paths.items():
+        if isinstance(path, str):
+            env.set_step_path(path)
+            steppers[name] = env._step_fn
+        else:
+            steppers[name] = path(env.inner)
+    model, data = env.inner.sim.model._model, env.inner.sim.data._data
     substeps = int(env.inner.control_timestep / env.inner.model_timestep)
-    per: dict[str, list[float]] = {}
-
-    def record(name: str, seconds: float) -> None:
-        per.setdefault(name, []).append(seconds * 1e3)
-
-    def vecsim_run(path: str, variant: Any = None) -> float:
-        env.set_step_path(path)
-        if variant is not None:
-            env._step_fn = variant(env.inner)
-        env.reset(options={"state_id": 0})
-        return time_steps(env.step, actions)
-
-    vecsim_run("exact")  # warm-up: numba kernels, caches
-    for round_ in range(args.rounds):
-        record("exact", vecsim_run("exact"))
-        record("library", vecsim_run("library"))
-        record("approx", vecsim_run("approx"))
-        for name, variant in variants.items():
-            record(name, vecsim_run("exact", variant))
-        # The floor: the substeps those env-steps hold, on a copy of the state the exact path reached.
-        env.set_step_path("exact")
-        env.reset(options={"state_id": 0})
-        for action in actions[: args.steps // 2]:
-            env.step(action)
-        data = copy.copy(env.inner.sim.data._data)
+    # The floor's copy takes the integration state only: a LIBERO scene's MjData is hundreds of
+    # megabytes (robosuite's memory size), and copying all of it would flush the caches.
+    spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+    state = np.empty(mujoco.mj_stateSize(model, spec))
+    scratch = mujoco.MjData(model)
+    samples: dict[str, list[float]] = {name: [] for name in [*steppers, "floor", "libero"]}
+    over_floor: dict[str, list[float]] = {name: [] for name in [*steppers, "libero"]}
+    actions = action_table(args.steps, seed=1)
+    names = list(steppers)
+    env.reset(options={"state_id": 0})
+    if own is not None:
+        own.reset(0)
+    for index, action in enumerate(actions):
+        name = names[index % len(names)]
+        mujoco.mj_getState(model, data, state, spec)
+        mujoco.mj_setState(model, scratch, state, spec)
         started = time.perf_counter()
-        for _ in range(args.steps * substeps):
-            mujoco.mj_step(model, data)
-        record("floor", (time.perf_counter() - started) / args.steps)
+        for _ in range(substeps):
+            mujoco.mj_step(model, scratch)
+        floor = time.perf_counter() - started
+        env._step_fn = steppers[name]
         started = time.perf_counter()
-        for state_id in range(args.resets):
-            env.reset(options={"state_id": state_id})
-        record("reset_vecsim", (time.perf_counter() - started) / args.resets)
+        env.step(action)
+        took = time.perf_counter() - started
+        if index >= len(names):  # the first step of each path warms it up
+            samples["floor"].append(floor)
+            samples[name].append(took)
+            over_floor[name].append(took / floor)
         if own is not None:
-            own.reset(0)
-            record("libero", time_steps(own.env.step, actions))
             started = time.perf_counter()
-            for state_id in range(args.resets):
-                own.reset(state_id)
-            record("reset_libero", (time.perf_counter() - started) / args.resets)
-        log.info("%s round %d: %s", task_id, round_ + 1, {k: round(v[-1], 2) for k, v in per.items()})
+            own.env.step(action)
+            took = time.perf_counter() - started
+            if index >= len(names):
+                samples["libero"].append(took)
+                over_floor["libero"].append(took / floor)
+    resets: dict[str, list[float]] = {"vecsim": [], "libero": []}
+    for state_id in range(args.resets):
+        started = time.perf_counter()
+        env.reset(options={"state_id": state_id})
+        resets["vecsim"].append(time.perf_counter() - started)
+        if own is not None:
+            started = time.perf_counter()
+            own.reset(state_id)
+            resets["libero"].append(time.perf_counter() - started)
     env.close()
     if own is not None:
         own.close()
-    med = {name: statistics.median(values) for name, values in per.items()}
-    row: dict[str, Any] = {"ms": {name: round(value, 3) for name, value in med.items()}}
-    row["exact_over_floor"] = round(med["exact"] / med["floor"], 3)
-    row["library_over_floor"] = round(med["library"] / med["floor"], 3)
-    row["library_over_exact"] = round(med["library"] / med["exact"], 3)
-    row["approx_over_floor"] = round(med["approx"] / med["floor"], 3)
+    ms = {name: round(statistics.median(values) * 1e3, 3) for name, values in samples.items() if values}
+    fastest = {name: min(values) for name, values in samples.items() if values}
+    row: dict[str, Any] = {
+        "ms": ms,
+        "over_floor": {name: round(statistics.median(v), 3) for name, v in over_floor.items() if v},
+        # The fastest step of each kind: what it costs when no other process takes the core.
+        "fastest_ms": {name: round(value * 1e3, 3) for name, value in fastest.items()},
+        "fastest_over_floor": {name: round(value / fastest["floor"], 3) for name, value in fastest.items()},
+        "samples_per_path": len(samples["exact"]),
+        "reset_ms": {name: round(statistics.median(v) * 1e3, 1) for name, v in resets.items() if v},
+    }
+    row["library_over_exact"] = round(ms["library"] / ms["exact"], 3)
+    row["fastest_library_over_exact"] = round(fastest["library"] / fastest["exact"], 3)
     if own is not None:
-        row["libero_over_floor"] = round(med["libero"] / med["floor"], 3)
-        row["libero_over_exact"] = round(med["libero"] / med["exact"], 3)
-        row["reset_libero_over_vecsim"] = round(med["reset_libero"] / med["reset_vecsim"], 3)
-    for name in variants:
-        row.setdefault("changes_over_floor", {})[name] = round(med[name] / med["floor"], 3)
-    row["rounds_ms"] = {name: [round(v, 3) for v in values] for name, values in per.items()}
+        row["libero_over_exact"] = round(ms["libero"] / ms["exact"], 3)
+        row["fastest_libero_over_exact"] = round(fastest["libero"] / fastest["exact"], 3)
+        row["reset_libero_over_vecsim"] = round(row["reset_ms"]["libero"] / row["reset_ms"]["vecsim"], 2)
+    log.info("%s: %s", task_id, row)
     return row
 
 
@@ -268,9 +284,8 @@ def parity_episode(task_id: str, episode: int, steps: int, path: str) -> dict[st
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10's ten)")
-    parser.add_argument("--steps", type=int, default=40, help="env-steps per measurement")
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--resets", type=int, default=3, help="resets per measurement")
+    parser.add_argument("--steps", type=int, default=160, help="env-steps per task, the paths taking turns")
+    parser.add_argument("--resets", type=int, default=3, help="resets per task, of each kind")
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
@@ -311,24 +326,31 @@ def main() -> int:
         return 0 if identical or args.parity_path != "exact" else 1
     rows = {task_id: measure_task(task_id, args) for task_id in tasks}
 
-    def across(key: str) -> dict[str, float] | None:
-        values = [row[key] for row in rows.values() if key in row]
+    def across(pick: Any) -> dict[str, float] | None:
+        values = [v for v in (pick(row) for row in rows.values()) if v is not None]
         return spread(values) if values else None
 
+    step_paths = list(next(iter(rows.values()))["over_floor"])
     summary = {
-        "baseline": "MuJoCo's floor (mj_step on a copy of the same state) and LIBERO's own OffScreenRenderEnv step, same core, same rounds",
-        "ratio": statistics.median(row["exact_over_floor"] for row in rows.values()),
-        "target": "exact <= 2x floor; LIBERO's step >= 2.5x exact",
-        "across_tasks": {key: across(key) for key in (
-            "exact_over_floor", "library_over_floor", "library_over_exact", "approx_over_floor", "libero_over_floor",
-            "libero_over_exact",
-            "reset_libero_over_vecsim")},
-        "setup": {"tasks": tasks, "steps": args.steps, "rounds": args.rounds, "resets": args.resets, "pinned_to": cpu,
-                  "cameras": "none", "changes": args.changes},
-        "rows": {task: {k: v for k, v in row.items() if k != "rounds_ms"} for task, row in rows.items()},
+        "baseline": "MuJoCo's floor: mj_step on a copy of the state each step starts from, timed right before it",
+        "ratio": statistics.median(row["over_floor"]["exact"] for row in rows.values()),
+        "target": "exact <= 2x floor; LIBERO's own step >= 2.5x exact",
+        "across_tasks": {
+            **{f"{name}_over_floor": across(lambda row, n=name: row["over_floor"].get(n)) for name in step_paths},
+            **{f"fastest_{name}_over_floor": across(lambda row, n=name: row["fastest_over_floor"].get(n))
+               for name in step_paths},
+            "library_over_exact": across(lambda row: row["library_over_exact"]),
+            "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
+            "libero_over_exact": across(lambda row: row.get("libero_over_exact")),
+            "fastest_libero_over_exact": across(lambda row: row.get("fastest_libero_over_exact")),
+            "reset_libero_over_vecsim": across(lambda row: row.get("reset_libero_over_vecsim")),
+        },
+        "setup": {"tasks": tasks, "steps": args.steps, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
+                  "changes": args.changes},
+        "rows": rows,
         "seconds_total": round(time.monotonic() - started, 1),
     }  # fmt: skip
-    write_result("bench_robot_step" + suffix, summary, {task: row["rounds_ms"] for task, row in rows.items()})
+    write_result("bench_robot_step" + suffix, summary)
     return 0
 
 
