@@ -12,6 +12,8 @@ Per task, on one pinned core, no cameras, step by step:
 - ``libero``: after each of them, one step of LIBERO's own ``OffScreenRenderEnv``
   (``use_camera_obs=False``; it still makes its offscreen GL context, which a step does not use),
   reset LIBERO's way (``seed(0)``, ``reset()``, ``set_init_state`` of the same init state);
+- physics only: each path's MuJoCo calls for one env-step without the controller around them,
+  from the state the steps ended in (:func:`physics_only`);
 - resets: vecsim's ``reset(options={"state_id": k})`` against LIBERO's reset.
 
 The vecsim paths take turns on one env and one trajectory, each step's time set against the
@@ -128,6 +130,38 @@ class LiberoOwn:
         self.env.close()
 
 
+def physics_only(model: Any, data: Any, scratch: Any, substeps: int, reps: int) -> dict[str, list[float]]:
+    """Time each path's MuJoCo calls alone (no controller, no Python around them) for one env-step.
+
+    From the state ``data`` is in, on ``scratch``, in turns: the floor (``mj_step``), the library
+    path's (``mj_forward`` twice, ``mj_step``), the exact path's (``mj_forwardSkip`` without and
+    with the position and velocity stages, the checks, ``mj_step2``), the approx path's
+    (``mj_step1``, ``mj_step2``).
+    """
+    vel = int(mujoco.mjtStage.mjSTAGE_VEL)
+    calls = {
+        "floor": lambda: mujoco.mj_step(model, scratch),
+        "library": lambda: (mujoco.mj_forward(model, scratch), mujoco.mj_forward(model, scratch),
+                            mujoco.mj_step(model, scratch)),
+        "exact": lambda: (mujoco.mj_forwardSkip(model, scratch, 0, 1), mujoco.mj_forwardSkip(model, scratch, vel, 1),
+                          mujoco.mj_checkPos(model, scratch), mujoco.mj_checkVel(model, scratch),
+                          mujoco.mj_step2(model, scratch)),
+        "approx": lambda: (mujoco.mj_step1(model, scratch), mujoco.mj_step2(model, scratch)),
+    }  # fmt: skip
+    spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+    state = np.empty(mujoco.mj_stateSize(model, spec))
+    mujoco.mj_getState(model, data, state, spec)
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(reps):
+        for name, call in calls.items():
+            mujoco.mj_setState(model, scratch, state, spec)
+            started = time.perf_counter()
+            for _ in range(substeps):
+                call()
+            times[name].append(time.perf_counter() - started)
+    return times
+
+
 def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     """Measure one task's step paths against the floor, step by step, and its resets.
 
@@ -190,6 +224,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
             if index >= len(names):
                 samples["libero"].append(took)
                 over_floor["libero"].append(took / floor)
+    physics = physics_only(model, data, scratch, substeps, args.physics_reps)
     resets: dict[str, list[float]] = {"vecsim": [], "libero": []}
     for state_id in range(args.resets):
         started = time.perf_counter()
@@ -212,6 +247,9 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
         "fastest_over_floor": {name: round(value / fastest["floor"], 3) for name, value in fastest.items()},
         "samples_per_path": len(samples["exact"]),
         "reset_ms": {name: round(statistics.median(v) * 1e3, 1) for name, v in resets.items() if v},
+    }
+    row["physics_fastest_over_floor"] = {
+        name: round(min(values) / min(physics["floor"]), 3) for name, values in physics.items()
     }
     row["library_over_exact"] = round(ms["library"] / ms["exact"], 3)
     row["fastest_library_over_exact"] = round(fastest["library"] / fastest["exact"], 3)
@@ -286,6 +324,7 @@ def main() -> int:
     parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10's ten)")
     parser.add_argument("--steps", type=int, default=160, help="env-steps per task, the paths taking turns")
     parser.add_argument("--resets", type=int, default=3, help="resets per task, of each kind")
+    parser.add_argument("--physics-reps", type=int, default=30, help="turns of the physics-only timing per task")
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
@@ -339,6 +378,8 @@ def main() -> int:
             **{f"{name}_over_floor": across(lambda row, n=name: row["over_floor"].get(n)) for name in step_paths},
             **{f"fastest_{name}_over_floor": across(lambda row, n=name: row["fastest_over_floor"].get(n))
                for name in step_paths},
+            **{f"physics_{name}_over_floor": across(lambda row, n=name: row["physics_fastest_over_floor"][n])
+               for name in ("exact", "library", "approx")},
             "library_over_exact": across(lambda row: row["library_over_exact"]),
             "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
             "libero_over_exact": across(lambda row: row.get("libero_over_exact")),
