@@ -15,9 +15,8 @@ slowest and the fastest process, and the ratio to P x the 1-process figure of th
     python bench/bench_physics_scaling.py --step-paths exact,library   # vecsim's step path vs robosuite's
 
 ``--step-paths`` names the robot envs' step paths to measure (``vecsim.tasks._fast_step``:
-``exact``, vecsim's default, ``library``, the env's own ``step``, and the opt-in ``approx``),
-interleaved within each round; ``exact`` and ``library`` give the same trajectories, so their
-rates compare directly (``over_library``).
+``exact``, vecsim's default, and ``library``, the env's own ``step``), interleaved within each
+round; both give the same trajectories, so their rates compare directly (``over_library``).
 
 Writes out/bench/bench_physics_scaling[_<tag>].json and prints ``RESULT {json}``.
 """
@@ -88,7 +87,7 @@ def main() -> int:
     parser.add_argument("--procs", default="1,2,4,8,12", help="comma-separated process counts")
     parser.add_argument("--seconds", type=float, default=6.0, help="length of each measurement")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--step-paths", default="exact", help="comma-separated robot step paths: exact, library, approx")
+    parser.add_argument("--step-paths", default="exact", help="comma-separated robot step paths: exact, library")
     parser.add_argument("--tag", help="suffix of the output file's name")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -100,8 +99,8 @@ def main() -> int:
         tasks = [t.task_id for t in suite_tasks("libero_10")]
     counts = sorted({int(c) for c in args.procs.split(",")} | {1})
     paths = [p for p in args.step_paths.split(",") if p]
-    if not paths or set(paths) - {"exact", "library", "approx"}:
-        raise SystemExit(f"--step-paths takes exact, library, approx, got {args.step_paths!r}")
+    if not paths or set(paths) - {"exact", "library"}:
+        raise SystemExit(f"--step-paths takes exact and/or library, got {args.step_paths!r}")
     cpus = sorted(os.sched_getaffinity(0))
     if counts[-1] > len(cpus):
         raise SystemExit(f"--procs asks for {counts[-1]} processes, this process may run on {len(cpus)} CPUs")

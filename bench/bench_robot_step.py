@@ -4,7 +4,6 @@ Per task, on one pinned core, no cameras, step by step:
 
 - ``exact``: vecsim's env (``make_env``) on its default step path (``vecsim.tasks._fast_step``);
 - ``library``: the same env on the ``library`` path (robosuite's own ``step``, as before);
-- ``approx``: the same env on the opt-in ``approx`` path (not bit-identical);
 - with ``--changes``, the exact path's changes one at a time (each a subclass of ``ExactStep``
   that puts robosuite's own calls back for what is not yet changed);
 - ``floor``: right before each of those steps, as many ``mj_step`` as the step holds (25 at
@@ -21,13 +20,11 @@ floor taken just before it, so load that comes and goes on a shared machine move
 figures are medians over the steps, and (``fastest_*``) the fastest step of each kind, what a
 step costs when nothing else takes the core. ``--parity-episodes`` instead runs full-length episodes of every
 task on the exact and the library path side by side and compares them bit for bit at every step
-(MuJoCo state, every observable, reward, success); the first difference fails the run. With
-``--parity-path approx`` it measures the opt-in ``approx`` path's drift from the library instead.
+(MuJoCo state, every observable, reward, success); the first difference fails the run.
 
     python bench/bench_robot_step.py                                   # LIBERO-10, 160 steps each
     python bench/bench_robot_step.py --tasks libero_10/0,libero_10/5 --changes --steps 300
     python bench/bench_robot_step.py --parity-episodes --episodes 1    # 520 steps per task
-    python bench/bench_robot_step.py --parity-episodes --parity-path approx
 
 Writes out/bench/bench_robot_step[_parity_<path>][_<tag>].json and prints ``RESULT {json}``.
 """
@@ -64,13 +61,14 @@ def change_variants() -> dict[str, Any]:
     from vecsim.tasks._fast_step import ExactStep
 
     class ControllerOnly(ExactStep):
-        # robosuite's forwards, mj_step and per-substep observable updates; only the
-        # controller's Python is the fast one.
+        # robosuite's forwards (the substep's and the controller update's), mj_step and
+        # per-substep observable updates; only the controller's Python is the fast one.
         def _forward(self, policy_step: bool) -> None:
             mujoco.mj_forward(self.model, self.data)
 
-        def _controller_forward(self, policy_step: bool) -> None:
+        def _update(self, arm: Any, controller: Any) -> None:
             mujoco.mj_forward(self.model, self.data)
+            super()._update(arm, controller)
 
         def _integrate(self) -> None:
             mujoco.mj_step(self.model, self.data)
@@ -82,20 +80,7 @@ def change_variants() -> dict[str, Any]:
         def _observable_plan(self, substeps: int) -> Any:
             return ExactStep._observable_plan(self, substeps)
 
-    class PlusForwards(ExactStep):
-        # One full forward per substep, but every forward still computes every sensor.
-        def _forward(self, policy_step: bool) -> None:
-            mujoco.mj_forward(self.model, self.data)
-
-        def _controller_forward(self, policy_step: bool) -> None:
-            mujoco.mj_forwardSkip(self.model, self.data, int(mujoco.mjtStage.mjSTAGE_VEL), 0)
-
-    return {
-        "controller": ControllerOnly,
-        "+observables": PlusObservables,
-        "+forwards": PlusForwards,
-        "+sensors (exact)": ExactStep,
-    }
+    return {"controller": ControllerOnly, "+observables": PlusObservables, "+one forward (exact)": ExactStep}
 
 
 class LiberoOwn:
@@ -134,19 +119,17 @@ def physics_only(model: Any, data: Any, scratch: Any, substeps: int, reps: int) 
     """Time each path's MuJoCo calls alone (no controller, no Python around them) for one env-step.
 
     From the state ``data`` is in, on ``scratch``, in turns: the floor (``mj_step``), the library
-    path's (``mj_forward`` twice, ``mj_step``), the exact path's (``mj_forwardSkip`` without and
-    with the position and velocity stages, the checks, ``mj_step2``), the approx path's
-    (``mj_step1``, ``mj_step2``).
+    path's (``mj_forward`` twice, ``mj_step``), the exact path's on a non-policy substep (the
+    position and velocity stages with their sensors, the checks, ``mj_step2``).
     """
-    vel = int(mujoco.mjtStage.mjSTAGE_VEL)
     calls = {
         "floor": lambda: mujoco.mj_step(model, scratch),
         "library": lambda: (mujoco.mj_forward(model, scratch), mujoco.mj_forward(model, scratch),
                             mujoco.mj_step(model, scratch)),
-        "exact": lambda: (mujoco.mj_forwardSkip(model, scratch, 0, 1), mujoco.mj_forwardSkip(model, scratch, vel, 1),
+        "exact": lambda: (mujoco.mj_fwdPosition(model, scratch), mujoco.mj_sensorPos(model, scratch),
+                          mujoco.mj_fwdVelocity(model, scratch), mujoco.mj_sensorVel(model, scratch),
                           mujoco.mj_checkPos(model, scratch), mujoco.mj_checkVel(model, scratch),
                           mujoco.mj_step2(model, scratch)),
-        "approx": lambda: (mujoco.mj_step1(model, scratch), mujoco.mj_step2(model, scratch)),
     }  # fmt: skip
     spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
     state = np.empty(mujoco.mj_stateSize(model, spec))
@@ -166,8 +149,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     """Measure one task's step paths against the floor, step by step, and its resets.
 
     One vecsim env runs one trajectory; each of its steps takes the next path in turn (every
-    path but ``approx`` leaves the same state, so the trajectory is the exact path's up to the
-    first ``approx`` step). Right before each step, the floor runs the same number of
+    path leaves the same state, so it is the library's trajectory). Right before each step, the floor runs the same number of
     ``mj_step`` on a copy of the state that step starts from; a step's ratio is against that
     floor, so load that comes and goes moves both. LIBERO's own env takes one step of its own
     trajectory after each vecsim step. Figures are medians over the steps.
@@ -177,7 +159,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     own = LiberoOwn(task_id) if task_id.startswith("libero") else None
-    paths: dict[str, Any] = {"exact": "exact", "library": "library", "approx": "approx"}
+    paths: dict[str, Any] = {"exact": "exact", "library": "library"}
     if args.changes:
         paths.update(change_variants())
     steppers = {}
@@ -273,7 +255,7 @@ def snapshot(env: Any) -> dict[str, Any]:
 def parity_episode(task_id: str, episode: int, steps: int, path: str) -> dict[str, Any]:
     """Run one episode on ``path`` and on the library path side by side; return how they compare.
 
-    ``exact`` stops at the first difference; ``approx`` runs on and measures the drift.
+    It stops at the first difference.
     """
     from vecsim.config import CameraConfig
     from vecsim.tasks import make_env
@@ -329,8 +311,6 @@ def main() -> int:
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task with --parity-episodes")
-    parser.add_argument("--parity-path", default="exact", choices=("exact", "approx"),
-                        help="the step path --parity-episodes compares with the library path")
     parser.add_argument("--episode-steps", type=int, default=520, help="steps per episode with --parity-episodes")
     parser.add_argument("--tag", help="suffix of the output file's name")
     args = parser.parse_args()
@@ -349,11 +329,11 @@ def main() -> int:
         episodes = []
         for task_id in tasks:
             for episode in range(args.episodes):
-                episodes.append(parity_episode(task_id, episode, args.episode_steps, args.parity_path))
+                episodes.append(parity_episode(task_id, episode, args.episode_steps, "exact"))
                 log.info("parity %s", episodes[-1])
         identical = all(e.get("identical") for e in episodes)
         summary = {
-            "path": args.parity_path,
+            "path": "exact",
             "baseline": "the library step path (robosuite's/LIBERO's own step) on an identically built and reset env",
             "identical": identical,
             "setup": {"tasks": tasks, "episodes_per_task": args.episodes, "steps_per_episode": args.episode_steps,
@@ -361,8 +341,8 @@ def main() -> int:
             "episodes": episodes,
             "seconds_total": round(time.monotonic() - started, 1),
         }  # fmt: skip
-        write_result(f"bench_robot_step_parity_{args.parity_path}" + suffix, summary)
-        return 0 if identical or args.parity_path != "exact" else 1
+        write_result("bench_robot_step_parity_exact" + suffix, summary)
+        return 0 if identical else 1
     rows = {task_id: measure_task(task_id, args) for task_id in tasks}
 
     def across(pick: Any) -> dict[str, float] | None:
@@ -379,7 +359,7 @@ def main() -> int:
             **{f"fastest_{name}_over_floor": across(lambda row, n=name: row["fastest_over_floor"].get(n))
                for name in step_paths},
             **{f"physics_{name}_over_floor": across(lambda row, n=name: row["physics_fastest_over_floor"][n])
-               for name in ("exact", "library", "approx")},
+               for name in ("exact", "library")},
             "library_over_exact": across(lambda row: row["library_over_exact"]),
             "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
             "libero_over_exact": across(lambda row: row.get("libero_over_exact")),

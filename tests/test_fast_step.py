@@ -127,13 +127,3 @@ def test_exact_path_gives_libero_own_trajectory(task_id: str) -> None:
     with env_pair(task_id) as envs:
         assert run_side_by_side(task_id, envs, seed=2) == STEPS
 
-
-def test_approx_path_steps_when_asked_for() -> None:
-    with env_pair("tiny/lift") as envs:
-        env = envs["exact"]
-        env.set_step_path("approx")
-        env.reset(options={"state_id": 0})
-        observation, _, _, _, info = env.step(actions(3)[0].astype(np.float32))
-        assert env.step_path == "approx"
-        assert env.observation_space.contains(observation)
-        assert info["task_id"] == "tiny/lift"

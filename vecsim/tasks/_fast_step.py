@@ -6,15 +6,14 @@ which runs a third full forward before integrating; and an ``update`` of every o
 :class:`ExactStep` does the same arithmetic on the same inputs, so every state, observation,
 reward and success is bit-identical to robosuite's (and LIBERO's, whose step is robosuite's):
 
-- The controller's forward recomputes nothing of the position and velocity stages that the
-  substep's first forward did not already compute from the same ``qpos``/``qvel``; only its
-  acceleration stage has an effect that lasts (its constraint solve leaves ``qacc_warmstart``,
-  the next solve's starting point), so it runs ``mj_forwardSkip(mjSTAGE_VEL)``.
-- ``mj_step`` becomes ``mj_checkPos``/``mj_checkVel`` + ``mj_step2``: its forward's position and
-  velocity stages would again recompute what the first forward left (nothing changed ``qpos`` or
-  ``qvel`` since; the controller only writes ``ctrl``, read in the acceleration stage).
-- Acceleration-stage sensors (the wrist's force/torque) that the next forward overwrites unread
-  are not computed; they are where robosuite reads them (the policy substep's controller update).
+- One forward's worth of MuJoCo work per substep, as ``mj_step`` alone. The two extra forwards
+  recompute, from the same ``qpos``, ``qvel``, ``ctrl`` and ``qacc_warmstart``, what ``mj_step``'s
+  own forward computes again before anything reads it, except their position and velocity
+  stages, which the controller reads: those run once (``mj_fwdPosition``, ``mj_fwdVelocity`` and
+  their sensors), and ``mj_checkPos``/``mj_checkVel`` + ``mj_step2`` finish ``mj_step``. Their
+  acceleration stages leave nothing behind: MuJoCo (3.3) saves the solver's warmstart in the
+  integrator, not in ``mj_forward``. The policy substep keeps its full ``mj_forward``: there
+  ``robot.control`` reads the wrist's force/torque sensors, which the acceleration stage computes.
 - The OSC controller's per-substep work is the same numpy and numba calls on arrays of the same
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
   property rebuilds and four Jacobian evaluations where one gives the same numbers.
@@ -24,11 +23,8 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
 
 The policy substep (the first of each env-step) runs robosuite's own ``robot.control`` (goal
 setting, recent-value buffers) after the fast controller update. Envs this does not cover (another
-controller, interpolators, an RK4 integrator, a control callback, plugins, a viewer) take the
-``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
-
-The ``approx`` path (:class:`ApproxStep`, never the default) also drops the two extra constraint
-solves per substep; it is not bit-identical (see its docstring and docs/benchmarks.md).
+controller, interpolators, an RK4 integrator, a control callback, plugins, energy, a viewer) take
+the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
 """
 
 from __future__ import annotations
@@ -43,14 +39,11 @@ import numpy as np
 
 from vecsim.tasks._base import log
 
-STEP_PATHS: tuple[str, ...] = ("exact", "library", "approx")
+STEP_PATHS: tuple[str, ...] = ("exact", "library")
 DEFAULT_STEP_PATH = "exact"
 
 StepFn = Callable[[np.ndarray], tuple[dict[str, Any], float, bool]]
 
-_STAGE_NONE = int(mujoco.mjtStage.mjSTAGE_NONE)
-_STAGE_VEL = int(mujoco.mjtStage.mjSTAGE_VEL)
-_STAGE_ACC = int(mujoco.mjtStage.mjSTAGE_ACC)
 _BADQPOS = int(mujoco.mjtWarning.mjWARN_BADQPOS)
 _BADQVEL = int(mujoco.mjtWarning.mjWARN_BADQVEL)
 
@@ -68,8 +61,7 @@ def library_step(inner: Any) -> StepFn:
 def make_step(inner: Any, path: str) -> tuple[StepFn, str]:
     """Return ``(step function, the path it takes)`` for ``path`` on the robosuite env ``inner``.
 
-    ``exact`` and ``approx`` fall back to ``library`` (logged) where :class:`ExactStep` does not
-    cover the env.
+    ``exact`` falls back to ``library`` (logged) where :class:`ExactStep` does not cover the env.
 
     Raises:
         ValueError: ``path`` is not one of :data:`STEP_PATHS`.
@@ -79,7 +71,7 @@ def make_step(inner: Any, path: str) -> tuple[StepFn, str]:
     if path != "library":
         reason = ExactStep.unsupported(inner)
         if reason is None:
-            return (ExactStep(inner) if path == "exact" else ApproxStep(inner)), path
+            return ExactStep(inner), path
         log.info("%s: the %s step path does not cover this env (%s): library step", type(inner).__name__, path, reason)
     return library_step(inner), "library"
 
@@ -167,12 +159,6 @@ class ExactStep:
         self.model = inner.sim.model._model
         self.data = inner.sim.data._data
         self.arms = [_Arm(robot, self.model, self.data) for robot in inner.robots]
-        # The first forward of a non-policy substep may leave out sensors when every sensor is an
-        # acceleration-stage one: those the substep's mj_step2 computes again before anyone reads.
-        self.first_forward_skipsensor = int(
-            bool(self.model.nsensor == 0 or np.all(self.model.sensor_needstage == _STAGE_ACC))
-            and mujoco.get_mjcb_sensor() is None
-        )
 
     @staticmethod
     def unsupported(inner: Any) -> str | None:
@@ -202,6 +188,11 @@ class ExactStep:
             return "a MuJoCo control callback"
         if model.nplugin:
             return "MuJoCo plugins"
+        energy_sensors = (int(mujoco.mjtSensor.mjSENS_E_POTENTIAL), int(mujoco.mjtSensor.mjSENS_E_KINETIC))
+        if model.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_ENERGY) or np.isin(model.sensor_type, energy_sensors).any():
+            return "energy computation (mj_forward's energy stages)"
+        if mujoco.get_mjcb_sensor() is not None:
+            return "a MuJoCo sensor callback"
         if any(type(obs).update is not Observable.update for obs in inner._observables.values()):
             return "an observable with its own update"
         if inner.action_dim == 4:
@@ -237,7 +228,7 @@ class ExactStep:
             for arm in arms:
                 controller = arm.arm.robot.controller
                 if controller.new_update:
-                    self._update(arm.arm, controller, policy_step)
+                    self._update(arm.arm, controller)
                 if policy_step:
                     arm.arm.robot.control(arm.action, policy_step=True)
                 else:
@@ -258,22 +249,23 @@ class ExactStep:
         return observations, float(reward), success
 
     def _forward(self, policy_step: bool) -> None:
-        # The substep's own mj_forward. On the policy substep it keeps the acceleration-stage
-        # sensors: robot.control reads the wrist's force/torque there when no update follows.
+        # The substep's mj_forward, and Controller.update's. Non-policy substeps need only the
+        # position and velocity stages with their sensors: the acceleration stage's outputs are
+        # computed again by mj_step2, from the same inputs, before anything reads them. The
+        # policy substep's robot.control reads acceleration-stage sensors: a full forward there.
+        model, data = self.model, self.data
         if policy_step:
-            mujoco.mj_forward(self.model, self.data)
+            mujoco.mj_forward(model, data)
         else:
-            mujoco.mj_forwardSkip(self.model, self.data, _STAGE_NONE, self.first_forward_skipsensor)
-
-    def _controller_forward(self, policy_step: bool) -> None:
-        # Controller.update's mj_forward would recompute the same position and velocity stages;
-        # only the acceleration stage (the constraint solve and its warmstart) runs again. The
-        # policy substep keeps the acceleration-stage sensors, which robot.control reads.
-        mujoco.mj_forwardSkip(self.model, self.data, _STAGE_VEL, 0 if policy_step else 1)
+            mujoco.mj_fwdPosition(model, data)
+            mujoco.mj_sensorPos(model, data)
+            mujoco.mj_fwdVelocity(model, data)
+            mujoco.mj_sensorVel(model, data)
 
     def _integrate(self) -> None:
         # mj_step = checks + mj_forward + integration; the forward's position and velocity
-        # stages are already current (only ctrl changed since), so mj_step2 finishes it.
+        # stages are current (only ctrl changed since, read in the acceleration stage), so
+        # mj_step2 finishes it.
         model, data = self.model, self.data
         warnings = data.warning
         bad = warnings[_BADQPOS].number + warnings[_BADQVEL].number
@@ -287,10 +279,10 @@ class ExactStep:
     def _observable_plan(self, substeps: int) -> _ObservablePlan | None:
         return _observable_plan(self.env, substeps)
 
-    def _update(self, arm: _Arm, controller: Any, policy_step: bool) -> None:
-        # Controller.update with the same copies and layouts, after its forward.
+    def _update(self, arm: _Arm, controller: Any) -> None:
+        # Controller.update with the same copies and layouts; its mj_forward is the substep's
+        # (the same state, ctrl and warmstart: the same numbers).
         model, data = self.model, self.data
-        self._controller_forward(policy_step)
         site = arm.site
         controller.ee_pos = np.array(data.site_xpos[site])
         controller.ee_ori_mat = np.array(data.site_xmat[site].reshape([3, 3]))
@@ -427,25 +419,3 @@ def _observable_plan(env: Any, substeps: int) -> _ObservablePlan | None:
         return None
     return _ObservablePlan(env, substeps)
 
-
-class ApproxStep(ExactStep):
-    """The ``approx`` step path: one forward per physics substep, not bit-identical (opt-in).
-
-    robosuite solves the constraints three times per substep (its two forwards and mj_step's);
-    the first two solves' only lasting effect is the warmstart of the next. This path runs the
-    position and velocity stages once (``mj_step1``), the controller, then ``mj_step2``: MuJoCo's
-    own cost per substep. The constraint solver then starts from the previous substep's solution,
-    so accelerations differ within the solver's tolerance and trajectories drift apart over an
-    episode (``bench/bench_robot_step.py --parity-episodes --parity-path approx`` measures by
-    how much). The policy substep's controller reads the wrist's force/torque sensors of the
-    previous substep.
-    """
-
-    def _forward(self, policy_step: bool) -> None:
-        mujoco.mj_step1(self.model, self.data)
-
-    def _controller_forward(self, policy_step: bool) -> None:
-        pass
-
-    def _integrate(self) -> None:
-        mujoco.mj_step2(self.model, self.data)

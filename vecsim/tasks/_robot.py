@@ -183,9 +183,8 @@ class RobotTaskEnv(TaskEnv):
         """Step with ``path`` (:mod:`vecsim.tasks._fast_step`). Returns None.
 
         ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
-        trajectories; ``approx`` is faster and drifts from them within the constraint solver's
-        tolerance. :attr:`step_path` names the path taken (``exact`` and ``approx`` fall back to
-        ``library`` where they do not cover the env).
+        trajectories. :attr:`step_path` names the path taken (``exact`` falls back to
+        ``library`` where it does not cover the env).
 
         Raises:
             ValueError: an unknown path.
