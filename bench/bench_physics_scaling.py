@@ -12,6 +12,11 @@ slowest and the fastest process, and the ratio to P x the 1-process figure of th
 
     python bench/bench_physics_scaling.py                         # LIBERO-10's ten tasks, P = 1,2,4,8,12
     python bench/bench_physics_scaling.py --procs 1,2 --tasks libero_10/0,libero_10/1 --seconds 2
+    python bench/bench_physics_scaling.py --step-paths exact,library   # vecsim's step path vs robosuite's
+
+``--step-paths`` names the robot envs' step paths to measure (``vecsim.tasks._fast_step``:
+``exact``, vecsim's default, and ``library``, the env's own ``step``), interleaved within each
+round; both give the same trajectories, so their rates compare directly (``over_library``).
 
 Writes out/bench/bench_physics_scaling[_<tag>].json and prints ``RESULT {json}``.
 """
@@ -33,8 +38,8 @@ from common import write_result
 log = logging.getLogger("bench_physics_scaling")
 
 
-def worker(index: int, cpu: int, tasks: list[str], counts: list[int], rounds: int, seconds: float,
-           barrier: Any, results: Any) -> None:  # fmt: skip
+def worker(index: int, cpu: int, tasks: list[str], counts: list[int], paths: list[str], rounds: int,
+           seconds: float, barrier: Any, results: Any) -> None:  # fmt: skip
     """Pin to ``cpu``, build the envs, then measure each (round, P) in lockstep with the others."""
     logging.basicConfig(level=logging.WARNING)
     try:
@@ -58,15 +63,19 @@ def worker(index: int, cpu: int, tasks: list[str], counts: list[int], rounds: in
         results.put(("built", index, None))
         for round_ in range(rounds):
             for count in counts:
-                barrier.wait(timeout=900)
-                if index < count:
-                    turns, started = 0, time.perf_counter()
-                    while time.perf_counter() - started < seconds:
-                        step_all(turns)
-                        turns += 1
-                    rate = turns * len(envs) / (time.perf_counter() - started)
-                    results.put(("rate", index, (round_, count, rate)))
-                barrier.wait(timeout=900)
+                for path in paths:
+                    for env in envs:
+                        if hasattr(env, "set_step_path"):  # robot tasks only
+                            env.set_step_path(path)
+                    barrier.wait(timeout=900)
+                    if index < count:
+                        turns, started = 0, time.perf_counter()
+                        while time.perf_counter() - started < seconds:
+                            step_all(turns)
+                            turns += 1
+                        rate = turns * len(envs) / (time.perf_counter() - started)
+                        results.put(("rate", index, (round_, count, path, rate)))
+                    barrier.wait(timeout=900)
     except Exception:
         results.put(("error", index, traceback.format_exc()))
         barrier.abort()
@@ -78,6 +87,7 @@ def main() -> int:
     parser.add_argument("--procs", default="1,2,4,8,12", help="comma-separated process counts")
     parser.add_argument("--seconds", type=float, default=6.0, help="length of each measurement")
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--step-paths", default="exact", help="comma-separated robot step paths: exact, library")
     parser.add_argument("--tag", help="suffix of the output file's name")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -88,6 +98,9 @@ def main() -> int:
 
         tasks = [t.task_id for t in suite_tasks("libero_10")]
     counts = sorted({int(c) for c in args.procs.split(",")} | {1})
+    paths = [p for p in args.step_paths.split(",") if p]
+    if not paths or set(paths) - {"exact", "library"}:
+        raise SystemExit(f"--step-paths takes exact and/or library, got {args.step_paths!r}")
     cpus = sorted(os.sched_getaffinity(0))
     if counts[-1] > len(cpus):
         raise SystemExit(f"--procs asks for {counts[-1]} processes, this process may run on {len(cpus)} CPUs")
@@ -95,15 +108,15 @@ def main() -> int:
     context = multiprocessing.get_context("spawn")
     barrier, results = context.Barrier(counts[-1]), context.Queue()
     procs = [
-        context.Process(target=worker, args=(i, cpus[i], tasks, counts, args.rounds, args.seconds, barrier, results))
+        context.Process(target=worker, args=(i, cpus[i], tasks, counts, paths, args.rounds, args.seconds, barrier, results))
         for i in range(counts[-1])
     ]
     started = time.monotonic()
     for proc in procs:
         proc.start()
-    rates: dict[tuple[int, int], list[float]] = {}
+    rates: dict[tuple[int, int, str], list[float]] = {}
     built = 0
-    expected = args.rounds * sum(counts)
+    expected = args.rounds * sum(counts) * len(paths)
     got = 0
     deadline = started + 1800
     while got < expected:
@@ -117,32 +130,42 @@ def main() -> int:
             if built == len(procs):
                 log.info("%d processes built %d envs each in %.0f s", built, len(tasks), time.monotonic() - started)
             continue
-        round_, count, rate = payload
-        rates.setdefault((round_, count), []).append(rate)
+        round_, count, path, rate = payload
+        rates.setdefault((round_, count, path), []).append(rate)
         got += 1
-        if len(rates[(round_, count)]) == count:
-            log.info("round %d, %d processes: %.1f env-steps/s", round_ + 1, count, sum(rates[(round_, count)]))
+        if len(rates[(round_, count, path)]) == count:
+            total = sum(rates[(round_, count, path)])
+            log.info("round %d, %d processes, %s step: %.1f env-steps/s", round_ + 1, count, path, total)
     for proc in procs:
         proc.join(timeout=60)
 
-    rows = {}
-    for count in counts:
-        totals = [sum(rates[(r, count)]) for r in range(args.rounds)]
-        ratios = [sum(rates[(r, count)]) / (count * rates[(r, 1)][0]) for r in range(args.rounds)]
-        per_proc = [x for r in range(args.rounds) for x in rates[(r, count)]]
-        rows[str(count)] = {
-            "env_steps_per_s": round(statistics.median(totals), 1),
-            "per_process_mean": round(statistics.mean(per_proc), 2),
-            "per_process_min": round(min(per_proc), 2),
-            "per_process_max": round(max(per_proc), 2),
-            "ratio_to_linear": round(statistics.median(ratios), 3),
-        }
+    by_path: dict[str, dict[str, Any]] = {}
+    for path in paths:
+        rows = by_path[path] = {}
+        for count in counts:
+            totals = [sum(rates[(r, count, path)]) for r in range(args.rounds)]
+            ratios = [sum(rates[(r, count, path)]) / (count * rates[(r, 1, path)][0]) for r in range(args.rounds)]
+            per_proc = [x for r in range(args.rounds) for x in rates[(r, count, path)]]
+            rows[str(count)] = {
+                "env_steps_per_s": round(statistics.median(totals), 1),
+                "per_process_mean": round(statistics.mean(per_proc), 2),
+                "per_process_min": round(min(per_proc), 2),
+                "per_process_max": round(max(per_proc), 2),
+                "ratio_to_linear": round(statistics.median(ratios), 3),
+            }
+            if path != "library" and "library" in paths:
+                # The same round's library-path rate: the step path's gain at this process count.
+                gains = [sum(rates[(r, count, path)]) / sum(rates[(r, count, "library")]) for r in range(args.rounds)]
+                rows[str(count)]["over_library"] = round(statistics.median(gains), 3)
+    rows = by_path[paths[0]]
     summary = {
         "baseline": "1 process of the same task mix, same round; linear = P x that",
         "ratio": rows[str(counts[-1])]["ratio_to_linear"],
         "setup": {"tasks": tasks, "envs_per_process": len(tasks), "cameras": "none (physics only)",
-                  "procs": counts, "pinned_to": cpus[: counts[-1]], "seconds": args.seconds, "rounds": args.rounds},
+                  "procs": counts, "pinned_to": cpus[: counts[-1]], "seconds": args.seconds, "rounds": args.rounds,
+                  "step_paths": paths},
         "rows": rows,
+        "rows_by_step_path": by_path,
         "seconds_total": round(time.monotonic() - started, 1),
     }  # fmt: skip
     write_result("bench_physics_scaling" + (f"_{args.tag}" if args.tag else ""), summary)

@@ -46,6 +46,7 @@ from vecsim.tasks._base import (
     log,
     scene_seed,
 )
+from vecsim.tasks._fast_step import DEFAULT_STEP_PATH, make_step
 
 PROPRIO_KEYS: tuple[str, ...] = (
     "robot0_joint_pos_cos",
@@ -176,6 +177,19 @@ class RobotTaskEnv(TaskEnv):
         if camera.names:
             self.renderer = shared_renderer(camera.height, camera.width, preset)
             self.renderer.attach(inner.sim.model._model, len(camera.names))
+        self._step_fn, self.step_path = make_step(inner, DEFAULT_STEP_PATH)
+
+    def set_step_path(self, path: str) -> None:
+        """Step with ``path`` (:mod:`vecsim.tasks._fast_step`). Returns None.
+
+        ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
+        trajectories. :attr:`step_path` names the path taken (``exact`` falls back to
+        ``library`` where it does not cover the env).
+
+        Raises:
+            ValueError: an unknown path.
+        """
+        self._step_fn, self.step_path = make_step(self.inner, path)
 
     def render_images(self) -> dict[str, np.ndarray]:
         """Render this env's cameras as the scene is now; return ``{camera name: HxWx3 uint8}``."""
@@ -212,9 +226,8 @@ class RobotTaskEnv(TaskEnv):
         return observation, bool(inner._check_success())
 
     def _step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, bool]:
-        raw, reward, _, _ = self.inner.step(np.asarray(action, dtype=np.float64))
-        success = bool(self.inner._check_success())
-        return self._observation(raw), float(reward), success, False, success
+        raw, reward, success = self._step_fn(np.asarray(action, dtype=np.float64))
+        return self._observation(raw), reward, success, False, success
 
     def _observation(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
         observation: dict[str, Any] = {}

@@ -1,0 +1,129 @@
+"""The exact step path (vecsim.tasks._fast_step) gives robosuite's and LIBERO's own trajectories.
+
+Each test builds the same task twice, one env on the ``exact`` path (vecsim's default) and one on
+the ``library`` path (the env's own ``step``: robosuite's, or LIBERO's for a LIBERO scene), resets
+both alike and steps both with one action sequence whose gripper closes and opens (grasps,
+contacts), with a reset to another state partway. At every step MuJoCo's state, every observable,
+vecsim's observation, reward, success and the arm controller's output must be bit-identical.
+Full-length episodes of every LIBERO-10 task: ``bench/bench_robot_step.py --parity-episodes``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from vecsim.config import CameraConfig
+from vecsim.tasks import TaskEnv, make_env
+
+STEPS = 60
+RESET_AT = 35
+STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "qacc", "sensordata")
+CONTROLLER_FIELDS = ("torques", "goal_pos", "goal_ori", "ee_pos", "ee_ori_mat", "ee_pos_vel", "mass_matrix", "J_full")
+
+
+def actions(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    table = rng.uniform(-0.6, 0.6, (STEPS, 7))
+    # Closed for steps 10-24 and 45-59: the fingers close on whatever is near and open again.
+    table[:, 6] = np.where((np.arange(STEPS) // 10) % 3 == 1, 1.0, -1.0)
+    table[(np.arange(STEPS) // 15) % 3 == 2, 6] = 1.0
+    return table
+
+
+@contextlib.contextmanager
+def env_pair(task_id: str) -> Iterator[dict[str, TaskEnv]]:
+    envs = {path: make_env(task_id, CameraConfig(names=()), "lean") for path in ("exact", "library")}
+    try:
+        envs["library"].set_step_path("library")
+        yield envs
+    finally:
+        for env in envs.values():
+            env.close()
+
+
+def left_behind(env: Any) -> dict[str, np.ndarray]:
+    """Return MuJoCo's state, every observable's value and the arm controller's outputs."""
+    inner = env.inner
+    data = inner.sim.data._data
+    state = {f"data.{name}": np.array(getattr(data, name)) for name in STATE_FIELDS}
+    state.update({f"observable {name}": np.array(obs.obs) for name, obs in inner._observables.items()})
+    controller = inner.robots[0].controller
+    state.update({f"controller.{name}": np.array(getattr(controller, name)) for name in CONTROLLER_FIELDS})
+    state["gripper action"] = np.array(inner.robots[0].gripper.current_action)
+    state["env timestep"] = np.array(inner.timestep)
+    return state
+
+
+def assert_identical(task_id: str, step: int, exact: dict[str, Any], library: dict[str, Any]) -> None:
+    assert exact.keys() == library.keys(), f"{task_id} step {step}: different quantities"
+    for name, value in exact.items():
+        other = library[name]
+        same = value.shape == other.shape and value.dtype == other.dtype and value.tobytes() == other.tobytes()
+        assert same, f"{task_id} step {step}: {name} differs (exact {value!r} vs library {other!r})"
+
+
+def run_side_by_side(task_id: str, envs: dict[str, TaskEnv], seed: int) -> int:
+    """Step both envs through the action table; return how many steps compared identical."""
+    for env in envs.values():
+        env.reset(options={"state_id": 0})
+    compared = 0
+    for step, action in enumerate(actions(seed)):
+        if step == RESET_AT:
+            # A reset makes new controllers; their first substep has no update of its own.
+            for env in envs.values():
+                env.reset(options={"state_id": 1})
+        results = {path: env.step(action.astype(np.float32)) for path, env in envs.items()}
+        exact, library = (
+            {
+                **left_behind(envs[path]),
+                "observation proprio": results[path][0]["proprio"],
+                "reward": np.array(results[path][1]),
+                "terminated": np.array(results[path][2]),
+                "success": np.array(results[path][4]["success"]),
+            }
+            for path in ("exact", "library")
+        )
+        assert_identical(task_id, step, exact, library)
+        compared += 1
+    return compared
+
+
+def test_robot_envs_take_the_exact_step_path_by_default() -> None:
+    with env_pair("tiny/lift") as envs:
+        assert envs["exact"].step_path == "exact"
+        assert envs["library"].step_path == "library"
+
+
+def test_an_unknown_step_path_is_refused_and_the_path_is_kept() -> None:
+    with env_pair("tiny/lift") as envs:
+        with pytest.raises(ValueError, match="'fastest'"):
+            envs["exact"].set_step_path("fastest")
+        assert envs["exact"].step_path == "exact"
+
+
+def test_exact_path_gives_robosuite_own_trajectory() -> None:
+    with env_pair("tiny/lift") as envs:
+        assert run_side_by_side("tiny/lift", envs, seed=0) == STEPS
+
+
+def test_exact_path_with_delayed_observables_gives_robosuite_own_trajectory() -> None:
+    from robosuite.utils.observables import create_deterministic_delayer
+
+    with env_pair("tiny/lift") as envs:
+        for env in envs.values():
+            # A delayer moves each sample's time, so the exact path updates observables every substep.
+            env.inner.modify_observable("robot0_eef_pos", "delayer", create_deterministic_delayer(0.01))
+        assert run_side_by_side("tiny/lift", envs, seed=1) == STEPS
+
+
+@pytest.mark.libero
+@pytest.mark.parametrize("task_id", ["libero_10/0", "libero_10/5"])
+def test_exact_path_gives_libero_own_trajectory(task_id: str) -> None:
+    with env_pair(task_id) as envs:
+        assert run_side_by_side(task_id, envs, seed=2) == STEPS
+
