@@ -151,8 +151,8 @@ def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, time
     count = len(pins)
     barrier, results = context.Barrier(count), context.Queue()
     procs = [
-        context.Process(target=physics_worker, args=(i, int(pin.split(",")[0]), list(tasks), [count], 1, seconds,
-                                                      barrier, results), daemon=True)  # fmt: skip
+        context.Process(target=physics_worker, args=(i, int(pin.split(",")[0]), list(tasks), [count], ["exact"], 1,
+                                                      seconds, barrier, results), daemon=True)  # fmt: skip
         for i, pin in enumerate(pins)
     ]
     for proc in procs:
@@ -162,13 +162,18 @@ def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, time
     try:
         while len(rates) < count:
             try:
-                kind, index, payload = results.get(timeout=max(end - time.monotonic(), 0.1))
+                kind, index, payload = results.get(timeout=min(max(end - time.monotonic(), 0.1), 5.0))
             except queue.Empty:
+                dead = [i for i, proc in enumerate(procs) if proc.exitcode not in (None, 0)]
+                if dead:  # a process that died before it could report: fail now, not at the timeout
+                    raise RuntimeError(f"physics-only processes {dead} exited without a rate") from None
+                if time.monotonic() < end:
+                    continue
                 raise RuntimeError(f"physics-only: {len(rates)} of {count} processes answered in {timeout_s:.0f} s")
             if kind == "error":
                 raise RuntimeError(f"physics-only process {index} failed:\n{payload}")
             if kind == "rate":
-                rates.append(payload[2])
+                rates.append(payload[3])  # (round, count, step path, rate)
     finally:
         for proc in procs:
             proc.join(timeout=10)

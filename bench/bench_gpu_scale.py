@@ -638,10 +638,12 @@ class TimedStageClient(StageClient):
         super().__init__(*args, **kwargs)
         self.pod_calls: list[tuple[str, str, float, float]] = []
 
-    async def _post(self, pod: str, op: str, body: dict[str, Any], keys: list[str]) -> dict[str, Any]:
+    async def _post(
+        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0
+    ) -> dict[str, Any]:
         begin = time.perf_counter()
         try:
-            return await super()._post(pod, op, body, keys)
+            return await super()._post(pod, op, body, keys, extra_answer_bytes)
         finally:
             self.pod_calls.append((pod, op, begin, time.perf_counter()))
 

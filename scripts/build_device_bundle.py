@@ -98,6 +98,8 @@ WHEELS = (
     "opentelemetry-api",
     "starlette",
     "uvicorn",
+    # service/serving.py builds on uvicorn's httptools protocol.
+    "httptools",
     "pydantic",
     "pydantic-core",
     "annotated-types",
