@@ -26,12 +26,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+import httpx
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from vecsim.client.vector_env import HTTPVectorEnv
 from vecsim.config import RoutingTable, RunnerConfig
-from vecsim.transport import TransportKind
 
 __all__ = ["VLAEnv"]
 
@@ -66,7 +66,7 @@ class VLAEnv:
         keys: Keys = "vecsim",
         auto_reset: bool = False,
         timeout_s: float = 30.0,
-        transport: TransportKind = "fast",
+        transport: httpx.AsyncBaseTransport | None = None,
         token: str | None = None,
     ) -> None:
         """Connect to the job; nothing is reset yet.
