@@ -24,9 +24,10 @@ import pytest
 import torch
 from service_procs import Server, assignment_file, pod_server, running
 
-from vecsim.client import HTTPVectorEnv, PodUnavailableError, StageClient
+from vecsim.client import HTTPVectorEnv, PodRequestError, PodUnavailableError, StageClient
+from vecsim.client.stage import fetch_routing
 from vecsim.rollout import EnvLoop
-from vecsim.transport import make_transport
+from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, make_transport
 
 PENDULUM = "gym/Pendulum-v1"
 EPISODE = 12
@@ -211,3 +212,69 @@ def test_the_client_runs_on_any_httpx_transport_and_answers_alike(pods, proxy):
     default, httpx_own = answers
     assert np.array_equal(default.obs["proprio"], httpx_own.obs["proprio"])
     assert np.array_equal(default.reward, httpx_own.reward)
+
+
+class HostileServer:
+    """A loopback server that answers every request with ``reply`` and closes the connection:
+    a controller or a pod gone wrong, met before the client has any routing."""
+
+    def __init__(self, reply: bytes) -> None:
+        self.reply = reply
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.server = asyncio.run_coroutine_threadsafe(
+            asyncio.start_server(self._serve, "127.0.0.1", 0), self.loop
+        ).result(10)
+        self.url = f"http://127.0.0.1:{self.server.sockets[0].getsockname()[1]}"
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            await reader.readuntil(b"\r\n\r\n")
+            writer.write(self.reply)
+            await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            writer.close()
+
+    def __enter__(self) -> HostileServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        async def stop() -> None:
+            self.server.close()
+
+        asyncio.run_coroutine_threadsafe(stop(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+@pytest.mark.parametrize("hostile", list(HOSTILE))
+def test_a_hostile_info_or_routing_answer_is_the_clients_own_error(hostile):
+    """``from_pods`` (a pod's ``/v1/info``) and ``fetch_routing`` (the controller's table) read
+    their answers under the control plane's cap: every hostile answer is a
+    ``PodUnavailableError`` or ``PodRequestError`` naming the server, never a raw
+    ``OverflowError``/``MemoryError`` or an inflated bomb."""
+    with HostileServer(HOSTILE[hostile]) as server:
+        with pytest.raises((PodUnavailableError, PodRequestError)) as from_pods:
+            StageClient.from_pods([server.url], timeout_s=10)
+        with pytest.raises((PodUnavailableError, PodRequestError)) as routing:
+            fetch_routing(server.url, timeout_s=10)
+    assert server.url.split("//")[1] in str(from_pods.value) or "127.0.0.1" in str(from_pods.value)
+    assert "/v1/routing" in str(routing.value) or "controller" in str(routing.value)
+
+
+def test_the_control_plane_cap_bounds_an_info_answer():
+    body = b"{" + b'"x": 1, ' * ((MAX_CONTROL_ANSWER_BYTES // 8) + 1) + b'"y": 2}'
+    reply = HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(body) + body
+    with HostileServer(reply) as server, pytest.raises(PodUnavailableError, match="exceeds the cap"):
+        StageClient.from_pods([server.url], timeout_s=10)
+
+
+@pytest.mark.parametrize("info", [b'{"x": 1}', b'{"pod": "p", "stage_id": 0, "num_envs": "many", "tasks": []}', b'{"pod": "p", "stage_id": 0, "num_envs": 1, "tasks": [3]}'])
+def test_an_info_answer_that_is_not_a_pods_is_a_value_error_naming_the_url(info):
+    reply = HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(info) + info
+    with HostileServer(reply) as server, pytest.raises(ValueError, match="is not a pod's") as caught:
+        StageClient.from_pods([server.url], timeout_s=10)
+    assert server.url in str(caught.value)

@@ -16,8 +16,9 @@ Failures surface as httpx exceptions (:class:`AnswerTooLargeError` is an ``httpx
 from __future__ import annotations
 
 import asyncio
+import time
 import zlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from typing import Any, Literal
 
 import aiohttp
@@ -27,10 +28,12 @@ from yarl import URL
 __all__ = [
     "DEFAULT_KIND",
     "DEFAULT_MAX_ANSWER_BYTES",
+    "MAX_CONTROL_ANSWER_BYTES",
     "AiohttpTransport",
     "AnswerTooLargeError",
     "TransportKind",
     "make_async_client",
+    "get_answer",
     "make_transport",
     "read_answer",
 ]
@@ -42,6 +45,9 @@ DEFAULT_KIND: TransportKind = "aiohttp"
 
 # The cap on one answer when nothing better is known (before a job's spaces are read).
 DEFAULT_MAX_ANSWER_BYTES = 64 << 20
+# The cap on a JSON answer of the control plane (a routing table, a pod's /v1/info): a job of
+# thousands of pods and tasks stays far below it.
+MAX_CONTROL_ANSWER_BYTES = 16 << 20
 
 # Idle connections are dropped before uvicorn's keep-alive timeout would close them under us.
 _KEEPALIVE_S = 4.0
@@ -208,6 +214,75 @@ def _decoder(encoding: str, request: httpx.Request) -> Any:
     raise httpx.DecodingError(f"{request.url}: unsupported Content-Encoding {encoding!r}", request=request)
 
 
+class _AnswerReader:
+    """The sans-I/O part of reading an answer under a cap: checks the headers, then takes the raw
+    body a piece at a time (:meth:`feed`) and gives the decoded body (:meth:`finish`).
+
+    Raises (from any method):
+        AnswerTooLargeError: Content-Length, the bytes received or the decoded bytes exceed
+            ``max_bytes``.
+        httpx.DecodingError: an unreadable Content-Length, an unsupported or corrupt encoding.
+    """
+
+    def __init__(self, response: httpx.Response, max_bytes: int) -> None:
+        request = self._request = response.request
+        self._max = max_bytes
+        declared = response.headers.get_list("content-length", split_commas=True)
+        if declared:
+            if len(set(declared)) != 1 or not declared[0].strip().isdigit():
+                raise httpx.DecodingError(f"{request.url}: bad Content-Length {declared[:4]!r:.100}", request=request)
+            if int(declared[0]) > max_bytes:
+                raise AnswerTooLargeError(
+                    f"{request.url}: Content-Length {declared[0][:40]} exceeds the cap of {max_bytes} bytes",
+                    request=request,
+                )
+        encodings = [e.strip().lower() for e in response.headers.get_list("content-encoding", split_commas=True)]
+        encodings = [e for e in encodings if e not in ("", "identity")]
+        if len(encodings) > 1:
+            raise httpx.DecodingError(f"{request.url}: stacked Content-Encodings {encodings!r:.100}", request=request)
+        self._encoding = encodings[0] if encodings else ""
+        self._decoder = _decoder(self._encoding, request)
+        self._pieces: list[bytes] = []
+        self._received = self._size = 0
+
+    def _too_large(self, what: str) -> AnswerTooLargeError:
+        return AnswerTooLargeError(f"{self._request.url}: {what} exceeds the cap of {self._max} bytes", request=self._request)
+
+    def feed(self, piece: bytes) -> Iterator[None]:
+        """Take one raw piece of the body; yields between bounded steps of decoding it."""
+        self._received += len(piece)
+        if self._received > self._max:
+            raise self._too_large("answer")
+        if self._decoder is None:
+            self._pieces.append(piece)
+            return
+        try:
+            while piece:
+                out = self._decoder.decompress(piece, min(_DECODE_STEP, self._max - self._size + 1))
+                self._size += len(out)
+                if self._size > self._max:
+                    raise self._too_large("decoded answer")
+                self._pieces.append(out)
+                piece = self._decoder.unconsumed_tail
+                if piece:
+                    yield
+        except zlib.error as exc:
+            raise httpx.DecodingError(
+                f"{self._request.url}: corrupt {self._encoding} body: {exc}", request=self._request
+            ) from None
+
+    def finish(self) -> bytes:
+        """The whole decoded body, once the raw body has ended."""
+        if self._decoder is not None:
+            if not self._decoder.eof:
+                raise httpx.DecodingError(f"{self._request.url}: truncated {self._encoding} body", request=self._request)
+            rest = self._decoder.flush()
+            if self._size + len(rest) > self._max:
+                raise self._too_large("decoded answer")
+            self._pieces.append(rest)
+        return b"".join(self._pieces)
+
+
 async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
     """Read a streamed response's body, decoded, refusing more than ``max_bytes`` of it.
 
@@ -224,58 +299,43 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         httpx.DecodingError: an unreadable Content-Length, an unsupported or corrupt encoding.
         httpx.HTTPError: what the transport met while receiving.
     """
-    request = response.request
     try:
-        declared = response.headers.get_list("content-length", split_commas=True)
-        if declared:
-            if len(set(declared)) != 1 or not declared[0].strip().isdigit():
-                raise httpx.DecodingError(f"{request.url}: bad Content-Length {declared[:4]!r:.100}", request=request)
-            if int(declared[0]) > max_bytes:
-                raise AnswerTooLargeError(
-                    f"{request.url}: Content-Length {declared[0][:40]} exceeds the cap of {max_bytes} bytes",
-                    request=request,
-                )
-        encodings = [e.strip().lower() for e in response.headers.get_list("content-encoding", split_commas=True)]
-        encodings = [e for e in encodings if e not in ("", "identity")]
-        if len(encodings) > 1:
-            raise httpx.DecodingError(f"{request.url}: stacked Content-Encodings {encodings!r:.100}", request=request)
-        decoder = _decoder(encodings[0] if encodings else "", request)
-        pieces: list[bytes] = []
-        received = size = 0
+        reader = _AnswerReader(response, max_bytes)
         async for piece in response.aiter_raw():
-            received += len(piece)
-            if received > max_bytes:
-                raise AnswerTooLargeError(
-                    f"{request.url}: answer exceeds the cap of {max_bytes} bytes", request=request
-                )
-            if decoder is None:
-                pieces.append(piece)
-                continue
-            try:
-                while piece:
-                    out = decoder.decompress(piece, min(_DECODE_STEP, max_bytes - size + 1))
-                    size += len(out)
-                    if size > max_bytes:
-                        raise AnswerTooLargeError(
-                            f"{request.url}: decoded answer exceeds the cap of {max_bytes} bytes", request=request
-                        )
-                    pieces.append(out)
-                    piece = decoder.unconsumed_tail
-                    if piece:
-                        await asyncio.sleep(0)
-            except zlib.error as exc:
-                raise httpx.DecodingError(
-                    f"{request.url}: corrupt {encodings[0]} body: {exc}", request=request
-                ) from None
-        if decoder is not None:
-            if not decoder.eof:
-                raise httpx.DecodingError(f"{request.url}: truncated {encodings[0]} body", request=request)
-            rest = decoder.flush()
-            if size + len(rest) > max_bytes:
-                raise AnswerTooLargeError(
-                    f"{request.url}: decoded answer exceeds the cap of {max_bytes} bytes", request=request
-                )
-            pieces.append(rest)
-        return b"".join(pieces)
+            for _ in reader.feed(piece):
+                await asyncio.sleep(0)
+        return reader.finish()
     finally:
         await response.aclose()
+
+
+def get_answer(
+    url: str, *, timeout_s: float, max_bytes: int = MAX_CONTROL_ANSWER_BYTES, headers: dict[str, str] | None = None
+) -> httpx.Response:
+    """``GET url`` from a blocking caller (the controller's routing table, a pod's ``/v1/info``),
+    read whole under the cap ``max_bytes`` like :func:`read_answer`, within ``timeout_s`` in all.
+
+    Returns:
+        the response, its body read and decoded (no Content-Encoding left to decode).
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.TimeoutException: no whole answer within ``timeout_s``.
+        httpx.HTTPError: what the transport met.
+    """
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(timeout=timeout_s, trust_env=False) as http:
+        request = http.build_request("GET", url, headers=headers)
+        response = http.send(request, stream=True)
+        try:
+            reader = _AnswerReader(response, max_bytes)
+            for piece in response.iter_raw():
+                for _ in reader.feed(piece):
+                    pass
+                if time.monotonic() > deadline:
+                    raise httpx.ReadTimeout(f"{url}: no whole answer within {timeout_s} s", request=request)
+            content = reader.finish()
+        finally:
+            response.close()
+    headers_left = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in ("content-encoding", "content-length", "transfer-encoding")]
+    return httpx.Response(response.status_code, headers=headers_left, content=content, request=request)

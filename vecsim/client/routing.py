@@ -233,17 +233,23 @@ def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_i
     by_stage: dict[int, list[RoutedPod]] = {}
     seen: set[str] = set()
     for url, info in infos:
-        name = info["pod"]
-        if name in seen:
-            raise ValueError(f"two pods are named {name}")
-        seen.add(name)
-        if info.get("stage_id") is None:
-            raise ValueError(f"pod {name} at {url} has no stage")
-        blocks = tuple(
-            TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
-        )
-        routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
-        by_stage.setdefault(int(info["stage_id"]), []).append(routed)
+        try:
+            name = str(info["pod"])
+            if name in seen:
+                raise ValueError(f"two pods are named {name}")
+            seen.add(name)
+            if info.get("stage_id") is None:
+                raise ValueError(f"pod {name} at {url} has no stage")
+            blocks = tuple(
+                TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
+            )
+            routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
+            by_stage.setdefault(int(info["stage_id"]), []).append(routed)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            if isinstance(exc, ValueError) and str(exc).startswith(("two pods", "pod ")):
+                raise
+            what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+            raise ValueError(f"the /v1/info answer of {url} is not a pod's ({what})"[:500]) from None
     generation = generations.pop() if generations else 0
     return RoutingTable(
         generation=int(generation or 0),

@@ -62,7 +62,7 @@ from vecsim.client.routing import (
 )
 from vecsim.config import RoutingTable
 from vecsim.spaces import space_from_json
-from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, make_async_client
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, MAX_CONTROL_ANSWER_BYTES, get_answer, make_async_client, read_answer
 
 logger = logging.getLogger(__name__)
 
@@ -207,7 +207,7 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         try:
             # A request never outlives the wait: a controller that accepts and stalls is waited
             # for like one that is down.
-            response = httpx.get(url, timeout=timeout_s if wait_ready_s <= 0 else max(min(timeout_s, left), 0.1))
+            response = get_answer(url, timeout_s=timeout_s if wait_ready_s <= 0 else max(min(timeout_s, left), 0.1))
         except httpx.HTTPError as exc:
             if wait_ready_s <= 0:
                 raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
@@ -378,7 +378,7 @@ class StageClient:
 
         def info(url: str) -> tuple[str, dict[str, Any]]:
             try:
-                response = httpx.get(f"{url.rstrip('/')}/v1/info", timeout=timeout_s)
+                response = get_answer(f"{url.rstrip('/')}/v1/info", timeout_s=timeout_s)
             except httpx.HTTPError as exc:
                 raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
             if response.status_code != 200:
@@ -1015,8 +1015,10 @@ class StageClient:
         """
         url = f"{self.controller_url}/v1/routing"
         try:
-            async with asyncio.timeout(timeout_s), httpx.AsyncClient(timeout=timeout_s) as http:
-                response = await http.get(url)
+            async with asyncio.timeout(timeout_s), httpx.AsyncClient(timeout=timeout_s, trust_env=False) as http:
+                answer = await http.send(http.build_request("GET", url), stream=True)
+                content = await read_answer(answer, MAX_CONTROL_ANSWER_BYTES)
+                response = httpx.Response(answer.status_code, content=content, request=answer.request)
         except (TimeoutError, httpx.HTTPError) as exc:
             raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
         return _read_routing(response, url)
