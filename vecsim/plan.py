@@ -21,6 +21,21 @@ from dataclasses import dataclass, replace
 
 from vecsim.config import Assignment, JobSpec, PodRecord, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
+def stage_of(i: int, stage_num: int) -> int:
+    """Return the pipeline stage of request ``i`` of a batch: ``i % stage_num``.
+
+    This is the one definition the sampler, the client and the rollout share.
+
+    Raises:
+        ValueError: ``stage_num < 1`` or ``i < 0``.
+    """
+    if stage_num < 1:
+        raise ValueError(f"stage_num must be >= 1, got {stage_num}")
+    if i < 0:
+        raise ValueError(f"request index must be >= 0, got {i}")
+    return i % stage_num
+
+
 SlotKey = tuple[int, int]
 """``(stage_id, index of the slot within its stage)``."""
 

@@ -18,25 +18,11 @@ import numpy as np
 from torch.utils.data import Sampler
 
 from vecsim.config import JobSpec
+from vecsim.plan import stage_of
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["TaskBalancedSampler", "TaskInstances", "stage_of", "task_ids_of"]
-
-
-def stage_of(i: int, stage_num: int) -> int:
-    """Return the pipeline stage of request ``i`` of a batch: ``i % stage_num``.
-
-    This is the one definition the sampler, the client and the rollout share.
-
-    Raises:
-        ValueError: ``stage_num < 1`` or ``i < 0``.
-    """
-    if stage_num < 1:
-        raise ValueError(f"stage_num must be >= 1, got {stage_num}")
-    if i < 0:
-        raise ValueError(f"request index must be >= 0, got {i}")
-    return i % stage_num
 
 
 @dataclass(frozen=True)

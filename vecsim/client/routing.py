@@ -13,7 +13,7 @@ from typing import Any
 
 from vecsim.client.errors import CapacityError
 from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
-from vecsim.sampler import stage_of
+from vecsim.plan import stage_of
 
 __all__ = [
     "EnvSlot",
