@@ -39,6 +39,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--videos", type=int, default=2, help="how many trajectories to record (default 2)")
     p.add_argument("--seed", type=int, default=0, help="sampler and policy seed (default 0)")
     p.add_argument("--ready-timeout", type=float, default=300.0, help="seconds to wait for the pods (default 300)")
+    p.add_argument(
+        "--timeout-s",
+        type=float,
+        default=300.0,
+        help="seconds a pod may take to answer one call (default 300: a busy machine's first calls are slow)",
+    )
     p.add_argument("--log-level", default="info", help="logging level (default info)")
     return p
 
@@ -153,7 +159,7 @@ def main(argv: list[str]) -> int:
         for line in format_status(local.status()).splitlines():
             logger.info("%s", line)
 
-        client = StageClient.from_controller(local.controller_url, token=local.token)
+        client = StageClient.from_controller(local.controller_url, token=local.token, timeout_s=args.timeout_s)
         try:
             tasks = sorted({block.task_id for stage in table.stages for pod in stage.pods for block in pod.tasks})
             dataset = TaskInstances.from_tasks(tasks, num_states=10)
@@ -182,6 +188,7 @@ def main(argv: list[str]) -> int:
         "routes": {key: vars(t.route) for key, t in result.trajectories.items()},
         "videos": {key: str(p) for key, p in result.videos.items()},
         "timeline_png": str(timeline),
+        "lost": {key: {"route": vars(t.route), "steps": t.steps, "reason": t.reason} for key, t in result.lost.items()},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     print("\n".join(["", "vecsim demo: pipelined rollout", "-" * 60, *lines, "-" * 60]))
@@ -189,4 +196,12 @@ def main(argv: list[str]) -> int:
     for key, path in result.videos.items():
         print(f"video of {key}: {path}")
     print(f"summary: {out / 'summary.json'}")
+    if result.lost:
+        for key, lost in result.lost.items():
+            logger.error("lost %s (%s on %s after %d steps): %s", key, lost.route.task_id, lost.route.pod, lost.steps, lost.reason)
+        print(
+            f"FAILED: {len(result.lost)} of {len(requests)} trajectories were lost (their pods failed them; "
+            f"see the errors above and the logs in {out / 'logs'})"
+        )
+        return 1
     return 0
