@@ -15,7 +15,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "pod": ("service.pod.main", "main", "run one sim pod (FastAPI + uvicorn)"),
     "controller": ("service.controller.main", "main", "run the controller"),
     "up": ("service.runner.main", "main", "start a local job: controller + N pods, StatefulSet-style"),
-    "demo": ("vecsim.demo", "main", "start a local job and run a pipelined rollout on it"),
+    "demo": ("service.demo", "main", "start a local job and run a pipelined rollout on it"),
 }
 
 

@@ -13,8 +13,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.pod.bodies import BodyLimitMiddleware
-from service.pod.models import describe_validation_error
+from service.http import BodyLimitMiddleware, describe_validation_error
 from vecsim import __version__
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
 from vecsim.transport import make_async_client

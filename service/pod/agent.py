@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import httpx
 
-from service.controller.models import Heartbeat
+from service.contract import Heartbeat
 from vecsim.auth import bearer_headers
 from vecsim.config import PodCapacity, PodRegistration
 

@@ -12,13 +12,13 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 import vecsim
+from service.contract import Heartbeat
+from service.http import BodyLimitMiddleware, describe_validation_error
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
 
-from .agent import ControllerAgent, Heartbeat
-from .bodies import BodyLimitMiddleware
+from .agent import ControllerAgent
 from .errors import InvalidRequestError, PodError
 from .metrics import PodMetrics
-from .models import describe_validation_error
 from .routers import assignment, envs, health, info, metrics
 from .settings import PodSettings
 from .state import PodState

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError, WithJsonSchema
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, WithJsonSchema
 
 from vecsim import wire
 
@@ -192,17 +192,3 @@ class ReadyResponse(BaseModel):
 
 class ErrorResponse(BaseModel):
     detail: str
-
-
-def describe_validation_error(exc: ValidationError | Any) -> str:
-    """One line naming each field at fault and what is wrong with it.
-
-    Accepts a pydantic ``ValidationError`` or anything with an ``errors()`` list of the same
-    shape (FastAPI's ``RequestValidationError``).
-    """
-    parts = []
-    for err in exc.errors():
-        loc = [str(p) for p in err.get("loc", ()) if p != "body"]
-        msg = err.get("msg", "invalid").removeprefix("Value error, ")
-        parts.append(f"{'.'.join(loc) or 'body'}: {msg}")
-    return "; ".join(parts)

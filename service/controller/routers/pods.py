@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Path
 from fastapi.responses import JSONResponse
 
+from service.contract import Heartbeat, HeartbeatAnswer
 from vecsim.config import PodRecord, PodRegistration
 
 from ..deps import get_state
-from ..models import Heartbeat, HeartbeatAnswer, Problem
+from ..models import Problem
 from ..state import ControllerState, PodUrlConflictError, UnknownPodError
 
 router = APIRouter(prefix="/v1/pods", tags=["pods"])

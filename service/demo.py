@@ -6,8 +6,8 @@ policy out over the stages with :class:`vecsim.rollout.EnvLoop`, then print a su
 a timeline plot, per-task success and videos under ``--out``. Everything started is stopped on
 the way out, Ctrl-C included.
 
-The runner lives in ``service``; it is imported inside :func:`main` so that importing the
-library never imports ``service``.
+It is a program on the library and the local runner, so it lives in ``service`` (the library
+never imports ``service``).
 """
 
 from __future__ import annotations
@@ -21,13 +21,15 @@ from pathlib import Path
 
 import torch
 
+from service.runner import LocalJob, format_status
+from service.runner.job import port_free
 from vecsim.client import StageClient
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.sampler import TaskBalancedSampler, TaskInstances
 from vecsim.tasks import episode_limit
 
-logger = logging.getLogger("vecsim.demo")
+logger = logging.getLogger("service.demo")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -61,7 +63,6 @@ def with_free_ports(config: RunnerConfig) -> RunnerConfig:
     Pods need ``replicas`` consecutive ports from ``base_port``; the first free block of
     ephemeral ports found is used.
     """
-    from service.runner.job import port_free  # a service; see the module docstring
 
     host, pods = config.controller.host, config.pods
     taken = not port_free(host, config.controller.port) or not all(
@@ -143,7 +144,6 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the rest
-    from service.runner import LocalJob, format_status  # a service; see the module docstring
 
     config = with_free_ports(load_job_config(args.config))
     job = config.job
