@@ -24,6 +24,7 @@ that did answer (``error.answered``), whose envs have advanced and must not be l
 from __future__ import annotations
 
 import asyncio
+import atexit
 import concurrent.futures
 import dataclasses
 import itertools
@@ -31,6 +32,7 @@ import logging
 import math
 import threading
 import time
+import weakref
 from collections.abc import Coroutine, Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
@@ -120,30 +122,47 @@ class StageBatch:
 class PendingCall(Generic[T]):
     """A call in flight on the client's loop: ``await`` it, or block on :meth:`result`.
 
-    ``pick``, when given, selects one item of the call's answer (a tuple) as the result.
+    ``pick``, when given, selects one item of the call's answer (a tuple) as the result. ``loop``
+    is the client's loop the call runs on (None for a call answered already).
     """
 
-    def __init__(self, future: concurrent.futures.Future[Any], pick: int | None = None) -> None:
+    def __init__(
+        self, future: concurrent.futures.Future[Any], pick: int | None = None, loop: EventLoopThread | None = None
+    ) -> None:
         self._future = future
         self._pick = pick
+        self._loop = loop
 
     def done(self) -> bool:
-        """Return True once the call has finished (answered or failed)."""
+        """Return True once the call has finished (answered, failed or cancelled)."""
         return self._future.done()
 
     def result(self, timeout: float | None = None) -> T:
         """Wait for the call and return its answer.
 
+        Interrupted while waiting (Ctrl-C: ``KeyboardInterrupt``), the call is cancelled first:
+        its stages take a new call at once. What the pods already did stays done.
+
         Raises:
             TimeoutError: not finished within ``timeout`` seconds (the call stays in flight).
+            concurrent.futures.CancelledError: the call was cancelled.
             Whatever the call raised (``PodUnavailableError``, ``PodRequestError``, ...).
         """
-        answer = self._future.result(timeout)
+        try:
+            answer = self._future.result(timeout)
+        except BaseException as exc:
+            if not isinstance(exc, TimeoutError) and not self._future.done():
+                self.cancel()
+            raise
         return answer if self._pick is None else answer[self._pick]
 
     def cancel(self) -> None:
-        """Stop waiting for the call (what the pods already did stays done)."""
-        self._future.cancel()
+        """Stop the call and wait until it has ended on the client's loop (what the pods already
+        did stays done); its stages take a new call at once. A finished call stays as it is."""
+        if self._loop is not None:
+            self._loop.cancel(self._future)
+        else:
+            self._future.cancel()
 
     @staticmethod
     def wait_any(calls: Sequence[PendingCall[Any]], timeout: float | None = None) -> bool:
@@ -152,8 +171,18 @@ class PendingCall(Generic[T]):
         return bool(done)
 
     def __await__(self) -> Generator[Any, None, T]:
-        answer = yield from asyncio.wrap_future(self._future).__await__()
+        answer = yield from self._wait().__await__()
         return answer if self._pick is None else answer[self._pick]
+
+    async def _wait(self) -> Any:
+        try:
+            return await asyncio.wrap_future(self._future)
+        except asyncio.CancelledError:
+            # Awaited on the client's own loop (a chained call): the call is cancelled with its
+            # awaiter, and the awaiter ends only after it.
+            if self._loop is not None and asyncio.get_running_loop() is self._loop.loop:
+                await self._loop.ended(self._future)
+            raise
 
 
 def _completed(value: Any, pick: int | None) -> PendingCall[Any]:
@@ -272,6 +301,17 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
     )
 
 
+# Clients not closed yet: closed at interpreter exit while their loop threads still run, so
+# that a script ending in an exception or Ctrl-C exits quietly, its connections closed.
+_open_clients: weakref.WeakSet[StageClient] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_clients() -> None:
+    for client in list(_open_clients):
+        client.close()
+
+
 @dataclass
 class _PodWork:
     """What one call asks of one pod: resets first, then steps (rows index the call's batches)."""
@@ -330,6 +370,7 @@ class StageClient:
         self._closed = False
         self._loop = EventLoopThread()
         self._refresh_lock: asyncio.Lock | None = None
+        _open_clients.add(self)
         self._sync_pods()
 
     @classmethod
@@ -617,7 +658,7 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
-        return PendingCall(self._loop.submit(coro))
+        return PendingCall(self._loop.submit(coro), loop=self._loop)
 
     def _submit(
         self,
@@ -665,7 +706,7 @@ class StageClient:
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
             future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick, recorded))
-            pending: PendingCall[Any] = PendingCall(future, pick)
+            pending: PendingCall[Any] = PendingCall(future, pick, self._loop)
             for stage in stages:
                 self._pending[stage] = pending
         future.add_done_callback(lambda _f: self._release(stages, pending))
@@ -692,7 +733,7 @@ class StageClient:
             pending, self._pending = list(self._pending.values()), {}
         for call in pending:
             call.cancel()
-        if self._loop.thread.is_alive():  # not so at interpreter exit, when daemon threads are gone
+        if self._loop.running:  # not so at interpreter exit (see _close_open_clients)
             try:
                 self._loop.run(self._aclose(), timeout=min(self.timeout_s, 5.0))
             except (TimeoutError, RuntimeError) as exc:
