@@ -210,14 +210,17 @@ _REFRESH_TIMEOUT_S = 5.0
 # Waiting for a controller: the first retry comes soon, later ones no more often than this.
 _WAIT_FIRST_S = 0.1
 _WAIT_MAX_S = 2.0
+# While waiting, what the controller answered is logged at INFO this often (at DEBUG between).
+_WAIT_LOG_EVERY_S = 5.0
 
 
 def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: float = 0.0) -> RoutingTable:
     """Return the controller's routing table (``GET /v1/routing``).
 
     With ``wait_ready_s > 0``, tries again with growing pauses (up to 2 s) until the table says
-    ready or the time is up, through a controller that is down, not listening yet, restarting
-    (no answer, 5xx) or without a plan yet (a table not ready).
+    ready or the time is up, through a controller that is down, not listening yet (connection
+    refused, its name not resolving yet), restarting (no answer, 5xx) or without a plan yet (a
+    table not ready), saying at INFO every 5 s what it last saw.
 
     Raises:
         PodUnavailableError: the controller did not answer (named as pod ``controller``), and no
@@ -227,9 +230,11 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
             is not a routing table.
     """
     url = f"{controller_url.rstrip('/')}/v1/routing"
-    deadline = time.monotonic() + wait_ready_s
+    started = time.monotonic()
+    deadline = started + wait_ready_s
     pause = _WAIT_FIRST_S
     attempts = 0
+    next_info = started
     while True:
         attempts += 1
         left = deadline - time.monotonic()
@@ -249,12 +254,16 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
                 if table.ready or wait_ready_s <= 0:
                     return table
                 seen = f"a routing table not ready yet (generation {table.generation}, {len(table.stages)} stage(s))"
-        left = deadline - time.monotonic()
+        now = time.monotonic()
+        left = deadline - now
         if left <= 0:
             raise TimeoutError(
                 f"waited {wait_ready_s} s ({attempts} tries) for a ready routing table at {url}; last saw {seen}"
             )
-        logger.info("waiting for the controller at %s: %s", url, seen)
+        level = logging.INFO if now >= next_info else logging.DEBUG
+        if level == logging.INFO:
+            next_info = now + _WAIT_LOG_EVERY_S
+        logger.log(level, "waiting for the controller at %s (%.0f s of %s s): %s", url, now - started, wait_ready_s, seen)
         time.sleep(min(pause, left))
         pause = min(pause * 2, _WAIT_MAX_S)
 
