@@ -738,6 +738,7 @@ class StageClient:
         if self._closed:
             return
         self._closed = True
+        _open_clients.discard(self)
         with self._lock:
             pending, self._pending = list(self._pending.values()), {}
         for call in pending:
