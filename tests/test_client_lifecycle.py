@@ -116,10 +116,11 @@ def test_ctrl_c_while_waiting_on_a_stage_call_frees_the_stage_at_once(slow_pod, 
         client.reset_trajectories([("tiny/lift", 1), ("tiny/lift", 2)], ["a", "b"])
         client.reset_stage(0).result()
         action = np.zeros(client.action_space.shape, np.float32)
-        pending = client.step_stage(0, {"a": action, "b": action})
-        timer = interrupt_main_after(0.02)
+        timer = interrupt_main_after(0.25)
         with pytest.raises(KeyboardInterrupt):
-            pending.result()
+            while True:
+                pending = client.step_stage(0, {"a": action, "b": action})
+                pending.result()
         timer.join()
         assert pending.done()
         batch = client.reset_stage(0).result()

@@ -219,15 +219,15 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
 
     With ``wait_ready_s > 0``, tries again with growing pauses (up to 2 s) until the table says
     ready or the time is up, through a controller that is down, not listening yet (connection
-    refused, its name not resolving yet), restarting (no answer, 5xx) or without a plan yet (a
-    table not ready), saying at INFO every 5 s what it last saw.
+    refused, its name not resolving yet), restarting (no answer, 5xx), without a job yet (404) or
+    without a plan yet (a table not ready), saying at INFO every 5 s what it last saw.
 
     Raises:
         PodUnavailableError: the controller did not answer (named as pod ``controller``), and no
             waiting was asked for.
         TimeoutError: waited ``wait_ready_s`` without a ready table; says what it last saw.
-        PodRequestError: the controller refused the request (4xx) or answered something that
-            is not a routing table.
+        PodRequestError: the controller refused the request (4xx; 404 only when no waiting was
+            asked for) or answered something that is not a routing table.
     """
     url = f"{controller_url.rstrip('/')}/v1/routing"
     started = time.monotonic()
@@ -247,7 +247,8 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
                 raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
             seen = f"no answer ({type(exc).__name__}: {exc})"
         else:
-            if response.status_code >= 500 and wait_ready_s > 0:
+            # 404: listening, but the job is not put yet (the runner does that once it answers).
+            if (response.status_code >= 500 or response.status_code == 404) and wait_ready_s > 0:
                 seen = f"HTTP {response.status_code}: {response.text[:200]}"
             else:
                 table = _read_routing(response, url)
