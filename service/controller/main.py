@@ -11,6 +11,7 @@ import uvicorn
 from service.serving import uvicorn_limits
 from vecsim.auth import token_from_env
 from vecsim.config import ConfigError, load_job_config
+from vecsim.probes import quiet_probe_logs
 
 from .app import create_app
 from .settings import ControllerSettings
@@ -49,6 +50,7 @@ def main(argv: list[str]) -> int:
     """
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    quiet_probe_logs()
     overrides = {k: v for k, v in vars(args).items() if k not in ("config",)}
     try:
         overrides["token"] = token_from_env()

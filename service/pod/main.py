@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from service.serving import uvicorn_limits
 from vecsim.config import Assignment, ConfigError, JobSpec, load_job_config
 from vecsim.plan import Plan, slot_contents
+from vecsim.probes import quiet_probe_logs
 from vecsim.tasks import normalize_task_id, suite_tasks
 
 from .app import create_app
@@ -125,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     # httpx logs every request at INFO: a heartbeat a second would drown the pod's own log.
     logging.getLogger("httpx").setLevel(logging.WARNING)
+    quiet_probe_logs()
     try:
         settings = PodSettings.from_env(
             name=args.name,

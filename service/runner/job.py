@@ -43,8 +43,11 @@ CONTROLLER_NAME = "controller"
 
 
 def port_free(host: str, port: int) -> bool:
-    """Return whether ``port`` on ``host`` can be bound now."""
+    """Return whether ``port`` on ``host`` can be bound now, as uvicorn binds it: with
+    ``SO_REUSEADDR``, so the TIME_WAIT connections a job that just stopped leaves behind do not
+    count as the port in use (a listener still does)."""
     with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError:

@@ -13,6 +13,7 @@ from types import FrameType
 
 from vecsim.auth import TOKEN_ENV
 from vecsim.config import ConfigError, load_job_config
+from vecsim.probes import PROBE_PATHS, quiet_probe_logs
 
 from .job import JobRejectedError, LocalJob
 from .status import format_status
@@ -37,6 +38,8 @@ def main(argv: list[str]) -> int:
     the job, 2 for a bad config."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # The runner's own watching (probes, the status table's reads) at DEBUG; PUT /v1/job stays.
+    quiet_probe_logs(PROBE_PATHS | {"/v1/pods", "/v1/routing"})
     try:
         config = load_job_config(args.config)
     except ConfigError as exc:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import sys
 import threading
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
@@ -32,24 +33,105 @@ T = TypeVar("T")
 
 
 class EventLoopThread:
-    """An asyncio event loop running in a daemon thread, so sync code can keep calls in flight."""
+    """An asyncio event loop running in a daemon thread, so sync code can keep calls in flight.
+
+    A call submitted here can be cancelled from any thread, and :meth:`cancel` waits until the
+    coroutine has actually ended on the loop (its ``finally`` blocks run, its requests aborted),
+    so whatever the caller does next starts after it.
+    """
 
     def __init__(self, name: str = "vecsim-client") -> None:
         self.loop = asyncio.new_event_loop()
+        # The task running each submitted call, by its future; touched on the loop only.
+        self._tasks: dict[concurrent.futures.Future[Any], asyncio.Task[Any]] = {}
         self.thread = threading.Thread(target=self.loop.run_forever, name=name, daemon=True)
         self.thread.start()
 
+    @property
+    def running(self) -> bool:
+        """Whether the loop's thread can still run calls: not after :meth:`close`, nor at
+        interpreter exit, where daemon threads stop where they stand."""
+        return self.thread.is_alive() and not self.loop.is_closed() and not sys.is_finalizing()
+
     def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
-        """Schedule ``coro`` on the loop; return a future of its result."""
-        return asyncio.run_coroutine_threadsafe(coro, self.loop)
+        """Schedule ``coro`` on the loop; return a future of its result. Cancelling the future
+        cancels the coroutine (without waiting for it: see :meth:`cancel`)."""
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+
+        def start() -> None:
+            if future.cancelled():  # cancelled before it started: it never runs
+                coro.close()
+                return
+            task = self.loop.create_task(coro)
+            self._tasks[future] = task
+            task.add_done_callback(lambda _task: self._finish(future, task))
+
+        def stop_task() -> None:
+            task = self._tasks.get(future)
+            if task is not None:
+                task.cancel()
+
+        def on_done(done: concurrent.futures.Future[T]) -> None:
+            if done.cancelled() and not self.loop.is_closed():
+                self.loop.call_soon_threadsafe(stop_task)
+
+        future.add_done_callback(on_done)
+        self.loop.call_soon_threadsafe(start)
+        return future
+
+    def _finish(self, future: concurrent.futures.Future[T], task: asyncio.Task[T]) -> None:
+        """Hand a finished task's outcome to its future (on the loop)."""
+        self._tasks.pop(future, None)
+        if task.cancelled():
+            future.cancel()
+            return
+        if not future.set_running_or_notify_cancel():  # the caller cancelled it first
+            return
+        exc = task.exception()
+        if exc is not None:
+            future.set_exception(exc)
+        else:
+            future.set_result(task.result())
+
+    def cancel(self, future: concurrent.futures.Future[Any], timeout: float = 5.0) -> None:
+        """Cancel the call behind ``future`` and wait (up to ``timeout`` s) until its coroutine
+        has ended on the loop. A call that already ended is left as it is."""
+        future.cancel()
+        if threading.current_thread() is self.thread or not self.running:
+            return
+
+        try:
+            # Runs after the call's start and its cancellation: the loop takes callbacks in order.
+            self.submit(self.ended(future)).result(timeout)
+        except TimeoutError:
+            logger.warning("a cancelled call did not end within %s s; going on without it", timeout)
+
+    async def ended(self, future: concurrent.futures.Future[Any]) -> None:
+        """Return once the coroutine behind ``future`` has ended (await it on the loop)."""
+        task = self._tasks.get(future)
+        if task is not None:
+            await asyncio.wait([task])
 
     def run(self, coro: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
-        """Run ``coro`` on the loop and return its result (raises what it raises)."""
-        return self.submit(coro).result(timeout)
+        """Run ``coro`` on the loop and return its result (raises what it raises). Interrupted
+        (Ctrl-C) or out of ``timeout``, the coroutine is cancelled before the error goes on."""
+        future = self.submit(coro)
+        try:
+            return future.result(timeout)
+        except BaseException:
+            if not future.done():
+                self.cancel(future)
+            raise
 
     def close(self) -> None:
-        """Stop the loop and join its thread; safe to call twice."""
+        """Stop the loop and join its thread; safe to call twice, and a no-op where the thread
+        can no longer run (at interpreter exit, daemon threads are stopped where they stand)."""
         if self.loop.is_closed():
+            return
+        if threading.current_thread() is self.thread:
+            self.loop.stop()  # the loop cannot be closed from inside; its thread ends
+            return
+        if not self.running:
             return
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join()

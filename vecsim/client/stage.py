@@ -24,6 +24,7 @@ that did answer (``error.answered``), whose envs have advanced and must not be l
 from __future__ import annotations
 
 import asyncio
+import atexit
 import concurrent.futures
 import dataclasses
 import itertools
@@ -31,6 +32,7 @@ import logging
 import math
 import threading
 import time
+import weakref
 from collections.abc import Coroutine, Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
@@ -120,30 +122,47 @@ class StageBatch:
 class PendingCall(Generic[T]):
     """A call in flight on the client's loop: ``await`` it, or block on :meth:`result`.
 
-    ``pick``, when given, selects one item of the call's answer (a tuple) as the result.
+    ``pick``, when given, selects one item of the call's answer (a tuple) as the result. ``loop``
+    is the client's loop the call runs on (None for a call answered already).
     """
 
-    def __init__(self, future: concurrent.futures.Future[Any], pick: int | None = None) -> None:
+    def __init__(
+        self, future: concurrent.futures.Future[Any], pick: int | None = None, loop: EventLoopThread | None = None
+    ) -> None:
         self._future = future
         self._pick = pick
+        self._loop = loop
 
     def done(self) -> bool:
-        """Return True once the call has finished (answered or failed)."""
+        """Return True once the call has finished (answered, failed or cancelled)."""
         return self._future.done()
 
     def result(self, timeout: float | None = None) -> T:
         """Wait for the call and return its answer.
 
+        Interrupted while waiting (Ctrl-C: ``KeyboardInterrupt``), the call is cancelled first:
+        its stages take a new call at once. What the pods already did stays done.
+
         Raises:
             TimeoutError: not finished within ``timeout`` seconds (the call stays in flight).
+            concurrent.futures.CancelledError: the call was cancelled.
             Whatever the call raised (``PodUnavailableError``, ``PodRequestError``, ...).
         """
-        answer = self._future.result(timeout)
+        try:
+            answer = self._future.result(timeout)
+        except BaseException as exc:
+            if not isinstance(exc, TimeoutError) and not self._future.done():
+                self.cancel()
+            raise
         return answer if self._pick is None else answer[self._pick]
 
     def cancel(self) -> None:
-        """Stop waiting for the call (what the pods already did stays done)."""
-        self._future.cancel()
+        """Stop the call and wait until it has ended on the client's loop (what the pods already
+        did stays done); its stages take a new call at once. A finished call stays as it is."""
+        if self._loop is not None:
+            self._loop.cancel(self._future)
+        else:
+            self._future.cancel()
 
     @staticmethod
     def wait_any(calls: Sequence[PendingCall[Any]], timeout: float | None = None) -> bool:
@@ -152,8 +171,18 @@ class PendingCall(Generic[T]):
         return bool(done)
 
     def __await__(self) -> Generator[Any, None, T]:
-        answer = yield from asyncio.wrap_future(self._future).__await__()
+        answer = yield from self._wait().__await__()
         return answer if self._pick is None else answer[self._pick]
+
+    async def _wait(self) -> Any:
+        try:
+            return await asyncio.wrap_future(self._future)
+        except asyncio.CancelledError:
+            # Awaited on the client's own loop (a chained call): the call is cancelled with its
+            # awaiter, and the awaiter ends only after it.
+            if self._loop is not None and asyncio.get_running_loop() is self._loop.loop:
+                await self._loop.ended(self._future)
+            raise
 
 
 def _completed(value: Any, pick: int | None) -> PendingCall[Any]:
@@ -181,26 +210,31 @@ _REFRESH_TIMEOUT_S = 5.0
 # Waiting for a controller: the first retry comes soon, later ones no more often than this.
 _WAIT_FIRST_S = 0.1
 _WAIT_MAX_S = 2.0
+# While waiting, what the controller answered is logged at INFO this often (at DEBUG between).
+_WAIT_LOG_EVERY_S = 5.0
 
 
 def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: float = 0.0) -> RoutingTable:
     """Return the controller's routing table (``GET /v1/routing``).
 
     With ``wait_ready_s > 0``, tries again with growing pauses (up to 2 s) until the table says
-    ready or the time is up, through a controller that is down, not listening yet, restarting
-    (no answer, 5xx) or without a plan yet (a table not ready).
+    ready or the time is up, through a controller that is down, not listening yet (connection
+    refused, its name not resolving yet), restarting (no answer, 5xx), without a job yet (404) or
+    without a plan yet (a table not ready), saying at INFO every 5 s what it last saw.
 
     Raises:
         PodUnavailableError: the controller did not answer (named as pod ``controller``), and no
             waiting was asked for.
         TimeoutError: waited ``wait_ready_s`` without a ready table; says what it last saw.
-        PodRequestError: the controller refused the request (4xx) or answered something that
-            is not a routing table.
+        PodRequestError: the controller refused the request (4xx; 404 only when no waiting was
+            asked for) or answered something that is not a routing table.
     """
     url = f"{controller_url.rstrip('/')}/v1/routing"
-    deadline = time.monotonic() + wait_ready_s
+    started = time.monotonic()
+    deadline = started + wait_ready_s
     pause = _WAIT_FIRST_S
     attempts = 0
+    next_info = started
     while True:
         attempts += 1
         left = deadline - time.monotonic()
@@ -213,19 +247,24 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
                 raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
             seen = f"no answer ({type(exc).__name__}: {exc})"
         else:
-            if response.status_code >= 500 and wait_ready_s > 0:
+            # 404: listening, but the job is not put yet (the runner does that once it answers).
+            if (response.status_code >= 500 or response.status_code == 404) and wait_ready_s > 0:
                 seen = f"HTTP {response.status_code}: {response.text[:200]}"
             else:
                 table = _read_routing(response, url)
                 if table.ready or wait_ready_s <= 0:
                     return table
                 seen = f"a routing table not ready yet (generation {table.generation}, {len(table.stages)} stage(s))"
-        left = deadline - time.monotonic()
+        now = time.monotonic()
+        left = deadline - now
         if left <= 0:
             raise TimeoutError(
                 f"waited {wait_ready_s} s ({attempts} tries) for a ready routing table at {url}; last saw {seen}"
             )
-        logger.info("waiting for the controller at %s: %s", url, seen)
+        level = logging.INFO if now >= next_info else logging.DEBUG
+        if level == logging.INFO:
+            next_info = now + _WAIT_LOG_EVERY_S
+        logger.log(level, "waiting for the controller at %s (%.0f s of %s s): %s", url, now - started, wait_ready_s, seen)
         time.sleep(min(pause, left))
         pause = min(pause * 2, _WAIT_MAX_S)
 
@@ -270,6 +309,17 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         num_steps=batch.num_steps[index],
         frames={key: batch.frames[key] for key in (batch.traj_keys[r] for r in rows) if key in batch.frames},
     )
+
+
+# Clients not closed yet: closed at interpreter exit while their loop threads still run, so
+# that a script ending in an exception or Ctrl-C exits quietly, its connections closed.
+_open_clients: weakref.WeakSet[StageClient] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_clients() -> None:
+    for client in list(_open_clients):
+        client.close()
 
 
 @dataclass
@@ -330,6 +380,7 @@ class StageClient:
         self._closed = False
         self._loop = EventLoopThread()
         self._refresh_lock: asyncio.Lock | None = None
+        _open_clients.add(self)
         self._sync_pods()
 
     @classmethod
@@ -617,7 +668,7 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
-        return PendingCall(self._loop.submit(coro))
+        return PendingCall(self._loop.submit(coro), loop=self._loop)
 
     def _submit(
         self,
@@ -665,7 +716,7 @@ class StageClient:
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
             future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick, recorded))
-            pending: PendingCall[Any] = PendingCall(future, pick)
+            pending: PendingCall[Any] = PendingCall(future, pick, self._loop)
             for stage in stages:
                 self._pending[stage] = pending
         future.add_done_callback(lambda _f: self._release(stages, pending))
@@ -688,11 +739,12 @@ class StageClient:
         if self._closed:
             return
         self._closed = True
+        _open_clients.discard(self)
         with self._lock:
             pending, self._pending = list(self._pending.values()), {}
         for call in pending:
             call.cancel()
-        if self._loop.thread.is_alive():  # not so at interpreter exit, when daemon threads are gone
+        if self._loop.running:  # not so at interpreter exit (see _close_open_clients)
             try:
                 self._loop.run(self._aclose(), timeout=min(self.timeout_s, 5.0))
             except (TimeoutError, RuntimeError) as exc:

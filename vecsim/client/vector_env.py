@@ -8,6 +8,7 @@ explicit pod resets. The async protocol is an explicit state machine like ``Asyn
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import logging
 from collections.abc import Mapping, Sequence
@@ -424,7 +425,8 @@ class HTTPVectorEnv(VectorEnv):
         if self._failed.any():
             failed = np.flatnonzero(self._failed).tolist()
             raise ResetNeeded(
-                f"envs {failed} got no answer in their last call (their pod failed); reset them with "
+                f"envs {failed} got no answer in their last call (their pod failed, or the call was "
+                "interrupted); reset them with "
                 "reset(options={'reset_mask': mask}) before stepping"
             )
         if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
@@ -566,7 +568,12 @@ class HTTPVectorEnv(VectorEnv):
             raise TimeoutError(
                 f"the call to `{self._state.value}_wait` timed out after {timeout} s; it is still pending"
             ) from None
-        except BaseException:
+        except BaseException as exc:
+            if not isinstance(exc, Exception) or isinstance(exc, concurrent.futures.CancelledError):
+                # Interrupted (Ctrl-C; the call is cancelled): whether its envs reset or stepped
+                # is unknown, so they must be reset before the next step.
+                self._failed |= self._pending_mask if self._state == AsyncState.WAITING_RESET else True
+                self._autoreset[self._failed] = False
             self._state, self._pending = AsyncState.DEFAULT, None
             raise
         self._state, self._pending = AsyncState.DEFAULT, None
