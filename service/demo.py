@@ -96,7 +96,7 @@ def summary_lines(result: RolloutResult, num_stages: int) -> list[str]:
         f"{'env-steps':<28}{s.env_steps}",
         f"{'wall time':<28}{s.wall_s:.1f} s",
         f"{'env-steps/s':<28}{s.env_steps_per_s:.1f}",
-        f"{'policy (generation) time':<28}{s.generation_s:.2f} s",
+        f"{'policy time':<28}{s.policy_s:.2f} s",
         f"{'simulation in flight':<28}{s.simulation_s:.2f} s",
         f"{'policy time overlapped':<28}{100 * s.overlap_fraction:.0f} % (simulation ran while the policy worked)",
         "",

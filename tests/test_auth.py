@@ -270,8 +270,8 @@ def guarded_job(tmp_path_factory) -> Iterator[dict[str, Any]]:
     workdir = tmp_path_factory.mktemp("auth-job")
     controller = controller_server(workdir, token=TOKEN, args=["--heartbeat-interval", "0.5"])
     with running(controller):
-        member = pod_server("sim-0", workdir, token=TOKEN, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_S="0.5")
-        intruder = pod_server("sim-1", workdir, token=WRONG, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_S="0.5")
+        member = pod_server("sim-0", workdir, token=TOKEN, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5")
+        intruder = pod_server("sim-1", workdir, token=WRONG, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5")
         with running(member), running(intruder):
             assert httpx.put(f"{controller.url}/v1/job", json=JOB, headers=auth(TOKEN), timeout=30).status_code == 200
             yield {"controller": controller, "member": member, "intruder": intruder}

@@ -109,7 +109,7 @@ def test_sampler_batches_always_fit_a_job_of_group_size_envs_per_task(seed, grou
         return
     table = _table([[_pod(f"sim-{s}", 9000 + s, [(t, group_size) for t in tasks])] for s in range(2)])
     dataset = [(t, k) for t in tasks for k in range(7)]
-    sampler = TaskBalancedSampler(dataset, batch_size=2 * per_stage, max_per_task=group_size, stage_num=2, seed=seed)
+    sampler = TaskBalancedSampler(dataset, batch_size=2 * per_stage, group_size=group_size, num_stages=2, seed=seed)
     for batch in sampler:
         requests = [dataset[i] for i in batch]
         routes = place_requests(table, requests, [str(i) for i in range(len(requests))])

@@ -126,7 +126,7 @@ def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_rea
     job = {**JOB, "group_size": 2, "max_episode_steps": 10}
     requests, keys = [("gym/Pendulum-v1", 0), ("gym/Pendulum-v1", 1)], ["t0", "t1"]
     controller = controller_server(tmp_path, args=["--heartbeat-interval", "0.5", "--heartbeat-ttl", "3"])
-    agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_S": "0.5", "VECSIM_MAX_ENVS": "2"}
+    agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_INTERVAL_S": "0.5", "VECSIM_MAX_ENVS": "2"}
 
     def policy(obs, instructions, task_ids) -> torch.Tensor:
         return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)

@@ -170,7 +170,7 @@ def hosts(network: Network, tmp_path_factory) -> Iterator[dict[str, ManagedProce
                 "VECSIM_PORT": str(POD_PORT),
                 "VECSIM_ADVERTISE_URL": f"http://{pod_ip}:{POD_PORT}",
                 "CONTROLLER_URL": controller_url,
-                "VECSIM_HEARTBEAT_S": "0.5",
+                "VECSIM_HEARTBEAT_INTERVAL_S": "0.5",
                 "VECSIM_MAX_ENVS": "4",
             },
             log_path=logs / f"{name}.log",

@@ -100,7 +100,7 @@ def test_a_slot_holder_partitioned_from_the_controller_loses_its_slot_to_the_spa
         token=TOKEN,
         args=["--heartbeat-interval", str(HEARTBEAT_S), "--heartbeat-ttl", str(TTL_S), "--reconcile-interval", "0.2"],
     )
-    agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_S": str(HEARTBEAT_S), "VECSIM_MAX_ENVS": "4"}
+    agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_INTERVAL_S": str(HEARTBEAT_S), "VECSIM_MAX_ENVS": "4"}
     far = pod_server(
         "sim-0", tmp_path, token=TOKEN, host=link.address, wrap=link.wrap(), POD_IP=link.address, **agent
     )

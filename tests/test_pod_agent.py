@@ -118,7 +118,7 @@ def controller() -> Iterator[tuple[StandInController, ServerThread]]:
 def serve_pod(name: str, controller_url: str) -> ServerThread:
     sock = loopback_socket()
     settings = PodSettings(
-        name=name, port=sock.getsockname()[1], controller_url=controller_url, heartbeat_s=HEARTBEAT_S,
+        name=name, port=sock.getsockname()[1], controller_url=controller_url, heartbeat_interval_s=HEARTBEAT_S,
         max_backoff_s=4 * HEARTBEAT_S, max_envs=3, gpu=False,
     )
     return ServerThread(create_app(settings), sock)

@@ -49,7 +49,7 @@ def policy(client):
 
 def _sampler(batch_size: int = 8, seed: int = 0) -> tuple[TaskInstances, TaskBalancedSampler]:
     dataset = TaskInstances.from_tasks([LIFT, STACK], num_states=6)
-    return dataset, TaskBalancedSampler(dataset, batch_size, max_per_task=GROUP_SIZE, stage_num=2, seed=seed)
+    return dataset, TaskBalancedSampler(dataset, batch_size, group_size=GROUP_SIZE, num_stages=2, seed=seed)
 
 
 def test_a_rollout_returns_one_trajectory_per_request_with_aligned_tensors(client, policy):
@@ -117,7 +117,7 @@ def test_a_stage_without_trajectories_is_never_called(client, policy):
 
 
 def test_a_batch_size_not_divisible_by_the_stages_is_refused_by_the_sampler():
-    with pytest.raises(ValueError, match="batch_size=3 is not divisible by stage_num=2"):
+    with pytest.raises(ValueError, match="batch_size=3 is not divisible by num_stages=2"):
         _sampler(batch_size=3)
 
 

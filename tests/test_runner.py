@@ -93,7 +93,7 @@ def test_pods_get_statefulset_names_ports_and_the_kubernetes_environment():
         "CONTROLLER_URL": f"http://127.0.0.1:{config.controller.port}",
         "VECSIM_PORT": str(base + 2),
         "VECSIM_MAX_ENVS": "8",
-        "VECSIM_HEARTBEAT_S": "0.5",
+        "VECSIM_HEARTBEAT_INTERVAL_S": "0.5",
         "VECSIM_HOST": "127.0.0.1",
     }
 

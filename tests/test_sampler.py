@@ -22,30 +22,30 @@ def sampler_cases(draw):
     order = draw(st.permutations(range(len(dataset))))
     dataset = [dataset[k] for k in order]
     present = max(1, len(set(dataset)))
-    stage_num = draw(st.integers(1, 3))
-    max_per_task = draw(st.integers(1, 4))
-    per_stage = draw(st.integers(1, max_per_task * present))
+    num_stages = draw(st.integers(1, 3))
+    group_size = draw(st.integers(1, 4))
+    per_stage = draw(st.integers(1, group_size * present))
     return dict(
         dataset_task_ids=dataset,
-        batch_size=per_stage * stage_num,
-        max_per_task=max_per_task,
-        stage_num=stage_num,
+        batch_size=per_stage * num_stages,
+        group_size=group_size,
+        num_stages=num_stages,
         seed=draw(st.integers(0, 2**31)),
     )
 
 
-def _stage_task_counts(batch: list[int], task_ids: list[str], stage_num: int) -> Counter:
-    return Counter((stage_of(i, stage_num), task_ids[index]) for i, index in enumerate(batch))
+def _stage_task_counts(batch: list[int], task_ids: list[str], num_stages: int) -> Counter:
+    return Counter((stage_of(i, num_stages), task_ids[index]) for i, index in enumerate(batch))
 
 
 def test_stage_of_is_index_modulo_stage_num():
     assert [stage_of(i, 3) for i in range(7)] == [0, 1, 2, 0, 1, 2, 0]
 
 
-@pytest.mark.parametrize("i, stage_num", [(0, 0), (-1, 2)])
-def test_stage_of_rejects_bad_arguments(i, stage_num):
+@pytest.mark.parametrize("i, num_stages", [(0, 0), (-1, 2)])
+def test_stage_of_rejects_bad_arguments(i, num_stages):
     with pytest.raises(ValueError):
-        stage_of(i, stage_num)
+        stage_of(i, num_stages)
 
 
 @settings(max_examples=150, deadline=None)
@@ -53,8 +53,8 @@ def test_stage_of_rejects_bad_arguments(i, stage_num):
 def test_no_stage_holds_more_than_max_per_task_of_one_task(case):
     sampler = TaskBalancedSampler(**case)
     for batch in sampler:
-        counts = _stage_task_counts(batch, case["dataset_task_ids"], case["stage_num"])
-        assert max(counts.values()) <= case["max_per_task"]
+        counts = _stage_task_counts(batch, case["dataset_task_ids"], case["num_stages"])
+        assert max(counts.values()) <= case["group_size"]
 
 
 @settings(max_examples=150, deadline=None)
@@ -71,7 +71,7 @@ def test_full_batches_give_every_stage_the_same_number_of_requests(case):
     sampler = TaskBalancedSampler(**case)
     for batch in sampler:
         assert 0 < len(batch) <= case["batch_size"]
-        per_stage = Counter(stage_of(i, case["stage_num"]) for i in range(len(batch)))
+        per_stage = Counter(stage_of(i, case["num_stages"]) for i in range(len(batch)))
         # Request i is on stage i % S, so stage sizes differ by at most one, and not at all when full.
         assert max(per_stage.values()) - min(per_stage.values()) <= (0 if len(batch) == case["batch_size"] else 1)
 
@@ -98,7 +98,7 @@ def test_same_seed_and_epoch_give_the_same_batches(case):
 
 def test_epochs_reorder_the_batches():
     dataset = [f"task{t}" for t in range(4) for _ in range(10)]
-    sampler = TaskBalancedSampler(dataset, batch_size=8, max_per_task=2, stage_num=2, seed=7)
+    sampler = TaskBalancedSampler(dataset, batch_size=8, group_size=2, num_stages=2, seed=7)
     orders = []
     for epoch in range(3):
         sampler.set_epoch(epoch)
@@ -108,28 +108,28 @@ def test_epochs_reorder_the_batches():
 
 def test_batches_mix_tasks_evenly_when_the_data_allows():
     dataset = [f"task{t}" for t in range(4) for _ in range(8)]
-    sampler = TaskBalancedSampler(dataset, batch_size=8, max_per_task=4, stage_num=2, seed=0)
+    sampler = TaskBalancedSampler(dataset, batch_size=8, group_size=4, num_stages=2, seed=0)
     for batch in sampler:
         counts = _stage_task_counts(batch, dataset, 2)
         assert sorted(counts.values()) == [1] * 8
 
 
 def test_batch_size_not_divisible_by_stage_num_says_what_to_change():
-    with pytest.raises(ValueError, match=r"batch_size=5 is not divisible by stage_num=2.*4 or 6"):
-        TaskBalancedSampler(["a"] * 10, batch_size=5, max_per_task=4, stage_num=2)
+    with pytest.raises(ValueError, match=r"batch_size=5 is not divisible by num_stages=2.*4 or 6"):
+        TaskBalancedSampler(["a"] * 10, batch_size=5, group_size=4, num_stages=2)
 
 
 def test_too_few_tasks_to_fill_a_stage_is_an_error_naming_the_limits():
-    with pytest.raises(ValueError, match=r"needs batch_size/stage_num = 4.*max_per_task=1 x 2 task"):
-        TaskBalancedSampler(["a", "b"] * 10, batch_size=8, max_per_task=1, stage_num=2)
+    with pytest.raises(ValueError, match=r"needs batch_size/num_stages = 4.*group_size=1 x 2 task"):
+        TaskBalancedSampler(["a", "b"] * 10, batch_size=8, group_size=1, num_stages=2)
 
 
 @pytest.mark.parametrize(
     "field, kwargs",
     [
-        ("batch_size", dict(batch_size=0, max_per_task=1)),
-        ("max_per_task", dict(batch_size=2, max_per_task=0)),
-        ("stage_num", dict(batch_size=2, max_per_task=1, stage_num=0)),
+        ("batch_size", dict(batch_size=0, group_size=1)),
+        ("group_size", dict(batch_size=2, group_size=0)),
+        ("num_stages", dict(batch_size=2, group_size=1, num_stages=0)),
     ],
 )
 def test_non_positive_sizes_are_errors_naming_the_field(field, kwargs):
@@ -139,25 +139,25 @@ def test_non_positive_sizes_are_errors_naming_the_field(field, kwargs):
 
 def test_dataset_smaller_than_a_batch_gives_one_smaller_batch():
     dataset = ["a", "b", "a"]
-    batches = list(TaskBalancedSampler(dataset, batch_size=8, max_per_task=2, stage_num=2))
+    batches = list(TaskBalancedSampler(dataset, batch_size=8, group_size=2, num_stages=2))
     assert len(batches) == 1
     assert sorted(batches[0]) == [0, 1, 2]
 
 
 def test_dataset_smaller_than_a_batch_with_drop_last_is_an_error():
     with pytest.raises(ValueError, match="drop_last=True with 3 dataset items"):
-        TaskBalancedSampler(["a", "b", "a"], batch_size=8, max_per_task=4, stage_num=2, drop_last=True)
+        TaskBalancedSampler(["a", "b", "a"], batch_size=8, group_size=4, num_stages=2, drop_last=True)
 
 
 def test_empty_dataset_gives_no_batches():
-    sampler = TaskBalancedSampler([], batch_size=4, max_per_task=1, stage_num=2)
+    sampler = TaskBalancedSampler([], batch_size=4, group_size=1, num_stages=2)
     assert len(sampler) == 0
     assert list(sampler) == []
 
 
 def test_works_as_a_dataloader_batch_sampler():
     dataset = TaskInstances.from_tasks(["tiny/lift", "tiny/stack"], num_states=4)
-    sampler = TaskBalancedSampler(dataset, batch_size=4, max_per_task=1, stage_num=2, seed=1)
+    sampler = TaskBalancedSampler(dataset, batch_size=4, group_size=1, num_stages=2, seed=1)
     loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=list)
     batches = list(loader)
     assert len(batches) == 2
@@ -170,7 +170,7 @@ def test_for_job_takes_group_size_and_num_stages_from_the_job():
     job = JobSpec(tasks=("tiny/lift", "tiny/stack"), group_size=3, num_stages=2)
     dataset = TaskInstances.from_tasks(job.tasks, num_states=6)
     sampler = TaskBalancedSampler.for_job(dataset, job, batch_size=12)
-    assert (sampler.max_per_task, sampler.stage_num, sampler.per_stage) == (3, 2, 6)
+    assert (sampler.group_size, sampler.num_stages, sampler.per_stage) == (3, 2, 6)
 
 
 @pytest.mark.parametrize(

@@ -21,19 +21,19 @@ from dataclasses import dataclass, replace
 
 from vecsim.config import Assignment, JobSpec, PodRecord, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
-def stage_of(i: int, stage_num: int) -> int:
-    """Return the pipeline stage of request ``i`` of a batch: ``i % stage_num``.
+def stage_of(i: int, num_stages: int) -> int:
+    """Return the pipeline stage of request ``i`` of a batch: ``i % num_stages``.
 
     This is the one definition the sampler, the client and the rollout share.
 
     Raises:
-        ValueError: ``stage_num < 1`` or ``i < 0``.
+        ValueError: ``num_stages < 1`` or ``i < 0``.
     """
-    if stage_num < 1:
-        raise ValueError(f"stage_num must be >= 1, got {stage_num}")
+    if num_stages < 1:
+        raise ValueError(f"num_stages must be >= 1, got {num_stages}")
     if i < 0:
         raise ValueError(f"request index must be >= 0, got {i}")
-    return i % stage_num
+    return i % num_stages
 
 
 SlotKey = tuple[int, int]

@@ -171,9 +171,9 @@ class Trajectory:
 class RolloutStats:
     """How a rollout spent its time.
 
-    ``generation_s``: time in the policy (including moving observations to tensors);
+    ``policy_s``: time in the policy (including moving observations to tensors);
     ``simulation_s``: time with at least one stage call in flight; ``wait_s``: time the loop
-    blocked waiting for observations; ``overlap_fraction``: share of ``generation_s`` during which
+    blocked waiting for observations; ``overlap_fraction``: share of ``policy_s`` during which
     some stage was simulating (1.0 = the policy never ran alone).
     """
 
@@ -181,7 +181,7 @@ class RolloutStats:
     env_steps: int = 0
     wall_s: float = 0.0
     env_steps_per_s: float = 0.0
-    generation_s: float = 0.0
+    policy_s: float = 0.0
     simulation_s: float = 0.0
     wait_s: float = 0.0
     overlap_s: float = 0.0
@@ -320,7 +320,7 @@ class EnvLoop:
             clock.maybe_log(buffers)
             if not live:
                 continue  # this stage is finished
-            with clock.generating(stage):
+            with clock.in_policy(stage):
                 actions = self._act(batch, live, instructions)  # the policy, on stage s
             # A stage's live trajectories have taken the same number of actions (one that applied
             # fewer stopped), so one cut keeps every chunk within the horizon and of one length.
@@ -541,7 +541,7 @@ class _Clock:
         self.started = started
         self.log_every_s = log_every_s
         self.last_log = started
-        self.generation: list[tuple[float, float]] = []
+        self.policy: list[tuple[float, float]] = []
         self.simulation: list[tuple[float, float]] = []
         self.timeline: list[tuple[str, int, float, float]] = []
         self.wait_s = 0.0
@@ -571,8 +571,8 @@ class _Clock:
         self.simulation.append((batch.submitted_at, batch.finished_at))
         self.timeline.append(("sim", stage, batch.submitted_at - self.started, batch.finished_at - self.started))
 
-    def generating(self, stage: int) -> _Interval:
-        return _Interval(self.generation, lambda begin, end: self.timeline.append(
+    def in_policy(self, stage: int) -> _Interval:
+        return _Interval(self.policy, lambda begin, end: self.timeline.append(
             ("policy", stage, begin - self.started, end - self.started)))
 
     def maybe_log(self, buffers: Mapping[str, _Buffer]) -> None:
@@ -593,9 +593,9 @@ class _Clock:
     def stats(self, trajectories: Mapping[str, Trajectory]) -> RolloutStats:
         wall = time.perf_counter() - self.started
         steps = sum(t.length for t in trajectories.values())
-        generation = _measure(self.generation)
+        policy = _measure(self.policy)
         simulation = _merge(self.simulation)
-        overlap = _intersection(_merge(self.generation), simulation)
+        overlap = _intersection(_merge(self.policy), simulation)
         per_task: dict[str, list[bool]] = {}
         for trajectory in trajectories.values():
             per_task.setdefault(trajectory.route.task_id, []).append(trajectory.success)
@@ -604,11 +604,11 @@ class _Clock:
             env_steps=steps,
             wall_s=wall,
             env_steps_per_s=steps / wall if wall > 0 else 0.0,
-            generation_s=generation,
+            policy_s=policy,
             simulation_s=_measure(simulation),
             wait_s=self.wait_s,
             overlap_s=overlap,
-            overlap_fraction=overlap / generation if generation > 0 else 0.0,
+            overlap_fraction=overlap / policy if policy > 0 else 0.0,
             success_per_task={task: float(np.mean(s)) for task, s in per_task.items()},
             timeline=sorted(self.timeline, key=lambda item: item[2]),
         )

@@ -1,9 +1,9 @@
 """Task-balanced, stage-interleaved batches of trajectory requests.
 
 A batch of B requests is split over S pipeline stages: request ``i`` belongs to stage
-``stage_of(i, S)``, and each stage may hold at most ``max_per_task`` requests of one task (so that
-``max_per_task <= group_size`` guarantees every request finds a free env of its task on its
-stage). :class:`TaskBalancedSampler` draws such batches of dataset indices and is usable as a
+``stage_of(i, S)``, and each stage may hold at most ``group_size`` requests of one task (the
+job's ``group_size`` is how many envs each task has on each stage, so a sampler with the job's
+``group_size`` or less guarantees every request a free env of its task on its stage). :class:`TaskBalancedSampler` draws such batches of dataset indices and is usable as a
 ``torch.utils.data.DataLoader`` ``batch_sampler``.
 """
 
@@ -96,17 +96,17 @@ class TaskBalancedSampler(Sampler[list[int]]):
     """Batches of dataset indices, balanced over tasks and interleaved over pipeline stages.
 
     Each full batch holds ``batch_size`` indices; index ``i`` of a batch belongs to stage
-    ``stage_of(i, stage_num)``, each stage gets ``batch_size // stage_num`` of them, and no stage
-    holds more than ``max_per_task`` of one task. Batches mix tasks as evenly as the data
+    ``stage_of(i, num_stages)``, each stage gets ``batch_size // num_stages`` of them, and no stage
+    holds more than ``group_size`` of one task. Batches mix tasks as evenly as the data
     allows: a stage takes a second request of a task only once every task with items left has
     one there, and among those prefers the tasks with the most items left (ties broken at
     random). An epoch visits every index at most once; the order is a pure function of
     ``(seed, epoch)`` (see :meth:`set_epoch`).
 
     End of an epoch and small datasets: when the items left cannot fill a whole batch (too few
-    items, or too few distinct tasks under ``max_per_task``), ``drop_last=True`` ends the epoch
+    items, or too few distinct tasks under ``group_size``), ``drop_last=True`` ends the epoch
     and ``drop_last=False`` yields the rest as smaller batches that keep the same rules (request
-    ``i`` on stage ``i % stage_num``, at most ``max_per_task`` of a task per stage). A dataset
+    ``i`` on stage ``i % num_stages``, at most ``group_size`` of a task per stage). A dataset
     smaller than one batch therefore gives one smaller batch with ``drop_last=False`` and is an
     error with ``drop_last=True``. An empty dataset gives no batches.
     """
@@ -115,36 +115,36 @@ class TaskBalancedSampler(Sampler[list[int]]):
         self,
         dataset_task_ids: Sequence[str] | Any,
         batch_size: int,
-        max_per_task: int,
-        stage_num: int = 1,
+        group_size: int,
+        num_stages: int = 1,
         seed: int = 0,
         drop_last: bool = False,
     ) -> None:
         """Build the sampler; see the class docstring for what it yields.
 
         Raises:
-            ValueError: a non-positive size, ``batch_size`` not a multiple of ``stage_num``,
-                ``max_per_task`` times the number of tasks too small to fill a stage, or
+            ValueError: a non-positive size, ``batch_size`` not a multiple of ``num_stages``,
+                ``group_size`` times the number of tasks too small to fill a stage, or
                 ``drop_last=True`` with a dataset smaller than one batch. The message says what
                 to change.
             TypeError: a dataset item without a task id.
         """
-        for name, value in (("batch_size", batch_size), ("max_per_task", max_per_task), ("stage_num", stage_num)):
+        for name, value in (("batch_size", batch_size), ("group_size", group_size), ("num_stages", num_stages)):
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        if batch_size % stage_num != 0:
-            lower = batch_size - batch_size % stage_num
-            upper = lower + stage_num
+        if batch_size % num_stages != 0:
+            lower = batch_size - batch_size % num_stages
+            upper = lower + num_stages
             hint = f"{lower} or {upper}" if lower > 0 else f"{upper}"
             raise ValueError(
-                f"batch_size={batch_size} is not divisible by stage_num={stage_num}: every stage "
-                f"must get the same number of requests; use batch_size={hint} or change stage_num"
+                f"batch_size={batch_size} is not divisible by num_stages={num_stages}: every stage "
+                f"must get the same number of requests; use batch_size={hint} or change num_stages"
             )
         self.task_ids = task_ids_of(dataset_task_ids)
         self.batch_size = int(batch_size)
-        self.max_per_task = int(max_per_task)
-        self.stage_num = int(stage_num)
-        self.per_stage = self.batch_size // self.stage_num
+        self.group_size = int(group_size)
+        self.num_stages = int(num_stages)
+        self.per_stage = self.batch_size // self.num_stages
         self.seed = int(seed)
         self.drop_last = bool(drop_last)
         self.epoch = 0
@@ -156,12 +156,12 @@ class TaskBalancedSampler(Sampler[list[int]]):
         for index, task_id in enumerate(self.task_ids):
             self._items_by_task[task_index[task_id]].append(index)
 
-        if self.tasks and self.max_per_task * len(self.tasks) < self.per_stage:
+        if self.tasks and self.group_size * len(self.tasks) < self.per_stage:
             raise ValueError(
-                f"cannot fill a stage: each stage needs batch_size/stage_num = {self.per_stage} "
-                f"requests, but max_per_task={self.max_per_task} x {len(self.tasks)} task(s) allows "
-                f"at most {self.max_per_task * len(self.tasks)}; raise max_per_task (keep it <= the "
-                "job's group_size), add tasks, lower batch_size or raise stage_num"
+                f"cannot fill a stage: each stage needs batch_size/num_stages = {self.per_stage} "
+                f"requests, but group_size={self.group_size} x {len(self.tasks)} task(s) allows "
+                f"at most {self.group_size * len(self.tasks)}; raise group_size (keep it <= the "
+                "job's group_size), add tasks, lower batch_size or raise num_stages"
             )
         if self.drop_last and 0 < len(self.task_ids) < self.batch_size:
             raise ValueError(
@@ -175,13 +175,13 @@ class TaskBalancedSampler(Sampler[list[int]]):
     def for_job(
         cls, dataset: Sequence[str] | Any, job: JobSpec, batch_size: int, seed: int = 0, drop_last: bool = False
     ) -> TaskBalancedSampler:
-        """Return a sampler whose limits fit ``job``: ``max_per_task = group_size``, ``stage_num = num_stages``.
+        """Return a sampler whose limits fit ``job``: the job's ``group_size`` and ``num_stages``.
 
         Raises:
             ValueError: as the constructor.
         """
         return cls(
-            dataset, batch_size, max_per_task=job.group_size, stage_num=job.num_stages, seed=seed, drop_last=drop_last
+            dataset, batch_size, group_size=job.group_size, num_stages=job.num_stages, seed=seed, drop_last=drop_last
         )
 
     def set_epoch(self, epoch: int) -> None:
@@ -215,17 +215,17 @@ class TaskBalancedSampler(Sampler[list[int]]):
         """Fill one batch slot by slot; stop at the first slot whose stage can take no task."""
         num_tasks = len(pools)
         priority = rng.permutation(num_tasks)
-        taken = np.zeros((self.stage_num, num_tasks), dtype=np.int64)
+        taken = np.zeros((self.num_stages, num_tasks), dtype=np.int64)
         batch: list[int] = []
         for slot in range(self.batch_size):
-            stage = stage_of(slot, self.stage_num)
-            allowed = (remaining > 0) & (taken[stage] < self.max_per_task)
+            stage = stage_of(slot, self.num_stages)
+            allowed = (remaining > 0) & (taken[stage] < self.group_size)
             if not allowed.any():
                 break
             # Fewest of this task on this stage first spreads tasks over the stage; then most items
             # left first keeps the pools even, so later batches stay fillable.
             span = (int(remaining.max()) + 1) * num_tasks
-            score = np.where(allowed, (self.max_per_task - taken[stage]) * span + remaining * num_tasks + priority, -1)
+            score = np.where(allowed, (self.group_size - taken[stage]) * span + remaining * num_tasks + priority, -1)
             task = int(np.argmax(score))
             batch.append(int(pools[task].pop()))
             remaining[task] -= 1

@@ -37,7 +37,7 @@ def backoff_delay(failures: int, base_s: float, cap_s: float) -> float:
 
 class ControllerAgent:
     """Registers one pod with the controller at ``settings.controller_url`` and heartbeats
-    every ``settings.heartbeat_s`` seconds with what ``report()`` says, sending the job's token
+    every ``settings.heartbeat_interval_s`` seconds with what ``report()`` says, sending the job's token
     (``settings.token``) with each."""
 
     def __init__(self, settings: PodSettings, report: Callable[[], Heartbeat]) -> None:
@@ -63,7 +63,7 @@ class ControllerAgent:
                         "pod %s: controller %s unreachable or refusing (%d in a row): %s: %s",
                         self.settings.name, self.base_url, failures, type(exc).__name__, exc,
                     )
-                await asyncio.sleep(backoff_delay(failures, self.settings.heartbeat_s, self.settings.max_backoff_s))
+                await asyncio.sleep(backoff_delay(failures, self.settings.heartbeat_interval_s, self.settings.max_backoff_s))
 
     async def beat(self, client: httpx.AsyncClient) -> None:
         """Register if not yet registered, then send one heartbeat; re-register when the

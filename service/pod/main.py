@@ -60,7 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     identity.add_argument("--controller-url", help="controller to register with (CONTROLLER_URL)")
     identity.add_argument("--max-envs", type=int, help="most envs this pod hosts (VECSIM_MAX_ENVS, default 64)")
     identity.add_argument(
-        "--heartbeat-s", type=float, help="seconds between heartbeats (VECSIM_HEARTBEAT_S, default 1.0)"
+        "--heartbeat-interval",
+        type=float,
+        dest="heartbeat_interval_s",
+        help="seconds between heartbeats (VECSIM_HEARTBEAT_INTERVAL_S, default 1.0)",
     )
     identity.add_argument(
         "--max-body-bytes", type=int, help="largest request body (VECSIM_MAX_BODY_BYTES, default 64 MiB)"
@@ -135,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
             advertise_url=args.advertise_url,
             controller_url=args.controller_url,
             max_envs=args.max_envs,
-            heartbeat_s=args.heartbeat_s,
+            heartbeat_interval_s=args.heartbeat_interval_s,
             max_body_bytes=args.max_body_bytes,
             access_log=args.access_log,
             log_level=args.log_level,

@@ -33,7 +33,7 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_TOKEN": "token",
     "VECSIM_MAX_ENVS": "max_envs",
     "VECSIM_GPU": "gpu",
-    "VECSIM_HEARTBEAT_S": "heartbeat_s",
+    "VECSIM_HEARTBEAT_INTERVAL_S": "heartbeat_interval_s",
     "VECSIM_MAX_BODY_BYTES": "max_body_bytes",
     "VECSIM_STEP_TIMEOUT_S": "step_timeout_s",
     "VECSIM_BUILD_TIMEOUT_S": "build_timeout_s",
@@ -69,7 +69,7 @@ class PodSettings(BaseModel):
     token: str | None = Field(None, repr=False)
     max_envs: int = Field(64, ge=0)
     gpu: bool | None = None
-    heartbeat_s: float = Field(1.0, gt=0)
+    heartbeat_interval_s: float = Field(1.0, gt=0)
     max_backoff_s: float = Field(10.0, gt=0)
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1)
     # A worker that answers no reset or step within this long counts as crashed (503, rebuild).

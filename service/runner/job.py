@@ -139,7 +139,7 @@ class LocalJob:
             "CONTROLLER_URL": self.controller_url,
             "VECSIM_PORT": url.rsplit(":", 1)[1],
             "VECSIM_MAX_ENVS": str(pods.max_envs),
-            "VECSIM_HEARTBEAT_S": str(self.config.controller.heartbeat_interval_s),
+            "VECSIM_HEARTBEAT_INTERVAL_S": str(self.config.controller.heartbeat_interval_s),
             # Locally, listen on the advertised address only, not on every interface.
             "VECSIM_HOST": pods.host,
             **render,

@@ -48,7 +48,7 @@ class CapacityError(ClientError, ValueError):
         super().__init__(
             f"stage {stage_id} has {capacity} env(s) of task {task_id!r} ({where}) but the batch puts "
             f"{len(requested)} request(s) of it there (requests {_keys(map(str, requested))}); draw "
-            "batches with TaskBalancedSampler(max_per_task <= group_size, stage_num = the job's stages) "
+            "batches with TaskBalancedSampler(group_size <= the job's group_size, num_stages = the job's stages) "
             "or raise the job's group_size"
         )
 
