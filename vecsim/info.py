@@ -92,19 +92,32 @@ def batch_infos(infos: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def merge_rows(info: dict[str, Any], batched: dict[str, Any], envs: np.ndarray, num_envs: int) -> dict[str, Any]:
-    """Put ``batched`` (rows ``0..len(envs)-1``) into ``info`` at rows ``envs`` of ``num_envs``;
-    return ``info``. A list becomes an object array, as gymnasium keeps values of other types."""
+def merge_rows(
+    info: dict[str, Any], batched: dict[str, Any], envs: np.ndarray, num_envs: int, keep: np.ndarray | None = None
+) -> dict[str, Any]:
+    """Put ``batched`` (rows ``0..len(envs)-1``) into ``info`` at rows ``envs`` of ``num_envs``
+    (only the rows ``keep`` marks, if given); return ``info``. A list becomes an object array, as
+    gymnasium keeps values of other types. A key no kept row gave is not added."""
+    envs = np.asarray(envs, dtype=np.int64)
+    rows = np.arange(len(envs)) if keep is None else np.flatnonzero(keep)
+    if rows.size == 0:
+        return info
     for key, value in batched.items():
+        mask = batched.get(key[1:]) is not None and key.startswith("_")
+        given = batched.get(f"_{key}")
+        if not mask and given is not None and not np.asarray(given)[rows].any():
+            continue
+        if mask and not np.asarray(value)[rows].any():
+            continue
         if isinstance(value, dict):
-            info[key] = merge_rows(info.get(key, {}), value, envs, num_envs)
+            info[key] = merge_rows(info.get(key, {}), value, envs, num_envs, keep)
         elif isinstance(value, np.ndarray):
             if key not in info:
                 info[key] = np.zeros((num_envs, *value.shape[1:]), dtype=value.dtype)
-            info[key][envs] = value
+            info[key][envs[rows]] = value[rows]
         else:
             if key not in info:
                 info[key] = np.full(num_envs, None, dtype=object)
-            for env, item in zip(envs, value):
-                info[key][env] = item
+            for row in rows:
+                info[key][envs[row]] = value[row]
     return info
