@@ -792,7 +792,7 @@ class TaskGroupedVectorEnv:
             values = np.asarray(actions)
         except ValueError as exc:
             raise InvalidRequestError(f"actions: not a rectangular array: {exc}") from None
-        if values.size and values.dtype.kind not in "biuf":
+        if values.size and values.dtype.kind not in "fiu":
             raise InvalidRequestError(f"actions: expected numbers, got dtype {values.dtype}")
         return values
 
