@@ -230,6 +230,11 @@ class TaskInfo(BaseModel):
     instruction: str
     env_start: int
     num_envs: int
+    reset: str = Field(
+        "state_id",
+        description="how the client resets this task's envs by default: 'seed' (a gym task without cameras: "
+        "the env's own seeded reset) or 'state_id' (fixed initial states)",
+    )
 
 
 class InfoResponse(BaseModel):

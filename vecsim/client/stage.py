@@ -352,6 +352,7 @@ class StageClient:
         self._spaces: tuple[Space, Space] | None = None
         self._env_answer_bytes: int | None = None  # what one env's answer can take, from the spaces
         self._instructions: dict[str, str] = {}
+        self._reset_kinds: dict[str, str] = {}
         self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
         self._closed = False
@@ -474,6 +475,13 @@ class StageClient:
         """Each task's instruction, read from the pods' ``/v1/info``."""
         self._load_info()
         return dict(self._instructions)
+
+    @property
+    def reset_kinds(self) -> dict[str, str]:
+        """How each task's envs reset by default, from the pods' ``/v1/info``: ``"seed"`` (the
+        env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
+        self._load_info()
+        return dict(self._reset_kinds)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -946,6 +954,7 @@ class StageClient:
             self._instances[pod] = info.get("instance")
             for task in info.get("tasks", []):
                 self._instructions.setdefault(task["task_id"], task.get("instruction", ""))
+                self._reset_kinds.setdefault(task["task_id"], task.get("reset", "state_id"))
             here = (info.get("observation_space"), info.get("action_space"))
             if here[0] is None or here[1] is None:
                 raise PodUnavailableError({pod: []}, "envs not built yet (no spaces in /v1/info)")

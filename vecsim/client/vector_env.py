@@ -223,9 +223,11 @@ class HTTPVectorEnv(VectorEnv):
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         self.render_mode = None
         self.task_ids = [slot.task_id for slot in self.slots]
-        # Gym tasks reset as the envs' own reset (seeds), robot tasks to fixed initial states. A gym
-        # task is not looked up here: its module (a user's package) need not exist on this machine.
-        self._native = all(t.startswith("gym/") for t in self.task_ids)
+        # Gym tasks without cameras reset as the envs' own reset (seeds), the others to fixed
+        # initial states, as the pods say. A gym task is not looked up here: its module (a
+        # user's package) need not exist on this machine.
+        kinds = self.client.reset_kinds
+        self._native = all(kinds.get(t) == "seed" for t in self.task_ids)
         self._num_states = {t: GYM_NUM_STATES if t.startswith("gym/") else get_task(t).num_states for t in set(self.task_ids)}
         self._keys = [f"env{i}" for i in range(self.num_envs)]
         self._key_index = {key: i for i, key in enumerate(self._keys)}
