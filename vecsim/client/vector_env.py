@@ -21,6 +21,7 @@ from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoA
 from gymnasium.utils import seeding
 from gymnasium.vector.async_vector_env import AsyncState
 from gymnasium.vector.utils import batch_space, create_empty_array
+from gymnasium import logger as gym_logger
 from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
@@ -775,7 +776,10 @@ class HTTPVectorEnv(VectorEnv):
         return results
 
     def close_extras(self, **kwargs: Any) -> None:
-        """Close the client: pod connections and its event loop thread."""
+        """Close the client: pod connections and its event loop thread (a call still pending is
+        dropped, with gymnasium's warning)."""
+        if self._state != AsyncState.DEFAULT:
+            gym_logger.warn(f"Calling `close` while waiting for a pending call to `{self._state.value}` to complete.")
         self._state, self._pending = AsyncState.DEFAULT, None
         self.client.close()
 
