@@ -66,7 +66,8 @@ class LiberoProtocol(_Model):
 
 MAX_EPISODE_STEPS_DOC = (
     "steps after which every env truncates; unset: each LIBERO suite's own limit (spatial 220, "
-    "object 280, goal 300, libero_10 520, libero_90 400) for LIBERO tasks, 300 for the others"
+    "object 280, goal 300, libero_10 520, libero_90 400) for LIBERO tasks, a gym id's own limit for gym "
+    "tasks, 300 for the others"
 )
 MAKE_KWARGS_DOC = (
     "keyword arguments for gymnasium.make, per gym task id: {task_id: {name: value}} "
