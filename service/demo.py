@@ -27,7 +27,7 @@ from vecsim.client import StageClient
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.sampler import TaskBalancedSampler, TaskInstances
-from vecsim.tasks import episode_limit
+from vecsim.tasks import episode_limit, get_task
 
 logger = logging.getLogger("service.demo")
 
@@ -170,7 +170,8 @@ def main(argv: list[str]) -> int:
             loop = EnvLoop(
                 client,
                 policy,
-                horizon=args.horizon or max(episode_limit(task, job.max_episode_steps) for task in tasks),
+                horizon=args.horizon
+                or max(episode_limit(task, job.max_episode_steps) or get_task(task).max_episode_steps for task in tasks),
                 record=args.videos,
                 video_dir=out / "videos",
                 log_every_s=5.0,

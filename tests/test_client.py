@@ -227,7 +227,7 @@ def _zero_actions(keys) -> dict[str, np.ndarray]:
 def test_from_pods_reads_stages_tasks_and_spaces(client):
     assert [[p.pod for p in s.pods] for s in client.routing.stages] == [["sim-0", "sim-1"], ["sim-2"]]
     assert client.action_space.shape == (1,)
-    assert set(client.observation_space.spaces) == {"proprio"}
+    assert client.observation_space.shape == (4,)  # the env's own Box observation
     assert set(client.instructions) == {PENDULUM, PENDULUM_V4}
 
 
@@ -239,7 +239,7 @@ def test_reset_stage_answers_for_every_trajectory_of_the_stage_in_placement_orde
     assert batch.traj_keys == stage0
     assert batch.task_ids == [routes[k].task_id for k in stage0]
     assert list(batch.state_ids) == [routes[k].state_id for k in stage0]
-    assert batch.obs["proprio"].shape == (3, 4)
+    assert batch.obs.shape == (3, 4)
     assert {routes[k].pod for k in stage0} == {"sim-0", "sim-1"}
 
 
@@ -249,7 +249,7 @@ def test_the_same_task_and_state_id_give_bit_identical_observations_on_any_pod(c
     first = client.reset_stage(0).result(timeout=60)
     second = client.reset_stage(1).result(timeout=60)
     assert {routes[k].pod for k in first.traj_keys}.isdisjoint({routes[k].pod for k in second.traj_keys})
-    assert np.array_equal(first.obs["proprio"], second.obs["proprio"])
+    assert np.array_equal(first.obs, second.obs)
 
 
 def test_step_stage_returns_the_stepped_trajectories_rows_in_the_mappings_order(client):
@@ -258,7 +258,7 @@ def test_step_stage_returns_the_stepped_trajectories_rows_in_the_mappings_order(
     keys = [k for k, r in routes.items() if r.stage_id == 0][::-1]
     batch = client.step_stage(0, _zero_actions(keys)).result(timeout=60)
     assert batch.traj_keys == keys
-    assert batch.obs["proprio"].shape == (2, 4)
+    assert batch.obs.shape == (2, 4)
     assert batch.reward.shape == batch.terminated.shape == batch.truncated.shape == (2,)
 
 
@@ -276,7 +276,7 @@ def test_a_stage_without_trajectories_is_a_no_op(client):
     client.reset_trajectories([(PENDULUM, 0)])
     assert client.stage_traj_keys(1) == []
     batch = client.reset_stage(1).result(timeout=1)
-    assert batch.n == 0 and batch.obs["proprio"].shape == (0, 4)
+    assert batch.n == 0 and batch.obs.shape == (0, 4)
     assert client.step_stage(0, {}).result(timeout=1).n == 0
 
 
@@ -419,7 +419,7 @@ def test_http_vector_env_comes_from_a_controller_url_or_a_job_config(job, tmp_pa
         env = HTTPVectorEnv(**source, token=job.token)
         try:
             assert env.num_envs == 4
-            assert env.reset(seed=0)[0]["proprio"].shape == (4, 4)
+            assert env.reset(seed=0)[0].shape == (4, 4)
         finally:
             env.close()
 

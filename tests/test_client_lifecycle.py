@@ -17,7 +17,6 @@ import textwrap
 import threading
 from collections.abc import Iterator
 from contextlib import closing
-from pathlib import Path
 
 import gymnasium
 import httpx

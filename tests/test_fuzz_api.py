@@ -7,7 +7,9 @@ wrong. State must change only through accepted requests:
 
 - pod: two identical `vecsim pod` processes; the target takes every generated request, the
   reference only the ones the target accepted, replayed byte for byte. Afterwards both are
-  stepped alike: any env a refused request touched would answer differently.
+  stepped alike: any env a refused request touched would answer differently. An accepted reset
+  with a null seed is the env's own unseeded reset, random on each pod by design: the envs it
+  reset are put in one fixed state on both pods before the comparison.
 - controller: afterwards its registry holds exactly the pods whose registration was accepted
   and its job is the last one accepted.
 """
@@ -15,6 +17,7 @@ wrong. State must change only through accepted requests:
 from __future__ import annotations
 
 import contextlib
+import json
 import secrets
 import threading
 from collections.abc import Iterator
@@ -54,6 +57,9 @@ POD_OPERATIONS = [
     "PUT /v1/assignment",
     "POST /v1/reset",
     "POST /v1/step",
+    "POST /v1/get_attr",
+    "POST /v1/call",
+    "POST /v1/set_attr",
     "GET /v1/envs/{env_id}/frame.png",
     "GET /metrics",
 ]
@@ -132,7 +138,18 @@ def pods(tmp_path_factory) -> Iterator[dict[str, Any]]:
     reference = pod_server(POD_NAME, workdir / "reference", args=["--assignment", str(path)], token=TOKEN)
     with running(target, ready=True), running(reference, ready=True):
         schema = schemathesis.openapi.from_url(f"{target.url}/openapi.json")
-        yield {"target": target, "reference": reference, "schema": schema}
+        yield {"target": target, "reference": reference, "schema": schema, "unseeded": set()}
+
+
+def unseeded_envs(request: Any) -> list[int]:
+    """The env ids an accepted JSON reset reset without a seed (nothing for any other request)."""
+    if not str(request.url).endswith("/v1/reset") or "json" not in request.headers.get("content-type", ""):
+        return []
+    body = json.loads(request.body)
+    seeds = body.get("seeds")
+    if not isinstance(seeds, list):
+        return []
+    return [env for env, seed in zip(body["env_ids"], seeds) if seed is None]
 
 
 def test_the_pod_operations_fuzzed_are_every_operation_of_its_schema(pods):
@@ -158,6 +175,7 @@ def test_fuzzed_requests_to_the_pod_get_no_5xx_and_refusals_say_why(pods, label)
                 timeout=60,
             )
             assert replay.status_code == response.status_code, f"the reference answered {replay.status_code}"
+            pods["unseeded"].update(unseeded_envs(request))
 
     fuzz(operation_of(pods["schema"], label), send)
 
@@ -169,6 +187,10 @@ def test_after_the_fuzzing_every_env_is_where_the_accepted_requests_left_it(pods
         wait_until(lambda s=server: s.answers("/readyz"), f"{server.name} ready again")
     generations = [httpx.get(f"{s.url}/v1/info", timeout=10).json()["generation"] for s in (target, reference)]
     assert generations[0] == generations[1]
+    if pods["unseeded"]:
+        envs = sorted(pods["unseeded"])
+        body = {"generation": generations[0], "env_ids": np.array(envs), "state_ids": np.zeros(len(envs), np.int64)}
+        assert [post_wire(s.url, "reset", body, TOKEN).status_code for s in (target, reference)] == [200, 200]
     rng = np.random.default_rng(7)
     for _ in range(3):
         actions = rng.uniform(-1, 1, size=(NUM_ENVS, ACTION_DIM)).astype(np.float32)

@@ -335,7 +335,7 @@ def test_step_of_some_envs_leaves_the_others_untouched(pods: tuple[Pod, Pod]) ->
     frames_before = [pod_a.frame(i) for i in untouched]
     answer = pod_a.step([0, 2], actions_for([0, 2], seed=1))
     assert answer["env_ids"].tolist() == [0, 2]
-    assert answer["reward"].shape == (2,) and answer["reward"].dtype == np.float32
+    assert answer["reward"].shape == (2,) and answer["reward"].dtype == np.float64
     assert [pod_a.frame(i) for i in untouched] == frames_before
     actions = actions_for(untouched, seed=2)
     assert_same_tree(pod_a.step(untouched, actions), pod_b.step(untouched, actions), "untouched envs")
@@ -468,8 +468,11 @@ def _bad_requests() -> list[Any]:
                      id="nan-action-as-json-token"),
         pytest.param(step_wire([0, 2], inf), 422, ["actions", "0"], id="inf-action"),
         pytest.param(step_json(actions=[[1e39] * ACTION_DIM] * 2), 422, ["actions"], id="action-beyond-float32"),
-        pytest.param(step_wire([0, 2], np.zeros((2, ACTION_DIM), np.float64)), 422, ["actions", "float32"],
-                     id="float64-actions"),
+        pytest.param(reset_json(seeds=[1, 2]), 422, ["state_ids", "seeds"], id="state-ids-and-seeds"),
+        pytest.param(reset_json(state_ids=None, seeds=[1, -1]), 422, ["seeds", "-1"], id="negative-seed"),
+        pytest.param(reset_json(state_ids=None, seeds=[1, "x"]), 422, ["seed"], id="string-seed"),
+        pytest.param(reset_json(state_ids=None, seeds=[1]), 422, ["seeds"], id="fewer-seeds-than-envs"),
+        pytest.param(reset_json(state_ids=None, seeds=[1, 2], options=[3]), 422, ["options"], id="options-not-an-object"),
         pytest.param(step_wire([0, 2], np.zeros((2, ACTION_DIM, 1), np.float32)), 422, ["actions"], id="3d-actions"),
         pytest.param(step_json(actions=None), 422, ["actions"], id="missing-actions"),
         pytest.param(step_json(env_ids=[0.0, 2.0]), 422, ["env_ids"], id="float-env-ids"),
@@ -689,12 +692,13 @@ def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_threa
         steps = [pod.step(env_ids, actions_for(env_ids, seed)) for seed in range(3)]
         answers.append((first, steps))
     (cheap_reset, cheap_steps), (reference_reset, reference_steps) = answers
-    assert "images" not in cheap_reset["obs"]
-    assert_same_tree(cheap_reset["obs"]["proprio"], reference_reset["obs"]["proprio"], "reset obs.proprio")
+    # Without cameras the observation is the env's own float64 Box; with them, float32 proprio.
+    assert isinstance(cheap_reset["obs"], np.ndarray) and cheap_reset["obs"].dtype == np.float64
+    assert_same_tree(cheap_reset["obs"].astype(np.float32), reference_reset["obs"]["proprio"], "reset obs.proprio")
     for i, (cheap, reference) in enumerate(zip(cheap_steps, reference_steps)):
         for key in ("env_ids", "reward", "terminated", "truncated"):
             assert_same_tree(cheap[key], reference[key], f"step {i} {key}")
-        assert_same_tree(cheap["obs"]["proprio"], reference["obs"]["proprio"], f"step {i} obs.proprio")
+        assert_same_tree(cheap["obs"].astype(np.float32), reference["obs"]["proprio"], f"step {i} obs.proprio")
 
 
 # --- the command line --------------------------------------------------------------------------

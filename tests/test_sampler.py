@@ -38,7 +38,7 @@ def _stage_task_counts(batch: list[int], task_ids: list[str], num_stages: int) -
     return Counter((stage_of(i, num_stages), task_ids[index]) for i, index in enumerate(batch))
 
 
-def test_stage_of_is_index_modulo_stage_num():
+def test_stage_of_is_index_modulo_num_stages():
     assert [stage_of(i, 3) for i in range(7)] == [0, 1, 2, 0, 1, 2, 0]
 
 
@@ -50,7 +50,7 @@ def test_stage_of_rejects_bad_arguments(i, num_stages):
 
 @settings(max_examples=150, deadline=None)
 @given(sampler_cases())
-def test_no_stage_holds_more_than_max_per_task_of_one_task(case):
+def test_no_stage_holds_more_than_group_size_of_one_task(case):
     sampler = TaskBalancedSampler(**case)
     for batch in sampler:
         counts = _stage_task_counts(batch, case["dataset_task_ids"], case["num_stages"])
@@ -114,7 +114,7 @@ def test_batches_mix_tasks_evenly_when_the_data_allows():
         assert sorted(counts.values()) == [1] * 8
 
 
-def test_batch_size_not_divisible_by_stage_num_says_what_to_change():
+def test_batch_size_not_divisible_by_num_stages_says_what_to_change():
     with pytest.raises(ValueError, match=r"batch_size=5 is not divisible by num_stages=2.*4 or 6"):
         TaskBalancedSampler(["a"] * 10, batch_size=5, group_size=4, num_stages=2)
 

@@ -46,6 +46,8 @@ def robot_observation_space(height: int = 32, width: int = 32) -> spaces.Dict:
         spaces.MultiDiscrete([3, 4, 5]),
         spaces.MultiDiscrete(np.array([[2, 3], [4, 5]]), start=np.array([[0, 1], [-2, 3]])),
         robot_observation_space(),
+        spaces.Tuple([spaces.Discrete(2), spaces.Box(-1, 1, (), np.float64)]),
+        spaces.Dict({"a": spaces.Tuple([spaces.MultiBinary(3), spaces.Dict({"b": spaces.Discrete(4)})])}),
     ],
     ids=repr,
 )
@@ -112,8 +114,8 @@ def test_random_boxes_round_trip(spec: dict[str, Any]) -> None:
 
 @pytest.mark.parametrize(
     "space",
-    [spaces.Tuple([spaces.Discrete(2)]), spaces.Text(5)],
-    ids=["Tuple", "Text"],
+    [spaces.Sequence(spaces.Discrete(2)), spaces.Text(5)],
+    ids=["Sequence", "Text"],
 )
 def test_unsupported_spaces_are_refused_naming_the_type(space: spaces.Space) -> None:
     with pytest.raises(ValueError, match=f"space: {type(space).__name__} is not supported"):
@@ -133,7 +135,8 @@ BOX = {"type": "Box", "dtype": "float32", "shape": [2], "low": -1, "high": 1}
     ("description", "problem"),
     [
         ([1, 2], "space: expected an object, got list"),
-        ({"type": "Tuple"}, r"space\.type: 'Tuple' is not one of"),
+        ({"type": "Text"}, r"space\.type: 'Text' is not one of"),
+        ({"type": "Tuple", "spaces": {"a": BOX}}, r"space\.spaces: expected a list, got dict"),
         ({"shape": [2]}, r"space\.type: None is not one of"),
         ({"type": "Box", "dtype": "float32"}, r"space: a Box needs exactly the fields .* missing \['high', 'low'"),
         ({**BOX, "seed": 3}, r"unknown \['seed'\]"),

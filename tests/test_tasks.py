@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import mujoco
+import gymnasium
 import numpy as np
 import pytest
 import yaml
@@ -331,18 +332,29 @@ def test_gym_task_gives_its_own_observation_as_proprio_and_a_render_image() -> N
         env.close()
 
 
-def test_gym_task_without_cameras_has_no_images() -> None:
+def test_gym_task_without_cameras_is_the_env_itself() -> None:
     env = make_env("gym/HalfCheetah-v5", CameraConfig(names=()))
+    local = gymnasium.make("HalfCheetah-v5")
     try:
-        obs, _ = env.reset(options={"state_id": 0})
-        assert set(obs) == {"proprio"} and set(env.observation_space.spaces) == {"proprio"}
+        assert env.observation_space == local.observation_space and env.action_space == local.action_space
+        obs, info = env.reset(seed=7)
+        expected, expected_info = local.reset(seed=7)
+        assert np.array_equal(obs, expected) and obs.dtype == np.float64
+        assert info == {**expected_info, "success": False, "task_id": "gym/HalfCheetah-v5"}
+        fixed, info = env.reset(options={"state_id": 0})
+        assert np.array_equal(fixed, env.reset(options={"state_id": 0})[0]) and info["state_id"] == 0
     finally:
         env.close()
+        local.close()
 
 
-def test_gym_task_with_a_non_box_action_space_is_refused() -> None:
-    with pytest.raises(ValueError, match="gym/CartPole-v1: its action space"):
-        task_spaces("gym/CartPole-v1", CameraConfig(names=()))
+def test_gym_task_with_a_discrete_action_space_is_served_without_cameras() -> None:
+    assert task_spaces("gym/CartPole-v1", CameraConfig(names=()))[1] == gymnasium.spaces.Discrete(2)
+
+
+def test_gym_task_with_cameras_needs_box_spaces() -> None:
+    with pytest.raises(ValueError, match="gym/CartPole-v1: its observation space|gym/CartPole-v1: its action space"):
+        task_spaces("gym/CartPole-v1", CameraConfig(names=("render",), height=8, width=8))
 
 
 # Render presets.

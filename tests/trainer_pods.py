@@ -104,6 +104,7 @@ class PodSpec:
     envs_per_worker: int = 1
     generation: int = 0
     render: RenderPreset | None = "lean"
+    make_kwargs: dict = field(default_factory=dict)
 
     def assignment(self) -> Assignment:
         blocks, start = [], 0
@@ -120,6 +121,7 @@ class PodSpec:
             render=self.render,
             max_episode_steps=self.max_episode_steps,
             envs_per_worker=self.envs_per_worker,
+            make_kwargs=self.make_kwargs,
         )
 
 
@@ -159,6 +161,8 @@ def standalone_pods(specs: Sequence[PodSpec], workdir: Path) -> Iterator[list[Ru
     """Start one pod process per spec, wait until all are ready, yield them, kill them all."""
     workdir.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    # The pods import the tests' own env package (gym_custom_env) as a user's pods would theirs.
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(Path(__file__).parent), env.get("PYTHONPATH")) if p)
     for var in ("CONTROLLER_URL", "POD_IP", "VECSIM_ADVERTISE_URL"):
         env.pop(var, None)
     pods: list[RunningPod] = []

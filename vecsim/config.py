@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -66,7 +66,12 @@ class LiberoProtocol(_Model):
 
 MAX_EPISODE_STEPS_DOC = (
     "steps after which every env truncates; unset: each LIBERO suite's own limit (spatial 220, "
-    "object 280, goal 300, libero_10 520, libero_90 400) for LIBERO tasks, 300 for the others"
+    "object 280, goal 300, libero_10 520, libero_90 400) for LIBERO tasks, a gym id's own limit for gym "
+    "tasks, 300 for the others"
+)
+MAKE_KWARGS_DOC = (
+    "keyword arguments for gymnasium.make, per gym task id: {task_id: {name: value}} "
+    "(JSON values; a task left out gets none)"
 )
 RENDER_DOC = "render preset; unset: 'full' for LIBERO tasks (LIBERO's own pixels), 'lean' for the others"
 
@@ -105,6 +110,7 @@ class Assignment(_Model):
     envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
     max_episode_steps: int | None = Field(None, ge=1, description=MAX_EPISODE_STEPS_DOC)
     libero: LiberoProtocol = LiberoProtocol()
+    make_kwargs: dict[str, dict[str, Any]] = Field(default_factory=dict, description=MAKE_KWARGS_DOC)
 
     _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 
@@ -146,6 +152,7 @@ class JobSpec(_Model):
     envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
     max_episode_steps: int | None = Field(None, ge=1, description=MAX_EPISODE_STEPS_DOC)
     libero: LiberoProtocol = LiberoProtocol()
+    make_kwargs: dict[str, dict[str, Any]] = Field(default_factory=dict, description=MAKE_KWARGS_DOC)
 
     _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 

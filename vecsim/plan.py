@@ -156,6 +156,7 @@ def _assignment(job: JobSpec, generation: int, pod: str, stage_id: int, tasks: t
         envs_per_worker=job.envs_per_worker,
         max_episode_steps=job.max_episode_steps,
         libero=job.libero,
+        make_kwargs={task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}},
     )
 
 

@@ -5,9 +5,13 @@ blocks, one per task, on a gymnasium ``AsyncVectorEnv`` (shared memory, no copie
 ``forkserver`` processes: the default fork context hangs once the parent holds an EGL context).
 
 gymnasium steps every worker on every call, so each worker's env takes a command-carrying action
-``{"cmd": noop|step|reset, "state_id", "action", "record"}`` per slot: one call carries the resets
-or steps of exactly the named envs, and every other env returns its last observation without
-advancing. A step carries a chunk of K actions per env (``action`` ``[slots, K, ...]``, K from 1
+``{"cmd": noop|step|reset|seed, "state_id", "seed", "action", "record"}`` per slot: one call
+carries the resets or steps of exactly the named envs, and every other env returns its last
+observation without advancing. ``reset`` puts an env in a fixed initial state (state id);
+``seed`` is the env's own ``reset(seed=..., options=...)`` (seed -1: None; the options of the
+call are handed to the workers just before). An env's own ``info`` (beyond vecsim's keys) and an
+exception an env raises come back per slot through the worker's pipe: the env that raised is
+named in the answer and every other env of the call goes on (:class:`EnvError`). A step carries a chunk of K actions per env (``action`` ``[slots, K, ...]``, K from 1
 to ``max_chunk``): the worker applies them in order and stops an env at its first termination or
 truncation. Per-slot, per-action rewards and flags come back in one float64 array (each array
 written to shared memory costs microseconds per worker and call, which cheap scenes feel).
@@ -33,10 +37,13 @@ Module-level code imports nothing heavy and starts nothing: it is safe under ``f
 
 from __future__ import annotations
 
+import builtins
 import ctypes
 import ctypes.util
 import functools
 import glob
+import json
+import keyword
 import logging
 import math
 import multiprocessing
@@ -46,6 +53,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Sequence
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,15 +61,20 @@ from typing import Any
 import gymnasium
 import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
-from gymnasium.vector.utils import create_empty_array
+from gymnasium.vector.utils import batch_space, create_empty_array
 
+from vecsim import wire
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
 from vecsim.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
+from vecsim.tasks._gym import VECSIM_INFO_KEYS, GymTaskEnv
 
 log = logging.getLogger("vecsim.sim")
 
-NOOP, STEP, RESET = 0, 1, 2
+NOOP, STEP, RESET, SEED = 0, 1, 2, 3
 _MAX_STATE_ID = 2**31 - 1
+_MAX_SEED = 2**63 - 1
+# What get_attr / call / set_attr may name: public attributes; close stays the pod's to call.
+_REFUSED_ATTRS = frozenset({"close", "reset", "step", "unwrapped", "np_random"})
 # Columns of a worker's per-slot, per-action result rows.
 _REWARD, _TERMINATED, _TRUNCATED, _SUCCESS = 0, 1, 2, 3
 # The longest chunk a pod takes by default: the chunk axis of a worker's shared result rows.
@@ -88,6 +101,28 @@ class SimBuildError(RuntimeError):
     """Building the envs failed; the message names the task and what went wrong."""
 
 
+@dataclass(frozen=True)
+class EnvError:
+    """An exception an env raised in a reset, step or attribute call: ``row`` of the answer (the
+    env ``env_ids[row]``), the exception's type name and its message. The env stays as the
+    exception left it; the pod's other envs are not touched."""
+
+    row: int
+    type_name: str
+    message: str
+
+
+def builtin_exception(type_name: str, message: str) -> BaseException:
+    """The exception of builtin type ``type_name`` with ``message``; a ``RuntimeError`` naming the
+    type for any other (a type is never rebuilt from anything but its builtin name)."""
+    kind = getattr(builtins, type_name, None)
+    if isinstance(kind, type) and issubclass(kind, Exception):
+        try:
+            return kind(message)
+        except Exception:  # noqa: BLE001 - a builtin that takes other arguments (UnicodeDecodeError)
+            pass
+    return RuntimeError(f"{type_name}: {message}")
+
 def _describe(task_ids: Sequence[str], env_indices: Sequence[int]) -> str:
     """Name the envs of a run of env indices by task: ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
     runs: list[tuple[str, int, int]] = []
@@ -110,10 +145,11 @@ class _WorkerSpec:
     camera: CameraConfig
     render: RenderPreset | None
     max_episode_steps: int | None
-    observation_space: gymnasium.spaces.Dict
-    action_space: gymnasium.spaces.Box
+    observation_space: gymnasium.Space
+    action_space: gymnasium.Space
     max_chunk: int = DEFAULT_MAX_CHUNK
     libero: LiberoProtocol = LiberoProtocol()
+    make_kwargs: Any = None
 
     def describe(self) -> str:
         """Return the hosted envs by task, e.g. ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""
@@ -144,36 +180,80 @@ def _release_compiler_memory() -> None:
         libc.malloc_trim(0)
 
 
-def _stacked(space: gymnasium.Space, slots: int) -> gymnasium.Space:
-    if isinstance(space, gymnasium.spaces.Dict):
-        return gymnasium.spaces.Dict({key: _stacked(sub, slots) for key, sub in space.spaces.items()})
-    if isinstance(space, gymnasium.spaces.Box):
-        shape = (slots, *space.shape)
-        return gymnasium.spaces.Box(
-            np.broadcast_to(space.low, shape), np.broadcast_to(space.high, shape), shape, space.dtype
-        )
-    raise TypeError(f"cannot stack a {type(space).__name__} space")
+def _array_box(shape: tuple[int, ...], dtype: np.dtype) -> gymnasium.spaces.Box:
+    """A Box of ``shape`` and ``dtype`` holding anything of that dtype (a command's field)."""
+    dtype = np.dtype(dtype)
+    if dtype.kind == "f":
+        return gymnasium.spaces.Box(-np.inf, np.inf, shape, dtype)
+    info = np.iinfo(dtype) if dtype.kind in "iu" else None
+    low, high = (info.min, info.max) if info is not None else (0, 1)
+    return gymnasium.spaces.Box(low, high, shape, dtype)
 
 
 def _zeros(space: gymnasium.Space) -> Any:
     if isinstance(space, gymnasium.spaces.Dict):
         return {key: _zeros(sub) for key, sub in space.spaces.items()}
+    if isinstance(space, gymnasium.spaces.Tuple):
+        return tuple(_zeros(sub) for sub in space.spaces)
     return np.zeros(space.shape, dtype=space.dtype)
 
 
-def _write_slot(out: dict[str, Any], slot: int, value: dict[str, Any]) -> None:
-    for key, item in value.items():
-        if isinstance(item, dict):
+def _write_slot(out: Any, slot: int, value: Any) -> None:
+    """Write one env's observation into slot ``slot`` of the batched ``out`` (a dict may leave
+    keys out: deferred images)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
             _write_slot(out[key], slot, item)
-        else:
-            out[key][slot] = item
+    elif isinstance(value, tuple):
+        for sub, item in zip(out, value):
+            _write_slot(sub, slot, item)
+    else:
+        out[slot] = value
 
 
 def _gather(tree: Any, workers: np.ndarray, slots: np.ndarray) -> Any:
     # Fancy indexing copies, so results never alias the shared memory the next call overwrites.
     if isinstance(tree, dict):
         return {key: _gather(sub, workers, slots) for key, sub in tree.items()}
+    if isinstance(tree, tuple):
+        return tuple(_gather(sub, workers, slots) for sub in tree)
     return tree[workers, slots]
+
+
+def _own_info(info: dict[str, Any]) -> dict[str, Any]:
+    """An env's info without vecsim's own keys (those travel as flags)."""
+    return {key: value for key, value in info.items() if key not in VECSIM_INFO_KEYS}
+
+
+def _jsonable(value: Any, what: str) -> Any:
+    """``value`` as plain JSON data, or ValueError saying it cannot travel."""
+    try:
+        data = wire.to_jsonable(value)
+        json.dumps(data, allow_nan=False)
+    except (wire.WireError, TypeError, ValueError) as exc:
+        raise ValueError(f"{what} is a {type(value).__name__}, not JSON-serialisable: {exc}") from None
+    return data
+
+
+def _attr_op(target: gymnasium.Env, op: str, name: str, payload: Any) -> Any:
+    what = f"attribute {name!r}"
+    if op == "get":
+        return _jsonable(target.get_wrapper_attr(name), what)
+    if op == "call":
+        attr = target.get_wrapper_attr(name)
+        args, kwargs = payload
+        return _jsonable(attr(*args, **kwargs) if callable(attr) else attr, f"the result of {name!r}")
+    current = target.get_wrapper_attr(name)
+    if callable(current) or isinstance(current, (gymnasium.Space, np.random.Generator)):
+        raise ValueError(f"{what} is a {type(current).__name__}; set_attr sets JSON-valued attributes only")
+    _jsonable(current, what)
+    if isinstance(current, np.ndarray):
+        value = np.asarray(payload, dtype=current.dtype)
+        if value.shape != current.shape:
+            raise ValueError(f"{what}: expected shape {list(current.shape)}, got {list(value.shape)}")
+        payload = value
+    target.set_wrapper_attr(name, payload)
+    return None
 
 
 class _WorkerEnv(gymnasium.Env):
@@ -190,7 +270,7 @@ class _WorkerEnv(gymnasium.Env):
         slots = worker.slots
         self.observation_space = gymnasium.spaces.Dict(
             {
-                "obs": _stacked(worker.observation_space, slots),
+                "obs": batch_space(worker.observation_space, slots),
                 # Per slot and chunk action: reward, terminated, truncated, success (zeros
                 # after the action an env stopped at).
                 "flags": gymnasium.spaces.Box(-np.inf, np.inf, (slots, worker.max_chunk, 4), np.float64),
@@ -201,16 +281,22 @@ class _WorkerEnv(gymnasium.Env):
             }
         )
         # A call sends the chunk axis of ``action`` only as long as its chunk (K), not max_chunk.
+        action = worker.action_space
         self.action_space = gymnasium.spaces.Dict(
             {
-                "cmd": gymnasium.spaces.MultiDiscrete([3] * slots),
+                "cmd": gymnasium.spaces.MultiDiscrete([4] * slots),
                 "state_id": gymnasium.spaces.Box(0, _MAX_STATE_ID, (slots,), np.int64),
-                "action": _stacked(_stacked(worker.action_space, worker.max_chunk), slots),
+                "seed": gymnasium.spaces.Box(-1, _MAX_SEED, (slots,), np.int64),
+                "action": _array_box((slots, worker.max_chunk, *action.shape), action.dtype),
                 "record": gymnasium.spaces.MultiBinary(slots),
             }
         )
         self._envs: list[TaskEnv] = []
         self._out: dict[str, Any] = _zeros(self.observation_space)
+        self._reset_options: dict[str, Any] | None = None
+        # Per call: each slot's own info and the exceptions slots raised, for the pipe.
+        self._infos: list[tuple[int, dict[str, Any]]] = []
+        self._errors: list[tuple[int, str, str]] = []
 
     def build(self) -> int:
         """Make this worker's envs and reset each to state 0; return how many were made.
@@ -224,7 +310,8 @@ class _WorkerEnv(gymnasium.Env):
         try:
             for slot, task_id in enumerate(worker.task_ids):
                 steps = episode_limit(task_id, worker.max_episode_steps)
-                env = make_env(task_id, worker.camera, worker.render, steps, worker.libero)
+                kwargs = (worker.make_kwargs or {}).get(task_id)
+                env = make_env(task_id, worker.camera, worker.render, steps, worker.libero, kwargs)
                 self._envs.append(env)
                 spaces = (env.observation_space, env.action_space)
                 if spaces != (worker.observation_space, worker.action_space):
@@ -245,11 +332,28 @@ class _WorkerEnv(gymnasium.Env):
         _release_compiler_memory()
         return len(self._envs)
 
-    def _reset_slot(self, slot: int, state_id: int) -> None:
-        observation, info = self._envs[slot].reset(options={"state_id": state_id})
+    def _reset_slot(self, slot: int, state_id: int, seed: int | None = None, seeded: bool = False) -> None:
+        """Reset one env: to fixed state ``state_id``, or (``seeded``) the env's own reset with
+        ``seed`` and the call's options."""
+        env = self._envs[slot]
+        if seeded:
+            observation, info = env.reset(seed=seed, options=self._reset_options)
+        else:
+            observation, info = env.reset(options={"state_id": state_id})
         _write_slot(self._out["obs"], slot, observation)
         self._out["flags"][slot] = 0.0
         self._out["flags"][slot, 0, _SUCCESS] = info["success"]
+        self._keep_info(slot, info)
+
+    def _keep_info(self, slot: int, info: dict[str, Any]) -> None:
+        own = _own_info(info)
+        if own:
+            self._infos.append((slot, own))
+
+    def set_reset_options(self, options: dict[str, Any] | None) -> None:
+        """Hold ``options`` for the seeded resets of the next command (the call hands them over
+        just before it). Returns None."""
+        self._reset_options = options
 
     def _step_slot(self, slot: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
         """Apply ``chunk``'s actions to one env until it terminates or truncates; return the
@@ -260,6 +364,7 @@ class _WorkerEnv(gymnasium.Env):
         frames: list[dict[str, np.ndarray]] = []
         render_s = 0.0
         observation = None
+        info: dict[str, Any] = {}
         for k, action in enumerate(chunk):
             observation, reward, terminated, truncated, info = env.step(action)
             rows[k] = (reward, terminated, truncated, info["success"])
@@ -271,6 +376,7 @@ class _WorkerEnv(gymnasium.Env):
                 render_s += time.perf_counter() - drawn
         if observation is not None:
             _write_slot(self._out["obs"], slot, observation)
+            self._keep_info(slot, info)
         return frames, render_s
 
     def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
@@ -280,25 +386,61 @@ class _WorkerEnv(gymnasium.Env):
         touched = []
         recorded: list[tuple[int, list[dict[str, np.ndarray]]]] = []
         render_s = 0.0
+        self._infos, self._errors = [], []
         for slot in range(len(self._envs)):
             cmd = int(command["cmd"][slot])
-            if cmd == RESET:
-                self._reset_slot(slot, int(command["state_id"][slot]))
-                touched.append(slot)
-            elif cmd == STEP:
-                record = bool(command["record"][slot])
-                frames, drawing_s = self._step_slot(slot, command["action"][slot], record)
-                render_s += drawing_s
-                if record:
-                    recorded.append((slot, frames))
-                touched.append(slot)
+            if cmd == NOOP:
+                continue
+            try:
+                if cmd == STEP:
+                    record = bool(command["record"][slot])
+                    frames, drawing_s = self._step_slot(slot, command["action"][slot], record)
+                    render_s += drawing_s
+                    if record:
+                        recorded.append((slot, frames))
+                else:
+                    seed = int(command["seed"][slot])
+                    self._reset_slot(slot, int(command["state_id"][slot]), None if seed < 0 else seed, cmd == SEED)
+            except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
+                self._out["flags"][slot] = 0.0
+                self._errors.append((slot, type(exc).__name__, str(exc)))
+                continue
+            touched.append(slot)
+        self._reset_options = None
         stepped = time.perf_counter()
         physics_s = stepped - started - render_s
         self._render(touched)
         render_s += time.perf_counter() - stepped
         renders = sum(len(frames) for _, frames in recorded) + (len(touched) if self._envs[0].renderer else 0)
         self._out["timing"][:] = (physics_s, render_s, renders)
-        return self._out, 0.0, False, False, {"frames": recorded} if recorded else {}
+        info: dict[str, Any] = {"frames": recorded} if recorded else {}
+        if self._infos:
+            info["env_info"] = self._infos
+        if self._errors:
+            info["env_errors"] = self._errors
+        return self._out, 0.0, False, False, info
+
+    def env_attr(self, requests: dict[int, tuple[str, str, Any]]) -> list[tuple[int, bool, Any]]:
+        """Run ``get``, ``call`` or ``set`` on this worker's envs named in ``requests`` (env index
+        -> ``(op, name, payload)``); return ``(env index, ok, JSON result or error text)`` each.
+
+        ``get``: the attribute; ``call``: the attribute called with ``payload`` ``(args, kwargs)``
+        if callable, else the attribute; ``set``: ``payload`` replaces a JSON-valued attribute
+        (an array one keeps its dtype and shape). A gym task's attributes are its gymnasium env's
+        (through its wrappers).
+        """
+        out: list[tuple[int, bool, Any]] = []
+        for slot, env_index in enumerate(self.worker.env_indices):
+            if env_index not in requests:
+                continue
+            op, name, payload = requests[env_index]
+            env = self._envs[slot]
+            target = env.inner if isinstance(env, GymTaskEnv) else env
+            try:
+                out.append((env_index, True, _attr_op(target, op, name, payload)))
+            except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
+                out.append((env_index, False, (type(exc).__name__, str(exc))))
+        return out
 
     def _draw(self, slots: list[int]) -> dict[str, np.ndarray]:
         """Render every camera of ``slots``' envs in one batch; return ``{camera: uint8[len(slots), H, W, 3]}``."""
@@ -329,11 +471,11 @@ class _WorkerEnv(gymnasium.Env):
         self._envs = []
 
 
-def _empty_spaces() -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+def _empty_spaces() -> tuple[gymnasium.Space, gymnasium.Space]:
     return gymnasium.spaces.Dict({}), gymnasium.spaces.Box(-1.0, 1.0, (0,), np.float32)
 
 
-def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasium.Space]:
     """Check that ``assignment`` can be built; return its ``(observation_space, action_space)``.
 
     Cheap (no env is built, except that a gym task's env is made to read its spaces), so a pod
@@ -344,11 +486,12 @@ def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.spaces.Dict, gy
         UnknownTaskError: a task id no provider knows.
         TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
         InvalidRequestError: the tasks do not share one observation space and one action space.
-        ValueError: a gym task with non-Box spaces.
+        ValueError: a gym task with a space vecsim cannot serve (named).
     """
-    first: tuple[str, gymnasium.spaces.Dict, gymnasium.spaces.Box] | None = None
+    first: tuple[str, gymnasium.Space, gymnasium.Space] | None = None
     for block in assignment.tasks:
-        observation_space, action_space = task_spaces(block.task_id, assignment.camera)
+        kwargs = assignment.make_kwargs.get(block.task_id)
+        observation_space, action_space = task_spaces(block.task_id, assignment.camera, kwargs)
         if first is None:
             first = (block.task_id, observation_space, action_space)
         elif (observation_space, action_space) != first[1:]:
@@ -413,12 +556,14 @@ class CallTiming:
 class ChunkResult:
     """What one chunk step answers, over the named envs in the given order (n envs, chunk K).
 
-    ``reward`` float32, ``terminated``, ``truncated``, ``success`` bool, all ``[n, K]``: entry
+    ``reward`` float64, ``terminated``, ``truncated``, ``success`` bool, all ``[n, K]``: entry
     ``[i, k]`` belongs to env i's action k, zero/false from the action after env i stopped on.
     ``num_steps`` int32 ``[n]``: actions applied (K unless the env terminated or truncated first).
     ``obs``: the observation after each env's last applied action, batched ``[n, ...]``.
     ``frames``: ``{camera: uint8[m, K, H, W, 3]}`` for the m recorded envs, in the order asked,
     the frame after each applied action (zeros after the env stopped); empty when none is recorded.
+    ``env_info``: per row, the env's own info after its last applied action (``{}`` where it has
+    none beyond vecsim's keys). ``errors``: the envs that raised (:class:`EnvError`), in row order.
     """
 
     obs: dict[str, Any]
@@ -428,6 +573,8 @@ class ChunkResult:
     success: np.ndarray
     num_steps: np.ndarray
     frames: dict[str, np.ndarray]
+    env_info: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    errors: list[EnvError] = dataclasses.field(default_factory=list)
 
 
 class TaskGroupedVectorEnv:
@@ -495,6 +642,7 @@ class TaskGroupedVectorEnv:
                 action_space=self.single_action_space,
                 max_chunk=max_chunk,
                 libero=assignment.libero,
+                make_kwargs=assignment.make_kwargs,
             )
             for first in range(0, self.num_envs, slots)
         ]
@@ -622,6 +770,11 @@ class TaskGroupedVectorEnv:
     def _chunk(self, actions: Any, ids: np.ndarray) -> np.ndarray:
         """Return ``actions`` (``[n, K, *action shape]``, K from 0 to ``max_chunk``) checked."""
         space = self.single_action_space
+        if not isinstance(space, gymnasium.spaces.Box):
+            raise InvalidRequestError(
+                f"actions: chunks of actions are for Box action spaces; this pod's is {type(space).__name__}: "
+                "send one action per env"
+            )
         values = self._numbers(actions)
         if ids.size == 0 and values.size == 0 and values.ndim != 2 + len(space.shape):
             return np.zeros((0, 0, *space.shape), dtype=space.dtype)
@@ -644,7 +797,10 @@ class TaskGroupedVectorEnv:
         return values
 
     def _finite(self, chunk: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        cast = chunk.astype(self.single_action_space.dtype)
+        space = self.single_action_space
+        if np.dtype(space.dtype).kind != "f":
+            return self._in_range(chunk, ids)
+        cast = chunk.astype(space.dtype)
         finite = np.isfinite(cast.reshape(*cast.shape[:2], math.prod(cast.shape[2:]))).all(axis=2)
         if not finite.all():
             row, k = (int(i[0]) for i in np.nonzero(~finite))
@@ -653,6 +809,29 @@ class TaskGroupedVectorEnv:
                 f"actions: {where} for env {int(ids[row])} is not finite (NaN, inf or too large)"
             )
         return cast
+
+    def _in_range(self, chunk: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """``chunk`` in the integer action space's dtype, each action a member of the space."""
+        space = self.single_action_space
+        flat = chunk.reshape(*chunk.shape[:2], -1)
+        if chunk.dtype.kind == "f" and not (np.isfinite(flat) & (flat == np.round(flat))).all():
+            bad = int(np.nonzero(~(np.isfinite(flat) & (flat == np.round(flat))).all(axis=2))[0][0])
+            raise InvalidRequestError(f"actions: the action for env {int(ids[bad])} is not a whole number")
+        if isinstance(space, gymnasium.spaces.Discrete):
+            low, high = np.int64(space.start), np.int64(space.start + space.n - 1)
+        elif isinstance(space, gymnasium.spaces.MultiDiscrete):
+            low, high = space.start.reshape(-1), (space.start + space.nvec - 1).reshape(-1)
+        elif isinstance(space, gymnasium.spaces.MultiBinary):
+            low, high = 0, 1
+        else:
+            low, high = space.low.reshape(-1), space.high.reshape(-1)
+        inside = ((flat >= low) & (flat <= high)).all(axis=2)
+        if not inside.all():
+            row = int(np.nonzero(~inside)[0][0])
+            raise InvalidRequestError(
+                f"actions: the action {flat[row, 0].tolist()} for env {int(ids[row])} is not in the action space {space}"
+            )
+        return chunk.astype(space.dtype)
 
     def _record(self, record_env_ids: Any, ids: np.ndarray) -> np.ndarray:
         """Return the rows of ``ids`` that ``record_env_ids`` names, in its order."""
@@ -670,29 +849,90 @@ class TaskGroupedVectorEnv:
 
     # Calls.
 
-    def reset_envs(self, env_ids: Any, state_ids: Any) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Reset the named envs to the named fixed initial states; no other env changes.
+    def reset_envs(
+        self, env_ids: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset the named envs; no other env changes.
+
+        With ``state_ids``, each to the named fixed initial state; with ``seeds`` (one int or
+        None per env) instead, as the env's own ``reset(seed=seeds[i], options=options)``.
 
         Returns:
             ``(obs, info)``: ``obs`` batched over the named envs in the given order, ``info``
-            ``{"success": bool[n], "task_id": list[str]}``. Empty ``env_ids``: empty results.
+            ``{"success": bool[n], "task_id": list[str], "env_info": list[dict], "errors":
+            list[EnvError]}``. Empty ``env_ids``: empty results.
 
         Raises:
             UnknownEnvError: an env index out of range.
-            InvalidRequestError: duplicate env ids, non-integer ids, lengths that differ, or a
-                state id out of its task's range.
+            InvalidRequestError: duplicate env ids, non-integer ids, lengths that differ, a
+                state id out of its task's range, a seed that is not a non-negative int or None,
+                or both or neither of ``state_ids`` and ``seeds``.
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
         ids = self._env_ids(env_ids)
-        states = self._state_ids(state_ids, ids)
+        if (state_ids is None) == (seeds is None):
+            raise InvalidRequestError("give either state_ids (fixed initial states) or seeds (the envs' own reset)")
+        if seeds is None:
+            states = self._state_ids(state_ids, ids)
+            if options:
+                raise InvalidRequestError("options: go with seeds (the envs' own reset), not with state_ids")
+        else:
+            seed_values = self._seeds(seeds, ids)
         if ids.size == 0:
-            return self._empty_obs(), {"success": np.zeros(0, dtype=bool), "task_id": []}
+            return self._empty_obs(), {"success": np.zeros(0, dtype=bool), "task_id": [], "env_info": [], "errors": []}
         command = self._command()
         workers, slots = self._location[ids].T
-        command["cmd"][workers, slots] = RESET
-        command["state_id"][workers, slots] = states
-        obs, rows, _ = self._run(command, workers, slots)
-        return obs, {"success": rows[:, 0, _SUCCESS] != 0, "task_id": [self.task_ids[i] for i in ids]}
+        if seeds is None:
+            command["cmd"][workers, slots] = RESET
+            command["state_id"][workers, slots] = states
+        else:
+            command["cmd"][workers, slots] = SEED
+            command["seed"][workers, slots] = seed_values
+        obs, rows, info = self._run(command, workers, slots, options if seeds is not None else None)
+        env_info, errors = self._per_row(info, ids)
+        return obs, {
+            "success": rows[:, 0, _SUCCESS] != 0,
+            "task_id": [self.task_ids[i] for i in ids],
+            "env_info": env_info,
+            "errors": errors,
+        }
+
+    def _seeds(self, seeds: Any, ids: np.ndarray) -> np.ndarray:
+        """``seeds`` (a list of non-negative ints or None, one per env) as int64, None as -1."""
+        if not isinstance(seeds, (list, tuple, np.ndarray)):
+            raise InvalidRequestError(f"seeds: expected a list of ints or nulls, got {type(seeds).__name__}")
+        if len(seeds) != ids.size:
+            raise InvalidRequestError(f"seeds: {len(seeds)} seeds for {ids.size} env_ids")
+        out = np.full(ids.size, -1, dtype=np.int64)
+        for i, seed in enumerate(seeds):
+            if seed is None:
+                continue
+            if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+                raise InvalidRequestError(f"seeds: seed {i} is {seed!r:.50}, not an int or null")
+            if not 0 <= int(seed) <= _MAX_SEED:
+                raise InvalidRequestError(f"seeds: seed {i} ({seed}) is outside 0..{_MAX_SEED}")
+            out[i] = int(seed)
+        return out
+
+    def _per_row(self, info: dict[str, Any], ids: np.ndarray) -> tuple[list[dict[str, Any]], list[EnvError]]:
+        """Each row's own env info and the rows whose env raised, from the workers' gathered info."""
+        row_of = {(int(w), int(s)): row for row, (w, s) in enumerate(self._location[ids])}
+        env_info: list[dict[str, Any]] = [{} for _ in range(ids.size)]
+        for worker, entries in enumerate(info.get("env_info", ())):
+            for slot, own in entries or ():
+                row = row_of.get((worker, slot))
+                if row is not None:
+                    env_info[row] = own
+        errors = []
+        for worker, entries in enumerate(info.get("env_errors", ())):
+            for slot, type_name, message in entries or ():
+                row = row_of.get((worker, slot))
+                if row is not None:
+                    errors.append(EnvError(row, type_name, message))
+        errors.sort(key=lambda e: e.row)
+        for error in errors:
+            log.info("env %d (%s) raised %s: %s", int(ids[error.row]), self.task_ids[int(ids[error.row])], error.type_name, error.message)
+        return env_info, errors
 
     def step_envs(
         self, env_ids: Any, actions: Any
@@ -700,8 +940,9 @@ class TaskGroupedVectorEnv:
         """Step the named envs one control step each; no other env advances.
 
         Returns:
-            ``(obs, reward float32[n], terminated bool[n], truncated bool[n], {"success": bool[n]})``
-            over the named envs in the given order. Empty ``env_ids``: empty results.
+            ``(obs, reward float64[n], terminated bool[n], truncated bool[n], {"success": bool[n],
+            "env_info", "errors"})`` over the named envs in the given order (``env_info`` and
+            ``errors`` as in :class:`ChunkResult`). Empty ``env_ids``: empty results.
 
         Raises:
             UnknownEnvError: an env index out of range.
@@ -716,7 +957,7 @@ class TaskGroupedVectorEnv:
             result.reward[:, 0],
             result.terminated[:, 0],
             result.truncated[:, 0],
-            {"success": result.success[:, 0]},
+            {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors},
         )
 
     def chunk_step_envs(self, env_ids: Any, actions: Any, record_env_ids: Any = ()) -> ChunkResult:
@@ -748,13 +989,15 @@ class TaskGroupedVectorEnv:
         workers, slots = self._location[ids].T
         if n == 0 or k == 0:
             obs = self._empty_obs() if n == 0 else self._current(workers, slots)
-            return self._result(obs, np.zeros((n, k, 4)), recorded)
+            result = self._result(obs, np.zeros((n, k, 4)), recorded)
+            return dataclasses.replace(result, env_info=[{} for _ in range(n)])
         command = self._command(k)
         command["cmd"][workers, slots] = STEP
         command["action"][workers, slots] = chunk
         command["record"][workers[recorded], slots[recorded]] = 1
         obs, rows, info = self._run(command, workers, slots)
-        result = self._result(obs, rows[:, :k], recorded)
+        env_info, errors = self._per_row(info, ids)
+        result = dataclasses.replace(self._result(obs, rows[:, :k], recorded), env_info=env_info, errors=errors)
         # gymnasium gathers each worker's info["frames"] into an object array, None where a
         # worker recorded nothing.
         drawn: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
@@ -777,12 +1020,12 @@ class TaskGroupedVectorEnv:
         # An env stops at its first termination or truncation; one that never did applied all K.
         first_stop = np.argmax(stopped, axis=1) if k else np.zeros(n, dtype=np.int64)
         num_steps = np.where(stopped.any(axis=1), first_stop + 1, k).astype(np.int32)
-        images = self.single_observation_space.spaces.get("images")
+        images = self._images_space()
         cameras = images.spaces if images is not None and recorded.size else {}
         frames = {camera: np.zeros((recorded.size, k, *space.shape), space.dtype) for camera, space in cameras.items()}
         return ChunkResult(
             obs=obs,
-            reward=rows[:, :, _REWARD].astype(np.float32),
+            reward=rows[:, :, _REWARD].copy(),
             terminated=rows[:, :, _TERMINATED] != 0,
             truncated=rows[:, :, _TRUNCATED] != 0,
             success=rows[:, :, _SUCCESS] != 0,
@@ -799,7 +1042,7 @@ class TaskGroupedVectorEnv:
             SimCrashedError: the workers crashed or were closed.
         """
         ids = self._env_ids(np.array([env_id]))
-        images = self.single_observation_space.spaces.get("images")
+        images = self._images_space()
         cameras = [] if images is None else list(images.spaces)
         if camera not in cameras:
             raise InvalidRequestError(f"camera: no camera {camera!r}; cameras: {cameras}")
@@ -826,7 +1069,57 @@ class TaskGroupedVectorEnv:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
+    def env_attr(self, env_ids: Any, op: str, name: Any, payload: Any = None) -> tuple[list[Any], list[EnvError]]:
+        """Get (``op`` ``get``), call (``call``, ``payload`` ``(args, kwargs)``) or set (``set``,
+        ``payload`` one value per env) attribute ``name`` of each named env.
+
+        Returns:
+            ``(results, errors)``: one JSON result per env (None for ``set``), and the envs whose
+            attribute raised (:class:`EnvError`; their result is None).
+
+        Raises:
+            UnknownEnvError: an env index out of range.
+            InvalidRequestError: duplicate env ids, a name that is not a public attribute name
+                (or one vecsim keeps: ``close``, ``reset``, ``step``, ...), a bad payload.
+            SimCrashedError: a worker died, hung or failed.
+        """
+        ids = self._env_ids(env_ids)
+        if op not in ("get", "call", "set"):
+            raise InvalidRequestError(f"op: {op!r} is not one of get, call, set")
+        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_"):
+            raise InvalidRequestError(f"name: {name!r:.60} is not a public attribute name")
+        if name in _REFUSED_ATTRS:
+            raise InvalidRequestError(f"name: {name!r} is the pod's to use; it is not served")
+        if op == "set" and (not isinstance(payload, list) or len(payload) != ids.size):
+            raise InvalidRequestError(f"values: expected one value per env id ({ids.size})")
+        if ids.size == 0:
+            return [], []
+        requests: dict[int, tuple[str, str, Any]] = {}
+        for row, env in enumerate(ids):
+            requests[int(env)] = (op, name, payload[row] if op == "set" else payload)
+        with self._lock:
+            self._check_usable()
+            assert self._vec is not None
+            try:
+                answers = self._vec.call("env_attr", requests)
+            except Exception as exc:
+                self._broken = self._failure(exc)
+                raise SimCrashedError(self._broken) from exc
+        by_env = {env: (ok, value) for entries in answers for env, ok, value in entries}
+        results: list[Any] = []
+        errors: list[EnvError] = []
+        for row, env in enumerate(ids):
+            ok, value = by_env[int(env)]
+            results.append(value if ok else None)
+            if not ok:
+                errors.append(EnvError(row, *value))
+        return results, errors
+
     # Internals.
+
+    def _images_space(self) -> gymnasium.spaces.Dict | None:
+        space = self.single_observation_space
+        return space.spaces.get("images") if isinstance(space, gymnasium.spaces.Dict) else None
 
     def _empty_obs(self) -> dict[str, Any]:
         return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
@@ -837,6 +1130,7 @@ class TaskGroupedVectorEnv:
         return {
             "cmd": np.full((workers, slots), NOOP, dtype=np.int64),
             "state_id": np.zeros((workers, slots), dtype=np.int64),
+            "seed": np.full((workers, slots), -1, dtype=np.int64),
             "action": np.zeros((workers, slots, chunk, *action.shape), action.dtype),
             "record": np.zeros((workers, slots), dtype=np.int8),
         }
@@ -874,14 +1168,21 @@ class TaskGroupedVectorEnv:
         return f"{dead or 'a worker failed'}: {type(exc).__name__}: {exc}"
 
     def _run(
-        self, command: dict[str, np.ndarray], workers: np.ndarray, slots: np.ndarray
-    ) -> tuple[dict[str, Any], np.ndarray, dict[str, Any]]:
-        """Send ``command`` to every worker; return the named envs' observations, their result
-        rows ``[n, max_chunk, 4]`` and the workers' gathered info."""
+        self,
+        command: dict[str, np.ndarray],
+        workers: np.ndarray,
+        slots: np.ndarray,
+        reset_options: dict[str, Any] | None = None,
+    ) -> tuple[Any, np.ndarray, dict[str, Any]]:
+        """Send ``command`` to every worker (after ``reset_options`` for its seeded resets);
+        return the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the
+        workers' gathered info."""
         with self._lock:
             self._check_usable()
             assert self._vec is not None
             try:
+                if reset_options:
+                    self._vec.call("set_reset_options", reset_options)
                 self._vec.step_async(command)
                 out, _, _, _, info = self._vec.step_wait(timeout=self._timeout_s)
             except multiprocessing.TimeoutError as exc:

@@ -1,18 +1,24 @@
 """gymnasium spaces to and from JSON, for ``/v1/info`` and the client that reads it.
 
-Supported: ``Box``, ``Discrete``, ``MultiBinary``, ``MultiDiscrete`` and (nested) ``Dict``.
-Every space is an object with a ``"type"`` key::
+Supported: ``Box``, ``Discrete``, ``MultiBinary``, ``MultiDiscrete`` and (nested) ``Dict`` and
+``Tuple``: the spaces gymnasium's vector envs batch. Every space is an object with a ``"type"`` key::
 
     {"type": "Box", "dtype": "float32", "shape": [39], "low": "-Infinity", "high": "Infinity"}
     {"type": "Discrete", "n": 4, "start": 0, "dtype": "int64"}
     {"type": "MultiBinary", "n": [2, 3]}
     {"type": "MultiDiscrete", "nvec": [3, 4], "start": [0, 0], "dtype": "int64"}
     {"type": "Dict", "spaces": {"images": {...}, "proprio": {...}}}
+    {"type": "Tuple", "spaces": [{...}, {...}]}
 
 A Box bound is one number when every element is equal (an image Box stays small), else a
 nested list. Infinities use the spellings of :func:`vecsim.wire.to_jsonable` (``"Infinity"``,
 ``"-Infinity"``), so the result passes ``json.dumps(..., allow_nan=False)``. Dict keys keep
 their order. Seeds and RNG state are not carried.
+
+On the wire (:mod:`vecsim.wire`, nested dicts of arrays) a value of a ``Tuple`` space travels as
+a dict keyed ``"0"``, ``"1"``, ...: :func:`tuples_as_dicts` writes it, the reader puts it back
+into the tuple its space says. A value of a ``Box`` or ``Discrete`` space is an array (batched:
+``[n, *shape]``).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from gymnasium import spaces
 
 from vecsim.wire import WireError, from_jsonable, to_jsonable
 
-__all__ = ["space_from_json", "space_to_json"]
+__all__ = ["check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts"]
 
 _FIELDS = {
     "Box": {"type", "dtype", "shape", "low", "high"},
@@ -33,7 +39,12 @@ _FIELDS = {
     "MultiBinary": {"type", "n"},
     "MultiDiscrete": {"type", "nvec", "start", "dtype"},
     "Dict": {"type", "spaces"},
+    "Tuple": {"type", "spaces"},
 }
+_SUPPORTED = "Box, Discrete, MultiBinary, MultiDiscrete, Dict, Tuple"
+_ARRAY_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+# The dtypes the wire carries (vecsim.wire).
+_WIRE_KINDS = frozenset("biuf")
 
 
 def _bound(values: np.ndarray) -> Any:
@@ -73,9 +84,9 @@ def _to_json(space: spaces.Space, where: str) -> dict[str, Any]:
                 raise ValueError(f"{where}: Dict key {key!r} is not a str")
             out[key] = _to_json(sub, f"{where}.spaces.{key}")
         return {"type": "Dict", "spaces": out}
-    raise ValueError(
-        f"{where}: {kind.__name__} is not supported (Box, Discrete, MultiBinary, MultiDiscrete, Dict)"
-    )
+    if kind is spaces.Tuple:
+        return {"type": "Tuple", "spaces": [_to_json(sub, f"{where}.spaces.{i}") for i, sub in enumerate(space.spaces)]}
+    raise ValueError(f"{where}: {kind.__name__} is not supported ({_SUPPORTED})")
 
 
 def space_to_json(space: spaces.Space) -> dict[str, Any]:
@@ -180,6 +191,10 @@ def _from_json(d: Any, where: str) -> spaces.Space:
         start = _ints(d["start"], f"{where}.start")
         return _construct(where, kind, lambda: spaces.MultiDiscrete(nvec, dtype=dtype, start=start))
     children = d["spaces"]
+    if kind == "Tuple":
+        if not isinstance(children, list):
+            raise ValueError(f"{where}.spaces: expected a list, got {type(children).__name__}")
+        return spaces.Tuple([_from_json(sub, f"{where}.spaces.{i}") for i, sub in enumerate(children)])
     if not isinstance(children, Mapping):
         raise ValueError(f"{where}.spaces: expected an object, got {type(children).__name__}")
     # A sequence of pairs keeps the order that JSON gave (a plain dict would be sorted).
@@ -197,3 +212,50 @@ def space_from_json(d: Mapping[str, Any]) -> spaces.Space:
             example ``space.spaces.images.low``).
     """
     return _from_json(d, "space")
+
+
+def check_travels(space: spaces.Space, where: str = "space") -> spaces.Space:
+    """Return ``space`` if its values can be served (described in JSON, carried on the wire).
+
+    Raises:
+        ValueError: a space (named by path under ``where``) of another type or of a dtype the
+            wire does not carry.
+    """
+    _to_json(space, where)
+    for path, leaf in _leaf_spaces(space, where):
+        if leaf.dtype is None or np.dtype(leaf.dtype).kind not in _WIRE_KINDS:
+            raise ValueError(f"{path}: dtype {leaf.dtype} cannot travel on the wire (bool, ints, floats)")
+    return space
+
+
+def check_action_space(space: spaces.Space, where: str = "action space") -> spaces.Space:
+    """Return ``space`` if vecsim can take actions of it: one array per env (Box, Discrete,
+    MultiDiscrete, MultiBinary).
+
+    Raises:
+        ValueError: a Dict, Tuple or other space, named with ``where``.
+    """
+    if type(space) not in _ARRAY_SPACES:
+        raise ValueError(
+            f"{where}: {type(space).__name__} actions are not served; vecsim takes one array per env "
+            "(Box, Discrete, MultiDiscrete, MultiBinary)"
+        )
+    return check_travels(space, where)
+
+
+def _leaf_spaces(space: spaces.Space, where: str) -> list[tuple[str, spaces.Space]]:
+    if isinstance(space, spaces.Dict):
+        return [leaf for key, sub in space.spaces.items() for leaf in _leaf_spaces(sub, f"{where}.{key}")]
+    if isinstance(space, spaces.Tuple):
+        return [leaf for i, sub in enumerate(space.spaces) for leaf in _leaf_spaces(sub, f"{where}.{i}")]
+    return [(where, space)]
+
+
+def tuples_as_dicts(value: Any) -> Any:
+    """Return ``value`` (a space's value, nested dicts and tuples of arrays) with every tuple
+    written as a dict keyed ``"0"``, ``"1"``, ...: the form the wire carries."""
+    if isinstance(value, tuple):
+        return {str(i): tuples_as_dicts(item) for i, item in enumerate(value)}
+    if isinstance(value, dict):
+        return {key: tuples_as_dicts(item) for key, item in value.items()}
+    return value

@@ -41,11 +41,39 @@ def _int_vector(value: Any) -> np.ndarray:
 
 
 def _action_matrix(value: Any) -> np.ndarray:
-    if isinstance(value, np.ndarray) and value.dtype != np.float32:
-        raise ValueError(f"must be float32 on the wire, got {value.dtype}")
-    return _json_array(value, np.float32)
+    # The simulation casts to the action space's dtype and checks values against the space.
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
+        raise ValueError(f"must be numbers, got {value.dtype}")
+    return _json_array(value, np.float64)
 
 
+def _seed_list(value: Any) -> list[int | None] | None:
+    if value is None:
+        return None
+    if isinstance(value, np.ndarray) and value.ndim == 1 and value.dtype.kind in "iu":
+        return [int(v) for v in value]
+    if not isinstance(value, list):
+        raise ValueError(f"must be a list of ints or nulls, got {type(value).__name__}")
+    for i, seed in enumerate(value):
+        if seed is not None and type(seed) is not int:
+            raise ValueError(f"seed {i} is {seed!r:.50}, not an int or null")
+    return value
+
+
+def _options(value: Any) -> dict[str, Any] | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ValueError(f"must be an object with string keys, got {type(value).__name__}")
+    return value
+
+
+SeedList = Annotated[
+    list[int | None] | None,
+    PlainValidator(_seed_list),
+    WithJsonSchema({"type": "array", "items": {"type": ["integer", "null"], "minimum": 0}}),
+]
+ResetOptions = Annotated[dict[str, Any] | None, PlainValidator(_options), WithJsonSchema({"type": "object"})]
 Generation = Annotated[int, PlainValidator(_generation), WithJsonSchema({"type": "integer", "minimum": 0})]
 IntVector = Annotated[
     np.ndarray,
@@ -76,11 +104,16 @@ class _Request(BaseModel):
 
 
 class ResetRequest(_Request):
-    """``POST /v1/reset``: put ``env_ids[i]`` in fixed initial state ``state_ids[i]``."""
+    """``POST /v1/reset``: put ``env_ids[i]`` in fixed initial state ``state_ids[i]``, or (with
+    ``seeds`` instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``."""
 
     generation: Generation = Field(description="the assignment generation the caller routes by")
     env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
-    state_ids: IntVector = Field(description="one state id per env id")
+    state_ids: IntVector | None = Field(None, description="one state id per env id (fixed initial states)")
+    seeds: SeedList = Field(
+        None, description="instead of state_ids: one seed (int >= 0, or null) per env id, the envs' own reset"
+    )
+    options: ResetOptions = Field(None, description="with seeds: the options every named env's reset takes")
 
 
 class StepRequest(_Request):
@@ -105,12 +138,32 @@ class ResetInfo(BaseModel):
     task_id: list[str]
 
 
+_OBS_DOC = (
+    "batched observation, leading dim n: an array for a Box/Discrete space, an object for a Dict "
+    "space, an object keyed '0', '1', ... for a Tuple space"
+)
+_ENV_INFO_DOC = (
+    "the envs' own info keys, batched as gymnasium's vector envs batch them (key k: [n] values, "
+    "_k: bool [n] mask of the envs that gave it); left out when no env gave any"
+)
+
+
+class EnvErrors(BaseModel):
+    """The envs of the call whose own code raised; every other env of the call did its work."""
+
+    env_ids: list[int]
+    type: list[str] = Field(description="the exception's type name, e.g. ValueError")
+    message: list[str]
+
+
 class ResetResponse(BaseModel):
     """JSON form of a reset answer (the wire form has the same keys, arrays as arrays)."""
 
     env_ids: list[int]
-    obs: dict[str, Any] = Field(description="batched observation, leading dim n")
+    obs: Any = Field(description=_OBS_DOC)
     info: ResetInfo
+    env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC)
+    errors: EnvErrors | None = Field(None, description="present when an env raised")
 
 
 class StepInfo(BaseModel):
@@ -121,11 +174,13 @@ class StepResponse(BaseModel):
     """JSON form of a step answer (the wire form has the same keys, arrays as arrays)."""
 
     env_ids: list[int]
-    obs: dict[str, Any] = Field(description="batched observation, leading dim n")
+    obs: Any = Field(description=_OBS_DOC)
     reward: list[float]
     terminated: list[bool]
     truncated: list[bool]
     info: StepInfo
+    env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC)
+    errors: EnvErrors | None = Field(None, description="present when an env raised")
 
 
 class ChunkStepInfo(BaseModel):
@@ -137,7 +192,7 @@ class ChunkStepResponse(BaseModel):
     ``[i][k]`` belongs to action k of env i, 0/false after env i stopped."""
 
     env_ids: list[int]
-    obs: dict[str, Any] = Field(description="observation after each env's last applied action, leading dim n")
+    obs: Any = Field(description="observation after each env's last applied action, leading dim n")
     reward: list[list[float]] = Field(description="[n, K]")
     terminated: list[list[bool]] = Field(description="[n, K]")
     truncated: list[list[bool]] = Field(description="[n, K]")
@@ -146,6 +201,28 @@ class ChunkStepResponse(BaseModel):
     frames: dict[str, Any] | None = Field(
         None, description="with record_env_ids: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action"
     )
+    env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC + "; after each env's last applied action")
+    errors: EnvErrors | None = Field(None, description="present when an env raised")
+
+
+class AttrRequest(_Request):
+    """``POST /v1/get_attr``, ``/v1/call``, ``/v1/set_attr``: one attribute of some envs."""
+
+    generation: Generation = Field(description="the assignment generation the caller routes by")
+    env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
+    name: str = Field(description="a public attribute of the envs (through a gym env's wrappers)")
+    args: list[Any] = Field(default_factory=list, description="call only: positional arguments (JSON)")
+    kwargs: dict[str, Any] = Field(default_factory=dict, description="call only: keyword arguments (JSON)")
+    values: list[Any] | None = Field(None, description="set_attr only: one JSON value per env id")
+
+
+class AttrResponse(BaseModel):
+    """JSON answer of the attribute endpoints: one result per env id (null for set_attr and for
+    an env that raised)."""
+
+    env_ids: list[int]
+    results: list[Any]
+    errors: EnvErrors | None = Field(None, description="present when an env raised")
 
 
 class TaskInfo(BaseModel):
@@ -153,6 +230,11 @@ class TaskInfo(BaseModel):
     instruction: str
     env_start: int
     num_envs: int
+    reset: str = Field(
+        "state_id",
+        description="how the client resets this task's envs by default: 'seed' (a gym task without cameras: "
+        "the env's own seeded reset) or 'state_id' (fixed initial states)",
+    )
 
 
 class InfoResponse(BaseModel):

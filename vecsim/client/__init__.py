@@ -4,8 +4,9 @@
   steps them one pipeline stage at a time (``reset_stage``/``step_stage``), all pods of a stage
   concurrently.
 - :class:`HTTPVectorEnv`: every env of a job as one ``gymnasium.vector.VectorEnv``; registered as
-  ``vecsim/HTTPVectorEnv-v0``, so ``gymnasium.make_vec("vecsim/HTTPVectorEnv-v0",
-  controller_url=...)`` builds one once this module is imported (or name the module in the id:
+  ``vecsim/HTTPVectorEnv-v0``, so ``gymnasium.make_vec("vecsim/HTTPVectorEnv-v0", num_envs=n,
+  controller_url=...)`` builds one of the job's first n envs (``num_envs=None``: all of them)
+  once this module is imported (or name the module in the id:
   ``"vecsim.client:vecsim/HTTPVectorEnv-v0"``). ``chunk_step`` takes chunks of K actions per env.
 - :class:`VLAEnv`: a job with the ``reset(env_ids, state_ids)`` / ``chunk_step`` contract of
   VLA-RL trainers, observations under vecsim's or LeRobot's key names.
@@ -50,8 +51,7 @@ __all__ = [
 ENV_ID = "vecsim/HTTPVectorEnv-v0"
 
 if ENV_ID not in gymnasium.registry:
-    # num_envs=None in the spec: make_vec would otherwise pass its default of 1, and the job,
-    # not the caller, decides how many envs there are.
-    gymnasium.register(
-        id=ENV_ID, vector_entry_point="vecsim.client.vector_env:HTTPVectorEnv", kwargs={"num_envs": None}
-    )
+    # No num_envs in the spec's kwargs: make_vec would let it override the caller's num_envs.
+    # make_vec passes its own default (1) when the caller gives none; num_envs=None takes the
+    # whole job.
+    gymnasium.register(id=ENV_ID, vector_entry_point="vecsim.client.vector_env:HTTPVectorEnv")

@@ -224,6 +224,33 @@ class PodConnection:
             raise PodRequestError(self.name, None, "answer to /v1/info is not a JSON object")
         return info
 
+    async def call_json(self, op: str, body: dict[str, Any], held: list[str]) -> dict[str, Any]:
+        """POST ``body`` to ``/v1/<op>`` as JSON and return the JSON answer (the attribute
+        endpoints, whose results are JSON values of any shape).
+
+        Raises:
+            PodUnavailableError: no usable answer (none in time, a 503, not a JSON object).
+            PodRequestError: any other refusal (a 409 included: the caller re-reads nothing here).
+        """
+        response = await self._request(
+            "POST",
+            f"/v1/{op}",
+            held,
+            json=body,
+            headers={"Accept": "application/json", **self._auth},
+        )
+        if response.status_code == 503:
+            raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
+        if response.status_code != 200:
+            raise PodRequestError(self.name, response.status_code, _detail(response))
+        try:
+            answer = response.json()
+        except ValueError as exc:
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not JSON: {exc}") from None
+        if not isinstance(answer, dict):
+            raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not a JSON object")
+        return answer
+
     async def call(
         self, op: str, body: dict[str, Any], held: list[str], extra_answer_bytes: int = 0
     ) -> dict[str, Any]:

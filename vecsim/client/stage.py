@@ -40,7 +40,7 @@ from typing import Any, Generic, TypeVar
 import httpx
 import numpy as np
 from gymnasium import Space
-from gymnasium.spaces import Dict
+from gymnasium.spaces import Box, Dict
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
 from gymnasium.vector.utils import create_empty_array
 
@@ -99,6 +99,10 @@ class StageBatch:
     each one's last applied action, ``num_steps`` ``[n]`` the actions each applied, and ``frames``
     ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded. A
     one-action step answers ``[n]`` arrays and ``num_steps`` of ones; a reset, zeros.
+
+    ``env_info`` holds the envs' own info as the pods answered it: ``(rows, batched)`` per pod,
+    ``batched`` over those rows as :func:`vecsim.info.batch_infos` makes it. ``errors`` names the
+    rows whose env raised: ``(traj_key, exception type name, message)``; those envs did nothing.
     """
 
     traj_keys: list[str]
@@ -113,6 +117,8 @@ class StageBatch:
     finished_at: float = 0.0
     num_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
     frames: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    env_info: list[tuple[np.ndarray, dict[str, Any]]] = field(default_factory=list)
+    errors: list[tuple[str, str, str]] = field(default_factory=list)
 
     @property
     def n(self) -> int:
@@ -270,7 +276,16 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
 
 
 def _fill_rows(dst: Any, src: Any, rows: np.ndarray, where: str, pod: str) -> None:
-    """Copy a pod's batched answer ``src`` into rows ``rows`` of the preallocated ``dst``."""
+    """Copy a pod's batched answer ``src`` into rows ``rows`` of the preallocated ``dst`` (a
+    tuple travels as a dict keyed "0", "1", ...: vecsim.spaces.tuples_as_dicts)."""
+    if isinstance(dst, tuple):
+        keys = [str(i) for i in range(len(dst))]
+        if not isinstance(src, dict) or sorted(src) != sorted(keys):
+            got = sorted(src) if isinstance(src, dict) else type(src).__name__
+            raise PodRequestError(pod, None, f"answer {where} has keys {got}, expected {keys}")
+        for key, sub in zip(keys, dst):
+            _fill_rows(sub, src[key], rows, f"{where}.{key}", pod)
+        return
     if isinstance(dst, dict):
         if not isinstance(src, dict) or set(src) != set(dst):
             got = sorted(src) if isinstance(src, dict) else type(src).__name__
@@ -293,7 +308,17 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
     def take(value: Any) -> Any:
         if isinstance(value, dict):
             return {key: take(item) for key, item in value.items()}
+        if isinstance(value, tuple):
+            return tuple(take(item) for item in value)
         return value[index]
+
+    new_row = {int(r): j for j, r in enumerate(rows)}
+    env_info = [
+        (np.array([new_row[int(r)] for r in pod_rows], dtype=np.int64), batched)
+        for pod_rows, batched in batch.env_info
+        if all(int(r) in new_row for r in pod_rows)
+    ]
+    kept = {batch.traj_keys[r] for r in rows}
 
     return StageBatch(
         traj_keys=[batch.traj_keys[r] for r in rows],
@@ -308,6 +333,8 @@ def _take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         finished_at=batch.finished_at,
         num_steps=batch.num_steps[index],
         frames={key: batch.frames[key] for key in (batch.traj_keys[r] for r in rows) if key in batch.frames},
+        env_info=env_info,
+        errors=[error for error in batch.errors if error[0] in kept],
     )
 
 
@@ -375,6 +402,7 @@ class StageClient:
         self._spaces: tuple[Space, Space] | None = None
         self._env_answer_bytes: int | None = None  # what one env's answer can take, from the spaces
         self._instructions: dict[str, str] = {}
+        self._reset_kinds: dict[str, str] = {}
         self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
         self._closed = False
@@ -498,6 +526,13 @@ class StageClient:
         """Each task's instruction, read from the pods' ``/v1/info``."""
         self._load_info()
         return dict(self._instructions)
+
+    @property
+    def reset_kinds(self) -> dict[str, str]:
+        """How each task's envs reset by default, from the pods' ``/v1/info``: ``"seed"`` (the
+        env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
+        self._load_info()
+        return dict(self._reset_kinds)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -639,13 +674,17 @@ class StageClient:
         reset: Sequence[str] | Mapping[str, int] = (),
         step: Mapping[str, Any] | None = None,
         record: Sequence[str] = (),
+        seeds: Mapping[str, int | None] | None = None,
+        options: Mapping[str, Any] | None = None,
     ) -> PendingCall[tuple[StageBatch, StageBatch]]:
         """Reset some trajectories and step others in one round, over any stages; don't wait.
 
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
         state ids (their routes take them on success). ``step`` maps traj_keys to actions or
         chunks, and ``record`` names stepped keys whose every frame is wanted, as in
-        :meth:`step_stage`. Each pod gets its resets first, then its steps; pods run
+        :meth:`step_stage`. ``seeds`` (instead of ``reset``) maps traj_keys to a seed or None:
+        their envs reset as the envs' own ``reset(seed=..., options=options)``, not to a fixed
+        state (the routes keep their state ids). Each pod gets its resets first, then its steps; pods run
         concurrently. The result is the pair
         ``(reset_batch, step_batch)``; nothing to do is a no-op answering two empty batches. The
         result's errors are :meth:`reset_stage`'s; ``answered`` is a pair here too.
@@ -656,7 +695,70 @@ class StageClient:
             AlreadyPendingCallError: a stage involved already waits on a call.
             ClosedEnvironmentError: the client is closed.
         """
+        if seeds is not None:
+            if reset:
+                raise ValueError("give reset (fixed initial states) or seeds (the envs' own reset), not both")
+            return self._submit(reset=list(seeds), step=step or {}, pick=None, record=record, seeds=seeds, options=options)
+        if options:
+            raise ValueError("options go with seeds (the envs' own reset)")
         return self._submit(reset=reset, step=step or {}, pick=None, record=record)
+
+    def env_attr(
+        self, op: str, keys: Sequence[str], name: str, payload: Any = None
+    ) -> PendingCall[tuple[list[Any], list[tuple[str, str, str]]]]:
+        """Get (``op`` ``get_attr``), call (``call``; ``payload`` ``(args, kwargs)``) or set
+        (``set_attr``; ``payload`` one value per key) attribute ``name`` of the envs of ``keys``,
+        all their pods concurrently; don't wait.
+
+        The result is ``(results, errors)``: one JSON result per key (None where its env raised or
+        for ``set_attr``) and ``(traj_key, exception type name, message)`` per env that raised.
+        It raises what a call's result raises (``PodRequestError`` for a 4xx: a bad name or value).
+
+        Raises:
+            ValueError: an unknown op or key.
+            ClosedEnvironmentError: the client is closed.
+        """
+        self._check_open()
+        if op not in ("get_attr", "call", "set_attr"):
+            raise ValueError(f"op must be get_attr, call or set_attr, got {op!r}")
+        with self._lock:
+            routes = dict(self._routes)
+        unknown = [k for k in keys if k not in routes]
+        if unknown:
+            raise ValueError(f"traj_keys {unknown} are not live trajectories")
+        return self.submit(self._env_attr(op, list(keys), name, payload, routes))
+
+    async def _env_attr(
+        self, op: str, keys: list[str], name: str, payload: Any, routes: Mapping[str, TrajRoute]
+    ) -> tuple[list[Any], list[tuple[str, str, str]]]:
+        by_pod: dict[str, list[int]] = {}
+        for row, key in enumerate(keys):
+            by_pod.setdefault(routes[key].pod, []).append(row)
+
+        async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
+            body: dict[str, Any] = {
+                "generation": self._table.generation,
+                "env_ids": [routes[keys[r]].env_index for r in rows],
+                "name": name,
+            }
+            if op == "call":
+                body["args"], body["kwargs"] = payload
+            elif op == "set_attr":
+                body["values"] = [payload[r] for r in rows]
+            return await self._pods[pod].call_json(op, body, [keys[r] for r in rows])
+
+        answers = await asyncio.gather(*(one_pod(pod, rows) for pod, rows in by_pod.items()))
+        results: list[Any] = [None] * len(keys)
+        errors: list[tuple[str, str, str]] = []
+        for (pod, rows), answer in zip(by_pod.items(), answers):
+            for row, result in zip(rows, answer.get("results") or []):
+                results[row] = result
+            raised = answer.get("errors") or {}
+            row_of = {routes[keys[r]].env_index: r for r in rows}
+            for env, kind, message in zip(raised.get("env_ids", ()), raised.get("type", ()), raised.get("message", ())):
+                if env in row_of:
+                    errors.append((keys[row_of[env]], str(kind), str(message)))
+        return results, errors
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
         """Run ``coro`` on the client's event loop and return its pending result.
@@ -677,6 +779,8 @@ class StageClient:
         step: Mapping[str, Any],
         pick: int | None,
         record: Sequence[str] = (),
+        seeds: Mapping[str, int | None] | None = None,
+        options: Mapping[str, Any] | None = None,
     ) -> PendingCall[Any]:
         self._check_open()
         step = dict(step)
@@ -697,9 +801,10 @@ class StageClient:
             if key not in routes:
                 raise ValueError(f"traj_key {key!r} is not a live trajectory; place it with reset_trajectories first")
         state_ids = np.array(
-            [reset_map[k] if reset_map is not None else routes[k].state_id for k in reset_keys], dtype=np.int64
+            [reset_map[k] if reset_map is not None and seeds is None else routes[k].state_id for k in reset_keys],
+            dtype=np.int64,
         )
-        if reset_map is not None:
+        if reset_map is not None and seeds is None:
             for key, sid in zip(reset_keys, state_ids):
                 if sid < 0:
                     raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
@@ -708,14 +813,16 @@ class StageClient:
         if not reset_keys and not step:
             return _completed((self._empty_batch(), self._empty_batch()), pick)
         actions = self._check_actions(step) if step else None
-        if recorded and (actions is None or actions.ndim != 3):
+        single_ndim = 1 + len(self.action_space.shape or ()) if self.action_space is not None else 2
+        if recorded and (actions is None or actions.ndim != single_ndim + 1):
             raise ValueError("record: frames are recorded for chunk steps only; send [K, action dim] per traj_key")
         stages = {routes[k].stage_id for k in itertools.chain(reset_keys, step)}
         with self._lock:
             busy = self._busy_stages(stages)
             if busy:
                 raise AlreadyPendingCallError(f"stage(s) {busy} already wait on a call; take its result first", "step")
-            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick, recorded))
+            seeded = None if seeds is None else ([seeds[k] for k in reset_keys], dict(options or {}))
+            future = self._loop.submit(self._run(reset_keys, state_ids, list(step), actions, pick, recorded, seeded))
             pending: PendingCall[Any] = PendingCall(future, pick, self._loop)
             for stage in stages:
                 self._pending[stage] = pending
@@ -793,14 +900,16 @@ class StageClient:
             raise RoutingChangedError(self._lost[lost[0]], lost)
 
     def _check_actions(self, step: Mapping[str, Any]) -> np.ndarray:
-        """Return the call's actions as ``[n, action size]``, or its chunks as ``[n, K, action size]``."""
+        """Return the call's actions as ``[n, *action shape]``, or its chunks (Box action spaces
+        only) as ``[n, K, *action shape]``, in the action space's dtype."""
         space = self.action_space
         shape = tuple(space.shape) if space is not None and space.shape is not None else None
+        dtype = space.dtype if space is not None and space.dtype is not None else np.float32
         rows = []
         chunk: int | None = None  # K of the call's chunks; None: one action per trajectory
         for index, (key, action) in enumerate(step.items()):
             try:
-                row = np.asarray(action, dtype=np.float32)
+                row = np.asarray(action, dtype=dtype)
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
             if shape is not None and row.shape != shape and row.shape[1:] != shape:
@@ -809,6 +918,11 @@ class StageClient:
                     f"or a chunk [K, {', '.join(map(str, shape))}]"
                 )
             this = None if shape is None or row.shape == shape else row.shape[0]
+            if this is not None and not isinstance(space, Box):
+                raise ValueError(
+                    f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape or ())}; "
+                    f"chunks of actions are for Box action spaces, this job's is {space}"
+                )
             if index and this != chunk:
                 sent = "one action" if this is None else f"a chunk of {this}"
                 first = "one action" if chunk is None else f"chunks of {chunk}"
@@ -816,8 +930,10 @@ class StageClient:
                     f"traj_key {key!r}: {sent}, the call's first traj_key sent {first}; one call, one chunk length"
                 )
             chunk = this
-            rows.append(row.reshape(-1) if chunk is None else row.reshape(chunk, math.prod(row.shape[1:])))
+            rows.append(row)
         actions = np.stack(rows)
+        if actions.dtype.kind != "f":
+            return actions  # the pod checks integer actions against the space
         # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
         finite = np.isfinite(actions.reshape(len(rows), -1)).all(axis=1)
         if not finite.all():
@@ -890,6 +1006,7 @@ class StageClient:
             self._instances[pod] = info.get("instance")
             for task in info.get("tasks", []):
                 self._instructions.setdefault(task["task_id"], task.get("instruction", ""))
+                self._reset_kinds.setdefault(task["task_id"], task.get("reset", "state_id"))
             here = (info.get("observation_space"), info.get("action_space"))
             if here[0] is None or here[1] is None:
                 raise PodUnavailableError({pod: []}, "envs not built yet (no spaces in /v1/info)")
@@ -921,7 +1038,7 @@ class StageClient:
             task_ids=[routes[k].task_id for k in keys] if routes else [],
             state_ids=np.array([routes[k].state_id for k in keys] if routes else [], dtype=np.int64),
             obs=obs,
-            reward=np.zeros(per_action, dtype=np.float32),
+            reward=np.zeros(per_action, dtype=np.float64),
             terminated=np.zeros(per_action, dtype=bool),
             truncated=np.zeros(per_action, dtype=bool),
             success=np.zeros(per_action, dtype=bool),
@@ -936,12 +1053,14 @@ class StageClient:
         actions: np.ndarray | None,
         pick: int | None,
         recorded: set[str],
+        seeded: tuple[list[int | None], dict[str, Any]] | None = None,
     ) -> tuple[StageBatch, StageBatch]:
         submitted = time.perf_counter()
         routes = self.routes
         reset_batch = self._empty_batch(reset_keys, routes)
         reset_batch.state_ids = state_ids.copy()
-        chunk = actions.shape[1] if actions is not None and actions.ndim == 3 else None
+        single_ndim = 1 + len(self.action_space.shape or ()) if self.action_space is not None else 2
+        chunk = actions.shape[1] if actions is not None and actions.ndim == single_ndim + 1 else None
         step_batch = self._empty_batch(step_keys, routes, chunk)
         work: dict[str, _PodWork] = {}
         for row, key in enumerate(reset_keys):
@@ -955,7 +1074,13 @@ class StageClient:
                        values: np.ndarray, batch: StageBatch) -> None:  # fmt: skip
             rows = np.asarray(row_list)
             keys = [all_keys[r] for r in rows]
-            body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64), field: values[rows]}
+            body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64)}
+            if op == "reset" and seeded is not None:
+                body["seeds"] = [seeded[0][r] for r in rows]
+                if seeded[1]:
+                    body["options"] = seeded[1]
+            else:
+                body[field] = values[rows]
             record = [k for k in keys if k in recorded]
             if record:
                 body["record_env_ids"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
@@ -1015,6 +1140,15 @@ class StageClient:
         chunk: int | None = None,
     ) -> None:
         _fill_rows(batch.obs, answer.get("obs"), rows, "obs", pod)
+        env_info = answer.get("env_info")
+        if env_info:
+            batch.env_info.append((rows, env_info))
+        errors = answer.get("errors")
+        if errors:
+            row_of = {int(env): int(row) for env, row in zip(answer["env_ids"], rows)}
+            for env, kind, message in zip(errors.get("env_ids", ()), errors.get("type", ()), errors.get("message", ())):
+                if int(env) in row_of:
+                    batch.errors.append((batch.traj_keys[row_of[int(env)]], str(kind), str(message)))
         info = answer.get("info") or {}
         _fill_rows(batch.success, info.get("success"), rows, "info.success", pod)
         if check_tasks:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import concurrent.futures
 import copy
 import logging
+import multiprocessing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -21,19 +22,48 @@ from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoA
 from gymnasium.utils import seeding
 from gymnasium.vector.async_vector_env import AsyncState
 from gymnasium.vector.utils import batch_space, create_empty_array
+from gymnasium import logger as gym_logger
+from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, call_error
 from vecsim.client.routing import TrajRoute, env_slots
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
+from vecsim.info import merge_rows
+from vecsim.sim import builtin_exception
 from vecsim.tasks import get_task
+from vecsim.tasks._gym import GYM_NUM_STATES
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["HTTPVectorEnv"]
 
 _RESET_OPTIONS = {"reset_mask", "state_ids"}
+
+
+class WaitTimeoutError(multiprocessing.TimeoutError, TimeoutError):
+    """A ``reset_wait``/``step_wait`` not answered within its timeout: gymnasium's
+    ``multiprocessing.TimeoutError``, and a builtin ``TimeoutError`` too. The call stays pending."""
+
+
+def autoreset_mode_of(mode: AutoresetMode | str) -> AutoresetMode:
+    """Return the :class:`AutoresetMode` that ``mode`` names: the enum, its value
+    (``"NextStep"``), or its name in any case (``"next_step"``, ``"SAME_STEP"``).
+
+    Raises:
+        ValueError: no such mode (names the valid spellings).
+    """
+    if isinstance(mode, AutoresetMode):
+        return mode
+    wanted = str(mode).replace("_", "").replace("-", "").lower()
+    for member in AutoresetMode:
+        if wanted in (member.value.lower(), member.name.replace("_", "").lower()):
+            return member
+    raise ValueError(
+        f"unknown autoreset_mode {mode!r}; use gymnasium.vector.AutoresetMode or one of "
+        f"{[m.name.lower() for m in AutoresetMode]}"
+    )
 # The errors that fail a call for one pod's envs alone, handing over the other pods' rows.
 _PARTIAL = (PodUnavailableError, RoutingChangedError)
 
@@ -42,6 +72,8 @@ def _row(obs: Any, i: int) -> Any:
     """One env's observation out of a batched one (a copy)."""
     if isinstance(obs, dict):
         return {key: _row(value, i) for key, value in obs.items()}
+    if isinstance(obs, tuple):
+        return tuple(_row(value, i) for value in obs)
     return np.array(obs[i])
 
 
@@ -50,6 +82,9 @@ def _put_rows(dst: Any, src: Any, rows: np.ndarray, take: np.ndarray | None = No
     if isinstance(dst, dict):
         for key in dst:
             _put_rows(dst[key], src[key], rows, take)
+    elif isinstance(dst, tuple):
+        for sub, part in zip(dst, src):
+            _put_rows(sub, part, rows, take)
     else:
         dst[rows] = src if take is None else src[take]
 
@@ -83,12 +118,27 @@ class HTTPVectorEnv(VectorEnv):
     are as in :class:`StageClient`. With a controller, ``wait_ready_s`` is how long to wait for
     its routing table to be ready (through a controller that is down or restarting meanwhile).
 
-    Observations are the pods' (``{"images": {...}, "proprio": ...}``); ``info`` after reset and
-    step holds ``success`` and ``task_id`` with gymnasium's ``_key`` masks. ``reset`` takes
-    ``seed`` (int: env ``i`` starts from state id drawn with seed ``seed + i``; list: one seed per
-    env) and ``options`` ``reset_mask`` (bool array, reset only those envs) and ``state_ids``
-    (one state id per env; with a mask only the masked ones are used). Autoresets draw state ids
-    from :attr:`np_random`, seeded by ``reset(seed=int)``.
+    ``num_envs`` left out (None) takes every env of the job; a number takes the first
+    ``num_envs`` envs (stage-major order) and more than the job has is an error.
+    ``autoreset_mode`` is an :class:`AutoresetMode` or its name in any spelling (``"same_step"``).
+
+    Observations are the pods' in the job's observation space: a served gymnasium env's own
+    (Box, Discrete, Dict, Tuple, ...), the robot suites' ``{"images": {...}, "proprio": ...}``.
+    ``info`` after reset and step holds the envs' own keys (gym tasks) and ``success`` and
+    ``task_id``, all with gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
+    gymnasium's rule: env ``i`` gets ``seed + i`` (int), ``seed[i]`` (list) or None. A gym task
+    resets as the env's own ``reset(seed=..., options=...)`` (every option but ``reset_mask`` and
+    ``state_ids`` goes to the envs; autoresets are ``reset()`` with no seed, as locally); a robot
+    task resets to a fixed initial state drawn with that seed. ``options`` ``reset_mask`` (bool
+    array) resets only those envs, ``state_ids`` (one per env; with a mask only the masked ones
+    are used) puts envs in fixed initial states, gym tasks too. Robot tasks' autoresets draw
+    state ids from :attr:`np_random`, seeded by ``reset(seed=int)``.
+
+    An env that raises (in its reset, step or an attribute call) raises its exception here, its
+    type rebuilt when it is a builtin one (``ValueError``, ...; any other comes as a
+    ``RuntimeError`` naming the type), after the other envs' rows of the call were taken; the env
+    that raised must be reset before the next step. :meth:`get_attr`, :meth:`call` and
+    :meth:`set_attr` reach the envs' attributes as JSON values.
 
     :meth:`chunk_step` takes a chunk of K actions per env (``[num_envs, K, action dim]``), the
     contract of VLA trainers: each env applies its actions in order and stops at its first
@@ -134,7 +184,7 @@ class HTTPVectorEnv(VectorEnv):
         given = [name for name, value in sources.items() if value is not None]
         if len(given) != 1:
             raise ValueError(f"give exactly one of {', '.join(sources)}; got {given or 'none'}")
-        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        self.autoreset_mode = autoreset_mode_of(autoreset_mode)
         if job_config is not None:
             controller_url = _controller_url_of(job_config)
         if controller_url is not None:
@@ -160,8 +210,13 @@ class HTTPVectorEnv(VectorEnv):
             raise ValueError(
                 f"routing table generation {self.client.routing.generation} has no envs; is the job ready?"
             )
-        if num_envs is not None and num_envs != len(self.slots):
-            raise ValueError(f"num_envs={num_envs} but the job has {len(self.slots)} envs; leave num_envs out")
+        if num_envs is not None:
+            if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or not 1 <= num_envs <= len(self.slots):
+                raise ValueError(
+                    f"num_envs={num_envs!r} but the job has {len(self.slots)} envs; ask for 1..{len(self.slots)} "
+                    "(the first num_envs of them) or leave num_envs out (all)"
+                )
+            self.slots = self.slots[: int(num_envs)]
         self.num_envs = len(self.slots)
         self.single_observation_space = self.client.observation_space
         self.single_action_space = self.client.action_space
@@ -170,7 +225,12 @@ class HTTPVectorEnv(VectorEnv):
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         self.render_mode = None
         self.task_ids = [slot.task_id for slot in self.slots]
-        self._num_states = {t: get_task(t).num_states for t in set(self.task_ids)}
+        # Gym tasks without cameras reset as the envs' own reset (seeds), the others to fixed
+        # initial states, as the pods say. A gym task is not looked up here: its module (a
+        # user's package) need not exist on this machine.
+        kinds = self.client.reset_kinds
+        self._native = all(kinds.get(t) == "seed" for t in self.task_ids)
+        self._num_states = {t: GYM_NUM_STATES if t.startswith("gym/") else get_task(t).num_states for t in set(self.task_ids)}
         self._keys = [f"env{i}" for i in range(self.num_envs)]
         self._key_index = {key: i for i, key in enumerate(self._keys)}
         self.client.set_routes(
@@ -187,6 +247,7 @@ class HTTPVectorEnv(VectorEnv):
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
         self._pending_chunk: int | None = None  # K of the chunk step in flight; None: one action
+        self._pending_fixed = True  # the reset in flight puts envs in fixed initial states
 
     # -- reset ----------------------------------------------------------------------------------
 
@@ -213,20 +274,32 @@ class HTTPVectorEnv(VectorEnv):
                 unknown option.
         """
         self._assert_open()
+        seeds = self._seeds(seed)
         if self._state != AsyncState.DEFAULT:
             raise AlreadyPendingCallError(
-                f"calling reset_async while waiting for a pending call to `{self._state.value}` to complete",
+                f"Calling `reset_async` while waiting for a pending call to `{self._state.value}` to complete",
                 str(self._state.value),
             )
         options = dict(options or {})
-        unknown = set(options) - _RESET_OPTIONS
-        if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; HTTPVectorEnv takes {sorted(_RESET_OPTIONS)}")
+        env_options = {k: v for k, v in options.items() if k not in _RESET_OPTIONS}
+        if env_options and (not self._native or options.get("state_ids") is not None):
+            raise ValueError(
+                f"unknown reset option(s) {sorted(env_options)}; HTTPVectorEnv takes {sorted(_RESET_OPTIONS)}"
+                + (" (a gym task's own options go without state_ids)" if self._native else "")
+            )
         mask = self._reset_mask(options.get("reset_mask"))
-        state_ids = self._state_ids_for_reset(seed, options.get("state_ids"), mask)
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            self._np_random, self._np_random_seed = seeding.np_random(int(seed))
         indices = np.flatnonzero(mask)
-        self._place_lost_envs(mask)
-        self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
+        if self._native and options.get("state_ids") is None:
+            self._place_lost_envs(mask)
+            self._pending = self.client.call(seeds={self._keys[i]: seeds[i] for i in indices}, options=env_options)
+            self._pending_fixed = False
+        else:
+            state_ids = self._state_ids_for_reset(seeds, options.get("state_ids"), mask)
+            self._place_lost_envs(mask)
+            self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
+            self._pending_fixed = True
         self._pending_mask = mask
         self._state = AsyncState.WAITING_RESET
 
@@ -244,7 +317,7 @@ class HTTPVectorEnv(VectorEnv):
         self._assert_open()
         if self._state != AsyncState.WAITING_RESET:
             raise NoAsyncCallError(
-                "calling reset_wait without any prior call to reset_async", AsyncState.WAITING_RESET.value
+                "Calling `reset_wait` without any prior call to `reset_async`.", AsyncState.WAITING_RESET.value
             )
         mask = self._pending_mask
         try:
@@ -254,7 +327,9 @@ class HTTPVectorEnv(VectorEnv):
             result, done = self._apply_reset(answered)
             self._fail(error, mask & ~done, result)
             raise
-        return self._apply_reset(batch)[0]
+        result = self._apply_reset(batch)[0]
+        self._raise_env_errors(batch)
+        return result
 
     def _apply_reset(self, batch: StageBatch | None) -> tuple[tuple[Any, dict[str, Any]], np.ndarray]:
         """Take the reset rows of ``batch`` (all or some of the call's); return ``(obs, info)`` and
@@ -267,7 +342,8 @@ class HTTPVectorEnv(VectorEnv):
             self._ever_reset[rows] = True
             self._autoreset[rows] = False
             self._failed[rows] = False
-            self._add_batch_info(info, batch, rows, with_state_ids=True)
+            self._add_env_info(info, batch, rows)
+            self._add_batch_info(info, batch, rows, with_state_ids=self._pending_fixed)
             done[rows] = True
         return (copy.deepcopy(self._obs), info), done
 
@@ -318,19 +394,23 @@ class HTTPVectorEnv(VectorEnv):
             raise ValueError("options['reset_mask'] must have at least one True value")
         return mask.copy()
 
-    def _state_ids_for_reset(self, seed: Any, state_ids: Any, mask: np.ndarray) -> np.ndarray:
+    def _seeds(self, seed: Any) -> list[int | None]:
+        """Each env's seed by gymnasium's rule: ``seed + i``, ``seed[i]`` or None."""
         if seed is None:
-            seeds: list[int | None] = [None] * self.num_envs
-        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            self._np_random, self._np_random_seed = seeding.np_random(int(seed))
-            seeds = [int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"a list of seeds must have num_envs={self.num_envs} entries, got {len(seeds)}")
-            for i, s in enumerate(seeds):
-                if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer))):
-                    raise TypeError(f"seed for env {i} must be an int or None, got {s!r}")
+            return [None] * self.num_envs
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            return [int(seed) + i for i in range(self.num_envs)]
+        seeds = list(seed)
+        if len(seeds) != self.num_envs:
+            raise ValueError(
+                f"If seeds are passed as a list the length must match num_envs={self.num_envs} but got length={len(seeds)}."
+            )
+        for i, s in enumerate(seeds):
+            if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer))):
+                raise TypeError(f"seed for env {i} must be an int or None, got {s!r}")
+        return [None if s is None else int(s) for s in seeds]
+
+    def _state_ids_for_reset(self, seeds: list[int | None], state_ids: Any, mask: np.ndarray) -> np.ndarray:
         if state_ids is not None:
             ids = np.asarray(state_ids)
             if ids.shape != (self.num_envs,) or ids.dtype.kind not in "iu":
@@ -387,7 +467,9 @@ class HTTPVectorEnv(VectorEnv):
         Raises:
             as :meth:`step_async`; ``ValueError`` for a chunk of the wrong shape.
         """
-        actions = np.asarray(actions, dtype=np.float32)
+        if not isinstance(self.single_action_space, Box):
+            raise TypeError(f"chunk_step takes chunks of Box actions; this job's action space is {self.single_action_space}")
+        actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         expected = (self.num_envs, "K", *self.single_action_space.shape)
         if actions.ndim != len(expected) or actions.shape[0] != self.num_envs or actions.shape[2:] != expected[2:]:
             raise ValueError(f"chunk actions must have shape {list(expected)}, got {list(actions.shape)}")
@@ -407,7 +489,7 @@ class HTTPVectorEnv(VectorEnv):
                 ended and was not reset.
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
         """
-        actions = np.asarray(actions, dtype=np.float32)
+        actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         expected = (self.num_envs, *self.single_action_space.shape)
         if actions.shape != expected:
             raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
@@ -417,7 +499,7 @@ class HTTPVectorEnv(VectorEnv):
         self._assert_open()
         if self._state != AsyncState.DEFAULT:
             raise AlreadyPendingCallError(
-                f"calling step_async while waiting for a pending call to `{self._state.value}` to complete",
+                f"Calling `step_async` while waiting for a pending call to `{self._state.value}` to complete.",
                 str(self._state.value),
             )
         if not self._ever_reset.all():
@@ -439,11 +521,10 @@ class HTTPVectorEnv(VectorEnv):
         else:
             resetting = np.zeros(self.num_envs, dtype=bool)
         step = {self._keys[i]: actions[i] for i in np.flatnonzero(~resetting)}
-        reset = {self._keys[i]: self._draw_state_id(i, None) for i in np.flatnonzero(resetting)}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._pending = self.client.submit(self._step_then_reset(step))
         else:
-            self._pending = self.client.call(reset=reset, step=step)
+            self._pending = self.client.call(step=step, **self._autoresets(np.flatnonzero(resetting)))
         self._pending_chunk = chunk
         self._state = AsyncState.WAITING_STEP
 
@@ -463,12 +544,19 @@ class HTTPVectorEnv(VectorEnv):
                 return error.answered[pick]
 
         stepped = await answered(1, step=step)
-        ended = [key for key, end in zip(stepped.traj_keys, _ended(stepped)) if end]
-        reset = {key: self._draw_state_id(self._key_index[key], None) for key in ended}
-        again = await answered(0, reset=reset)
+        ended = [self._key_index[key] for key, end in zip(stepped.traj_keys, _ended(stepped)) if end]
+        again = await answered(0, **self._autoresets(ended))
         if errors:
             raise call_error(errors, (again, stepped))
         return again, stepped
+
+    def _autoresets(self, envs: Any) -> dict[str, Any]:
+        """The ``client.call`` arguments that autoreset ``envs``: a gym task's own ``reset()`` (no
+        seed, as gymnasium's vector envs do), a robot task's reset to a state id drawn from
+        :attr:`np_random`."""
+        if self._native:
+            return {"seeds": {self._keys[i]: None for i in envs}} if len(envs) else {}
+        return {"reset": {self._keys[i]: self._draw_state_id(i, None) for i in envs}}
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Wait for the step sent by :meth:`step_async`; return ``(obs, reward, terminated, truncated, info)``.
@@ -484,7 +572,7 @@ class HTTPVectorEnv(VectorEnv):
         self._assert_open()
         if self._state != AsyncState.WAITING_STEP:
             raise NoAsyncCallError(
-                "calling step_wait without any prior call to step_async", AsyncState.WAITING_STEP.value
+                "Calling `step_wait` without any prior call to `step_async`.", AsyncState.WAITING_STEP.value
             )
         try:
             reset_batch, step_batch = self._take(timeout)
@@ -495,7 +583,9 @@ class HTTPVectorEnv(VectorEnv):
                 result, done = self._apply_step(*error.answered)
             self._fail(error, ~done, result)
             raise
-        return self._apply_step(reset_batch, step_batch)[0]
+        result = self._apply_step(reset_batch, step_batch)[0]
+        self._raise_env_errors(step_batch, reset_batch)
+        return result
 
     def _apply_step(
         self, reset_batch: StageBatch, step_batch: StageBatch
@@ -535,6 +625,9 @@ class HTTPVectorEnv(VectorEnv):
                 final_obs[i] = _row(step_batch.obs, rows_of[self._keys[i]])
             final_info: dict[str, Any] = {}
             ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
+            ended_mask = np.zeros(step_batch.n, dtype=bool)
+            ended_mask[ended_rows] = True
+            self._add_env_info(final_info, step_batch, None, ended_mask)
             self._add_rows_info(final_info, step_batch, ended_rows, reset)
             done = np.zeros(self.num_envs, dtype=bool)
             done[reset] = True
@@ -542,8 +635,14 @@ class HTTPVectorEnv(VectorEnv):
             info["final_info"], info["_final_info"] = final_info, done.copy()
 
         _put_rows(self._obs, reset_batch.obs, reset)
+        keep = np.zeros(step_batch.n, dtype=bool)
+        keep[take] = True
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            keep &= ~ended  # an env reset in the same step shows its reset's info; its step's is final_info
+        self._add_env_info(info, step_batch, None, keep)
+        self._add_env_info(info, reset_batch, None)
         self._add_rows_info(info, step_batch, take, stepped)
-        self._add_batch_info(info, reset_batch, reset, with_state_ids=True)
+        self._add_batch_info(info, reset_batch, reset, with_state_ids=not self._native)
         answered = np.zeros(self.num_envs, dtype=bool)
         answered[stepped] = True
         answered[reset] = True
@@ -565,8 +664,8 @@ class HTTPVectorEnv(VectorEnv):
         try:
             answer = self._pending.result(timeout)  # type: ignore[union-attr]
         except TimeoutError:
-            raise TimeoutError(
-                f"the call to `{self._state.value}_wait` timed out after {timeout} s; it is still pending"
+            raise WaitTimeoutError(
+                f"The call to `{self._state.value}_wait` has timed out after {timeout} second(s); it is still pending"
             ) from None
         except BaseException as exc:
             if not isinstance(exc, Exception) or isinstance(exc, concurrent.futures.CancelledError):
@@ -578,6 +677,28 @@ class HTTPVectorEnv(VectorEnv):
             raise
         self._state, self._pending = AsyncState.DEFAULT, None
         return answer
+
+    def _add_env_info(
+        self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray | None, keep: np.ndarray | None = None
+    ) -> None:
+        """Merge the envs' own info of ``batch`` (the rows ``keep`` marks, or all) into ``info``."""
+        if not batch.env_info:
+            return
+        env_of_row = np.array([self._key_index[k] for k in batch.traj_keys], dtype=np.int64)
+        for rows, batched in batch.env_info:
+            merge_rows(info, batched, env_of_row[rows], self.num_envs, None if keep is None else keep[rows])
+
+    def _raise_env_errors(self, *batches: StageBatch) -> None:
+        """Raise the first exception an env of the call raised (its envs must be reset)."""
+        errors = [error for batch in batches for error in batch.errors]
+        if not errors:
+            return
+        failed = sorted({self._key_index[key] for key, _, _ in errors})
+        self._failed[failed] = True
+        self._autoreset[failed] = False
+        key, type_name, message = errors[0]
+        logger.warning("envs %s raised (first: env %d %s: %s); they must be reset", failed, self._key_index[key], type_name, message)
+        raise builtin_exception(type_name, message)
 
     def _add_batch_info(
         self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray, with_state_ids: bool = False
@@ -607,10 +728,65 @@ class HTTPVectorEnv(VectorEnv):
 
     def _assert_open(self) -> None:
         if self.closed:
-            raise ClosedEnvironmentError(f"trying to operate on {type(self).__name__} after it was closed")
+            raise ClosedEnvironmentError(f"Trying to operate on `{type(self).__name__}`, after a call to `close()`.")
+
+    # -- attributes -----------------------------------------------------------------------------
+
+    def get_attr(self, name: str) -> tuple[Any, ...]:
+        """Return attribute ``name`` of every env, as JSON values (a gym env's through its wrappers).
+
+        Raises:
+            ClosedEnvironmentError, AlreadyPendingCallError: as gymnasium's vector envs.
+            PodRequestError: the pods refused the name (private, or one vecsim keeps).
+            the env's own exception (builtin types by name), or ``ValueError`` for an attribute
+            that JSON cannot hold.
+        """
+        return tuple(self._attr("get_attr", name, None))
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """Call method ``name(*args, **kwargs)`` of every env (or read it, if it is not callable);
+        return the JSON results. Arguments must be JSON values.
+
+        Raises:
+            as :meth:`get_attr`.
+        """
+        return tuple(self._attr("call", name, (list(args), kwargs)))
+
+    def set_attr(self, name: str, values: list[Any] | tuple[Any, ...] | object) -> None:
+        """Set attribute ``name`` of every env: ``values[i]`` for env i (a list or tuple), or one
+        value for all. Only JSON-valued attributes may be set (an array keeps its dtype and shape).
+
+        Raises:
+            ValueError: a list of the wrong length.
+            as :meth:`get_attr`.
+        """
+        if not isinstance(values, (list, tuple)):
+            values = [values for _ in range(self.num_envs)]
+        if len(values) != self.num_envs:
+            raise ValueError(
+                "Values must be a list or tuple with length equal to the number of environments. "
+                f"Got `{len(values)}` values for {self.num_envs} environments."
+            )
+        self._attr("set_attr", name, list(values))
+
+    def _attr(self, op: str, name: str, payload: Any) -> list[Any]:
+        self._assert_open()
+        if self._state != AsyncState.DEFAULT:
+            raise AlreadyPendingCallError(
+                f"Calling `{op}` while waiting for a pending call to `{self._state.value}` to complete.",
+                str(self._state.value),
+            )
+        results, errors = self.client.env_attr(op, self._keys, name, payload).result()
+        if errors:
+            key, type_name, message = errors[0]
+            raise builtin_exception(type_name, message)
+        return results
 
     def close_extras(self, **kwargs: Any) -> None:
-        """Close the client: pod connections and its event loop thread."""
+        """Close the client: pod connections and its event loop thread (a call still pending is
+        dropped, with gymnasium's warning)."""
+        if self._state != AsyncState.DEFAULT:
+            gym_logger.warn(f"Calling `close` while waiting for a pending call to `{self._state.value}` to complete.")
         self._state, self._pending = AsyncState.DEFAULT, None
         self.client.close()
 

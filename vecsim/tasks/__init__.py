@@ -8,7 +8,9 @@ Task ids are ``<suite>/<name>``:
   ``robosuite/NutAssembly[Square|Round]``, ``robosuite/Door`` (Panda, OSC_POSE; 50 fixed initial
   states generated from seeds and cached);
 - ``tiny``: ``tiny/lift``, ``tiny/stack``, ``tiny/door``, robosuite scenes with 50-step episodes;
-- any gymnasium id as ``gym/<id>`` (``gym:<id>`` is accepted and normalised).
+- any gymnasium id as ``gym/<id>`` (``gym:<id>`` is accepted and normalised), and a user's env as
+  ``gym/<module>:<id>`` (the module is imported first, gymnasium's own ``"module:EnvId"`` form);
+  served without cameras, a gym task is the env itself (its spaces, info and seeding).
 
 All tasks of a suite share one observation space and one action space (docs/api.md); so do all
 robot tasks (LIBERO, robosuite, tiny) under one camera config. Importing this module imports
@@ -16,6 +18,9 @@ neither robosuite nor LIBERO: they load when an env is made (or, for LIBERO, lis
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium
 
@@ -96,7 +101,8 @@ def get_task(task_id: str) -> TaskSpec:
 
     Raises:
         UnknownTaskError: no provider knows ``task_id``; the message names it and lists the suites.
-        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets; a
+            ``gym/<module>:<id>`` whose module cannot be imported (named).
     """
     normalized = normalize_task_id(task_id)
     suite, _, name = normalized.partition("/")
@@ -111,19 +117,23 @@ def get_task(task_id: str) -> TaskSpec:
     raise _unknown(f"unknown task {task_id!r}")
 
 
-def task_spaces(task_id: str, camera: CameraConfig) -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+def task_spaces(
+    task_id: str, camera: CameraConfig, make_kwargs: Mapping[str, Any] | None = None
+) -> tuple[gymnasium.Space, gymnasium.Space]:
     """Return ``(observation_space, action_space)`` of ``task_id``'s envs under ``camera``.
 
-    Robot tasks need no env for this; a gym task's env is made (without rendering) and closed.
+    Robot tasks need no env for this; a gym task's env is made (with ``make_kwargs``, without
+    rendering) and closed.
 
     Raises:
         UnknownTaskError: unknown task id.
-        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
-        ValueError: a gym task whose spaces are not Box spaces.
+        TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets; a gym
+            task whose module cannot be imported.
+        ValueError: a gym task with a space vecsim cannot serve (named), or kwargs gymnasium refused.
     """
     task = get_task(task_id)
     if task.suite == "gym":
-        return gym_spaces(task, camera)
+        return gym_spaces(task, camera, make_kwargs)
     if task.suite in LIBERO_SUITES:
         return libero_observation_space(camera), robot_action_space()
     return robot_observation_space(camera), robot_action_space()
@@ -138,11 +148,12 @@ def default_render(task_id: str) -> RenderPreset:
     return "full" if normalize_task_id(task_id).partition("/")[0] in LIBERO_SUITES else "lean"
 
 
-def episode_limit(task_id: str, max_episode_steps: int | None) -> int:
+def episode_limit(task_id: str, max_episode_steps: int | None) -> int | None:
     """Return the episode length a pod gives ``task_id``'s envs under an assignment's ``max_episode_steps``.
 
     Set, it holds for every task. Unset, a LIBERO task gets its suite's limit (the step budget
-    of LIBERO's published evaluations) and any other task ``POD_MAX_EPISODE_STEPS``.
+    of LIBERO's published evaluations), a gym task its id's own limit (None where the id has
+    none: only the env's own truncation) and any other task ``POD_MAX_EPISODE_STEPS``.
 
     Raises:
         UnknownTaskError: unknown task id.
@@ -151,6 +162,8 @@ def episode_limit(task_id: str, max_episode_steps: int | None) -> int:
     if max_episode_steps is not None:
         return max_episode_steps
     task = get_task(task_id)
+    if task.suite == "gym":
+        return None
     return task.max_episode_steps if task.suite in LIBERO_SUITES else POD_MAX_EPISODE_STEPS
 
 
@@ -160,12 +173,14 @@ def make_env(
     render: RenderPreset | None = None,
     max_episode_steps: int | None = None,
     libero: LiberoProtocol | None = None,
+    make_kwargs: Mapping[str, Any] | None = None,
 ) -> TaskEnv:
     """Build the env of ``task_id``: a :class:`TaskEnv` (a ``gymnasium.Env``).
 
     ``camera`` defaults to ``CameraConfig()``; ``render`` to :func:`default_render`;
     ``max_episode_steps`` to the task's own; ``libero`` (the conventions of LIBERO tasks, ignored
-    by the others) to ``LiberoProtocol()``, LIBERO's published evaluation.
+    by the others) to ``LiberoProtocol()``, LIBERO's published evaluation; ``make_kwargs`` (gym
+    tasks only) go to ``gymnasium.make``.
     ``reset(options={"state_id": k})`` puts the env in fixed initial state ``k``.
 
     Raises:
@@ -176,9 +191,9 @@ def make_env(
     task = get_task(task_id)
     camera = CameraConfig() if camera is None else camera
     render = default_render(task.task_id) if render is None else render
-    steps = task.max_episode_steps if max_episode_steps is None else max_episode_steps
     if task.suite == "gym":
-        return GymTaskEnv(task, camera, render, steps)
+        return GymTaskEnv(task, camera, render, max_episode_steps, make_kwargs)
+    steps = task.max_episode_steps if max_episode_steps is None else max_episode_steps
     if task.suite in LIBERO_SUITES:
         return make_libero_env(task, camera, render, steps, LiberoProtocol() if libero is None else libero)
     return make_robosuite_env(task, camera, render, steps)

@@ -1,14 +1,24 @@
-"""Any registered gymnasium env with Box observations and Box actions, as task ``gym/<id>``.
+"""Any gymnasium env, as task ``gym/<id>``: a registered id, or ``gym/<module>:<id>``, whose module
+the pod imports first (gymnasium's own ``"module:EnvId"`` form, for a user's package).
 
-State id ``k`` is ``reset(seed=derive_seed(task_id, k))``. ``proprio`` is the env's own
-observation, flattened, as float32; with cameras asked for, ``images`` holds one ``render``
-frame of the configured size (MuJoCo envs only, upright): the picture gymnasium's
-``env.render()`` gives, drawn by vecsim's batch renderer from gymnasium's camera settings, so no
-gymnasium viewer (and no GL context of its own) is ever made.
+Without cameras a gym task is the env itself: ``gymnasium.make(id, **make_kwargs)`` with the
+env's own observation and action spaces (any kind :mod:`vecsim.spaces` describes; actions of an
+array space: Box, Discrete, MultiDiscrete, MultiBinary), its own ``info`` (vecsim's ``success``
+and ``task_id`` beside it) and its own seeding: ``reset(seed=s, options=o)`` is the env's. With
+cameras, a gym task takes vecsim's robot layout: ``proprio`` is the env's observation, flattened,
+as float32, and ``images`` holds one ``render`` frame of the configured size (MuJoCo envs only,
+upright): the picture gymnasium's ``env.render()`` gives, drawn by vecsim's batch renderer from
+gymnasium's camera settings, so no gymnasium viewer (and no GL context of its own) is ever made;
+that layout needs Box spaces.
+
+Either way state id ``k`` is ``reset(seed=derive_seed(task_id, k))``: fixed initial states stay
+available (``reset(options={"state_id": k})``).
 """
 
 from __future__ import annotations
 
+import importlib
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium
@@ -18,22 +28,50 @@ import numpy as np
 from vecsim import render as render_presets
 from vecsim.batch_render import BatchRenderer, CameraView, shared_renderer
 from vecsim.config import CameraConfig
-from vecsim.tasks._base import TaskEnv, TaskSpec, derive_seed, ensure_gl_backend
+from vecsim.spaces import check_action_space, check_travels
+from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_seed, ensure_gl_backend
 
 GYM_NUM_STATES = 50
 GYM_DEFAULT_MAX_EPISODE_STEPS = 1000
 RENDER_CAMERA = "render"
+# The info keys vecsim itself gives every task env; an env's own keys of those names are vecsim's.
+VECSIM_INFO_KEYS = ("success", "task_id", "state_id")
 
 
 def gym_id(task_id: str) -> str:
-    """Return the gymnasium id of a ``gym/<id>`` task id."""
+    """Return the gymnasium id of a ``gym/<id>`` task id (with its ``module:`` part, if any)."""
     return task_id.split("/", 1)[1]
 
 
-def gym_spec(task_id: str) -> TaskSpec | None:
-    """Return the TaskSpec of ``gym/<id>``, or None when gymnasium has no such id."""
+def import_env_module(env_id: str) -> str:
+    """Import the module of a ``module:EnvId`` id (registering its envs); return ``EnvId``.
+
+    Raises:
+        TaskSetupError: the module cannot be imported; the message names it and why.
+    """
+    module, sep, name = env_id.rpartition(":")
+    if not sep:
+        return env_id
+    if not module or not name:
+        raise TaskSetupError(f"gym/{env_id}: expected gym/<module>:<env id>")
     try:
-        spec = gymnasium.spec(gym_id(task_id))
+        importlib.import_module(module)
+    except Exception as exc:  # noqa: BLE001 - whatever the user's module raises, name it
+        raise TaskSetupError(
+            f"gym/{env_id}: cannot import module {module!r} in this process: {type(exc).__name__}: {exc}"
+        ) from None
+    return name
+
+
+def gym_spec(task_id: str) -> TaskSpec | None:
+    """Return the TaskSpec of ``gym/<id>`` (or ``gym/<module>:<id>``), or None when gymnasium has no such id.
+
+    Raises:
+        TaskSetupError: the id names a module that cannot be imported.
+    """
+    name = import_env_module(gym_id(task_id))
+    try:
+        spec = gymnasium.spec(name)
     except gymnasium.error.Error:
         return None
     return TaskSpec(
@@ -48,33 +86,53 @@ def gym_spec(task_id: str) -> TaskSpec | None:
 
 def _check_box(task: TaskSpec, what: str, space: gymnasium.Space) -> gymnasium.spaces.Box:
     if not isinstance(space, gymnasium.spaces.Box):
-        raise ValueError(f"{task.task_id}: its {what} space is {space}; vecsim serves Box spaces only")
+        raise ValueError(f"{task.task_id}: its {what} space is {space}; with cameras vecsim serves Box spaces only")
     return space
 
 
-def gym_spaces(task: TaskSpec, camera: CameraConfig) -> tuple[gymnasium.spaces.Dict, gymnasium.spaces.Box]:
+def _make(task: TaskSpec, make_kwargs: Mapping[str, Any] | None, **extra: Any) -> gymnasium.Env:
+    """``gymnasium.make`` of the task's id with the job's kwargs for it (``extra`` wins).
+
+    Raises:
+        ValueError: gymnasium refused the kwargs (the message names the task).
+    """
+    kwargs = {**dict(make_kwargs or {}), **extra}
+    try:
+        return gymnasium.make(import_env_module(gym_id(task.task_id)), disable_env_checker=True, **kwargs)
+    except TypeError as exc:
+        raise ValueError(f"{task.task_id}: gymnasium.make refused the kwargs {sorted(kwargs)}: {exc}") from exc
+
+
+def gym_spaces(
+    task: TaskSpec, camera: CameraConfig, make_kwargs: Mapping[str, Any] | None = None
+) -> tuple[gymnasium.Space, gymnasium.Space]:
     """Return ``(observation_space, action_space)`` of a gym task under ``camera``.
 
     Raises:
-        ValueError: the env's spaces are not Box spaces.
+        ValueError: a space that cannot be served (named), or kwargs gymnasium refused.
     """
-    env = gymnasium.make(gym_id(task.task_id), disable_env_checker=True)
+    env = _make(task, make_kwargs)
     try:
-        return _observation_space(task, env, camera), _check_box(task, "action", env.action_space)
+        return _spaces(task, env, camera)
     finally:
         env.close()
 
 
-def _observation_space(task: TaskSpec, env: gymnasium.Env, camera: CameraConfig) -> gymnasium.spaces.Dict:
+def _spaces(task: TaskSpec, env: gymnasium.Env, camera: CameraConfig) -> tuple[gymnasium.Space, gymnasium.Space]:
+    if not camera.names:
+        where = task.task_id
+        return check_travels(env.observation_space, f"{where}: observation space"), check_action_space(
+            env.action_space, f"{where}: action space"
+        )
     observation = _check_box(task, "observation", env.observation_space)
-    spaces: dict[str, gymnasium.Space] = {}
-    if camera.names:
-        spaces["images"] = gymnasium.spaces.Dict(
+    spaces: dict[str, gymnasium.Space] = {
+        "images": gymnasium.spaces.Dict(
             {RENDER_CAMERA: gymnasium.spaces.Box(0, 255, (camera.height, camera.width, 3), np.uint8)}
         )
+    }
     size = int(np.prod(observation.shape))
     spaces["proprio"] = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
-    return gymnasium.spaces.Dict(spaces)
+    return gymnasium.spaces.Dict(spaces), _check_box(task, "action", env.action_space)
 
 
 def gymnasium_camera(env: gymnasium.Env) -> CameraView:
@@ -116,24 +174,38 @@ def gymnasium_camera(env: gymnasium.Env) -> CameraView:
 
 
 class GymTaskEnv(TaskEnv):
-    """A gymnasium env behind vecsim's observation and reset contract.
+    """A gymnasium env behind vecsim's task contract (see the module docstring).
 
+    Without cameras (:attr:`native`) it is the env itself: ``reset(seed=, options=)`` and ``step``
+    are the env's, its ``info`` keeps the env's keys, and truncation is the env's own
+    (``max_episode_steps``, None: the id's own limit, if any). ``reset(options={"state_id": k})``
+    puts it in fixed initial state ``k`` (the env's other options go on to its reset).
     With cameras, :attr:`camera_views` holds gymnasium's camera and :attr:`renderer` draws it;
     with :attr:`defer_images` set, observations leave ``images`` out for a batch to fill.
     """
 
-    def __init__(self, task: TaskSpec, camera: CameraConfig, render: str, max_episode_steps: int) -> None:
-        super().__init__(task, max_episode_steps)
+    def __init__(
+        self,
+        task: TaskSpec,
+        camera: CameraConfig,
+        render: str,
+        max_episode_steps: int | None,
+        make_kwargs: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__(task, max_episode_steps or task.max_episode_steps)
         render_presets.settings(render)
-        kwargs: dict[str, Any] = {}
+        self.native = not camera.names
+        extra: dict[str, Any] = {}
+        if max_episode_steps is not None:
+            extra["max_episode_steps"] = max_episode_steps
         if camera.names:
             ensure_gl_backend()
-            kwargs = {"render_mode": "rgb_array", "width": camera.width, "height": camera.height}
+            extra.update(render_mode="rgb_array", width=camera.width, height=camera.height)
         try:
-            self.inner = gymnasium.make(
-                gym_id(task.task_id), max_episode_steps=max_episode_steps, disable_env_checker=True, **kwargs
-            )
-        except TypeError as exc:
+            self.inner = _make(task, make_kwargs, **extra)
+        except ValueError as exc:
+            if not camera.names:
+                raise
             raise ValueError(
                 f"{task.task_id}: cannot render camera images of it (only gymnasium MuJoCo envs "
                 f"take a width and height): {exc}"
@@ -143,8 +215,7 @@ class GymTaskEnv(TaskEnv):
         self.camera_views: list[CameraView] = []
         self.renderer: BatchRenderer | None = None
         try:
-            self.observation_space = _observation_space(task, self.inner, camera)
-            self.action_space = _check_box(task, "action", self.inner.action_space)
+            self.observation_space, self.action_space = _spaces(task, self.inner, camera)
             if camera.names:
                 self.camera_views = [gymnasium_camera(self.inner)]
                 self.renderer = shared_renderer(camera.height, camera.width, render)
@@ -158,6 +229,48 @@ class GymTaskEnv(TaskEnv):
         if self.renderer is None:
             return {}
         return dict(zip(self.image_names, self.renderer.render(self.camera_views)))
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset the env: to fixed initial state ``options["state_id"]``, or (native) as the env's
+        own ``reset(seed=seed, options=options)``.
+
+        Returns:
+            ``(observation, info)``; info holds ``success`` and ``task_id`` (and ``state_id`` after
+            a reset to a fixed state), native envs' info the env's own keys besides.
+
+        Raises:
+            ValueError: a ``state_id`` that is not an int in range.
+            Whatever the env's own reset raises.
+        """
+        if not self.native:
+            return super().reset(seed=seed, options=options)
+        rest = dict(options or {})
+        state_id = rest.pop("state_id", None)
+        if state_id is not None:
+            state_id = self._state_id({"state_id": state_id})
+            seed = derive_seed(self.task.task_id, state_id)
+        raw, info = self.inner.reset(seed=seed, options=rest or None)
+        self._elapsed = 0
+        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
+        if state_id is not None:
+            info["state_id"] = state_id
+        return raw, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Advance one step: native envs exactly as the env's own ``step``.
+
+        Returns:
+            ``(observation, reward, terminated, truncated, info)``, info with ``success`` and
+            ``task_id`` (besides the env's own keys, native).
+        """
+        if not self.native:
+            return super().step(action)
+        raw, reward, terminated, truncated, info = self.inner.step(action)
+        self._elapsed += 1
+        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
+        return raw, float(reward), bool(terminated), bool(truncated), info
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
         raw, info = self.inner.reset(seed=derive_seed(self.task.task_id, state_id))

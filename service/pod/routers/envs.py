@@ -1,4 +1,5 @@
-"""The data plane: reset and step envs, and look at one env's camera."""
+"""The data plane: reset and step envs, read, call and set their attributes, and look at one
+env's camera."""
 
 from __future__ import annotations
 
@@ -12,11 +13,22 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from PIL import Image
 
 from vecsim import sim, wire
+from vecsim.info import batch_infos
+from vecsim.spaces import tuples_as_dicts
 
 from ..bodies import JSON_TYPE, encode_answer, parse_body, wants_json
 from ..deps import get_state
 from ..errors import InvalidRequestError, SimCrashedError, UnknownEnvError
-from ..models import ChunkStepResponse, ErrorResponse, ResetRequest, ResetResponse, StepRequest, StepResponse
+from ..models import (
+    AttrRequest,
+    AttrResponse,
+    ChunkStepResponse,
+    ErrorResponse,
+    ResetRequest,
+    ResetResponse,
+    StepRequest,
+    StepResponse,
+)
 from ..state import PodState
 
 router = APIRouter(tags=["envs"])
@@ -57,6 +69,20 @@ def _answer_doc(model: type[Any]) -> dict[int | str, dict[str, Any]]:
     }
 
 
+def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]], errors: list[sim.EnvError]) -> dict[str, Any]:
+    """Add the envs' own info and the envs that raised to ``answer``; return it."""
+    batched = batch_infos(env_info)
+    if batched:
+        answer["env_info"] = batched
+    if errors:
+        answer["errors"] = {
+            "env_ids": np.array([int(ids[e.row]) for e in errors], dtype=np.int32),
+            "type": [e.type_name for e in errors],
+            "message": [e.message for e in errors],
+        }
+    return answer
+
+
 async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
     """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
     turning the simulation's errors into HTTP errors."""
@@ -81,22 +107,22 @@ async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callab
     summary="Reset envs to fixed initial states",
 )
 async def reset(request: Request, state: PodState = Depends(get_state)) -> Response:
-    """Put ``env_ids[i]`` in fixed initial state ``state_ids[i]`` of its task; answers their
-    observations. Other envs do not change; no env ids is a no-op answering empty arrays."""
+    """Put ``env_ids[i]`` in fixed initial state ``state_ids[i]`` of its task, or (``seeds``
+    instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``; answers their
+    observations, success, the envs' own info (``env_info``) and the envs that raised
+    (``errors``). Other envs do not change; no env ids is a no-op answering empty arrays."""
     req = parse_body(request, await request.body(), ResetRequest)
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
 
     def work() -> Response:
-        obs, info = env.reset_envs(req.env_ids, req.state_ids)
-        return encode_answer(
-            {
-                "env_ids": req.env_ids.astype(np.int32),
-                "obs": obs,
-                "info": {"success": np.asarray(info["success"], dtype=bool), "task_id": list(info["task_id"])},
-            },
-            as_json,
-        )
+        obs, info = env.reset_envs(req.env_ids, req.state_ids, seeds=req.seeds, options=req.options)
+        answer = {
+            "env_ids": req.env_ids.astype(np.int32),
+            "obs": tuples_as_dicts(obs),
+            "info": {"success": np.asarray(info["success"], dtype=bool), "task_id": list(info["task_id"])},
+        }
+        return encode_answer(_own(answer, req.env_ids, info["env_info"], info["errors"]), as_json)
 
     response = await _simulate(state, env, work)
     state.metrics.env_resets.inc(len(req.env_ids))
@@ -133,7 +159,7 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     req = parse_body(request, await request.body(), StepRequest)
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
-    is_chunk = req.actions.ndim == len(env.single_action_space.shape) + 2
+    is_chunk = req.actions.ndim == len(env.single_action_space.shape or ()) + 2
     if req.record_env_ids.size and not is_chunk:
         raise InvalidRequestError(
             f"record_env_ids: pod {state.settings.name} records frames of chunks only; "
@@ -147,7 +173,7 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             elapsed = time.perf_counter() - start
             answer: dict[str, Any] = {
                 "env_ids": req.env_ids.astype(np.int32),
-                "obs": result.obs,
+                "obs": tuples_as_dicts(result.obs),
                 "reward": result.reward,
                 "terminated": result.terminated,
                 "truncated": result.truncated,
@@ -156,18 +182,20 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             }
             if req.record_env_ids.size:
                 answer["frames"] = result.frames
+            _own(answer, req.env_ids, result.env_info, result.errors)
             applied = int(result.num_steps.sum())
         else:
             obs, reward, terminated, truncated, info = env.step_envs(req.env_ids, req.actions)
             elapsed = time.perf_counter() - start
             answer = {
                 "env_ids": req.env_ids.astype(np.int32),
-                "obs": obs,
-                "reward": np.asarray(reward, dtype=np.float32),
+                "obs": tuples_as_dicts(obs),
+                "reward": np.asarray(reward, dtype=np.float64),
                 "terminated": np.asarray(terminated, dtype=bool),
                 "truncated": np.asarray(truncated, dtype=bool),
                 "info": {"success": np.asarray(info["success"], dtype=bool)},
             }
+            _own(answer, req.env_ids, info["env_info"], info["errors"])
             applied = len(req.env_ids)
         # Read on this thread, before another call can replace it.
         timing = env.last_timing
@@ -197,7 +225,7 @@ async def frame(
     its last reset or step; nothing is stepped or reset."""
     env = state.current_env()
     if camera is None:
-        images = env.single_observation_space.spaces.get("images")
+        images = env._images_space()
         if images is None or not images.spaces:
             raise InvalidRequestError(f"camera: pod {state.settings.name} renders no cameras")
         camera = next(iter(images.spaces))
@@ -210,3 +238,47 @@ async def frame(
         return out.getvalue()
 
     return Response(await _simulate(state, env, work), media_type="image/png")
+
+
+async def _attr(request: Request, state: PodState, op: str) -> Response:
+    req = parse_body(request, await request.body(), AttrRequest)
+    env = state.serving_env(req.generation)
+    if op == "set" and req.values is None:
+        raise InvalidRequestError(f"values: pod {state.settings.name}: set_attr needs one value per env id")
+    payload: Any = req.values if op == "set" else (req.args, req.kwargs)
+
+    def work() -> Response:
+        results, errors = env.env_attr(req.env_ids, op, req.name, payload)
+        answer = {"env_ids": req.env_ids.astype(np.int32).tolist(), "results": results}
+        return encode_answer(_own(answer, req.env_ids, [], errors), True)
+
+    return await _simulate(state, env, work)
+
+
+_ATTR_DOC = {
+    "response_class": Response,
+    "responses": {200: {"model": AttrResponse, "description": "JSON, one result per env id"}, **_ERRORS},
+    "openapi_extra": _body_doc(AttrRequest),
+}
+
+
+@router.post("/v1/get_attr", summary="Read an attribute of some envs", **_ATTR_DOC)
+async def get_attr(request: Request, state: PodState = Depends(get_state)) -> Response:
+    """Answers attribute ``name`` of each env (a gym env's through its wrappers) as JSON; an
+    attribute that JSON cannot hold is that env's error (``errors``), not a failure of the call."""
+    return await _attr(request, state, "get")
+
+
+@router.post("/v1/call", summary="Call a method of some envs", **_ATTR_DOC)
+async def call(request: Request, state: PodState = Depends(get_state)) -> Response:
+    """Calls ``name(*args, **kwargs)`` on each env (or reads it, if it is not callable) and
+    answers the JSON results; what an env raises is answered in ``errors``, the others' results
+    stand. ``close``, ``reset``, ``step`` and private names are refused (422)."""
+    return await _attr(request, state, "call")
+
+
+@router.post("/v1/set_attr", summary="Set an attribute of some envs", **_ATTR_DOC)
+async def set_attr(request: Request, state: PodState = Depends(get_state)) -> Response:
+    """Sets attribute ``name`` of env ``env_ids[i]`` to ``values[i]``; only an attribute whose
+    value is JSON data (an array keeps its dtype and shape) may be set, never a method or a space."""
+    return await _attr(request, state, "set")

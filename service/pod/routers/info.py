@@ -26,6 +26,7 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
             instruction=get_task(block.task_id).instruction,
             env_start=block.env_start,
             num_envs=block.num_envs,
+            reset="seed" if block.task_id.startswith("gym/") and not assignment.camera.names else "state_id",
         )
         for block in assignment.tasks
     ]
