@@ -45,6 +45,23 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
+# The tests also check the trainer's install, `pip install vecsim` without extras (no simulator,
+# no torch), in a venv of its own beside this one (tests/test_light_client.py).
+case ",$extras," in
+  *,test,*)
+    client_venv="$venv-client"
+    client_stamp="$client_venv/.vecsim-setup-$stamp_src"
+    if [ ! -f "$client_stamp" ]; then
+      echo "[setup] installing the client alone into $client_venv" >&2
+      rm -rf "$client_venv"
+      "$py" -m venv "$client_venv"
+      "$client_venv/bin/python" -m pip install -q --upgrade pip
+      "$client_venv/bin/python" -m pip install -q -e "$here"
+      touch "$client_stamp"
+    fi
+    ;;
+esac
+
 # The editable install points at one checkout; a clone elsewhere (CI) re-points it, cheaply.
 # (asked from / so that the current directory's own vecsim/ cannot answer for the venv)
 if [ "$(cd / && "$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Path(vecsim.__file__).resolve().parents[1])' 2>/dev/null)" != "$here" ]; then

@@ -37,7 +37,6 @@ Module-level code imports nothing heavy and starts nothing: it is safe under ``f
 
 from __future__ import annotations
 
-import builtins
 import ctypes
 import ctypes.util
 import functools
@@ -111,17 +110,6 @@ class EnvError:
     type_name: str
     message: str
 
-
-def builtin_exception(type_name: str, message: str) -> BaseException:
-    """The exception of builtin type ``type_name`` with ``message``; a ``RuntimeError`` naming the
-    type for any other (a type is never rebuilt from anything but its builtin name)."""
-    kind = getattr(builtins, type_name, None)
-    if isinstance(kind, type) and issubclass(kind, Exception):
-        try:
-            return kind(message)
-        except Exception:  # noqa: BLE001 - a builtin that takes other arguments (UnicodeDecodeError)
-            pass
-    return RuntimeError(f"{type_name}: {message}")
 
 def _describe(task_ids: Sequence[str], env_indices: Sequence[int]) -> str:
     """Name the envs of a run of env indices by task: ``tiny/lift (envs 0-1), tiny/door (envs 2-2)``."""

@@ -230,6 +230,7 @@ class TaskInfo(BaseModel):
     instruction: str
     env_start: int
     num_envs: int
+    num_states: int = Field(description="how many fixed initial states the task has (state ids 0..num_states-1)")
     reset: str = Field(
         "state_id",
         description="how the client resets this task's envs by default: 'seed' (a gym task without cameras: "

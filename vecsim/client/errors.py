@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import builtins
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -128,3 +129,15 @@ def call_error(errors: list[BaseException], answered: Any) -> BaseException:
         return PodUnavailableError(held, "; ".join(e.reason for e in unavailable), answered=answered)
     keys = [key for e in moved for key in e.traj_keys]
     return RoutingChangedError(max(e.generation for e in moved), keys, answered=answered)
+
+
+def builtin_exception(type_name: str, message: str) -> BaseException:
+    """The exception of builtin type ``type_name`` with ``message``; a ``RuntimeError`` naming the
+    type for any other (a type is never rebuilt from anything but its builtin name)."""
+    kind = getattr(builtins, type_name, None)
+    if isinstance(kind, type) and issubclass(kind, Exception):
+        try:
+            return kind(message)
+        except Exception:  # noqa: BLE001 - a builtin that takes other arguments (UnicodeDecodeError)
+            pass
+    return RuntimeError(f"{type_name}: {message}")

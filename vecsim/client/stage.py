@@ -403,6 +403,7 @@ class StageClient:
         self._env_answer_bytes: int | None = None  # what one env's answer can take, from the spaces
         self._instructions: dict[str, str] = {}
         self._reset_kinds: dict[str, str] = {}
+        self._num_states: dict[str, int] = {}
         self._instances: dict[str, str | None] = {}  # pod -> its envs' build ("instance" in /v1/info)
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
         self._closed = False
@@ -533,6 +534,13 @@ class StageClient:
         env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
         self._load_info()
         return dict(self._reset_kinds)
+
+    @property
+    def num_states(self) -> dict[str, int]:
+        """How many fixed initial states each task has (state ids ``0..n-1``), from the pods'
+        ``/v1/info``: the trainer needs no task registry of its own."""
+        self._load_info()
+        return dict(self._num_states)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -1007,6 +1015,8 @@ class StageClient:
             for task in info.get("tasks", []):
                 self._instructions.setdefault(task["task_id"], task.get("instruction", ""))
                 self._reset_kinds.setdefault(task["task_id"], task.get("reset", "state_id"))
+                if "num_states" in task:
+                    self._num_states.setdefault(task["task_id"], int(task["num_states"]))
             here = (info.get("observation_space"), info.get("action_space"))
             if here[0] is None or here[1] is None:
                 raise PodUnavailableError({pod: []}, "envs not built yet (no spaces in /v1/info)")

@@ -26,14 +26,11 @@ from gymnasium import logger as gym_logger
 from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
-from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, call_error
+from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, env_slots
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.info import merge_rows
-from vecsim.sim import builtin_exception
-from vecsim.tasks import get_task
-from vecsim.tasks._gym import GYM_NUM_STATES
 
 logger = logging.getLogger(__name__)
 
@@ -230,7 +227,11 @@ class HTTPVectorEnv(VectorEnv):
         # user's package) need not exist on this machine.
         kinds = self.client.reset_kinds
         self._native = all(kinds.get(t) == "seed" for t in self.task_ids)
-        self._num_states = {t: GYM_NUM_STATES if t.startswith("gym/") else get_task(t).num_states for t in set(self.task_ids)}
+        known = self.client.num_states
+        missing = sorted(set(self.task_ids) - set(known))
+        if missing:
+            raise ValueError(f"the pods' /v1/info names no number of initial states for task(s) {missing}")
+        self._num_states = {t: known[t] for t in set(self.task_ids)}
         self._keys = [f"env{i}" for i in range(self.num_envs)]
         self._key_index = {key: i for i, key in enumerate(self._keys)}
         self.client.set_routes(

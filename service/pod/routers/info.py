@@ -24,6 +24,7 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
         TaskInfo(
             task_id=block.task_id,
             instruction=get_task(block.task_id).instruction,
+            num_states=get_task(block.task_id).num_states,
             env_start=block.env_start,
             num_envs=block.num_envs,
             reset="seed" if block.task_id.startswith("gym/") and not assignment.camera.names else "state_id",
