@@ -154,7 +154,7 @@ def test_a_refused_step_leaves_the_envs_as_they_were(pod):
         return wire.decode(response.content)
 
     after_intruder, reference = reset_then_step(intruder=True), reset_then_step(intruder=False)
-    assert after_intruder["obs"]["proprio"].tobytes() == reference["obs"]["proprio"].tobytes()
+    assert after_intruder["obs"].tobytes() == reference["obs"].tobytes()
     assert after_intruder["reward"].tobytes() == reference["reward"].tobytes()
 
 

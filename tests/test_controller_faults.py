@@ -129,7 +129,7 @@ def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_rea
     agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_INTERVAL_S": "0.5", "VECSIM_MAX_ENVS": "2"}
 
     def policy(obs, instructions, task_ids) -> torch.Tensor:
-        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+        return torch.clamp(-0.5 * obs[:, 2:3], -2.0, 2.0)
 
     with running(controller):
         assert httpx.put(f"{controller.url}/v1/job", json=job, timeout=30).status_code == 200
@@ -146,4 +146,4 @@ def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_rea
     assert sorted(after.trajectories) == keys and all(t.length == 10 for t in after.trajectories.values())
     for key in keys:
         mine, theirs = after.trajectories[key], before.trajectories[key]
-        assert torch.equal(mine.observations["proprio"], theirs.observations["proprio"])
+        assert torch.equal(mine.observations, theirs.observations)

@@ -103,7 +103,7 @@ def test_an_auto_pod_serves_the_same_envs_as_one_env_per_worker() -> None:
         with _pod(envs_per_worker) as pod:
             obs, _ = pod.reset_envs([4, 0, 2, 1, 3], [7, 1, 3, 0, 9])
             steps = [pod.step_envs([3, 1, 0, 4, 2], step) for step in actions]
-            answers.append((obs["proprio"], [(s[0]["proprio"], s[1]) for s in steps]))
+            answers.append((obs, [(s[0], s[1]) for s in steps]))
     (auto_obs, auto_steps), (one_obs, one_steps) = answers
     assert np.array_equal(auto_obs, one_obs)
     for (auto_proprio, auto_reward), (one_proprio, one_reward) in zip(auto_steps, one_steps):

@@ -62,13 +62,13 @@ class ScriptedPolicy:
         self.calls += 1
         if self.calls == self.at and self.fault is not None:
             self.fault()
-        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+        return torch.clamp(-0.5 * obs[:, 2:3], -2.0, 2.0)
 
 
 def assert_identical(mine: Trajectory, reference: Trajectory) -> None:
     assert mine.route.task_id == reference.route.task_id and mine.route.state_id == reference.route.state_id
     assert mine.length == reference.length
-    assert torch.equal(mine.observations["proprio"], reference.observations["proprio"]), mine.traj_key
+    assert torch.equal(mine.observations, reference.observations), mine.traj_key
     assert torch.equal(mine.actions, reference.actions), mine.traj_key
     assert torch.equal(mine.rewards, reference.rewards), mine.traj_key
     assert (mine.terminated, mine.truncated) == (reference.terminated, reference.truncated)
@@ -315,7 +315,7 @@ def test_a_pod_stalled_within_the_timeout_answers_late_and_loses_nothing(pair):
             resume.cancel()
             slow.signal_group(signal.SIGCONT)
         prompt = client.step_stage(1, dict(zip(keys[1], actions))).result(timeout=60)
-    assert late.obs["proprio"].tobytes() == prompt.obs["proprio"].tobytes()
+    assert late.obs.tobytes() == prompt.obs.tobytes()
     assert late.reward.tobytes() == prompt.reward.tobytes()
 
 

@@ -52,7 +52,7 @@ class Policy:
         self.calls += 1
         if self.calls == self.at and self.fault is not None:
             self.fault()
-        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+        return torch.clamp(-0.5 * obs[:, 2:3], -2.0, 2.0)
 
 
 def on_pod(client: StageClient, name: str) -> list[str]:
@@ -65,7 +65,7 @@ def actions(keys: Sequence[str], value: float) -> dict[str, np.ndarray]:
 
 def rows(batch: StageBatch, keys: Sequence[str]) -> np.ndarray:
     index = [batch.traj_keys.index(key) for key in keys]
-    return np.concatenate([batch.obs["proprio"][index], batch.reward[index, None]], axis=1)
+    return np.concatenate([batch.obs[index], batch.reward[index, None]], axis=1)
 
 
 def test_a_killed_pod_fails_the_call_for_its_trajectories_alone_and_the_others_go_on(pods):
@@ -110,7 +110,7 @@ def test_a_rollout_loses_only_the_killed_pods_trajectories_and_finishes_the_rest
     for key in healthy:
         mine, theirs = result.trajectories[key], reference.trajectories[key]
         assert mine.length == theirs.length == EPISODE
-        assert torch.equal(mine.observations["proprio"], theirs.observations["proprio"])
+        assert torch.equal(mine.observations, theirs.observations)
         assert torch.equal(mine.actions, theirs.actions) and torch.equal(mine.rewards, theirs.rewards)
 
 

@@ -164,13 +164,13 @@ def test_a_gzip_encoded_answer_is_decoded_once_and_equals_the_plain_one(pods, pr
         client.reset_stage(0).result(timeout=60)
         proxy.gzip_answers = True
         encoded = client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60)
-    assert np.array_equal(encoded.obs["proprio"], plain.obs["proprio"])
+    assert np.array_equal(encoded.obs, plain.obs)
     assert np.array_equal(encoded.reward, plain.reward)
 
 
 def test_a_rollout_loses_only_the_hostile_pods_trajectories_and_the_next_runs_at_once(pods, proxy):
     def policy(obs, instructions, task_ids) -> torch.Tensor:
-        return torch.clamp(-0.5 * obs["proprio"][:, 2:3], -2.0, 2.0)
+        return torch.clamp(-0.5 * obs[:, 2:3], -2.0, 2.0)
 
     with client_of(pods) as client:
         loop = EnvLoop(client, policy, horizon=EPISODE)
@@ -199,7 +199,7 @@ def test_the_vector_env_fails_the_hostile_pods_envs_alone(pods, proxy):
     finally:
         env.close()
     assert caught.value.failed_envs == failed
-    assert obs["proprio"].shape[0] == env.num_envs
+    assert obs.shape[0] == env.num_envs
 
 
 def test_the_client_runs_on_any_httpx_transport_and_answers_alike(pods, proxy):
@@ -210,7 +210,7 @@ def test_the_client_runs_on_any_httpx_transport_and_answers_alike(pods, proxy):
             client.reset_stage(0).result(timeout=60)
             answers.append(client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60))
     default, httpx_own = answers
-    assert np.array_equal(default.obs["proprio"], httpx_own.obs["proprio"])
+    assert np.array_equal(default.obs, httpx_own.obs)
     assert np.array_equal(default.reward, httpx_own.reward)
 
 

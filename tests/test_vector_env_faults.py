@@ -87,7 +87,7 @@ def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_thei
         assert error.failed_envs == failed and error.pods == ["sim-1"]
         assert sorted(error.traj_keys) == [f"env{i}" for i in failed]
         obs, reward, terminated, truncated, info = error.result
-        assert np.array_equal(obs["proprio"][healthy], ref[2][0]["proprio"][healthy])
+        assert np.array_equal(obs[healthy], ref[2][0][healthy])
         assert np.array_equal(reward[healthy], ref[2][1][healthy])
         assert info["_success"].tolist() == [i in healthy for i in range(env.num_envs)]
 
@@ -95,14 +95,14 @@ def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_thei
         restart(doomed)
         mask = np.isin(np.arange(env.num_envs), failed)
         obs, info = env.reset(options={"reset_mask": mask, "state_ids": STATE_IDS})
-        assert np.array_equal(obs["proprio"][healthy], ref[2][0]["proprio"][healthy])
-        assert np.array_equal(obs["proprio"][failed], ref[0][0]["proprio"][failed])
+        assert np.array_equal(obs[healthy], ref[2][0][healthy])
+        assert np.array_equal(obs[failed], ref[0][0][failed])
         assert info["_state_id"].tolist() == mask.tolist()
 
         # Every env steps again: the healthy ones on from where they were, the others from their reset.
         obs, reward, *_ = env.step(act(env, FIRST))
-        assert np.array_equal(obs["proprio"][healthy], ref[3][0]["proprio"][healthy])
-        assert np.array_equal(obs["proprio"][failed], ref[1][0]["proprio"][failed])
+        assert np.array_equal(obs[healthy], ref[3][0][healthy])
+        assert np.array_equal(obs[failed], ref[1][0][failed])
         assert np.array_equal(reward, np.where(mask, ref[1][1], ref[3][1]))
 
 
@@ -130,7 +130,7 @@ def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(
         assert caught.value.failed_envs == failed
         # The healthy envs were not in the call: untouched, and a reset of them alone still works.
         obs, _ = caught.value.result
-        assert np.array_equal(obs["proprio"][healthy], before["proprio"][healthy])
+        assert np.array_equal(obs[healthy], before[healthy])
         with pytest.raises(ResetNeeded):
             env.step(act(env, FIRST))
         restart(doomed)
@@ -154,8 +154,9 @@ def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods
         assert truncated.tolist() == [i in healthy for i in range(env.num_envs)]
         assert info["_final_obs"].tolist() == truncated.tolist()
         for i in healthy:
-            assert np.array_equal(info["final_obs"][i]["proprio"], ref[2][4]["final_obs"][i]["proprio"])
-        assert info["_state_id"].tolist() == truncated.tolist()  # the healthy envs were reset already
+            assert np.array_equal(info["final_obs"][i], ref[2][4]["final_obs"][i])
+        for i in healthy:  # the healthy envs were reset already: they observe what the reference's reset gave
+            assert np.array_equal(obs[i], ref[2][0][i])
 
         restart(doomed)
         env.reset(options={"reset_mask": ~truncated})
