@@ -409,7 +409,7 @@ def test_metrics_count_env_steps_resets_and_latency(pods: tuple[Pod, Pod]) -> No
 
 def test_metrics_count_refused_requests_by_kind(pods: tuple[Pod, Pod]) -> None:
     pod_a, _ = pods
-    labels = {"kind": "generation_mismatch"}
+    labels = {"kind": "stale_generation"}
     before = pod_a.metric("vecsim_pod_errors_total", labels)
     stale = {"generation": pod_a.generation + 1, "env_ids": [0], "actions": [[0.0] * ACTION_DIM]}
     assert pod_a.post("step", stale, send="json").status_code == 409

@@ -15,9 +15,10 @@ import vecsim
 from service.contract import Heartbeat
 from service.http import BodyLimitMiddleware, describe_validation_error
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
+from vecsim.sim import InvalidRequestError
 
 from .agent import ControllerAgent
-from .errors import InvalidRequestError, PodError
+from .errors import LIBRARY_ERRORS, PodError
 from .metrics import PodMetrics
 from .routers import assignment, envs, health, info, metrics
 from .settings import PodSettings
@@ -85,9 +86,18 @@ def create_app(settings: PodSettings) -> FastAPI:
         log.debug("%s %s -> %d: %s", request.method, request.url.path, exc.status_code, exc.detail)
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
 
+    async def _library_error(request: Request, exc: Exception) -> JSONResponse:
+        status, kind = next(answer for cls, answer in LIBRARY_ERRORS.items() if isinstance(exc, cls))
+        state.metrics.errors.labels(kind).inc()
+        log.debug("%s %s -> %d: %s", request.method, request.url.path, status, exc)
+        return JSONResponse({"detail": str(exc)}, status_code=status)
+
+    for library_error in LIBRARY_ERRORS:
+        app.add_exception_handler(library_error, _library_error)
+
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-        return await _pod_error(request, InvalidRequestError(describe_validation_error(exc)))
+        return await _library_error(request, InvalidRequestError(describe_validation_error(exc)))
 
     app.add_middleware(
         BodyLimitMiddleware,

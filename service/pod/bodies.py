@@ -16,8 +16,9 @@ from pydantic import BaseModel, ValidationError
 
 from service.http import describe_validation_error
 from vecsim import wire
+from vecsim.sim import InvalidRequestError
 
-from .errors import InvalidRequestError, MalformedBodyError, UnsupportedMediaTypeError
+from .errors import MalformedBodyError, UnsupportedMediaTypeError
 
 JSON_TYPE = "application/json"
 M = TypeVar("M", bound=BaseModel)

@@ -1,9 +1,24 @@
-"""The pod's HTTP errors: one exception type carrying status, kind and a detail for the caller.
+"""How the pod answers what it refuses: JSON ``{"detail": "<what is wrong>"}`` with a status, and
+a ``kind`` that labels the errors metric.
 
-Every error answer is JSON ``{"detail": "<what is wrong>"}``; ``kind`` labels the errors metric.
+The library's own errors are answered as they are (one class per concept, defined once in
+:mod:`vecsim.sim`): ``UnknownEnvError`` 404, ``InvalidRequestError`` 422, ``SimCrashedError`` 503
+(:data:`LIBRARY_ERRORS`). The classes here are for what only the HTTP layer knows: a body it
+cannot read, a media type it does not speak, a stale generation, a pod not ready.
 """
 
 from __future__ import annotations
+
+from vecsim.sim import InvalidRequestError, SimCrashedError, UnknownEnvError
+
+__all__ = [
+    "LIBRARY_ERRORS",
+    "MalformedBodyError",
+    "NotReadyError",
+    "PodError",
+    "StaleGenerationError",
+    "UnsupportedMediaTypeError",
+]
 
 
 class PodError(Exception):
@@ -22,14 +37,11 @@ class MalformedBodyError(PodError):
     kind = "malformed_body"
 
 
-class UnknownEnvError(PodError):
-    status_code = 404
-    kind = "unknown_env"
+class StaleGenerationError(PodError):
+    """The request's generation is not the pod's (the client re-reads the routing table)."""
 
-
-class GenerationConflictError(PodError):
     status_code = 409
-    kind = "generation_mismatch"
+    kind = "stale_generation"
 
 
 class UnsupportedMediaTypeError(PodError):
@@ -37,16 +49,14 @@ class UnsupportedMediaTypeError(PodError):
     kind = "unsupported_media_type"
 
 
-class InvalidRequestError(PodError):
-    status_code = 422
-    kind = "invalid_request"
-
-
 class NotReadyError(PodError):
     status_code = 503
     kind = "not_ready"
 
 
-class SimCrashedError(PodError):
-    status_code = 503
-    kind = "sim_crashed"
+# The library's errors the pod answers with, by class: (status, metric kind).
+LIBRARY_ERRORS: dict[type[Exception], tuple[int, str]] = {
+    UnknownEnvError: (404, "unknown_env"),
+    InvalidRequestError: (422, "invalid_request"),
+    SimCrashedError: (503, "sim_crashed"),
+}

@@ -17,11 +17,10 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, TypeVar
 
 from vecsim.config import Assignment
-from vecsim.sim import InvalidRequestError as SimInvalidRequestError
-from vecsim.sim import TaskGroupedVectorEnv, assignment_spaces
+from vecsim.sim import InvalidRequestError, TaskGroupedVectorEnv, assignment_spaces
 from vecsim.tasks import TaskSetupError, UnknownTaskError, get_task
 
-from .errors import GenerationConflictError, InvalidRequestError, NotReadyError
+from .errors import NotReadyError, StaleGenerationError
 from .metrics import PodMetrics
 from .settings import PodSettings
 
@@ -48,7 +47,7 @@ def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
         )
     try:
         assignment_spaces(assignment)
-    except (UnknownTaskError, TaskSetupError, SimInvalidRequestError, ValueError) as exc:
+    except (UnknownTaskError, TaskSetupError, ValueError) as exc:
         message = str(exc)
         raise InvalidRequestError(message if message.startswith("tasks:") else f"tasks: {message}") from None
 
@@ -117,13 +116,13 @@ class PodState:
             The current env.
 
         Raises:
-            GenerationConflictError: ``generation`` is not the pod's (409, both named).
+            StaleGenerationError: ``generation`` is not the pod's (409, both named).
             NotReadyError: no assignment yet, or the envs are being built or failed (503).
         """
         if self.assignment is None:
             raise NotReadyError(f"pod {self.settings.name} has no assignment yet")
         if generation != self.assignment.generation:
-            raise GenerationConflictError(
+            raise StaleGenerationError(
                 f"request is for generation {generation} but pod {self.settings.name} is at "
                 f"generation {self.assignment.generation}; re-read the routing table"
             )
@@ -152,7 +151,7 @@ class PodState:
         Raises:
             InvalidRequestError: the assignment names another pod, exceeds ``max_envs`` or names
                 an unknown task (422); nothing changes.
-            GenerationConflictError: the generation is older than the pod's, or equal to it with
+            StaleGenerationError: the generation is older than the pod's, or equal to it with
                 different content (409); nothing changes.
         """
         self._check_generation(assignment)
@@ -195,12 +194,12 @@ class PodState:
         if current is None:
             return
         if assignment.generation < current.generation:
-            raise GenerationConflictError(
+            raise StaleGenerationError(
                 f"assignment generation {assignment.generation} is older than pod "
                 f"{self.settings.name}'s generation {current.generation}"
             )
         if assignment.generation == current.generation and assignment != current:
-            raise GenerationConflictError(
+            raise StaleGenerationError(
                 f"pod {self.settings.name} already holds a different assignment for "
                 f"generation {current.generation}; send a new generation to change it"
             )

@@ -86,9 +86,11 @@ class PodRequestError(ClientError):
 
 
 class StaleGenerationError(ClientError):
-    """A pod still answers 409 after the routing table was re-read (or cannot be re-read)."""
+    """A pod answered 409: it holds another generation than the request carried. The client
+    re-reads the routing table and retries once; this reaches the caller when the pod still
+    answers 409 after that."""
 
-    def __init__(self, pod: str, generation: int, detail: str) -> None:
+    def __init__(self, pod: str, generation: int | None, detail: str) -> None:
         self.pod, self.generation, self.detail = pod, generation, detail
         super().__init__(f"pod {pod} refused generation {generation} (409): {detail}")
 

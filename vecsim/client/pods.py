@@ -3,7 +3,7 @@
 The client code above this module sees three calls per pod (``info``, ``reset``, ``step``) and
 three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no usable
 answer in time: whatever went wrong on the way, in the connection, the HTTP, the size or the
-encoding of the answer), :class:`_Stale` (409, the caller re-reads the routing table) and
+encoding of the answer), :class:`~vecsim.client.errors.StaleGenerationError` (409, the caller re-reads the routing table) and
 :class:`~vecsim.client.errors.PodRequestError` (the pod refused the request, or its answer is not
 the one asked for). Which transport carries the bytes is the caller's choice
 (``vecsim.transport``).
@@ -24,7 +24,7 @@ import numpy as np
 
 from vecsim import wire
 from vecsim.auth import bearer_headers
-from vecsim.client.errors import PodRequestError, PodUnavailableError
+from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
 from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, read_answer
 
 logger = logging.getLogger(__name__)
@@ -136,14 +136,6 @@ class EventLoopThread:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join()
         self.loop.close()
-
-
-class _Stale(Exception):
-    """A pod answered 409: it holds another generation than the one the request carried."""
-
-    def __init__(self, pod: str, detail: str) -> None:
-        super().__init__(detail)
-        self.pod, self.detail = pod, detail
 
 
 def _detail(response: httpx.Response) -> str:
@@ -262,7 +254,7 @@ class PodConnection:
         Raises:
             PodUnavailableError: no usable answer: none within the timeout, a 503 (envs not
                 built), or a 200 whose body is not valid wire or not for the env ids asked.
-            _Stale: 409, the pod holds another generation.
+            StaleGenerationError: 409, the pod holds another generation than the request carried.
             PodRequestError: any other refusal (the request was at fault).
         """
         response = await self._request(
@@ -274,7 +266,7 @@ class PodConnection:
             headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **self._auth},
         )
         if response.status_code == 409:
-            raise _Stale(self.name, _detail(response))
+            raise StaleGenerationError(self.name, body.get("generation"), _detail(response))
         if response.status_code == 503:
             raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
         if response.status_code != 200:

@@ -53,7 +53,7 @@ from vecsim.client.errors import (
     StaleGenerationError,
     call_error,
 )
-from vecsim.client.pods import EventLoopThread, PodConnection, _Stale
+from vecsim.client.pods import EventLoopThread, PodConnection
 from vecsim.client.routing import (
     TrajRoute,
     changed_routes,
@@ -1182,12 +1182,12 @@ class StageClient:
         generation = self._table.generation
         try:
             return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes)
-        except _Stale as stale:
+        except StaleGenerationError as stale:
             await self._refresh_after_stale(pod, generation, stale.detail, keys)
         try:
             body = {**body, "generation": self._table.generation}
             return await self._pods[pod].call(op, body, keys, extra_answer_bytes)
-        except _Stale as stale:
+        except StaleGenerationError as stale:
             raise StaleGenerationError(pod, self._table.generation, stale.detail) from None
 
     async def _refresh_after_stale(self, pod: str, generation: int, detail: str, keys: list[str]) -> None:

@@ -14,11 +14,11 @@ from PIL import Image
 
 from vecsim import sim, wire
 from vecsim.info import batch_infos
+from vecsim.sim import InvalidRequestError
 from vecsim.spaces import tuples_as_dicts
 
 from ..bodies import JSON_TYPE, encode_answer, parse_body, wants_json
 from ..deps import get_state
-from ..errors import InvalidRequestError, SimCrashedError, UnknownEnvError
 from ..models import (
     AttrRequest,
     AttrResponse,
@@ -90,13 +90,11 @@ async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callab
         if state.inline:
             return work()
         return await state.run(work)
-    except sim.UnknownEnvError as exc:
-        raise UnknownEnvError(f"pod {state.settings.name}: {exc}") from None
-    except sim.InvalidRequestError as exc:
-        raise InvalidRequestError(f"pod {state.settings.name}: {exc}") from None
+    except (sim.UnknownEnvError, sim.InvalidRequestError) as exc:
+        raise type(exc)(f"pod {state.settings.name}: {exc}") from None
     except sim.SimCrashedError as exc:
         state.rebuild_after_crash(env, str(exc))
-        raise SimCrashedError(f"pod {state.settings.name}: simulation crashed, rebuilding its envs: {exc}") from None
+        raise sim.SimCrashedError(f"pod {state.settings.name}: simulation crashed, rebuilding its envs: {exc}") from None
 
 
 @router.post(
