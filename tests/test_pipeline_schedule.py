@@ -177,10 +177,12 @@ class Scene:
         self.in_flight()
         pod = self.pods[stage]
         assert pod.held(), f"stage {stage} has no call in flight to answer"
+        # The call to wait for is picked before the release: once it lands, the loop may take it
+        # and send the stage's next call at once.
+        call = self.client.calls[stage][-1]
         self.timeline.add("release", stage)
         pod.release()
-        call = self.client.calls[stage][-1]
-        assert PendingCall.wait_any([call], WAIT_S), f"stage {stage}'s answer did not land"
+        assert PendingCall.wait_any([call], WAIT_S), f"stage {stage}'s answer did not land: {self.timeline.events}"
 
     def serve(self, stage: int) -> None:
         """Land stage ``stage``'s answer and wait until the loop has taken it."""
@@ -258,31 +260,32 @@ def test_the_loop_serves_whichever_stage_lands_when_none_had(scenes):
 def test_of_the_stages_that_have_landed_the_next_in_turn_is_served(scenes):
     scene = scenes(3)
     scene.start(state_ids=[0, 0, 0], horizon=2)
-    scene.in_flight()
-    # Resets: stage 0 is served; while the policy works on it, 2 and then 1 land.
+    # Stage 1's reset lands alone and is served; while the policy works on it, 0 and then 2
+    # land. Next in turn after 1 is 2 (neither the lowest stage nor the first to land), then 0.
+    held_1 = scene.policy.hold(1)
+    scene.serve(1)
+    scene.timeline.wait_for(lambda: scene.timeline.count("policy", 1) == 1, "the policy on stage 1")
+    scene.land(0)
+    scene.land(2)
     held_0 = scene.policy.hold(0)
-    scene.serve(0)
+    held_1.open()
+    # While the policy works on stage 0, stage 2's step lands and then stage 1's: after 0 the
+    # turn goes on to 1 (not to 2, the first to land), then 2.
     scene.timeline.wait_for(lambda: scene.timeline.count("policy", 0) == 1, "the policy on stage 0")
     scene.land(2)
     scene.land(1)
-    held_2 = scene.policy.hold(2)
     held_0.open()
-    # Served in turn, 1 before 2; then the policy holds on stage 2 while stage 1's step and
-    # then stage 0's land: after 2 the turn wraps to 0, then 1.
-    scene.timeline.wait_for(lambda: scene.timeline.count("policy", 2) == 1, "the policy on stage 2")
-    scene.land(1)
-    scene.land(0)
-    held_2.open()
-    scene.timeline.wait_for(lambda: scene.timeline.count("policy", 1) == 2, "the second policy on stage 1")
-    scene.step(2)
-    for stage in (0, 1, 2):
+    scene.timeline.wait_for(lambda: scene.timeline.count("policy", 2) == 2, "the second policy on stage 2")
+    scene.step(0)
+    for stage in (2, 0, 1):
         scene.serve(stage)
     scene.result()
     assert scene.loop_events() == [
         *resets(3),
-        *rounds(0, 1, 2),
-        *rounds(0, 1, 2),
-        ("take", 0), ("take", 1), ("take", 2),
+        *rounds(1, 2, 0),
+        *rounds(1, 2),
+        *rounds(0),
+        ("take", 2), ("take", 0), ("take", 1),
     ]  # fmt: skip
 
 
