@@ -23,7 +23,7 @@ from vecsim.client import PendingCall, StageBatch, StageClient
 from vecsim.config import RoutingTable
 from vecsim.rollout import EnvLoop, RolloutResult
 
-# The order of one stage's events in a round: its answer taken, the policy on it, its next call.
+# What the loop's own thread records: a call sent (reset or step), an answer taken, a policy call.
 LOOP_EVENTS = ("reset", "step", "take", "policy")
 
 
