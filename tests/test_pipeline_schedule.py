@@ -442,7 +442,7 @@ def test_with_one_stage_the_policy_never_overlaps_simulation(scenes):
     policies, sims = intervals(result, "policy"), intervals(result, "sim")
     assert len(policies) == 3 and len(sims) == 4
     assert not any(touches(policy, sims) for policy in policies)
-    assert stats.generation_s > 0 and stats.overlap_s == 0.0 and stats.overlap_fraction == 0.0
+    assert stats.policy_s > 0 and stats.overlap_s == 0.0 and stats.overlap_fraction == 0.0
 
 
 def test_when_every_policy_call_has_another_stage_in_flight_the_overlap_is_whole(scenes):
@@ -459,7 +459,7 @@ def test_when_every_policy_call_has_another_stage_in_flight_the_overlap_is_whole
     assert [stage for stage, _, _ in policies] == [0, 1, 0, 1]
     assert all(covered(policy, [s for s in sims if s[0] != policy[0]]) for policy in policies)
     stats = result.stats
-    assert stats.overlap_s == stats.generation_s > 0 and stats.overlap_fraction == 1.0
+    assert stats.overlap_s == stats.policy_s > 0 and stats.overlap_fraction == 1.0
 
 
 def test_policy_calls_with_nothing_in_flight_are_not_counted_as_overlap(scenes):
@@ -485,6 +485,6 @@ def test_policy_calls_with_nothing_in_flight_are_not_counted_as_overlap(scenes):
     alone = sum(end - begin for _, begin, end in policies[2:])
     together = sum(end - begin for _, begin, end in policies[:2])
     assert stats.overlap_s == pytest.approx(together, rel=1e-6)
-    assert stats.generation_s == pytest.approx(together + alone, rel=1e-6)
+    assert stats.policy_s == pytest.approx(together + alone, rel=1e-6)
     assert stats.overlap_fraction == pytest.approx(together / (together + alone), rel=1e-6)
     assert 0.0 < stats.overlap_fraction < 1.0
