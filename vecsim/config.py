@@ -22,6 +22,11 @@ RenderPreset = Literal["full", "fast", "lean", "lowpoly"]
 ImageOrientation = Literal["upright", "rotate180", "raw"]
 
 
+
+# A pod's name: a Kubernetes DNS label (a StatefulSet pod's name, e.g. sim-0). The one definition
+# every model and route that takes a pod name uses.
+POD_NAME_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -175,7 +180,7 @@ class PodCapacity(_Model):
 
 
 class PodRegistration(_Model):
-    name: str = Field(min_length=1, max_length=63, pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$")
+    name: str = Field(min_length=1, max_length=63, pattern=POD_NAME_PATTERN)
     url: str
     capacity: PodCapacity = PodCapacity()
 

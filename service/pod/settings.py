@@ -14,7 +14,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from vecsim.auth import check_token
-from vecsim.config import Assignment
+from vecsim.config import POD_NAME_PATTERN, Assignment
 from vecsim.sim import DEFAULT_MAX_CHUNK
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
@@ -57,7 +57,7 @@ class PodSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    name: str = Field("sim-0", min_length=1, max_length=63, pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$")
+    name: str = Field("sim-0", min_length=1, max_length=63, pattern=POD_NAME_PATTERN)
     namespace: str = "default"
     pod_ip: str | None = None
     host: str | None = None

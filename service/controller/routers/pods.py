@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Path
 from fastapi.responses import JSONResponse
 
 from service.contract import Heartbeat, HeartbeatAnswer
-from vecsim.config import PodRecord, PodRegistration
+from vecsim.config import POD_NAME_PATTERN, PodRecord, PodRegistration
 
 from ..deps import get_state
 from ..models import Problem
@@ -15,7 +15,7 @@ from ..state import ControllerState, PodUrlConflictError, UnknownPodError
 router = APIRouter(prefix="/v1/pods", tags=["pods"])
 
 POD_NAME = Path(
-    min_length=1, max_length=63, pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$", description="stable pod name, e.g. sim-0"
+    min_length=1, max_length=63, pattern=POD_NAME_PATTERN, description="stable pod name, e.g. sim-0"
 )
 
 
