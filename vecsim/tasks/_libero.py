@@ -263,7 +263,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         with seeded_global_rngs(self.protocol.fixture_seed):
             for _ in range(_PLACEMENT_ATTEMPTS):
                 try:
-                    robosuite_reset_without_observing(inner)
+                    robosuite_reset_without_observing(inner, without_acceleration=self.step_path == "exact")
                     break
                 except RandomizationError:
                     continue
@@ -279,7 +279,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         inner._update_observables(force=True)
         raw = inner._get_observations()
         for _ in range(self.protocol.settle_steps):
-            raw, _, _, _ = inner.step(SETTLE_ACTION)
+            raw, _, _ = self._step_fn(SETTLE_ACTION)
         return self._observation(raw), bool(inner._check_success())
 
     def _observation(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
