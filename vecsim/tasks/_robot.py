@@ -220,7 +220,8 @@ class RobotTaskEnv(TaskEnv):
 
         ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
         trajectories. :attr:`step_path` names the path taken (``exact`` falls back to
-        ``library`` where it does not cover the env).
+        ``library`` where it does not cover the env). A LIBERO task's reset takes the path too
+        (:class:`vecsim.tasks._libero.LiberoTaskEnv`).
 
         Raises:
             ValueError: an unknown path.
