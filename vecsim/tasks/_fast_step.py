@@ -102,25 +102,12 @@ class _Arm:
             [model.actuator(name).id for name in robot.gripper.actuators], dtype=np.intp
         )
         self.arm_ids = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
-        # The same indices as slices where they run in a row (a Panda's do): a slice reads and
-        # writes the same elements as the index array, without numpy's fancy-indexing machinery.
-        self.qpos_rows = _as_slice(self.qpos_index)
-        self.qvel_rows = _as_slice(self.qvel_index)
-        self.arm_rows = _as_slice(self.arm_ids)
-        self.gripper_rows = _as_slice(self.gripper_ids)
         self.control_dim = controller.control_dim
         self.action_dim = robot.action_dim
 
 
 class _Unsupported(Exception):
     pass
-
-
-def _as_slice(index: np.ndarray) -> slice | np.ndarray:
-    """Return ``index`` as a slice when its entries run in a row, else ``index`` itself."""
-    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
-        return slice(int(index[0]), int(index[0]) + len(index))
-    return index
 
 
 @functools.cache
@@ -304,11 +291,10 @@ class ExactStep:
         mujoco.mj_jacSite(model, data, jacp, jacr, site)
         controller.ee_pos_vel = np.dot(jacp, data.qvel)
         controller.ee_ori_vel = np.dot(jacr, data.qvel)
-        # Copies, C-ordered, as robosuite's fancy indexing gives them.
-        controller.joint_pos = data.qpos[arm.qpos_rows].copy()
-        controller.joint_vel = data.qvel[arm.qvel_rows].copy()
-        j_pos = jacp[:, arm.qvel_rows].copy()
-        j_ori = jacr[:, arm.qvel_rows].copy()
+        controller.joint_pos = data.qpos[arm.qpos_index]
+        controller.joint_vel = data.qvel[arm.qvel_index]
+        j_pos = jacp[:, arm.qvel_index]
+        j_ori = jacr[:, arm.qvel_index]
         controller.J_pos = j_pos
         controller.J_ori = j_ori
         controller.J_full = np.concatenate((j_pos, j_ori))
@@ -359,7 +345,7 @@ class _ArmStep:
             decoupled_wrench = np.concatenate([np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)])
         else:
             decoupled_wrench = np.dot(lambda_full, np.concatenate([desired_force, desired_torque]))
-        torques = np.dot(j_full.T, decoupled_wrench) + data.qfrc_bias[arm.qvel_rows]
+        torques = np.dot(j_full.T, decoupled_wrench) + data.qfrc_bias[arm.qvel_index]
         torques += utils.nullspace_torques(
             mass_matrix, nullspace_matrix, controller.initial_joint, controller.joint_pos, controller.joint_vel
         )
@@ -371,8 +357,8 @@ class _ArmStep:
             gripper_action = gripper.format_action(self.gripper_action)
         else:
             gripper_action = gripper.current_action = np.clip(gripper.current_action + self.gripper_step, -1.0, 1.0)
-        data.ctrl[arm.gripper_rows] = self.gripper_bias + self.gripper_weight * gripper_action
-        data.ctrl[arm.arm_rows] = robot.torques
+        data.ctrl[arm.gripper_ids] = self.gripper_bias + self.gripper_weight * gripper_action
+        data.ctrl[arm.arm_ids] = robot.torques
 
 
 class _ObservablePlan:
