@@ -13,7 +13,8 @@ Per task, on one pinned core, no cameras, step by step:
   reset LIBERO's way (``seed(0)``, ``reset()``, ``set_init_state`` of the same init state);
 - physics only: each path's MuJoCo calls for one env-step without the controller around them,
   from the state the steps ended in (:func:`physics_only`);
-- resets: vecsim's ``reset(options={"state_id": k})`` against LIBERO's reset.
+- resets: vecsim's ``reset(options={"state_id": k})`` as it is and as it was (:func:`measure_resets`)
+  against LIBERO's own reset, in turns.
 
 The vecsim paths take turns on one env and one trajectory, each step's time set against the
 floor taken just before it, so load that comes and goes on a shared machine moves both; the
@@ -25,8 +26,9 @@ task on the exact and the library path side by side and compares them bit for bi
     python bench/bench_robot_step.py                                   # LIBERO-10, 160 steps each
     python bench/bench_robot_step.py --tasks libero_10/0,libero_10/5 --changes --steps 300
     python bench/bench_robot_step.py --parity-episodes --episodes 1    # 520 steps per task
+    python bench/bench_robot_step.py --resets-only --resets 5          # resets: vecsim now, before, LIBERO's
 
-Writes out/bench/bench_robot_step[_parity_<path>][_<tag>].json and prints ``RESULT {json}``.
+Writes out/bench/bench_robot_step[_parity_<path>|_resets][_<tag>].json and prints ``RESULT {json}``.
 """
 
 from __future__ import annotations
@@ -207,15 +209,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
                 samples["libero"].append(took)
                 over_floor["libero"].append(took / floor)
     physics = physics_only(model, data, scratch, substeps, args.physics_reps)
-    resets: dict[str, list[float]] = {"vecsim": [], "libero": []}
-    for state_id in range(args.resets):
-        started = time.perf_counter()
-        env.reset(options={"state_id": state_id})
-        resets["vecsim"].append(time.perf_counter() - started)
-        if own is not None:
-            started = time.perf_counter()
-            own.reset(state_id)
-            resets["libero"].append(time.perf_counter() - started)
+    resets = measure_resets(env, own, args.resets)
     env.close()
     if own is not None:
         own.close()
@@ -228,7 +222,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
         "fastest_ms": {name: round(value * 1e3, 3) for name, value in fastest.items()},
         "fastest_over_floor": {name: round(value / fastest["floor"], 3) for name, value in fastest.items()},
         "samples_per_path": len(samples["exact"]),
-        "reset_ms": {name: round(statistics.median(v) * 1e3, 1) for name, v in resets.items() if v},
+        **reset_figures(resets),
     }
     row["physics_fastest_over_floor"] = {
         name: round(min(values) / min(physics["floor"]), 3) for name, values in physics.items()
@@ -238,9 +232,80 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     if own is not None:
         row["libero_over_exact"] = round(ms["libero"] / ms["exact"], 3)
         row["fastest_libero_over_exact"] = round(fastest["libero"] / fastest["exact"], 3)
-        row["reset_libero_over_vecsim"] = round(row["reset_ms"]["libero"] / row["reset_ms"]["vecsim"], 2)
     log.info("%s: %s", task_id, row)
     return row
+
+
+def reset_figures(resets: dict[str, list[float]]) -> dict[str, Any]:
+    """Return medians and fastest of each kind of reset, and each kind's over vecsim's."""
+    median = {name: statistics.median(v) for name, v in resets.items() if v}
+    fastest = {name: min(v) for name, v in resets.items() if v}
+    figures: dict[str, Any] = {
+        "reset_ms": {name: round(v * 1e3, 1) for name, v in median.items()},
+        "fastest_reset_ms": {name: round(v * 1e3, 1) for name, v in fastest.items()},
+    }
+    for name in ("libero", "before", "forwards_cut"):
+        if name in median:
+            figures[f"reset_{name}_over_vecsim"] = round(median[name] / median["vecsim"], 2)
+            figures[f"fastest_reset_{name}_over_vecsim"] = round(fastest[name] / fastest["vecsim"], 2)
+    return figures
+
+
+def measure_task_resets(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Measure one task's resets only (:func:`measure_resets`)."""
+    from vecsim.config import CameraConfig
+    from vecsim.tasks import make_env
+
+    env = make_env(task_id, CameraConfig(names=()), "lean")
+    own = LiberoOwn(task_id) if task_id.startswith("libero") else None
+    try:
+        env.reset(options={"state_id": 0})  # the first reset of each kind warms up
+        if own is not None:
+            own.reset(0)
+        row = reset_figures(measure_resets(env, own, args.resets))
+    finally:
+        env.close()
+        if own is not None:
+            own.close()
+    log.info("%s: %s", task_id, row)
+    return row
+
+
+def measure_resets(env: Any, own: LiberoOwn | None, count: int) -> dict[str, list[float]]:
+    """Time vecsim's reset as it is and as it was, and LIBERO's own reset, in turns, per state id.
+
+    ``vecsim``: the env's reset on the exact step path (robosuite's reset forwards without their
+    acceleration stage, settle steps on the exact path). For a LIBERO task also ``before`` (the
+    library path: robosuite's reset with full forwards, settle steps on LIBERO's own step, as
+    vecsim reset before) and ``forwards_cut`` (the forwards cut, settle steps still on LIBERO's
+    own step): the two changes one at a time. All three leave the env bit-identical.
+    """
+    from vecsim.tasks._fast_step import library_step
+
+    def on_path(path: str, settle_on_library: bool = False) -> Any:
+        def reset(state_id: int) -> float:
+            env.set_step_path(path)
+            if settle_on_library:
+                env._step_fn = library_step(env.inner)
+            started = time.perf_counter()
+            env.reset(options={"state_id": state_id})
+            return time.perf_counter() - started
+
+        return reset
+
+    kinds: dict[str, Any] = {"vecsim": on_path("exact")}
+    if own is not None:
+        kinds = {"before": on_path("library"), "forwards_cut": on_path("exact", True), **kinds}
+    resets: dict[str, list[float]] = {name: [] for name in kinds}
+    for state_id in range(count):
+        for name, reset in kinds.items():
+            resets[name].append(reset(state_id))
+        if own is not None:
+            started = time.perf_counter()
+            own.reset(state_id)
+            resets.setdefault("libero", []).append(time.perf_counter() - started)
+    env.set_step_path("exact")
+    return resets
 
 
 def snapshot(env: Any) -> dict[str, Any]:
@@ -305,7 +370,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10's ten)")
     parser.add_argument("--steps", type=int, default=160, help="env-steps per task, the paths taking turns")
-    parser.add_argument("--resets", type=int, default=3, help="resets per task, of each kind")
+    parser.add_argument("--resets", type=int, default=3, help="resets per task, of each kind (one state id each)")
+    parser.add_argument("--resets-only", action="store_true", help="measure resets only (--steps ignored)")
     parser.add_argument("--physics-reps", type=int, default=30, help="turns of the physics-only timing per task")
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
@@ -324,6 +390,7 @@ def main() -> int:
 
         tasks = [t.task_id for t in suite_tasks("libero_10")]
     started = time.monotonic()
+    load_at_start = os.getloadavg()
     suffix = f"_{args.tag}" if args.tag else ""
     if args.parity_episodes:
         episodes = []
@@ -343,6 +410,22 @@ def main() -> int:
         }  # fmt: skip
         write_result("bench_robot_step_parity_exact" + suffix, summary)
         return 0 if identical else 1
+    if args.resets_only:
+        rows = {task_id: measure_task_resets(task_id, args) for task_id in tasks}
+        summary = {
+            "baseline": "vecsim's reset as it was (the library path), beside LIBERO's own reset (hard, its default)",
+            "across_tasks": {
+                key: spread([row[key] for row in rows.values() if key in row])
+                for key in next(iter(rows.values()))
+                if key.endswith("_over_vecsim")
+            },
+            "setup": {"tasks": tasks, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
+                      "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg()},
+            "rows": rows,
+            "seconds_total": round(time.monotonic() - started, 1),
+        }  # fmt: skip
+        write_result("bench_robot_step_resets" + suffix, summary)
+        return 0
     rows = {task_id: measure_task(task_id, args) for task_id in tasks}
 
     def across(pick: Any) -> dict[str, float] | None:
@@ -364,10 +447,12 @@ def main() -> int:
             "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
             "libero_over_exact": across(lambda row: row.get("libero_over_exact")),
             "fastest_libero_over_exact": across(lambda row: row.get("fastest_libero_over_exact")),
-            "reset_libero_over_vecsim": across(lambda row: row.get("reset_libero_over_vecsim")),
+            **{key: across(lambda row, k=key: row.get(k))
+               for key in ("reset_libero_over_vecsim", "reset_before_over_vecsim", "fastest_reset_before_over_vecsim")},
         },
         "setup": {"tasks": tasks, "steps": args.steps, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
-                  "changes": args.changes},
+                  "changes": args.changes, "load_average_at_start": load_at_start,
+                  "load_average_at_end": os.getloadavg()},
         "rows": rows,
         "seconds_total": round(time.monotonic() - started, 1),
     }  # fmt: skip

@@ -6,6 +6,12 @@ both alike and steps both with one action sequence whose gripper closes and open
 contacts), with a reset to another state partway. At every step MuJoCo's state, every observable,
 vecsim's observation, reward, success and the arm controller's output must be bit-identical.
 Full-length episodes of every LIBERO-10 task: ``bench/bench_robot_step.py --parity-episodes``.
+
+A LIBERO reset on the exact path (robosuite's reset forwards without their acceleration stage,
+settle steps on the exact path) leaves everything as the library path's reset (robosuite's reset
+in full, settle steps on LIBERO's own step) leaves it: every array of MuJoCo's data and model,
+the controller, the robot's buffers, every observable and its clock, right after each reset and
+after the steps that follow.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import contextlib
 from collections.abc import Iterator
 from typing import Any
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -127,3 +134,77 @@ def test_exact_path_gives_libero_own_trajectory(task_id: str) -> None:
     with env_pair(task_id) as envs:
         assert run_side_by_side(task_id, envs, seed=2) == STEPS
 
+
+
+# Arrays of MjData that hold no state: the sparse layout of the constraint Jacobian (and of its
+# inverse-inertia product) is neither written nor read for a dense-Jacobian model under the
+# Newton solver without noslip, so they show whatever the arena held before.
+SPARSE_LAYOUT = ("efc_J_rownnz", "efc_J_rowadr", "efc_J_rowsuper", "efc_J_colind",
+                 "efc_AR_rownnz", "efc_AR_rowadr", "efc_AR_colind")  # fmt: skip
+
+
+def _arrays(obj: Any, prefix: str, skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    found = {}
+    for name in dir(obj):
+        value = getattr(obj, name) if not name.startswith("_") and name not in skip else None
+        if isinstance(value, np.ndarray):
+            found[f"{prefix}.{name}"] = np.array(value)
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            found[f"{prefix}.{name}"] = np.array(value)
+    return found
+
+
+def everything(env: Any) -> dict[str, np.ndarray]:
+    """Return every array of MuJoCo's data and model and all robosuite keeps beside them."""
+    inner = env.inner
+    model = inner.sim.model._model
+    dense_newton = (
+        not mujoco.mj_isSparse(model)
+        and model.opt.solver == int(mujoco.mjtSolver.mjSOL_NEWTON)
+        and model.opt.noslip_iterations == 0
+    )
+    state = _arrays(inner.sim.data._data, "data", SPARSE_LAYOUT if dense_newton else ())
+    state.update(_arrays(model, "model"))
+    for index, robot in enumerate(inner.robots):
+        controller = robot.controller
+        for name, value in vars(controller).items():
+            if isinstance(value, (np.ndarray, float, int)):
+                state[f"robot{index}.controller.{name}"] = np.array(value)
+        for name in ("base_pos", "base_ori", "torques"):
+            state[f"robot{index}.{name}"] = np.array(getattr(robot, name))
+        state[f"robot{index}.gripper.current_action"] = np.array(robot.gripper.current_action)
+        for name in ("recent_qpos", "recent_actions", "recent_torques", "recent_ee_forcetorques",
+                     "recent_ee_pose", "recent_ee_vel", "recent_ee_acc"):  # fmt: skip
+            buffer = getattr(robot, name)
+            state[f"robot{index}.{name}"] = np.array([buffer.last, buffer.current])
+        ring = robot.recent_ee_vel_buffer
+        state[f"robot{index}.recent_ee_vel_buffer"] = np.append(ring.buf.ravel(), ring.ptr)
+    for name, obs in inner._observables.items():
+        state[f"observable {name}"] = np.array(obs.obs)
+        state[f"observable {name} clock"] = np.array([obs._time_since_last_sample, obs._sampled, obs._current_delay])
+    state.update({f"observation cache {name}": np.array(value) for name, value in inner._obs_cache.items()})
+    state["env counters"] = np.array([inner.timestep, inner.cur_time, inner.done], dtype=np.float64)
+    return state
+
+
+@pytest.mark.libero
+@pytest.mark.parametrize(("task_id", "state_ids"), [("libero_10/0", (0, 17, 49, 17)), ("libero_10/9", (49, 3))])
+def test_exact_path_resets_a_libero_env_as_the_library_path_does(task_id: str, state_ids: tuple[int, ...]) -> None:
+    table = actions(seed=3)
+    with env_pair(task_id) as envs:
+        for state_id in state_ids:
+            observations = {path: env.reset(options={"state_id": state_id})[0] for path, env in envs.items()}
+            exact, library = (
+                {**everything(envs[path]), "observation proprio": observations[path]["proprio"],
+                 "observation state": observations[path]["state"]}
+                for path in ("exact", "library")
+            )  # fmt: skip
+            assert_identical(task_id, -1, exact, library)
+            for step, action in enumerate(table[:8]):
+                results = {path: env.step(action.astype(np.float32)) for path, env in envs.items()}
+                exact, library = (
+                    {**everything(envs[path]), "observation proprio": results[path][0]["proprio"],
+                     "reward": np.array(results[path][1]), "success": np.array(results[path][4]["success"])}
+                    for path in ("exact", "library")
+                )  # fmt: skip
+                assert_identical(f"{task_id} from state {state_id}", step, exact, library)

@@ -212,6 +212,13 @@ class LiberoTaskEnv(RobotTaskEnv):
     - the observables' clocks run as LIBERO's do: the reset and the set state each force a
       sample, which moves every later sample to physics substep 24 of a step's 25.
 
+    The reset takes the env's step path (:meth:`set_step_path`): on ``exact``, robosuite's reset
+    runs its forwards without their acceleration stage (:func:`vecsim.tasks._robot.forwards_without_acceleration`:
+    the arm's controller and the placements read only position and velocity results, and the
+    full ``mj_forward`` after the init state is set computes the rest again) and the settle
+    steps take the exact path; on ``library``, robosuite's reset and LIBERO's ``step`` run as they
+    are. Both leave the env bit-identical (``tests/test_fast_step.py``).
+
     Cameras are drawn from a copy of the sim taken when the observables sample (a hidden
     observable makes it), so images show the scene where LIBERO's camera observables render it.
     ``state`` is LIBERO's 8-float robot state (:data:`STATE_DIM`), beside ``proprio``.
@@ -263,7 +270,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         with seeded_global_rngs(self.protocol.fixture_seed):
             for _ in range(_PLACEMENT_ATTEMPTS):
                 try:
-                    robosuite_reset_without_observing(inner)
+                    robosuite_reset_without_observing(inner, without_acceleration=self.step_path == "exact")
                     break
                 except RandomizationError:
                     continue
@@ -279,7 +286,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         inner._update_observables(force=True)
         raw = inner._get_observations()
         for _ in range(self.protocol.settle_steps):
-            raw, _, _, _ = inner.step(SETTLE_ACTION)
+            raw, _, _ = self._step_fn(SETTLE_ACTION)
         return self._observation(raw), bool(inner._check_success())
 
     def _observation(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -100,13 +100,49 @@ def seeded_global_rngs(seed: int) -> Iterator[None]:
         random.setstate(py_state)
 
 
-def robosuite_reset_without_observing(inner: Any) -> None:
-    """Run robosuite 1.4's ``reset()`` for ``hard_reset=False``, minus computing observations. Returns None."""
-    inner.sim.reset()
-    inner._reset_internal()
-    inner.sim.forward()
+def robosuite_reset_without_observing(inner: Any, without_acceleration: bool = False) -> None:
+    """Run robosuite 1.4's ``reset()`` for ``hard_reset=False``, minus computing observations. Returns None.
+
+    With ``without_acceleration``, its forwards run without their acceleration stage
+    (:func:`forwards_without_acceleration`): for a caller that sets the state and runs a full
+    ``mj_forward`` afterwards, reading nothing in between that the acceleration stage computes.
+    """
+    with forwards_without_acceleration(inner.sim) if without_acceleration else contextlib.nullcontext():
+        inner.sim.reset()
+        inner._reset_internal()
+        inner.sim.forward()
     inner._obs_cache = {}
     inner.visualize(vis_settings={vis: False for vis in inner._visualizations})
+
+
+@contextlib.contextmanager
+def forwards_without_acceleration(sim: Any) -> Iterator[None]:
+    """Make robosuite's ``sim.forward()`` run MuJoCo's position and velocity stages only, for the block.
+
+    Each such forward computes ``mj_forward``'s position and velocity stages and their sensors
+    (kinematics, contacts, constraint rows, mass matrix, velocities, bias forces: what robosuite's
+    reset reads, for the controller it builds and the objects it places) from the same inputs,
+    so those outputs are ``mj_forward``'s bit for bit. It skips the acceleration stage (actuation,
+    the constraint solver, accelerations and their sensors), which reads and writes nothing the
+    next ``mj_forward`` does not compute again from scratch: MuJoCo saves the solver's warmstart
+    in the integrator, not in ``mj_forward``. On the scene ``sim.reset()`` leaves (every object at
+    its default pose, inside one another) that stage costs ~25 ms a forward (libero_10/0).
+    Only for envs the exact step path covers (no control or sensor callback, plugins or energy,
+    whose calls or outputs the acceleration stage would own).
+    """
+    model, data = sim.model._model, sim.data._data
+
+    def forward() -> None:
+        mujoco.mj_fwdPosition(model, data)
+        mujoco.mj_sensorPos(model, data)
+        mujoco.mj_fwdVelocity(model, data)
+        mujoco.mj_sensorVel(model, data)
+
+    sim.forward = forward
+    try:
+        yield
+    finally:
+        del sim.forward
 
 
 def _seeded_reset(task_id: str, state_id: int, inner: Any) -> None:
@@ -184,7 +220,8 @@ class RobotTaskEnv(TaskEnv):
 
         ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
         trajectories. :attr:`step_path` names the path taken (``exact`` falls back to
-        ``library`` where it does not cover the env).
+        ``library`` where it does not cover the env). A LIBERO task's reset takes the path too
+        (:class:`vecsim.tasks._libero.LiberoTaskEnv`).
 
         Raises:
             ValueError: an unknown path.
