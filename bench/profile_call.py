@@ -26,7 +26,7 @@ Then the client's layers (timers in this process around ``HTTPVectorEnv``/``Stag
 ``PodConnection``), the pod's layers (from the timed pod), and cProfile tops of the client (main
 thread and its event-loop thread) and of the profiled pod.
 
-    python bench/profile_call.py [--calls 100] [--rounds 3] [--envs 16] [--envs-per-worker 0] [--profile-calls 300]
+    python bench/profile_call.py [--quick] [--calls 100] [--rounds 3] [--envs 16] [--envs-per-worker 0] [--profile-calls 300]
 
 Prints a report on stdout and writes out/bench/profile_call.json.
 """
@@ -92,6 +92,10 @@ class Timers:
     def wrap(self, owner: Any, name: str, label: str | None = None) -> None:
         """Replace ``owner.name`` (a function, method or coroutine function) with a timed one."""
         label = label or name
+        if not hasattr(owner, name):
+            # The code under study moves on (the worker protocol is being rewritten): time what is left.
+            log.warning("not timed: %s.%s no longer exists", getattr(owner, "__name__", owner), name)
+            return
         original = inspect.getattr_static(owner, name)
         is_static = isinstance(original, staticmethod)
         fn = getattr(owner, name) if is_static else original
@@ -195,7 +199,7 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
 
         def dump(_signum: int, _frame: Any) -> None:
             tmp = out.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"calls": len(timers.calls), "median_ms": timers.medians_ms(skip=20)}))
+            tmp.write_text(json.dumps({"calls": len(timers.calls), "median_ms": timers.medians_ms(skip=min(20, len(timers.calls) // 2))}))
             tmp.rename(out)
 
         signal.signal(signal.SIGUSR1, dump)
@@ -464,7 +468,7 @@ def main() -> None:
             "sync_vector_env": lambda t: sync_env.step(actions[t]),
         }
         for name, fn in contenders.items():  # warm-up
-            per_call(fn, 20)
+            per_call(fn, min(20, calls))
         times: dict[str, list[float]] = {name: [] for name in contenders}
         cpu: dict[str, dict[str, float]] = {name: defaultdict(float) for name in contenders}
         names = list(contenders)
@@ -497,7 +501,7 @@ def main() -> None:
         vec_p = HTTPVectorEnv(pod_urls=[profiled.url])
         stack.callback(vec_p.close)
         vec_p.reset(seed=0)
-        per_call(lambda t: vec_p.step(actions[t]), 20)
+        per_call(lambda t: vec_p.step(actions[t]), min(20, calls))
         os.kill(profiled.pid, signal.SIGUSR2)  # start profiling from here
         time.sleep(0.5)
         started = time.perf_counter()
@@ -514,6 +518,7 @@ def main() -> None:
     loop_stats = pstats.Stats(loop_profile)
     pod_total = sum(v[2] for v in pod_stats.stats.values())  # type: ignore[attr-defined]
     result = {
+        "quick": ARGS.quick,
         "setup": {"envs": n, "task": TASK, "envs_per_worker": per_worker, "cores": available_cores(),
                   "calls_per_round": calls, "rounds": rounds, "load_avg_before": load_before,
                   "load_avg_after": os.getloadavg()},  # fmt: skip
@@ -581,7 +586,7 @@ def _report(result: dict[str, Any]) -> None:
                           f"{100 * row['share']:5.1f}%  {row['where']}\n")  # fmt: skip
         for key, ms in profile.get("cumulative_ms_per_call", {}).items():
             out.write(f"  [cum ] {ms:7.3f}  {key}\n")
-    sys.stderr.write(out.getvalue())
+    log.info("report\n%s", out.getvalue())
 
 
 if __name__ == "__main__":
@@ -595,7 +600,10 @@ if __name__ == "__main__":
     parser.add_argument("--profile-calls", type=int, default=300, help="calls under cProfile (client, then pod)")
     parser.add_argument("--serve-pod", choices=["timed", "profiled"], help=argparse.SUPPRESS)
     parser.add_argument("--serve-out", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="4 envs, a few calls: for the smoke test")
     ARGS, rest = parser.parse_known_args()
+    if ARGS.quick:
+        ARGS.envs, ARGS.calls, ARGS.rounds, ARGS.profile_calls = 4, 5, 1, 5
     if ARGS.serve_pod:
         sys.exit(serve_pod(ARGS.serve_pod, ARGS.serve_out, [a for a in rest if a != "--"]))
     sys.path.insert(0, str(Path(__file__).resolve().parent))
