@@ -93,3 +93,18 @@ def test_cheap_scenes_benchmark_reports_the_pod_against_async_vector_env(tmp_pat
     cheap = result["cheap"]["4"]
     assert set(cheap["env_steps_per_s"]) == {"async", "pod_auto", "pod_1", "sync"}
     assert cheap["auto_envs_per_worker"] >= 1
+
+
+@pytest.mark.timeout(300)
+def test_profile_call_reports_every_layer_of_one_step(tmp_path: Path) -> None:
+    result, written = run_quick("profile_call.py", tmp_path)
+    assert result["name"] == "profile_call" and result["quick"] is True
+    medians = result["median_ms_per_call"]
+    assert set(medians) >= {"http_vector_env", "raw_httpx", "in_process", "async_vector_env", "sync_vector_env"}
+    assert all(ms > 0 for ms in medians.values())
+    # The timers inside the client and inside the pod both saw the calls.
+    assert result["client_layers_median_ms"]["client.PodConnection._request (HTTP round trip via transport)"] > 0
+    assert result["pod_layers_median_ms"]["calls"] > 0
+    assert result["pod_layers_median_ms"]["median_ms"]["pod.step_envs"] > 0
+    details = json.loads(written.read_text())["details"]
+    assert details["pod_profile"]["main_thread_top"] and details["client_profile"]["loop_thread_top"]

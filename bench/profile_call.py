@@ -1,0 +1,610 @@
+"""Where the time of one ``HTTPVectorEnv.step`` goes: 16 HalfCheetah-v5 envs on one pod, layer by layer.
+
+A diagnosis, not a benchmark with a target. One run starts two real pods of the same assignment
+(16 ``gym/HalfCheetah-v5`` envs, no camera, ``envs_per_worker: auto``), each a ``vecsim pod``
+started through this file (``--serve-pod``) so that timers can be put around the pod's own
+functions before it serves:
+
+- the *timed* pod wraps its layers in wall-clock timers (a few microseconds each) and writes
+  per-call sums when asked (SIGUSR1);
+- the *profiled* pod runs its main thread (where cheap scenes are stepped, ``state.inline``)
+  under cProfile.
+
+Contenders, each timed per call, interleaved in rounds with the order rotating, medians reported:
+
+- ``http_vector_env``: ``HTTPVectorEnv.step`` on the timed pod (the whole client);
+- ``raw_httpx``: ``POST /v1/step`` of a body encoded once, through a sync ``httpx.Client``;
+- ``raw_http_client``: the same through the standard library's ``http.client`` (keep-alive);
+- ``raw_healthz``: ``GET /healthz`` through ``http.client``: HTTP + uvicorn + FastAPI, no work;
+- ``in_process``: ``TaskGroupedVectorEnv.step_envs`` in this process (same workers, no HTTP);
+- ``in_process_answer``: the same plus what the route adds (answer dict, ``batch_infos``,
+  ``wire.encode``);
+- ``async_vector_env``: gymnasium's ``AsyncVectorEnv`` of 16 envs, one process each;
+- ``sync_vector_env``: the 16 envs in this one process (the ceiling).
+
+Then the client's layers (timers in this process around ``HTTPVectorEnv``/``StageClient``/
+``PodConnection``), the pod's layers (from the timed pod), and cProfile tops of the client (main
+thread and its event-loop thread) and of the profiled pod.
+
+    python bench/profile_call.py [--quick] [--calls 100] [--rounds 3] [--envs 16] [--envs-per-worker 0] [--profile-calls 300]
+
+Prints a report on stdout and writes out/bench/profile_call.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import concurrent.futures
+import contextlib
+import cProfile
+import functools
+import http.client
+import inspect
+import io
+import json
+import logging
+import os
+import pstats
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("bench.profile_call")
+
+TASK = "gym/HalfCheetah-v5"
+# Long episodes: no truncation inside the measured calls, so every call is a plain step.
+EPISODE_CAP = 1_000_000
+
+
+class Timers:
+    """Per-call sums of wall-clock time spent in wrapped functions (inclusive), by label.
+
+    ``begin()`` opens a call, ``end()`` closes it and keeps its sums; time spent outside an open
+    call is dropped. Calls do not overlap in this use (one step in flight at a time).
+    """
+
+    def __init__(self) -> None:
+        self.calls: list[dict[str, float]] = []
+        self._current: dict[str, float] | None = None
+
+    def begin(self) -> None:
+        self._current = defaultdict(float)
+
+    def end(self, keep: bool = True) -> None:
+        if keep and self._current is not None:
+            self.calls.append(dict(self._current))
+        self._current = None
+
+    def add(self, label: str, seconds: float) -> None:
+        if self._current is not None:
+            self._current[label] += seconds
+
+    def wrap(self, owner: Any, name: str, label: str | None = None) -> None:
+        """Replace ``owner.name`` (a function, method or coroutine function) with a timed one."""
+        label = label or name
+        if not hasattr(owner, name):
+            # The code under study moves on (the worker protocol is being rewritten): time what is left.
+            log.warning("not timed: %s.%s no longer exists", getattr(owner, "__name__", owner), name)
+            return
+        original = inspect.getattr_static(owner, name)
+        is_static = isinstance(original, staticmethod)
+        fn = getattr(owner, name) if is_static else original
+        if inspect.iscoroutinefunction(fn):
+
+            @functools.wraps(fn)
+            async def timed_async(*args: Any, **kwargs: Any) -> Any:
+                started = time.perf_counter()
+                try:
+                    return await fn(*args, **kwargs)
+                finally:
+                    self.add(label, time.perf_counter() - started)
+
+            wrapper: Any = timed_async
+        else:
+
+            @functools.wraps(fn)
+            def timed(*args: Any, **kwargs: Any) -> Any:
+                started = time.perf_counter()
+                try:
+                    return fn(*args, **kwargs)
+                finally:
+                    self.add(label, time.perf_counter() - started)
+
+            wrapper = timed
+        setattr(owner, name, staticmethod(wrapper) if is_static else wrapper)
+
+    def medians_ms(self, skip: int = 0) -> dict[str, float]:
+        """Median ms per call of each label over the kept calls (0 for a call that missed it)."""
+        calls = self.calls[skip:]
+        labels = sorted({label for call in calls for label in call})
+        return {label: round(1e3 * statistics.median(c.get(label, 0.0) for c in calls), 3) for label in labels}
+
+
+# -- the pod side (runs in the pod process, started with --serve-pod) -------------------------
+
+
+def _instrument_pod(timers: Timers) -> None:
+    """Put timers around the pod's layers, before its app is made."""
+    import fastapi.routing
+    from gymnasium.vector import AsyncVectorEnv, VectorEnv
+
+    import service.pod.main as pod_main
+    import service.pod.routers.envs as routes
+    from service.http import BodyLimitMiddleware
+    from vecsim import sim, wire
+    from vecsim.auth import BearerTokenMiddleware
+
+    timers.wrap(BearerTokenMiddleware, "__call__", "pod.auth_middleware (incl. all below)")
+    timers.wrap(BodyLimitMiddleware, "__call__", "pod.body_limit_middleware (incl. routing+route)")
+    timers.wrap(fastapi.routing, "run_endpoint_function", "pod.route_function (incl. below)")
+    timers.wrap(routes, "parse_body", "pod.parse_body (wire.decode+pydantic)")
+    timers.wrap(wire, "decode", "pod.wire.decode")
+    timers.wrap(routes, "_simulate", "pod.simulate (work(): step + answer + encode)")
+    timers.wrap(sim.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
+    timers.wrap(sim.TaskGroupedVectorEnv, "_actions", "pod.step_envs.validate_actions")
+    timers.wrap(sim.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
+    timers.wrap(AsyncVectorEnv, "step_async", "pod.AsyncVectorEnv.step_async (command to shm + pipe send)")
+    timers.wrap(AsyncVectorEnv, "step_wait", "pod.AsyncVectorEnv.step_wait (pipe recv + info merge)")
+    timers.wrap(VectorEnv, "_add_info", "pod.AsyncVectorEnv._add_info (gymnasium info merge)")
+    timers.wrap(sim.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
+    timers.wrap(routes, "batch_infos", "pod.batch_infos")
+    timers.wrap(routes, "encode_answer", "pod.encode_answer (wire.encode + Response)")
+    timers.wrap(wire, "encode", "pod.wire.encode")
+
+    make_app = pod_main.create_app
+
+    def create_timed_app(settings: Any) -> Any:
+        app = make_app(settings)
+
+        async def timed_app(scope: dict[str, Any], receive: Any, send: Any) -> None:
+            timed = scope["type"] == "http" and scope["path"] == "/v1/step"
+            if not timed:
+                await app(scope, receive, send)
+                return
+            timers.begin()
+            started = time.perf_counter()
+            try:
+                await app(scope, receive, send)
+            finally:
+                timers.add("pod.asgi_app (all of the app)", time.perf_counter() - started)
+                physics = getattr(app.state.pod.env, "last_timing", None)
+                if physics is not None:
+                    timers.add("pod.workers_physics_s (sum over workers)", physics.physics_s)
+                timers.end()
+
+        timed_app.state = app.state  # type: ignore[attr-defined]
+        return timed_app
+
+    pod_main.create_app = create_timed_app  # type: ignore[assignment]
+
+
+def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
+    """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
+    SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
+    from service.pod import main as pod_main
+
+    if mode == "timed":
+        timers = Timers()
+        _instrument_pod(timers)
+
+        def dump(_signum: int, _frame: Any) -> None:
+            tmp = out.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"calls": len(timers.calls), "median_ms": timers.medians_ms(skip=min(20, len(timers.calls) // 2))}))
+            tmp.rename(out)
+
+        signal.signal(signal.SIGUSR1, dump)
+        return pod_main.main(pod_argv)
+    profile = cProfile.Profile()
+
+    def dump_profile(_signum: int, _frame: Any) -> None:
+        profile.disable()
+        profile.dump_stats(str(out))
+
+    def clear_profile(_signum: int, _frame: Any) -> None:
+        profile.clear()
+        profile.enable()
+
+    signal.signal(signal.SIGUSR1, dump_profile)
+    signal.signal(signal.SIGUSR2, clear_profile)
+    return pod_main.main(pod_argv)
+
+
+# -- the client side -----------------------------------------------------------------------------
+
+
+def _assignment(pod: str) -> Any:
+    from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
+
+    return Assignment(
+        generation=0, job_id="profile", pod=pod, stage_id=0,
+        tasks=(TaskBlock(task_id=TASK, env_start=0, num_envs=ARGS.envs),),
+        camera=CameraConfig(names=(), height=8, width=8), render="lean",
+        envs_per_worker=ARGS.envs_per_worker or AUTO_ENVS_PER_WORKER, max_episode_steps=EPISODE_CAP,
+    )  # fmt: skip
+
+
+@contextlib.contextmanager
+def pod_process(mode: str, workdir: Path) -> Iterator[Any]:
+    """One pod of ``_assignment`` started through ``--serve-pod``; killed on exit."""
+    from _perf_common import free_port, kill_group, wait_until_ready
+
+    name = f"sim-{mode}"
+    path = workdir / f"{name}.json"
+    path.write_text(json.dumps(_assignment(name).model_dump(mode="json")))
+    port = free_port()
+    out = workdir / f"{name}.out"
+    env = {k: v for k, v in os.environ.items() if k not in ("CONTROLLER_URL", "POD_IP", "VECSIM_ADVERTISE_URL", "VECSIM_TOKEN")}
+    env.setdefault("MUJOCO_GL", "egl")
+    argv = [sys.executable, __file__, "--serve-pod", mode, "--serve-out", str(out), "--",
+            "--assignment", str(path), "--name", name, "--host", "127.0.0.1", "--port", str(port),
+            "--log-level", "warning"]  # fmt: skip
+    log_path = workdir / f"{name}.log"
+    with log_path.open("wb") as log_file:
+        process = subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    process.url, process.port, process.out = f"http://127.0.0.1:{port}", port, out  # type: ignore[attr-defined]
+    try:
+        wait_until_ready(process.url, process, log_path, 600)  # type: ignore[attr-defined]
+        yield process
+    finally:
+        kill_group(process)
+
+
+def collect(process: Any, timeout_s: float = 60.0) -> Path:
+    """Ask a ``--serve-pod`` process for its record (SIGUSR1); return the file once written."""
+    out: Path = process.out
+    with contextlib.suppress(FileNotFoundError):
+        out.unlink()
+    os.kill(process.pid, signal.SIGUSR1)
+    deadline = time.monotonic() + timeout_s
+    while not out.exists():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"pod {process.url} wrote no record to {out}")
+        time.sleep(0.1)
+    return out
+
+
+def cpu_snapshot(timed_pod: int, other_pod: int) -> dict[str, float]:
+    """CPU seconds (user + system) used so far by: this process (``client``: all its threads),
+    the timed pod's own process (``pod``), its env workers (``pod_workers``), and this process's
+    other descendants (``local_workers``: the in-process contenders' worker processes)."""
+    import psutil
+
+    def used(process: psutil.Process) -> float:
+        with contextlib.suppress(psutil.Error):
+            times = process.cpu_times()
+            return times.user + times.system
+        return 0.0
+
+    me = psutil.Process()
+    pod = psutil.Process(timed_pod)
+    pod_children = pod.children(recursive=True)
+    skip = {timed_pod, other_pod, *(p.pid for p in pod_children)}
+    with contextlib.suppress(psutil.Error):
+        skip |= {p.pid for p in psutil.Process(other_pod).children(recursive=True)}
+    return {
+        "client": used(me),
+        "pod": used(pod),
+        "pod_workers": sum(used(p) for p in pod_children),
+        "local_workers": sum(used(p) for p in me.children(recursive=True) if p.pid not in skip),
+    }
+
+
+def _instrument_client(timers: Timers) -> None:
+    from vecsim import wire
+    from vecsim.client import HTTPVectorEnv
+    from vecsim.client.pods import PodConnection
+    from vecsim.client.stage import StageClient
+
+    timers.wrap(HTTPVectorEnv, "_send_step", "client._send_step (main thread: checks, submit)")
+    timers.wrap(StageClient, "_submit", "client.StageClient._submit (checks, hand to loop)")
+    timers.wrap(StageClient, "_check_actions", "client.StageClient._check_actions")
+    timers.wrap(HTTPVectorEnv, "_take", "client._take (main thread waits for the loop)")
+    timers.wrap(StageClient, "_run", "client.StageClient._run (on the loop thread)")
+    timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
+    timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
+    timers.wrap(wire, "encode", "client.wire.encode")
+    timers.wrap(wire, "decode", "client.wire.decode")
+    timers.wrap(StageClient, "_fill", "client.StageClient._fill (answer into batch)")
+    timers.wrap(HTTPVectorEnv, "_apply_step", "client._apply_step (batch -> gymnasium step result, info merge)")
+    timers.wrap(HTTPVectorEnv, "_add_env_info", "client._add_env_info (merge_rows of env_info)")
+
+
+def per_call(fn: Callable[[int], Any], calls: int, timers: Timers | None = None) -> list[float]:
+    """Run ``fn(t)`` ``calls`` times; return each call's seconds."""
+    times = []
+    for t in range(calls):
+        if timers is not None:
+            timers.begin()
+        started = time.perf_counter()
+        fn(t)
+        times.append(time.perf_counter() - started)
+        if timers is not None:
+            timers.end()
+    return times
+
+
+def top_costs(stats: pstats.Stats, total_s: float, n: int = 18) -> list[dict[str, Any]]:
+    """The ``n`` functions with the most own time (tottime), with their share of ``total_s``."""
+    rows = []
+    for (path, line, func), (_cc, ncalls, tottime, cumtime, _callers) in stats.stats.items():  # type: ignore[attr-defined]
+        rows.append((tottime, cumtime, ncalls, f"{Path(path).name}:{line}({func})"))
+    rows.sort(reverse=True)
+    return [
+        {"where": where, "own_ms_per_call": tot, "cum_ms_per_call": cum, "calls": ncalls, "share": round(tot / total_s, 3)}
+        for tot, cum, ncalls, where in rows[:n]
+    ]
+
+
+def cumulative(stats: pstats.Stats, needles: list[str]) -> dict[str, float]:
+    """Cumulative seconds of the functions whose name contains each needle (largest match)."""
+    found: dict[str, float] = {}
+    for (path, line, func), (_cc, _nc, _tt, cumtime, _callers) in stats.stats.items():  # type: ignore[attr-defined]
+        where = f"{Path(path).name}:{line}({func})"
+        for needle in needles:
+            if needle in where:
+                found[needle] = max(found.get(needle, 0.0), cumtime)
+    return found
+
+
+def scale(rows: list[dict[str, Any]], calls: int) -> list[dict[str, Any]]:
+    for row in rows:
+        row["own_ms_per_call"] = round(1e3 * row["own_ms_per_call"] / calls, 3)
+        row["cum_ms_per_call"] = round(1e3 * row["cum_ms_per_call"] / calls, 3)
+    return rows
+
+
+def main() -> None:
+    import gymnasium
+    import httpx
+    from _perf_common import setup_logging
+    from common import write_result
+    from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
+
+    from service.pod.bodies import encode_answer
+    from vecsim import wire
+    from vecsim.client import HTTPVectorEnv
+    from vecsim.client.pods import EventLoopThread
+    from vecsim.info import batch_infos
+    from vecsim.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
+    from vecsim.tasks import make_env
+
+    setup_logging()
+    n, calls, rounds = ARGS.envs, ARGS.calls, ARGS.rounds
+    workdir = Path(tempfile.mkdtemp(prefix="vecsim-profile-call-"))
+    assignment = _assignment("in-process")
+    per_worker = resolve_envs_per_worker(assignment)
+    load_before = os.getloadavg()
+    log.info("%d x %s, %d envs per worker, %d cores, load %s", n, TASK, per_worker, available_cores(), load_before)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (calls, n, 6)).astype(np.float32)
+    env_ids = np.arange(n, dtype=np.int64)
+    client_timers = Timers()
+    _instrument_client(client_timers)
+    camera = assignment.camera
+    makers = [functools.partial(make_env, TASK, camera, "lean", EPISODE_CAP) for _ in range(n)]
+
+    with contextlib.ExitStack() as stack:
+        timed = stack.enter_context(pod_process("timed", workdir))
+        profiled = stack.enter_context(pod_process("profiled", workdir))
+        vec = HTTPVectorEnv(pod_urls=[timed.url])
+        stack.callback(vec.close)
+        vec.reset(seed=0)
+        local = TaskGroupedVectorEnv(assignment)
+        stack.callback(local.close)
+        async_env = AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP)
+        stack.callback(async_env.close)
+        async_env.reset(seed=0)
+        sync_env = SyncVectorEnv(makers, autoreset_mode=AutoresetMode.NEXT_STEP)
+        stack.callback(sync_env.close)
+        sync_env.reset(seed=0)
+        raw = stack.enter_context(httpx.Client(base_url=timed.url, timeout=30))
+        conn = http.client.HTTPConnection("127.0.0.1", timed.port, timeout=30)
+        stack.callback(conn.close)
+        # The two thread hops of a call, alone: the client's sync caller to its event-loop thread
+        # (EventLoopThread, as HTTPVectorEnv uses) and an event loop to a worker thread (the
+        # pod's state.run, used for robot scenes; cheap scenes run inline).
+        hop_loop = EventLoopThread("hop")
+        stack.callback(hop_loop.close)
+        hop_pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+        stack.callback(hop_pool.shutdown)
+        headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
+        bodies = [wire.encode({"generation": 0, "env_ids": env_ids, "actions": a}) for a in actions]
+
+        def raw_httpx(t: int) -> None:
+            response = raw.post("/v1/step", content=bodies[t], headers=headers)
+            assert response.status_code == 200, response.text
+
+        def exchange(method: str, path: str, body: bytes | None = None) -> None:
+            for attempt in (0, 1):
+                try:
+                    conn.request(method, path, body=body, headers=headers)
+                    response = conn.getresponse()
+                    break
+                except (http.client.HTTPException, ConnectionError):
+                    # The pod closed the kept-alive connection between rounds: open a new one.
+                    conn.close()
+                    if attempt:
+                        raise
+            assert response.status == 200
+            response.read()
+
+        def raw_http_client(t: int) -> None:
+            exchange("POST", "/v1/step", bodies[t])
+
+        def raw_healthz(_t: int) -> None:
+            exchange("GET", "/healthz")
+
+        def in_process_answer(t: int) -> None:
+            obs, reward, terminated, truncated, info = local.step_envs(env_ids, actions[t])
+            answer = {
+                "env_ids": env_ids.astype(np.int32), "obs": obs, "reward": np.asarray(reward, dtype=np.float64),
+                "terminated": terminated, "truncated": truncated, "info": {"success": info["success"]},
+            }  # fmt: skip
+            batched = batch_infos(info["env_info"])
+            if batched:
+                answer["env_info"] = batched
+            encode_answer(answer, False)
+
+        contenders: dict[str, Callable[[int], Any]] = {
+            "http_vector_env": lambda t: vec.step(actions[t % calls]),
+            "raw_httpx": raw_httpx,
+            "raw_http_client": raw_http_client,
+            "raw_healthz": raw_healthz,
+            "in_process": lambda t: local.step_envs(env_ids, actions[t]),
+            "in_process_answer": in_process_answer,
+            "thread_hop_loop": lambda _t: hop_loop.run(_noop()),
+            "thread_hop_executor": lambda _t: hop_pool.submit(int).result(),
+            "async_vector_env": lambda t: async_env.step(actions[t]),
+            "sync_vector_env": lambda t: sync_env.step(actions[t]),
+        }
+        for name, fn in contenders.items():  # warm-up
+            per_call(fn, min(20, calls))
+        times: dict[str, list[float]] = {name: [] for name in contenders}
+        cpu: dict[str, dict[str, float]] = {name: defaultdict(float) for name in contenders}
+        names = list(contenders)
+        for r in range(rounds):
+            shift = r % len(names)
+            for name in names[shift:] + names[:shift]:
+                timers = client_timers if name == "http_vector_env" else None
+                before = cpu_snapshot(timed.pid, profiled.pid)
+                times[name] += per_call(contenders[name], calls, timers)
+                after = cpu_snapshot(timed.pid, profiled.pid)
+                for group in after:
+                    cpu[name][group] += after[group] - before.get(group, 0.0)
+            log.info("round %d/%d: %s", r + 1, rounds, {k: round(1e3 * statistics.median(v), 2) for k, v in times.items()})
+        pod_layers = json.loads(collect(timed).read_text())
+        client_layers = client_timers.medians_ms()
+
+        # cProfile: the client (main thread and its loop thread) against the timed pod; then the
+        # profiled pod's main thread serving HTTPVectorEnv calls.
+        pcalls = ARGS.profile_calls
+        main_profile, loop_profile = cProfile.Profile(), cProfile.Profile()
+        loop = vec.client._loop.loop
+        asyncio.run_coroutine_threadsafe(_enable(loop_profile), loop).result()
+        main_profile.enable()
+        started = time.perf_counter()
+        per_call(contenders["http_vector_env"], pcalls)
+        client_wall = time.perf_counter() - started
+        main_profile.disable()
+        asyncio.run_coroutine_threadsafe(_disable(loop_profile), loop).result()
+
+        vec_p = HTTPVectorEnv(pod_urls=[profiled.url])
+        stack.callback(vec_p.close)
+        vec_p.reset(seed=0)
+        per_call(lambda t: vec_p.step(actions[t]), min(20, calls))
+        os.kill(profiled.pid, signal.SIGUSR2)  # start profiling from here
+        time.sleep(0.5)
+        started = time.perf_counter()
+        per_call(lambda t: vec_p.step(actions[t % calls]), pcalls)
+        pod_wall = time.perf_counter() - started
+        pod_stats = pstats.Stats(str(collect(profiled)))
+
+    medians = {name: round(1e3 * statistics.median(v), 3) for name, v in times.items()}
+    cpu_ms = {
+        name: {group: round(1e3 * seconds / len(times[name]), 3) for group, seconds in groups.items()}
+        for name, groups in cpu.items()
+    }
+    main_stats = pstats.Stats(main_profile)
+    loop_stats = pstats.Stats(loop_profile)
+    pod_total = sum(v[2] for v in pod_stats.stats.values())  # type: ignore[attr-defined]
+    result = {
+        "quick": ARGS.quick,
+        "setup": {"envs": n, "task": TASK, "envs_per_worker": per_worker, "cores": available_cores(),
+                  "calls_per_round": calls, "rounds": rounds, "load_avg_before": load_before,
+                  "load_avg_after": os.getloadavg()},  # fmt: skip
+        "median_ms_per_call": medians,
+        "ratio_to_in_process": {k: round(v / medians["in_process"], 2) for k, v in medians.items()},
+        "cpu_ms_per_call": cpu_ms,
+        "client_layers_median_ms": client_layers,
+        "pod_layers_median_ms": pod_layers,
+        "client_profile": {
+            "wall_ms_per_call": round(1e3 * client_wall / pcalls, 3),
+            "main_thread_top": scale(top_costs(main_stats, client_wall), pcalls),
+            "loop_thread_top": scale(top_costs(loop_stats, client_wall), pcalls),
+        },
+        "pod_profile": {
+            "wall_ms_per_call": round(1e3 * pod_wall / pcalls, 3),
+            "profiled_own_ms_per_call": round(1e3 * pod_total / pcalls, 3),
+            "main_thread_top": scale(top_costs(pod_stats, pod_wall, 25), pcalls),
+            "cumulative_ms_per_call": {
+                k: round(1e3 * v / pcalls, 3)
+                for k, v in cumulative(pod_stats, [
+                    "select", "_run_once", "(step)", "(step_envs)", "(step_async)", "(step_wait)", "(_add_info)",
+                    "(_per_row)", "(batch_infos)", "(encode_answer)", "(parse_body)", "(decode)", "(encode)",
+                    "(run_endpoint_function)", "(solve_dependencies)", "(recv_bytes)", "(send_bytes)",
+                    "(_recv_bytes)", "(_send_bytes)", "(loads)", "(dumps)", "(model_validate)", "(app)",
+                ]).items()
+            },
+        },
+    }  # fmt: skip
+    _report(result)
+    profiles = {k: result.pop(k) for k in ("client_profile", "pod_profile")}
+    write_result("profile_call", result, profiles)
+
+
+async def _noop() -> None:
+    return None
+
+
+async def _enable(profile: cProfile.Profile) -> None:
+    profile.enable()
+
+
+async def _disable(profile: cProfile.Profile) -> None:
+    profile.disable()
+
+
+def _report(result: dict[str, Any]) -> None:
+    out = io.StringIO()
+    out.write(f"setup: {result['setup']}\n\nmedian ms per call (ratio to in_process):\n")
+    for name, ms in result["median_ms_per_call"].items():
+        out.write(f"  {name:22s} {ms:8.3f}  ({result['ratio_to_in_process'][name]}x)\n")
+    out.write("\nCPU ms per call (client process, pod process, pod workers, in-process workers):\n")
+    for name, groups in result["cpu_ms_per_call"].items():
+        out.write(f"  {name:22s} " + "  ".join(f"{g} {v:7.3f}" for g, v in groups.items()) + "\n")
+    for part in ("client_layers_median_ms", "pod_layers_median_ms"):
+        out.write(f"\n{part}:\n")
+        layers = result[part].get("median_ms", result[part])
+        for name, ms in layers.items():
+            out.write(f"  {ms:8.3f}  {name}\n")
+    for part in ("client_profile", "pod_profile"):
+        profile = result[part]
+        out.write(f"\n{part}: wall {profile['wall_ms_per_call']} ms/call\n")
+        for key in ("main_thread_top", "loop_thread_top"):
+            for row in profile.get(key, []):
+                out.write(f"  [{key[:4]}] own {row['own_ms_per_call']:7.3f} cum {row['cum_ms_per_call']:7.3f} "
+                          f"{100 * row['share']:5.1f}%  {row['where']}\n")  # fmt: skip
+        for key, ms in profile.get("cumulative_ms_per_call", {}).items():
+            out.write(f"  [cum ] {ms:7.3f}  {key}\n")
+    log.info("report\n%s", out.getvalue())
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", type=int, default=16)
+    parser.add_argument(
+        "--envs-per-worker", type=int, default=0, help="the pods' and in_process's envs_per_worker (0: auto)"
+    )
+    parser.add_argument("--calls", type=int, default=100, help="calls per contender per round")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--profile-calls", type=int, default=300, help="calls under cProfile (client, then pod)")
+    parser.add_argument("--serve-pod", choices=["timed", "profiled"], help=argparse.SUPPRESS)
+    parser.add_argument("--serve-out", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="4 envs, a few calls: for the smoke test")
+    ARGS, rest = parser.parse_known_args()
+    if ARGS.quick:
+        ARGS.envs, ARGS.calls, ARGS.rounds, ARGS.profile_calls = 4, 5, 1, 5
+    if ARGS.serve_pod:
+        sys.exit(serve_pod(ARGS.serve_pod, ARGS.serve_out, [a for a in rest if a != "--"]))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    main()
