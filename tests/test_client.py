@@ -27,6 +27,7 @@ from vecsim.client import (
     env_slots,
     place_requests,
 )
+from vecsim.client.stagestate import StageState
 from vecsim.client.routing import changed_routes, routing_from_pod_infos, validate_routes
 from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
 from vecsim.sampler import TaskBalancedSampler, stage_of
@@ -298,6 +299,19 @@ def test_a_second_call_on_a_waiting_stage_raises_already_pending_call_error(clie
         client.reset_stage(0)
     pending.result(timeout=60)
     client.reset_stage(0).result(timeout=60)
+
+
+def test_a_stage_waits_on_its_call_until_the_answer_is_handed_over(client):
+    keys = list(client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)]))
+    pending = client.reset_stage(0)
+    assert client.stage_state(0) in (StageState.WAITING_RESET, StageState.IDLE)  # IDLE: answered already
+    pending.result(timeout=60)
+    # A returned result means an idle stage: the next call goes out at once.
+    assert client.stage_state(0) is StageState.IDLE
+    stage0 = [k for k in keys if client.routes[k].stage_id == 0]
+    pending = client.call(reset=[k for k in keys if k not in stage0], step=_zero_actions(stage0))
+    pending.result(timeout=60)
+    assert [client.stage_state(s) for s in (0, 1)] == [StageState.IDLE, StageState.IDLE]
 
 
 def test_keys_of_another_stage_or_unknown_keys_are_refused(client):

@@ -41,6 +41,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from vecsim import trees
 from vecsim.client import (
     PendingCall,
     PodUnavailableError,
@@ -433,9 +434,7 @@ class EnvLoop:
 
 
 def _to_tensors(obs: Any, rows: np.ndarray, device: torch.device) -> Any:
-    if isinstance(obs, dict):
-        return {key: _to_tensors(value, rows, device) for key, value in obs.items()}
-    return torch.from_numpy(np.ascontiguousarray(obs[rows])).to(device)
+    return trees.map_leaves(lambda leaf: torch.from_numpy(np.ascontiguousarray(leaf[rows])).to(device), obs)
 
 
 def _within(action: np.ndarray, left: int) -> np.ndarray:
@@ -444,15 +443,10 @@ def _within(action: np.ndarray, left: int) -> np.ndarray:
 
 
 def _take_row(obs: Any, row: int, keep: tuple[str, ...] | None) -> Any:
-    if isinstance(obs, dict):
-        return {k: _take_row(v, row, None) for k, v in obs.items() if keep is None or k in keep}
-    return np.array(obs[row])
-
-
-def _stack(items: list[Any]) -> Any:
-    if isinstance(items[0], dict):
-        return {key: _stack([item[key] for item in items]) for key in items[0]}
-    return torch.from_numpy(np.stack(items))
+    """Row ``row`` of a batched observation (copies), its top-level keys cut to ``keep`` if given."""
+    if isinstance(obs, dict) and keep is not None:
+        obs = {key: value for key, value in obs.items() if key in keep}
+    return trees.row(obs, row)
 
 
 class _Buffer:
@@ -504,7 +498,7 @@ class _Buffer:
         return Trajectory(
             traj_key=self.key,
             route=self.route,
-            observations=_stack(self.observations) if self.observations else {},
+            observations=trees.map_leaves(torch.from_numpy, trees.stack(self.observations)) if self.observations else {},
             actions=torch.from_numpy(np.stack(self.actions)) if self.actions else torch.zeros((0, *action_dim)),
             rewards=torch.tensor(self.rewards, dtype=torch.float32),
             dones=dones,

@@ -26,6 +26,7 @@ from gymnasium import logger as gym_logger
 from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
+from vecsim import trees
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, env_slots
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
@@ -63,27 +64,6 @@ def autoreset_mode_of(mode: AutoresetMode | str) -> AutoresetMode:
     )
 # The errors that fail a call for one pod's envs alone, handing over the other pods' rows.
 _PARTIAL = (PodUnavailableError, RoutingChangedError)
-
-
-def _row(obs: Any, i: int) -> Any:
-    """One env's observation out of a batched one (a copy)."""
-    if isinstance(obs, dict):
-        return {key: _row(value, i) for key, value in obs.items()}
-    if isinstance(obs, tuple):
-        return tuple(_row(value, i) for value in obs)
-    return np.array(obs[i])
-
-
-def _put_rows(dst: Any, src: Any, rows: np.ndarray, take: np.ndarray | None = None) -> None:
-    """Write ``src`` (its rows ``take``, or all) into rows ``rows`` of ``dst``."""
-    if isinstance(dst, dict):
-        for key in dst:
-            _put_rows(dst[key], src[key], rows, take)
-    elif isinstance(dst, tuple):
-        for sub, part in zip(dst, src):
-            _put_rows(sub, part, rows, take)
-    else:
-        dst[rows] = src if take is None else src[take]
 
 
 def _ended(batch: StageBatch) -> np.ndarray:
@@ -339,7 +319,7 @@ class HTTPVectorEnv(VectorEnv):
         info: dict[str, Any] = {}
         if batch is not None:
             rows = np.array([self._key_index[k] for k in batch.traj_keys], dtype=np.int64)
-            _put_rows(self._obs, batch.obs, rows)
+            trees.put_rows(self._obs, batch.obs, rows)
             self._ever_reset[rows] = True
             self._autoreset[rows] = False
             self._failed[rows] = False
@@ -616,14 +596,14 @@ class HTTPVectorEnv(VectorEnv):
             reward[stepped] = step_batch.reward[take]
             terminated[stepped] = step_batch.terminated[take]
             truncated[stepped] = step_batch.truncated[take]
-        _put_rows(self._obs, step_batch.obs, stepped, take)
+        trees.put_rows(self._obs, step_batch.obs, stepped, take)
 
         if self.autoreset_mode == AutoresetMode.SAME_STEP and len(reset):
             # The stepped obs of an env that ended goes to final_obs; its reset obs replaces it.
             final_obs = np.full(self.num_envs, None, dtype=object)
             rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
             for i in reset:
-                final_obs[i] = _row(step_batch.obs, rows_of[self._keys[i]])
+                final_obs[i] = trees.row(step_batch.obs, rows_of[self._keys[i]])
             final_info: dict[str, Any] = {}
             ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
             ended_mask = np.zeros(step_batch.n, dtype=bool)
@@ -635,7 +615,7 @@ class HTTPVectorEnv(VectorEnv):
             info["final_obs"], info["_final_obs"] = final_obs, done
             info["final_info"], info["_final_info"] = final_info, done.copy()
 
-        _put_rows(self._obs, reset_batch.obs, reset)
+        trees.put_rows(self._obs, reset_batch.obs, reset)
         keep = np.zeros(step_batch.n, dtype=bool)
         keep[take] = True
         if self.autoreset_mode == AutoresetMode.SAME_STEP:

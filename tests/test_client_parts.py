@@ -1,0 +1,209 @@
+"""The client's pure parts, without I/O: the route book, the stages' state machine, observation trees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gymnasium.error import AlreadyPendingCallError
+
+from vecsim import trees
+from vecsim.client.errors import RoutingChangedError
+from vecsim.client.routebook import RouteBook
+from vecsim.client.stagestate import StageState, StageStates
+from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
+
+
+def _pod(name: str, *blocks: tuple[str, int], url: str | None = None) -> RoutedPod:
+    tasks, start = [], 0
+    for task_id, n in blocks:
+        tasks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=n))
+        start += n
+    return RoutedPod(pod=name, url=url or f"http://{name}:8000", num_envs=start, tasks=tuple(tasks))
+
+
+def _table(*stages: list[RoutedPod], generation: int = 1) -> RoutingTable:
+    return RoutingTable(
+        generation=generation,
+        job_id="t",
+        ready=True,
+        stages=tuple(RoutedStage(stage_id=s, pods=tuple(pods)) for s, pods in enumerate(stages)),
+    )
+
+
+TWO_STAGES = _table([_pod("sim-0", ("a", 2))], [_pod("sim-1", ("a", 2))])
+
+
+# -- the route book ------------------------------------------------------------------------------
+
+
+def test_placed_routes_are_live_only_once_replaced():
+    book = RouteBook(TWO_STAGES)
+    routes = book.place([("a", 3), ("a", 4)], ["k0", "k1"])
+    assert book.routes() == {}
+    book.replace(routes)
+    assert book.routes() == routes
+    assert book.stage_keys(0) == ["k0"] and book.stage_keys(1) == ["k1"]
+    assert (routes["k0"].pod, routes["k1"].pod) == ("sim-0", "sim-1")
+
+
+def test_a_key_on_another_stage_is_refused_naming_it():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 0)], ["k0", "k1"]))
+    with pytest.raises(ValueError, match="'k1' runs on stage 1, not stage 0"):
+        book.check_on_stage(["k0", "k1"], 0)
+    with pytest.raises(ValueError, match="'nope' is not a live trajectory"):
+        book.live(["k0", "nope"])
+
+
+def test_a_stage_not_in_the_table_is_refused():
+    with pytest.raises(ValueError, match="stage 2 is not in the routing table"):
+        RouteBook(TWO_STAGES).check_stage(2)
+
+
+def test_state_ids_are_recorded_for_live_keys_only():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 0)], ["k0", "k1"]))
+    book.set_state_ids(["k0", "gone"], [7, 9])
+    assert book.routes()["k0"].state_id == 7
+    assert book.routes()["k1"].state_id == 0
+
+
+def test_a_new_table_loses_the_trajectories_of_pods_that_changed():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 0)], ["k0", "k1"]))
+    moved_pod = _table([_pod("sim-0", ("a", 2))], [_pod("sim-1", ("a", 2), url="http://elsewhere:8000")], generation=2)
+    assert book.take_table(moved_pod) == ["k1"]
+    assert book.generation == 2
+    assert list(book.routes()) == ["k0"]
+    with pytest.raises(RoutingChangedError) as info:
+        book.check_lost(["k0", "k1"])
+    assert info.value.traj_keys == ["k1"] and info.value.generation == 2
+
+
+def test_a_rebuilt_pod_loses_its_trajectories():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 0), ("a", 0)], ["k0", "k1", "k2"]))
+    assert book.lose_pod("sim-0") == ["k0", "k2"]
+    assert book.holders() == ["sim-1"]
+    with pytest.raises(RoutingChangedError):
+        book.check_on_stage(["k2"], 0)
+
+
+def test_a_new_batch_forgets_the_lost_trajectories():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0)], ["k0"]))
+    book.lose_pod("sim-0")
+    book.replace(book.place([("a", 0)], ["k0"]))
+    book.check_lost(["k0"])  # no error: k0 is a new trajectory
+
+
+def test_a_malformed_new_table_changes_nothing():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0)], ["k0"]))
+    one_pod_twice = _table([_pod("sim-0", ("a", 2))], [_pod("sim-0", ("a", 2))], generation=2)
+    with pytest.raises(ValueError, match="pod sim-0 is in stages 0 and 1"):
+        book.take_table(one_pod_twice)
+    assert book.generation == 1 and list(book.routes()) == ["k0"]
+
+
+# -- the stages' state machine -----------------------------------------------------------------
+
+
+def test_stages_begin_idle():
+    states = StageStates()
+    assert states.state(0) is StageState.IDLE and states.busy() == []
+
+
+def test_the_waiting_state_says_what_the_stage_waits_on():
+    assert StageState.waiting_for(resets=True, steps=False) is StageState.WAITING_RESET
+    assert StageState.waiting_for(resets=False, steps=True) is StageState.WAITING_STEP
+    assert StageState.waiting_for(resets=True, steps=True) is StageState.WAITING_CALL
+
+
+def test_a_call_holds_all_its_stages_and_its_end_frees_them():
+    states, call = StageStates(), object()
+    started = states.begin({0: StageState.WAITING_RESET, 2: StageState.WAITING_STEP}, call, lambda: "sent")
+    assert started == "sent"
+    assert states.state(0) is StageState.WAITING_RESET and states.state(2) is StageState.WAITING_STEP
+    assert states.busy() == [0, 2] and states.busy([1, 2]) == [2]
+    states.end([0, 2], call)
+    assert states.busy() == []
+
+
+def test_a_second_call_on_a_waiting_stage_changes_no_stage_and_sends_nothing():
+    states, first = StageStates(), object()
+    states.begin({1: StageState.WAITING_STEP}, first)
+    sent = []
+    with pytest.raises(AlreadyPendingCallError, match=r"stage\(s\) \[1\] already wait on a call"):
+        states.begin({0: StageState.WAITING_STEP, 1: StageState.WAITING_STEP}, object(), lambda: sent.append(1))
+    assert sent == [] and states.state(0) is StageState.IDLE and states.state(1) is StageState.WAITING_STEP
+
+
+def test_a_late_end_of_an_older_call_leaves_the_newer_call_alone():
+    states, old, new = StageStates(), object(), object()
+    states.begin({0: StageState.WAITING_STEP}, old)
+    states.end([0], old)
+    states.begin({0: StageState.WAITING_RESET}, new)
+    states.end([0], old)
+    assert states.state(0) is StageState.WAITING_RESET
+    states.end([0], old)  # ending twice is harmless
+    states.end([0], new)
+    assert states.state(0) is StageState.IDLE
+
+
+def test_no_call_moves_a_stage_to_idle():
+    with pytest.raises(ValueError, match="cannot move a stage to IDLE"):
+        StageStates().begin({0: StageState.IDLE}, object())
+
+
+def test_placing_a_batch_needs_every_stage_idle():
+    states = StageStates()
+    assert states.while_idle("placing a new batch", lambda: "placed") == "placed"
+    states.begin({3: StageState.WAITING_STEP}, object())
+    with pytest.raises(AlreadyPendingCallError, match=r"stages \[3\] have calls in flight"):
+        states.while_idle("placing a new batch", lambda: pytest.fail("ran while a call was in flight"))
+
+
+def test_end_all_frees_every_stage_and_names_each_call_once():
+    states, a, b = StageStates(), object(), object()
+    states.begin({0: StageState.WAITING_STEP, 1: StageState.WAITING_STEP}, a)
+    states.begin({2: StageState.WAITING_RESET}, b)
+    assert {id(c) for c in states.end_all()} == {id(a), id(b)}
+    assert states.busy() == []
+
+
+# -- observation trees ------------------------------------------------------------------------
+
+
+def _tree(n: int) -> dict:
+    return {"images": {"cam": np.zeros((n, 2, 2, 3), np.uint8)}, "pair": (np.zeros(n), np.zeros((n, 2), np.int64))}
+
+
+def test_fill_rows_writes_a_wire_answer_into_the_given_rows():
+    dst = _tree(4)
+    src = {"images": {"cam": np.ones((2, 2, 2, 3), np.uint8)}, "pair": {"0": np.full(2, 5.0), "1": np.full((2, 2), 7)}}
+    trees.fill_rows(dst, src, np.array([1, 3]), "obs")
+    assert dst["images"]["cam"][[1, 3]].all() and not dst["images"]["cam"][[0, 2]].any()
+    assert dst["pair"][0].tolist() == [0, 5, 0, 5] and dst["pair"][1][3].tolist() == [7, 7]
+
+
+def test_fill_rows_names_the_key_path_at_fault():
+    dst = _tree(2)
+    with pytest.raises(trees.TreeMismatchError, match=r"answer obs.images.cam has shape \[2, 2, 2\], expected \[2, 2, 2, 3\]"):
+        trees.fill_rows(dst, {"images": {"cam": np.zeros((2, 2, 2))}, "pair": {}}, np.arange(2), "obs")
+    with pytest.raises(trees.TreeMismatchError, match=r"answer obs has keys \['images'\], expected \['images', 'pair'\]"):
+        trees.fill_rows(dst, {"images": {}}, np.arange(2), "obs")
+
+
+def test_row_take_rows_stack_and_leaves_keep_the_structure():
+    tree = _tree(3)
+    tree["pair"][0][:] = [0, 1, 2]
+    one = trees.row(tree, 2)
+    assert one["pair"][0] == 2 and one["images"]["cam"].shape == (2, 2, 3)
+    assert trees.take_rows(tree, np.array([2, 0]))["pair"][0].tolist() == [2, 0]
+    stacked = trees.stack([one, one])
+    assert stacked["images"]["cam"].shape == (2, 2, 2, 3) and stacked["pair"][1].shape == (2, 2)
+    assert [leaf.shape for leaf in trees.leaves(tree)] == [(3, 2, 2, 3), (3,), (3, 2)]
+    dst = _tree(3)
+    trees.put_rows(dst, tree, np.array([0]), np.array([2]))
+    assert dst["pair"][0].tolist() == [2, 0, 0]

@@ -1,0 +1,157 @@
+"""The client's route book: the routing table in use, where each live trajectory runs, and which
+trajectories lost their envs when the routing changed. Pure (no I/O): the rules of placing are
+:mod:`vecsim.client.routing`'s; this keeps their result and answers questions about it.
+
+Thread-safe: the caller's thread places and checks, the client's loop records state ids and
+routing changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Iterable, Mapping, Sequence
+
+from vecsim.client.errors import RoutingChangedError
+from vecsim.client.routing import TrajRoute, changed_routes, place_requests, stage_by_id, validate_routes
+from vecsim.config import RoutingTable
+
+__all__ = ["RouteBook"]
+
+
+class RouteBook:
+    """Live trajectories' routes over one routing table at a time.
+
+    Raises ``ValueError`` (as :func:`~vecsim.client.routing.stage_by_id`) for a table whose stage
+    ids are not ``0..S-1`` or that puts a pod in two stages.
+    """
+
+    def __init__(self, table: RoutingTable) -> None:
+        stage_by_id(table)
+        self._lock = threading.Lock()
+        self._table = table
+        self._routes: dict[str, TrajRoute] = {}
+        self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
+
+    # -- reading --------------------------------------------------------------------------------
+
+    @property
+    def table(self) -> RoutingTable:
+        return self._table
+
+    @property
+    def generation(self) -> int:
+        return self._table.generation
+
+    @property
+    def num_stages(self) -> int:
+        return len(self._table.stages)
+
+    def routes(self) -> dict[str, TrajRoute]:
+        """A copy of the live routes, in placement order."""
+        with self._lock:
+            return dict(self._routes)
+
+    def stage_keys(self, stage_id: int) -> list[str]:
+        """The live traj_keys of a stage, in placement order."""
+        with self._lock:
+            return [key for key, route in self._routes.items() if route.stage_id == stage_id]
+
+    def pods_with_envs(self) -> list[str]:
+        """The table's pods that have envs, stage by stage."""
+        return [p.pod for stage in self._table.stages for p in stage.pods if p.num_envs > 0]
+
+    def holders(self) -> list[str]:
+        """The sorted names of the pods that run live trajectories."""
+        with self._lock:
+            return sorted({route.pod for route in self._routes.values()})
+
+    # -- checks ---------------------------------------------------------------------------------
+
+    def check_stage(self, stage_id: int) -> None:
+        """Raises ``ValueError``: ``stage_id`` is not a stage of the table."""
+        if stage_id not in {s.stage_id for s in self._table.stages}:
+            raise ValueError(f"stage {stage_id} is not in the routing table (stages 0..{self.num_stages - 1})")
+
+    def check_lost(self, keys: Iterable[str]) -> None:
+        """Raises ``RoutingChangedError``: some of ``keys`` lost their envs (names them all)."""
+        with self._lock:
+            lost = [key for key in keys if key in self._lost]
+            if lost:
+                raise RoutingChangedError(self._lost[lost[0]], lost)
+
+    def check_on_stage(self, keys: Sequence[str], stage_id: int) -> None:
+        """Raises ``RoutingChangedError`` (a key lost its env) or ``ValueError`` (a key not live,
+        or live on another stage), naming the key."""
+        self.check_lost(keys)
+        with self._lock:
+            for key in keys:
+                route = self._routes.get(key)
+                if route is None:
+                    raise ValueError(
+                        f"traj_key {key!r} is not a live trajectory; place it with reset_trajectories first"
+                    )
+                if route.stage_id != stage_id:
+                    raise ValueError(f"traj_key {key!r} runs on stage {route.stage_id}, not stage {stage_id}")
+
+    def live(self, keys: Iterable[str]) -> dict[str, TrajRoute]:
+        """A copy of the live routes, checked to hold every key of ``keys``.
+
+        Raises:
+            ValueError: naming the first key that is not live.
+        """
+        routes = self.routes()
+        for key in keys:
+            if key not in routes:
+                raise ValueError(f"traj_key {key!r} is not a live trajectory; place it with reset_trajectories first")
+        return routes
+
+    # -- changes --------------------------------------------------------------------------------
+
+    def place(self, requests: Sequence[tuple[str, int]], keys: Sequence[str]) -> dict[str, TrajRoute]:
+        """Routes for a new batch on the table in use (:func:`~vecsim.client.routing.place_requests`);
+        nothing is replaced yet (see :meth:`replace`)."""
+        return place_requests(self._table, requests, keys)
+
+    def check_routes(self, routes: Mapping[str, TrajRoute]) -> None:
+        """Raises ``ValueError`` for routes that do not fit the table (see ``validate_routes``)."""
+        validate_routes(self._table, routes)
+
+    def replace(self, routes: Mapping[str, TrajRoute]) -> None:
+        """Make ``routes`` the live trajectories; no trajectory counts as lost any more."""
+        with self._lock:
+            self._routes = dict(routes)
+            self._lost = {}
+
+    def set_state_ids(self, keys: Sequence[str], state_ids: Sequence[int]) -> None:
+        """Record the state ids live trajectories were just reset to (keys no longer live are skipped)."""
+        with self._lock:
+            for key, state_id in zip(keys, state_ids):
+                if key in self._routes:
+                    self._routes[key] = dataclasses.replace(self._routes[key], state_id=int(state_id))
+
+    def take_table(self, table: RoutingTable) -> list[str]:
+        """Adopt a newer routing table; return (and lose) the live traj_keys whose pod changed
+        (:func:`~vecsim.client.routing.changed_routes`).
+
+        Raises:
+            ValueError: as :func:`~vecsim.client.routing.stage_by_id`; nothing changes then.
+        """
+        stage_by_id(table)
+        with self._lock:
+            moved = changed_routes(self._table, table, self._routes)
+            self._table = table
+            self._lose(moved)
+        return moved
+
+    def lose_pod(self, pod: str) -> list[str]:
+        """Lose every live trajectory on ``pod`` (its envs were built anew); return their keys."""
+        with self._lock:
+            keys = [key for key, route in self._routes.items() if route.pod == pod]
+            self._lose(keys)
+        return keys
+
+    def _lose(self, keys: list[str]) -> None:
+        for key in keys:
+            del self._routes[key]
+            self._lost[key] = self._table.generation
