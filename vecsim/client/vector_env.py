@@ -179,6 +179,7 @@ class HTTPVectorEnv(VectorEnv):
             self._setup(num_envs)
         except BaseException:
             self.client.close()
+            self.closed = True  # nothing left to close: __del__ must not try again
             raise
 
     def _setup(self, num_envs: int | None) -> None:
