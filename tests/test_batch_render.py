@@ -20,7 +20,7 @@ import pytest
 from vecsim import batch_render, render
 from vecsim.batch_render import BatchRenderer, same_render_assets, shared_renderer
 from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
-from vecsim.sim import RESET, STEP, _WorkerEnv, _WorkerSpec, assignment_spaces
+from vecsim.sim import _Order, _Worker, _WorkerSpec, assignment_spaces
 from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
 
 PRESETS = ("full", "fast", "lean", "lowpoly")
@@ -228,18 +228,15 @@ def test_a_worker_renders_only_the_envs_it_reset_or_stepped_in_one_readback() ->
     )
     observation_space, action_space = assignment_spaces(assignment)
     spec = _WorkerSpec(("tiny/lift",) * 3, (0, 1, 2), 3, CAMERA, "lean", 10, observation_space, action_space)
-    worker = _WorkerEnv(spec)
+    worker = _Worker(spec)
     try:
         worker.build()
         renderer = shared_renderer(HEIGHT, WIDTH, "lean")
-        idle = worker._out["obs"]["images"]["agentview"][1].copy()
+        out = worker._out
+        idle = out["obs"]["images"]["agentview"][1].copy()
         views, readbacks = renderer.views_rendered, renderer.readbacks
-        command = worker.action_space.sample()
-        command["cmd"][:] = [STEP, 0, RESET]
-        command["state_id"][2] = 4
-        command["action"] = command["action"][:, :1]  # a chunk of one action per env
-        command["record"][:] = 0
-        out, *_ = worker.step(command)
+        chunk = np.array([[action_space.sample()]])  # a chunk of one action for env 0
+        worker.run(_Order(np.array([0]), actions=chunk), _Order(np.array([2]), state_ids=np.array([4])))
         assert renderer.views_rendered - views == 2 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 1
         assert np.array_equal(out["obs"]["images"]["agentview"][1], idle)

@@ -8,6 +8,7 @@ init state. Pods are shared per module where the tests reset what they use first
 from __future__ import annotations
 
 import os
+import select
 import signal
 from collections.abc import Iterator
 from typing import Any
@@ -94,6 +95,17 @@ def _unchanged_after(pod: TaskGroupedVectorEnv, action: Any) -> bool:
 
 # Layout and spaces.
 
+
+
+def _kill_worker(pid: int) -> None:
+    """SIGKILL a worker process and return once it has ended (its pidfd reads ready): the pod
+    checks its workers before and after each call, and no call of the test races the kill."""
+    pidfd = os.pidfd_open(pid)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        select.select([pidfd], [], [], 60)
+    finally:
+        os.close(pidfd)
 
 def test_env_indices_form_contiguous_task_blocks(tiny_pods: tuple[TaskGroupedVectorEnv, ...]) -> None:
     packed, single = tiny_pods
@@ -332,7 +344,7 @@ def test_a_failed_build_names_the_task_and_the_problem() -> None:
 
 def test_a_dead_worker_makes_every_call_raise_sim_crashed() -> None:
     with TaskGroupedVectorEnv(_assignment([(CHEETAH, 2)])) as pod:
-        os.kill(pod.worker_pids[1], signal.SIGKILL)
+        _kill_worker(pod.worker_pids[1])
         with pytest.raises(SimCrashedError):
             pod.step_envs([0], _actions(1, 6))
         with pytest.raises(SimCrashedError, match="worker 1"):

@@ -7,6 +7,7 @@ and on the tiny suite with 8x8 cameras; every answer is compared with one env pe
 from __future__ import annotations
 
 import os
+import select
 import signal
 import tempfile
 from collections.abc import Iterator
@@ -19,13 +20,12 @@ import pytest
 from vecsim.batch_render import shared_renderer
 from vecsim.config import AUTO_ENVS_PER_WORKER
 from vecsim.sim import (
-    RESET,
-    STEP,
     InvalidRequestError,
     SimCrashedError,
     TaskGroupedVectorEnv,
     UnknownEnvError,
-    _WorkerEnv,
+    _Order,
+    _Worker,
     _WorkerSpec,
     assignment_spaces,
     resolve_envs_per_worker,
@@ -69,6 +69,17 @@ def spanning_cheetahs() -> Iterator[TaskGroupedVectorEnv]:
     with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=2, max_episode_steps=5)) as pod:
         yield pod
 
+
+
+def _kill_worker(pid: int) -> None:
+    """SIGKILL a worker process and return once it has ended (its pidfd reads ready): the pod
+    checks its workers before and after each call, and no call of the test races the kill."""
+    pidfd = os.pidfd_open(pid)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        select.select([pidfd], [], [], 60)
+    finally:
+        os.close(pidfd)
 
 def test_a_worker_hosts_consecutive_envs_across_task_blocks(spanning_cheetahs: TaskGroupedVectorEnv) -> None:
     pod = spanning_cheetahs
@@ -163,7 +174,7 @@ def test_bad_input_to_a_spanning_worker_raises_its_named_error_and_changes_nothi
 
 def test_a_dead_worker_is_named_with_every_task_it_hosted() -> None:
     with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=2)) as pod:
-        os.kill(pod.worker_pids[1], signal.SIGKILL)
+        _kill_worker(pod.worker_pids[1])
         with pytest.raises(SimCrashedError, match=r"worker 1 hosting gym/HalfCheetah-v5 \(envs 2-2\), "
                                                   r"gym/HalfCheetah-v4 \(envs 3-3\) died"):  # fmt: skip
             pod.reset_envs([0], [0])
@@ -193,22 +204,18 @@ def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> N
     assignment = _assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)
     observation_space, action_space = assignment_spaces(assignment)
     tasks = ("tiny/lift", "tiny/door", "tiny/door")
-    worker = _WorkerEnv(_WorkerSpec(tasks, (0, 1, 2), 3, TINY_CAMERA, "lean", 10, observation_space, action_space))
+    worker = _Worker(_WorkerSpec(tasks, (0, 1, 2), 3, TINY_CAMERA, "lean", 10, observation_space, action_space))
     try:
         worker.build()
         renderer = shared_renderer(TINY_CAMERA.height, TINY_CAMERA.width, "lean")
         views, readbacks = renderer.views_rendered, renderer.readbacks
-        command = worker.action_space.sample()
-        command["cmd"][:] = [STEP, RESET, STEP]
-        command["state_id"][1] = 5
-        command["action"] = command["action"][:, :1]  # a chunk of one action per env
-        command["record"][:] = 0
-        out, *_ = worker.step(command)
+        chunks = np.stack([[action_space.sample()] for _ in range(2)])  # a chunk of one action per env
+        worker.run(_Order(np.array([0, 2]), actions=chunks), _Order(np.array([1]), state_ids=np.array([5])))
         assert renderer.views_rendered - views == 3 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 2
         for slot, env in enumerate(worker._envs):
             own = env.render_images()
-            assert all(np.array_equal(out["obs"]["images"][name][slot], own[name]) for name in CAMERAS)
+            assert all(np.array_equal(worker._out["obs"]["images"][name][slot], own[name]) for name in CAMERAS)
     finally:
         worker.close()
 
@@ -217,7 +224,7 @@ def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
     assignment = _assignment([("tiny/lift", 1), ("tiny/stack", 1)])
     observation_space, action_space = assignment_spaces(assignment)
     spec = _WorkerSpec(("tiny/lift", "tiny/stack"), (0, 1), 2, NO_CAMERA, "lean", 10, observation_space, action_space)
-    worker = _WorkerEnv(spec)
+    worker = _Worker(spec)
     try:
         assert worker.build() == 2
         assert mujoco.mj_getCacheSize(mujoco.mj_getCache()) == 0

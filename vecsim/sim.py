@@ -1,31 +1,37 @@
 """A pod's engine: task-grouped envs in worker processes, stepped and reset by env index.
 
 :class:`TaskGroupedVectorEnv` runs the envs of one :class:`~vecsim.config.Assignment` as contiguous
-blocks, one per task, on a gymnasium ``AsyncVectorEnv`` (shared memory, no copies, no autoreset,
+blocks, one per task, in a pool of worker processes of its own (:class:`_WorkerPool`,
 ``forkserver`` processes: the default fork context hangs once the parent holds an EGL context).
-
-gymnasium steps every worker on every call, so each worker's env takes a command-carrying action
-``{"cmd": noop|step|reset|seed, "state_id", "seed", "action", "record"}`` per slot: one call
-carries the resets or steps of exactly the named envs, and every other env returns its last
-observation without advancing. ``reset`` puts an env in a fixed initial state (state id);
-``seed`` is the env's own ``reset(seed=..., options=...)`` (seed -1: None; the options of the
-call are handed to the workers just before). An env's own ``info`` (beyond vecsim's keys) and an
-exception an env raises come back per slot through the worker's pipe: the env that raised is
-named in the answer and every other env of the call goes on (:class:`EnvError`). A step carries a chunk of K actions per env (``action`` ``[slots, K, ...]``, K from 1
-to ``max_chunk``): the worker applies them in order and stops an env at its first termination or
-truncation. Per-slot, per-action rewards and flags come back in one float64 array (each array
-written to shared memory costs microseconds per worker and call, which cheap scenes feel).
 A worker hosts ``envs_per_worker`` consecutive env indices, whatever their tasks: a run of envs
 may cross from one task block into the next, each slot's env built for its own task (the last
-worker may have idle, padded slots; ``envs_per_worker`` 0 lets the pod pick,
-:func:`resolve_envs_per_worker`). A worker returns per-slot rewards and flags inside its
-observation, since gymnasium's reward and flags are one scalar per worker. Camera images are
-rendered once, after every command of a call has run (after an env's last applied action), for
+worker may have idle slots; ``envs_per_worker`` 0 lets the pod pick,
+:func:`resolve_envs_per_worker`).
+
+The worker protocol is explicit, one pipe per worker (pickle between the pod and its own
+processes; nothing from the network is unpickled): the pod sends ``(order, args)`` and the worker
+answers ``(True, result)``, or ``(False, (type name, message, traceback))`` and exits. Orders:
+``build`` (make the envs, each in state 0), ``run`` (one :class:`_Order`: reset these slots to
+these state ids, reset them by the env's own ``reset(seed=..., options=...)`` (seed -1: None),
+or step them through a chunk of K actions each, recording the frames of some), ``env_attr``
+(get, call or set attributes of named envs). A call sends an order only to the workers that host
+an env it names; the others hear nothing, and the call waits for those it messaged alone (up to
+the step timeout: a hung worker is found when it has work, a dead one on any call, since every
+call first and last polls every worker's pipe and process).
+
+Observations and per-slot, per-action result rows (reward, terminated, truncated, success) are
+written by each worker straight into one shared-memory block (``[workers, slots, ...]``,
+:func:`_results_space`); the pod copies out the named envs' entries. A step applies each env's
+chunk (``[slots, K, ...]``, K from 1 to ``max_chunk``) in order and stops an env at its first
+termination or truncation. The pipe's reply (:class:`_Reply`) carries what is small or ragged:
+the worker's physics and render seconds (``last_timing``), an env's own ``info`` (beyond
+vecsim's keys), the exceptions envs raised (the env that raised is named in the answer and every
+other env of the call goes on: :class:`EnvError`), and recorded frames. Camera images are
+rendered once, after every order of a call has run (after an env's last applied action), for
 exactly the envs reset or stepped, all their cameras in one batch of this worker's renderer
 (:mod:`vecsim.batch_render`: one GL context per worker; envs of one scene share a render context,
-and each scene's views are read back at once).
-An env whose frames are recorded (``record``) is also rendered after each of its other applied
-actions; those frames travel back through the worker's pipe, not shared memory.
+and each scene's views are read back at once). An env whose frames are recorded is also rendered
+after each of its other applied actions; those frames travel back through the pipe.
 
 Once its envs are built, a worker frees what MuJoCo's XML compiler keeps for the life of the
 process (the last model's parsed spec and the asset cache): for a LIBERO scene that is ~950 MB of
@@ -37,9 +43,9 @@ Module-level code imports nothing heavy and starts nothing: it is safe under ``f
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
-import functools
 import glob
 import json
 import keyword
@@ -50,6 +56,7 @@ import multiprocessing.connection
 import os
 import threading
 import time
+import traceback
 from collections import Counter
 from collections.abc import Sequence
 import dataclasses
@@ -59,8 +66,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from gymnasium.vector import AsyncVectorEnv, AutoresetMode
-from gymnasium.vector.utils import batch_space, create_empty_array
+from gymnasium.vector.utils import batch_space, create_empty_array, create_shared_memory, read_from_shared_memory
 
 from vecsim import wire
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
@@ -69,7 +75,6 @@ from vecsim.tasks._gym import VECSIM_INFO_KEYS, GymTaskEnv
 
 log = logging.getLogger("vecsim.sim")
 
-NOOP, STEP, RESET, SEED = 0, 1, 2, 3
 _MAX_STATE_ID = 2**31 - 1
 _MAX_SEED = 2**63 - 1
 # What get_attr / call / set_attr may name: public attributes; close stays the pod's to call.
@@ -168,16 +173,6 @@ def _release_compiler_memory() -> None:
         libc.malloc_trim(0)
 
 
-def _array_box(shape: tuple[int, ...], dtype: np.dtype) -> gymnasium.spaces.Box:
-    """A Box of ``shape`` and ``dtype`` holding anything of that dtype (a command's field)."""
-    dtype = np.dtype(dtype)
-    if dtype.kind == "f":
-        return gymnasium.spaces.Box(-np.inf, np.inf, shape, dtype)
-    info = np.iinfo(dtype) if dtype.kind in "iu" else None
-    low, high = (info.min, info.max) if info is not None else (0, 1)
-    return gymnasium.spaces.Box(low, high, shape, dtype)
-
-
 def _zeros(space: gymnasium.Space) -> Any:
     if isinstance(space, gymnasium.spaces.Dict):
         return {key: _zeros(sub) for key, sub in space.spaces.items()}
@@ -244,45 +239,61 @@ def _attr_op(target: gymnasium.Env, op: str, name: str, payload: Any) -> Any:
     return None
 
 
-class _WorkerEnv(gymnasium.Env):
-    """The env of one worker process: a run of envs (of one task or several), driven by per-slot commands.
+def _results_space(worker: _WorkerSpec) -> gymnasium.spaces.Dict:
+    """One worker's part of the shared memory: its slots' observations and result rows."""
+    return gymnasium.spaces.Dict(
+        {
+            "obs": batch_space(worker.observation_space, worker.slots),
+            # Per slot and chunk action: reward, terminated, truncated, success (zeros after the
+            # action an env stopped at).
+            "flags": gymnasium.spaces.Box(-np.inf, np.inf, (worker.slots, worker.max_chunk, 4), np.float64),
+        }
+    )
 
-    Construction is cheap (gymnasium makes one in the parent process just to read its spaces);
-    :meth:`build` makes the envs, in the worker, and puts each in state 0.
+
+@dataclass(frozen=True)
+class _Order:
+    """Work for one worker in one call: the slots ``slots`` (in that order), each reset to a fixed
+    state (``state_ids``), reset by the env's own ``reset(seed, options)`` (``seeds``, -1 for
+    None), or stepped through a chunk of actions (``actions`` ``[m, K, ...]``, ``record`` the
+    slots whose every frame is kept). Exactly one of ``state_ids``, ``seeds``, ``actions``."""
+
+    slots: np.ndarray
+    state_ids: np.ndarray | None = None
+    seeds: np.ndarray | None = None
+    options: dict[str, Any] | None = None
+    actions: np.ndarray | None = None
+    record: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class _Reply:
+    """A worker's answer to its orders of one call (observations and result rows are in shared
+    memory): seconds in physics and in rendering and the env renders made; the frames of recorded
+    slots before their last action ``[(slot, [{camera: image}, ...])]``; each slot's own info
+    ``[(slot, info)]``; the exceptions slots raised ``[(slot, type name, message)]``."""
+
+    physics_s: float
+    render_s: float
+    renders: int
+    frames: list[tuple[int, list[dict[str, np.ndarray]]]]
+    env_info: list[tuple[int, dict[str, Any]]]
+    errors: list[tuple[int, str, str]]
+
+
+class _Worker:
+    """The envs one worker process hosts (a run of envs, of one task or several), run by orders.
+
+    ``out`` is where observations and result rows go (:func:`_results_space`): this worker's part
+    of the pod's shared memory in a worker process, plain arrays when made in process (tests).
+    :meth:`build` makes the envs and puts each in state 0.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
-
-    def __init__(self, worker: _WorkerSpec) -> None:
+    def __init__(self, worker: _WorkerSpec, out: dict[str, Any] | None = None) -> None:
         self.worker = worker
-        slots = worker.slots
-        self.observation_space = gymnasium.spaces.Dict(
-            {
-                "obs": batch_space(worker.observation_space, slots),
-                # Per slot and chunk action: reward, terminated, truncated, success (zeros
-                # after the action an env stopped at).
-                "flags": gymnasium.spaces.Box(-np.inf, np.inf, (slots, worker.max_chunk, 4), np.float64),
-                # Seconds this worker spent in the last call on physics (resets and steps) and
-                # on rendering: the pod's time split, per call; and how many env renders (all of
-                # an env's cameras drawn once) it made.
-                "timing": gymnasium.spaces.Box(0.0, np.inf, (3,), np.float64),
-            }
-        )
-        # A call sends the chunk axis of ``action`` only as long as its chunk (K), not max_chunk.
-        action = worker.action_space
-        self.action_space = gymnasium.spaces.Dict(
-            {
-                "cmd": gymnasium.spaces.MultiDiscrete([4] * slots),
-                "state_id": gymnasium.spaces.Box(0, _MAX_STATE_ID, (slots,), np.int64),
-                "seed": gymnasium.spaces.Box(-1, _MAX_SEED, (slots,), np.int64),
-                "action": _array_box((slots, worker.max_chunk, *action.shape), action.dtype),
-                "record": gymnasium.spaces.MultiBinary(slots),
-            }
-        )
         self._envs: list[TaskEnv] = []
-        self._out: dict[str, Any] = _zeros(self.observation_space)
-        self._reset_options: dict[str, Any] | None = None
-        # Per call: each slot's own info and the exceptions slots raised, for the pipe.
+        self._out: dict[str, Any] = _zeros(_results_space(worker)) if out is None else out
+        # Per call: each slot's own info and the exceptions slots raised.
         self._infos: list[tuple[int, dict[str, Any]]] = []
         self._errors: list[tuple[int, str, str]] = []
 
@@ -320,12 +331,14 @@ class _WorkerEnv(gymnasium.Env):
         _release_compiler_memory()
         return len(self._envs)
 
-    def _reset_slot(self, slot: int, state_id: int, seed: int | None = None, seeded: bool = False) -> None:
+    def _reset_slot(
+        self, slot: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
+    ) -> None:
         """Reset one env: to fixed state ``state_id``, or (``seeded``) the env's own reset with
-        ``seed`` and the call's options."""
+        ``seed`` and ``options``."""
         env = self._envs[slot]
         if seeded:
-            observation, info = env.reset(seed=seed, options=self._reset_options)
+            observation, info = env.reset(seed=seed, options=options)
         else:
             observation, info = env.reset(options={"state_id": state_id})
         _write_slot(self._out["obs"], slot, observation)
@@ -337,11 +350,6 @@ class _WorkerEnv(gymnasium.Env):
         own = _own_info(info)
         if own:
             self._infos.append((slot, own))
-
-    def set_reset_options(self, options: dict[str, Any] | None) -> None:
-        """Hold ``options`` for the seeded resets of the next command (the call hands them over
-        just before it). Returns None."""
-        self._reset_options = options
 
     def _step_slot(self, slot: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
         """Apply ``chunk``'s actions to one env until it terminates or truncates; return the
@@ -367,46 +375,42 @@ class _WorkerEnv(gymnasium.Env):
             self._keep_info(slot, info)
         return frames, render_s
 
-    def step(self, command: dict[str, np.ndarray]) -> tuple[dict[str, Any], float, bool, bool, dict]:
-        """Run each slot's command; return the worker's observation (rewards and flags inside it)
-        and, in ``info["frames"]``, ``[(slot, [{camera: image}, ...]), ...]`` for recorded slots."""
+    def run(self, *orders: _Order) -> _Reply:
+        """Carry out ``orders`` (each slot's reset or chunk step, in order), then render the
+        cameras of every env reset or stepped, once, in one batch; return the :class:`_Reply`.
+
+        An env that raises is named in the reply (its result rows zeroed); the others go on."""
         started = time.perf_counter()
-        touched = []
+        touched: list[int] = []
         recorded: list[tuple[int, list[dict[str, np.ndarray]]]] = []
         render_s = 0.0
         self._infos, self._errors = [], []
-        for slot in range(len(self._envs)):
-            cmd = int(command["cmd"][slot])
-            if cmd == NOOP:
-                continue
-            try:
-                if cmd == STEP:
-                    record = bool(command["record"][slot])
-                    frames, drawing_s = self._step_slot(slot, command["action"][slot], record)
-                    render_s += drawing_s
-                    if record:
-                        recorded.append((slot, frames))
-                else:
-                    seed = int(command["seed"][slot])
-                    self._reset_slot(slot, int(command["state_id"][slot]), None if seed < 0 else seed, cmd == SEED)
-            except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
-                self._out["flags"][slot] = 0.0
-                self._errors.append((slot, type(exc).__name__, str(exc)))
-                continue
-            touched.append(slot)
-        self._reset_options = None
+        for order in orders:
+            for i, slot in enumerate(order.slots.tolist()):
+                try:
+                    if order.actions is not None:
+                        record = order.record is not None and bool(order.record[i])
+                        frames, drawing_s = self._step_slot(slot, order.actions[i], record)
+                        render_s += drawing_s
+                        if record:
+                            recorded.append((slot, frames))
+                    elif order.seeds is not None:
+                        seed = int(order.seeds[i])
+                        self._reset_slot(slot, 0, None if seed < 0 else seed, True, order.options)
+                    else:
+                        assert order.state_ids is not None
+                        self._reset_slot(slot, int(order.state_ids[i]))
+                except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
+                    self._out["flags"][slot] = 0.0
+                    self._errors.append((slot, type(exc).__name__, str(exc)))
+                    continue
+                touched.append(slot)
         stepped = time.perf_counter()
         physics_s = stepped - started - render_s
         self._render(touched)
         render_s += time.perf_counter() - stepped
-        renders = sum(len(frames) for _, frames in recorded) + (len(touched) if self._envs[0].renderer else 0)
-        self._out["timing"][:] = (physics_s, render_s, renders)
-        info: dict[str, Any] = {"frames": recorded} if recorded else {}
-        if self._infos:
-            info["env_info"] = self._infos
-        if self._errors:
-            info["env_errors"] = self._errors
-        return self._out, 0.0, False, False, info
+        renders = sum(len(frames) for _, frames in recorded) + (len(touched) if self._envs and self._envs[0].renderer else 0)
+        return _Reply(physics_s, render_s, renders, recorded, self._infos, self._errors)
 
     def env_attr(self, requests: dict[int, tuple[str, str, Any]]) -> list[tuple[int, bool, Any]]:
         """Run ``get``, ``call`` or ``set`` on this worker's envs named in ``requests`` (env index
@@ -445,18 +449,138 @@ class _WorkerEnv(gymnasium.Env):
         for name, frames in self._draw(slots).items():
             images[name][slots] = frames
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, Any], dict]:
-        """Return the last observation: envs are reset through ``step`` commands only."""
-        super().reset(seed=seed)
-        return self._out, {}
-
     def close(self) -> None:
         """Close every env of the worker. Returns None."""
         for env in self._envs:
             env.close()
         self._envs = []
+
+
+# What a worker process is asked to do: a _Worker method, with its arguments.
+_WORKER_ORDERS = frozenset({"build", "run", "env_attr"})
+
+
+def _index_tree(tree: Any, index: int) -> Any:
+    if isinstance(tree, dict):
+        return {key: _index_tree(sub, index) for key, sub in tree.items()}
+    if isinstance(tree, tuple):
+        return tuple(_index_tree(sub, index) for sub in tree)
+    return tree[index]
+
+
+def _worker_process(index: int, spec: _WorkerSpec, pipe: multiprocessing.connection.Connection, shared: Any, workers: int) -> None:
+    """A worker process: build a :class:`_Worker` writing into its part of ``shared``, then answer
+    ``(order, args)`` messages with ``(True, result)`` until the pipe closes; a failure answers
+    ``(False, (type name, message, traceback))`` and ends the process."""
+    out = _index_tree(read_from_shared_memory(_results_space(spec), shared, n=workers), index)
+    worker = _Worker(spec, out)
+    try:
+        while True:
+            try:
+                order, args = pipe.recv()
+            except EOFError:
+                return  # the pod closed its end
+            if order not in _WORKER_ORDERS:
+                raise RuntimeError(f"unknown order {order!r}")
+            pipe.send((True, getattr(worker, order)(*args)))
+    except KeyboardInterrupt:
+        return
+    except Exception as exc:  # noqa: BLE001 - the pod is told, then this process ends
+        with contextlib.suppress(OSError):
+            pipe.send((False, (type(exc).__name__, str(exc), traceback.format_exc())))
+    finally:
+        worker.close()
+
+
+class _WorkerFailure(RuntimeError):
+    """A worker process answered an order with an exception (it then exits)."""
+
+    def __init__(self, worker: int, type_name: str, message: str) -> None:
+        super().__init__(f"{type_name}: {message}")
+        self.worker, self.type_name, self.message = worker, type_name, message
+
+
+class _WorkerPool:
+    """The pod's worker processes: one per :class:`_WorkerSpec`, each with its own pipe for
+    orders and replies, and one shared-memory block of every worker's observations and result
+    rows (``results``, ``[workers, slots, ...]``, :func:`_results_space`). Only workers sent an
+    order are waited for."""
+
+    def __init__(self, specs: Sequence[_WorkerSpec], context: str) -> None:
+        ctx = multiprocessing.get_context(context)
+        space = _results_space(specs[0])
+        shared = create_shared_memory(space, n=len(specs), ctx=ctx)
+        # Held for the pool's life: a worker process attaches to it after start() returns.
+        self._shared = shared
+        self.results: dict[str, Any] = read_from_shared_memory(space, shared, n=len(specs))
+        self.pipes: list[multiprocessing.connection.Connection] = []
+        self.processes: list[Any] = []
+        for index, spec in enumerate(specs):
+            parent, child = ctx.Pipe()
+            process = ctx.Process(
+                target=_worker_process,
+                name=f"vecsim-worker-{index}",
+                args=(index, spec, child, shared, len(specs)),
+                daemon=True,
+            )
+            process.start()
+            child.close()
+            self.pipes.append(parent)
+            self.processes.append(process)
+        self._sentinels = [process.sentinel for process in self.processes]
+
+    def send(self, worker: int, order: str, *args: Any) -> None:
+        """Send worker ``worker`` an order (a :class:`_Worker` method) and its arguments."""
+        self.pipes[worker].send((order, args))
+
+    def receive(self, workers: Sequence[int], timeout_s: float | None) -> dict[int, Any]:
+        """Wait for the reply of each of ``workers``; return ``{worker: result}``.
+
+        Raises:
+            multiprocessing.TimeoutError: not every one answered within ``timeout_s``.
+            _WorkerFailure: a worker answered with an exception.
+            EOFError, OSError: a worker's pipe closed (it died).
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        pending = {self.pipes[worker]: worker for worker in workers}
+        replies: dict[int, Any] = {}
+        while pending:
+            wait_s = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            ready = multiprocessing.connection.wait(list(pending), timeout=wait_s)
+            if not ready:
+                raise multiprocessing.TimeoutError(f"{len(pending)} of {len(workers)} workers did not answer")
+            for pipe in ready:
+                worker = pending.pop(pipe)  # type: ignore[call-overload]
+                ok, result = pipe.recv()  # type: ignore[union-attr]
+                if not ok:
+                    type_name, message, trace = result
+                    log.error("worker %d failed:\n%s", worker, trace)
+                    raise _WorkerFailure(worker, type_name, message)
+                replies[worker] = result
+        return replies
+
+    def dead(self) -> int | None:
+        """The first worker whose process has ended, or None (one poll of every process).
+
+        Between calls no reply is due, so a worker's pipe that can be read is one that closed:
+        the process has ended, seen before its parent learns its exit code."""
+        ended = multiprocessing.connection.wait([*self.pipes, *self._sentinels], timeout=0)
+        if not ended:
+            return None
+        for index, (pipe, process) in enumerate(zip(self.pipes, self.processes)):
+            if pipe in ended or process.sentinel in ended:
+                return index
+        return None
+
+    def close(self) -> None:
+        """End every worker process (terminating cannot hang on a stuck one). Returns None."""
+        for process in self.processes:
+            if process.is_alive():
+                process.terminate()
+        for pipe in self.pipes:
+            pipe.close()
+        for process in self.processes:
+            process.join()
 
 
 def _empty_spaces() -> tuple[gymnasium.Space, gymnasium.Space]:
@@ -609,7 +733,7 @@ class TaskGroupedVectorEnv:
         self._lock = threading.Lock()
         self._broken: str | None = None
         self._closed = False
-        self._vec: AsyncVectorEnv | None = None
+        self._pool: _WorkerPool | None = None
         self.last_timing = CallTiming()
 
         slots = self.envs_per_worker = resolve_envs_per_worker(assignment)
@@ -647,7 +771,7 @@ class TaskGroupedVectorEnv:
     @property
     def worker_pids(self) -> list[int]:
         """Process ids of the workers, in worker order."""
-        return [] if self._vec is None else [process.pid for process in self._vec.processes]
+        return [] if self._pool is None else [process.pid for process in self._pool.processes]
 
     def _start(self, context: str, build_timeout_s: float | None) -> None:
         counts = Counter(self.task_ids)
@@ -659,29 +783,28 @@ class TaskGroupedVectorEnv:
             self.envs_per_worker,
         )
         started = time.monotonic()
-        self._vec = AsyncVectorEnv(
-            [functools.partial(_WorkerEnv, worker) for worker in self._workers],
-            shared_memory=True,
-            copy=False,
-            context=context,
-            daemon=True,
-            autoreset_mode=AutoresetMode.DISABLED,
-        )
+        self._pool = _WorkerPool(self._workers, context)
         try:
-            self._vec.call_async("build")
+            for worker in range(len(self._workers)):
+                self._pool.send(worker, "build")
             self._wait_for_build(started, build_timeout_s)
-            self._vec.call_wait(timeout=0)
+            self._pool.receive(range(len(self._workers)), timeout_s=0)
         except SimBuildError:
-            self._vec.close(terminate=True)
+            self._pool.close()
             raise
+        except _WorkerFailure as exc:
+            self._pool.close()
+            if exc.type_name == SimBuildError.__name__:
+                raise SimBuildError(exc.message) from None
+            raise SimBuildError(f"building envs failed: {exc}") from None
         except Exception as exc:
-            self._vec.close(terminate=True)
-            raise SimBuildError(f"building envs failed: {exc}") from exc
+            self._pool.close()
+            raise SimBuildError(f"building envs failed: {type(exc).__name__}: {exc}") from exc
         log.info("built %d envs in %.1f s", self.num_envs, time.monotonic() - started)
 
     def _wait_for_build(self, started: float, build_timeout_s: float | None) -> None:
-        assert self._vec is not None
-        pipes = {pipe: index for index, pipe in enumerate(self._vec.parent_pipes)}
+        assert self._pool is not None
+        pipes = {pipe: index for index, pipe in enumerate(self._pool.pipes)}
         pending = set(pipes)
         last_report = started
         while pending:
@@ -868,16 +991,15 @@ class TaskGroupedVectorEnv:
             seed_values = self._seeds(seeds, ids)
         if ids.size == 0:
             return self._empty_obs(), {"success": np.zeros(0, dtype=bool), "task_id": [], "env_info": [], "errors": []}
-        command = self._command()
         workers, slots = self._location[ids].T
-        if seeds is None:
-            command["cmd"][workers, slots] = RESET
-            command["state_id"][workers, slots] = states
-        else:
-            command["cmd"][workers, slots] = SEED
-            command["seed"][workers, slots] = seed_values
-        obs, rows, info = self._run(command, workers, slots, options if seeds is not None else None)
-        env_info, errors = self._per_row(info, ids)
+        orders = {}
+        for worker, rows in self._by_worker(workers, slots):
+            if seeds is None:
+                orders[worker] = _Order(slots[rows], state_ids=states[rows])
+            else:
+                orders[worker] = _Order(slots[rows], seeds=seed_values[rows], options=options)
+        obs, rows, replies = self._run(orders, workers, slots)
+        env_info, errors = self._per_row(replies, ids)
         return obs, {
             "success": rows[:, 0, _SUCCESS] != 0,
             "task_id": [self.task_ids[i] for i in ids],
@@ -902,21 +1024,16 @@ class TaskGroupedVectorEnv:
             out[i] = int(seed)
         return out
 
-    def _per_row(self, info: dict[str, Any], ids: np.ndarray) -> tuple[list[dict[str, Any]], list[EnvError]]:
-        """Each row's own env info and the rows whose env raised, from the workers' gathered info."""
+    def _per_row(self, replies: dict[int, _Reply], ids: np.ndarray) -> tuple[list[dict[str, Any]], list[EnvError]]:
+        """Each row's own env info and the rows whose env raised, from the workers' replies."""
         row_of = {(int(w), int(s)): row for row, (w, s) in enumerate(self._location[ids])}
         env_info: list[dict[str, Any]] = [{} for _ in range(ids.size)]
-        for worker, entries in enumerate(info.get("env_info", ())):
-            for slot, own in entries or ():
-                row = row_of.get((worker, slot))
-                if row is not None:
-                    env_info[row] = own
         errors = []
-        for worker, entries in enumerate(info.get("env_errors", ())):
-            for slot, type_name, message in entries or ():
-                row = row_of.get((worker, slot))
-                if row is not None:
-                    errors.append(EnvError(row, type_name, message))
+        for worker, reply in replies.items():
+            for slot, own in reply.env_info:
+                env_info[row_of[(worker, slot)]] = own
+            for slot, type_name, message in reply.errors:
+                errors.append(EnvError(row_of[(worker, slot)], type_name, message))
         errors.sort(key=lambda e: e.row)
         for error in errors:
             log.info("env %d (%s) raised %s: %s", int(ids[error.row]), self.task_ids[int(ids[error.row])], error.type_name, error.message)
@@ -979,19 +1096,16 @@ class TaskGroupedVectorEnv:
             obs = self._empty_obs() if n == 0 else self._current(workers, slots)
             result = self._result(obs, np.zeros((n, k, 4)), recorded)
             return dataclasses.replace(result, env_info=[{} for _ in range(n)])
-        command = self._command(k)
-        command["cmd"][workers, slots] = STEP
-        command["action"][workers, slots] = chunk
-        command["record"][workers[recorded], slots[recorded]] = 1
-        obs, rows, info = self._run(command, workers, slots)
-        env_info, errors = self._per_row(info, ids)
+        record = np.zeros(n, dtype=bool)
+        record[recorded] = True
+        orders = {
+            worker: _Order(slots[rows], actions=chunk[rows], record=record[rows] if recorded.size else None)
+            for worker, rows in self._by_worker(workers, slots)
+        }
+        obs, rows, replies = self._run(orders, workers, slots)
+        env_info, errors = self._per_row(replies, ids)
         result = dataclasses.replace(self._result(obs, rows[:, :k], recorded), env_info=env_info, errors=errors)
-        # gymnasium gathers each worker's info["frames"] into an object array, None where a
-        # worker recorded nothing.
-        drawn: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
-        for worker, entries in enumerate(info.get("frames", ())):
-            for slot, frames in entries or ():
-                drawn[(worker, slot)] = frames
+        drawn = {(worker, slot): frames for worker, reply in replies.items() for slot, frames in reply.frames}
         for index, row in enumerate(recorded):
             before_last = drawn[(int(workers[row]), int(slots[row]))]
             last = int(result.num_steps[row]) - 1
@@ -1037,8 +1151,8 @@ class TaskGroupedVectorEnv:
         worker, slot = self._location[ids[0]]
         with self._lock:
             self._check_usable()
-            assert self._vec is not None
-            return np.array(self._vec.observations["obs"]["images"][camera][worker, slot])
+            assert self._pool is not None
+            return np.array(self._pool.results["obs"]["images"][camera][worker, slot])
 
     def close(self) -> None:
         """Stop the worker processes. Idempotent. Returns None."""
@@ -1046,9 +1160,9 @@ class TaskGroupedVectorEnv:
             if self._closed:
                 return
             self._closed = True
-            if self._vec is not None:
+            if self._pool is not None:
                 # Terminating cannot hang on a stuck worker, and the workers hold nothing to save.
-                self._vec.close(terminate=True)
+                self._pool.close()
                 log.info("closed %d worker processes", len(self._workers))
 
     def __enter__(self) -> TaskGroupedVectorEnv:
@@ -1082,18 +1196,13 @@ class TaskGroupedVectorEnv:
             raise InvalidRequestError(f"values: expected one value per env id ({ids.size})")
         if ids.size == 0:
             return [], []
-        requests: dict[int, tuple[str, str, Any]] = {}
-        for row, env in enumerate(ids):
-            requests[int(env)] = (op, name, payload[row] if op == "set" else payload)
+        requests: dict[int, dict[int, tuple[str, str, Any]]] = {}
+        for row, env in enumerate(ids.tolist()):
+            worker = int(self._location[env, 0])
+            requests.setdefault(worker, {})[env] = (op, name, payload[row] if op == "set" else payload)
         with self._lock:
-            self._check_usable()
-            assert self._vec is not None
-            try:
-                answers = self._vec.call("env_attr", requests)
-            except Exception as exc:
-                self._broken = self._failure(exc)
-                raise SimCrashedError(self._broken) from exc
-        by_env = {env: (ok, value) for entries in answers for env, ok, value in entries}
+            answers = self._ask("env_attr", requests)
+        by_env = {env: (ok, value) for entries in answers.values() for env, ok, value in entries}
         results: list[Any] = []
         errors: list[EnvError] = []
         for row, env in enumerate(ids):
@@ -1112,31 +1221,31 @@ class TaskGroupedVectorEnv:
     def _empty_obs(self) -> dict[str, Any]:
         return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
 
-    def _command(self, chunk: int = 1) -> dict[str, np.ndarray]:
-        workers, slots = len(self._workers), self.envs_per_worker
-        action = self.single_action_space
-        return {
-            "cmd": np.full((workers, slots), NOOP, dtype=np.int64),
-            "state_id": np.zeros((workers, slots), dtype=np.int64),
-            "seed": np.full((workers, slots), -1, dtype=np.int64),
-            "action": np.zeros((workers, slots, chunk, *action.shape), action.dtype),
-            "record": np.zeros((workers, slots), dtype=np.int8),
-        }
+    @staticmethod
+    def _by_worker(workers: np.ndarray, slots: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """The rows of a call grouped by worker: ``[(worker, rows), ...]``, each worker's rows in
+        slot order (the order a worker runs its envs in)."""
+        rows = np.lexsort((slots, workers))
+        ordered = workers[rows]
+        groups = np.split(rows, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1)
+        return [(int(workers[group[0]]), group) for group in groups if group.size]
 
     def _current(self, workers: np.ndarray, slots: np.ndarray) -> dict[str, Any]:
         """The named envs' observations as they stand, without a worker call."""
         with self._lock:
             self._check_usable()
-            assert self._vec is not None
-            return _gather(self._vec.observations["obs"], workers, slots)
+            assert self._pool is not None
+            return _gather(self._pool.results["obs"], workers, slots)
 
     def _dead_worker(self) -> str | None:
-        assert self._vec is not None
-        for index, process in enumerate(self._vec.processes):
-            if not process.is_alive():
-                hosted = self._workers[index].describe()
-                return f"worker {index} hosting {hosted} died with exit code {process.exitcode}"
-        return None
+        assert self._pool is not None
+        index = self._pool.dead()
+        if index is None:
+            return None
+        hosted = self._workers[index].describe()
+        process = self._pool.processes[index]
+        process.join(timeout=0.5)  # its exit code, when its end is a matter of moments
+        return f"worker {index} hosting {hosted} died with exit code {process.exitcode}"
 
     def _check_usable(self) -> None:
         if self._closed:
@@ -1147,7 +1256,10 @@ class TaskGroupedVectorEnv:
             raise SimCrashedError(self._broken)
 
     def _failure(self, exc: Exception) -> str:
-        # A worker that failed is exiting; give it a moment so the message can name it.
+        if isinstance(exc, _WorkerFailure):
+            hosted = self._workers[exc.worker].describe()
+            return f"worker {exc.worker} hosting {hosted} failed: {exc}"
+        # A worker whose pipe closed is exiting; give it a moment so the message can name it.
         deadline = time.monotonic() + 1.0
         dead = self._dead_worker()
         while dead is None and time.monotonic() < deadline:
@@ -1155,35 +1267,46 @@ class TaskGroupedVectorEnv:
             dead = self._dead_worker()
         return f"{dead or 'a worker failed'}: {type(exc).__name__}: {exc}"
 
+    def _ask(self, order: str, args: dict[int, Any]) -> dict[int, Any]:
+        """Send ``order`` to each worker in ``args`` (worker -> its one argument), and to no
+        other; return each one's reply. Any worker found dead, before or after, breaks the pod.
+        The caller holds ``self._lock``.
+
+        Raises:
+            SimCrashedError: a worker died, did not answer within the timeout, or failed.
+        """
+        self._check_usable()
+        assert self._pool is not None
+        try:
+            for worker, arg in args.items():
+                self._pool.send(worker, order, arg)
+            replies = self._pool.receive(list(args), self._timeout_s)
+        except multiprocessing.TimeoutError as exc:
+            self._broken = f"the workers did not answer within {self._timeout_s} s ({exc})"
+            raise SimCrashedError(self._broken) from exc
+        except Exception as exc:
+            self._broken = self._failure(exc)
+            raise SimCrashedError(self._broken) from exc
+        # A worker that died while others worked breaks the pod as surely as one that had work.
+        self._check_usable()
+        return replies
+
     def _run(
-        self,
-        command: dict[str, np.ndarray],
-        workers: np.ndarray,
-        slots: np.ndarray,
-        reset_options: dict[str, Any] | None = None,
-    ) -> tuple[Any, np.ndarray, dict[str, Any]]:
-        """Send ``command`` to every worker (after ``reset_options`` for its seeded resets);
-        return the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the
-        workers' gathered info."""
+        self, orders: dict[int, _Order], workers: np.ndarray, slots: np.ndarray
+    ) -> tuple[Any, np.ndarray, dict[int, _Reply]]:
+        """Send each worker of ``orders`` its order (no other worker hears of the call); return
+        the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the replies."""
         with self._lock:
-            self._check_usable()
-            assert self._vec is not None
-            try:
-                if reset_options:
-                    self._vec.call("set_reset_options", reset_options)
-                self._vec.step_async(command)
-                out, _, _, _, info = self._vec.step_wait(timeout=self._timeout_s)
-            except multiprocessing.TimeoutError as exc:
-                self._broken = f"the workers did not answer within {self._timeout_s} s"
-                raise SimCrashedError(self._broken) from exc
-            except Exception as exc:
-                self._broken = self._failure(exc)
-                raise SimCrashedError(self._broken) from exc
-            obs = _gather(out["obs"], workers, slots)
-            physics_s, render_s, renders = out["timing"].sum(axis=0)
-            self.last_timing = CallTiming(float(physics_s), float(render_s), int(renders))
-            rows = out["flags"][workers, slots]
-        return obs, rows, info
+            replies: dict[int, _Reply] = self._ask("run", orders)
+            assert self._pool is not None
+            obs = _gather(self._pool.results["obs"], workers, slots)
+            rows = self._pool.results["flags"][workers, slots]
+        self.last_timing = CallTiming(
+            float(sum(reply.physics_s for reply in replies.values())),
+            float(sum(reply.render_s for reply in replies.values())),
+            sum(reply.renders for reply in replies.values()),
+        )
+        return obs, rows, replies
 
 
 def _int_array(name: str, values: Any) -> np.ndarray:
