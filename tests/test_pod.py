@@ -27,7 +27,7 @@ import pytest
 import yaml
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
-from trainer_pods import free_port
+from service_procs import free_port
 
 from service.pod.state import steps_on_event_loop
 from vecsim import wire
