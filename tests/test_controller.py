@@ -610,7 +610,7 @@ class SelfReportingPeer(Peer):
                 body = {"url": self.url, "generation": last.generation if last else None, "ready": last is not None}
                 body["assignment"] = last.model_dump(mode="json") if last else None
                 await client.post(f"/v1/pods/{self.name}/heartbeat", json=body)
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(0.05)  # the stand-in pod's heartbeat period, not a wait
 
 
 async def test_a_served_controller_gets_self_reporting_pods_ready():

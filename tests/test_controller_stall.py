@@ -127,7 +127,7 @@ def serve_controller(settings: ControllerSettings) -> Iterator[str]:
 
     @app.post("/test/stall")
     async def stall(seconds: float) -> dict[str, float]:
-        time.sleep(seconds)  # the fault under test: blocks the event loop, nothing else of the controller runs
+        time.sleep(seconds)  # the fault under test: blocks the event loop, so nothing else runs
         return {"slept": seconds}
 
     with AppThread(app, lifespan="on") as server:
