@@ -303,7 +303,8 @@ class RunningPod(Server):
         path = workdir / f"{spec.name}.json"
         path.write_text(spec.assignment().model_dump_json())
         port = free_port()
-        argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning", "--assignment", str(path)]
+        argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+                "--assignment", str(path), "--name", spec.name]  # fmt: skip
         super().__init__(spec.name, argv, port, clean_env(POD_NAME=spec.name), workdir / f"{spec.name}.log")
         self.spec = spec
 
