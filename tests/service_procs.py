@@ -1,5 +1,9 @@
-"""`vecsim pod` and `vecsim controller` as real processes on loopback, for the reliability and
-security tests (test_auth, test_fuzz_api, test_faults, the soak).
+"""The tests' one set of helpers for what runs on loopback: free ports, the one bounded
+:func:`wait_until`, `vecsim pod` and `vecsim controller` processes (:class:`Server`; standalone
+pods from :class:`PodSpec` with :func:`standalone_pods`; whole jobs with :func:`local_job`), ASGI
+apps served by uvicorn in a thread (:class:`AppThread`) and raw socket servers that send what no
+pod would (:func:`raw_server`). Test modules import these from here, never from each other;
+``conftest.py`` exposes the common ones as fixtures.
 
 Every process runs in a session of its own, so that the pod, its forkserver and its env workers
 share one process group; :meth:`Server.stop` ends the whole group, and every helper here stops
@@ -13,22 +17,28 @@ import ipaddress
 import os
 import secrets
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-from trainer_pods import free_port
+import uvicorn
 
+from service.runner.job import LocalJob
 from vecsim import wire
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, RenderPreset, RunnerConfig, TaskBlock
 
 START_TIMEOUT_S = 120.0
+READY_TIMEOUT_S = 240.0
 NO_CAMERA = CameraConfig(names=(), height=8, width=8)
+TESTS_DIR = Path(__file__).resolve().parent
 # Variables of the caller's shell that would make a test pod something else than it asks for.
 _INHERITED = ("CONTROLLER_URL", "POD_IP", "POD_NAME", "VECSIM_ADVERTISE_URL", "VECSIM_PORT", "VECSIM_TOKEN")
 
@@ -45,10 +55,54 @@ def wait_until(predicate: Callable[[], Any], what: str, timeout_s: float = START
         time.sleep(every)
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def free_port_block(n: int, attempts: int = 50) -> int:
+    """The first of ``n`` consecutive free ports on 127.0.0.1 (a job's pods use base_port + ordinal)."""
+    for _ in range(attempts):
+        base = free_port()
+        if base + n > 65000:
+            continue
+        try:
+            with contextlib.ExitStack() as stack:
+                for port in range(base, base + n):
+                    sock = stack.enter_context(socket.socket())
+                    sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError(f"no {n} consecutive free ports found")
+
+
+def loopback_socket(port: int = 0) -> socket.socket:
+    """A TCP socket bound to ``127.0.0.1:port`` (a free one by default), not yet listening."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", port))
+    return sock
+
+
+def log_tail(path: Path, chars: int = 3000) -> str:
+    """The end of the log at ``path``, for a failure message."""
+    try:
+        return path.read_text(errors="replace")[-chars:]
+    except OSError:
+        return f"<no log at {path}>"
+
+
 def clean_env(**extra: str) -> dict[str, str]:
-    """The test process's environment without vecsim's identity variables, plus ``extra``."""
+    """The test process's environment without vecsim's identity variables, plus ``extra``.
+
+    The tests' own directory is on ``PYTHONPATH``: pods import the tests' env package
+    (gym_custom_env) as a user's pods would theirs."""
     env = {k: v for k, v in os.environ.items() if k not in _INHERITED}
     env.setdefault("MUJOCO_GL", "egl")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS_DIR), env.get("PYTHONPATH")) if p)
     env["PYTHONUNBUFFERED"] = "1"
     env.update(extra)
     return env
@@ -94,6 +148,9 @@ class Server:
     def log_text(self) -> str:
         return self.log_path.read_text(errors="replace")
 
+    def log_tail(self) -> str:
+        return log_tail(self.log_path)
+
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 
@@ -101,7 +158,7 @@ class Server:
         """Whether ``GET path`` answers ``status`` now (fails at once if the process exited)."""
         assert self.proc is not None, f"{self.name} was never started"
         if self.proc.poll() is not None:
-            raise AssertionError(f"{self.name} exited with {self.proc.returncode}:\n{self.log_text()[-3000:]}")
+            raise AssertionError(f"{self.name} exited with {self.proc.returncode}:\n{self.log_tail()}")
         try:
             return httpx.get(f"{self.url}{path}", timeout=5).status_code == status
         except httpx.TransportError:
@@ -111,7 +168,10 @@ class Server:
         wait_until(lambda: self.answers("/healthz"), f"{self.name} to answer /healthz", timeout_s)
 
     def wait_ready(self, timeout_s: float = START_TIMEOUT_S) -> None:
-        wait_until(lambda: self.answers("/readyz"), f"{self.name} to be ready", timeout_s)
+        try:
+            wait_until(lambda: self.answers("/readyz"), f"{self.name} to be ready", timeout_s)
+        except AssertionError as e:
+            raise AssertionError(f"{e}\n{self.log_tail()}") from None
 
     def signal_group(self, sig: int) -> None:
         """Send ``sig`` to the process and everything it started (its env workers)."""
@@ -155,6 +215,7 @@ def pod_server(
     host: str = "127.0.0.1",
     port: int | None = None,
     wrap: Sequence[str] = (),
+    log_level: str = "info",
     **env: str,
 ) -> Server:
     """A ``vecsim pod`` process named ``name`` on ``host:port`` (a free loopback port by default),
@@ -163,31 +224,32 @@ def pod_server(
     extra = {"POD_NAME": name, **env}
     if token is not None:
         extra["VECSIM_TOKEN"] = token
-    argv = ["pod", "--host", host, "--port", str(port), "--log-level", "info", *args]
+    argv = ["pod", "--host", host, "--port", str(port), "--log-level", log_level, *args]
     return Server(name, argv, port, clean_env(**extra), workdir / f"{name}.log", host=host, wrap=wrap)
 
 
-def controller_server(workdir: Path, *, args: Sequence[str] = (), token: str | None = None, **env: str) -> Server:
-    """A ``vecsim controller`` process on a free port, with the shared ``token`` if given."""
-    port = free_port()
-    extra = dict(env)
-    if token is not None:
-        extra["VECSIM_TOKEN"] = token
-    argv = ["controller", "--host", "127.0.0.1", "--port", str(port), *args]
-    return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log")
-
-
-def controller_server_on(
-    host: str, workdir: Path, *, args: Sequence[str] = (), token: str | None = None, **env: str
+def controller_server(
+    workdir: Path, *, args: Sequence[str] = (), token: str | None = None, host: str = "127.0.0.1", **env: str
 ) -> Server:
-    """A ``vecsim controller`` process listening on ``host`` (an address of this machine other
-    than loopback, e.g. a veth's, for pods in other network namespaces), on a free port."""
+    """A ``vecsim controller`` process on a free port of ``host`` (loopback by default; another
+    address of this machine, e.g. a veth's, for pods in other network namespaces), with the
+    shared ``token`` if given."""
     port = free_port()
     extra = dict(env)
     if token is not None:
         extra["VECSIM_TOKEN"] = token
     argv = ["controller", "--host", host, "--port", str(port), *args]
     return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log", host=host)
+
+
+def assignment(pod: str, tasks: Sequence[tuple[str, int]], **fields: Any) -> Assignment:
+    """An assignment of blocks ``[(task_id, num_envs), ...]``, laid out from env index 0, for
+    ``pod``; ``fields`` are the Assignment's other fields (stage 0, generation 0 by default)."""
+    blocks, start = [], 0
+    for task_id, n in tasks:
+        blocks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=n))
+        start += n
+    return Assignment.model_validate({"generation": 0, "stage_id": 0, **fields, "pod": pod, "tasks": tuple(blocks)})
 
 
 def assignment_file(
@@ -202,23 +264,172 @@ def assignment_file(
 ) -> Path:
     """Write an assignment of blocks ``[(task_id, num_envs), ...]`` for ``pod`` on stage
     ``stage_id``; return its path."""
-    blocks, start = [], 0
-    for task_id, n in tasks:
-        blocks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=n))
-        start += n
-    assignment = Assignment(
-        generation=generation,
-        job_id="reliability",
-        pod=pod,
-        stage_id=stage_id,
-        tasks=tuple(blocks),
-        camera=camera,
-        render="lean",
-        max_episode_steps=max_episode_steps,
-    )
     path = workdir / f"{pod}-assignment.json"
-    path.write_text(assignment.model_dump_json())
+    path.write_text(
+        assignment(
+            pod, tasks, generation=generation, job_id="reliability", stage_id=stage_id, camera=camera,
+            render="lean", max_episode_steps=max_episode_steps,
+        ).model_dump_json()
+    )  # fmt: skip
     return path
+
+
+@dataclass
+class PodSpec:
+    """One standalone pod: its name, stage and task blocks ``[(task_id, num_envs), ...]``."""
+
+    name: str
+    stage_id: int
+    tasks: Sequence[tuple[str, int]]
+    camera: CameraConfig = NO_CAMERA
+    max_episode_steps: int | None = 300
+    envs_per_worker: int = 1
+    generation: int = 0
+    render: RenderPreset | None = "lean"
+    make_kwargs: dict = field(default_factory=dict)
+
+    def assignment(self) -> Assignment:
+        return assignment(
+            self.name, self.tasks, generation=self.generation, job_id="trainer-tests", stage_id=self.stage_id,
+            camera=self.camera, render=self.render, max_episode_steps=self.max_episode_steps,
+            envs_per_worker=self.envs_per_worker, make_kwargs=self.make_kwargs,
+        )  # fmt: skip
+
+
+class RunningPod(Server):
+    """A standalone ``vecsim pod`` process serving ``spec``'s assignment."""
+
+    def __init__(self, spec: PodSpec, workdir: Path) -> None:
+        path = workdir / f"{spec.name}.json"
+        path.write_text(spec.assignment().model_dump_json())
+        port = free_port()
+        argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+                "--assignment", str(path), "--name", spec.name]  # fmt: skip
+        super().__init__(spec.name, argv, port, clean_env(POD_NAME=spec.name), workdir / f"{spec.name}.log")
+        self.spec = spec
+
+
+@contextlib.contextmanager
+def standalone_pods(specs: Sequence[PodSpec], workdir: Path) -> Iterator[list[RunningPod]]:
+    """Start one pod process per spec, wait until all are ready, yield them, stop them all."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    pods: list[RunningPod] = []
+    try:
+        for spec in specs:
+            pods.append(RunningPod(spec, workdir))
+            pods[-1].start()
+        for pod in pods:
+            pod.wait_ready(READY_TIMEOUT_S)
+        yield pods
+    finally:
+        for pod in pods:
+            pod.stop()
+
+
+def job_config(job: dict, replicas: int) -> RunnerConfig:
+    """A RunnerConfig for ``job`` with ``replicas`` pods, every port free, heartbeats quick."""
+    return RunnerConfig.model_validate(
+        {
+            "job": job,
+            "pods": {"replicas": replicas, "base_port": free_port_block(replicas), "max_envs": 16},
+            "controller": {
+                "port": free_port(),
+                "heartbeat_interval_s": 0.5,
+                "heartbeat_ttl_s": 3.0,
+                "reconcile_interval_s": 0.25,
+            },
+        }
+    )
+
+
+@contextlib.contextmanager
+def local_job(config: RunnerConfig, workdir: Path) -> Iterator[LocalJob]:
+    """Run the job (controller + pods), wait until its routing is ready, yield it, stop it all."""
+    job = LocalJob(config, log_dir=workdir, grace_s=10)
+    try:
+        job.start()
+        job.wait_ready(timeout=READY_TIMEOUT_S)
+        yield job
+    finally:
+        job.stop()
+
+
+def wait_for_generation(controller_url: str, after: int, timeout_s: float = 120.0) -> int:
+    """Block until the controller's routing table is ready at a generation above ``after``."""
+
+    def moved_on() -> int | None:
+        with contextlib.suppress(httpx.TransportError):
+            table = httpx.get(f"{controller_url}/v1/routing", timeout=5).json()
+            if table["generation"] > after and table["ready"]:
+                return table["generation"]
+        return None
+
+    return wait_until(moved_on, f"routing at {controller_url} to be ready past generation {after}", timeout_s, 0.25)
+
+
+class AppThread:
+    """An ASGI app served by uvicorn on a loopback socket (``sock``, or a free port), in a thread
+    of this process; started when made, stopped by :meth:`stop` or on leaving a ``with``."""
+
+    def __init__(self, app: Any, sock: socket.socket | None = None, **config: Any) -> None:
+        self.sock = loopback_socket() if sock is None else sock
+        self.port = self.sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(uvicorn.Config(app, **{"log_level": "warning", **config}))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+        self.thread.start()
+        wait_until(lambda: self.server.started or not self.thread.is_alive(), f"uvicorn on port {self.port}", 30)
+        assert self.server.started, f"uvicorn on port {self.port} did not start"
+
+    def connections(self) -> int:
+        """How many client connections the server holds open now."""
+        return len(self.server.server_state.connections)
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=15)
+        self.sock.close()
+
+    def __enter__(self) -> AppThread:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+@contextlib.contextmanager
+def raw_server(reply: bytes, requests: list[bytes] | None = None) -> Iterator[str]:
+    """A TCP server on loopback that reads one request per connection, sends ``reply`` and
+    closes; yields its URL. Each request it answered is appended to ``requests``, if given."""
+    listener = loopback_socket()
+    listener.listen(16)
+    listener.settimeout(0.1)
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                conn.settimeout(5)
+                try:
+                    request = conn.recv(65536)
+                    conn.sendall(reply)
+                except OSError:
+                    continue
+                if requests is not None:
+                    requests.append(request)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+    finally:
+        stop.set()
+        thread.join(5)
+        listener.close()
 
 
 def post_wire(url: str, op: str, body: dict[str, Any], token: str | None, timeout: float = 60) -> httpx.Response:

@@ -28,6 +28,7 @@ from service_procs import (
     assignment_file,
     clean_env,
     controller_server,
+    job_config,
     pod_server,
     post_wire,
     reset_body,
@@ -35,7 +36,6 @@ from service_procs import (
     step_body,
     wait_until,
 )
-from trainer_pods import job_config
 
 from service.runner import LocalJob
 from vecsim import wire

@@ -80,7 +80,7 @@ def test_memory_above_the_limit_stops_the_run_with_a_memory_error(bench):
 
     with pytest.raises(MemoryError, match="--max-memory-gib"):
         with bench.MemoryWatch(limit_gib=0.0, every_s=0.05):
-            for _ in range(200):  # 10 s at most: the watch trips within its first sample
+            for _ in range(200):  # the watched run, 10 s at most: the watch trips within its first sample
                 time.sleep(0.05)
 
 

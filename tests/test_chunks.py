@@ -21,7 +21,7 @@ import pytest
 import torch
 from gymnasium.vector import AutoresetMode
 from PIL import Image
-from trainer_pods import PodSpec, RunningPod, standalone_pods
+from service_procs import PodSpec, RunningPod, standalone_pods
 
 from vecsim import wire
 from vecsim.client import HTTPVectorEnv, StageClient, VLAEnv
@@ -300,11 +300,12 @@ def test_vla_env_with_auto_reset_resets_envs_that_ended_inside_the_chunk(pods):
     assert after["num_steps"].tolist() == [2] * env.num_envs  # fresh episodes
 
 
-def test_a_client_takes_a_long_recorded_chunk_whose_frames_outweigh_its_observations(tmp_path):
+def test_a_client_takes_a_long_recorded_chunk_whose_frames_outweigh_its_observations(start_pods):
     # 2 envs x 48 recorded 64x64 frames (~1.2 MB) are more than the default answer cap for one
     # observation per env: the cap grows with the call's K and recorded envs.
     spec = PodSpec("sim-0", 0, [(TASK, 2)], camera=CameraConfig(height=64, width=64), max_episode_steps=100)
-    with standalone_pods([spec], tmp_path) as (running,), StageClient.from_pods([running.url]) as client:
+    (running,) = start_pods([spec])
+    with StageClient.from_pods([running.url]) as client:
         routes = client.reset_trajectories([(TASK, 0), (TASK, 1)])
         client.reset_stage(0).result()
         chunk = _chunk(2, 48, seed=6)

@@ -14,7 +14,7 @@ import yaml
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from trainer_pods import PodSpec, job_config, local_job, standalone_pods, wait_for_generation
+from service_procs import PodSpec, job_config, local_job, standalone_pods, wait_for_generation
 
 from vecsim.client import (
     CapacityError,
@@ -369,21 +369,21 @@ def test_a_closed_client_refuses_calls(pods):
 
 
 @pytest.fixture
-def lone_pod(tmp_path):
-    with standalone_pods([PodSpec("sim-9", 0, [(PENDULUM, 2)])], tmp_path) as running:
-        yield running[0]
+def lone_pod(start_pods):
+    (pod,) = start_pods([PodSpec("sim-9", 0, [(PENDULUM, 2)])])
+    return pod
 
 
 def test_a_partitioned_pod_raises_pod_unavailable_naming_it_and_its_trajectories(lone_pod):
     with StageClient.from_pods([lone_pod.url], timeout_s=1.5) as client:
         routes = client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
         client.reset_stage(0).result(timeout=30)
-        os.killpg(lone_pod.process.pid, signal.SIGSTOP)  # the pod accepts nothing and answers nothing
+        lone_pod.signal_group(signal.SIGSTOP)  # the pod accepts nothing and answers nothing
         try:
             with pytest.raises(PodUnavailableError) as caught:
                 client.step_stage(0, _zero_actions(routes)).result(timeout=30)
         finally:
-            os.killpg(lone_pod.process.pid, signal.SIGCONT)
+            lone_pod.signal_group(signal.SIGCONT)
     assert caught.value.pods == ["sim-9"]
     assert sorted(caught.value.traj_keys) == sorted(routes)
     assert "sim-9" in str(caught.value)

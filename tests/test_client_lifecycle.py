@@ -24,8 +24,16 @@ import numpy as np
 import pytest
 import yaml
 from gymnasium.error import ResetNeeded
-from service_procs import assignment_file, controller_server, pod_server, running
-from trainer_pods import PodSpec, free_port, job_config, standalone_pods
+from service_procs import (
+    PodSpec,
+    assignment_file,
+    controller_server,
+    free_port,
+    job_config,
+    pod_server,
+    running,
+    standalone_pods,
+)
 
 from service.runner.job import LocalJob
 from vecsim import trees

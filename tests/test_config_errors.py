@@ -17,8 +17,7 @@ from typing import Any
 
 import pytest
 import yaml
-from service_procs import clean_env
-from trainer_pods import free_port, free_port_block
+from service_procs import clean_env, free_port, free_port_block
 
 from service.controller.main import main as controller_main
 from service.pod.main import main as pod_main

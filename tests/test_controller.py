@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import asyncio
-import socket
-import threading
 from collections.abc import AsyncIterator, Iterator
-from contextlib import asynccontextmanager, contextmanager
+from contextlib import ExitStack, asynccontextmanager
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI
 from fastapi.responses import JSONResponse
+from service_procs import AppThread, wait_until
 
 from service.controller import ControllerSettings, create_app
 from service.controller.reconcile import (
@@ -519,32 +517,12 @@ class Peer:
         self.url = ""
 
 
-@contextmanager
-def serve(app: FastAPI, lifespan: str = "off") -> Iterator[str]:
-    """Serves ``app`` with uvicorn on a free loopback port in a thread. Yields its URL."""
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan=lifespan))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    try:
-        for _ in range(200):
-            if server.started:
-                break
-            threading.Event().wait(0.025)
-        yield f"http://127.0.0.1:{sock.getsockname()[1]}"
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
-        sock.close()
-
-
 @pytest.fixture
 def peers() -> Iterator[list[Peer]]:
     made = [Peer() for _ in range(3)]
-    with serve(made[0].app) as u0, serve(made[1].app) as u1, serve(made[2].app) as u2:
-        for peer, url in zip(made, (u0, u1, u2)):
-            peer.url = url
+    with ExitStack() as stack:
+        for peer in made:
+            peer.url = stack.enter_context(AppThread(peer.app, lifespan="off")).url
         yield made
 
 
@@ -632,23 +610,26 @@ class SelfReportingPeer(Peer):
                 body = {"url": self.url, "generation": last.generation if last else None, "ready": last is not None}
                 body["assignment"] = last.model_dump(mode="json") if last else None
                 await client.post(f"/v1/pods/{self.name}/heartbeat", json=body)
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(0.05)  # the stand-in pod's heartbeat period, not a wait
 
 
 async def test_a_served_controller_gets_self_reporting_pods_ready():
     settings = ControllerSettings(reconcile_interval_s=0.05, heartbeat_interval_s=0.05, adopt_grace_s=0.0)
     made = [SelfReportingPeer("sim-0"), SelfReportingPeer("sim-1")]
-    with serve(create_app(settings), lifespan="on") as url:
-        with serve(made[0].app) as u0, serve(made[1].app) as u1:
-            made[0].url, made[1].url = u0, u1
+    with AppThread(create_app(settings), lifespan="on") as controller_app:
+        url = controller_app.url
+        with AppThread(made[0].app, lifespan="off") as s0, AppThread(made[1].app, lifespan="off") as s1:
+            u0, u1 = made[0].url, made[1].url = s0.url, s1.url
             stop = asyncio.Event()
             beats = [asyncio.create_task(p.beat(url, stop)) for p in made]
             async with httpx.AsyncClient(base_url=url, timeout=2.0) as client:
                 assert (await client.put("/v1/job", json=JOB)).status_code == 200
-                for _ in range(200):
-                    if (await client.get("/readyz")).status_code == 200:
-                        break
-                    await asyncio.sleep(0.05)
+
+                def ready() -> bool:
+                    return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
+
+                # Polled from a thread: this event loop keeps running the pods' heartbeats.
+                await asyncio.to_thread(wait_until, ready, "the controller to be ready", 30)
                 table = (await client.get("/v1/routing")).json()
             stop.set()
             await asyncio.gather(*beats)

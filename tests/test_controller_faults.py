@@ -11,17 +11,12 @@
 from __future__ import annotations
 
 import re
-import socket
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
+import signal
 
 import httpx
 import pytest
-import signal
-
 import torch
-from service_procs import controller_server, pod_server, running, wait_until
+from service_procs import controller_server, pod_server, raw_server, running, wait_until
 
 from vecsim.client import StageClient
 from vecsim.rollout import EnvLoop
@@ -39,41 +34,6 @@ JOB = {
 }
 
 
-@contextmanager
-def hostile_pod() -> Iterator[tuple[str, list[int]]]:
-    """A loopback server that answers every request with ``HOSTILE_PUSH_ANSWER``; yields its URL
-    and a list that grows by one per request it answered."""
-    listener = socket.socket()
-    listener.bind(("127.0.0.1", 0))
-    listener.listen(16)
-    listener.settimeout(0.1)
-    stop, served = threading.Event(), []
-
-    def serve() -> None:
-        while not stop.is_set():
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
-            with conn:
-                conn.settimeout(5)
-                try:
-                    conn.recv(65536)
-                    conn.sendall(HOSTILE_PUSH_ANSWER)
-                except OSError:
-                    continue
-                served.append(1)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{listener.getsockname()[1]}", served
-    finally:
-        stop.set()
-        thread.join(5)
-        listener.close()
-
-
 def failed_pushes(url: str) -> float:
     text = httpx.get(f"{url}/metrics", timeout=5).text
     found = re.search(r'^vecsim_controller_pushes_total\{result="failed"\} (\S+)$', text, re.M)
@@ -81,7 +41,11 @@ def failed_pushes(url: str) -> float:
 
 
 def test_a_push_answered_with_an_absurd_content_length_is_a_failed_push_retried_with_backoff(tmp_path):
-    with hostile_pod() as (pod_url, served), running(controller_server(tmp_path, args=["--adopt-grace", "0"])) as c:
+    served: list[bytes] = []
+    with (
+        raw_server(HOSTILE_PUSH_ANSWER, served) as pod_url,
+        running(controller_server(tmp_path, args=["--adopt-grace", "0"])) as c,
+    ):
         assert httpx.put(f"{c.url}/v1/job", json=JOB, timeout=30).status_code == 200
         assert httpx.post(f"{c.url}/v1/pods", json={"name": "sim-0", "url": pod_url}, timeout=10).status_code == 200
 
@@ -93,16 +57,6 @@ def test_a_push_answered_with_an_absurd_content_length_is_a_failed_push_retried_
         assert c.answers("/healthz")
     # Each failed push was one request to the pod: the retries came after the failures, not in a loop.
     assert len(served) >= 2
-
-
-@pytest.fixture
-def refusing_port() -> Iterator[int]:
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    try:
-        yield sock.getsockname()[1]
-    finally:
-        sock.close()
 
 
 def test_waiting_for_a_controller_that_never_listens_gives_up_saying_what_it_waited_for(refusing_port):

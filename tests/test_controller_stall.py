@@ -10,7 +10,6 @@ and blocks its event loop with ``time.sleep`` through an endpoint the test adds.
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -18,8 +17,8 @@ from contextlib import asynccontextmanager, contextmanager
 
 import httpx
 import pytest
-import uvicorn
-from test_controller_settled import TTL_S, Clock, Controller, running_job
+from controller_in_process import TTL_S, Clock, Controller, running_job
+from service_procs import AppThread, wait_until
 
 from service.controller import ControllerSettings, create_app
 from service.controller.state import ControllerState
@@ -27,6 +26,7 @@ from service.controller.state import ControllerState
 pytestmark = pytest.mark.anyio
 
 PODS = ("sim-0", "sim-1", "sim-2")
+PASSES = "vecsim_controller_reconcile_seconds_count"  # one per reconcile pass
 
 
 @pytest.fixture
@@ -127,23 +127,11 @@ def serve_controller(settings: ControllerSettings) -> Iterator[str]:
 
     @app.post("/test/stall")
     async def stall(seconds: float) -> dict[str, float]:
-        time.sleep(seconds)  # blocks the event loop: nothing else of the controller runs
+        time.sleep(seconds)  # the fault under test: blocks the event loop, so nothing else runs
         return {"slept": seconds}
 
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    try:
-        deadline = time.monotonic() + 30
-        while not server.started and time.monotonic() < deadline:
-            time.sleep(0.025)
-        yield f"http://127.0.0.1:{sock.getsockname()[1]}"
-    finally:
-        server.should_exit = True
-        thread.join(timeout=15)
-        sock.close()
+    with AppThread(app, lifespan="on") as server:
+        yield server.url
 
 
 def heartbeat_until(url: str, names: tuple[str, ...], stop: threading.Event) -> None:
@@ -175,12 +163,12 @@ def test_a_served_controller_whose_loop_blocks_past_the_ttl_keeps_its_pods():
         beats = threading.Thread(target=heartbeat_until, args=(url, PODS, stop), daemon=True)
         beats.start()
         try:
-            deadline = time.monotonic() + 30
-            while len(httpx.get(f"{url}/v1/pods", timeout=5).json()) < len(PODS):
-                assert time.monotonic() < deadline, "pods did not register"
-                time.sleep(0.05)
+            wait_until(lambda: len(httpx.get(f"{url}/v1/pods", timeout=5).json()) == len(PODS), "pods to register", 30)
             assert httpx.post(f"{url}/test/stall", params={"seconds": 2.5 * ttl}, timeout=30).status_code == 200
-            time.sleep(ttl / 2)  # a few reconcile passes after the stall
+            passes = counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES)
+            # A few reconcile passes after the stall: any of them would have expired the pods.
+            wait_until(lambda: counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES) >= passes + 3,
+                       "three reconcile passes after the stall", 30, every=0.05)  # fmt: skip
             after = [p["name"] for p in httpx.get(f"{url}/v1/pods", timeout=5).json()]
             metrics = httpx.get(f"{url}/metrics", timeout=5).text
         finally:

@@ -23,8 +23,7 @@ import numpy as np
 import psutil
 import pytest
 import torch
-from service_procs import HostLink, Server, assignment_file, pod_server, running, wait_until
-from trainer_pods import job_config
+from service_procs import HostLink, Server, assignment_file, job_config, pod_server, running, wait_until
 
 from service.runner import Backoff, LocalJob
 from vecsim.client import PodUnavailableError, StageClient

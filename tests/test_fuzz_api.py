@@ -32,8 +32,7 @@ import schemathesis
 import uvicorn
 from hypothesis import HealthCheck, given, settings
 from schemathesis import GenerationMode
-from service_procs import assignment_file, pod_server, post_wire, running, step_body, wait_until
-from trainer_pods import free_port
+from service_procs import assignment_file, free_port, pod_server, post_wire, running, step_body, wait_until
 
 from service.controller import ControllerSettings, create_app
 from vecsim import wire

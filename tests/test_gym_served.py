@@ -19,7 +19,7 @@ import pytest
 from gymnasium.error import ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from gymnasium.wrappers import vector as vw
-from trainer_pods import PodSpec, standalone_pods
+from service_procs import PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv, PodRequestError
 from vecsim.config import Assignment, CameraConfig, TaskBlock

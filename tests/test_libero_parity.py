@@ -29,7 +29,7 @@ import httpx
 import mujoco
 import numpy as np
 import pytest
-from trainer_pods import PodSpec, standalone_pods
+from service_procs import PodSpec, standalone_pods
 
 from vecsim import wire
 from vecsim.config import CameraConfig

@@ -11,11 +11,11 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from trainer_pods import PodSpec, standalone_pods
+from service_procs import PodSpec, RunningPod
 
 from vecsim.config import CameraConfig
 
@@ -53,7 +53,9 @@ print(json.dumps(info))
 """
 
 
-def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torch(tmp_path: Path) -> None:
+def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torch(
+    tmp_path: Path, start_pods: Callable[..., list[RunningPod]]
+) -> None:
     python = CLIENT_VENV / "bin" / "python"
     if not python.exists():
         pytest.fail(f"no client-only venv at {CLIENT_VENV}: scripts/setup.sh builds it (run scripts/test.sh)")
@@ -61,13 +63,13 @@ def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torc
         PodSpec("sim-0", 0, [("tiny/lift", 1)], camera=CameraConfig(names=("agentview",), height=16, width=16)),
         PodSpec("sim-1", 0, [("tiny/door", 1)], camera=CameraConfig(names=("agentview",), height=16, width=16)),
     ]
-    with standalone_pods(specs, tmp_path) as pods:
-        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-        env["PYTHONPATH"] = str(ROOT)  # this checkout's vecsim, whatever the venv's editable install points at
-        done = subprocess.run(
-            [str(python), "-c", TRAINER, *(p.url for p in pods)],
-            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
-        )  # fmt: skip
+    pods = start_pods(specs)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PYTHONPATH"] = str(ROOT)  # this checkout's vecsim, whatever the venv's editable install points at
+    done = subprocess.run(
+        [str(python), "-c", TRAINER, *(p.url for p in pods)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
     assert done.returncode == 0, done.stderr[-4000:]
     seen = json.loads(done.stdout.strip().splitlines()[-1])
     assert seen["loaded"] == []

@@ -9,6 +9,7 @@ through the address the pod advertises.
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import os
 import secrets
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from service_procs import ip, unused_subnet, wait_until
 
 from service.runner import Backoff, ManagedProcess
 
@@ -37,21 +39,6 @@ JOB = {
     "camera": {"names": []},
     "max_episode_steps": 20,
 }
-
-
-def ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=30)
-
-
-def unused_subnet() -> ipaddress.IPv4Network:
-    """Returns a 10.x.y.0/24 that no address or route of this machine touches."""
-    used = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True).stdout
-    used += subprocess.run(["ip", "route"], capture_output=True, text=True).stdout
-    for _ in range(100):
-        net = ipaddress.ip_network(f"10.{secrets.randbelow(200) + 50}.{secrets.randbelow(250) + 1}.0/24")
-        if f"{str(net.network_address).rsplit('.', 1)[0]}." not in used:
-            return net
-    raise RuntimeError("no unused 10.x.y.0/24 found")
 
 
 @dataclass
@@ -190,9 +177,9 @@ def hosts(network: Network, tmp_path_factory) -> Iterator[dict[str, ManagedProce
 
 
 def until_ready(url: str, processes: dict[str, ManagedProcess], timeout: float) -> dict:
-    deadline = time.monotonic() + timeout
-    detail = "no answer"
-    while time.monotonic() < deadline:
+    detail = ["no answer"]
+
+    def routing() -> dict | None:
         for name, process in processes.items():
             if process.restarts > 2:
                 pytest.fail(f"{name} keeps exiting ({process.last_exit}):\n{process.log_tail()}")
@@ -200,25 +187,27 @@ def until_ready(url: str, processes: dict[str, ManagedProcess], timeout: float) 
             response = httpx.get(f"{url}/readyz", timeout=2)
             if response.status_code == 200:
                 return httpx.get(f"{url}/v1/routing", timeout=2).json()
-            detail = response.text
+            detail[0] = response.text
         except httpx.HTTPError as exc:
-            detail = str(exc)
-        time.sleep(0.3)
-    pytest.fail(f"job not ready after {timeout} s: {detail}")
+            detail[0] = str(exc)
+        return None
+
+    try:
+        return wait_until(routing, "the job to be ready", timeout_s=timeout, every=0.3)
+    except AssertionError as e:
+        pytest.fail(f"{e}: {detail[0]}")
 
 
 @pytest.fixture(scope="module")
 def table(network: Network, hosts: dict[str, ManagedProcess]) -> dict:
     controller_url = f"http://{network.addresses['controller']}:{CONTROLLER_PORT}"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            response = httpx.put(f"{controller_url}/v1/job", json=JOB, timeout=5)
-            break
-        except httpx.HTTPError:
-            if time.monotonic() > deadline:
-                pytest.fail("the controller never answered in its namespace")
-            time.sleep(0.3)
+
+    def put_job() -> httpx.Response | None:
+        with contextlib.suppress(httpx.HTTPError):
+            return httpx.put(f"{controller_url}/v1/job", json=JOB, timeout=5)
+        return None
+
+    response = wait_until(put_job, "the controller to answer in its namespace", timeout_s=60, every=0.3)
     assert response.status_code == 200, response.text
     return until_ready(controller_url, hosts, timeout=180)
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import httpx
 import pytest
-from service_procs import HostLink, Server, controller_server_on, pod_server, running, wait_until
+from service_procs import HostLink, Server, controller_server, pod_server, running, wait_until
 
 TOKEN = "partition-test-token-0123456789abcdef"
 PENDULUM = "gym/Pendulum-v1"
@@ -94,9 +94,9 @@ def test_a_slot_holder_partitioned_from_the_controller_loses_its_slot_to_the_spa
 ):
     gateway = str(link.subnet.network_address + 1)  # this namespace's end of the veth
     # The controller must be reachable from sim-0's namespace: it listens on the veth's address.
-    controller = controller_server_on(
-        gateway,
+    controller = controller_server(
         tmp_path,
+        host=gateway,
         token=TOKEN,
         args=["--heartbeat-interval", str(HEARTBEAT_S), "--heartbeat-ttl", str(TTL_S), "--reconcile-interval", "0.2"],
     )

@@ -8,14 +8,11 @@ standalone paths of `vecsim pod` are exercised.
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -27,7 +24,7 @@ import pytest
 import yaml
 from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
-from trainer_pods import free_port
+from service_procs import Server, clean_env, free_port, running, wait_until
 
 from service.pod.state import steps_on_event_loop
 from vecsim import wire
@@ -42,65 +39,19 @@ CAMERA = CameraConfig(names=("render",), height=16, width=24)
 NO_CAMERA = CameraConfig(names=())
 BODY_LIMIT = 64 * 1024
 JSON_TYPE = "application/json"
-START_TIMEOUT_S = 120.0
 
 
-def wait_until(predicate: Any, what: str, timeout_s: float = START_TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
-
-
-class Pod:
+class Pod(Server):
     """A `vecsim pod` process on loopback and the calls the tests make to it."""
 
     def __init__(self, name: str, args: list[str], log_path: Path) -> None:
-        self.name = name
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log_path = log_path
-        env = {**os.environ, "MUJOCO_GL": "egl", "POD_NAME": name}
-        for var in ("CONTROLLER_URL", "POD_IP", "VECSIM_ADVERTISE_URL", "VECSIM_PORT"):
-            env.pop(var, None)
-        self._log = log_path.open("wb")
-        # A session of its own: the pod, its forkserver and its env workers share one process group.
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "vecsim.cli", "pod", "--port", str(self.port), *args],
-            env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
-        )
+        port = free_port()
+        super().__init__(name, ["pod", "--port", str(port), *args], port, clean_env(POD_NAME=name), log_path)
         self.http = httpx.Client(base_url=self.url, timeout=60.0)
-
-    def log_tail(self) -> str:
-        return self.log_path.read_text(errors="replace")[-4000:]
-
-    def _answers(self, path: str, status: int) -> bool:
-        if self.proc.poll() is not None:
-            raise AssertionError(f"pod {self.name} exited with {self.proc.returncode}:\n{self.log_tail()}")
-        try:
-            return self.http.get(path).status_code == status
-        except httpx.TransportError:
-            return False
-
-    def wait_alive(self) -> None:
-        wait_until(lambda: self._answers("/healthz", 200), f"pod {self.name} to answer /healthz")
-
-    def wait_ready(self) -> None:
-        wait_until(lambda: self._answers("/readyz", 200), f"pod {self.name} to be ready")
 
     def stop(self) -> None:
         self.http.close()
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.proc.pid, signal.SIGTERM)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            self.proc.wait(timeout=30)
-        # Whatever outlived a clean shutdown (a worker of a crashed build) goes with the group.
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        self.proc.wait(timeout=10)
-        self._log.close()
+        super().stop()
 
     def info(self) -> dict[str, Any]:
         response = self.http.get("/v1/info")
@@ -186,12 +137,8 @@ def as_arrays_like(json_answer: Any, wire_answer: Any) -> Any:
 
 
 def start_pod(name: str, args: list[str], tmp: Path) -> Iterator[Pod]:
-    pod = Pod(name, args, tmp / f"{name}.log")
-    try:
-        pod.wait_alive()
+    with running(Pod(name, args, tmp / f"{name}.log")) as pod:
         yield pod
-    finally:
-        pod.stop()
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,11 @@ started pod, its env workers included, runs on exactly the CPUs it was given. Li
 from __future__ import annotations
 
 import os
-import socket
 from collections.abc import Iterator
 
 import psutil
 import pytest
+from service_procs import free_port_block
 
 from service.runner import JobRejectedError, LocalJob
 from vecsim.config import (
@@ -22,27 +22,6 @@ from vecsim.config import (
     RunnerConfig,
     load_job_config,
 )
-
-
-def free_port_block(n: int) -> int:
-    """Returns the first of ``n`` consecutive ports free on loopback right now."""
-    for _ in range(200):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + n > 65000:
-            continue
-        try:
-            socks = [socket.socket() for _ in range(n)]
-            for offset, sock in enumerate(socks):
-                sock.bind(("127.0.0.1", base + offset))
-            return base
-        except OSError:
-            continue
-        finally:
-            for sock in socks:
-                sock.close()
-    raise RuntimeError(f"no {n} consecutive free ports found")
 
 
 def cheetah_config(

@@ -6,16 +6,14 @@ spare assignment), so each test stays cheap.
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 from collections.abc import Iterator
 from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI, Response
+from service_procs import AppThread, loopback_socket, wait_until
 
 from service.pod.agent import backoff_delay
 from service.pod.app import create_app
@@ -23,16 +21,6 @@ from service.pod.settings import PodSettings
 from vecsim.config import Assignment, PodRecord, PodRegistration
 
 HEARTBEAT_S = 0.05
-WAIT_S = 30.0
-
-
-def wait_until(predicate: Any, what: str, timeout_s: float = WAIT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
 
 
 class StandInController:
@@ -81,51 +69,27 @@ class StandInController:
             return len(getattr(self, what))
 
 
-class ServerThread:
-    """An ASGI app served by uvicorn on a loopback socket, in a thread of this process."""
-
-    def __init__(self, app: Any, sock: socket.socket) -> None:
-        self.port = sock.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on"))
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, daemon=True)
-        self.thread.start()
-        wait_until(lambda: self.server.started or not self.thread.is_alive(), f"server on port {self.port}")
-        assert self.server.started, f"server on port {self.port} did not start"
-
-    def stop(self) -> None:
-        self.server.should_exit = True
-        self.thread.join(timeout=30)
-
-
-def loopback_socket(port: int = 0) -> socket.socket:
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", port))
-    return sock
-
-
 @pytest.fixture
-def controller() -> Iterator[tuple[StandInController, ServerThread]]:
+def controller() -> Iterator[tuple[StandInController, AppThread]]:
     stand_in = StandInController()
-    server = ServerThread(stand_in.app, loopback_socket())
+    server = AppThread(stand_in.app, access_log=False, lifespan="on")
     try:
         yield stand_in, server
     finally:
         server.stop()
 
 
-def serve_pod(name: str, controller_url: str) -> ServerThread:
+def serve_pod(name: str, controller_url: str) -> AppThread:
     sock = loopback_socket()
     settings = PodSettings(
         name=name, port=sock.getsockname()[1], controller_url=controller_url, heartbeat_interval_s=HEARTBEAT_S,
         max_backoff_s=4 * HEARTBEAT_S, max_envs=3, gpu=False,
     )
-    return ServerThread(create_app(settings), sock)
+    return AppThread(create_app(settings), sock, access_log=False, lifespan="on")
 
 
 @pytest.fixture
-def pod(controller: tuple[StandInController, ServerThread]) -> Iterator[ServerThread]:
+def pod(controller: tuple[StandInController, AppThread]) -> Iterator[AppThread]:
     server = serve_pod("sim-3", controller[1].url)
     try:
         yield server
@@ -134,7 +98,7 @@ def pod(controller: tuple[StandInController, ServerThread]) -> Iterator[ServerTh
 
 
 def test_pod_registers_with_its_name_url_and_capacity(
-    controller: tuple[StandInController, ServerThread], pod: ServerThread
+    controller: tuple[StandInController, AppThread], pod: AppThread
 ) -> None:
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("registrations") >= 1, "a registration")
@@ -144,7 +108,7 @@ def test_pod_registers_with_its_name_url_and_capacity(
 
 
 def test_heartbeats_say_unassigned_and_not_ready_before_an_assignment(
-    controller: tuple[StandInController, ServerThread], pod: ServerThread
+    controller: tuple[StandInController, AppThread], pod: AppThread
 ) -> None:
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("heartbeats") >= 2, "two heartbeats")
@@ -153,7 +117,7 @@ def test_heartbeats_say_unassigned_and_not_ready_before_an_assignment(
 
 
 def test_heartbeats_report_the_assignment_generation_and_readiness(
-    controller: tuple[StandInController, ServerThread], pod: ServerThread
+    controller: tuple[StandInController, AppThread], pod: AppThread
 ) -> None:
     stand_in, _ = controller
     spare = Assignment(generation=5, job_id="agent-tests", pod="sim-3", stage_id=0, tasks=())
@@ -167,7 +131,7 @@ def test_heartbeats_report_the_assignment_generation_and_readiness(
 
 
 def test_pod_registers_again_when_the_controller_forgets_it(
-    controller: tuple[StandInController, ServerThread], pod: ServerThread
+    controller: tuple[StandInController, AppThread], pod: AppThread
 ) -> None:
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat")
@@ -178,7 +142,7 @@ def test_pod_registers_again_when_the_controller_forgets_it(
 
 
 def test_controller_errors_leave_the_pod_serving_and_heartbeats_resume(
-    controller: tuple[StandInController, ServerThread], pod: ServerThread
+    controller: tuple[StandInController, AppThread], pod: AppThread
 ) -> None:
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat")
@@ -200,7 +164,7 @@ def test_pod_finds_a_controller_that_starts_after_it() -> None:
     try:
         assert httpx.get(f"{pod.url}/healthz", timeout=10).status_code == 200
         # The controller comes up on the address the pod has been retrying all along.
-        server = ServerThread(stand_in.app, reserved)
+        server = AppThread(stand_in.app, reserved, access_log=False, lifespan="on")
         try:
             wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat from the early pod")
             assert stand_in.registrations[0]["name"] == "sim-4"

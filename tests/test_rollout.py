@@ -9,7 +9,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
-from trainer_pods import job_config, local_job
+from service_procs import job_config, local_job
 
 from vecsim.client import CapacityError, StageClient
 from vecsim.config import CameraConfig

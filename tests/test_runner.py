@@ -7,13 +7,14 @@ import signal
 import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import httpx
 import psutil
 import pytest
 import yaml
+
+from service_procs import free_port_block, wait_until
 
 from service.runner import Backoff, JobRejectedError, LocalJob, ManagedProcess, PodStatus, format_status
 from service.runner.main import main as up_main
@@ -23,43 +24,8 @@ from vecsim.probes import Probe, Probes
 PYTHON = sys.executable
 
 
-def free_ports(n: int) -> int:
-    """Returns the first of ``n`` consecutive ports that are free on loopback right now."""
-    for _ in range(200):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + n > 65000:
-            continue
-        socks = []
-        try:
-            for port in range(base, base + n):
-                s = socket.socket()
-                socks.append(s)
-                s.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no {n} consecutive free ports found")
-
-
-def wait_for(what: str, check: Callable[[], object], timeout: float, every: float = 0.2) -> object:
-    """Returns ``check()``'s first truthy value; fails the test naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = check()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(every)
-
-
 def tiny_config(replicas: int = 2, **job: object) -> RunnerConfig:
-    base = free_ports(replicas + 1)
+    base = free_port_block(replicas + 1)
     fields: dict[str, object] = dict(
         job_id="tiny-test",
         suite="tiny",
@@ -177,7 +143,7 @@ def test_a_crashing_process_is_restarted_with_backoff(managed, tmp_path):
     )
     managed.append(process)
     process.start()
-    wait_for("three restarts", lambda: process.restarts >= 3, timeout=30)
+    wait_until(lambda: process.restarts >= 3, "three restarts", timeout_s=30)
     assert process.last_exit == "exited with code 3"
     assert (tmp_path / "crasher.log").read_text().count("=== ") >= 3
 
@@ -194,7 +160,7 @@ def test_stop_ends_the_whole_process_group_even_children_that_ignore_sigterm(man
     process = ManagedProcess("parent", [PYTHON, "-c", script], env=os.environ, log_path=tmp_path / "p.log")
     managed.append(process)
     process.start()
-    wait_for("the child's pid", lambda: pid_file.exists() and pid_file.read_text(), timeout=30)
+    wait_until(lambda: pid_file.exists() and pid_file.read_text(), "the child's pid", timeout_s=30)
     child = psutil.Process(int(pid_file.read_text()))
     parent_pid = process.pid
     process.stop(grace_s=1)
@@ -203,7 +169,7 @@ def test_stop_ends_the_whole_process_group_even_children_that_ignore_sigterm(man
 
 
 def test_a_failing_liveness_probe_restarts_the_process_and_reruns_the_start_hook(managed, tmp_path):
-    port = free_ports(1)
+    port = free_port_block(1)
     started: list[int] = []
     process = ManagedProcess(
         "web",
@@ -223,7 +189,7 @@ def test_a_failing_liveness_probe_restarts_the_process_and_reruns_the_start_hook
     )
     managed.append(process)
     process.start()
-    wait_for("a restart and a second start", lambda: process.restarts >= 1 and len(started) >= 2, timeout=60)
+    wait_until(lambda: process.restarts >= 1 and len(started) >= 2, "a restart and a second start", timeout_s=60)
     assert "liveness probe /healthz" in (process.last_exit or "")
     assert started[0] != started[1]
 
@@ -286,7 +252,9 @@ def test_a_killed_pod_comes_back_under_its_name_into_its_slot_with_a_new_generat
     process = tiny_job.processes["sim-1"]
     restarts, pid = process.restarts, process.pid
     os.kill(pid, signal.SIGKILL)
-    after = wait_for("the job to be ready again", lambda: ready_at_least(tiny_job, before.generation + 1), timeout=240)
+    after = wait_until(
+        lambda: ready_at_least(tiny_job, before.generation + 1), "the job to be ready again", timeout_s=240
+    )
     assert process.restarts == restarts + 1 and process.pid != pid
     assert layout(after) == layout(before)
     info = httpx.get(f"{tiny_job.pod_url('sim-1')}/v1/info", headers={"Accept": "application/json"}, timeout=5).json()
@@ -299,8 +267,8 @@ def test_a_restarted_controller_adopts_the_running_layout_without_reassigning(ti
     controller = tiny_job.processes["controller"]
     pid = controller.pid
     os.kill(pid, signal.SIGKILL)
-    wait_for("a new controller process", lambda: controller.pid not in (None, pid), timeout=60)
-    after = wait_for("the new controller to report the job ready", lambda: ready_at_least(tiny_job, 0), timeout=120)
+    wait_until(lambda: controller.pid not in (None, pid), "a new controller process", timeout_s=60)
+    after = wait_until(lambda: ready_at_least(tiny_job, 0), "the new controller to report the job ready", timeout_s=120)
     assert (after.generation, layout(after)) == (before.generation, layout(before))
     for name in ("sim-0", "sim-1"):
         info = httpx.get(f"{tiny_job.pod_url(name)}/v1/info", headers={"Accept": "application/json"}, timeout=5).json()
@@ -328,7 +296,7 @@ def test_ctrl_c_to_vecsim_up_leaves_no_process_behind(tmp_path):
             except httpx.HTTPError:
                 return False
 
-        wait_for("vecsim up to get the job ready", ready, timeout=240, every=0.5)
+        wait_until(ready, "vecsim up to get the job ready", timeout_s=240, every=0.5)
         started = psutil.Process(runner.pid).children(recursive=True)
         # Beyond the controller and the pods: the pods' own env worker processes.
         assert len(started) > len(psutil.Process(runner.pid).children()) == 3

@@ -7,16 +7,14 @@ init state. Pods are shared per module where the tests reset what they use first
 
 from __future__ import annotations
 
-import os
-import select
-import signal
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
+from sim_envs import CAMERAS, TINY_CAMERA, env_rows, kill_worker, sim_assignment
 
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import CameraConfig
 from vecsim.sim import (
     InvalidRequestError,
     SimBuildError,
@@ -27,29 +25,6 @@ from vecsim.sim import (
 from vecsim.tasks import UnknownTaskError, make_env
 
 CHEETAH = "gym/HalfCheetah-v5"
-NO_CAMERA = CameraConfig(names=())
-TINY_CAMERA = CameraConfig(height=8, width=8)
-CAMERAS = ("agentview", "robot0_eye_in_hand")
-
-
-def _assignment(
-    blocks: list[tuple[str, int]], camera: CameraConfig = NO_CAMERA, **fields: Any
-) -> Assignment:
-    tasks, start = [], 0
-    for task_id, count in blocks:
-        tasks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=count))
-        start += count
-    return Assignment(generation=1, pod="sim-0", stage_id=0, tasks=tuple(tasks), camera=camera, **fields)
-
-
-def _rows(obs: Any) -> list[bytes]:
-    """One byte string per env of a batched observation: equal strings mean bit-identical envs."""
-    if isinstance(obs, np.ndarray):  # a gym task without cameras: the env's own Box observation
-        return [row.tobytes() for row in obs]
-    leaves = [obs["proprio"]] + [obs["images"][name] for name in sorted(obs.get("images", {}))]
-    return [b"".join(leaf[i].tobytes() for leaf in leaves) for i in range(len(obs["proprio"]))]
-
-
 def _batched(obs: dict[str, Any]) -> dict[str, Any]:
     """One env's observation as a batch of one."""
     return {key: _batched(value) if isinstance(value, dict) else value[None] for key, value in obs.items()}
@@ -62,7 +37,7 @@ def _actions(n: int, size: int, seed: int = 0) -> np.ndarray:
 @pytest.fixture(scope="module")
 def cheetahs() -> Iterator[TaskGroupedVectorEnv]:
     """Four HalfCheetahs, one per worker, with 2-step episodes."""
-    with TaskGroupedVectorEnv(_assignment([(CHEETAH, 4)], max_episode_steps=2)) as pod:
+    with TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 4)], max_episode_steps=2)) as pod:
         yield pod
 
 
@@ -70,8 +45,8 @@ def cheetahs() -> Iterator[TaskGroupedVectorEnv]:
 def tiny_pods() -> Iterator[tuple[TaskGroupedVectorEnv, TaskGroupedVectorEnv]]:
     """The tiny suite twice: two envs per worker (lift, lift | stack, door), and one."""
     blocks = [("tiny/lift", 2), ("tiny/stack", 1), ("tiny/door", 1)]
-    with TaskGroupedVectorEnv(_assignment(blocks, TINY_CAMERA, envs_per_worker=2)) as packed:
-        with TaskGroupedVectorEnv(_assignment(blocks, TINY_CAMERA, envs_per_worker=1)) as single:
+    with TaskGroupedVectorEnv(sim_assignment(blocks, TINY_CAMERA, envs_per_worker=2)) as packed:
+        with TaskGroupedVectorEnv(sim_assignment(blocks, TINY_CAMERA, envs_per_worker=1)) as single:
             yield packed, single
 
 
@@ -88,7 +63,7 @@ def _unchanged_after(pod: TaskGroupedVectorEnv, action: Any) -> bool:
     pod.reset_envs(ids, states)
     action(pod)
     got = pod.step_envs(ids, moves)
-    return _rows(got[0]) == _rows(expected[0]) and all(
+    return env_rows(got[0]) == env_rows(expected[0]) and all(
         np.array_equal(a, b) for a, b in zip(got[1:4], expected[1:4])
     )
 
@@ -96,16 +71,6 @@ def _unchanged_after(pod: TaskGroupedVectorEnv, action: Any) -> bool:
 # Layout and spaces.
 
 
-
-def _kill_worker(pid: int) -> None:
-    """SIGKILL a worker process and return once it has ended (its pidfd reads ready): the pod
-    checks its workers before and after each call, and no call of the test races the kill."""
-    pidfd = os.pidfd_open(pid)
-    try:
-        os.kill(pid, signal.SIGKILL)
-        select.select([pidfd], [], [], 60)
-    finally:
-        os.close(pidfd)
 
 def test_env_indices_form_contiguous_task_blocks(tiny_pods: tuple[TaskGroupedVectorEnv, ...]) -> None:
     packed, single = tiny_pods
@@ -117,17 +82,17 @@ def test_env_indices_form_contiguous_task_blocks(tiny_pods: tuple[TaskGroupedVec
 
 
 def test_a_block_of_five_with_two_envs_per_worker_uses_three_workers() -> None:
-    with TaskGroupedVectorEnv(_assignment([(CHEETAH, 5)], envs_per_worker=2)) as packed:
+    with TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 5)], envs_per_worker=2)) as packed:
         assert (packed.num_envs, packed.num_workers, len(set(packed.worker_pids))) == (5, 3, 3)
         with pytest.raises(UnknownEnvError):
             packed.step_envs([5], _actions(1, 6))
-        with TaskGroupedVectorEnv(_assignment([(CHEETAH, 5)])) as single:
+        with TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 5)])) as single:
             for pod in (packed, single):
                 pod.reset_envs([4, 0, 2, 1, 3], [4, 0, 2, 1, 3])
                 pod.step_envs([4, 1], _actions(2, 6, seed=1))
             packed_out = packed.step_envs(np.arange(5), _actions(5, 6, seed=2))
             single_out = single.step_envs(np.arange(5), _actions(5, 6, seed=2))
-    assert _rows(packed_out[0]) == _rows(single_out[0])
+    assert env_rows(packed_out[0]) == env_rows(single_out[0])
     assert np.array_equal(packed_out[1], single_out[1])
 
 
@@ -144,11 +109,11 @@ def test_reset_is_bit_identical_across_pods_orders_and_histories(
     packed.reset_envs([3, 2, 1, 0], [5, 5, 5, 5])
     used, _ = packed.reset_envs([2, 0, 3, 1], [3, 3, 3, 3])
     fresh, _ = single.reset_envs([2, 0, 3, 1], [3, 3, 3, 3])
-    assert _rows(used) == _rows(fresh)
+    assert env_rows(used) == env_rows(fresh)
     order = [2, 0, 3, 1]
     used_step = packed.step_envs(order, moves[order])
     fresh_step = single.step_envs(order, moves[order])
-    assert _rows(used_step[0]) == _rows(fresh_step[0])
+    assert env_rows(used_step[0]) == env_rows(fresh_step[0])
 
 
 def test_reset_matches_the_same_task_env_built_in_this_process(
@@ -162,7 +127,7 @@ def test_reset_matches_the_same_task_env_built_in_this_process(
         local.close()
     theirs, info = packed.reset_envs([3], [8])
     assert info["task_id"] == ["tiny/door"]
-    assert _rows(theirs) == _rows(_batched(mine))
+    assert env_rows(theirs) == env_rows(_batched(mine))
 
 
 def test_two_envs_of_one_worker_render_their_own_scenes(tiny_pods: tuple[TaskGroupedVectorEnv, ...]) -> None:
@@ -170,7 +135,7 @@ def test_two_envs_of_one_worker_render_their_own_scenes(tiny_pods: tuple[TaskGro
     for pod in tiny_pods:
         pod.reset_envs([0, 1], [1, 2])
     moves = _actions(2, 7, seed=4)
-    assert _rows(packed.step_envs([0, 1], moves)[0]) == _rows(single.step_envs([0, 1], moves)[0])
+    assert env_rows(packed.step_envs([0, 1], moves)[0]) == env_rows(single.step_envs([0, 1], moves)[0])
 
 
 # Only named envs change.
@@ -182,7 +147,7 @@ def test_stepping_some_envs_leaves_the_others_where_they_were(cheetahs: TaskGrou
     cheetahs.reset_envs([3], [2])
     same = np.repeat(_actions(1, 6, seed=6), 3, axis=0)
     obs, _, _, truncated, _ = cheetahs.step_envs([0, 2, 3], same)
-    rows = _rows(obs)
+    rows = env_rows(obs)
     assert rows[0] == rows[1] == rows[2]
     assert not truncated.any()
 
@@ -190,11 +155,11 @@ def test_stepping_some_envs_leaves_the_others_where_they_were(cheetahs: TaskGrou
 def test_resetting_some_envs_leaves_the_others_where_they_were(cheetahs: TaskGroupedVectorEnv) -> None:
     first = _actions(4, 6, seed=7)
     cheetahs.reset_envs([0, 1, 2, 3], [1, 1, 1, 1])
-    one_step = _rows(cheetahs.step_envs([0, 1, 2, 3], first)[0])
+    one_step = env_rows(cheetahs.step_envs([0, 1, 2, 3], first)[0])
     cheetahs.reset_envs([2], [1])
     again = np.repeat(first[:1], 4, axis=0)
     obs, _, _, truncated, _ = cheetahs.step_envs([0, 1, 2, 3], again)
-    rows = _rows(obs)
+    rows = env_rows(obs)
     assert rows[2] == one_step[0]
     assert rows[0] != rows[2]
     assert truncated.tolist() == [True, True, False, True]
@@ -312,7 +277,7 @@ def test_empty_env_lists_are_no_ops_with_empty_results(cheetahs: TaskGroupedVect
 
 
 def test_a_spare_pod_has_no_envs_and_no_processes() -> None:
-    with TaskGroupedVectorEnv(_assignment([])) as spare:
+    with TaskGroupedVectorEnv(sim_assignment([])) as spare:
         assert (spare.num_envs, spare.num_workers, spare.worker_pids, spare.task_ids) == (0, 0, [], [])
         obs, info = spare.reset_envs([], [])
         assert obs == {} and info["task_id"] == []
@@ -322,29 +287,29 @@ def test_a_spare_pod_has_no_envs_and_no_processes() -> None:
 
 
 def test_a_task_block_of_zero_envs_builds_nothing_for_it() -> None:
-    with TaskGroupedVectorEnv(_assignment([(CHEETAH, 0), (CHEETAH, 1)])) as pod:
+    with TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 0), (CHEETAH, 1)])) as pod:
         assert (pod.num_envs, pod.num_workers, pod.task_ids) == (1, 1, [CHEETAH])
 
 
 def test_an_unknown_task_fails_before_any_process_starts() -> None:
     with pytest.raises(UnknownTaskError, match="'tiny/nope'"):
-        TaskGroupedVectorEnv(_assignment([("tiny/nope", 1)]))
+        TaskGroupedVectorEnv(sim_assignment([("tiny/nope", 1)]))
 
 
 def test_tasks_with_different_spaces_cannot_share_a_pod() -> None:
     with pytest.raises(InvalidRequestError, match="gym/Hopper-v5"):
-        TaskGroupedVectorEnv(_assignment([(CHEETAH, 1), ("gym/Hopper-v5", 1)]))
+        TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 1), ("gym/Hopper-v5", 1)]))
 
 
 def test_a_failed_build_names_the_task_and_the_problem() -> None:
     camera = CameraConfig(names=("no_such_camera",), height=8, width=8)
     with pytest.raises(SimBuildError, match=r"tiny/door \(envs 0-0\).*no_such_camera"):
-        TaskGroupedVectorEnv(_assignment([("tiny/door", 1)], camera))
+        TaskGroupedVectorEnv(sim_assignment([("tiny/door", 1)], camera))
 
 
 def test_a_dead_worker_makes_every_call_raise_sim_crashed() -> None:
-    with TaskGroupedVectorEnv(_assignment([(CHEETAH, 2)])) as pod:
-        _kill_worker(pod.worker_pids[1])
+    with TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 2)])) as pod:
+        kill_worker(pod.worker_pids[1])
         with pytest.raises(SimCrashedError):
             pod.step_envs([0], _actions(1, 6))
         with pytest.raises(SimCrashedError, match="worker 1"):
@@ -354,7 +319,7 @@ def test_a_dead_worker_makes_every_call_raise_sim_crashed() -> None:
 
 
 def test_calls_after_close_raise_sim_crashed() -> None:
-    pod = TaskGroupedVectorEnv(_assignment([(CHEETAH, 1)]))
+    pod = TaskGroupedVectorEnv(sim_assignment([(CHEETAH, 1)]))
     pod.close()
     pod.close()
     with pytest.raises(SimCrashedError, match="closed"):
@@ -372,8 +337,8 @@ def test_a_libero_pod_reproduces_the_same_libero_scene_as_this_process() -> None
         mine += [local.step(action)[0] for action in _actions(2, 7, seed=9)]
     finally:
         local.close()
-    with TaskGroupedVectorEnv(_assignment([("libero_10/0", 1)], TINY_CAMERA, render="lean")) as pod:
+    with TaskGroupedVectorEnv(sim_assignment([("libero_10/0", 1)], TINY_CAMERA, render="lean")) as pod:
         pod.step_envs([0], _actions(1, 7, seed=10))
         theirs = [pod.reset_envs([0], [7])[0]]
         theirs += [pod.step_envs([0], action[None])[0] for action in _actions(2, 7, seed=9)]
-    assert [_rows(_batched(obs)) for obs in mine] == [_rows(obs) for obs in theirs]
+    assert [env_rows(_batched(obs)) for obs in mine] == [env_rows(obs) for obs in theirs]

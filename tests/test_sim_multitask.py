@@ -7,8 +7,6 @@ and on the tiny suite with 8x8 cameras; every answer is compared with one env pe
 from __future__ import annotations
 
 import os
-import select
-import signal
 import tempfile
 from collections.abc import Iterator
 from typing import Any
@@ -16,6 +14,14 @@ from typing import Any
 import mujoco
 import numpy as np
 import pytest
+from sim_envs import (
+    CAMERAS,
+    NO_CAMERA,
+    TINY_CAMERA,
+    env_rows,
+    kill_worker,
+    sim_assignment,
+)
 
 from vecsim.batch_render import shared_renderer
 from vecsim.config import AUTO_ENVS_PER_WORKER
@@ -30,7 +36,6 @@ from vecsim.sim import (
     assignment_spaces,
     resolve_envs_per_worker,
 )
-from test_sim import CAMERAS, NO_CAMERA, TINY_CAMERA, _assignment, _rows
 
 CHEETAH_V5 = "gym/HalfCheetah-v5"
 CHEETAH_V4 = "gym/HalfCheetah-v4"
@@ -44,10 +49,10 @@ def _play(pod: TaskGroupedVectorEnv, size: int) -> list[tuple[list[bytes], np.nd
     """Reset every env to its own state, then step all, then some on both sides of each boundary."""
     ids = np.arange(pod.num_envs)
     obs, _ = pod.reset_envs(ids[::-1], (ids * 3 + 1)[::-1])
-    answers = [(_rows(obs), np.zeros(0))]
+    answers = [(env_rows(obs), np.zeros(0))]
     for seed, chosen in enumerate((ids, ids[1::2], ids[::-1])):
         out = pod.step_envs(chosen, _actions(len(chosen), size, seed=seed))
-        answers.append((_rows(out[0]), out[1]))
+        answers.append((env_rows(out[0]), out[1]))
     return answers
 
 
@@ -58,28 +63,18 @@ CHEETAH_BLOCKS = [(CHEETAH_V5, 3), (CHEETAH_V4, 2)]
 @pytest.fixture(scope="module")
 def cheetah_pods() -> Iterator[tuple[TaskGroupedVectorEnv, TaskGroupedVectorEnv]]:
     """The same two-task cheetahs, three envs per worker (v5 v5 v5 | v4 v4 pad) and one per worker."""
-    with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=3, max_episode_steps=5)) as packed:
-        with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=1, max_episode_steps=5)) as single:
+    with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=3, max_episode_steps=5)) as packed:
+        with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=1, max_episode_steps=5)) as single:
             yield packed, single
 
 
 @pytest.fixture(scope="module")
 def spanning_cheetahs() -> Iterator[TaskGroupedVectorEnv]:
     """v5 v5 | v5 v4 | v4: worker 1 hosts the last v5 env and the first v4 env."""
-    with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=2, max_episode_steps=5)) as pod:
+    with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=2, max_episode_steps=5)) as pod:
         yield pod
 
 
-
-def _kill_worker(pid: int) -> None:
-    """SIGKILL a worker process and return once it has ended (its pidfd reads ready): the pod
-    checks its workers before and after each call, and no call of the test races the kill."""
-    pidfd = os.pidfd_open(pid)
-    try:
-        os.kill(pid, signal.SIGKILL)
-        select.select([pidfd], [], [], 60)
-    finally:
-        os.close(pidfd)
 
 def test_a_worker_hosts_consecutive_envs_across_task_blocks(spanning_cheetahs: TaskGroupedVectorEnv) -> None:
     pod = spanning_cheetahs
@@ -104,11 +99,11 @@ def test_stepping_one_side_of_a_boundary_leaves_the_other_side_where_it_was(
     pod = spanning_cheetahs
     move = _actions(1, 6, seed=11)
     pod.reset_envs([2, 3], [4, 4])
-    untouched = _rows(pod.step_envs([3], move)[0])
+    untouched = env_rows(pod.step_envs([3], move)[0])
     pod.reset_envs([2, 3], [4, 4])
     pod.step_envs([2], move)
     pod.step_envs([2], move)
-    assert _rows(pod.step_envs([3], move)[0]) == untouched
+    assert env_rows(pod.step_envs([3], move)[0]) == untouched
 
 
 def test_resetting_one_side_of_a_boundary_leaves_the_other_side_where_it_was(
@@ -117,13 +112,13 @@ def test_resetting_one_side_of_a_boundary_leaves_the_other_side_where_it_was(
     pod = spanning_cheetahs
     moves = _actions(2, 6, seed=12)
     pod.reset_envs([2, 3], [6, 6])
-    first = _rows(pod.step_envs([2, 3], moves)[0])
-    second = _rows(pod.step_envs([2, 3], moves)[0])
+    first = env_rows(pod.step_envs([2, 3], moves)[0])
+    second = env_rows(pod.step_envs([2, 3], moves)[0])
     pod.reset_envs([2, 3], [6, 6])
     pod.step_envs([2, 3], moves)
     _, info = pod.reset_envs([3], [6])
     assert info["task_id"] == [CHEETAH_V4]
-    assert _rows(pod.step_envs([2, 3], moves)[0]) == [second[0], first[1]]
+    assert env_rows(pod.step_envs([2, 3], moves)[0]) == [second[0], first[1]]
 
 
 def test_an_env_of_either_task_ends_its_episode_on_its_own_count(spanning_cheetahs: TaskGroupedVectorEnv) -> None:
@@ -137,9 +132,9 @@ def test_an_env_of_either_task_ends_its_episode_on_its_own_count(spanning_cheeta
 
 
 def test_more_envs_per_worker_than_envs_makes_one_worker_with_idle_slots() -> None:
-    with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=8, max_episode_steps=5)) as wide:
+    with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=8, max_episode_steps=5)) as wide:
         assert (wide.num_workers, wide.envs_per_worker, len(wide.worker_pids)) == (1, 8, 1)
-        with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=1, max_episode_steps=5)) as single:
+        with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=1, max_episode_steps=5)) as single:
             got, expected = _play(wide, 6), _play(single, 6)
     assert [rows for rows, _ in got] == [rows for rows, _ in expected]
     with pytest.raises(UnknownEnvError, match="env 5 does not exist"):
@@ -165,23 +160,23 @@ def test_bad_input_to_a_spanning_worker_raises_its_named_error_and_changes_nothi
     pod = spanning_cheetahs
     moves = _actions(2, 6, seed=13)
     pod.reset_envs([2, 3], [1, 1])
-    expected = _rows(pod.step_envs([2, 3], moves)[0])
+    expected = env_rows(pod.step_envs([2, 3], moves)[0])
     pod.reset_envs([2, 3], [1, 1])
     with pytest.raises(error, match=message):
         call(pod)
-    assert _rows(pod.step_envs([2, 3], moves)[0]) == expected
+    assert env_rows(pod.step_envs([2, 3], moves)[0]) == expected
 
 
 def test_a_dead_worker_is_named_with_every_task_it_hosted() -> None:
-    with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=2)) as pod:
-        _kill_worker(pod.worker_pids[1])
+    with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=2)) as pod:
+        kill_worker(pod.worker_pids[1])
         with pytest.raises(SimCrashedError, match=r"worker 1 hosting gym/HalfCheetah-v5 \(envs 2-2\), "
                                                   r"gym/HalfCheetah-v4 \(envs 3-3\) died"):  # fmt: skip
             pod.reset_envs([0], [0])
 
 
 def test_a_spanning_worker_reports_its_physics_time() -> None:
-    with TaskGroupedVectorEnv(_assignment(CHEETAH_BLOCKS, envs_per_worker=5)) as pod:
+    with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=5)) as pod:
         pod.step_envs([2, 3], _actions(2, 6))
         assert pod.last_timing.physics_s > 0.0
 
@@ -192,8 +187,8 @@ TINY_BLOCKS = [("tiny/lift", 1), ("tiny/door", 2)]
 
 
 def test_robot_envs_of_two_tasks_in_one_worker_match_one_env_per_worker() -> None:
-    with TaskGroupedVectorEnv(_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)) as packed:
-        with TaskGroupedVectorEnv(_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=1)) as single:
+    with TaskGroupedVectorEnv(sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)) as packed:
+        with TaskGroupedVectorEnv(sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=1)) as single:
             assert (packed.num_workers, single.num_workers) == (1, 3)
             got, expected = _play(packed, 7), _play(single, 7)
             assert packed.last_timing.render_s > 0.0
@@ -201,7 +196,7 @@ def test_robot_envs_of_two_tasks_in_one_worker_match_one_env_per_worker() -> Non
 
 
 def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> None:
-    assignment = _assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)
+    assignment = sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)
     observation_space, action_space = assignment_spaces(assignment)
     tasks = ("tiny/lift", "tiny/door", "tiny/door")
     worker = _Worker(_WorkerSpec(tasks, (0, 1, 2), 3, TINY_CAMERA, "lean", 10, observation_space, action_space))
@@ -221,7 +216,7 @@ def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> N
 
 
 def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
-    assignment = _assignment([("tiny/lift", 1), ("tiny/stack", 1)])
+    assignment = sim_assignment([("tiny/lift", 1), ("tiny/stack", 1)])
     observation_space, action_space = assignment_spaces(assignment)
     spec = _WorkerSpec(("tiny/lift", "tiny/stack"), (0, 1), 2, NO_CAMERA, "lean", 10, observation_space, action_space)
     worker = _Worker(spec)
@@ -238,7 +233,7 @@ def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
 # auto
 
 def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> None:
-    six = _assignment([("tiny/lift", 2), ("tiny/stack", 2), ("tiny/door", 2)], TINY_CAMERA,
+    six = sim_assignment([("tiny/lift", 2), ("tiny/stack", 2), ("tiny/door", 2)], TINY_CAMERA,
                       envs_per_worker=AUTO_ENVS_PER_WORKER)  # fmt: skip
     assert resolve_envs_per_worker(six, cores=2) == 3
     assert resolve_envs_per_worker(six, cores=4) == 2

@@ -3,31 +3,20 @@ and in rendering, summed over the workers) and the pod's counters of them in ``/
 
 from __future__ import annotations
 
-import contextlib
-import json
-import socket
-import subprocess
-import sys
-import time
-from collections.abc import Iterator
-from pathlib import Path
-
 import httpx
 import numpy as np
 import pytest
+from service_procs import PodSpec, assignment
 
 from vecsim import wire
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig
 from vecsim.sim import CallTiming, TaskGroupedVectorEnv
 
 CHEETAH = "gym/HalfCheetah-v5"
 
 
 def cheetahs(camera: CameraConfig, envs: int = 2) -> Assignment:
-    return Assignment(
-        generation=0, pod="sim-0", stage_id=0, tasks=(TaskBlock(task_id=CHEETAH, env_start=0, num_envs=envs),),
-        camera=camera, envs_per_worker=1, max_episode_steps=100,
-    )  # fmt: skip
+    return assignment("sim-0", [(CHEETAH, envs)], camera=camera, envs_per_worker=1, max_episode_steps=100)
 
 
 def zeros(n: int) -> np.ndarray:
@@ -41,38 +30,12 @@ def test_a_step_with_cameras_reports_physics_and_render_seconds():
         assert env.last_timing.physics_s > 0 and env.last_timing.render_s > 0
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @pytest.fixture
-def pod_url(tmp_path: Path) -> Iterator[str]:
-    """A standalone pod of two HalfCheetahs with a 16x16 camera; killed at the end."""
-    path = tmp_path / "assignment.json"
-    path.write_text(json.dumps(cheetahs(CameraConfig(names=("render",), height=16, width=16)).model_dump(mode="json")))
-    port = free_port()
-    with (tmp_path / "pod.log").open("wb") as log:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "vecsim.cli", "pod", "--assignment", str(path), "--name", "sim-0",
-             "--host", "127.0.0.1", "--port", str(port)],
-            stdout=log, stderr=subprocess.STDOUT,
-        )  # fmt: skip
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(f"{url}/readyz", timeout=5).status_code == 200:
-                    break
-            time.sleep(0.2)
-        else:
-            pytest.fail(f"pod not ready in 60 s:\n{(tmp_path / 'pod.log').read_text()[-2000:]}")
-        yield url
-    finally:
-        process.kill()
-        process.wait(timeout=10)
+def pod_url(start_pods) -> str:
+    """A standalone pod of two HalfCheetahs with a 16x16 camera; stopped at the end."""
+    camera = CameraConfig(names=("render",), height=16, width=16)
+    (pod,) = start_pods([PodSpec("sim-0", 0, [(CHEETAH, 2)], camera=camera, max_episode_steps=100, render=None)])
+    return pod.url
 
 
 def counter(url: str, name: str) -> float:

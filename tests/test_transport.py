@@ -9,20 +9,19 @@ exceptions, so most tests run once per kind (``httpx`` being the reference).
 from __future__ import annotations
 
 import asyncio
+import functools
 import gzip
-import socket
 import threading
 import zlib
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
-from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
+from service_procs import AppThread, raw_server, wait_until
 
 from vecsim import wire
 from vecsim.transport import (
@@ -43,6 +42,11 @@ def pattern(n: int) -> bytes:
 
 
 app = FastAPI()
+
+
+@functools.cache
+def barrier(parties: int) -> threading.Barrier:
+    return threading.Barrier(parties)
 
 
 @app.api_route("/bytes/{n}", methods=["GET", "HEAD"])
@@ -82,8 +86,10 @@ def drip(chunks: int, interval: float, size: int = 1000) -> StreamingResponse:
 
 
 @app.get("/peer")
-async def peer(request: Request, hold: float = 0.0) -> Response:
-    await asyncio.sleep(hold)
+async def peer(request: Request, together: int = 1) -> Response:
+    """The client's address; with ``together=n``, only once ``n`` such requests are here at once."""
+    if together > 1:
+        await asyncio.to_thread(barrier(together).wait, 30)
     return PlainTextResponse(f"{request.client.host}:{request.client.port}")
 
 
@@ -92,64 +98,15 @@ def close() -> Response:
     return PlainTextResponse("bye", headers={"connection": "close"})
 
 
-@contextmanager
-def uvicorn_server(**config: Any) -> Iterator[str]:
-    """A uvicorn server for ``app`` on a free loopback port; yields its base URL."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    server = uvicorn.Server(
-        uvicorn.Config(app, log_level="warning", lifespan="off", timeout_graceful_shutdown=1, **config)
-    )
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    try:
-        for _ in range(200):
-            if server.started or not thread.is_alive():
-                break
-            thread.join(0.05)
-        assert server.started, "uvicorn did not start"
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(10)
-        sock.close()
-
-
-@contextmanager
-def raw_server(reply: bytes) -> Iterator[str]:
-    """A TCP server that reads one request per connection, sends ``reply`` and closes."""
-    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    listener.bind(("127.0.0.1", 0))
-    listener.listen(8)
-    listener.settimeout(0.1)
-    stop = threading.Event()
-
-    def serve() -> None:
-        while not stop.is_set():
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
-            with conn:
-                conn.settimeout(5)
-                conn.recv(65536)
-                conn.sendall(reply)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
-    finally:
-        stop.set()
-        thread.join(5)
-        listener.close()
+def uvicorn_server(**config: Any) -> AppThread:
+    """A uvicorn server for ``app`` on a free loopback port."""
+    return AppThread(app, lifespan="off", timeout_graceful_shutdown=1, **config)
 
 
 @pytest.fixture(scope="module")
 def server() -> Iterator[str]:
-    with uvicorn_server() as url:
-        yield url
+    with uvicorn_server() as served:
+        yield served.url
 
 
 def run_with(kind: str, use: Callable[[httpx.AsyncClient], Awaitable[T]], **client_kwargs: Any) -> T:
@@ -257,7 +214,7 @@ def test_sequential_requests_reuse_one_keep_alive_connection(server: str, kind: 
 @pytest.mark.parametrize("kind", KINDS)
 def test_requests_in_flight_together_each_hold_their_own_connection(server: str, kind: str) -> None:
     async def use(client: httpx.AsyncClient) -> list[str]:
-        responses = await asyncio.gather(*(client.get(f"{server}/peer", params={"hold": 0.3}) for _ in range(4)))
+        responses = await asyncio.gather(*(client.get(f"{server}/peer", params={"together": 4}) for _ in range(4)))
         return [r.text for r in responses]
 
     assert len(set(run_with(kind, use))) == 4
@@ -277,21 +234,25 @@ def test_server_that_says_connection_close_gets_a_new_connection_next_time(serve
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_connection_the_server_closed_while_idle_is_not_reused(kind: str) -> None:
-    with uvicorn_server(timeout_keep_alive=1) as url:
+    with uvicorn_server(timeout_keep_alive=1) as served:
+        url = served.url
 
-        async def use(client: httpx.AsyncClient) -> list[int]:
+        async def use(client: httpx.AsyncClient) -> list[str]:
             first = await client.get(f"{url}/peer")
-            await asyncio.sleep(1.5)  # past the server's keep-alive: it closes the idle connection
+            # Past the server's keep-alive it closes the idle connection; this loop runs meanwhile.
+            await asyncio.to_thread(wait_until, lambda: served.connections() == 0, "the idle connection closed", 30)
             second = await client.get(f"{url}/peer")
-            return [first.status_code, second.status_code]
+            assert [first.status_code, second.status_code] == [200, 200]
+            return [first.text, second.text]
 
-        assert run_with(kind, use) == [200, 200]
+        first, second = run_with(kind, use)
+        assert first != second  # the second request came on a new connection
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_concurrent_requests_to_several_servers_all_get_their_own_answers(kind: str) -> None:
     with uvicorn_server() as a, uvicorn_server() as b, uvicorn_server() as c:
-        urls = [a, b, c]
+        urls = [a.url, b.url, c.url]
 
         async def use(client: httpx.AsyncClient) -> list[tuple[str, int, bytes]]:
             jobs = [(url, 100_000 * (i + 1) + j) for i, url in enumerate(urls) for j in range(4)]
@@ -303,17 +264,6 @@ def test_concurrent_requests_to_several_servers_all_get_their_own_answers(kind: 
 
 
 # ------------------------------------------------------------------------ broken servers
-
-
-@pytest.fixture
-def refusing_port() -> Iterator[int]:
-    """A loopback port that is bound but not listening: connections are refused."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.bind(("127.0.0.1", 0))
-    try:
-        yield sock.getsockname()[1]
-    finally:
-        sock.close()
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -19,7 +19,7 @@ import pytest
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 from gymnasium.vector.utils import batch_space
-from trainer_pods import NO_CAMERA, PodSpec, standalone_pods
+from service_procs import NO_CAMERA, PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.tasks import make_env

@@ -20,8 +20,7 @@ import numpy as np
 import pytest
 from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode
-from service_procs import Server, assignment_file, pod_server, running
-from trainer_pods import job_config, local_job, wait_for_generation
+from service_procs import Server, assignment_file, job_config, local_job, pod_server, running, wait_for_generation
 
 from vecsim.client import ClientError, HTTPVectorEnv, PodUnavailableError, RoutingChangedError
 
