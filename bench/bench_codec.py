@@ -38,7 +38,7 @@ def step_payload() -> dict[str, Any]:
     """Return one step answer as a pod sends it (random pixels: nothing compresses)."""
     rng = np.random.default_rng(0)
     return {
-        "env_ids": np.arange(NUM_ENVS, dtype=np.int32),
+        "env_indices": np.arange(NUM_ENVS, dtype=np.int32),
         "obs": {
             "images": {name: rng.integers(0, 256, (NUM_ENVS, *IMAGE_SHAPE), dtype=np.uint8) for name in CAMERAS},
             "proprio": rng.standard_normal((NUM_ENVS, PROPRIO)).astype(np.float32),

@@ -387,7 +387,7 @@ def main() -> None:
     log.info("%d x %s, %d envs per worker, %d cores, load %s", n, TASK, per_worker, available_cores(), load_before)
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (calls, n, 6)).astype(np.float32)
-    env_ids = np.arange(n, dtype=np.int64)
+    env_indices = np.arange(n, dtype=np.int64)
     client_timers = Timers()
     _instrument_client(client_timers)
     camera = assignment.camera
@@ -418,7 +418,7 @@ def main() -> None:
         hop_pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
         stack.callback(hop_pool.shutdown)
         headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
-        bodies = [wire.encode({"generation": 0, "env_ids": env_ids, "actions": a}) for a in actions]
+        bodies = [wire.encode({"generation": 0, "env_indices": env_indices, "actions": a}) for a in actions]
 
         def raw_httpx(t: int) -> None:
             response = raw.post("/v1/step", content=bodies[t], headers=headers)
@@ -445,9 +445,9 @@ def main() -> None:
             exchange("GET", "/healthz")
 
         def in_process_answer(t: int) -> None:
-            obs, reward, terminated, truncated, info = local.step_envs(env_ids, actions[t])
+            obs, reward, terminated, truncated, info = local.step_envs(env_indices, actions[t])
             answer = {
-                "env_ids": env_ids.astype(np.int32), "obs": obs, "reward": np.asarray(reward, dtype=np.float64),
+                "env_indices": env_indices.astype(np.int32), "obs": obs, "reward": np.asarray(reward, dtype=np.float64),
                 "terminated": terminated, "truncated": truncated, "info": {"success": info["success"]},
             }  # fmt: skip
             batched = batch_infos(info["env_info"])
@@ -460,7 +460,7 @@ def main() -> None:
             "raw_httpx": raw_httpx,
             "raw_http_client": raw_http_client,
             "raw_healthz": raw_healthz,
-            "in_process": lambda t: local.step_envs(env_ids, actions[t]),
+            "in_process": lambda t: local.step_envs(env_indices, actions[t]),
             "in_process_answer": in_process_answer,
             "thread_hop_loop": lambda _t: hop_loop.run(_noop()),
             "thread_hop_executor": lambda _t: hop_pool.submit(int).result(),

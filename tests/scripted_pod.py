@@ -94,7 +94,7 @@ class Timeline:
 @dataclass
 class _HeldCall:
     op: str
-    env_ids: tuple[int, ...]
+    env_indices: tuple[int, ...]
     loop: asyncio.AbstractEventLoop
     gate: asyncio.Future[None]
 
@@ -107,7 +107,7 @@ def _open_gate(gate: asyncio.Future[None]) -> None:
 class ScriptedPod:
     """One pod of counter envs (see the module docstring), an ASGI app at ``self.app``.
 
-    ``calls`` lists every reset and step that arrived, in order, as ``(op, env_ids)``;
+    ``calls`` lists every reset and step that arrived, in order, as ``(op, env_indices)``;
     ``actions`` the actions array of every step, in order.
     """
 
@@ -148,12 +148,12 @@ class ScriptedPod:
         }
 
     def held(self) -> list[tuple[str, tuple[int, ...]]]:
-        """The calls that arrived and are held, oldest first, as ``(op, env_ids)``."""
+        """The calls that arrived and are held, oldest first, as ``(op, env_indices)``."""
         with self.timeline.lock:
-            return [(call.op, call.env_ids) for call in self._held]
+            return [(call.op, call.env_indices) for call in self._held]
 
     def release(self) -> tuple[str, tuple[int, ...]]:
-        """Let the oldest held call answer; return it as ``(op, env_ids)``.
+        """Let the oldest held call answer; return it as ``(op, env_indices)``.
 
         Raises:
             AssertionError: no call is held.
@@ -164,7 +164,7 @@ class ScriptedPod:
             call = self._held.pop(0)
             self.timeline.lock.notify_all()
         call.loop.call_soon_threadsafe(_open_gate, call.gate)
-        return call.op, call.env_ids
+        return call.op, call.env_indices
 
     def open(self) -> None:
         """Stop holding: every held call answers now, and later calls answer as they arrive."""
@@ -177,9 +177,9 @@ class ScriptedPod:
 
     # -- the data plane -------------------------------------------------------------------------
 
-    async def _hold(self, op: str, env_ids: np.ndarray) -> None:
+    async def _hold(self, op: str, env_indices: np.ndarray) -> None:
         """Note the call's arrival; wait until the test lets it answer."""
-        ids = tuple(int(e) for e in env_ids)
+        ids = tuple(int(e) for e in env_indices)
         gate: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         with self.timeline.lock:
             self.calls.append((op, ids))
@@ -200,53 +200,53 @@ class ScriptedPod:
             body = wire.decode(await request.body())
         except wire.WireError as exc:
             return _refuse(400, f"body is not valid wire: {exc}")
-        if not fields <= set(body) or not set(body) <= fields | {"record_env_ids"}:
+        if not fields <= set(body) or not set(body) <= fields | {"record_env_indices"}:
             return _refuse(422, f"body has fields {sorted(body)}, expected {sorted(fields)}")
         if int(body["generation"]) != self.generation:
             return _refuse(409, f"pod {self.name} holds generation {self.generation}, not {int(body['generation'])}")
-        env_ids = np.asarray(body["env_ids"])
-        if env_ids.ndim != 1 or len(set(env_ids.tolist())) != len(env_ids) or not all(
-            0 <= e < self.num_envs for e in env_ids.tolist()
+        env_indices = np.asarray(body["env_indices"])
+        if env_indices.ndim != 1 or len(set(env_indices.tolist())) != len(env_indices) or not all(
+            0 <= e < self.num_envs for e in env_indices.tolist()
         ):
-            return _refuse(422, f"env_ids {env_ids.tolist()}: not distinct env indices of 0..{self.num_envs - 1}")
+            return _refuse(422, f"env_indices {env_indices.tolist()}: not distinct env indices of 0..{self.num_envs - 1}")
         return body
 
     async def _info(self, request: Request) -> Response:
         return JSONResponse(self.info())
 
     async def _reset(self, request: Request) -> Response:
-        body = await self._read(request, {"generation", "env_ids", "state_ids"})
+        body = await self._read(request, {"generation", "env_indices", "state_ids"})
         if isinstance(body, Response):
             return body
-        env_ids, state_ids = np.asarray(body["env_ids"]), np.asarray(body["state_ids"])
-        if state_ids.shape != env_ids.shape:
-            return _refuse(422, f"state_ids has shape {list(state_ids.shape)}, env_ids {list(env_ids.shape)}")
-        await self._hold("reset", env_ids)
-        self._state_ids[env_ids], self._steps[env_ids], self._ended[env_ids] = state_ids, 0, False
-        n = len(env_ids)
+        env_indices, state_ids = np.asarray(body["env_indices"]), np.asarray(body["state_ids"])
+        if state_ids.shape != env_indices.shape:
+            return _refuse(422, f"state_ids has shape {list(state_ids.shape)}, env_indices {list(env_indices.shape)}")
+        await self._hold("reset", env_indices)
+        self._state_ids[env_indices], self._steps[env_indices], self._ended[env_indices] = state_ids, 0, False
+        n = len(env_indices)
         info = {"success": np.zeros(n, bool), "task_id": [TASK] * n}
-        return _answer({"env_ids": env_ids.astype(np.int32), "obs": self._obs(env_ids), "info": info})
+        return _answer({"env_indices": env_indices.astype(np.int32), "obs": self._obs(env_indices), "info": info})
 
     async def _step(self, request: Request) -> Response:
-        body = await self._read(request, {"generation", "env_ids", "actions"})
+        body = await self._read(request, {"generation", "env_indices", "actions"})
         if isinstance(body, Response):
             return body
-        env_ids, actions = np.asarray(body["env_ids"]), np.asarray(body["actions"])
+        env_indices, actions = np.asarray(body["env_indices"]), np.asarray(body["actions"])
         chunked = actions.ndim == 3
-        if actions.dtype != np.float32 or actions.shape[:1] != env_ids.shape or actions.shape[-1:] != (2,):
+        if actions.dtype != np.float32 or actions.shape[:1] != env_indices.shape or actions.shape[-1:] != (2,):
             return _refuse(422, f"actions {actions.dtype} {list(actions.shape)}: expected float32 [n, (K,) 2]")
-        if np.asarray(body.get("record_env_ids", ())).size:
-            return _refuse(422, f"pod {self.name} renders no cameras; record_env_ids must be empty")
-        ended = [int(e) for e in env_ids if self._ended[e]]
+        if np.asarray(body.get("record_env_indices", ())).size:
+            return _refuse(422, f"pod {self.name} renders no cameras; record_env_indices must be empty")
+        ended = [int(e) for e in env_indices if self._ended[e]]
         if ended:
             return _refuse(422, f"env(s) {ended} of pod {self.name} terminated; reset before stepping them")
-        await self._hold("step", env_ids)
+        await self._hold("step", env_indices)
         self.actions.append(np.array(actions))
         chunks = actions if chunked else actions[:, None, :]
         n, k = chunks.shape[:2]
         reward, terminated = np.zeros((n, k), np.float32), np.zeros((n, k), bool)
         num_steps = np.zeros(n, np.int32)
-        for row, env in enumerate(env_ids):
+        for row, env in enumerate(env_indices):
             for j in range(k):
                 self._steps[env] += 1
                 reward[row, j] = chunks[row, j, 0]
@@ -255,8 +255,8 @@ class ScriptedPod:
                     terminated[row, j] = self._ended[env] = True
                     break
         answer: dict[str, Any] = {
-            "env_ids": env_ids.astype(np.int32),
-            "obs": self._obs(env_ids),
+            "env_indices": env_indices.astype(np.int32),
+            "obs": self._obs(env_indices),
             "reward": reward if chunked else reward[:, 0],
             "terminated": terminated if chunked else terminated[:, 0],
             "truncated": np.zeros_like(terminated) if chunked else np.zeros(n, bool),
@@ -266,13 +266,13 @@ class ScriptedPod:
             answer["num_steps"] = num_steps
         return _answer(answer)
 
-    def _obs(self, env_ids: np.ndarray) -> dict[str, np.ndarray]:
+    def _obs(self, env_indices: np.ndarray) -> dict[str, np.ndarray]:
         state = np.stack(
             [
-                np.full(len(env_ids), self.stage_id),
-                env_ids,
-                self._state_ids[env_ids],
-                self._steps[env_ids],
+                np.full(len(env_indices), self.stage_id),
+                env_indices,
+                self._state_ids[env_indices],
+                self._steps[env_indices],
             ],
             axis=1,
         )

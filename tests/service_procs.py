@@ -440,16 +440,16 @@ def post_wire(url: str, op: str, body: dict[str, Any], token: str | None, timeou
     return httpx.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers, timeout=timeout)
 
 
-def reset_body(generation: int, env_ids: Sequence[int], state_ids: Sequence[int]) -> dict[str, Any]:
+def reset_body(generation: int, env_indices: Sequence[int], state_ids: Sequence[int]) -> dict[str, Any]:
     return {
         "generation": generation,
-        "env_ids": np.asarray(env_ids, np.int64),
+        "env_indices": np.asarray(env_indices, np.int64),
         "state_ids": np.asarray(state_ids, np.int64),
     }
 
 
-def step_body(generation: int, env_ids: Sequence[int], actions: np.ndarray) -> dict[str, Any]:
-    return {"generation": generation, "env_ids": np.asarray(env_ids, np.int64), "actions": actions}
+def step_body(generation: int, env_indices: Sequence[int], actions: np.ndarray) -> dict[str, Any]:
+    return {"generation": generation, "env_indices": np.asarray(env_indices, np.int64), "actions": actions}
 
 
 def ip(*args: str) -> None:

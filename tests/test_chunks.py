@@ -66,13 +66,13 @@ def _answer(response: httpx.Response) -> dict[str, Any]:
     return wire.decode(response.content)
 
 
-def _reset(url: str, env_ids: list[int], state_ids: list[int]) -> dict[str, Any]:
-    body = {"generation": 0, "env_ids": np.array(env_ids), "state_ids": np.array(state_ids)}
+def _reset(url: str, env_indices: list[int], state_ids: list[int]) -> dict[str, Any]:
+    body = {"generation": 0, "env_indices": np.array(env_indices), "state_ids": np.array(state_ids)}
     return _answer(_post(url, "reset", body))
 
 
-def _step(url: str, env_ids: list[int], actions: np.ndarray, **extra: Any) -> dict[str, Any]:
-    body = {"generation": 0, "env_ids": np.array(env_ids), "actions": np.asarray(actions, np.float32), **extra}
+def _step(url: str, env_indices: list[int], actions: np.ndarray, **extra: Any) -> dict[str, Any]:
+    body = {"generation": 0, "env_indices": np.array(env_indices), "actions": np.asarray(actions, np.float32), **extra}
     return _answer(_post(url, "step", body))
 
 
@@ -143,7 +143,7 @@ def test_recorded_envs_answer_every_actions_frame_and_only_they_render_more(pod)
     chunk = _chunk(2, 4, seed=2)
     _reset(pod, [0, 1, 2], [4, 4, 4])
     renders = _metric(pod, "vecsim_pod_env_renders")
-    answer = _step(pod, [0, 1], chunk, record_env_ids=np.array([1]))
+    answer = _step(pod, [0, 1], chunk, record_env_indices=np.array([1]))
     assert _metric(pod, "vecsim_pod_env_renders") - renders == 2 + 3
     frames = answer["frames"][IMAGE]
     assert frames.shape == (1, 4, CAMERA.height, CAMERA.width, 3)
@@ -158,7 +158,7 @@ def test_one_action_per_env_is_answered_as_before_chunks(pod):
     _reset(pod, [0, 1], [6, 6])
     single = _step(pod, [0], chunk[0])
     as_chunk = _step(pod, [1], chunk)
-    assert set(single) == {"env_ids", "obs", "reward", "terminated", "truncated", "info"}
+    assert set(single) == {"env_indices", "obs", "reward", "terminated", "truncated", "info"}
     assert single["reward"].shape == (1,) and single["info"]["success"].shape == (1,)
     assert single["reward"].tolist() == as_chunk["reward"][:, 0].tolist()
     assert _same_obs(single["obs"], 0, as_chunk["obs"], 0)
@@ -192,7 +192,7 @@ def test_a_bad_chunk_is_refused_naming_what_is_wrong_and_changes_no_env(pod, bad
     chunk = _chunk(2, 4, seed=4)
     sent = bad(chunk)
     actions = np.asarray(chunk if sent is None else sent, np.float32)
-    body = {"generation": 0, "env_ids": np.array([0, 1]), "actions": actions}
+    body = {"generation": 0, "env_indices": np.array([0, 1]), "actions": actions}
     response = _post(pod, "step", body)
     assert response.status_code == 422
     for word in named:
@@ -205,7 +205,7 @@ def test_json_and_wire_answer_a_chunk_alike(pod):
     chunk = _chunk(1, 3, seed=5)
     _reset(pod, [0, 1], [9, 9])
     via_wire = _step(pod, [0], chunk)
-    body = {"generation": 0, "env_ids": np.array([1]), "actions": chunk}
+    body = {"generation": 0, "env_indices": np.array([1]), "actions": chunk}
     via_json = _answer(_post(pod, "step", body, as_json=True))
     assert via_json["reward"] == via_wire["reward"].tolist()
     assert via_json["num_steps"] == via_wire["num_steps"].tolist()

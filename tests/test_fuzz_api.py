@@ -59,7 +59,7 @@ POD_OPERATIONS = [
     "POST /v1/get_attr",
     "POST /v1/call",
     "POST /v1/set_attr",
-    "GET /v1/envs/{env_id}/frame.png",
+    "GET /v1/envs/{env_index}/frame.png",
     "GET /metrics",
 ]
 CONTROLLER_OPERATIONS = [
@@ -148,7 +148,7 @@ def unseeded_envs(request: Any) -> list[int]:
     seeds = body.get("seeds")
     if not isinstance(seeds, list):
         return []
-    return [env for env, seed in zip(body["env_ids"], seeds) if seed is None]
+    return [env for env, seed in zip(body["env_indices"], seeds) if seed is None]
 
 
 def test_the_pod_operations_fuzzed_are_every_operation_of_its_schema(pods):
@@ -188,7 +188,7 @@ def test_after_the_fuzzing_every_env_is_where_the_accepted_requests_left_it(pods
     assert generations[0] == generations[1]
     if pods["unseeded"]:
         envs = sorted(pods["unseeded"])
-        body = {"generation": generations[0], "env_ids": np.array(envs), "state_ids": np.zeros(len(envs), np.int64)}
+        body = {"generation": generations[0], "env_indices": np.array(envs), "state_ids": np.zeros(len(envs), np.int64)}
         assert [post_wire(s.url, "reset", body, TOKEN).status_code for s in (target, reference)] == [200, 200]
     rng = np.random.default_rng(7)
     for _ in range(3):

@@ -174,11 +174,11 @@ def _check_pod(url: str, cases: tuple[tuple[str, int], ...], libero: dict, size:
     failures = []
     for task, state_id in cases:
         frames = libero[(task, state_id)]
-        env_ids = np.array([env_of[task]], np.int64)
-        answer = _post(url, "reset", {"env_ids": env_ids, "state_ids": np.array([state_id], np.int64)})
+        env_indices = np.array([env_of[task]], np.int64)
+        answer = _post(url, "reset", {"env_indices": env_indices, "state_ids": np.array([state_id], np.int64)})
         failures += [f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)]
         for step, action in enumerate(ACTIONS, start=1):
-            answer = _post(url, "step", {"env_ids": env_ids, "actions": action[None]})
+            answer = _post(url, "step", {"env_indices": env_indices, "actions": action[None]})
             failures += [
                 f"{task} state {state_id} {size}px step {step}: {what}"
                 for what in _differences(frames[step], answer, True)

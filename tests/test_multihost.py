@@ -226,7 +226,7 @@ def test_pods_in_other_namespaces_register_under_their_advertised_addresses(netw
 @pytest.mark.slow
 def test_a_pod_serves_the_data_plane_at_its_advertised_address(table):
     pod = table["stages"][1]["pods"][0]
-    body = {"generation": table["generation"], "env_ids": [0], "state_ids": [3]}
+    body = {"generation": table["generation"], "env_indices": [0], "state_ids": [3]}
     response = httpx.post(f"{pod['url']}/v1/reset", json=body, headers={"Accept": "application/json"}, timeout=30)
     assert response.status_code == 200, response.text
     assert response.json()["info"]["task_id"] == ["gym/Pendulum-v1"]

@@ -75,17 +75,17 @@ class Pod(Server):
         assert response.status_code == 200, f"{op}: {response.status_code} {response.text[:500]}"
         return json.loads(response.content) if accept == "json" else wire.decode(response.content)
 
-    def reset(self, env_ids: list[int], state_ids: list[int], **formats: str) -> dict[str, Any]:
-        body = {"generation": self.generation, "env_ids": np.asarray(env_ids, np.int64),
+    def reset(self, env_indices: list[int], state_ids: list[int], **formats: str) -> dict[str, Any]:
+        body = {"generation": self.generation, "env_indices": np.asarray(env_indices, np.int64),
                 "state_ids": np.asarray(state_ids, np.int64)}
         return self.call("reset", body, **formats)
 
-    def step(self, env_ids: list[int], actions: np.ndarray, **formats: str) -> dict[str, Any]:
-        body = {"generation": self.generation, "env_ids": np.asarray(env_ids, np.int64), "actions": actions}
+    def step(self, env_indices: list[int], actions: np.ndarray, **formats: str) -> dict[str, Any]:
+        body = {"generation": self.generation, "env_indices": np.asarray(env_indices, np.int64), "actions": actions}
         return self.call("step", body, **formats)
 
-    def frame(self, env_id: int, camera: str = "render") -> bytes:
-        response = self.http.get(f"/v1/envs/{env_id}/frame.png", params={"camera": camera})
+    def frame(self, env_index: int, camera: str = "render") -> bytes:
+        response = self.http.get(f"/v1/envs/{env_index}/frame.png", params={"camera": camera})
         assert response.status_code == 200, response.text
         return response.content
 
@@ -108,9 +108,9 @@ def assignment_for(pod: str, generation: int = 0, camera: CameraConfig = CAMERA)
     )
 
 
-def actions_for(env_ids: list[int], seed: int) -> np.ndarray:
+def actions_for(env_indices: list[int], seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return rng.uniform(-1, 1, size=(len(env_ids), ACTION_DIM)).astype(np.float32)
+    return rng.uniform(-1, 1, size=(len(env_indices), ACTION_DIM)).astype(np.float32)
 
 
 def assert_same_tree(a: Any, b: Any, where: str = "answer") -> None:
@@ -174,17 +174,17 @@ def pods(pod_a: Pod, pod_b: Pod) -> tuple[Pod, Pod]:
     """Both module pods, ready, with every env reset to the same states."""
     pod_a.wait_ready()
     pod_b.wait_ready()
-    env_ids, state_ids = list(range(NUM_ENVS)), [3, 4, 3, 5]
-    pod_a.reset(env_ids, state_ids)
-    pod_b.reset(env_ids, state_ids)
+    env_indices, state_ids = list(range(NUM_ENVS)), [3, 4, 3, 5]
+    pod_a.reset(env_indices, state_ids)
+    pod_b.reset(env_indices, state_ids)
     return pod_a, pod_b
 
 
 def assert_states_match(pod: Pod, reference: Pod, seed: int = 99) -> None:
     """Pod and reference step every env alike: their envs were in the same state."""
-    env_ids = list(range(NUM_ENVS))
-    actions = actions_for(env_ids, seed)
-    assert_same_tree(pod.step(env_ids, actions), reference.step(env_ids, actions), "step after")
+    env_indices = list(range(NUM_ENVS))
+    actions = actions_for(env_indices, seed)
+    assert_same_tree(pod.step(env_indices, actions), reference.step(env_indices, actions), "step after")
 
 
 # --- health, readiness, info ---------------------------------------------------------------
@@ -209,7 +209,7 @@ def test_readyz_is_503_until_an_assignment_is_built(fresh_pod: Pod) -> None:
     assert before.status_code == 503
     assert "no assignment" in before.json()["detail"]
     assert fresh_pod.info()["instance"] is None
-    refused = fresh_pod.post("reset", {"generation": 0, "env_ids": [], "state_ids": []}, send="json")
+    refused = fresh_pod.post("reset", {"generation": 0, "env_indices": [], "state_ids": []}, send="json")
     assert refused.status_code == 503
 
     put = fresh_pod.http.put("/v1/assignment", json=assignment_for("sim-2", generation=4).model_dump(mode="json"))
@@ -225,8 +225,8 @@ def test_spare_assignment_serves_zero_envs(fresh_pod: Pod) -> None:
     assert fresh_pod.http.put("/v1/assignment", json=spare.model_dump(mode="json")).status_code == 200
     fresh_pod.wait_ready()
     assert fresh_pod.info()["num_envs"] == 0
-    answer = fresh_pod.call("reset", {"generation": 1, "env_ids": [], "state_ids": []}, send="json", accept="json")
-    assert answer["env_ids"] == []
+    answer = fresh_pod.call("reset", {"generation": 1, "env_indices": [], "state_ids": []}, send="json", accept="json")
+    assert answer["env_indices"] == []
 
 
 def test_info_describes_blocks_instructions_and_spaces(pod_a: Pod) -> None:
@@ -247,7 +247,7 @@ def test_info_describes_blocks_instructions_and_spaces(pod_a: Pod) -> None:
 def test_openapi_page_documents_every_endpoint(pod_a: Pod) -> None:
     paths = pod_a.http.get("/openapi.json").json()["paths"]
     assert {"/healthz", "/readyz", "/v1/info", "/v1/assignment", "/v1/reset", "/v1/step",
-            "/v1/envs/{env_id}/frame.png", "/metrics"} <= set(paths)
+            "/v1/envs/{env_index}/frame.png", "/metrics"} <= set(paths)
     assert wire.CONTENT_TYPE in paths["/v1/step"]["post"]["requestBody"]["content"]
 
 
@@ -257,9 +257,9 @@ def test_openapi_page_documents_every_endpoint(pod_a: Pod) -> None:
 def test_same_task_and_state_id_reset_bit_identical_on_two_pods(pod_a: Pod, pod_b: Pod) -> None:
     pod_a.wait_ready()
     pod_b.wait_ready()
-    env_ids, state_ids = [0, 1, 2, 3], [7, 7, 2, 9]
-    a = pod_a.reset(env_ids, state_ids)
-    b = pod_b.reset(env_ids, state_ids)
+    env_indices, state_ids = [0, 1, 2, 3], [7, 7, 2, 9]
+    a = pod_a.reset(env_indices, state_ids)
+    b = pod_b.reset(env_indices, state_ids)
     assert_same_tree(a, b, "reset")
     assert list(a["info"]["task_id"]) == [TASKS[0], TASKS[0], TASKS[1], TASKS[1]]
     # Two envs of one task reset to one state id hold the same observation.
@@ -269,7 +269,7 @@ def test_same_task_and_state_id_reset_bit_identical_on_two_pods(pod_a: Pod, pod_
 def test_reset_answers_the_observation_layout_of_the_contract(pods: tuple[Pod, Pod]) -> None:
     pod_a, _ = pods
     answer = pod_a.reset([1, 2], [0, 1])
-    assert answer["env_ids"].dtype == np.int32 and answer["env_ids"].tolist() == [1, 2]
+    assert answer["env_indices"].dtype == np.int32 and answer["env_indices"].tolist() == [1, 2]
     assert answer["obs"]["images"]["render"].shape == (2, CAMERA.height, CAMERA.width, 3)
     assert answer["obs"]["images"]["render"].dtype == np.uint8
     assert answer["obs"]["proprio"].dtype == np.float32 and answer["obs"]["proprio"].shape == (2, 17)
@@ -281,7 +281,7 @@ def test_step_of_some_envs_leaves_the_others_untouched(pods: tuple[Pod, Pod]) ->
     untouched = [1, 3]
     frames_before = [pod_a.frame(i) for i in untouched]
     answer = pod_a.step([0, 2], actions_for([0, 2], seed=1))
-    assert answer["env_ids"].tolist() == [0, 2]
+    assert answer["env_indices"].tolist() == [0, 2]
     assert answer["reward"].shape == (2,) and answer["reward"].dtype == np.float64
     assert [pod_a.frame(i) for i in untouched] == frames_before
     actions = actions_for(untouched, seed=2)
@@ -291,10 +291,10 @@ def test_step_of_some_envs_leaves_the_others_untouched(pods: tuple[Pod, Pod]) ->
 @pytest.mark.parametrize(("send", "accept"), [("json", "json"), ("json", "wire"), ("wire", "json")])
 def test_json_and_wire_paths_agree_exactly(pods: tuple[Pod, Pod], send: str, accept: str) -> None:
     pod_a, pod_b = pods
-    env_ids = [0, 1, 2, 3]
+    env_indices = [0, 1, 2, 3]
     checks = [
-        ("reset", lambda pod, **f: pod.reset(env_ids, [1, 2, 3, 4], **f)),
-        ("step", lambda pod, **f: pod.step(env_ids, actions_for(env_ids, seed=3), **f)),
+        ("reset", lambda pod, **f: pod.reset(env_indices, [1, 2, 3, 4], **f)),
+        ("step", lambda pod, **f: pod.step(env_indices, actions_for(env_indices, seed=3), **f)),
     ]
     for op, call in checks:
         reference = call(pod_b)
@@ -308,14 +308,14 @@ def test_empty_env_lists_are_noops(pods: tuple[Pod, Pod]) -> None:
     pod_a, pod_b = pods
     frames_before = [pod_a.frame(i) for i in range(NUM_ENVS)]
     reset = pod_a.reset([], [])
-    assert reset["env_ids"].shape == (0,)
+    assert reset["env_indices"].shape == (0,)
     assert reset["obs"]["proprio"].shape == (0, 17)
     assert reset["obs"]["images"]["render"].shape == (0, CAMERA.height, CAMERA.width, 3)
     step = pod_a.step([], np.zeros((0, ACTION_DIM), np.float32))
     assert step["reward"].shape == (0,) and step["terminated"].shape == (0,)
-    empty = {"generation": pod_a.generation, "env_ids": [], "actions": []}
+    empty = {"generation": pod_a.generation, "env_indices": [], "actions": []}
     as_json = pod_a.call("step", empty, send="json", accept="json")
-    assert as_json["env_ids"] == [] and as_json["reward"] == []
+    assert as_json["env_indices"] == [] and as_json["reward"] == []
     assert [pod_a.frame(i) for i in range(NUM_ENVS)] == frames_before
     assert_states_match(pod_a, pod_b)
 
@@ -358,7 +358,7 @@ def test_metrics_count_refused_requests_by_kind(pods: tuple[Pod, Pod]) -> None:
     pod_a, _ = pods
     labels = {"kind": "stale_generation"}
     before = pod_a.metric("vecsim_pod_errors_total", labels)
-    stale = {"generation": pod_a.generation + 1, "env_ids": [0], "actions": [[0.0] * ACTION_DIM]}
+    stale = {"generation": pod_a.generation + 1, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}
     assert pod_a.post("step", stale, send="json").status_code == 409
     assert pod_a.metric("vecsim_pod_errors_total", labels) == before + 1
 
@@ -373,20 +373,20 @@ def _bad_requests() -> list[Any]:
 
     def step_json(**fields: Any) -> Any:
         def build(gen: int) -> tuple[str, bytes, dict[str, str]]:
-            body = {"generation": gen, "env_ids": [0, 2], "actions": [[0.1] * ACTION_DIM] * 2}
+            body = {"generation": gen, "env_indices": [0, 2], "actions": [[0.1] * ACTION_DIM] * 2}
             body.update({k: (v(gen) if callable(v) else v) for k, v in fields.items()})
             return "/v1/step", json.dumps({k: v for k, v in body.items() if v is not None}).encode(), json_h
         return build
 
-    def step_wire(env_ids: list[int], actions: np.ndarray) -> Any:
+    def step_wire(env_indices: list[int], actions: np.ndarray) -> Any:
         def build(gen: int) -> tuple[str, bytes, dict[str, str]]:
-            body = {"generation": gen, "env_ids": np.asarray(env_ids, np.int64), "actions": actions}
+            body = {"generation": gen, "env_indices": np.asarray(env_indices, np.int64), "actions": actions}
             return "/v1/step", wire.encode(body), wire_h
         return build
 
     def reset_json(**fields: Any) -> Any:
         def build(gen: int) -> tuple[str, bytes, dict[str, str]]:
-            body = {"generation": gen, "env_ids": [0, 2], "state_ids": [1, 1]}
+            body = {"generation": gen, "env_indices": [0, 2], "state_ids": [1, 1]}
             body.update({k: (v(gen) if callable(v) else v) for k, v in fields.items()})
             return "/v1/reset", json.dumps(body).encode(), json_h
         return build
@@ -402,10 +402,10 @@ def _bad_requests() -> list[Any]:
     return [
         pytest.param(step_json(generation=lambda g: g + 7), 409, ["generation"], id="step-stale-generation"),
         pytest.param(reset_json(generation=lambda g: g + 7), 409, ["generation"], id="reset-stale-generation"),
-        pytest.param(step_json(env_ids=[0, 4]), 404, ["4", "0..3"], id="unknown-env"),
-        pytest.param(step_json(env_ids=[-1, 0]), 404, ["-1"], id="negative-env"),
-        pytest.param(reset_json(env_ids=[9, 0]), 404, ["9"], id="reset-unknown-env"),
-        pytest.param(step_json(env_ids=[2, 2]), 422, ["env_ids", "2"], id="duplicate-env"),
+        pytest.param(step_json(env_indices=[0, 4]), 404, ["4", "0..3"], id="unknown-env"),
+        pytest.param(step_json(env_indices=[-1, 0]), 404, ["-1"], id="negative-env"),
+        pytest.param(reset_json(env_indices=[9, 0]), 404, ["9"], id="reset-unknown-env"),
+        pytest.param(step_json(env_indices=[2, 2]), 422, ["env_indices", "2"], id="duplicate-env"),
         pytest.param(step_json(actions=[[0.1] * (ACTION_DIM + 1)] * 2), 422, ["actions"], id="wrong-action-dim"),
         pytest.param(step_json(actions=[[0.1] * ACTION_DIM] * 3), 422, ["actions"], id="more-actions-than-envs"),
         pytest.param(step_json(actions=[[0.1] * ACTION_DIM, [0.1] * 2]), 422, ["actions"], id="ragged-actions"),
@@ -422,7 +422,7 @@ def _bad_requests() -> list[Any]:
         pytest.param(reset_json(state_ids=None, seeds=[1, 2], options=[3]), 422, ["options"], id="options-not-an-object"),
         pytest.param(step_wire([0, 2], np.zeros((2, ACTION_DIM, 1), np.float32)), 422, ["actions"], id="3d-actions"),
         pytest.param(step_json(actions=None), 422, ["actions"], id="missing-actions"),
-        pytest.param(step_json(env_ids=[0.0, 2.0]), 422, ["env_ids"], id="float-env-ids"),
+        pytest.param(step_json(env_indices=[0.0, 2.0]), 422, ["env_indices"], id="float-env-ids"),
         pytest.param(step_json(generation="3"), 422, ["generation"], id="string-generation"),
         pytest.param(step_json(extra=1), 422, ["extra"], id="unknown-field"),
         pytest.param(reset_json(state_ids=[1, -1]), 422, ["state_ids"], id="negative-state-id"),
@@ -488,7 +488,7 @@ def test_new_generation_with_same_content_is_adopted_without_rebuild(pods: tuple
     assert response.status_code == 200
     assert response.json() == {"generation": old + 1, "rebuilt": False}
     assert pod_a.http.get("/readyz").status_code == 200
-    stale = pod_a.post("step", {"generation": old, "env_ids": [0], "actions": [[0.0] * ACTION_DIM]}, send="json")
+    stale = pod_a.post("step", {"generation": old, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}, send="json")
     assert stale.status_code == 409
     assert str(old) in stale.json()["detail"] and str(old + 1) in stale.json()["detail"]
     # The envs kept their state: they were not rebuilt.
@@ -598,14 +598,14 @@ def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod, camera:
     assert workers, "the pod runs its envs in worker processes"
     for worker in workers:
         worker.kill()
-    response = fresh_pod.post("step", {"generation": 1, "env_ids": [0], "actions": [[0.0] * ACTION_DIM]}, send="json")
+    response = fresh_pod.post("step", {"generation": 1, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}, send="json")
     assert response.status_code == 503
     assert "crash" in response.json()["detail"]
     fresh_pod.wait_ready()
     assert fresh_pod.info()["instance"] not in (None, instance)
-    reset = {"generation": 1, "env_ids": [0, 3], "state_ids": [0, 0]}
+    reset = {"generation": 1, "env_indices": [0, 3], "state_ids": [0, 0]}
     answer = fresh_pod.call("reset", reset, send="json", accept="json")
-    assert answer["env_ids"] == [0, 3]
+    assert answer["env_indices"] == [0, 3]
 
 
 @pytest.mark.parametrize(
@@ -632,18 +632,18 @@ def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_threa
     assert put_assignment(fresh_pod, assignment_for("sim-2", generation=0, camera=NO_CAMERA)).status_code == 200
     fresh_pod.wait_ready()
     pod_b.wait_ready()
-    env_ids = list(range(NUM_ENVS))
+    env_indices = list(range(NUM_ENVS))
     answers = []
     for pod in (fresh_pod, pod_b):
-        first = pod.reset(env_ids, [1, 2, 1, 3])
-        steps = [pod.step(env_ids, actions_for(env_ids, seed)) for seed in range(3)]
+        first = pod.reset(env_indices, [1, 2, 1, 3])
+        steps = [pod.step(env_indices, actions_for(env_indices, seed)) for seed in range(3)]
         answers.append((first, steps))
     (cheap_reset, cheap_steps), (reference_reset, reference_steps) = answers
     # Without cameras the observation is the env's own float64 Box; with them, float32 proprio.
     assert isinstance(cheap_reset["obs"], np.ndarray) and cheap_reset["obs"].dtype == np.float64
     assert_same_tree(cheap_reset["obs"].astype(np.float32), reference_reset["obs"]["proprio"], "reset obs.proprio")
     for i, (cheap, reference) in enumerate(zip(cheap_steps, reference_steps)):
-        for key in ("env_ids", "reward", "terminated", "truncated"):
+        for key in ("env_indices", "reward", "terminated", "truncated"):
             assert_same_tree(cheap[key], reference[key], f"step {i} {key}")
         assert_same_tree(cheap["obs"].astype(np.float32), reference["obs"]["proprio"], f"step {i} obs.proprio")
 

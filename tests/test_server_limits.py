@@ -39,15 +39,15 @@ def pod(tmp_path_factory) -> Iterator[Server]:
 @pytest.mark.parametrize(
     ("op", "body"),
     [
-        ("reset", '{"generation": 0, "env_ids": %s, "state_ids": [0]}' % nested(100_000)),
-        ("step", '{"generation": 0, "env_ids": %s, "actions": [[0.0]]}' % nested(100_000)),
-        ("step", '{"generation": 0, "env_ids": [0], "actions": %s}' % nested(700, "0.0")),
-        ("reset", '{"generation": %s, "env_ids": [0], "state_ids": [0]}' % ("9" * 5000)),
-        ("step", '{"generation": %s, "env_ids": [0], "actions": [[0.0]]}' % ("9" * 5000)),
+        ("reset", '{"generation": 0, "env_indices": %s, "state_ids": [0]}' % nested(100_000)),
+        ("step", '{"generation": 0, "env_indices": %s, "actions": [[0.0]]}' % nested(100_000)),
+        ("step", '{"generation": 0, "env_indices": [0], "actions": %s}' % nested(700, "0.0")),
+        ("reset", '{"generation": %s, "env_indices": [0], "state_ids": [0]}' % ("9" * 5000)),
+        ("step", '{"generation": %s, "env_indices": [0], "actions": [[0.0]]}' % ("9" * 5000)),
     ],
     ids=[
-        "reset-env_ids-100000-deep",
-        "step-env_ids-100000-deep",
+        "reset-env_indices-100000-deep",
+        "step-env_indices-100000-deep",
         "step-actions-700-deep",
         "reset-generation-5000-digits",
         "step-generation-5000-digits",

@@ -49,7 +49,7 @@ def counter(url: str, name: str) -> float:
 def test_the_pod_counts_physics_and_render_seconds_of_its_steps(pod_url):
     names = ("vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
     before = {name: counter(pod_url, name) for name in names}
-    body = wire.encode({"generation": 0, "env_ids": np.array([0, 1]), "actions": zeros(2)})
+    body = wire.encode({"generation": 0, "env_indices": np.array([0, 1]), "actions": zeros(2)})
     response = httpx.post(f"{pod_url}/v1/step", content=body, headers={"Content-Type": wire.CONTENT_TYPE}, timeout=30)
     assert response.status_code == 200
     for name, value in before.items():

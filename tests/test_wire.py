@@ -60,7 +60,7 @@ def step_payload(n: int = 4) -> dict[str, Any]:
     """A small version of what a pod answers to /v1/step."""
     rng = np.random.default_rng(0)
     return {
-        "env_ids": np.arange(n, dtype=np.int32),
+        "env_indices": np.arange(n, dtype=np.int32),
         "obs": {
             "images": {"agentview": rng.integers(0, 255, (n, 8, 8, 3), dtype=np.uint8)},
             "proprio": rng.standard_normal((n, 23)).astype(np.float32),
@@ -161,7 +161,7 @@ def test_header_lists_every_array_and_keeps_leaves_under_values() -> None:
     (header_len,) = struct.unpack_from("<I", buf, 4)
     header = json.loads(buf[8 : 8 + header_len])
     paths = {tuple(spec["path"]) for spec in header["arrays"]}
-    assert ("obs", "images", "agentview") in paths and ("env_ids",) in paths
+    assert ("obs", "images", "agentview") in paths and ("env_indices",) in paths
     assert header["values"]["info"] == {"task_id": ["tiny/lift", "tiny/lift"]}
 
 

@@ -108,7 +108,7 @@ class SimBuildError(RuntimeError):
 @dataclass(frozen=True)
 class EnvError:
     """An exception an env raised in a reset, step or attribute call: ``row`` of the answer (the
-    env ``env_ids[row]``), the exception's type name and its message. The env stays as the
+    env ``env_indices[row]``), the exception's type name and its message. The env stays as the
     exception left it; the pod's other envs are not touched."""
 
     row: int
@@ -838,23 +838,23 @@ class TaskGroupedVectorEnv:
 
     # Validation: everything is checked before any worker is touched.
 
-    def _env_ids(self, env_ids: Any) -> np.ndarray:
-        ids = _int_array("env_ids", env_ids)
+    def _env_indices(self, env_indices: Any) -> np.ndarray:
+        ids = _int_array("env_indices", env_indices)
         if ids.size:
             bad = ids[(ids < 0) | (ids >= self.num_envs)]
             if bad.size:
                 have = f"envs 0..{self.num_envs - 1}" if self.num_envs else "no envs"
-                raise UnknownEnvError(f"env_ids: env {int(bad[0])} does not exist; this pod has {have}")
+                raise UnknownEnvError(f"env_indices: env {int(bad[0])} does not exist; this pod has {have}")
             values, counts = np.unique(ids, return_counts=True)
             if (counts > 1).any():
                 twice = int(values[counts > 1][0])
-                raise InvalidRequestError(f"env_ids: env {twice} is named more than once")
+                raise InvalidRequestError(f"env_indices: env {twice} is named more than once")
         return ids.astype(np.int64)
 
     def _state_ids(self, state_ids: Any, ids: np.ndarray) -> np.ndarray:
         states = _int_array("state_ids", state_ids)
         if states.size != ids.size:
-            raise InvalidRequestError(f"state_ids: {states.size} state ids for {ids.size} env_ids")
+            raise InvalidRequestError(f"state_ids: {states.size} state ids for {ids.size} env_indices")
         if ids.size:
             limits = self._num_states[ids]
             bad = np.flatnonzero((states < 0) | (states >= limits))
@@ -944,24 +944,24 @@ class TaskGroupedVectorEnv:
             )
         return chunk.astype(space.dtype)
 
-    def _record(self, record_env_ids: Any, ids: np.ndarray) -> np.ndarray:
-        """Return the rows of ``ids`` that ``record_env_ids`` names, in its order."""
-        record = _int_array("record_env_ids", record_env_ids)
+    def _record(self, record_env_indices: Any, ids: np.ndarray) -> np.ndarray:
+        """Return the rows of ``ids`` that ``record_env_indices`` names, in its order."""
+        record = _int_array("record_env_indices", record_env_indices)
         if record.size == 0:
             return np.zeros(0, dtype=np.int64)
         values, counts = np.unique(record, return_counts=True)
         if (counts > 1).any():
-            raise InvalidRequestError(f"record_env_ids: env {int(values[counts > 1][0])} is named more than once")
+            raise InvalidRequestError(f"record_env_indices: env {int(values[counts > 1][0])} is named more than once")
         rows = {int(env): row for row, env in enumerate(ids)}
         missing = [int(env) for env in record if int(env) not in rows]
         if missing:
-            raise InvalidRequestError(f"record_env_ids: env {missing[0]} is not one of the env_ids stepped")
+            raise InvalidRequestError(f"record_env_indices: env {missing[0]} is not one of the env_indices stepped")
         return np.array([rows[int(env)] for env in record], dtype=np.int64)
 
     # Calls.
 
     def reset_envs(
-        self, env_ids: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
+        self, env_indices: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
         """Reset the named envs; no other env changes.
 
@@ -971,7 +971,7 @@ class TaskGroupedVectorEnv:
         Returns:
             ``(obs, info)``: ``obs`` batched over the named envs in the given order, ``info``
             ``{"success": bool[n], "task_id": list[str], "env_info": list[dict], "errors":
-            list[EnvError]}``. Empty ``env_ids``: empty results.
+            list[EnvError]}``. Empty ``env_indices``: empty results.
 
         Raises:
             UnknownEnvError: an env index out of range.
@@ -980,7 +980,7 @@ class TaskGroupedVectorEnv:
                 or both or neither of ``state_ids`` and ``seeds``.
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
-        ids = self._env_ids(env_ids)
+        ids = self._env_indices(env_indices)
         if (state_ids is None) == (seeds is None):
             raise InvalidRequestError("give either state_ids (fixed initial states) or seeds (the envs' own reset)")
         if seeds is None:
@@ -1012,7 +1012,7 @@ class TaskGroupedVectorEnv:
         if not isinstance(seeds, (list, tuple, np.ndarray)):
             raise InvalidRequestError(f"seeds: expected a list of ints or nulls, got {type(seeds).__name__}")
         if len(seeds) != ids.size:
-            raise InvalidRequestError(f"seeds: {len(seeds)} seeds for {ids.size} env_ids")
+            raise InvalidRequestError(f"seeds: {len(seeds)} seeds for {ids.size} env_indices")
         out = np.full(ids.size, -1, dtype=np.int64)
         for i, seed in enumerate(seeds):
             if seed is None:
@@ -1040,14 +1040,14 @@ class TaskGroupedVectorEnv:
         return env_info, errors
 
     def step_envs(
-        self, env_ids: Any, actions: Any
+        self, env_indices: Any, actions: Any
     ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step the named envs one control step each; no other env advances.
 
         Returns:
             ``(obs, reward float64[n], terminated bool[n], truncated bool[n], {"success": bool[n],
             "env_info", "errors"})`` over the named envs in the given order (``env_info`` and
-            ``errors`` as in :class:`ChunkResult`). Empty ``env_ids``: empty results.
+            ``errors`` as in :class:`ChunkResult`). Empty ``env_indices``: empty results.
 
         Raises:
             UnknownEnvError: an env index out of range.
@@ -1055,7 +1055,7 @@ class TaskGroupedVectorEnv:
                 dtype, or a NaN or infinite action.
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
-        ids = self._env_ids(env_ids)
+        ids = self._env_indices(env_indices)
         result = self._step_chunks(ids, self._actions(actions, ids), np.zeros(0, dtype=np.int64))
         return (
             result.obs,
@@ -1065,29 +1065,29 @@ class TaskGroupedVectorEnv:
             {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors},
         )
 
-    def chunk_step_envs(self, env_ids: Any, actions: Any, record_env_ids: Any = ()) -> ChunkResult:
+    def chunk_step_envs(self, env_indices: Any, actions: Any, record_env_indices: Any = ()) -> ChunkResult:
         """Apply a chunk of K actions to each named env, in order; no other env advances.
 
-        Env ``env_ids[i]`` takes ``actions[i, 0]``, ``actions[i, 1]``, ... and stops at its first
+        Env ``env_indices[i]`` takes ``actions[i, 0]``, ``actions[i, 1]``, ... and stops at its first
         termination or truncation (its later actions are not applied). Cameras are rendered once
-        per env, after its last applied action; the envs in ``record_env_ids`` (a subset of
-        ``env_ids``) are also rendered after each of their other applied actions. K = 0 moves
+        per env, after its last applied action; the envs in ``record_env_indices`` (a subset of
+        ``env_indices``) are also rendered after each of their other applied actions. K = 0 moves
         nothing and answers the envs' current observations.
 
         Returns:
-            :class:`ChunkResult` over the named envs in the given order. Empty ``env_ids``: empty
+            :class:`ChunkResult` over the named envs in the given order. Empty ``env_indices``: empty
             results.
 
         Raises:
             UnknownEnvError: an env index out of range.
             InvalidRequestError: duplicate env ids, non-integer ids, a chunk of the wrong shape or
                 dtype or longer than ``max_chunk``, a NaN or infinite action (the message names
-                the env and the chunk index), or ``record_env_ids`` not among ``env_ids``.
+                the env and the chunk index), or ``record_env_indices`` not among ``env_indices``.
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
-        ids = self._env_ids(env_ids)
+        ids = self._env_indices(env_indices)
         chunk = self._chunk(actions, ids)
-        return self._step_chunks(ids, chunk, self._record(record_env_ids, ids))
+        return self._step_chunks(ids, chunk, self._record(record_env_indices, ids))
 
     def _step_chunks(self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray) -> ChunkResult:
         n, k = chunk.shape[:2]
@@ -1135,15 +1135,15 @@ class TaskGroupedVectorEnv:
             frames=frames,
         )
 
-    def frame(self, env_id: int, camera: str) -> np.ndarray:
-        """Return a copy of the uint8 HxWx3 image ``camera`` of env ``env_id`` saw last.
+    def frame(self, env_index: int, camera: str) -> np.ndarray:
+        """Return a copy of the uint8 HxWx3 image ``camera`` of env ``env_index`` saw last.
 
         Raises:
-            UnknownEnvError: no env ``env_id``.
+            UnknownEnvError: no env ``env_index``.
             InvalidRequestError: the envs have no camera ``camera``.
             SimCrashedError: the workers crashed or were closed.
         """
-        ids = self._env_ids(np.array([env_id]))
+        ids = self._env_indices(np.array([env_index]))
         images = self._images_space()
         cameras = [] if images is None else list(images.spaces)
         if camera not in cameras:
@@ -1171,7 +1171,7 @@ class TaskGroupedVectorEnv:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
-    def env_attr(self, env_ids: Any, op: str, name: Any, payload: Any = None) -> tuple[list[Any], list[EnvError]]:
+    def env_attr(self, env_indices: Any, op: str, name: Any, payload: Any = None) -> tuple[list[Any], list[EnvError]]:
         """Get (``op`` ``get``), call (``call``, ``payload`` ``(args, kwargs)``) or set (``set``,
         ``payload`` one value per env) attribute ``name`` of each named env.
 
@@ -1185,7 +1185,7 @@ class TaskGroupedVectorEnv:
                 (or one vecsim keeps: ``close``, ``reset``, ``step``, ...), a bad payload.
             SimCrashedError: a worker died, hung or failed.
         """
-        ids = self._env_ids(env_ids)
+        ids = self._env_indices(env_indices)
         if op not in ("get", "call", "set"):
             raise InvalidRequestError(f"op: {op!r} is not one of get, call, set")
         if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_"):

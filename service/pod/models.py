@@ -104,11 +104,11 @@ class _Request(BaseModel):
 
 
 class ResetRequest(_Request):
-    """``POST /v1/reset``: put ``env_ids[i]`` in fixed initial state ``state_ids[i]``, or (with
+    """``POST /v1/reset``: put ``env_indices[i]`` in fixed initial state ``state_ids[i]``, or (with
     ``seeds`` instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``."""
 
     generation: Generation = Field(description="the assignment generation the caller routes by")
-    env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
+    env_indices: IntVector = Field(description="env indices of this pod, no duplicates")
     state_ids: IntVector | None = Field(None, description="one state id per env id (fixed initial states)")
     seeds: SeedList = Field(
         None, description="instead of state_ids: one seed (int >= 0, or null) per env id, the envs' own reset"
@@ -118,17 +118,17 @@ class ResetRequest(_Request):
 
 class StepRequest(_Request):
     """``POST /v1/step``: apply ``actions[i]`` (one action, or a chunk of K in order) to
-    ``env_ids[i]``; other envs do not move."""
+    ``env_indices[i]``; other envs do not move."""
 
     generation: Generation = Field(description="the assignment generation the caller routes by")
-    env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
+    env_indices: IntVector = Field(description="env indices of this pod, no duplicates")
     actions: ActionMatrix = Field(
         description="[n, action dim], or a chunk [n, K, action dim] with K up to /v1/info's max_chunk; "
         "finite numbers (float32 on the wire)"
     )
-    record_env_ids: IntVector = Field(
+    record_env_indices: IntVector = Field(
         default_factory=lambda: np.zeros(0, dtype=np.int64),
-        description="chunks only: env ids (among env_ids) whose camera frame after every applied action "
+        description="chunks only: env ids (among env_indices) whose camera frame after every applied action "
         "is answered in frames",
     )
 
@@ -151,7 +151,7 @@ _ENV_INFO_DOC = (
 class EnvErrors(BaseModel):
     """The envs of the call whose own code raised; every other env of the call did its work."""
 
-    env_ids: list[int]
+    env_indices: list[int]
     type: list[str] = Field(description="the exception's type name, e.g. ValueError")
     message: list[str]
 
@@ -159,7 +159,7 @@ class EnvErrors(BaseModel):
 class ResetResponse(BaseModel):
     """JSON form of a reset answer (the wire form has the same keys, arrays as arrays)."""
 
-    env_ids: list[int]
+    env_indices: list[int]
     obs: Any = Field(description=_OBS_DOC)
     info: ResetInfo
     env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC)
@@ -173,7 +173,7 @@ class StepInfo(BaseModel):
 class StepResponse(BaseModel):
     """JSON form of a step answer (the wire form has the same keys, arrays as arrays)."""
 
-    env_ids: list[int]
+    env_indices: list[int]
     obs: Any = Field(description=_OBS_DOC)
     reward: list[float]
     terminated: list[bool]
@@ -191,7 +191,7 @@ class ChunkStepResponse(BaseModel):
     """JSON form of the answer to a chunk step (``actions`` ``[n, K, action dim]``): entry
     ``[i][k]`` belongs to action k of env i, 0/false after env i stopped."""
 
-    env_ids: list[int]
+    env_indices: list[int]
     obs: Any = Field(description="observation after each env's last applied action, leading dim n")
     reward: list[list[float]] = Field(description="[n, K]")
     terminated: list[list[bool]] = Field(description="[n, K]")
@@ -199,7 +199,7 @@ class ChunkStepResponse(BaseModel):
     num_steps: list[int] = Field(description="[n] actions applied: K unless the env terminated or truncated first")
     info: ChunkStepInfo
     frames: dict[str, Any] | None = Field(
-        None, description="with record_env_ids: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action"
+        None, description="with record_env_indices: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action"
     )
     env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC + "; after each env's last applied action")
     errors: EnvErrors | None = Field(None, description="present when an env raised")
@@ -209,7 +209,7 @@ class AttrRequest(_Request):
     """``POST /v1/get_attr``, ``/v1/call``, ``/v1/set_attr``: one attribute of some envs."""
 
     generation: Generation = Field(description="the assignment generation the caller routes by")
-    env_ids: IntVector = Field(description="env indices of this pod, no duplicates")
+    env_indices: IntVector = Field(description="env indices of this pod, no duplicates")
     name: str = Field(description="a public attribute of the envs (through a gym env's wrappers)")
     args: list[Any] = Field(default_factory=list, description="call only: positional arguments (JSON)")
     kwargs: dict[str, Any] = Field(default_factory=dict, description="call only: keyword arguments (JSON)")
@@ -220,7 +220,7 @@ class AttrResponse(BaseModel):
     """JSON answer of the attribute endpoints: one result per env id (null for set_attr and for
     an env that raised)."""
 
-    env_ids: list[int]
+    env_indices: list[int]
     results: list[Any]
     errors: EnvErrors | None = Field(None, description="present when an env raised")
 

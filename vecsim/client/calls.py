@@ -237,8 +237,8 @@ def _fill_answer(
         batch.env_info.append((rows, env_info))
     errors = answer.get("errors")
     if errors:
-        row_of = {int(env): int(row) for env, row in zip(answer["env_ids"], rows)}
-        for env, kind, message in zip(errors.get("env_ids", ()), errors.get("type", ()), errors.get("message", ())):
+        row_of = {int(env): int(row) for env, row in zip(answer["env_indices"], rows)}
+        for env, kind, message in zip(errors.get("env_indices", ()), errors.get("type", ()), errors.get("message", ())):
             if int(env) in row_of:
                 batch.errors.append((batch.traj_keys[row_of[int(env)]], str(kind), str(message)))
     info = answer.get("info") or {}
@@ -342,7 +342,7 @@ async def run_call(
                    values: np.ndarray, batch: StageBatch) -> None:  # fmt: skip
         rows = np.asarray(row_list)
         keys = [all_keys[r] for r in rows]
-        body = {"env_ids": np.array([routes[k].env_index for k in keys], dtype=np.int64)}
+        body = {"env_indices": np.array([routes[k].env_index for k in keys], dtype=np.int64)}
         if op == "reset" and seeded is not None:
             body["seeds"] = [seeded[0][r] for r in rows]
             if seeded[1]:
@@ -351,7 +351,7 @@ async def run_call(
             body[field] = values[rows]
         record = [k for k in keys if k in recorded]
         if record:
-            body["record_env_ids"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
+            body["record_env_indices"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
         extra = info.chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
         answer = await post(pod, op, body, keys, extra)
         try:

@@ -278,8 +278,8 @@ class PodConnection:
             raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not valid wire: {exc}") from None
         if not isinstance(answer, dict):
             raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not a mapping")
-        sent = np.asarray(body["env_ids"])
-        got = np.asarray(answer.get("env_ids", ()))
+        sent = np.asarray(body["env_indices"])
+        got = np.asarray(answer.get("env_indices", ()))
         if got.shape != sent.shape or not np.array_equal(got, sent):
             raise PodUnavailableError(
                 {self.name: held}, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"

@@ -425,7 +425,7 @@ class StageClient:
         async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
             body: dict[str, Any] = {
                 "generation": self._book.generation,
-                "env_ids": [routes[keys[r]].env_index for r in rows],
+                "env_indices": [routes[keys[r]].env_index for r in rows],
                 "name": name,
             }
             if op == "call":
@@ -442,7 +442,7 @@ class StageClient:
                 results[row] = result
             raised = answer.get("errors") or {}
             row_of = {routes[keys[r]].env_index: r for r in rows}
-            for env, kind, message in zip(raised.get("env_ids", ()), raised.get("type", ()), raised.get("message", ())):
+            for env, kind, message in zip(raised.get("env_indices", ()), raised.get("type", ()), raised.get("message", ())):
                 if env in row_of:
                     errors.append((keys[row_of[env]], str(kind), str(message)))
         return results, errors

@@ -76,7 +76,7 @@ def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]]
         answer["env_info"] = batched
     if errors:
         answer["errors"] = {
-            "env_ids": np.array([int(ids[e.row]) for e in errors], dtype=np.int32),
+            "env_indices": np.array([int(ids[e.row]) for e in errors], dtype=np.int32),
             "type": [e.type_name for e in errors],
             "message": [e.message for e in errors],
         }
@@ -105,7 +105,7 @@ async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callab
     summary="Reset envs to fixed initial states",
 )
 async def reset(request: Request, state: PodState = Depends(get_state)) -> Response:
-    """Put ``env_ids[i]`` in fixed initial state ``state_ids[i]`` of its task, or (``seeds``
+    """Put ``env_indices[i]`` in fixed initial state ``state_ids[i]`` of its task, or (``seeds``
     instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``; answers their
     observations, success, the envs' own info (``env_info``) and the envs that raised
     (``errors``). Other envs do not change; no env ids is a no-op answering empty arrays."""
@@ -114,16 +114,16 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
     as_json = wants_json(request)
 
     def work() -> Response:
-        obs, info = env.reset_envs(req.env_ids, req.state_ids, seeds=req.seeds, options=req.options)
+        obs, info = env.reset_envs(req.env_indices, req.state_ids, seeds=req.seeds, options=req.options)
         answer = {
-            "env_ids": req.env_ids.astype(np.int32),
+            "env_indices": req.env_indices.astype(np.int32),
             "obs": tuples_as_dicts(obs),
             "info": {"success": np.asarray(info["success"], dtype=bool), "task_id": list(info["task_id"])},
         }
-        return encode_answer(_own(answer, req.env_ids, info["env_info"], info["errors"]), as_json)
+        return encode_answer(_own(answer, req.env_indices, info["env_info"], info["errors"]), as_json)
 
     response = await _simulate(state, env, work)
-    state.metrics.env_resets.inc(len(req.env_ids))
+    state.metrics.env_resets.inc(len(req.env_indices))
     return response
 
 
@@ -148,7 +148,7 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
     summary="Step some envs one action or one chunk of actions each",
 )
 async def step(request: Request, state: PodState = Depends(get_state)) -> Response:
-    """Apply ``actions[i]`` to ``env_ids[i]``; answers their observations, rewards, termination
+    """Apply ``actions[i]`` to ``env_indices[i]``; answers their observations, rewards, termination
     and truncation flags and success. A chunk (``actions`` ``[n, K, action dim]``) is applied in
     order, each env stopping at its first termination or truncation, its cameras rendered once
     after its last applied action; the answer's per-action arrays are ``[n, K]`` and
@@ -158,19 +158,19 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
     is_chunk = req.actions.ndim == len(env.single_action_space.shape or ()) + 2
-    if req.record_env_ids.size and not is_chunk:
+    if req.record_env_indices.size and not is_chunk:
         raise InvalidRequestError(
-            f"record_env_ids: pod {state.settings.name} records frames of chunks only; "
+            f"record_env_indices: pod {state.settings.name} records frames of chunks only; "
             "send actions as [n, K, action dim]"
         )
 
     def work() -> tuple[Response, float, sim.CallTiming, int]:
         start = time.perf_counter()
         if is_chunk:
-            result = env.chunk_step_envs(req.env_ids, req.actions, req.record_env_ids)
+            result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices)
             elapsed = time.perf_counter() - start
             answer: dict[str, Any] = {
-                "env_ids": req.env_ids.astype(np.int32),
+                "env_indices": req.env_indices.astype(np.int32),
                 "obs": tuples_as_dicts(result.obs),
                 "reward": result.reward,
                 "terminated": result.terminated,
@@ -178,23 +178,23 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
                 "num_steps": result.num_steps,
                 "info": {"success": result.success},
             }
-            if req.record_env_ids.size:
+            if req.record_env_indices.size:
                 answer["frames"] = result.frames
-            _own(answer, req.env_ids, result.env_info, result.errors)
+            _own(answer, req.env_indices, result.env_info, result.errors)
             applied = int(result.num_steps.sum())
         else:
-            obs, reward, terminated, truncated, info = env.step_envs(req.env_ids, req.actions)
+            obs, reward, terminated, truncated, info = env.step_envs(req.env_indices, req.actions)
             elapsed = time.perf_counter() - start
             answer = {
-                "env_ids": req.env_ids.astype(np.int32),
+                "env_indices": req.env_indices.astype(np.int32),
                 "obs": tuples_as_dicts(obs),
                 "reward": np.asarray(reward, dtype=np.float64),
                 "terminated": np.asarray(terminated, dtype=bool),
                 "truncated": np.asarray(truncated, dtype=bool),
                 "info": {"success": np.asarray(info["success"], dtype=bool)},
             }
-            _own(answer, req.env_ids, info["env_info"], info["errors"])
-            applied = len(req.env_ids)
+            _own(answer, req.env_indices, info["env_info"], info["errors"])
+            applied = len(req.env_indices)
         # Read on this thread, before another call can replace it.
         timing = env.last_timing
         return encode_answer(answer, as_json), elapsed, timing, applied
@@ -209,17 +209,17 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
 
 
 @router.get(
-    "/v1/envs/{env_id}/frame.png",
+    "/v1/envs/{env_index}/frame.png",
     response_class=Response,
     responses={200: {"content": {"image/png": {}}, "description": "the camera image as PNG"}, **_ERRORS},
     summary="One env's camera image, as it is now",
 )
 async def frame(
-    env_id: int = Path(description="env index on this pod"),
+    env_index: int = Path(description="env index on this pod"),
     camera: str | None = Query(None, description="camera name; the first camera when left out"),
     state: PodState = Depends(get_state),
 ) -> Response:
-    """A PNG (height x width of the assignment's camera) of what ``camera`` of ``env_id`` saw at
+    """A PNG (height x width of the assignment's camera) of what ``camera`` of ``env_index`` saw at
     its last reset or step; nothing is stepped or reset."""
     env = state.current_env()
     if camera is None:
@@ -230,7 +230,7 @@ async def frame(
     name = camera
 
     def work() -> bytes:
-        pixels = env.frame(env_id, name)
+        pixels = env.frame(env_index, name)
         out = io.BytesIO()
         Image.fromarray(np.ascontiguousarray(pixels, dtype=np.uint8)).save(out, format="PNG")
         return out.getvalue()
@@ -246,9 +246,9 @@ async def _attr(request: Request, state: PodState, op: str) -> Response:
     payload: Any = req.values if op == "set" else (req.args, req.kwargs)
 
     def work() -> Response:
-        results, errors = env.env_attr(req.env_ids, op, req.name, payload)
-        answer = {"env_ids": req.env_ids.astype(np.int32).tolist(), "results": results}
-        return encode_answer(_own(answer, req.env_ids, [], errors), True)
+        results, errors = env.env_attr(req.env_indices, op, req.name, payload)
+        answer = {"env_indices": req.env_indices.astype(np.int32).tolist(), "results": results}
+        return encode_answer(_own(answer, req.env_indices, [], errors), True)
 
     return await _simulate(state, env, work)
 
@@ -277,6 +277,6 @@ async def call(request: Request, state: PodState = Depends(get_state)) -> Respon
 
 @router.post("/v1/set_attr", summary="Set an attribute of some envs", **_ATTR_DOC)
 async def set_attr(request: Request, state: PodState = Depends(get_state)) -> Response:
-    """Sets attribute ``name`` of env ``env_ids[i]`` to ``values[i]``; only an attribute whose
+    """Sets attribute ``name`` of env ``env_indices[i]`` to ``values[i]``; only an attribute whose
     value is JSON data (an array keeps its dtype and shape) may be set, never a method or a space."""
     return await _attr(request, state, "set")
