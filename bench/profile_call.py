@@ -136,7 +136,6 @@ class Timers:
 def _instrument_pod(timers: Timers) -> None:
     """Put timers around the pod's layers, before its app is made."""
     import fastapi.routing
-    from gymnasium.vector import AsyncVectorEnv, VectorEnv
 
     import service.pod.main as pod_main
     import service.pod.routers.envs as routes
@@ -153,9 +152,8 @@ def _instrument_pod(timers: Timers) -> None:
     timers.wrap(sim.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
     timers.wrap(sim.TaskGroupedVectorEnv, "_actions", "pod.step_envs.validate_actions")
     timers.wrap(sim.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
-    timers.wrap(AsyncVectorEnv, "step_async", "pod.AsyncVectorEnv.step_async (command to shm + pipe send)")
-    timers.wrap(AsyncVectorEnv, "step_wait", "pod.AsyncVectorEnv.step_wait (pipe recv + info merge)")
-    timers.wrap(VectorEnv, "_add_info", "pod.AsyncVectorEnv._add_info (gymnasium info merge)")
+    timers.wrap(sim._WorkerPool, "send", "pod.worker_pool.send (an order to one worker's pipe)")
+    timers.wrap(sim._WorkerPool, "receive", "pod.worker_pool.receive (the workers' replies)")
     timers.wrap(sim.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
     timers.wrap(routes, "batch_infos", "pod.batch_infos")
     timers.wrap(routes, "encode_answer", "pod.encode_answer (wire.encode + Response)")
@@ -302,19 +300,20 @@ def cpu_snapshot(timed_pod: int, other_pod: int) -> dict[str, float]:
 def _instrument_client(timers: Timers) -> None:
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
+    from vecsim.client import calls, stage
     from vecsim.client.pods import PodConnection
     from vecsim.client.stage import StageClient
 
     timers.wrap(HTTPVectorEnv, "_send_step", "client._send_step (main thread: checks, submit)")
     timers.wrap(StageClient, "_submit", "client.StageClient._submit (checks, hand to loop)")
-    timers.wrap(StageClient, "_check_actions", "client.StageClient._check_actions")
+    timers.wrap(stage, "check_actions", "client.check_actions")
     timers.wrap(HTTPVectorEnv, "_take", "client._take (main thread waits for the loop)")
-    timers.wrap(StageClient, "_run", "client.StageClient._run (on the loop thread)")
+    timers.wrap(stage, "run_call", "client.run_call (on the loop thread)")
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
     timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
     timers.wrap(wire, "encode", "client.wire.encode")
     timers.wrap(wire, "decode", "client.wire.decode")
-    timers.wrap(StageClient, "_fill", "client.StageClient._fill (answer into batch)")
+    timers.wrap(calls, "fill_batch", "client.fill_batch (answer into batch)")
     timers.wrap(HTTPVectorEnv, "_apply_step", "client._apply_step (batch -> gymnasium step result, info merge)")
     timers.wrap(HTTPVectorEnv, "_add_env_info", "client._add_env_info (merge_rows of env_info)")
 
@@ -364,7 +363,6 @@ def scale(rows: list[dict[str, Any]], calls: int) -> list[dict[str, Any]]:
 
 
 def main() -> None:
-    import gymnasium
     import httpx
     from _perf_common import setup_logging
     from common import write_result
@@ -546,7 +544,7 @@ def main() -> None:
             "cumulative_ms_per_call": {
                 k: round(1e3 * v / pcalls, 3)
                 for k, v in cumulative(pod_stats, [
-                    "select", "_run_once", "(step)", "(step_envs)", "(step_async)", "(step_wait)", "(_add_info)",
+                    "select", "_run_once", "(step)", "(step_envs)", "(send)", "(receive)",
                     "(_per_row)", "(batch_infos)", "(encode_answer)", "(parse_body)", "(decode)", "(encode)",
                     "(run_endpoint_function)", "(solve_dependencies)", "(recv_bytes)", "(send_bytes)",
                     "(_recv_bytes)", "(_send_bytes)", "(loads)", "(dumps)", "(model_validate)", "(app)",
