@@ -272,7 +272,7 @@ def test_the_control_plane_cap_bounds_an_info_answer():
         StageClient.from_pods([server.url], timeout_s=10)
 
 
-@pytest.mark.parametrize("info", [b'{"x": 1}', b'{"pod": "p", "stage_id": 0, "num_envs": "many", "tasks": []}', b'{"pod": "p", "stage_id": 0, "num_envs": 1, "tasks": [3]}'])
+@pytest.mark.parametrize("info", [b'[1, 2]', b'{"x": 1}', b'{"pod": "p", "stage_id": 0, "num_envs": "many", "tasks": []}', b'{"pod": "p", "stage_id": 0, "num_envs": 1, "tasks": [3]}'])
 def test_an_info_answer_that_is_not_a_pods_is_a_value_error_naming_the_url(info):
     reply = HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(info) + info
     with HostileServer(reply) as server, pytest.raises(ValueError, match="is not a pod's") as caught:

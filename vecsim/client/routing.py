@@ -219,41 +219,57 @@ def changed_routes(old: RoutingTable, new: RoutingTable, routes: Mapping[str, Tr
     return moved
 
 
+def _read_pod_info(url: str, info: Any) -> tuple[RoutedPod, int | None, int | None, bool]:
+    """``(pod, stage_id, generation, ready)`` out of one pod's ``/v1/info`` answer.
+
+    Raises:
+        ValueError: the answer is not a pod's (a field missing or of the wrong kind; URL named).
+    """
+    try:
+        name = str(info["pod"])
+        blocks = tuple(
+            TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
+        )
+        routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
+        stage = info.get("stage_id")
+        generation = info.get("generation")
+        return (
+            routed,
+            None if stage is None else int(stage),
+            None if generation is None else int(generation),
+            bool(info.get("ready")),
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+        raise ValueError(f"the /v1/info answer of {url} is not a pod's ({what})"[:500]) from None
+
+
 def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_id: str = "standalone") -> RoutingTable:
     """Build a routing table from pods' ``GET /v1/info`` answers, given as ``(url, info)`` pairs.
 
     For pods started without a controller (``vecsim pod --stage K ...``).
 
     Raises:
-        ValueError: a pod without a stage, pods on different generations, or a duplicate pod name.
+        ValueError: an answer that is not a pod's, a pod without a stage, pods on different
+            generations, or a duplicate pod name.
     """
-    generations = {info.get("generation") for _, info in infos}
+    pods = [_read_pod_info(url, info) for url, info in infos]
+    generations = {generation for _, _, generation, _ in pods}
     if len(generations) > 1:
         raise ValueError(f"pods disagree on the generation: {sorted(map(str, generations))}")
     by_stage: dict[int, list[RoutedPod]] = {}
     seen: set[str] = set()
-    for url, info in infos:
-        try:
-            name = str(info["pod"])
-            if name in seen:
-                raise ValueError(f"two pods are named {name}")
-            seen.add(name)
-            if info.get("stage_id") is None:
-                raise ValueError(f"pod {name} at {url} has no stage")
-            blocks = tuple(
-                TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
-            )
-            routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
-            by_stage.setdefault(int(info["stage_id"]), []).append(routed)
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            if isinstance(exc, ValueError) and str(exc).startswith(("two pods", "pod ")):
-                raise
-            what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
-            raise ValueError(f"the /v1/info answer of {url} is not a pod's ({what})"[:500]) from None
+    for routed, stage, _, _ in pods:
+        if routed.pod in seen:
+            raise ValueError(f"two pods are named {routed.pod}")
+        seen.add(routed.pod)
+        if stage is None:
+            raise ValueError(f"pod {routed.pod} at {routed.url} has no stage")
+        by_stage.setdefault(stage, []).append(routed)
     generation = generations.pop() if generations else 0
     return RoutingTable(
         generation=int(generation or 0),
         job_id=job_id,
-        ready=all(bool(info.get("ready")) for _, info in infos),
+        ready=all(ready for _, _, _, ready in pods),
         stages=tuple(RoutedStage(stage_id=s, pods=tuple(by_stage[s])) for s in sorted(by_stage)),
     )
