@@ -20,17 +20,19 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
     once the envs are built, the observation and action space of one env."""
     assignment = state.assignment
     env = state.env
-    tasks = [] if assignment is None else [
-        TaskInfo(
-            task_id=block.task_id,
-            instruction=get_task(block.task_id).instruction,
-            num_states=get_task(block.task_id).num_states,
-            env_start=block.env_start,
-            num_envs=block.num_envs,
-            reset="seed" if block.task_id.startswith("gym/") and not assignment.camera.names else "state_id",
+    tasks = []
+    for block in [] if assignment is None else assignment.tasks:
+        spec = get_task(block.task_id)
+        tasks.append(
+            TaskInfo(
+                task_id=block.task_id,
+                instruction=spec.instruction,
+                num_states=spec.num_states,
+                env_start=block.env_start,
+                num_envs=block.num_envs,
+                reset="seed" if block.task_id.startswith("gym/") and not assignment.camera.names else "state_id",
+            )
         )
-        for block in assignment.tasks
-    ]
     return InfoResponse(
         pod=state.settings.name,
         stage_id=None if assignment is None else assignment.stage_id,
