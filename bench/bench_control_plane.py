@@ -17,7 +17,7 @@ Measured, for a fleet of P pods (the baseline: the same with 10 pods, in the sam
   (``recovered_s``, which includes the spare's next heartbeat).
 
 The job has ~2% spare pods (at least one more than the pods lost) and slots of one or two tasks
-(all robot tasks: LIBERO, robosuite, tiny); the controller runs with its default intervals
+(LIBERO's five suites' tasks; tiny and robosuite ones with ``--quick``); the controller runs with its default intervals
 (heartbeat 1 s, TTL 5 s, reconcile 0.5 s), pinned to the last core, and the simulated pods (this
 process) to the others: on a cluster the pods run elsewhere, and a load generator sharing the
 controller's core would be measured as the controller's latency. Fleet sizes alternate round by
@@ -74,10 +74,13 @@ class ControllerTiming:
 
 
 def robot_tasks(with_libero: bool) -> list[str]:
-    """Every robot task id (they share one pair of spaces, so any of them can make up one job)."""
-    suites = ["tiny", "robosuite"]
+    """Task ids that can make up one job (a job's tasks share one pair of spaces): LIBERO's five
+    suites (130 tasks; their observation carries LIBERO's ``state``), or without LIBERO the tiny
+    and robosuite tasks."""
     if with_libero:
-        suites += ["libero_10", "libero_spatial", "libero_object", "libero_goal", "libero_90"]
+        suites = ["libero_10", "libero_spatial", "libero_object", "libero_goal", "libero_90"]
+    else:
+        suites = ["tiny", "robosuite"]
     return [spec.task_id for suite in suites for spec in suite_tasks(suite)]
 
 
