@@ -158,7 +158,7 @@ class Fleet:
         self._client: httpx.AsyncClient | None = None
 
     async def _put_assignment(self, request: web.Request) -> web.Response:
-        pod = self.pods.get(request.match_info["name"])
+        pod = self.pods.get(request.match_info["pod"])
         if pod is None:
             return web.json_response({"detail": "no such pod"}, status=404)
         pod.assignment = json.loads(await request.read())
@@ -167,7 +167,7 @@ class Fleet:
     async def start(self) -> None:
         """Serve the pods' assignment endpoint, register every pod, start their heartbeats."""
         app = web.Application()
-        app.router.add_put("/p/{name}/v1/assignment", self._put_assignment)
+        app.router.add_put("/p/{pod}/v1/assignment", self._put_assignment)
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
@@ -181,7 +181,7 @@ class Fleet:
 
     async def _register(self, pod: SimulatedPod) -> None:
         assert self._client is not None
-        body = {"name": pod.name, "url": pod.url, "capacity": {"max_envs": 64, "gpu": False}}
+        body = {"pod": pod.name, "url": pod.url, "capacity": {"max_envs": 64, "gpu": False}}
         response = await self._client.post(f"{self.controller_url}/v1/pods", json=body)
         if response.status_code != 200:
             raise RuntimeError(f"registering {pod.name}: {response.status_code} {response.text[:200]}")

@@ -65,7 +65,7 @@ POD_OPERATIONS = [
 CONTROLLER_OPERATIONS = [
     "POST /v1/pods",
     "GET /v1/pods",
-    "POST /v1/pods/{name}/heartbeat",
+    "POST /v1/pods/{pod}/heartbeat",
     "PUT /v1/job",
     "GET /v1/job",
     "GET /v1/routing",

@@ -162,7 +162,7 @@ class LocalJob:
         job, pods = self.config.job, self.config.pods
         # Every pod of a local job has the same capacity: checking one names the problem once.
         sample = [
-            PodRecord(name=n, url=self.pod_url(n), capacity=PodCapacity(max_envs=pods.max_envs))
+            PodRecord(pod=n, url=self.pod_url(n), capacity=PodCapacity(max_envs=pods.max_envs))
             for n in self.pod_names[:1]
         ]
         _, problems = check_job(job, sample)
