@@ -24,8 +24,8 @@ from vecsim.client import (
     StageClient,
     StaleGenerationError,
     TrajRoute,
-    env_slots,
     place_requests,
+    routed_envs,
 )
 from vecsim.client.stagestate import StageState
 from vecsim.client.routing import changed_routes, routing_from_pod_infos, validate_routes
@@ -118,9 +118,9 @@ def test_sampler_batches_always_fit_a_job_of_group_size_envs_per_task(seed, grou
         assert max(envs.values()) == 1
 
 
-def test_env_slots_are_stage_major_then_pod_then_env_index():
-    slots = env_slots(TWO_STAGES)
-    assert [(s.stage_id, s.pod, s.env_index, s.task_id) for s in slots[:6]] == [
+def test_routed_envs_are_stage_major_then_pod_then_env_index():
+    envs = routed_envs(TWO_STAGES)
+    assert [(e.stage_id, e.pod, e.env_index, e.task_id) for e in envs[:6]] == [
         (0, "sim-0", 0, "a"),
         (0, "sim-0", 1, "a"),
         (0, "sim-0", 2, "b"),
@@ -128,8 +128,8 @@ def test_env_slots_are_stage_major_then_pod_then_env_index():
         (0, "sim-1", 0, "a"),
         (0, "sim-1", 1, "c"),
     ]
-    assert len(slots) == TWO_STAGES.num_envs
-    assert {s.stage_id for s in slots[7:]} == {1}
+    assert len(envs) == TWO_STAGES.num_envs
+    assert {e.stage_id for e in envs[7:]} == {1}
 
 
 def test_routes_sharing_an_env_are_rejected_naming_both_keys():
