@@ -14,7 +14,11 @@ import yaml
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scripted_pod import TASK, TOKEN, PodRouter, ScriptedPod, Timeline, scripted_job
 from service_procs import PodSpec, job_config, local_job, standalone_pods, wait_for_generation
+from starlette.applications import Starlette
+from starlette.responses import JSONResponse
+from starlette.routing import Route
 
 from vecsim.client import (
     CapacityError,
@@ -483,3 +487,34 @@ def test_after_a_pod_restart_its_trajectories_raise_routing_changed(fresh_job):
         with pytest.raises(RoutingChangedError) as caught:
             _step_all(client, 0)
         assert caught.value.traj_keys == stage0
+
+
+class _ControllerBesidePods(httpx.AsyncBaseTransport):
+    """The client's transport: scripted pods by host name, and host ``controller`` answering
+    ``GET /v1/routing`` with ``table``; every URL it carries is noted in ``urls``."""
+
+    def __init__(self, pods: list[ScriptedPod], table: RoutingTable) -> None:
+        self.urls: list[str] = []
+        self._pods = PodRouter(pods)
+        app = Starlette(routes=[Route("/v1/routing", lambda _: JSONResponse(table.model_dump(mode="json")))])
+        self._controller = httpx.ASGITransport(app=app)
+
+    async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
+        self.urls.append(str(request.url))
+        via = self._controller if request.url.host == "controller" else self._pods
+        return await via.handle_async_request(request)
+
+    async def aclose(self) -> None:
+        await self._pods.aclose()
+        await self._controller.aclose()
+
+
+def test_a_new_batch_re_reads_the_routing_table_through_the_clients_own_transport():
+    pods, table = scripted_job(1, 2, Timeline())
+    moved = table.model_copy(update={"generation": table.generation + 1})
+    transport = _ControllerBesidePods(pods, moved)
+    with StageClient(table, controller_url="http://controller", transport=transport, token=TOKEN) as client:
+        client.reset_trajectories([(TASK, 0)])
+        assert client.routing.generation == moved.generation
+        client.reset_trajectories([(TASK, 1)])
+    assert transport.urls.count("http://controller/v1/routing") == 2
