@@ -38,6 +38,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 from _perf_common import (
+    READY_TIMEOUT_S,
     interleaved,
     paired_ratio,
     rate_spread,
@@ -86,7 +87,7 @@ def measure(
     ]
     log.info("%s: %d envs; auto picks %d envs per worker on %d cores", blocks, num_envs, per_worker, available_cores())
     with contextlib.ExitStack() as stack:
-        pods = stack.enter_context(standalone_pods(assignments))
+        pods = stack.enter_context(standalone_pods(assignments, ready_timeout_s=READY_TIMEOUT_S))
         envs: dict[str, gymnasium.vector.VectorEnv] = {
             "async": AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP),
             "pod_auto": HTTPVectorEnv(pod_urls=[pods[0].url]),

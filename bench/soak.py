@@ -25,7 +25,6 @@ import argparse
 import json
 import logging
 import math
-import socket
 import sys
 import threading
 import time
@@ -39,6 +38,7 @@ import psutil
 from common import RESULT_PREFIX, command_line, machine_info, write_result
 
 from service.runner import LocalJob
+from service.runner.ports import free_port, free_port_block
 from vecsim.client import RoutedEnv, StageClient, TrajRoute, routed_envs
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.tasks import get_task
@@ -58,38 +58,15 @@ BUILT_IN_JOB = {
 MIB = 1 << 20
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def free_port_block(n: int) -> int:
-    """The first of ``n`` consecutive free loopback ports (pod i listens on base + i)."""
-    for _ in range(50):
-        base = free_port()
-        socks = []
-        try:
-            for port in range(base, base + n):
-                sock = socket.socket()
-                socks.append(sock)
-                sock.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for sock in socks:
-                sock.close()
-    raise SystemExit(f"no {n} consecutive free ports")
-
-
 def soak_config(path: str | None) -> RunnerConfig:
     """The job to soak on free loopback ports: ``path``'s, or the built-in one."""
     config = load_job_config(path) if path else RunnerConfig.model_validate({"job": BUILT_IN_JOB})
     job = config.job
     replicas = max(config.pods.replicas, job.pods_needed)
-    pods = {**config.pods.model_dump(), "replicas": replicas, "host": "127.0.0.1", "base_port": free_port_block(replicas)}
-    controller = {**config.controller.model_dump(), "host": "127.0.0.1", "port": free_port()}
+    port = free_port()
+    base_port = free_port_block(replicas, avoid={port})
+    pods = {**config.pods.model_dump(), "replicas": replicas, "host": "127.0.0.1", "base_port": base_port}
+    controller = {**config.controller.model_dump(), "host": "127.0.0.1", "port": port}
     return RunnerConfig.model_validate({"job": job.model_dump(mode="json"), "pods": pods, "controller": controller})
 
 
