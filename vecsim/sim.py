@@ -182,15 +182,15 @@ def _zeros(space: gymnasium.Space) -> Any:
     return np.zeros(space.shape, dtype=space.dtype)
 
 
-def _write_row(out: Any, local: int, value: Any) -> None:
-    """Write one env's observation into row ``local`` (its local index) of the batched ``out``
+def _write_obs(out: Any, local: int, value: Any) -> None:
+    """Write one env's observation at its local index ``local`` into the batched ``out``
     (a dict may leave keys out: deferred images)."""
     if isinstance(value, dict):
         for key, item in value.items():
-            _write_row(out[key], local, item)
+            _write_obs(out[key], local, item)
     elif isinstance(value, tuple):
         for sub, item in zip(out, value):
-            _write_row(sub, local, item)
+            _write_obs(sub, local, item)
     else:
         out[local] = value
 
@@ -342,7 +342,7 @@ class _Worker:
             observation, info = env.reset(seed=seed, options=options)
         else:
             observation, info = env.reset(options={"state_id": state_id})
-        _write_row(self._out["obs"], local, observation)
+        _write_obs(self._out["obs"], local, observation)
         self._out["flags"][local] = 0.0
         self._out["flags"][local, 0, _SUCCESS] = info["success"]
         self._keep_info(local, info)
@@ -372,7 +372,7 @@ class _Worker:
                 frames.append(self._draw([local]))
                 render_s += time.perf_counter() - drawn
         if observation is not None:
-            _write_row(self._out["obs"], local, observation)
+            _write_obs(self._out["obs"], local, observation)
             self._keep_info(local, info)
         return frames, render_s
 
