@@ -161,7 +161,7 @@ class Controller:
             "assignment": reported.model_dump(mode="json") if reported else None,
             "ready": ready,
         }
-        return await self.api.post(f"/v1/pods/{pod}/heartbeat", json=body)
+        return await self.api.post(f"/v1/pods/{name}/heartbeat", json=body)
 
     async def report_desired(self, *names: str, ready: bool = True) -> None:
         """Every named pod heartbeats that it runs what the plan wants of it."""
