@@ -1,178 +1,67 @@
-"""Helpers of the serving benchmarks (3-7): real pods and jobs on free ports, interleaved rounds,
-memory of process trees, and a bounded wait for a quiet machine.
+"""Helpers of the serving benchmarks (3-7): interleaved rounds, paired ratios, memory of process
+trees, and a bounded wait for a quiet machine.
 
-Every process started here runs in its own session and is killed, with its whole process group,
-when its context manager exits, whatever happened inside.
+Pods, controllers and whole jobs on free loopback ports are started by the tests' helpers
+(``tests/service_procs.py``: ``standalone_pods``, ``controller_server``, ``Server``,
+``job_config``, ``local_job``), which this module puts on ``sys.path`` (the checkout's
+``tests/``) and re-exports, so benchmarks and tests run their processes one way. Every process started there runs in its own session and is killed,
+with its whole process group, when its context manager exits, whatever happened inside.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
-import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import httpx
-
 from common import spread
 
-from vecsim.config import Assignment, RunnerConfig
+import service
+from service.runner.ports import free_port, free_port_block
+
+# The checkout's tests/, beside the service package (a copy of bench/ elsewhere finds it too).
+sys.path.insert(0, str(Path(service.__file__).resolve().parents[1] / "tests"))
+from service_procs import (  # found through the path just added
+    Server,
+    clean_env,
+    controller_server,
+    job_config,
+    local_job,
+    running,
+    standalone_pods,
+)
+
+__all__ = [
+    "READY_TIMEOUT_S",
+    "PeakRSS",
+    "Server",
+    "clean_env",
+    "controller_server",
+    "free_port",
+    "free_port_block",
+    "interleaved",
+    "job_config",
+    "local_job",
+    "paired_ratio",
+    "rate_spread",
+    "running",
+    "setup_logging",
+    "standalone_pods",
+    "stepper",
+    "wait_for_quiet",
+]
 
 log = logging.getLogger("bench")
 
+# LIBERO scenes take minutes to build on a CPU: the benchmarks wait longer than the tests do.
 READY_TIMEOUT_S = 600.0
-
-
-def free_port() -> int:
-    """Return a TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def free_port_block(n: int, attempts: int = 50) -> int:
-    """Return the first of ``n`` consecutive free ports (a job's pods listen on base_port + ordinal).
-
-    Raises:
-        RuntimeError: no such block was found in ``attempts`` tries.
-    """
-    for _ in range(attempts):
-        base = free_port()
-        if base + n > 65000:
-            continue
-        try:
-            with contextlib.ExitStack() as stack:
-                for port in range(base, base + n):
-                    stack.enter_context(socket.socket()).bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError(f"no {n} consecutive free ports found")
-
-
-def _log_tail(path: Path, lines: int = 20) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
-    except OSError:
-        return "<no log>"
-
-
-def kill_group(process: subprocess.Popen[bytes]) -> None:
-    """SIGTERM the process group, then SIGKILL whatever of it is left (env workers included)."""
-    if process.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(process.pid, signal.SIGTERM)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            process.wait(timeout=15)
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(process.pid, signal.SIGKILL)
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        process.wait(timeout=5)
-
-
-def wait_until_ready(url: str, process: subprocess.Popen[bytes], log_path: Path, timeout_s: float) -> None:
-    """Block until ``url``/readyz answers 200.
-
-    Raises:
-        RuntimeError: the process exited, or was not ready within ``timeout_s`` (log tail included).
-    """
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if process.poll() is not None:
-            raise RuntimeError(f"{url} exited with {process.returncode}:\n{_log_tail(log_path)}")
-        with contextlib.suppress(httpx.TransportError):
-            if httpx.get(f"{url}/readyz", timeout=5).status_code == 200:
-                return
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"{url} not ready after {timeout_s:.0f} s:\n{_log_tail(log_path)}")
-        time.sleep(0.2)
-
-
-@contextlib.contextmanager
-def standalone_pods(
-    assignments: Sequence[Assignment], workdir: Path | None = None, cores: Sequence[str | None] | None = None
-) -> Iterator[list[Any]]:
-    """Run one ``vecsim pod`` process per assignment (no controller, no token) on free ports.
-
-    ``cores``, when given, pins pod ``i`` (its workers included) to the CPU list ``cores[i]``
-    (``taskset -c``; None leaves it free), as a CPU limit would confine a Kubernetes pod.
-
-    Yields:
-        one :class:`subprocess.Popen` per pod, each with ``.url`` set; all are killed on exit.
-    """
-    workdir = Path(workdir or tempfile.mkdtemp(prefix="vecsim-bench-"))
-    workdir.mkdir(parents=True, exist_ok=True)
-    env = {k: v for k, v in os.environ.items() if k not in ("CONTROLLER_URL", "POD_IP", "VECSIM_ADVERTISE_URL")}
-    env.pop("VECSIM_TOKEN", None)
-    env.setdefault("MUJOCO_GL", "egl")
-    pods: list[Any] = []
-    try:
-        for i, assignment in enumerate(assignments):
-            pin = cores[i] if cores is not None else None
-            path = workdir / f"{assignment.pod}.json"
-            path.write_text(json.dumps(assignment.model_dump(mode="json")))
-            port = free_port()
-            log_path = workdir / f"{assignment.pod}.log"
-            argv = [sys.executable, "-m", "vecsim.cli", "pod", "--assignment", str(path), "--name", assignment.pod,
-                    "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]  # fmt: skip
-            if pin is not None:
-                argv = ["taskset", "-c", pin, *argv]
-            with log_path.open("wb") as out:
-                process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-            process.url = f"http://127.0.0.1:{port}"  # type: ignore[attr-defined]
-            process.log_path = log_path  # type: ignore[attr-defined]
-            pods.append(process)
-        for process in pods:
-            wait_until_ready(process.url, process, process.log_path, READY_TIMEOUT_S)
-        yield pods
-    finally:
-        for process in pods:
-            kill_group(process)
-
-
-def job_config(job: Mapping[str, Any], replicas: int, max_envs: int = 256) -> RunnerConfig:
-    """Return a RunnerConfig for ``job`` with ``replicas`` pods, every port free, quick heartbeats."""
-    return RunnerConfig.model_validate(
-        {
-            "job": dict(job),
-            "pods": {"replicas": replicas, "base_port": free_port_block(replicas), "max_envs": max_envs},
-            "controller": {
-                "port": free_port(),
-                "heartbeat_interval_s": 0.5,
-                "heartbeat_ttl_s": 5.0,
-                "reconcile_interval_s": 0.25,
-            },
-        }
-    )
-
-
-@contextlib.contextmanager
-def local_job(config: RunnerConfig, workdir: Path | None = None) -> Iterator[Any]:
-    """Run a whole job (controller + pods, ``service.runner.LocalJob``) until it is ready.
-
-    Yields:
-        the started :class:`LocalJob` (``controller_url``, ``token``, ``processes``); stopped on exit.
-    """
-    from service.runner.job import LocalJob
-
-    job = LocalJob(config, log_dir=workdir or tempfile.mkdtemp(prefix="vecsim-bench-job-"), grace_s=10)
-    try:
-        job.start()
-        job.wait_ready(timeout=READY_TIMEOUT_S)
-        yield job
-    finally:
-        job.stop()
 
 
 class PeakRSS:

@@ -37,15 +37,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from _perf_common import (
-    interleaved,
-    paired_ratio,
-    rate_spread,
-    setup_logging,
-    standalone_pods,
-    stepper,
-    wait_for_quiet,
-)
+from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
 from common import write_result
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
@@ -86,7 +78,7 @@ def measure(
     ]
     log.info("%s: %d envs; auto picks %d envs per worker on %d cores", blocks, num_envs, per_worker, available_cores())
     with contextlib.ExitStack() as stack:
-        pods = stack.enter_context(standalone_pods(assignments))
+        pods = stack.enter_context(standalone_pods(assignments, ready_timeout_s=READY_TIMEOUT_S))
         envs: dict[str, gymnasium.vector.VectorEnv] = {
             "async": AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP),
             "pod_auto": HTTPVectorEnv(pod_urls=[pods[0].url]),

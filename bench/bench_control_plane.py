@@ -39,8 +39,6 @@ import math
 import os
 import secrets
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -49,11 +47,17 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from _perf_common import free_port, kill_group, setup_logging, wait_for_quiet
+from _perf_common import (
+    controller_server,
+    free_port,
+    running,
+    setup_logging,
+    wait_for_quiet,
+)
 from aiohttp import web
 from common import write_result
 
-from vecsim.auth import TOKEN_ENV, bearer_headers
+from vecsim.auth import bearer_headers
 from vecsim.tasks import suite_tasks
 from vecsim.transport import AiohttpTransport, make_async_client
 
@@ -104,32 +108,14 @@ def job_for(pods: int, tasks: list[str], losses: int) -> dict[str, Any]:
 @contextlib.contextmanager
 def controller_process(timing: ControllerTiming, token: str, workdir: Path, core: int) -> Iterator[str]:
     """Run ``vecsim controller`` on a free port, pinned to ``core``, until the block ends; yield its URL."""
-    port = free_port()
-    log_path = workdir / f"controller-{port}.log"
-    env = {**os.environ, TOKEN_ENV: token}
-    with log_path.open("wb") as out:
-        process = subprocess.Popen(
-            ["taskset", "-c", str(core),
-             sys.executable, "-m", "vecsim.cli", "controller", "--host", "127.0.0.1", "--port", str(port),
-             "--heartbeat-interval", str(timing.heartbeat_interval_s),
-             "--heartbeat-ttl", str(timing.heartbeat_ttl_s),
-             "--reconcile-interval", str(timing.reconcile_interval_s),
-             "--adopt-grace", "0", "--log-level", "warning"],
-            stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True,
-        )  # fmt: skip
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if process.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"controller did not start:\n{log_path.read_text(errors='replace')[-2000:]}")
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
-                    break
-            time.sleep(0.2)
-        yield url
-    finally:
-        kill_group(process)
+    args = [
+        "--heartbeat-interval", str(timing.heartbeat_interval_s),
+        "--heartbeat-ttl", str(timing.heartbeat_ttl_s),
+        "--reconcile-interval", str(timing.reconcile_interval_s),
+        "--adopt-grace", "0", "--log-level", "warning",
+    ]  # fmt: skip
+    with running(controller_server(workdir, args=args, token=token, wrap=("taskset", "-c", str(core)))) as server:
+        yield server.url
 
 
 @dataclass
@@ -161,7 +147,7 @@ class Fleet:
         self._client: httpx.AsyncClient | None = None
 
     async def _put_assignment(self, request: web.Request) -> web.Response:
-        pod = self.pods.get(request.match_info["name"])
+        pod = self.pods.get(request.match_info["pod"])
         if pod is None:
             return web.json_response({"detail": "no such pod"}, status=404)
         pod.assignment = json.loads(await request.read())
@@ -170,7 +156,7 @@ class Fleet:
     async def start(self) -> None:
         """Serve the pods' assignment endpoint, register every pod, start their heartbeats."""
         app = web.Application()
-        app.router.add_put("/p/{name}/v1/assignment", self._put_assignment)
+        app.router.add_put("/p/{pod}/v1/assignment", self._put_assignment)
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
@@ -184,7 +170,7 @@ class Fleet:
 
     async def _register(self, pod: SimulatedPod) -> None:
         assert self._client is not None
-        body = {"name": pod.name, "url": pod.url, "capacity": {"max_envs": 64, "gpu": False}}
+        body = {"pod": pod.name, "url": pod.url, "capacity": {"max_envs": 64, "gpu": False}}
         response = await self._client.post(f"{self.controller_url}/v1/pods", json=body)
         if response.status_code != 200:
             raise RuntimeError(f"registering {pod.name}: {response.status_code} {response.text[:200]}")

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from _perf_common import interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
+from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
 from common import img_dir, write_result
 from gymnasium import spaces
 from torch import nn
@@ -208,7 +208,9 @@ def main() -> None:
     ]
     requests = [(task, i % 50) for i in range(envs)]
     with contextlib.ExitStack() as stack:
-        pods = stack.enter_context(standalone_pods(assignments, cores=[str(sim_core)] * PODS))
+        pods = stack.enter_context(
+            standalone_pods(assignments, cores=[str(sim_core)] * PODS, ready_timeout_s=READY_TIMEOUT_S)
+        )
         clients = {s: StageClient(routing(pods, task, s, per_pod)) for s in (1, 2, 4)}
         for client in clients.values():
             stack.callback(client.close)

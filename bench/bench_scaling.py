@@ -25,7 +25,7 @@ import logging
 import os
 from typing import Any
 
-from _perf_common import interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
+from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
 from common import img_dir, write_result
 
 from vecsim.client import HTTPVectorEnv
@@ -59,7 +59,7 @@ def measure(task_id: str, per_pod: int, camera: CameraConfig, counts: list[int],
     pins = [str(cores[i % len(cores)]) for i in range(len(assignments))]
     log.info("%s x %d per pod, pods %s pinned to cores %s", task_id, per_pod, counts, pins)
     with contextlib.ExitStack() as stack:
-        pods = stack.enter_context(standalone_pods(assignments, cores=pins))
+        pods = stack.enter_context(standalone_pods(assignments, cores=pins, ready_timeout_s=READY_TIMEOUT_S))
         envs = {p: HTTPVectorEnv(pod_urls=[pod.url for pod in pods[:p]]) for p in counts}
         for env in envs.values():
             stack.callback(env.close)

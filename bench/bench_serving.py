@@ -36,6 +36,7 @@ from typing import Any
 
 import psutil
 from _perf_common import (
+    READY_TIMEOUT_S,
     PeakRSS,
     interleaved,
     job_config,
@@ -84,6 +85,12 @@ def _job(name: str, tasks: list[str], per_task: int, camera: CameraConfig, envs_
     }
 
 
+def _local_job(job: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
+    """``job`` run by one pod on free ports (room for a LIBERO set's envs), until it is ready."""
+    config = job_config(job, replicas=1, max_envs=256, heartbeat_ttl_s=5.0)
+    return local_job(config, ready_timeout_s=READY_TIMEOUT_S)
+
+
 def measure(
     name: str, tasks: list[str], per_task: int, camera: CameraConfig, steps: int, rounds: int, with_auto: bool
 ) -> dict[str, Any]:
@@ -92,11 +99,11 @@ def measure(
     makers = [(lambda task_id=task_id: make_env(task_id, camera, "lean", CAP)) for task_id in tasks for _ in range(per_task)]
     log.info("%s: %d envs (%s x %d), camera %s", name, num_envs, tasks, per_task, camera.model_dump())
     with contextlib.ExitStack() as stack:
-        running = stack.enter_context(local_job(job_config(_job(name, tasks, per_task, camera, 1), replicas=1)))
+        running = stack.enter_context(_local_job(_job(name, tasks, per_task, camera, 1)))
         envs: dict[str, Any] = {"http": HTTPVectorEnv(controller_url=running.controller_url, token=running.token)}
         if with_auto:
             auto_job = _job(f"{name}-auto", tasks, per_task, camera, AUTO_ENVS_PER_WORKER)
-            packed = stack.enter_context(local_job(job_config(auto_job, replicas=1)))
+            packed = stack.enter_context(_local_job(auto_job))
             envs["http_auto"] = HTTPVectorEnv(controller_url=packed.controller_url, token=packed.token)
         envs["inproc"] = AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP)
         for env in envs.values():

@@ -48,7 +48,6 @@ import os
 import pstats
 import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -233,33 +232,27 @@ def _assignment(pod: str) -> Any:
 
 @contextlib.contextmanager
 def pod_process(mode: str, workdir: Path) -> Iterator[Any]:
-    """One pod of ``_assignment`` started through ``--serve-pod``; killed on exit."""
-    from _perf_common import free_port, kill_group, wait_until_ready
+    """One pod of ``_assignment`` started through ``--serve-pod`` (a ``Server`` whose record
+    goes beside its log, as ``<name>.out``: :func:`collect`); stopped on exit."""
+    from _perf_common import READY_TIMEOUT_S, Server, clean_env, free_port, running
 
     name = f"sim-{mode}"
     path = workdir / f"{name}.json"
     path.write_text(json.dumps(_assignment(name).model_dump(mode="json")))
     port = free_port()
-    out = workdir / f"{name}.out"
-    env = {k: v for k, v in os.environ.items() if k not in ("CONTROLLER_URL", "POD_IP", "VECSIM_ADVERTISE_URL", "VECSIM_TOKEN")}
-    env.setdefault("MUJOCO_GL", "egl")
-    argv = [sys.executable, __file__, "--serve-pod", mode, "--serve-out", str(out), "--",
+    log_path = workdir / f"{name}.log"
+    argv = ["--serve-pod", mode, "--serve-out", str(log_path.with_suffix(".out")), "--",
             "--assignment", str(path), "--name", name, "--host", "127.0.0.1", "--port", str(port),
             "--log-level", "warning"]  # fmt: skip
-    log_path = workdir / f"{name}.log"
-    with log_path.open("wb") as log_file:
-        process = subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-    process.url, process.port, process.out = f"http://127.0.0.1:{port}", port, out  # type: ignore[attr-defined]
-    try:
-        wait_until_ready(process.url, process, log_path, 600)  # type: ignore[attr-defined]
-        yield process
-    finally:
-        kill_group(process)
+    server = Server(name, argv, port, clean_env(), log_path, program=(sys.executable, __file__))
+    with running(server):
+        server.wait_ready(READY_TIMEOUT_S)
+        yield server
 
 
 def collect(process: Any, timeout_s: float = 60.0) -> Path:
     """Ask a ``--serve-pod`` process for its record (SIGUSR1); return the file once written."""
-    out: Path = process.out
+    out: Path = process.log_path.with_suffix(".out")
     with contextlib.suppress(FileNotFoundError):
         out.unlink()
     os.kill(process.pid, signal.SIGUSR1)

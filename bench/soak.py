@@ -25,7 +25,6 @@ import argparse
 import json
 import logging
 import math
-import socket
 import sys
 import threading
 import time
@@ -39,7 +38,8 @@ import psutil
 from common import RESULT_PREFIX, command_line, machine_info, write_result
 
 from service.runner import LocalJob
-from vecsim.client import EnvSlot, StageClient, TrajRoute, env_slots
+from service.runner.ports import free_port, free_port_block
+from vecsim.client import RoutedEnv, StageClient, TrajRoute, routed_envs
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.tasks import get_task
 
@@ -58,38 +58,15 @@ BUILT_IN_JOB = {
 MIB = 1 << 20
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def free_port_block(n: int) -> int:
-    """The first of ``n`` consecutive free loopback ports (pod i listens on base + i)."""
-    for _ in range(50):
-        base = free_port()
-        socks = []
-        try:
-            for port in range(base, base + n):
-                sock = socket.socket()
-                socks.append(sock)
-                sock.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for sock in socks:
-                sock.close()
-    raise SystemExit(f"no {n} consecutive free ports")
-
-
 def soak_config(path: str | None) -> RunnerConfig:
     """The job to soak on free loopback ports: ``path``'s, or the built-in one."""
     config = load_job_config(path) if path else RunnerConfig.model_validate({"job": BUILT_IN_JOB})
     job = config.job
     replicas = max(config.pods.replicas, job.pods_needed)
-    pods = {**config.pods.model_dump(), "replicas": replicas, "host": "127.0.0.1", "base_port": free_port_block(replicas)}
-    controller = {**config.controller.model_dump(), "host": "127.0.0.1", "port": free_port()}
+    port = free_port()
+    base_port = free_port_block(replicas, avoid={port})
+    pods = {**config.pods.model_dump(), "replicas": replicas, "host": "127.0.0.1", "base_port": base_port}
+    controller = {**config.controller.model_dump(), "host": "127.0.0.1", "port": port}
     return RunnerConfig.model_validate({"job": job.model_dump(mode="json"), "pods": pods, "controller": controller})
 
 
@@ -126,15 +103,15 @@ def run_client(
     log_: ClientLog,
     controller_url: str,
     token: str,
-    slots: Sequence[EnvSlot],
+    envs: Sequence[RoutedEnv],
     horizon: int,
     stop: threading.Event,
     seed: int,
 ) -> None:
-    """Step ``slots`` (this client's envs) stage by stage until ``stop``; record into ``log_``,
-    errors included (a client that cannot go on records why and ends)."""
+    """Step ``envs`` (this client's share of the job's envs) stage by stage until ``stop``;
+    record into ``log_``, errors included (a client that cannot go on records why and ends)."""
     try:
-        _client_loop(log_, controller_url, token, slots, horizon, stop, seed)
+        _client_loop(log_, controller_url, token, envs, horizon, stop, seed)
     except Exception as exc:
         log_.errors.append(f"client ended: {type(exc).__name__}: {exc}")
         log_.warm.set()
@@ -144,19 +121,19 @@ def _client_loop(
     log_: ClientLog,
     controller_url: str,
     token: str,
-    slots: Sequence[EnvSlot],
+    envs: Sequence[RoutedEnv],
     horizon: int,
     stop: threading.Event,
     seed: int,
 ) -> None:
     rng = np.random.default_rng(seed)
-    states = {slot.task_id: get_task(slot.task_id).num_states for slot in slots}
+    states = {env.task_id: get_task(env.task_id).num_states for env in envs}
     with StageClient.from_controller(controller_url, timeout_s=60, wait_ready_s=60, token=token) as client:
         routes = {
-            f"{log_.name}/{slot.pod}/{slot.env_index}": TrajRoute(
-                slot.pod, slot.env_index, slot.task_id, slot.stage_id, int(rng.integers(states[slot.task_id]))
+            f"{log_.name}/{env.pod}/{env.env_index}": TrajRoute(
+                env.pod, env.env_index, env.task_id, env.stage_id, int(rng.integers(states[env.task_id]))
             )
-            for slot in slots
+            for env in envs
         }
         client.set_routes(routes)
         space = client.action_space
@@ -240,15 +217,15 @@ def main(argv: list[str] | None = None) -> int:
     config = soak_config(args.config)
     with LocalJob(config, log_dir=args.log_dir, grace_s=10) as job:
         table = job.wait_ready(timeout=900)
-        slots = env_slots(table)
-        if len(slots) < args.clients:
-            raise SystemExit(f"the job has {len(slots)} envs, fewer than --clients {args.clients}")
+        envs = routed_envs(table)
+        if len(envs) < args.clients:
+            raise SystemExit(f"the job has {len(envs)} envs, fewer than --clients {args.clients}")
         logs = [ClientLog(f"client{i}") for i in range(args.clients)]
         stop = threading.Event()
         threads = [
             threading.Thread(
                 target=run_client,
-                args=(logs[i], job.controller_url, job.token, slots[i :: args.clients], args.horizon, stop, i),
+                args=(logs[i], job.controller_url, job.token, envs[i :: args.clients], args.horizon, stop, i),
                 name=f"soak-client{i}",
                 daemon=True,
             )
@@ -281,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = {
         "job": config.job.job_id,
         "clients": args.clients,
-        "envs": len(slots),
+        "envs": len(envs),
         "duration_s": round(elapsed, 1),
         "window_s": window_s,
         "errors": len(errors),

@@ -9,7 +9,7 @@ from vecsim.config import Assignment
 
 
 class Heartbeat(BaseModel):
-    """``POST /v1/pods/{name}/heartbeat``: what the pod runs now."""
+    """``POST /v1/pods/{pod}/heartbeat``: what the pod runs now."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import socket
 import time
 from pathlib import Path
 
 import torch
 
 from service.runner import LocalJob, format_status
-from service.runner.job import port_free
+from service.runner.ports import free_port, free_port_block, port_free
 from vecsim.client import StageClient
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
@@ -51,12 +50,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _free_port(host: str) -> int:
-    with socket.socket() as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
-
-
 def with_free_ports(config: RunnerConfig) -> RunnerConfig:
     """Return ``config`` moved to free ports when its own are taken (a demo should just run).
 
@@ -70,21 +63,15 @@ def with_free_ports(config: RunnerConfig) -> RunnerConfig:
     )
     if not taken:
         return config
-    controller_port = _free_port(host)
-    for _ in range(50):
-        base = _free_port(pods.host)
-        block = range(base, base + pods.replicas)
-        if base + pods.replicas < 65000 and controller_port not in block and all(
-            port_free(pods.host, p) for p in block
-        ):
-            logger.info("default ports are taken: controller on %d, pods from %d", controller_port, base)
-            return config.model_copy(
-                update={
-                    "controller": config.controller.model_copy(update={"port": controller_port}),
-                    "pods": pods.model_copy(update={"base_port": base}),
-                }
-            )
-    raise RuntimeError("found no block of free ports for the pods; free some ports and retry")
+    controller_port = free_port(host)
+    base = free_port_block(pods.replicas, pods.host, avoid={controller_port})
+    logger.info("default ports are taken: controller on %d, pods from %d", controller_port, base)
+    return config.model_copy(
+        update={
+            "controller": config.controller.model_copy(update={"port": controller_port}),
+            "pods": pods.model_copy(update={"base_port": base}),
+        }
+    )
 
 
 def summary_lines(result: RolloutResult, num_stages: int) -> list[str]:

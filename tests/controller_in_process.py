@@ -45,7 +45,7 @@ class Controller:
         return await Reconciler(self.state, self.pushes).run_once()
 
     async def register(self, name: str, max_envs: int = 64) -> None:
-        body = {"name": name, "url": f"http://127.0.0.1:9/{name}", "capacity": {"max_envs": max_envs}}
+        body = {"pod": name, "url": f"http://127.0.0.1:9/{name}", "capacity": {"max_envs": max_envs}}
         assert (await self.api.post("/v1/pods", json=body)).status_code == 200
 
     async def heartbeat(self, name: str, reported: Assignment | None, ready: bool = True) -> None:

@@ -1,9 +1,10 @@
-"""The tests' one set of helpers for what runs on loopback: free ports, the one bounded
+"""The one set of helpers for what tests and benchmarks run on loopback: the one bounded
 :func:`wait_until`, `vecsim pod` and `vecsim controller` processes (:class:`Server`; standalone
-pods from :class:`PodSpec` with :func:`standalone_pods`; whole jobs with :func:`local_job`), ASGI
-apps served by uvicorn in a thread (:class:`AppThread`) and raw socket servers that send what no
-pod would (:func:`raw_server`). Test modules import these from here, never from each other;
-``conftest.py`` exposes the common ones as fixtures.
+pods from a :class:`PodSpec` or an assignment with :func:`standalone_pods`; whole jobs with
+:func:`local_job`), ASGI apps served by uvicorn in a thread (:class:`AppThread`) and raw socket
+servers that send what no pod would (:func:`raw_server`); free ports come from
+``service.runner.ports``. Test modules import these from here, never from each other;
+``conftest.py`` exposes the common ones as fixtures; ``bench/`` imports them too.
 
 Every process runs in a session of its own, so that the pod, its forkserver and its env workers
 share one process group; :meth:`Server.stop` ends the whole group, and every helper here stops
@@ -20,6 +21,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -32,6 +34,7 @@ import numpy as np
 import uvicorn
 
 from service.runner.job import LocalJob
+from service.runner.ports import free_port, free_port_block
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig, RenderPreset, RunnerConfig, TaskBlock
 
@@ -53,30 +56,6 @@ def wait_until(predicate: Callable[[], Any], what: str, timeout_s: float = START
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
         time.sleep(every)
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def free_port_block(n: int, attempts: int = 50) -> int:
-    """The first of ``n`` consecutive free ports on 127.0.0.1 (a job's pods use base_port + ordinal)."""
-    for _ in range(attempts):
-        base = free_port()
-        if base + n > 65000:
-            continue
-        try:
-            with contextlib.ExitStack() as stack:
-                for port in range(base, base + n):
-                    sock = stack.enter_context(socket.socket())
-                    sock.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError(f"no {n} consecutive free ports found")
 
 
 def loopback_socket(port: int = 0) -> socket.socket:
@@ -108,9 +87,14 @@ def clean_env(**extra: str) -> dict[str, str]:
     return env
 
 
+# The program a Server runs by default: the ``vecsim`` command.
+VECSIM_CLI = (sys.executable, "-m", "vecsim.cli")
+
+
 class Server:
-    """One ``python -m vecsim.cli <argv>`` process serving on ``127.0.0.1:<port>``; nothing runs
-    before :meth:`start` (use :func:`running`, which always stops it)."""
+    """One ``python -m vecsim.cli <argv>`` process (``program`` in place of ``python -m
+    vecsim.cli``, when given) serving on ``<host>:<port>``; nothing runs before :meth:`start`
+    (use :func:`running`, which always stops it)."""
 
     def __init__(
         self,
@@ -122,10 +106,12 @@ class Server:
         *,
         host: str = "127.0.0.1",
         wrap: Sequence[str] = (),
+        program: Sequence[str] = VECSIM_CLI,
     ) -> None:
         self.name = name
-        # ``wrap`` runs the command through another one that execs it (``ip netns exec <ns>``).
-        self.argv = [*wrap, sys.executable, "-m", "vecsim.cli", *argv]
+        # ``wrap`` runs the command through another one that execs it (``ip netns exec <ns>``,
+        # ``taskset -c <cpus>``).
+        self.argv = [*wrap, *program, *argv]
         self.env = dict(env)
         self.port = port
         self.url = f"http://{host}:{port}"
@@ -229,17 +215,23 @@ def pod_server(
 
 
 def controller_server(
-    workdir: Path, *, args: Sequence[str] = (), token: str | None = None, host: str = "127.0.0.1", **env: str
+    workdir: Path,
+    *,
+    args: Sequence[str] = (),
+    token: str | None = None,
+    host: str = "127.0.0.1",
+    wrap: Sequence[str] = (),
+    **env: str,
 ) -> Server:
     """A ``vecsim controller`` process on a free port of ``host`` (loopback by default; another
     address of this machine, e.g. a veth's, for pods in other network namespaces), with the
     shared ``token`` if given."""
-    port = free_port()
+    port = free_port(host)
     extra = dict(env)
     if token is not None:
         extra["VECSIM_TOKEN"] = token
     argv = ["controller", "--host", host, "--port", str(port), *args]
-    return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log", host=host)
+    return Server("controller", argv, port, clean_env(**extra), workdir / "controller.log", host=host, wrap=wrap)
 
 
 def assignment(pod: str, tasks: Sequence[tuple[str, int]], **fields: Any) -> Assignment:
@@ -297,45 +289,67 @@ class PodSpec:
 
 
 class RunningPod(Server):
-    """A standalone ``vecsim pod`` process serving ``spec``'s assignment."""
+    """A standalone ``vecsim pod`` process serving ``spec``'s assignment (``spec`` itself, when
+    it is one), through ``wrap`` if given (``taskset -c <cpus>``)."""
 
-    def __init__(self, spec: PodSpec, workdir: Path) -> None:
-        path = workdir / f"{spec.name}.json"
-        path.write_text(spec.assignment().model_dump_json())
+    def __init__(self, spec: PodSpec | Assignment, workdir: Path, wrap: Sequence[str] = ()) -> None:
+        self.assignment = spec.assignment() if isinstance(spec, PodSpec) else spec
+        name = self.assignment.pod
+        path = workdir / f"{name}.json"
+        path.write_text(self.assignment.model_dump_json())
         port = free_port()
         argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
-                "--assignment", str(path), "--name", spec.name]  # fmt: skip
-        super().__init__(spec.name, argv, port, clean_env(POD_NAME=spec.name), workdir / f"{spec.name}.log")
-        self.spec = spec
+                "--assignment", str(path), "--name", name]  # fmt: skip
+        super().__init__(name, argv, port, clean_env(POD_NAME=name), workdir / f"{name}.log", wrap=wrap)
 
 
 @contextlib.contextmanager
-def standalone_pods(specs: Sequence[PodSpec], workdir: Path) -> Iterator[list[RunningPod]]:
-    """Start one pod process per spec, wait until all are ready, yield them, stop them all."""
+def standalone_pods(
+    specs: Sequence[PodSpec | Assignment],
+    workdir: Path | None = None,
+    *,
+    cores: Sequence[str | None] | None = None,
+    ready_timeout_s: float = READY_TIMEOUT_S,
+) -> Iterator[list[RunningPod]]:
+    """Start one pod process per spec (in a fresh temporary ``workdir`` if none is given), wait
+    until all are ready, yield them, stop them all.
+
+    ``cores``, when given, pins pod ``i`` (its workers included) to the CPU list ``cores[i]``
+    (``taskset -c``; None leaves it free), as a CPU limit confines a Kubernetes pod.
+    """
+    workdir = Path(workdir or tempfile.mkdtemp(prefix="vecsim-pods-"))
     workdir.mkdir(parents=True, exist_ok=True)
     pods: list[RunningPod] = []
     try:
-        for spec in specs:
-            pods.append(RunningPod(spec, workdir))
+        for i, spec in enumerate(specs):
+            pin = cores[i] if cores is not None else None
+            pods.append(RunningPod(spec, workdir, wrap=("taskset", "-c", pin) if pin is not None else ()))
             pods[-1].start()
         for pod in pods:
-            pod.wait_ready(READY_TIMEOUT_S)
+            pod.wait_ready(ready_timeout_s)
         yield pods
     finally:
         for pod in pods:
             pod.stop()
 
 
-def job_config(job: dict, replicas: int) -> RunnerConfig:
+def job_config(
+    job: Mapping[str, Any], replicas: int, *, max_envs: int = 16, heartbeat_ttl_s: float = 3.0
+) -> RunnerConfig:
     """A RunnerConfig for ``job`` with ``replicas`` pods, every port free, heartbeats quick."""
+    controller_port = free_port()
     return RunnerConfig.model_validate(
         {
-            "job": job,
-            "pods": {"replicas": replicas, "base_port": free_port_block(replicas), "max_envs": 16},
+            "job": dict(job),
+            "pods": {
+                "replicas": replicas,
+                "base_port": free_port_block(replicas, avoid={controller_port}),
+                "max_envs": max_envs,
+            },
             "controller": {
-                "port": free_port(),
+                "port": controller_port,
                 "heartbeat_interval_s": 0.5,
-                "heartbeat_ttl_s": 3.0,
+                "heartbeat_ttl_s": heartbeat_ttl_s,
                 "reconcile_interval_s": 0.25,
             },
         }
@@ -343,12 +357,15 @@ def job_config(job: dict, replicas: int) -> RunnerConfig:
 
 
 @contextlib.contextmanager
-def local_job(config: RunnerConfig, workdir: Path) -> Iterator[LocalJob]:
-    """Run the job (controller + pods), wait until its routing is ready, yield it, stop it all."""
-    job = LocalJob(config, log_dir=workdir, grace_s=10)
+def local_job(
+    config: RunnerConfig, workdir: Path | None = None, *, ready_timeout_s: float = READY_TIMEOUT_S
+) -> Iterator[LocalJob]:
+    """Run the job (controller + pods; logs in a fresh temporary ``workdir`` if none is given),
+    wait until its routing is ready, yield it, stop it all."""
+    job = LocalJob(config, log_dir=workdir or tempfile.mkdtemp(prefix="vecsim-job-"), grace_s=10)
     try:
         job.start()
-        job.wait_ready(timeout=READY_TIMEOUT_S)
+        job.wait_ready(timeout=ready_timeout_s)
         yield job
     finally:
         job.stop()

@@ -189,7 +189,7 @@ JOB = {
     "camera": {"names": []},
     "max_episode_steps": 20,
 }
-REGISTRATION = {"name": "sim-7", "url": "http://127.0.0.1:9", "capacity": {"max_envs": 4, "gpu": False}}
+REGISTRATION = {"pod": "sim-7", "url": "http://127.0.0.1:9", "capacity": {"max_envs": 4, "gpu": False}}
 HEARTBEAT = {"url": "http://127.0.0.1:9", "generation": None, "assignment": None, "ready": False}
 
 
@@ -205,12 +205,12 @@ def controller_request(controller: Server, endpoint: str, token: str | None) -> 
     headers = auth(token)
     if endpoint == "POST /v1/pods":
         return httpx.post(f"{controller.url}/v1/pods", json=REGISTRATION, headers=headers, timeout=30)
-    if endpoint == "POST /v1/pods/{name}/heartbeat":
+    if endpoint == "POST /v1/pods/{pod}/heartbeat":
         return httpx.post(f"{controller.url}/v1/pods/sim-7/heartbeat", json=HEARTBEAT, headers=headers, timeout=30)
     return httpx.put(f"{controller.url}/v1/job", json=JOB, headers=headers, timeout=30)
 
 
-CONTROLLER_STATE_CHANGES = ["POST /v1/pods", "POST /v1/pods/{name}/heartbeat", "PUT /v1/job"]
+CONTROLLER_STATE_CHANGES = ["POST /v1/pods", "POST /v1/pods/{pod}/heartbeat", "PUT /v1/job"]
 
 
 @pytest.mark.parametrize("endpoint", CONTROLLER_STATE_CHANGES)
@@ -230,7 +230,7 @@ def test_controller_accepts_registration_heartbeat_and_job_with_the_token(contro
     for endpoint in CONTROLLER_STATE_CHANGES:
         response = controller_request(controller, endpoint, TOKEN)
         assert response.status_code == 200, f"{endpoint}: {response.text}"
-    assert [p["name"] for p in httpx.get(f"{controller.url}/v1/pods", timeout=10).json()] == ["sim-7"]
+    assert [p["pod"] for p in httpx.get(f"{controller.url}/v1/pods", timeout=10).json()] == ["sim-7"]
 
 
 @pytest.mark.parametrize("path", ["/healthz", "/readyz", "/metrics", "/v1/pods", "/v1/job", "/v1/routing"])
@@ -241,7 +241,7 @@ def test_controller_health_metrics_and_reads_stay_open(controller, path):
 
 def test_controller_refuses_a_body_over_its_limit_with_413_and_changes_nothing(controller):
     pods_before = httpx.get(f"{controller.url}/v1/pods", timeout=10).json()
-    huge = {**REGISTRATION, "name": "sim-8", "url": "http://x/" + "a" * (2 * 1024 * 1024)}
+    huge = {**REGISTRATION, "pod": "sim-8", "url": "http://x/" + "a" * (2 * 1024 * 1024)}
     response = httpx.post(f"{controller.url}/v1/pods", json=huge, headers=auth(TOKEN), timeout=30)
     assert response.status_code == 413
     assert "the controller's limit" in response.json()["detail"]
@@ -289,7 +289,7 @@ def test_a_pod_holding_another_token_is_kept_out_of_the_registry(guarded_job):
     intruder, controller = guarded_job["intruder"], guarded_job["controller"]
     wait_until(lambda: "registration answered 401" in intruder.log_text(), "the intruder's refused registration")
     assert TOKEN not in intruder.log_text() and WRONG not in intruder.log_text()
-    assert "sim-1" not in [p["name"] for p in httpx.get(f"{controller.url}/v1/pods", timeout=10).json()]
+    assert "sim-1" not in [p["pod"] for p in httpx.get(f"{controller.url}/v1/pods", timeout=10).json()]
 
 
 def test_without_a_token_checking_is_off_and_both_servers_warn_at_start_up(tmp_path):

@@ -14,7 +14,11 @@ import yaml
 from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scripted_pod import TASK, TOKEN, PodRouter, ScriptedPod, Timeline, scripted_job
 from service_procs import PodSpec, job_config, local_job, standalone_pods, wait_for_generation
+from starlette.applications import Starlette
+from starlette.responses import JSONResponse
+from starlette.routing import Route
 
 from vecsim.client import (
     CapacityError,
@@ -24,8 +28,8 @@ from vecsim.client import (
     StageClient,
     StaleGenerationError,
     TrajRoute,
-    env_slots,
     place_requests,
+    routed_envs,
 )
 from vecsim.client.stagestate import StageState
 from vecsim.client.routing import changed_routes, routing_from_pod_infos, validate_routes
@@ -118,9 +122,9 @@ def test_sampler_batches_always_fit_a_job_of_group_size_envs_per_task(seed, grou
         assert max(envs.values()) == 1
 
 
-def test_env_slots_are_stage_major_then_pod_then_env_index():
-    slots = env_slots(TWO_STAGES)
-    assert [(s.stage_id, s.pod, s.env_index, s.task_id) for s in slots[:6]] == [
+def test_routed_envs_are_stage_major_then_pod_then_env_index():
+    envs = routed_envs(TWO_STAGES)
+    assert [(e.stage_id, e.pod, e.env_index, e.task_id) for e in envs[:6]] == [
         (0, "sim-0", 0, "a"),
         (0, "sim-0", 1, "a"),
         (0, "sim-0", 2, "b"),
@@ -128,8 +132,8 @@ def test_env_slots_are_stage_major_then_pod_then_env_index():
         (0, "sim-1", 0, "a"),
         (0, "sim-1", 1, "c"),
     ]
-    assert len(slots) == TWO_STAGES.num_envs
-    assert {s.stage_id for s in slots[7:]} == {1}
+    assert len(envs) == TWO_STAGES.num_envs
+    assert {e.stage_id for e in envs[7:]} == {1}
 
 
 def test_routes_sharing_an_env_are_rejected_naming_both_keys():
@@ -483,3 +487,34 @@ def test_after_a_pod_restart_its_trajectories_raise_routing_changed(fresh_job):
         with pytest.raises(RoutingChangedError) as caught:
             _step_all(client, 0)
         assert caught.value.traj_keys == stage0
+
+
+class _ControllerBesidePods(httpx.AsyncBaseTransport):
+    """The client's transport: scripted pods by host name, and host ``controller`` answering
+    ``GET /v1/routing`` with ``table``; every URL it carries is noted in ``urls``."""
+
+    def __init__(self, pods: list[ScriptedPod], table: RoutingTable) -> None:
+        self.urls: list[str] = []
+        self._pods = PodRouter(pods)
+        app = Starlette(routes=[Route("/v1/routing", lambda _: JSONResponse(table.model_dump(mode="json")))])
+        self._controller = httpx.ASGITransport(app=app)
+
+    async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
+        self.urls.append(str(request.url))
+        via = self._controller if request.url.host == "controller" else self._pods
+        return await via.handle_async_request(request)
+
+    async def aclose(self) -> None:
+        await self._pods.aclose()
+        await self._controller.aclose()
+
+
+def test_a_new_batch_re_reads_the_routing_table_through_the_clients_own_transport():
+    pods, table = scripted_job(1, 2, Timeline())
+    moved = table.model_copy(update={"generation": table.generation + 1})
+    transport = _ControllerBesidePods(pods, moved)
+    with StageClient(table, controller_url="http://controller", transport=transport, token=TOKEN) as client:
+        client.reset_trajectories([(TASK, 0)])
+        assert client.routing.generation == moved.generation
+        client.reset_trajectories([(TASK, 1)])
+    assert transport.urls.count("http://controller/v1/routing") == 2

@@ -109,7 +109,7 @@ def _two_pod_plan():
     from vecsim.config import PodRecord
 
     job = JobSpec(**JOB)
-    return plan(job, [PodRecord(name="sim-0", url="a"), PodRecord(name="sim-1", url="b")], None, list(TASKS))
+    return plan(job, [PodRecord(pod="sim-0", url="a"), PodRecord(pod="sim-1", url="b")], None, list(TASKS))
 
 
 def test_safe_generation_keeps_the_plans_generation_when_pods_agree():
@@ -151,7 +151,7 @@ class Controller:
 
     async def register(self, name: str, url: str | None = None, max_envs: int = 64) -> httpx.Response:
         self.urls[name] = url or f"http://127.0.0.1:9/{name}"
-        body = {"name": name, "url": self.urls[name], "capacity": {"max_envs": max_envs}}
+        body = {"pod": name, "url": self.urls[name], "capacity": {"max_envs": max_envs}}
         return await self.api.post("/v1/pods", json=body)
 
     async def heartbeat(self, name: str, reported: Assignment | None = None, ready: bool = False) -> httpx.Response:
@@ -185,14 +185,23 @@ async def controller(**settings: object) -> AsyncIterator[Controller]:
 async def test_a_registered_pod_is_listed_without_a_stage():
     async with controller() as c:
         record = (await c.register("sim-0", "http://127.0.0.1:8100/")).json()
-        assert record["name"] == "sim-0" and record["url"] == "http://127.0.0.1:8100" and record["stage_id"] is None
-        assert [p["name"] for p in (await c.api.get("/v1/pods")).json()] == ["sim-0"]
+        assert record["pod"] == "sim-0" and record["url"] == "http://127.0.0.1:8100" and record["stage_id"] is None
+        assert [p["pod"] for p in (await c.api.get("/v1/pods")).json()] == ["sim-0"]
+
+
+async def test_a_registration_in_the_old_spelling_name_is_still_taken_for_this_release():
+    async with controller() as c:
+        old = {"name": "sim-0", "url": "http://127.0.0.1:8100"}
+        assert (await c.api.post("/v1/pods", json=old)).json()["pod"] == "sim-0"
+        both = await c.api.post("/v1/pods", json={**old, "pod": "sim-1"})
+        assert both.status_code == 422 and "name: " in both.text
+        assert [p["pod"] for p in (await c.api.get("/v1/pods")).json()] == ["sim-0"]
 
 
 async def test_registration_with_a_bad_name_is_refused_naming_the_field():
     async with controller() as c:
         response = await c.register("Sim_0")
-        assert response.status_code == 422 and "name" in response.text
+        assert response.status_code == 422 and "pod: " in response.text
         assert (await c.api.get("/v1/pods")).json() == []
 
 
@@ -322,7 +331,7 @@ async def test_pods_list_their_stage_generation_and_readiness():
         await c.api.put("/v1/job", json=JOB)
         await c.reconcile()
         await c.report_desired("sim-0")
-        pods = {p["name"]: p for p in (await c.api.get("/v1/pods")).json()}
+        pods = {p["pod"]: p for p in (await c.api.get("/v1/pods")).json()}
         assert [
             (pods[n]["stage_id"], pods[n]["ready"], pods[n]["generation"]) for n in ("sim-0", "sim-1", "sim-2")
         ] == [
@@ -362,7 +371,7 @@ async def test_a_pod_not_heard_from_within_the_ttl_is_dropped_and_its_slot_waits
         await c.heartbeat("sim-0")
         c.clock.now += 2.0
         await c.reconcile()
-        assert [p["name"] for p in (await c.api.get("/v1/pods")).json()] == ["sim-0"]
+        assert [p["pod"] for p in (await c.api.get("/v1/pods")).json()] == ["sim-0"]
         table = (await c.api.get("/v1/routing")).json()
         assert table["generation"] == 2 and [len(s["pods"]) for s in table["stages"]] == [1, 0]
         assert (await c.heartbeat("sim-1")).status_code == 404
@@ -472,7 +481,7 @@ async def test_openapi_documents_every_endpoint():
         paths = (await c.api.get("/openapi.json")).json()["paths"]
         assert set(paths) == {
             "/v1/pods",
-            "/v1/pods/{name}/heartbeat",
+            "/v1/pods/{pod}/heartbeat",
             "/v1/job",
             "/v1/routing",
             "/healthz",
@@ -607,7 +616,7 @@ class SelfReportingPeer(Peer):
 
     async def beat(self, controller_url: str, stop: asyncio.Event) -> None:
         async with httpx.AsyncClient(base_url=controller_url, timeout=2.0) as client:
-            await client.post("/v1/pods", json={"name": self.name, "url": self.url})
+            await client.post("/v1/pods", json={"pod": self.name, "url": self.url})
             while not stop.is_set():
                 last = self.received[-1] if self.received else None
                 body = {"url": self.url, "generation": last.generation if last else None, "ready": last is not None}

@@ -47,7 +47,7 @@ def test_a_push_answered_with_an_absurd_content_length_is_a_failed_push_retried_
         running(controller_server(tmp_path, args=["--adopt-grace", "0"])) as c,
     ):
         assert httpx.put(f"{c.url}/v1/job", json=JOB, timeout=30).status_code == 200
-        assert httpx.post(f"{c.url}/v1/pods", json={"name": "sim-0", "url": pod_url}, timeout=10).status_code == 200
+        assert httpx.post(f"{c.url}/v1/pods", json={"pod": "sim-0", "url": pod_url}, timeout=10).status_code == 200
 
         def failed_twice() -> bool:
             httpx.post(f"{c.url}/v1/pods/sim-0/heartbeat", json={"url": pod_url, "ready": False}, timeout=10)

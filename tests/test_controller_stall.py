@@ -57,7 +57,7 @@ def run_for(state: ControllerState, clock: Clock, seconds: float, step: float = 
 
 
 async def listed(c: Controller) -> list[str]:
-    return [p["name"] for p in (await c.api.get("/v1/pods")).json()]
+    return [p["pod"] for p in (await c.api.get("/v1/pods")).json()]
 
 
 async def test_a_stall_longer_than_the_ttl_drops_no_pod():
@@ -138,7 +138,7 @@ def heartbeat_until(url: str, names: tuple[str, ...], stop: threading.Event) -> 
     """Pods that register and then heartbeat every 0.1 s, waiting out a stalled controller."""
     with httpx.Client(base_url=url, timeout=30.0) as client:
         for name in names:
-            client.post("/v1/pods", json={"name": name, "url": "http://127.0.0.1:9", "capacity": {"max_envs": 64}})
+            client.post("/v1/pods", json={"pod": name, "url": "http://127.0.0.1:9", "capacity": {"max_envs": 64}})
         while not stop.is_set():
             for name in names:
                 body = {"url": "http://127.0.0.1:9", "generation": None, "assignment": None, "ready": False}
@@ -169,7 +169,7 @@ def test_a_served_controller_whose_loop_blocks_past_the_ttl_keeps_its_pods():
             # A few reconcile passes after the stall: any of them would have expired the pods.
             wait_until(lambda: counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES) >= passes + 3,
                        "three reconcile passes after the stall", 30, every=0.05)  # fmt: skip
-            after = [p["name"] for p in httpx.get(f"{url}/v1/pods", timeout=5).json()]
+            after = [p["pod"] for p in httpx.get(f"{url}/v1/pods", timeout=5).json()]
             metrics = httpx.get(f"{url}/metrics", timeout=5).text
         finally:
             stop.set()

@@ -65,7 +65,7 @@ POD_OPERATIONS = [
 CONTROLLER_OPERATIONS = [
     "POST /v1/pods",
     "GET /v1/pods",
-    "POST /v1/pods/{name}/heartbeat",
+    "POST /v1/pods/{pod}/heartbeat",
     "PUT /v1/job",
     "GET /v1/job",
     "GET /v1/routing",
@@ -247,7 +247,7 @@ def test_fuzzed_requests_to_the_controller_get_no_5xx_and_refusals_say_why(contr
         response = case.call(base_url=controller["url"], headers=auth, timeout=60)
         check_answer(label, response, not_ready_ok=label in NOT_READY_ANSWERS)
         if response.status_code == 200 and label == "POST /v1/pods":
-            controller["registered"].add(response.json()["name"])
+            controller["registered"].add(response.json()["pod"])
         if response.status_code == 200 and label == "PUT /v1/job":
             controller["job"] = response.json()
 
@@ -256,7 +256,7 @@ def test_fuzzed_requests_to_the_controller_get_no_5xx_and_refusals_say_why(contr
 
 def test_after_the_fuzzing_the_controller_holds_only_what_it_accepted(controller):
     pods = httpx.get(f"{controller['url']}/v1/pods", timeout=10).json()
-    assert {p["name"] for p in pods} == controller["registered"]
+    assert {p["pod"] for p in pods} == controller["registered"]
     job = httpx.get(f"{controller['url']}/v1/job", timeout=10)
     if controller["job"] is None:
         assert job.status_code == 404

@@ -343,7 +343,7 @@ def test_job_fits_on_the_sim_pods_the_target_deploys(target: str, tmp_path: Path
     for ordinal in range(the(objects, "StatefulSet")["spec"]["replicas"]):
         settings = PodSettings.from_env(sim_env(objects, f"sim-{ordinal}"))
         capacity = PodCapacity(max_envs=settings.max_envs)
-        pods.append(PodRecord(name=settings.name, url=settings.url, capacity=capacity))
+        pods.append(PodRecord(pod=settings.name, url=settings.url, capacity=capacity))
     tasks, problems, known = resolve_tasks(job)
     assert problems == []
     assert validate_job(job, tasks, pods, known_tasks=known) == []

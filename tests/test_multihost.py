@@ -216,7 +216,7 @@ def table(network: Network, hosts: dict[str, ManagedProcess]) -> dict:
 def test_pods_in_other_namespaces_register_under_their_advertised_addresses(network, table):
     controller_url = f"http://{network.addresses['controller']}:{CONTROLLER_PORT}"
     pods = httpx.get(f"{controller_url}/v1/pods", timeout=5).json()
-    assert [(p["name"], p["url"], p["ready"]) for p in pods] == [
+    assert [(p["pod"], p["url"], p["ready"]) for p in pods] == [
         ("sim-0", f"http://{network.addresses['sim-0']}:{POD_PORT}", True),
         ("sim-1", f"http://{network.addresses['sim-1']}:{POD_PORT}", True),
     ]

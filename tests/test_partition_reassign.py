@@ -66,7 +66,7 @@ def get(server: Server, path: str) -> Any:
 
 def pods(controller: Server) -> dict[str, dict[str, Any]]:
     """The controller's registry (GET /v1/pods), by pod name."""
-    return {record["name"]: record for record in get(controller, "/v1/pods")}
+    return {record["pod"]: record for record in get(controller, "/v1/pods")}
 
 
 def routing(controller: Server) -> dict[str, Any] | None:

@@ -19,7 +19,7 @@ def job(**overrides) -> JobSpec:
 
 
 def pods(*names: str, max_envs: int = 64) -> list[PodRecord]:
-    return [PodRecord(name=n, url=f"http://{n}:8100", capacity=PodCapacity(max_envs=max_envs)) for n in names]
+    return [PodRecord(pod=n, url=f"http://{n}:8100", capacity=PodCapacity(max_envs=max_envs)) for n in names]
 
 
 def holders(p: Plan) -> dict[tuple[int, int], str | None]:
@@ -323,7 +323,7 @@ def test_replanning_keeps_every_live_holder_and_the_generation_only_when_nothing
     assert plan(spec, live, first, tasks) == first
     survivors = data.draw(st.lists(st.sampled_from(live), unique=True) if live else st.just([]))
     second = plan(spec, survivors, first, tasks)
-    alive = {pod.name for pod in survivors}
+    alive = {record.pod for record in survivors}
     for before, after in zip(first.slots, second.slots):
         if before.pod in alive:
             assert after.pod == before.pod

@@ -42,18 +42,18 @@ class StandInController:
                     self.refused += 1
                     return Response(status_code=500)
                 self.registrations.append(registration.model_dump(mode="json"))
-                self.known.add(registration.name)
-            return PodRecord(name=registration.name, url=registration.url, capacity=registration.capacity)
+                self.known.add(registration.pod)
+            return PodRecord(pod=registration.pod, url=registration.url, capacity=registration.capacity)
 
-        @self.app.post("/v1/pods/{name}/heartbeat")
-        async def heartbeat(name: str, body: dict[str, Any]) -> Any:
+        @self.app.post("/v1/pods/{pod}/heartbeat")
+        async def heartbeat(pod: str, body: dict[str, Any]) -> Any:
             with self.lock:
                 if self.failing:
                     self.refused += 1
                     return Response(status_code=500)
-                if name not in self.known:
+                if pod not in self.known:
                     return Response(status_code=404)
-                self.heartbeats.append({"name": name, **body})
+                self.heartbeats.append({"pod": pod, **body})
             return {"generation": body.get("generation")}
 
     def forget(self, name: str) -> None:
@@ -103,7 +103,7 @@ def test_pod_registers_with_its_name_url_and_capacity(
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("registrations") >= 1, "a registration")
     assert stand_in.registrations[0] == {
-        "name": "sim-3", "url": pod.url, "capacity": {"max_envs": 3, "gpu": False},
+        "pod": "sim-3", "url": pod.url, "capacity": {"max_envs": 3, "gpu": False},
     }
 
 
@@ -113,7 +113,7 @@ def test_heartbeats_say_unassigned_and_not_ready_before_an_assignment(
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("heartbeats") >= 2, "two heartbeats")
     beat = stand_in.last_heartbeat()
-    assert beat == {"name": "sim-3", "url": pod.url, "generation": None, "assignment": None, "ready": False}
+    assert beat == {"pod": "sim-3", "url": pod.url, "generation": None, "assignment": None, "ready": False}
 
 
 def test_heartbeats_report_the_assignment_generation_and_readiness(
@@ -167,7 +167,7 @@ def test_pod_finds_a_controller_that_starts_after_it() -> None:
         server = AppThread(stand_in.app, reserved, access_log=False, lifespan="on")
         try:
             wait_until(lambda: stand_in.count("heartbeats") >= 1, "a heartbeat from the early pod")
-            assert stand_in.registrations[0]["name"] == "sim-4"
+            assert stand_in.registrations[0]["pod"] == "sim-4"
         finally:
             server.stop()
     finally:

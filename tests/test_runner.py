@@ -241,7 +241,7 @@ def test_every_pod_registers_and_gets_ready_with_the_planned_routing(tiny_job):
                 3,
             )
     pods = httpx.get(f"{tiny_job.controller_url}/v1/pods", timeout=5).json()
-    assert [(p["name"], p["url"], p["ready"]) for p in pods] == [
+    assert [(p["pod"], p["url"], p["ready"]) for p in pods] == [
         (n, tiny_job.pod_url(n), True) for n in ("sim-0", "sim-1")
     ]
 

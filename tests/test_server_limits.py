@@ -64,7 +64,7 @@ def test_json_too_deep_or_too_long_is_a_400_naming_it(pod, op, body):
 
 def test_json_nested_deeply_is_a_4xx_at_the_controller(tmp_path):
     with running(controller_server(tmp_path)) as controller:
-        body = '{"name": "sim-0", "url": "http://127.0.0.1:1", "capacity": %s}' % nested(100_000)
+        body = '{"pod": "sim-0", "url": "http://127.0.0.1:1", "capacity": %s}' % nested(100_000)
         response = httpx.post(
             f"{controller.url}/v1/pods", content=body, headers={"Content-Type": "application/json"}, timeout=30
         )
@@ -131,10 +131,10 @@ def test_a_connection_whose_request_head_never_ends_is_closed(tmp_path):
 def test_a_heartbeat_cannot_move_a_live_pod_to_another_url_but_registering_again_can(tmp_path):
     with running(controller_server(tmp_path)) as controller:
         api = f"{controller.url}/v1/pods"
-        assert httpx.post(api, json={"name": "sim-0", "url": "http://10.0.0.1:8100"}, timeout=10).status_code == 200
+        assert httpx.post(api, json={"pod": "sim-0", "url": "http://10.0.0.1:8100"}, timeout=10).status_code == 200
         moved = httpx.post(f"{api}/sim-0/heartbeat", json={"url": "http://10.6.6.6:8100", "ready": True}, timeout=10)
         still = httpx.get(api, timeout=10).json()
-        again = httpx.post(api, json={"name": "sim-0", "url": "http://10.0.0.2:8100"}, timeout=10)
+        again = httpx.post(api, json={"pod": "sim-0", "url": "http://10.0.0.2:8100"}, timeout=10)
         after = httpx.get(api, timeout=10).json()
     assert moved.status_code == 409 and "http://10.0.0.1:8100" in moved.json()["detail"]
     assert [p["url"] for p in still] == ["http://10.0.0.1:8100"]

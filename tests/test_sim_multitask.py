@@ -131,7 +131,7 @@ def test_an_env_of_either_task_ends_its_episode_on_its_own_count(spanning_cheeta
     assert truncated.tolist() == [True, False]
 
 
-def test_more_envs_per_worker_than_envs_makes_one_worker_with_idle_slots() -> None:
+def test_more_envs_per_worker_than_envs_makes_one_worker_hosting_fewer_than_it_could() -> None:
     with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=8, max_episode_steps=5)) as wide:
         assert (wide.num_workers, wide.envs_per_worker, len(wide.worker_pids)) == (1, 8, 1)
         with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=1, max_episode_steps=5)) as single:

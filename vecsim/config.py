@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 RenderPreset = Literal["full", "fast", "lean", "lowpoly"]
 # How a camera image's pixels are laid out: "upright" (row 0 is the top of the picture),
@@ -180,13 +180,21 @@ class PodCapacity(_Model):
 
 
 class PodRegistration(_Model):
-    name: str = Field(min_length=1, max_length=63, pattern=POD_NAME_PATTERN)
+    """``POST /v1/pods``: a pod says who it is and where it is reached."""
+
+    # ``name``, the old spelling, is accepted for this release only (a pod from an older checkout
+    # registering); both together are refused. docs/api.md says so.
+    pod: str = Field(
+        min_length=1, max_length=63, pattern=POD_NAME_PATTERN, validation_alias=AliasChoices("pod", "name")
+    )
     url: str
     capacity: PodCapacity = PodCapacity()
 
 
 class PodRecord(_Model):
-    name: str
+    """A registered pod as the controller's ``GET /v1/pods`` lists it."""
+
+    pod: str
     url: str
     capacity: PodCapacity = PodCapacity()
     stage_id: int | None = None

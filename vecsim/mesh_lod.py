@@ -58,7 +58,7 @@ class SimplifiedMeshes:
 
     ``mesh_ids`` are the meshes that changed; ``face``, ``facenormal`` and ``facetexcoord`` hold
     each one's new corners (indices local to the mesh, as in the model), one array a mesh;
-    ``normal_slot`` and ``normal`` the normals written over the mesh's own (local indices into
+    ``normal_index`` and ``normal`` the normals written over the mesh's own (local indices into
     its normals, and the unit vectors). ``faces_before`` and ``faces_after`` count the triangles
     of every mesh of the model.
     """
@@ -68,7 +68,7 @@ class SimplifiedMeshes:
     face: tuple[np.ndarray, ...]
     facenormal: tuple[np.ndarray, ...]
     facetexcoord: tuple[np.ndarray, ...]
-    normal_slot: tuple[np.ndarray, ...]
+    normal_index: tuple[np.ndarray, ...]
     normal: tuple[np.ndarray, ...]
     faces_before: int
     faces_after: int
@@ -162,30 +162,30 @@ def drawn_with(model: mujoco.MjModel, simplified: SimplifiedMeshes) -> Iterator[
             model.mesh_face[a : a + n].copy(),
             model.mesh_facenormal[a : a + n].copy(),
             model.mesh_facetexcoord[a : a + n].copy(),
-            model.mesh_normal[normal_start + slots].copy(),
+            model.mesh_normal[normal_start + normal_indices].copy(),
         )
-        for (_, a, n, normal_start), slots in zip(saved, simplified.normal_slot)
+        for (_, a, n, normal_start), normal_indices in zip(saved, simplified.normal_index)
     ]
     try:
-        for (mesh, start, _, normal_start), face, facenormal, facetexcoord, slots, normal in zip(
-            saved, simplified.face, simplified.facenormal, simplified.facetexcoord, simplified.normal_slot,
+        for (mesh, start, _, normal_start), face, facenormal, facetexcoord, normal_indices, normal in zip(
+            saved, simplified.face, simplified.facenormal, simplified.facetexcoord, simplified.normal_index,
             simplified.normal,
         ):  # fmt: skip
             end = start + len(face)
             model.mesh_face[start:end] = face
             model.mesh_facenormal[start:end] = facenormal
             model.mesh_facetexcoord[start:end] = facetexcoord
-            model.mesh_normal[normal_start + slots] = normal
+            model.mesh_normal[normal_start + normal_indices] = normal
             model.mesh_facenum[mesh] = len(face)
         yield
     finally:
-        for (mesh, start, count, normal_start), (face, facenormal, facetexcoord, normal), slots in zip(
-            saved, kept, simplified.normal_slot
+        for (mesh, start, count, normal_start), (face, facenormal, facetexcoord, normal), normal_indices in zip(
+            saved, kept, simplified.normal_index
         ):
             model.mesh_face[start : start + count] = face
             model.mesh_facenormal[start : start + count] = facenormal
             model.mesh_facetexcoord[start : start + count] = facetexcoord
-            model.mesh_normal[normal_start + slots] = normal
+            model.mesh_normal[normal_start + normal_indices] = normal
             model.mesh_facenum[mesh] = count
 
 
@@ -276,14 +276,14 @@ def _simplify(
         copy, copies = _group(rotated)
         kept = kept[np.sort(_first_by(copy, np.zeros(len(copy)), copies))]
 
-    new_facenormal, new_texcoord, slots, normals = _corners(
+    new_facenormal, new_texcoord, normal_indices, normals = _corners(
         vert, face, facenormal, normal, facetexcoord, texcoord, double_area, vert_cell, kept_vert, cell
     )
     return (
         new_face[kept].astype(np.int32),
         new_facenormal[kept].astype(np.int32),
         new_texcoord[kept].astype(np.int32),
-        slots,
+        normal_indices,
         normals.astype(np.float32),
     )
 
@@ -368,11 +368,11 @@ def _corners(
     leader = _first_by(group, distance, groups)
     new_texcoord = facetexcoord.reshape(-1)[leader[group]] if texcoord is not None else facetexcoord.reshape(-1)
 
-    slots = facenormal.reshape(-1)[leader]
-    if len(np.unique(slots)) != groups:
+    normal_indices = facenormal.reshape(-1)[leader]
+    if len(np.unique(normal_indices)) != groups:
         return facenormal, new_texcoord.reshape(face.shape), np.zeros(0, np.int64), np.zeros((0, 3))
     weight = np.repeat(double_area, 3)
     mean = np.stack([np.bincount(group, corner_normal[:, k] * weight, minlength=groups) for k in range(3)], axis=1)
     length = np.linalg.norm(mean, axis=1, keepdims=True)
-    mean = np.where(length > 0, mean / np.maximum(length, np.finfo(np.float64).tiny), normal[slots])
-    return slots[group].reshape(face.shape), new_texcoord.reshape(face.shape), slots, mean
+    mean = np.where(length > 0, mean / np.maximum(length, np.finfo(np.float64).tiny), normal[normal_indices])
+    return normal_indices[group].reshape(face.shape), new_texcoord.reshape(face.shape), normal_indices, mean

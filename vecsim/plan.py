@@ -215,7 +215,7 @@ def plan(
     Returns a plan whose generation equals ``previous``'s when nothing changed, and is one more
     otherwise (1 for the first plan).
     """
-    alive = {pod.name: pod for pod in pods}
+    alive = {record.pod: record for record in pods}
     old = {slot.key: slot for slot in previous.slots} if previous is not None else {}
 
     def fits(name: str, slot: Slot) -> bool:
@@ -323,10 +323,10 @@ def validate_job(
             problems.append(f"tasks: unknown task {task_id!r}; use a task id of a known suite (e.g. 'tiny/lift')")
     per_slot_tasks = math.ceil(len(tasks) / job.pods_per_stage) if tasks else 0
     slot_envs = per_slot_tasks * job.group_size
-    for pod in sorted(pods, key=lambda p: pod_sort_key(p.name)):
-        if pod.capacity.max_envs < slot_envs:
+    for record in sorted(pods, key=lambda r: pod_sort_key(r.pod)):
+        if record.capacity.max_envs < slot_envs:
             problems.append(
-                f"capacity: pod {pod.name!r} holds at most {pod.capacity.max_envs} envs but a slot needs "
+                f"capacity: pod {record.pod!r} holds at most {record.capacity.max_envs} envs but a slot needs "
                 f"{slot_envs} ({per_slot_tasks} tasks x group_size {job.group_size}); raise pods_per_stage "
                 f"(now {job.pods_per_stage}), lower group_size, or raise the pods' max_envs (VECSIM_MAX_ENVS)"
             )

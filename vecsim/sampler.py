@@ -212,13 +212,13 @@ class TaskBalancedSampler(Sampler[list[int]]):
         return batches
 
     def _draw_batch(self, rng: np.random.Generator, pools: list[list[int]], remaining: np.ndarray) -> list[int]:
-        """Fill one batch slot by slot; stop at the first slot whose stage can take no task."""
+        """Fill one batch request by request; stop at the first request whose stage can take no task."""
         num_tasks = len(pools)
         priority = rng.permutation(num_tasks)
         taken = np.zeros((self.num_stages, num_tasks), dtype=np.int64)
         batch: list[int] = []
-        for slot in range(self.batch_size):
-            stage = stage_of(slot, self.num_stages)
+        for i in range(self.batch_size):
+            stage = stage_of(i, self.num_stages)
             allowed = (remaining > 0) & (taken[stage] < self.group_size)
             if not allowed.any():
                 break

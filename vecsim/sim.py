@@ -4,14 +4,15 @@
 blocks, one per task, in a pool of worker processes of its own (:class:`_WorkerPool`,
 ``forkserver`` processes: the default fork context hangs once the parent holds an EGL context).
 A worker hosts ``envs_per_worker`` consecutive env indices, whatever their tasks: a run of envs
-may cross from one task block into the next, each slot's env built for its own task (the last
-worker may have idle slots; ``envs_per_worker`` 0 lets the pod pick,
-:func:`resolve_envs_per_worker`).
+may cross from one task block into the next, each env built for its own task (the last worker
+may host fewer; ``envs_per_worker`` 0 lets the pod pick, :func:`resolve_envs_per_worker`). An
+env's *local index* is its place among its worker's envs (env index ``w * envs_per_worker + i``
+is local index ``i`` of worker ``w``); a ``run`` order and its reply name envs by local index.
 
 The worker protocol is explicit, one pipe per worker (pickle between the pod and its own
 processes; nothing from the network is unpickled): the pod sends ``(order, args)`` and the worker
 answers ``(True, result)``, or ``(False, (type name, message, traceback))`` and exits. Orders:
-``build`` (make the envs, each in state 0), ``run`` (one :class:`_Order`: reset these slots to
+``build`` (make the envs, each in state 0), ``run`` (one :class:`_Order`: reset these envs to
 these state ids, reset them by the env's own ``reset(seed=..., options=...)`` (seed -1: None),
 or step them through a chunk of K actions each, recording the frames of some), ``env_attr``
 (get, call or set attributes of named envs). A call sends an order only to the workers that host
@@ -19,10 +20,10 @@ an env it names; the others hear nothing, and the call waits for those it messag
 the step timeout: a hung worker is found when it has work, a dead one on any call, since every
 call first and last polls every worker's pipe and process).
 
-Observations and per-slot, per-action result rows (reward, terminated, truncated, success) are
-written by each worker straight into one shared-memory block (``[workers, slots, ...]``,
+Observations and per-env, per-action result rows (reward, terminated, truncated, success) are
+written by each worker straight into one shared-memory block (``[workers, local index, ...]``,
 :func:`_results_space`); the pod copies out the named envs' entries. A step applies each env's
-chunk (``[slots, K, ...]``, K from 1 to ``max_chunk``) in order and stops an env at its first
+chunk (``[envs, K, ...]``, K from 1 to ``max_chunk``) in order and stops an env at its first
 termination or truncation. The pipe's reply (:class:`_Reply`) carries what is small or ragged:
 the worker's physics and render seconds (``last_timing``), an env's own ``info`` (beyond
 vecsim's keys), the exceptions envs raised (the env that raised is named in the answer and every
@@ -79,7 +80,7 @@ _MAX_STATE_ID = 2**31 - 1
 _MAX_SEED = 2**63 - 1
 # What get_attr / call / set_attr may name: public attributes; close stays the pod's to call.
 _REFUSED_ATTRS = frozenset({"close", "reset", "step", "unwrapped", "np_random"})
-# Columns of a worker's per-slot, per-action result rows.
+# Columns of a worker's per-env, per-action result rows.
 _REWARD, _TERMINATED, _TRUNCATED, _SUCCESS = 0, 1, 2, 3
 # The longest chunk a pod takes by default: the chunk axis of a worker's shared result rows.
 DEFAULT_MAX_CHUNK = 64
@@ -129,12 +130,12 @@ def _describe(task_ids: Sequence[str], env_indices: Sequence[int]) -> str:
 
 @dataclass(frozen=True)
 class _WorkerSpec:
-    """What one worker process hosts: env ``env_indices[i]`` of task ``task_ids[i]`` in slot ``i``,
-    of ``slots`` slots (the ones beyond ``len(env_indices)`` idle)."""
+    """What one worker process hosts: env ``env_indices[i]`` of task ``task_ids[i]`` at local
+    index ``i``, room for ``envs_per_worker`` envs (the rows beyond ``len(env_indices)`` idle)."""
 
     task_ids: tuple[str, ...]
     env_indices: tuple[int, ...]
-    slots: int
+    envs_per_worker: int
     camera: CameraConfig
     render: RenderPreset | None
     max_episode_steps: int | None
@@ -181,26 +182,26 @@ def _zeros(space: gymnasium.Space) -> Any:
     return np.zeros(space.shape, dtype=space.dtype)
 
 
-def _write_slot(out: Any, slot: int, value: Any) -> None:
-    """Write one env's observation into slot ``slot`` of the batched ``out`` (a dict may leave
-    keys out: deferred images)."""
+def _write_obs(out: Any, local: int, value: Any) -> None:
+    """Write one env's observation at its local index ``local`` into the batched ``out``
+    (a dict may leave keys out: deferred images)."""
     if isinstance(value, dict):
         for key, item in value.items():
-            _write_slot(out[key], slot, item)
+            _write_obs(out[key], local, item)
     elif isinstance(value, tuple):
         for sub, item in zip(out, value):
-            _write_slot(sub, slot, item)
+            _write_obs(sub, local, item)
     else:
-        out[slot] = value
+        out[local] = value
 
 
-def _gather(tree: Any, workers: np.ndarray, slots: np.ndarray) -> Any:
+def _gather(tree: Any, workers: np.ndarray, local_indices: np.ndarray) -> Any:
     # Fancy indexing copies, so results never alias the shared memory the next call overwrites.
     if isinstance(tree, dict):
-        return {key: _gather(sub, workers, slots) for key, sub in tree.items()}
+        return {key: _gather(sub, workers, local_indices) for key, sub in tree.items()}
     if isinstance(tree, tuple):
-        return tuple(_gather(sub, workers, slots) for sub in tree)
-    return tree[workers, slots]
+        return tuple(_gather(sub, workers, local_indices) for sub in tree)
+    return tree[workers, local_indices]
 
 
 def _own_info(info: dict[str, Any]) -> dict[str, Any]:
@@ -240,25 +241,25 @@ def _attr_op(target: gymnasium.Env, op: str, name: str, payload: Any) -> Any:
 
 
 def _results_space(worker: _WorkerSpec) -> gymnasium.spaces.Dict:
-    """One worker's part of the shared memory: its slots' observations and result rows."""
+    """One worker's part of the shared memory: its envs' observations and result rows, by local index."""
     return gymnasium.spaces.Dict(
         {
-            "obs": batch_space(worker.observation_space, worker.slots),
-            # Per slot and chunk action: reward, terminated, truncated, success (zeros after the
+            "obs": batch_space(worker.observation_space, worker.envs_per_worker),
+            # Per env and chunk action: reward, terminated, truncated, success (zeros after the
             # action an env stopped at).
-            "flags": gymnasium.spaces.Box(-np.inf, np.inf, (worker.slots, worker.max_chunk, 4), np.float64),
+            "flags": gymnasium.spaces.Box(-np.inf, np.inf, (worker.envs_per_worker, worker.max_chunk, 4), np.float64),
         }
     )
 
 
 @dataclass(frozen=True)
 class _Order:
-    """Work for one worker in one call: the slots ``slots`` (in that order), each reset to a fixed
-    state (``state_ids``), reset by the env's own ``reset(seed, options)`` (``seeds``, -1 for
-    None), or stepped through a chunk of actions (``actions`` ``[m, K, ...]``, ``record`` the
-    slots whose every frame is kept). Exactly one of ``state_ids``, ``seeds``, ``actions``."""
+    """Work for one worker in one call: its envs at ``local_indices`` (in that order), each reset
+    to a fixed state (``state_ids``), reset by the env's own ``reset(seed, options)`` (``seeds``,
+    -1 for None), or stepped through a chunk of actions (``actions`` ``[m, K, ...]``, ``record``
+    the envs whose every frame is kept). Exactly one of ``state_ids``, ``seeds``, ``actions``."""
 
-    slots: np.ndarray
+    local_indices: np.ndarray
     state_ids: np.ndarray | None = None
     seeds: np.ndarray | None = None
     options: dict[str, Any] | None = None
@@ -270,8 +271,8 @@ class _Order:
 class _Reply:
     """A worker's answer to its orders of one call (observations and result rows are in shared
     memory): seconds in physics and in rendering and the env renders made; the frames of recorded
-    slots before their last action ``[(slot, [{camera: image}, ...])]``; each slot's own info
-    ``[(slot, info)]``; the exceptions slots raised ``[(slot, type name, message)]``."""
+    envs before their last action ``[(local index, [{camera: image}, ...])]``; each env's own info
+    ``[(local index, info)]``; the exceptions envs raised ``[(local index, type name, message)]``."""
 
     physics_s: float
     render_s: float
@@ -293,7 +294,7 @@ class _Worker:
         self.worker = worker
         self._envs: list[TaskEnv] = []
         self._out: dict[str, Any] = _zeros(_results_space(worker)) if out is None else out
-        # Per call: each slot's own info and the exceptions slots raised.
+        # Per call: each env's own info and the exceptions envs raised, by local index.
         self._infos: list[tuple[int, dict[str, Any]]] = []
         self._errors: list[tuple[int, str, str]] = []
 
@@ -305,9 +306,9 @@ class _Worker:
                 index (``tiny/door (envs 2-2)``), or all the worker's envs when rendering failed.
         """
         worker = self.worker
-        slot = 0
+        local = 0
         try:
-            for slot, task_id in enumerate(worker.task_ids):
+            for local, task_id in enumerate(worker.task_ids):
                 steps = episode_limit(task_id, worker.max_episode_steps)
                 kwargs = (worker.make_kwargs or {}).get(task_id)
                 env = make_env(task_id, worker.camera, worker.render, steps, worker.libero, kwargs)
@@ -320,42 +321,42 @@ class _Worker:
                     )
             for env in self._envs:
                 env.defer_images = True
-            for slot in range(len(self._envs)):
-                self._reset_slot(slot, 0)
-            slot = -1
+            for local in range(len(self._envs)):
+                self._reset_env(local, 0)
+            local = -1
             self._render(list(range(len(self._envs))))
         except Exception as exc:
-            failed = slice(None) if slot < 0 else slice(slot, slot + 1)
+            failed = slice(None) if local < 0 else slice(local, local + 1)
             where = _describe(worker.task_ids[failed], worker.env_indices[failed])
             raise SimBuildError(f"{where}: {type(exc).__name__}: {exc}") from exc
         _release_compiler_memory()
         return len(self._envs)
 
-    def _reset_slot(
-        self, slot: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
+    def _reset_env(
+        self, local: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
     ) -> None:
         """Reset one env: to fixed state ``state_id``, or (``seeded``) the env's own reset with
         ``seed`` and ``options``."""
-        env = self._envs[slot]
+        env = self._envs[local]
         if seeded:
             observation, info = env.reset(seed=seed, options=options)
         else:
             observation, info = env.reset(options={"state_id": state_id})
-        _write_slot(self._out["obs"], slot, observation)
-        self._out["flags"][slot] = 0.0
-        self._out["flags"][slot, 0, _SUCCESS] = info["success"]
-        self._keep_info(slot, info)
+        _write_obs(self._out["obs"], local, observation)
+        self._out["flags"][local] = 0.0
+        self._out["flags"][local, 0, _SUCCESS] = info["success"]
+        self._keep_info(local, info)
 
-    def _keep_info(self, slot: int, info: dict[str, Any]) -> None:
+    def _keep_info(self, local: int, info: dict[str, Any]) -> None:
         own = _own_info(info)
         if own:
-            self._infos.append((slot, own))
+            self._infos.append((local, own))
 
-    def _step_slot(self, slot: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
+    def _step_env(self, local: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
         """Apply ``chunk``'s actions to one env until it terminates or truncates; return the
         frames recorded after each applied action but the last, and the seconds spent drawing them."""
-        env = self._envs[slot]
-        rows = self._out["flags"][slot]
+        env = self._envs[local]
+        rows = self._out["flags"][local]
         rows[:] = 0.0
         frames: list[dict[str, np.ndarray]] = []
         render_s = 0.0
@@ -368,15 +369,15 @@ class _Worker:
                 break
             if record and k + 1 < len(chunk) and env.renderer is not None:
                 drawn = time.perf_counter()
-                frames.append(self._draw([slot]))
+                frames.append(self._draw([local]))
                 render_s += time.perf_counter() - drawn
         if observation is not None:
-            _write_slot(self._out["obs"], slot, observation)
-            self._keep_info(slot, info)
+            _write_obs(self._out["obs"], local, observation)
+            self._keep_info(local, info)
         return frames, render_s
 
     def run(self, *orders: _Order) -> _Reply:
-        """Carry out ``orders`` (each slot's reset or chunk step, in order), then render the
+        """Carry out ``orders`` (each env's reset or chunk step, in order), then render the
         cameras of every env reset or stepped, once, in one batch; return the :class:`_Reply`.
 
         An env that raises is named in the reply (its result rows zeroed); the others go on."""
@@ -386,25 +387,25 @@ class _Worker:
         render_s = 0.0
         self._infos, self._errors = [], []
         for order in orders:
-            for i, slot in enumerate(order.slots.tolist()):
+            for i, local in enumerate(order.local_indices.tolist()):
                 try:
                     if order.actions is not None:
                         record = order.record is not None and bool(order.record[i])
-                        frames, drawing_s = self._step_slot(slot, order.actions[i], record)
+                        frames, drawing_s = self._step_env(local, order.actions[i], record)
                         render_s += drawing_s
                         if record:
-                            recorded.append((slot, frames))
+                            recorded.append((local, frames))
                     elif order.seeds is not None:
                         seed = int(order.seeds[i])
-                        self._reset_slot(slot, 0, None if seed < 0 else seed, True, order.options)
+                        self._reset_env(local, 0, None if seed < 0 else seed, True, order.options)
                     else:
                         assert order.state_ids is not None
-                        self._reset_slot(slot, int(order.state_ids[i]))
+                        self._reset_env(local, int(order.state_ids[i]))
                 except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
-                    self._out["flags"][slot] = 0.0
-                    self._errors.append((slot, type(exc).__name__, str(exc)))
+                    self._out["flags"][local] = 0.0
+                    self._errors.append((local, type(exc).__name__, str(exc)))
                     continue
-                touched.append(slot)
+                touched.append(local)
         stepped = time.perf_counter()
         physics_s = stepped - started - render_s
         self._render(touched)
@@ -422,11 +423,11 @@ class _Worker:
         (through its wrappers).
         """
         out: list[tuple[int, bool, Any]] = []
-        for slot, env_index in enumerate(self.worker.env_indices):
+        for local, env_index in enumerate(self.worker.env_indices):
             if env_index not in requests:
                 continue
             op, name, payload = requests[env_index]
-            env = self._envs[slot]
+            env = self._envs[local]
             target = env.inner if isinstance(env, GymTaskEnv) else env
             try:
                 out.append((env_index, True, _attr_op(target, op, name, payload)))
@@ -434,20 +435,21 @@ class _Worker:
                 out.append((env_index, False, (type(exc).__name__, str(exc))))
         return out
 
-    def _draw(self, slots: list[int]) -> dict[str, np.ndarray]:
-        """Render every camera of ``slots``' envs in one batch; return ``{camera: uint8[len(slots), H, W, 3]}``."""
+    def _draw(self, local_indices: list[int]) -> dict[str, np.ndarray]:
+        """Render every camera of the envs at ``local_indices`` in one batch; return
+        ``{camera: uint8[len(local_indices), H, W, 3]}``."""
         # Every env of a worker renders at one size and preset, so they share one renderer.
         names = self._envs[0].image_names
-        views = [self._envs[slot].camera_views[camera] for camera in range(len(names)) for slot in slots]
+        views = [self._envs[local].camera_views[camera] for camera in range(len(names)) for local in local_indices]
         frames = self._envs[0].renderer.render(views)
-        return {name: frames[index * len(slots) : (index + 1) * len(slots)] for index, name in enumerate(names)}
+        return {name: frames[index * len(local_indices) : (index + 1) * len(local_indices)] for index, name in enumerate(names)}
 
-    def _render(self, slots: list[int]) -> None:
-        if not slots or self._envs[0].renderer is None:
+    def _render(self, local_indices: list[int]) -> None:
+        if not local_indices or self._envs[0].renderer is None:
             return
         images = self._out["obs"]["images"]
-        for name, frames in self._draw(slots).items():
-            images[name][slots] = frames
+        for name, frames in self._draw(local_indices).items():
+            images[name][local_indices] = frames
 
     def close(self) -> None:
         """Close every env of the worker. Returns None."""
@@ -503,7 +505,7 @@ class _WorkerFailure(RuntimeError):
 class _WorkerPool:
     """The pod's worker processes: one per :class:`_WorkerSpec`, each with its own pipe for
     orders and replies, and one shared-memory block of every worker's observations and result
-    rows (``results``, ``[workers, slots, ...]``, :func:`_results_space`). Only workers sent an
+    rows (``results``, ``[workers, local index, ...]``, :func:`_results_space`). Only workers sent an
     order are waited for."""
 
     def __init__(self, specs: Sequence[_WorkerSpec], context: str) -> None:
@@ -736,17 +738,17 @@ class TaskGroupedVectorEnv:
         self._pool: _WorkerPool | None = None
         self.last_timing = CallTiming()
 
-        slots = self.envs_per_worker = resolve_envs_per_worker(assignment)
+        per_worker = self.envs_per_worker = resolve_envs_per_worker(assignment)
         for block in assignment.tasks:
             task = get_task(block.task_id)
             self.task_ids += [task.task_id] * block.num_envs
             self._num_states[block.env_start : block.env_start + block.num_envs] = task.num_states
-        # Worker w hosts envs w*slots ... (w+1)*slots - 1, across task boundaries.
+        # Worker w hosts envs w*per_worker ... (w+1)*per_worker - 1, across task boundaries.
         self._workers = [
             _WorkerSpec(
-                task_ids=tuple(self.task_ids[first : first + slots]),
-                env_indices=tuple(range(first, min(first + slots, self.num_envs))),
-                slots=slots,
+                task_ids=tuple(self.task_ids[first : first + per_worker]),
+                env_indices=tuple(range(first, min(first + per_worker, self.num_envs))),
+                envs_per_worker=per_worker,
                 camera=assignment.camera,
                 render=assignment.render,
                 max_episode_steps=assignment.max_episode_steps,
@@ -756,10 +758,10 @@ class TaskGroupedVectorEnv:
                 libero=assignment.libero,
                 make_kwargs=assignment.make_kwargs,
             )
-            for first in range(0, self.num_envs, slots)
+            for first in range(0, self.num_envs, per_worker)
         ]
         envs = np.arange(self.num_envs, dtype=np.int64)
-        self._location = np.stack(divmod(envs, slots), axis=1).reshape(-1, 2)
+        self._location = np.stack(divmod(envs, per_worker), axis=1).reshape(-1, 2)
         if self._workers:
             self._start(context, build_timeout_s)
 
@@ -991,14 +993,14 @@ class TaskGroupedVectorEnv:
             seed_values = self._seeds(seeds, ids)
         if ids.size == 0:
             return self._empty_obs(), {"success": np.zeros(0, dtype=bool), "task_id": [], "env_info": [], "errors": []}
-        workers, slots = self._location[ids].T
+        workers, local_indices = self._location[ids].T
         orders = {}
-        for worker, rows in self._by_worker(workers, slots):
+        for worker, rows in self._by_worker(workers, local_indices):
             if seeds is None:
-                orders[worker] = _Order(slots[rows], state_ids=states[rows])
+                orders[worker] = _Order(local_indices[rows], state_ids=states[rows])
             else:
-                orders[worker] = _Order(slots[rows], seeds=seed_values[rows], options=options)
-        obs, rows, replies = self._run(orders, workers, slots)
+                orders[worker] = _Order(local_indices[rows], seeds=seed_values[rows], options=options)
+        obs, rows, replies = self._run(orders, workers, local_indices)
         env_info, errors = self._per_row(replies, ids)
         return obs, {
             "success": rows[:, 0, _SUCCESS] != 0,
@@ -1030,10 +1032,10 @@ class TaskGroupedVectorEnv:
         env_info: list[dict[str, Any]] = [{} for _ in range(ids.size)]
         errors = []
         for worker, reply in replies.items():
-            for slot, own in reply.env_info:
-                env_info[row_of[(worker, slot)]] = own
-            for slot, type_name, message in reply.errors:
-                errors.append(EnvError(row_of[(worker, slot)], type_name, message))
+            for local, own in reply.env_info:
+                env_info[row_of[(worker, local)]] = own
+            for local, type_name, message in reply.errors:
+                errors.append(EnvError(row_of[(worker, local)], type_name, message))
         errors.sort(key=lambda e: e.row)
         for error in errors:
             log.info("env %d (%s) raised %s: %s", int(ids[error.row]), self.task_ids[int(ids[error.row])], error.type_name, error.message)
@@ -1091,23 +1093,23 @@ class TaskGroupedVectorEnv:
 
     def _step_chunks(self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray) -> ChunkResult:
         n, k = chunk.shape[:2]
-        workers, slots = self._location[ids].T
+        workers, local_indices = self._location[ids].T
         if n == 0 or k == 0:
-            obs = self._empty_obs() if n == 0 else self._current(workers, slots)
+            obs = self._empty_obs() if n == 0 else self._current(workers, local_indices)
             result = self._result(obs, np.zeros((n, k, 4)), recorded)
             return dataclasses.replace(result, env_info=[{} for _ in range(n)])
         record = np.zeros(n, dtype=bool)
         record[recorded] = True
         orders = {
-            worker: _Order(slots[rows], actions=chunk[rows], record=record[rows] if recorded.size else None)
-            for worker, rows in self._by_worker(workers, slots)
+            worker: _Order(local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None)
+            for worker, rows in self._by_worker(workers, local_indices)
         }
-        obs, rows, replies = self._run(orders, workers, slots)
+        obs, rows, replies = self._run(orders, workers, local_indices)
         env_info, errors = self._per_row(replies, ids)
         result = dataclasses.replace(self._result(obs, rows[:, :k], recorded), env_info=env_info, errors=errors)
-        drawn = {(worker, slot): frames for worker, reply in replies.items() for slot, frames in reply.frames}
+        drawn = {(worker, local): frames for worker, reply in replies.items() for local, frames in reply.frames}
         for index, row in enumerate(recorded):
-            before_last = drawn[(int(workers[row]), int(slots[row]))]
+            before_last = drawn[(int(workers[row]), int(local_indices[row]))]
             last = int(result.num_steps[row]) - 1
             for camera, out in result.frames.items():
                 for step, frame in enumerate(before_last):
@@ -1148,11 +1150,11 @@ class TaskGroupedVectorEnv:
         cameras = [] if images is None else list(images.spaces)
         if camera not in cameras:
             raise InvalidRequestError(f"camera: no camera {camera!r}; cameras: {cameras}")
-        worker, slot = self._location[ids[0]]
+        worker, local = self._location[ids[0]]
         with self._lock:
             self._check_usable()
             assert self._pool is not None
-            return np.array(self._pool.results["obs"]["images"][camera][worker, slot])
+            return np.array(self._pool.results["obs"]["images"][camera][worker, local])
 
     def close(self) -> None:
         """Stop the worker processes. Idempotent. Returns None."""
@@ -1222,20 +1224,20 @@ class TaskGroupedVectorEnv:
         return create_empty_array(self.single_observation_space, n=0, fn=np.zeros)
 
     @staticmethod
-    def _by_worker(workers: np.ndarray, slots: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    def _by_worker(workers: np.ndarray, local_indices: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """The rows of a call grouped by worker: ``[(worker, rows), ...]``, each worker's rows in
-        slot order (the order a worker runs its envs in)."""
-        rows = np.lexsort((slots, workers))
+        local-index order (the order a worker runs its envs in)."""
+        rows = np.lexsort((local_indices, workers))
         ordered = workers[rows]
         groups = np.split(rows, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1)
         return [(int(workers[group[0]]), group) for group in groups if group.size]
 
-    def _current(self, workers: np.ndarray, slots: np.ndarray) -> dict[str, Any]:
+    def _current(self, workers: np.ndarray, local_indices: np.ndarray) -> dict[str, Any]:
         """The named envs' observations as they stand, without a worker call."""
         with self._lock:
             self._check_usable()
             assert self._pool is not None
-            return _gather(self._pool.results["obs"], workers, slots)
+            return _gather(self._pool.results["obs"], workers, local_indices)
 
     def _dead_worker(self) -> str | None:
         assert self._pool is not None
@@ -1292,15 +1294,15 @@ class TaskGroupedVectorEnv:
         return replies
 
     def _run(
-        self, orders: dict[int, _Order], workers: np.ndarray, slots: np.ndarray
+        self, orders: dict[int, _Order], workers: np.ndarray, local_indices: np.ndarray
     ) -> tuple[Any, np.ndarray, dict[int, _Reply]]:
         """Send each worker of ``orders`` its order (no other worker hears of the call); return
         the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the replies."""
         with self._lock:
             replies: dict[int, _Reply] = self._ask("run", orders)
             assert self._pool is not None
-            obs = _gather(self._pool.results["obs"], workers, slots)
-            rows = self._pool.results["flags"][workers, slots]
+            obs = _gather(self._pool.results["obs"], workers, local_indices)
+            rows = self._pool.results["flags"][workers, local_indices]
         self.last_timing = CallTiming(
             float(sum(reply.physics_s for reply in replies.values())),
             float(sum(reply.render_s for reply in replies.values())),

@@ -36,6 +36,7 @@ __all__ = [
     "get_answer",
     "make_transport",
     "read_answer",
+    "send_capped",
 ]
 
 TransportKind = Literal["aiohttp", "httpx"]
@@ -309,11 +310,38 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         await response.aclose()
 
 
+# What no longer holds of an answer once its body is read and decoded: how it travelled.
+_TRAVEL_HEADERS = frozenset({"content-encoding", "content-length", "transfer-encoding"})
+
+
+async def send_capped(http: httpx.AsyncClient, request: httpx.Request, max_bytes: int) -> httpx.Response:
+    """Send ``request`` through ``http`` and read the answer whole under the cap ``max_bytes``, as
+    :func:`read_answer` does: the one way the client reads a pod's or the controller's answer and
+    the controller a pod's. Callers bound the whole exchange with ``asyncio.timeout``.
+
+    Returns:
+        the response, its body read and decoded (no Content-Encoding left to decode).
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.HTTPError: what the transport met while sending or receiving.
+    """
+    response = await http.send(request, stream=True)
+    return _with_body(response, await read_answer(response, max_bytes))
+
+
+def _with_body(response: httpx.Response, content: bytes) -> httpx.Response:
+    """``response`` carrying ``content``, its body as read and decoded, without the headers of
+    how it travelled (encoding, length, chunking)."""
+    headers = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in _TRAVEL_HEADERS]
+    return httpx.Response(response.status_code, headers=headers, content=content, request=response.request)
+
+
 def get_answer(
     url: str, *, timeout_s: float, max_bytes: int = MAX_CONTROL_ANSWER_BYTES, headers: dict[str, str] | None = None
 ) -> httpx.Response:
     """``GET url`` from a blocking caller (the controller's routing table, a pod's ``/v1/info``),
-    read whole under the cap ``max_bytes`` like :func:`read_answer`, within ``timeout_s`` in all.
+    read whole under the cap ``max_bytes`` like :func:`send_capped`, within ``timeout_s`` in all.
 
     Returns:
         the response, its body read and decoded (no Content-Encoding left to decode).
@@ -337,5 +365,4 @@ def get_answer(
             content = reader.finish()
         finally:
             response.close()
-    headers_left = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in ("content-encoding", "content-length", "transfer-encoding")]
-    return httpx.Response(response.status_code, headers=headers_left, content=content, request=request)
+    return _with_body(response, content)

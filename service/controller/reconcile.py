@@ -20,7 +20,7 @@ import httpx
 
 from vecsim.config import Assignment
 from vecsim.plan import Plan
-from vecsim.transport import read_answer
+from vecsim.transport import send_capped
 
 if TYPE_CHECKING:
     from .state import ControllerState
@@ -189,12 +189,11 @@ class Reconciler:
         try:
             async with asyncio.timeout(self._state.settings.push_timeout_s):
                 request = self._client.build_request("PUT", url, json=action.assignment.model_dump(mode="json"))
-                response = await self._client.send(request, stream=True)
-                body = await read_answer(response, _MAX_PUSH_ANSWER_BYTES)
+                response = await send_capped(self._client, request, _MAX_PUSH_ANSWER_BYTES)
         except TimeoutError:
             return False, f"no answer within {self._state.settings.push_timeout_s} s"
         except Exception as exc:  # noqa: BLE001 - whatever the pod's side did, the push failed and backs off
             return False, f"{type(exc).__name__}: {exc}"
         if response.status_code == 200:
             return True, ""
-        return False, f"HTTP {response.status_code}: {body[:500].decode('utf-8', 'replace')}"
+        return False, f"HTTP {response.status_code}: {response.content[:500].decode('utf-8', 'replace')}"

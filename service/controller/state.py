@@ -105,11 +105,12 @@ class ControllerState:
     def register(self, registration: PodRegistration) -> PodRecord:
         """Adds a pod, or replaces a pod of the same name (a restarted process). Returns its record."""
         now = self.clock()
-        if registration.name in self.pods and self.plan is not None and self.plan.slot_of(registration.name):
-            log.info("pod %s registered again while holding a slot: treating it as restarted", registration.name)
-            self.restarted.add(registration.name)
-        self.pods[registration.name] = PodEntry(
-            name=registration.name,
+        name = registration.pod
+        if name in self.pods and self.plan is not None and self.plan.slot_of(name):
+            log.info("pod %s registered again while holding a slot: treating it as restarted", name)
+            self.restarted.add(name)
+        self.pods[name] = PodEntry(
+            name=name,
             url=registration.url.rstrip("/"),
             capacity=registration.capacity,
             last_seen=self.wall(),
@@ -117,12 +118,12 @@ class ControllerState:
         )
         self.metrics.registrations.inc()
         log.info(
-            "pod %s registered at %s (max_envs %d)", registration.name, registration.url, registration.capacity.max_envs
+            "pod %s registered at %s (max_envs %d)", name, registration.url, registration.capacity.max_envs
         )
         self.changes += 1
         self._members += 1
         self.wake.set()
-        return self.record(registration.name)
+        return self.record(name)
 
     def heartbeat(self, name: str, url: str, assignment: Assignment | None, ready: bool) -> int | None:
         """Records what a pod reports. Returns the plan's generation (``None`` without a plan).
@@ -203,7 +204,7 @@ class ControllerState:
         entry = self.pods[name]
         slot = self.plan.slot_of(name) if self.plan is not None else None
         return PodRecord(
-            name=entry.name,
+            pod=entry.name,
             url=entry.url,
             capacity=entry.capacity,
             stage_id=slot.stage_id if slot is not None else None,
@@ -256,7 +257,7 @@ class ControllerState:
         if self.plan is not None and self._planned_at == self._members:
             new = self.plan
         else:
-            live = [PodRecord(name=e.name, url=e.url, capacity=e.capacity) for e in self.pods.values()]
+            live = [PodRecord(pod=e.name, url=e.url, capacity=e.capacity) for e in self.pods.values()]
             new = plan(self.job, live, previous, self.tasks, restarted=self.restarted)
             self._planned_at = self._members
         generation = safe_generation(new, {n: e.reported for n, e in self.pods.items()})

@@ -87,7 +87,7 @@ class ControllerAgent:
 
     async def _register(self, client: httpx.AsyncClient) -> None:
         registration = PodRegistration(
-            name=self.settings.name,
+            pod=self.settings.name,
             url=self.settings.url,
             capacity=PodCapacity(max_envs=self.settings.max_envs, gpu=self.settings.has_gpu),
         )

@@ -20,7 +20,6 @@ import logging
 import os
 import secrets
 import shutil
-import socket
 import sys
 import tempfile
 import time
@@ -34,25 +33,13 @@ from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
 from vecsim.config import PodCapacity, PodRecord, RoutingTable, RunnerConfig, parse_cpu_list
 from vecsim.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
+from .ports import port_free
 from .process import Backoff, ManagedProcess
 from .status import PodStatus, collect_status, format_status
 
 log = logging.getLogger(__name__)
 
 CONTROLLER_NAME = "controller"
-
-
-def port_free(host: str, port: int) -> bool:
-    """Return whether ``port`` on ``host`` can be bound now, as uvicorn binds it: with
-    ``SO_REUSEADDR``, so the TIME_WAIT connections a job that just stopped leaves behind do not
-    count as the port in use (a listener still does)."""
-    with socket.socket() as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError:
-            return False
-    return True
 
 
 class CrashLoopError(RuntimeError):
@@ -162,7 +149,7 @@ class LocalJob:
         job, pods = self.config.job, self.config.pods
         # Every pod of a local job has the same capacity: checking one names the problem once.
         sample = [
-            PodRecord(name=n, url=self.pod_url(n), capacity=PodCapacity(max_envs=pods.max_envs))
+            PodRecord(pod=n, url=self.pod_url(n), capacity=PodCapacity(max_envs=pods.max_envs))
             for n in self.pod_names[:1]
         ]
         _, problems = check_job(job, sample)

@@ -38,7 +38,7 @@ def collect_status(
         with httpx.Client(base_url=controller_url, timeout=timeout) as client:
             response = client.get("/v1/pods")
             if response.status_code == 200:
-                records = {r["name"]: PodRecord.model_validate(r) for r in response.json()}
+                records = {record.pod: record for record in map(PodRecord.model_validate, response.json())}
             response = client.get("/v1/routing")
             if response.status_code == 200:
                 table = RoutingTable.model_validate(response.json())

@@ -24,7 +24,7 @@ from vecsim.client.errors import (
     RoutingChangedError,
     StaleGenerationError,
 )
-from vecsim.client.routing import EnvSlot, TrajRoute, env_slots, place_requests
+from vecsim.client.routing import RoutedEnv, TrajRoute, place_requests, routed_envs
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.client.vector_env import HTTPVectorEnv
 from vecsim.client.vla_env import VLAEnv
@@ -32,20 +32,20 @@ from vecsim.client.vla_env import VLAEnv
 __all__ = [
     "CapacityError",
     "ClientError",
-    "EnvSlot",
     "HTTPVectorEnv",
     "PendingCall",
     "PodRequestError",
     "PodUnavailableError",
+    "RoutedEnv",
     "RoutingChangedError",
     "StageBatch",
     "StageClient",
     "StaleGenerationError",
     "TrajRoute",
     "VLAEnv",
-    "env_slots",
     "fetch_routing",
     "place_requests",
+    "routed_envs",
 ]
 
 ENV_ID = "vecsim/HTTPVectorEnv-v0"

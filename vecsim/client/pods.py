@@ -25,7 +25,7 @@ import numpy as np
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
-from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, read_answer
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, send_capped
 
 logger = logging.getLogger(__name__)
 
@@ -188,16 +188,13 @@ class PodConnection:
             async with asyncio.timeout(self.timeout_s):
                 http = self._http()
                 request = http.build_request(method, f"{self.url}{path}", **kwargs)
-                response = await http.send(request, stream=True)
-                content = await read_answer(response, self.max_answer_bytes + extra_answer_bytes)
+                return await send_capped(http, request, self.max_answer_bytes + extra_answer_bytes)
         except TimeoutError:
             reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
         except Exception as exc:  # noqa: BLE001 - whatever broke the exchange, it is this pod's failure alone
             reason = f"{method} {path} at {self.url}: {type(exc).__name__}: {exc}".rstrip(": ")
             raise PodUnavailableError({self.name: held}, reason) from None
-        # The body is decoded already: the answer keeps no Content-Encoding to decode again.
-        return httpx.Response(response.status_code, content=content, request=request)
 
     async def info(self) -> dict[str, Any]:
         """Return the pod's ``GET /v1/info`` answer.

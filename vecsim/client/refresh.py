@@ -20,7 +20,7 @@ from vecsim.client.pods import EventLoopThread
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import stage_by_id
 from vecsim.config import RoutingTable
-from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, get_answer, read_answer
+from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, get_answer, send_capped
 
 # The client's one logger name: what it says about routing is found where users look for it.
 logger = logging.getLogger("vecsim.client.stage")
@@ -106,8 +106,9 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         pause = min(pause * 2, _WAIT_MAX_S)
 
 
-async def controller_routing(controller_url: str, timeout_s: float) -> RoutingTable:
-    """The controller's routing table now, read on the running loop.
+async def controller_routing(http: httpx.AsyncClient, controller_url: str, timeout_s: float) -> RoutingTable:
+    """The controller's routing table now, read on the running loop through ``http`` (the
+    client's own, which its pods are reached through too).
 
     Raises:
         PodUnavailableError: the controller did not answer within ``timeout_s``.
@@ -115,10 +116,8 @@ async def controller_routing(controller_url: str, timeout_s: float) -> RoutingTa
     """
     url = f"{controller_url}/v1/routing"
     try:
-        async with asyncio.timeout(timeout_s), httpx.AsyncClient(timeout=timeout_s, trust_env=False) as http:
-            answer = await http.send(http.build_request("GET", url), stream=True)
-            content = await read_answer(answer, MAX_CONTROL_ANSWER_BYTES)
-            response = httpx.Response(answer.status_code, content=content, request=answer.request)
+        async with asyncio.timeout(timeout_s):
+            response = await send_capped(http, http.build_request("GET", url), MAX_CONTROL_ANSWER_BYTES)
     except (TimeoutError, httpx.HTTPError) as exc:
         raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
     return _read_routing(response, url)
@@ -128,8 +127,10 @@ class RoutingRefresher:
     """Keeps a route book's table current from a controller (``controller_url`` None: no
     controller, the table in use stays and a 409 is a :class:`StaleGenerationError`).
 
-    ``pod_info(pod)`` reads a pod's ``/v1/info`` on the client's loop; ``on_table()`` runs after
-    the book took a new table (the client makes its pod connections follow it).
+    ``http()`` is the client's one ``httpx.AsyncClient`` (made on its loop, closed with it), which
+    the table is read through; ``pod_info(pod)`` reads a pod's ``/v1/info`` on the client's loop;
+    ``on_table()`` runs after the book took a new table (the client makes its pod connections
+    follow it).
     """
 
     def __init__(
@@ -138,12 +139,14 @@ class RoutingRefresher:
         info: JobInfo,
         controller_url: str | None,
         timeout_s: float,
+        http: Callable[[], httpx.AsyncClient],
         pod_info: Callable[[str], Awaitable[dict[str, Any]]],
         on_table: Callable[[], None],
     ) -> None:
         self.book, self.info = book, info
         self.controller_url = controller_url
         self.timeout_s = timeout_s
+        self._http = http
         self._pod_info = pod_info
         self._on_table = on_table
         self._lock: asyncio.Lock | None = None  # made on the loop, at the first 409
@@ -155,7 +158,7 @@ class RoutingRefresher:
         if self.controller_url is None:
             return
         try:
-            new = loop.run(controller_routing(self.controller_url, min(self.timeout_s, _REFRESH_TIMEOUT_S)))
+            new = loop.run(self._routing(min(self.timeout_s, _REFRESH_TIMEOUT_S)))
             stage_by_id(new)
             if new.generation == self.book.generation or not new.ready:
                 return
@@ -179,6 +182,10 @@ class RoutingRefresher:
         for pod, info in zip(pods, loop.run(builds())):
             self.info.instances[pod] = None if isinstance(info, BaseException) else info.get("instance")
 
+    async def _routing(self, timeout_s: float) -> RoutingTable:
+        assert self.controller_url is not None
+        return await controller_routing(self._http(), self.controller_url, timeout_s)
+
     async def after_stale(self, pod: str, generation: int, detail: str, keys: list[str]) -> None:
         """After ``pod`` answered 409 at ``generation``: re-read the table once per generation.
 
@@ -199,7 +206,7 @@ class RoutingRefresher:
             raise StaleGenerationError(
                 pod, generation, f"{detail} (no controller_url to re-read the routing table from)"
             )
-        new = await controller_routing(self.controller_url, self.timeout_s)
+        new = await self._routing(self.timeout_s)
         logger.info(
             "pod %s answered 409 at generation %d; routing table now at generation %d", pod, generation, new.generation
         )

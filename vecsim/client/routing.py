@@ -16,11 +16,11 @@ from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
 from vecsim.plan import stage_of
 
 __all__ = [
-    "EnvSlot",
+    "RoutedEnv",
     "TrajRoute",
     "changed_routes",
-    "env_slots",
     "place_requests",
+    "routed_envs",
     "routing_from_pod_infos",
     "stage_by_id",
     "validate_routes",
@@ -39,8 +39,9 @@ class TrajRoute:
 
 
 @dataclass(frozen=True)
-class EnvSlot:
-    """One env of a job: ``(pod, env_index)``, its task and its stage."""
+class RoutedEnv:
+    """One env of a job as the routing table places it: ``(pod, env_index)``, its task and its
+    stage (an ``HTTPVectorEnv``'s sub-env is one of these for its whole life)."""
 
     pod: str
     env_index: int
@@ -72,22 +73,22 @@ def stage_by_id(table: RoutingTable) -> dict[int, RoutedStage]:
     return stages
 
 
-def env_slots(table: RoutingTable) -> list[EnvSlot]:
+def routed_envs(table: RoutingTable) -> list[RoutedEnv]:
     """Return every env of the table in stage-major order: stage, then pod, then env index.
 
     Raises:
         ValueError: as :func:`stage_by_id`.
     """
     stages = stage_by_id(table)
-    slots = []
+    envs = []
     for stage_id in sorted(stages):
         for pod in stages[stage_id].pods:
             for block in pod.tasks:
-                slots.extend(
-                    EnvSlot(pod.pod, env, block.task_id, stage_id)
+                envs.extend(
+                    RoutedEnv(pod.pod, env, block.task_id, stage_id)
                     for env in range(block.env_start, block.env_start + block.num_envs)
                 )
-    return slots
+    return envs
 
 
 def _task_at(pod: RoutedPod, env_index: int) -> str | None:

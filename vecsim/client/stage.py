@@ -97,8 +97,9 @@ class StageClient:
     re-read after a pod answers 409 (stale generation) and before each new batch is placed.
     ``timeout_s`` bounds every HTTP request as a whole, answer included: a pod that does not
     answer within it raises :class:`PodUnavailableError`. ``transport`` is how bytes reach the
-    pods, any ``httpx.AsyncBaseTransport`` (``httpx.ASGITransport(app)`` runs a pod in-process);
-    left out, ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
+    pods (and the controller, for those re-reads), any ``httpx.AsyncBaseTransport``
+    (``httpx.ASGITransport(app)`` runs a pod in-process); left out,
+    ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
     caps one pod's answer; left out, each pod's cap follows from the job's observation space
     and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
     job's shared token, sent with every reset and step; left out, ``VECSIM_TOKEN`` is used
@@ -134,7 +135,7 @@ class StageClient:
         self._closed = False
         self._loop = EventLoopThread()
         self._refresher = RoutingRefresher(
-            self._book, self._info, self.controller_url, self.timeout_s, self._pod_info, self._sync_pods
+            self._book, self._info, self.controller_url, self.timeout_s, self._http_client, self._pod_info, self._sync_pods
         )
         _open_clients.add(self)
         self._sync_pods()

@@ -1,7 +1,7 @@
 """HTTPVectorEnv: a gymnasium ``VectorEnv`` over every env of a vecsim job.
 
 Env ``i`` of the vector env is one fixed ``(pod, env_index)`` for the env's whole life, in
-stage-major order (stage, then pod, then env index: :func:`vecsim.client.routing.env_slots`).
+stage-major order (stage, then pod, then env index: :func:`vecsim.client.routing.routed_envs`).
 Pods never autoreset; this class does gymnasium's three autoreset modes on the client, with
 explicit pod resets. The async protocol is an explicit state machine like ``AsyncVectorEnv``'s.
 """
@@ -28,7 +28,7 @@ from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
-from vecsim.client.routing import TrajRoute, env_slots
+from vecsim.client.routing import TrajRoute, routed_envs
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.info import merge_rows
@@ -183,26 +183,26 @@ class HTTPVectorEnv(VectorEnv):
             raise
 
     def _setup(self, num_envs: int | None) -> None:
-        self.slots = env_slots(self.client.routing)
-        if not self.slots:
+        self.routed_envs = routed_envs(self.client.routing)
+        if not self.routed_envs:
             raise ValueError(
                 f"routing table generation {self.client.routing.generation} has no envs; is the job ready?"
             )
         if num_envs is not None:
-            if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or not 1 <= num_envs <= len(self.slots):
+            if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or not 1 <= num_envs <= len(self.routed_envs):
                 raise ValueError(
-                    f"num_envs={num_envs!r} but the job has {len(self.slots)} envs; ask for 1..{len(self.slots)} "
+                    f"num_envs={num_envs!r} but the job has {len(self.routed_envs)} envs; ask for 1..{len(self.routed_envs)} "
                     "(the first num_envs of them) or leave num_envs out (all)"
                 )
-            self.slots = self.slots[: int(num_envs)]
-        self.num_envs = len(self.slots)
+            self.routed_envs = self.routed_envs[: int(num_envs)]
+        self.num_envs = len(self.routed_envs)
         self.single_observation_space = self.client.observation_space
         self.single_action_space = self.client.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         self.render_mode = None
-        self.task_ids = [slot.task_id for slot in self.slots]
+        self.task_ids = [routed.task_id for routed in self.routed_envs]
         # Gym tasks without cameras reset as the envs' own reset (seeds), the others to fixed
         # initial states, as the pods say. A gym task is not looked up here: its module (a
         # user's package) need not exist on this machine.
@@ -217,8 +217,8 @@ class HTTPVectorEnv(VectorEnv):
         self._key_index = {key: i for i, key in enumerate(self._keys)}
         self.client.set_routes(
             {
-                key: TrajRoute(slot.pod, slot.env_index, slot.task_id, slot.stage_id, 0)
-                for key, slot in zip(self._keys, self.slots)
+                key: TrajRoute(routed.pod, routed.env_index, routed.task_id, routed.stage_id, 0)
+                for key, routed in zip(self._keys, self.routed_envs)
             }
         )
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
@@ -340,7 +340,8 @@ class HTTPVectorEnv(VectorEnv):
 
     def _place_lost_envs(self, mask: np.ndarray) -> None:
         """Route the masked envs whose pod's envs went away with a routing change back to their
-        slots, if the job still has the same env slots (a pod that came back into its slot).
+        own ``(pod, env_index)``, if the job still has the same envs (a pod that came back into
+        its plan slot).
 
         Raises:
             ClientError: the job's envs are no longer this vector env's (names the generation).
@@ -350,16 +351,16 @@ class HTTPVectorEnv(VectorEnv):
         if not lost:
             return
         table = self.client.routing
-        if env_slots(table) != self.slots:
+        if routed_envs(table) != self.routed_envs:
             raise ClientError(
                 f"the job's envs changed at routing generation {table.generation}: envs {lost} "
-                f"({', '.join(self._keys[i] for i in lost)}) lost their slots; close this HTTPVectorEnv "
+                f"({', '.join(self._keys[i] for i in lost)}) lost their envs; close this HTTPVectorEnv "
                 "and make a new one"
             )
         self.client.set_routes(
             {
-                key: live.get(key) or TrajRoute(slot.pod, slot.env_index, slot.task_id, slot.stage_id, 0)
-                for key, slot in zip(self._keys, self.slots)
+                key: live.get(key) or TrajRoute(routed.pod, routed.env_index, routed.task_id, routed.stage_id, 0)
+                for key, routed in zip(self._keys, self.routed_envs)
             }
         )
 

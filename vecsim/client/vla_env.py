@@ -120,7 +120,7 @@ class VLAEnv:
                 raise ValueError("no env ids and no env was ever reset: there is no observation to answer")
             return self._present(copy.deepcopy(self._obs)), {}
         if ((ids < 0) | (ids >= self.num_envs)).any() or len(set(ids.tolist())) != ids.size:
-            raise ValueError(f"env_ids must be distinct env indices 0..{self.num_envs - 1}, got {ids.tolist()}")
+            raise ValueError(f"env_ids must be distinct vector indices 0..{self.num_envs - 1}, got {ids.tolist()}")
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[ids] = True
         options: dict[str, Any] = {"reset_mask": mask}

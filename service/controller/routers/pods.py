@@ -32,7 +32,7 @@ async def list_pods(state: ControllerState = Depends(get_state)) -> list[PodReco
 
 
 @router.post(
-    "/{name}/heartbeat",
+    "/{pod}/heartbeat",
     response_model=HeartbeatAnswer,
     responses={
         404: {"model": Problem, "description": "unknown pod: register first"},
@@ -42,7 +42,7 @@ async def list_pods(state: ControllerState = Depends(get_state)) -> list[PodReco
     summary="Report what a pod runs",
 )
 async def heartbeat(
-    body: Heartbeat, name: str = POD_NAME, state: ControllerState = Depends(get_state)
+    body: Heartbeat, pod: str = POD_NAME, state: ControllerState = Depends(get_state)
 ) -> HeartbeatAnswer | JSONResponse:
     """Keeps the pod registered and records its assignment and readiness. A heartbeat cannot move
     a pod to another URL (409): a pod that moved registers again."""
@@ -50,7 +50,7 @@ async def heartbeat(
         detail = f"generation: {body.generation} differs from assignment.generation {body.assignment.generation}"
         return JSONResponse({"detail": detail}, status_code=422)
     try:
-        generation = state.heartbeat(name, body.url, body.assignment, body.ready)
+        generation = state.heartbeat(pod, body.url, body.assignment, body.ready)
     except UnknownPodError as exc:
         return JSONResponse({"detail": str(exc)}, status_code=404)
     except PodUrlConflictError as exc:
