@@ -688,11 +688,12 @@ class _WorkerPool:
             for fd, _events in ready:
                 worker = pending.pop(fd)
                 waiting.unregister(fd)
-                replies[worker] = self._result(worker, _read_frame(fd))
+                replies[worker] = self._decode_reply(worker, _read_frame(fd))
         return replies
 
     @staticmethod
-    def _result(worker: int, message: bytearray) -> Any:
+    def _decode_reply(worker: int, message: bytearray) -> Any:
+        """A worker's result from its reply message; raises _WorkerFailure for a failure."""
         if message[0] == _DONE:
             _tag, physics_s, render_s, renders = _DONE_MESSAGE.unpack(message)
             return _Reply(physics_s, render_s, renders, [], [], [])
