@@ -539,8 +539,8 @@ def main() -> None:
                 for k, v in cumulative(pod_stats, [
                     "select", "_run_once", "(step)", "(step_envs)", "(send)", "(receive)",
                     "(_per_row)", "(batch_infos)", "(encode_answer)", "(parse_body)", "(decode)", "(encode)",
-                    "(run_endpoint_function)", "(solve_dependencies)", "(recv_bytes)", "(send_bytes)",
-                    "(_recv_bytes)", "(_send_bytes)", "(loads)", "(dumps)", "(model_validate)", "(app)",
+                    "(run_endpoint_function)", "(solve_dependencies)", "(_receive)", "(_send)",
+                    "(loads)", "(dumps)", "(model_validate)", "(app)",
                 ]).items()
             },
         },

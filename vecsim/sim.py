@@ -9,16 +9,21 @@ may host fewer; ``envs_per_worker`` 0 lets the pod pick, :func:`resolve_envs_per
 env's *local index* is its place among its worker's envs (env index ``w * envs_per_worker + i``
 is local index ``i`` of worker ``w``); a ``run`` order and its reply name envs by local index.
 
-The worker protocol is explicit, one pipe per worker (pickle between the pod and its own
-processes; nothing from the network is unpickled): the pod sends ``(order, args)`` and the worker
-answers ``(True, result)``, or ``(False, (type name, message, traceback))`` and exits. Orders:
-``build`` (make the envs, each in state 0), ``run`` (one :class:`_Order`: reset these envs to
-these state ids, reset them by the env's own ``reset(seed=..., options=...)`` (seed -1: None),
-or step them through a chunk of K actions each, recording the frames of some), ``env_attr``
-(get, call or set attributes of named envs). A call sends an order only to the workers that host
-an env it names; the others hear nothing, and the call waits for those it messaged alone (up to
-the step timeout: a hung worker is found when it has work, a dead one on any call, since every
-call first and last polls every worker's pipe and process).
+The worker protocol is explicit, one pipe per worker (nothing from the network is unpickled):
+the pod sends an order and the worker answers with its result, or with its failure
+``(type name, message, traceback)`` and exits. Orders: ``build`` (make the envs, each in state 0),
+``run`` (one :class:`_Order`: reset these envs (by local index) to these state ids, reset them by the env's own
+``reset(seed=..., options=...)`` (seed -1: None), or step them through a chunk of K actions each,
+recording the frames of some), ``env_attr`` (get, call or set attributes of named envs). A
+``run`` travels as a small binary message (local indices, then state ids, seeds or the actions in the
+action space's dtype: :func:`_encode_run`), and its reply too when it carries no frames, own
+info or errors (three numbers: :data:`_DONE_MESSAGE`); the rest (``build``, ``env_attr``, a
+seeded reset with options, replies with info, errors or frames) is pickled, between the pod and
+its own processes. Each message is one frame of multiprocessing's ``Connection`` (``send_bytes``,
+``recv_bytes``), one in flight on a pipe at a time. A call sends an order only to the workers that
+host an env it names; the others hear nothing, and the call waits for those it messaged alone
+(up to the step timeout: a hung worker is found when it has work, a dead one on any call, since
+every call first and last polls every worker's pipe and process, one ``poll`` for all).
 
 Observations and per-env, per-action result rows (reward, terminated, truncated, success) are
 written by each worker straight into one shared-memory block (``[workers, local index, ...]``,
@@ -55,6 +60,9 @@ import math
 import multiprocessing
 import multiprocessing.connection
 import os
+import pickle
+import select
+import struct
 import threading
 import time
 import traceback
@@ -461,6 +469,77 @@ class _Worker:
 # What a worker process is asked to do: a _Worker method, with its arguments.
 _WORKER_ORDERS = frozenset({"build", "run", "env_attr"})
 
+# The messages on a worker's pipe, each one multiprocessing frame (``Connection.send_bytes``);
+# a message's first byte says what it is. One message is in flight on a pipe at a time (an
+# order, then its reply).
+# Pickle of (order, args) to a worker, or of (ok, result) from one.
+_PICKLED = ord("p")
+# A run order in binary: _RUN_HEAD (tag, kind, whether frames are recorded, m envs, chunk K),
+# their local indices int64[m], then for _STEP the actions [m, K, *action shape] in the action space's
+# dtype and, when recorded, bool[m]; for _STATE the state ids int64[m]; for _SEED the seeds
+# int64[m] (-1: None). Every field at an offset its dtype's size divides.
+_RUN = ord("r")
+_RUN_HEAD = struct.Struct("<BBBxIQ")
+_STEP, _STATE, _SEED = 0, 1, 2
+# A run's reply when it has no recorded frames, own info or errors (the common case of a robot
+# task, whose info is only vecsim's flags): tag, physics_s, render_s, renders.
+_DONE = ord("d")
+_DONE_MESSAGE = struct.Struct("<B7xddq")
+
+
+def _send(pipe: multiprocessing.connection.Connection, *parts: bytes) -> None:
+    """Send one message, ``parts`` joined, as one frame of ``pipe``."""
+    pipe.send_bytes(b"".join(parts))
+
+
+def _receive(pipe: multiprocessing.connection.Connection) -> bytearray:
+    """Receive one message from ``pipe``, writable (so arrays decoded from it are too).
+
+    Raises:
+        EOFError: the other end closed the pipe before a message began.
+        OSError: the pipe closed inside a message.
+    """
+    return bytearray(pipe.recv_bytes())
+
+
+def _encode_run(order: _Order) -> bytes | None:
+    """``order`` as a binary run message, or None for a seeded reset with options (pickled)."""
+    local = np.ascontiguousarray(order.local_indices, dtype=np.int64).tobytes()
+    m = len(order.local_indices)
+    if order.actions is not None:
+        k = order.actions.shape[1]
+        head = _RUN_HEAD.pack(_RUN, _STEP, order.record is not None, m, k)
+        parts = [head, local, np.ascontiguousarray(order.actions).tobytes()]
+        if order.record is not None:
+            parts.append(np.ascontiguousarray(order.record, dtype=bool).tobytes())
+        return b"".join(parts)
+    if order.seeds is not None:
+        if order.options is not None:
+            return None
+        values = order.seeds
+        head = _RUN_HEAD.pack(_RUN, _SEED, False, m, 0)
+    else:
+        assert order.state_ids is not None
+        values = order.state_ids
+        head = _RUN_HEAD.pack(_RUN, _STATE, False, m, 0)
+    return b"".join((head, local, np.ascontiguousarray(values, dtype=np.int64).tobytes()))
+
+
+def _decode_run(message: bytearray, action_space: gymnasium.Space) -> _Order:
+    """The :class:`_Order` of a binary run message (:func:`_encode_run`); arrays are views of it."""
+    _tag, kind, record, m, k = _RUN_HEAD.unpack_from(message)
+    offset = _RUN_HEAD.size
+    local = np.frombuffer(message, np.int64, m, offset)
+    offset += local.nbytes
+    if kind == _STEP:
+        shape = (m, k, *action_space.shape)
+        actions = np.frombuffer(message, action_space.dtype, math.prod(shape), offset).reshape(shape)
+        offset += actions.nbytes
+        recorded = np.frombuffer(message, bool, m, offset) if record else None
+        return _Order(local, actions=actions, record=recorded)
+    values = np.frombuffer(message, np.int64, m, offset)
+    return _Order(local, seeds=values) if kind == _SEED else _Order(local, state_ids=values)
+
 
 def _index_tree(tree: Any, index: int) -> Any:
     if isinstance(tree, dict):
@@ -470,26 +549,43 @@ def _index_tree(tree: Any, index: int) -> Any:
     return tree[index]
 
 
+def _answer(pipe: multiprocessing.connection.Connection, result: Any) -> None:
+    """Send a worker's result: a run's plain reply in binary, anything else pickled."""
+    if isinstance(result, _Reply) and not (result.frames or result.env_info or result.errors):
+        _send(pipe, _DONE_MESSAGE.pack(_DONE, result.physics_s, result.render_s, result.renders))
+    else:
+        _send(pipe, bytes((_PICKLED,)), pickle.dumps((True, result), protocol=pickle.HIGHEST_PROTOCOL))
+
+
 def _worker_process(index: int, spec: _WorkerSpec, pipe: multiprocessing.connection.Connection, shared: Any, workers: int) -> None:
     """A worker process: build a :class:`_Worker` writing into its part of ``shared``, then answer
-    ``(order, args)`` messages with ``(True, result)`` until the pipe closes; a failure answers
-    ``(False, (type name, message, traceback))`` and ends the process."""
+    orders until the pipe closes: a binary run order (:func:`_decode_run`) or a pickled
+    ``(order, args)``, each with ``(True, result)`` (a run's reply with no frames, info or errors
+    in binary, :data:`_DONE_MESSAGE`); a failure answers ``(False, (type name, message,
+    traceback))`` and ends the process."""
     out = _index_tree(read_from_shared_memory(_results_space(spec), shared, n=workers), index)
     worker = _Worker(spec, out)
     try:
         while True:
             try:
-                order, args = pipe.recv()
+                message = _receive(pipe)
             except EOFError:
                 return  # the pod closed its end
+            if message[0] == _RUN:
+                _answer(pipe, worker.run(_decode_run(message, spec.action_space)))
+                continue
+            if message[0] != _PICKLED:
+                raise RuntimeError(f"unknown message kind {message[0]!r}")
+            order, args = pickle.loads(memoryview(message)[1:])
             if order not in _WORKER_ORDERS:
                 raise RuntimeError(f"unknown order {order!r}")
-            pipe.send((True, getattr(worker, order)(*args)))
+            _answer(pipe, getattr(worker, order)(*args))
     except KeyboardInterrupt:
         return
     except Exception as exc:  # noqa: BLE001 - the pod is told, then this process ends
+        failure = (False, (type(exc).__name__, str(exc), traceback.format_exc()))
         with contextlib.suppress(OSError):
-            pipe.send((False, (type(exc).__name__, str(exc), traceback.format_exc())))
+            _send(pipe, bytes((_PICKLED,)), pickle.dumps(failure, protocol=pickle.HIGHEST_PROTOCOL))
     finally:
         worker.close()
 
@@ -529,11 +625,23 @@ class _WorkerPool:
             child.close()
             self.pipes.append(parent)
             self.processes.append(process)
-        self._sentinels = [process.sentinel for process in self.processes]
+        self._fds = [pipe.fileno() for pipe in self.pipes]
+        self._worker_of = {fd: index for index, fd in enumerate(self._fds)}
+        # Every worker's pipe and process sentinel, watched at once: one poll finds any that ended.
+        self._ended = select.poll()
+        for index, process in enumerate(self.processes):
+            for fd in (self._fds[index], process.sentinel):
+                self._ended.register(fd, select.POLLIN)
+                self._worker_of[fd] = index
 
     def send(self, worker: int, order: str, *args: Any) -> None:
-        """Send worker ``worker`` an order (a :class:`_Worker` method) and its arguments."""
-        self.pipes[worker].send((order, args))
+        """Send worker ``worker`` an order (a :class:`_Worker` method) and its arguments: a ``run``
+        of one :class:`_Order` in binary where it can be (:func:`_encode_run`), else pickled."""
+        message = _encode_run(args[0]) if order == "run" and len(args) == 1 else None
+        if message is None:
+            _send(self.pipes[worker], bytes((_PICKLED,)), pickle.dumps((order, args), protocol=pickle.HIGHEST_PROTOCOL))
+        else:
+            _send(self.pipes[worker], message)
 
     def receive(self, workers: Sequence[int], timeout_s: float | None) -> dict[int, Any]:
         """Wait for the reply of each of ``workers``; return ``{worker: result}``.
@@ -544,35 +652,46 @@ class _WorkerPool:
             EOFError, OSError: a worker's pipe closed (it died).
         """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        pending = {self.pipes[worker]: worker for worker in workers}
+        pending = {self._fds[worker]: worker for worker in workers}
+        waiting = select.poll()
+        for fd in pending:
+            waiting.register(fd, select.POLLIN)
         replies: dict[int, Any] = {}
         while pending:
-            wait_s = None if deadline is None else max(deadline - time.monotonic(), 0.0)
-            ready = multiprocessing.connection.wait(list(pending), timeout=wait_s)
+            wait_ms = None if deadline is None else max(math.ceil(1e3 * (deadline - time.monotonic())), 0)
+            ready = waiting.poll(wait_ms)
             if not ready:
                 raise multiprocessing.TimeoutError(f"{len(pending)} of {len(workers)} workers did not answer")
-            for pipe in ready:
-                worker = pending.pop(pipe)  # type: ignore[call-overload]
-                ok, result = pipe.recv()  # type: ignore[union-attr]
-                if not ok:
-                    type_name, message, trace = result
-                    log.error("worker %d failed:\n%s", worker, trace)
-                    raise _WorkerFailure(worker, type_name, message)
-                replies[worker] = result
+            for fd, _events in ready:
+                worker = pending.pop(fd)
+                waiting.unregister(fd)
+                replies[worker] = self._decode_reply(worker, _receive(self.pipes[worker]))
         return replies
 
+    @staticmethod
+    def _decode_reply(worker: int, message: bytearray) -> Any:
+        """A worker's result from its reply message; raises _WorkerFailure for a failure."""
+        if message[0] == _DONE:
+            _tag, physics_s, render_s, renders = _DONE_MESSAGE.unpack(message)
+            return _Reply(physics_s, render_s, renders, [], [], [])
+        if message[0] != _PICKLED:
+            raise RuntimeError(f"unknown message kind {message[0]!r}")
+        ok, result = pickle.loads(memoryview(message)[1:])
+        if not ok:
+            type_name, text, trace = result
+            log.error("worker %d failed:\n%s", worker, trace)
+            raise _WorkerFailure(worker, type_name, text)
+        return result
+
     def dead(self) -> int | None:
-        """The first worker whose process has ended, or None (one poll of every process).
+        """The first worker whose process has ended, or None (one poll of every pipe and process).
 
         Between calls no reply is due, so a worker's pipe that can be read is one that closed:
         the process has ended, seen before its parent learns its exit code."""
-        ended = multiprocessing.connection.wait([*self.pipes, *self._sentinels], timeout=0)
+        ended = self._ended.poll(0)
         if not ended:
             return None
-        for index, (pipe, process) in enumerate(zip(self.pipes, self.processes)):
-            if pipe in ended or process.sentinel in ended:
-                return index
-        return None
+        return min(self._worker_of[fd] for fd, _events in ended)
 
     def close(self) -> None:
         """End every worker process (terminating cannot hang on a stuck one). Returns None."""
@@ -1028,14 +1147,18 @@ class TaskGroupedVectorEnv:
 
     def _per_row(self, replies: dict[int, _Reply], ids: np.ndarray) -> tuple[list[dict[str, Any]], list[EnvError]]:
         """Each row's own env info and the rows whose env raised, from the workers' replies."""
-        row_of = {(int(w), int(s)): row for row, (w, s) in enumerate(self._location[ids])}
         env_info: list[dict[str, Any]] = [{} for _ in range(ids.size)]
-        errors = []
+        errors: list[EnvError] = []
+        if not any(reply.env_info or reply.errors for reply in replies.values()):
+            return env_info, errors
+        # Worker w's local index i is env w * envs_per_worker + i.
+        row_of = {env: row for row, env in enumerate(ids.tolist())}
         for worker, reply in replies.items():
+            first = worker * self.envs_per_worker
             for local, own in reply.env_info:
-                env_info[row_of[(worker, local)]] = own
+                env_info[row_of[first + local]] = own
             for local, type_name, message in reply.errors:
-                errors.append(EnvError(row_of[(worker, local)], type_name, message))
+                errors.append(EnvError(row_of[first + local], type_name, message))
         errors.sort(key=lambda e: e.row)
         for error in errors:
             log.info("env %d (%s) raised %s: %s", int(ids[error.row]), self.task_ids[int(ids[error.row])], error.type_name, error.message)
@@ -1229,8 +1352,8 @@ class TaskGroupedVectorEnv:
         local-index order (the order a worker runs its envs in)."""
         rows = np.lexsort((local_indices, workers))
         ordered = workers[rows]
-        groups = np.split(rows, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1)
-        return [(int(workers[group[0]]), group) for group in groups if group.size]
+        bounds = [0, *(np.flatnonzero(ordered[1:] != ordered[:-1]) + 1).tolist(), rows.size]
+        return [(int(ordered[first]), rows[first:last]) for first, last in zip(bounds, bounds[1:]) if last > first]
 
     def _current(self, workers: np.ndarray, local_indices: np.ndarray) -> dict[str, Any]:
         """The named envs' observations as they stand, without a worker call."""
