@@ -52,7 +52,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import dataclasses
 import glob
+import itertools
 import json
 import keyword
 import logging
@@ -68,7 +70,6 @@ import time
 import traceback
 from collections import Counter
 from collections.abc import Sequence
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -1353,7 +1354,7 @@ class TaskGroupedVectorEnv:
         rows = np.lexsort((local_indices, workers))
         ordered = workers[rows]
         bounds = [0, *(np.flatnonzero(ordered[1:] != ordered[:-1]) + 1).tolist(), rows.size]
-        return [(int(ordered[first]), rows[first:last]) for first, last in zip(bounds, bounds[1:]) if last > first]
+        return [(int(ordered[first]), rows[first:last]) for first, last in itertools.pairwise(bounds) if last > first]
 
     def _current(self, workers: np.ndarray, local_indices: np.ndarray) -> dict[str, Any]:
         """The named envs' observations as they stand, without a worker call."""
