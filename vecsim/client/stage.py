@@ -62,7 +62,7 @@ from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import get_answer, make_async_client
+from vecsim.transport import get_answer, make_transport
 
 logger = logging.getLogger(__name__)
 
@@ -123,8 +123,7 @@ class StageClient:
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
-        self._transport = transport
-        self._http: httpx.AsyncClient | None = None
+        self._transport = transport if transport is not None else make_transport()
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}
         self._pods_lock = threading.RLock()
@@ -549,10 +548,7 @@ class StageClient:
         self._loop.close()
 
     async def _aclose(self) -> None:
-        if self._http is not None:
-            await self._http.aclose()
-        elif self._transport is not None:
-            await self._transport.aclose()
+        await self._transport.aclose()
 
     def __enter__(self) -> StageClient:
         return self
@@ -575,12 +571,6 @@ class StageClient:
 
     # -- what runs on the loop ------------------------------------------------------------------
 
-    def _http_client(self) -> httpx.AsyncClient:
-        """The one ``httpx.AsyncClient`` every pod is reached through (made on the client's loop)."""
-        if self._http is None:
-            self._http = make_async_client(self._transport)
-        return self._http
-
     def _sync_pods(self) -> None:
         """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
         with its answer cap (runs on the caller's thread and on the loop)."""
@@ -590,7 +580,7 @@ class StageClient:
                     known = self._pods.get(routed.pod)
                     if known is None or known.url != routed.url.rstrip("/"):
                         self._pods[routed.pod] = PodConnection(
-                            routed.pod, routed.url, self._http_client, self.timeout_s, self._token
+                            routed.pod, routed.url, self._transport, self.timeout_s, self._token
                         )
                     self._pods[routed.pod].max_answer_bytes = self._info.answer_cap(
                         routed.num_envs, self.max_answer_bytes
