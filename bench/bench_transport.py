@@ -7,8 +7,8 @@ connection, on one event loop:
 - ``httpx``: httpx's default ``AsyncClient()`` (the baseline),
 - ``aiohttp``: a plain ``aiohttp.ClientSession()``,
 - ``vecsim-aiohttp`` and ``vecsim-httpx``: how the trainer's client reads an answer:
-  ``vecsim.transport.make_async_client(make_transport(kind))``, the request streamed and read
-  with ``read_answer`` under a cap, for each transport kind,
+  ``vecsim.transport.exchange`` (the request handed straight to ``make_transport(kind)``, the
+  answer streamed and read with ``read_answer`` under a cap), for each transport kind,
 - ``old-handwritten`` (with ``--old-transport PATH``): the hand-written HTTP/1.1 client vecsim
   used before (``git show <rev>:vecsim/transport.py > PATH``), its ``make_async_client("fast")``.
 
@@ -45,7 +45,7 @@ import numpy as np
 import psutil
 from common import img_dir, machine_info, out_dir, spread, write_result
 
-from vecsim.transport import DEFAULT_KIND, make_async_client, make_transport, read_answer
+from vecsim.transport import DEFAULT_KIND, exchange, make_transport
 
 MIB = 1 << 20
 SIZES = (1 * MIB, 4 * MIB, 16 * MIB)
@@ -139,7 +139,7 @@ async def measure(
     10 ms: average them over all rounds, not per round)."""
     httpx_default = httpx.AsyncClient()
     aiohttp_plain = aiohttp.ClientSession()
-    ours = {kind: make_async_client(make_transport(kind)) for kind in ("aiohttp", "httpx")}
+    ours = {kind: make_transport(kind) for kind in ("aiohttp", "httpx")}
     old_client = old.make_async_client("fast") if old is not None else None
 
     async def via_httpx(target: str) -> bytes:
@@ -151,9 +151,7 @@ async def measure(
 
     def via_ours(kind: str) -> Fetch:
         async def fetch(target: str) -> bytes:
-            client = ours[kind]
-            response = await client.send(client.build_request("GET", target), stream=True)
-            return await read_answer(response, MAX_BODY)
+            return (await exchange(ours[kind], httpx.Request("GET", target), MAX_BODY))[1]
 
         return fetch
 
@@ -196,8 +194,8 @@ async def measure(
     finally:
         await httpx_default.aclose()
         await aiohttp_plain.close()
-        for client in ours.values():
-            await client.aclose()
+        for transport in ours.values():
+            await transport.aclose()
         if old_client is not None:
             await old_client.aclose()
     return gbps, client_ms, server_ms
@@ -206,11 +204,10 @@ async def measure(
 async def profile_fast(url: str, sizes: tuple[int, ...], reps: int) -> str:
     """cProfile of the fast client fetching each body size, top functions by own time."""
     text = io.StringIO()
-    async with make_async_client() as client:
+    async with make_transport() as transport:
 
         async def fetch(n: int) -> bytes:
-            response = await client.send(client.build_request("GET", f"{url}/bytes/{n}"), stream=True)
-            return await read_answer(response, MAX_BODY)
+            return (await exchange(transport, httpx.Request("GET", f"{url}/bytes/{n}"), MAX_BODY))[1]
 
         for n in sizes:
             await fetch(n)

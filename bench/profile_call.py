@@ -291,7 +291,7 @@ def cpu_snapshot(timed_pod: int, other_pod: int) -> dict[str, float]:
 
 
 def _instrument_client(timers: Timers) -> None:
-    from vecsim import wire
+    from vecsim import transport, wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client import calls, stage
     from vecsim.client.pods import PodConnection
@@ -304,6 +304,8 @@ def _instrument_client(timers: Timers) -> None:
     timers.wrap(stage, "run_call", "client.run_call (on the loop thread)")
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
     timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
+    timers.wrap(transport.AiohttpTransport, "handle_async_request", "client.AiohttpTransport.handle_async_request (request out, answer's head in)")
+    timers.wrap(transport, "read_answer", "client.read_answer (the answer's body)")
     timers.wrap(wire, "encode", "client.wire.encode")
     timers.wrap(wire, "decode", "client.wire.decode")
     timers.wrap(calls, "fill_batch", "client.fill_batch (answer into batch)")

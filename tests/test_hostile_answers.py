@@ -22,9 +22,11 @@ import httpx
 import numpy as np
 import pytest
 import torch
-from service_procs import Server, assignment_file, pod_server, running
+from service_procs import Server, assignment_file, pod_server, raw_server, running
 
+from vecsim import wire
 from vecsim.client import HTTPVectorEnv, PodRequestError, PodUnavailableError, StageClient
+from vecsim.client.pods import PodConnection
 from vecsim.client.stage import fetch_routing
 from vecsim.rollout import EnvLoop
 from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, make_transport
@@ -278,3 +280,36 @@ def test_an_info_answer_that_is_not_a_pods_is_a_value_error_naming_the_url(info)
     with HostileServer(reply) as server, pytest.raises(ValueError, match="is not a pod's") as caught:
         StageClient.from_pods([server.url], timeout_s=10)
     assert server.url in str(caught.value)
+
+
+@pytest.mark.parametrize("kind", ["aiohttp", "httpx"])
+def test_a_pod_that_sets_a_cookie_gets_none_back_and_each_call_carries_its_own_headers(kind):
+    """A pod's answers plant nothing in the client: a ``Set-Cookie`` is not sent back on the
+    next call. Every step carries the wire's content type, the token and the encodings the
+    client decodes, whatever the transport."""
+    env_indices = np.arange(2, dtype=np.int64)
+    answer = wire.encode({"env_indices": env_indices})
+    reply = (
+        HEAD_OK
+        + b"Set-Cookie: session=planted; Path=/\r\nConnection: close\r\nContent-Length: %d\r\n\r\n" % len(answer)
+        + answer
+    )
+    requests: list[bytes] = []
+
+    async def two_steps(url: str) -> None:
+        async with make_transport(kind) as transport:
+            pod = PodConnection("sim-x", url, transport, timeout_s=10, token="s3cret")
+            for _ in range(2):
+                body = {"generation": 0, "env_indices": env_indices, "actions": np.zeros((2, 1), np.float32)}
+                await pod.call("step", body, ["a", "b"])
+
+    with raw_server(reply, requests) as url:
+        asyncio.run(two_steps(url))
+    heads = [request.split(b"\r\n\r\n")[0].lower() for request in requests]
+    assert len(heads) == 2
+    for head in heads:
+        assert head.startswith(b"post /v1/step http/1.1")
+        assert b"\r\ncontent-type: application/x-vecsim" in head
+        assert b"\r\nauthorization: bearer s3cret" in head
+        assert b"\r\naccept-encoding: gzip, deflate" in head
+        assert b"\r\ncookie:" not in head

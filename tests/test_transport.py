@@ -27,6 +27,7 @@ from vecsim import wire
 from vecsim.transport import (
     DEFAULT_KIND,
     AnswerTooLargeError,
+    exchange,
     make_async_client,
     make_transport,
     read_answer,
@@ -331,13 +332,26 @@ def test_an_answer_that_stalls_between_reads_raises_read_timeout(server: str, ki
 
 
 def read_with(kind: str, url: str, max_bytes: int) -> bytes:
-    """GET ``url`` streamed and read with ``read_answer`` under ``max_bytes``."""
+    """GET ``url`` as the client asks a pod (``exchange``: straight to a transport of ``kind``,
+    the answer read with ``read_answer`` under ``max_bytes``); return the body of a 200."""
 
+    async def main() -> bytes:
+        async with make_transport(kind) as transport:
+            status, body = await exchange(transport, httpx.Request("GET", url), max_bytes)
+        assert status == 200
+        return body
+
+    return asyncio.run(main())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_answer_read_through_an_httpx_client_is_capped_alike(server: str, kind: str) -> None:
     async def use(client: httpx.AsyncClient) -> bytes:
-        response = await client.send(client.build_request("GET", url), stream=True)
-        return await read_answer(response, max_bytes)
+        response = await client.send(client.build_request("GET", f"{server}/bytes/70000"), stream=True)
+        return await read_answer(response, 69_999)
 
-    return run_with(kind, use)
+    with pytest.raises(AnswerTooLargeError, match="Content-Length 70000 exceeds the cap of 69999 bytes"):
+        run_with(kind, use)
 
 
 def gzip_reply(body: bytes, encoding: bytes = b"gzip") -> bytes:

@@ -1,10 +1,11 @@
 """How the client's bytes reach a pod: httpx's API over a maintained HTTP library.
 
-The client speaks httpx (``httpx.AsyncClient``) and takes any ``httpx.AsyncBaseTransport``:
+The client speaks httpx's transport interface and takes any ``httpx.AsyncBaseTransport``:
 ``httpx.ASGITransport(app)`` runs a pod in-process, ``httpx.AsyncHTTPTransport`` is httpx's own,
 and :class:`AiohttpTransport` puts aiohttp's client under httpx's API. :func:`make_transport`
 builds the default, :data:`DEFAULT_KIND`, the one ``bench/bench_transport.py`` measured fastest
-on vecsim's answers (docs/benchmarks.md).
+on vecsim's answers (docs/benchmarks.md). A pod's requests go straight to the transport
+(:func:`exchange`); :func:`make_async_client` puts an ``httpx.AsyncClient`` over one for the rest.
 
 Answers are streamed, never read whole by the transport: :func:`read_answer` reads one under a
 size cap (a Content-Length over the cap is refused before a byte of body is read; a body that
@@ -33,6 +34,7 @@ __all__ = [
     "AnswerTooLargeError",
     "TransportKind",
     "make_async_client",
+    "exchange",
     "get_answer",
     "make_transport",
     "read_answer",
@@ -54,6 +56,8 @@ MAX_CONTROL_ANSWER_BYTES = 16 << 20
 _KEEPALIVE_S = 4.0
 # aiohttp's read buffer: bodies of megabytes move in fewer, larger pieces.
 _READ_BUFSIZE = 1 << 20
+# URLs (and timeout settings) an AiohttpTransport keeps converted: a client's pods' paths.
+_CACHED_URLS = 1024
 # Decoded output per step of a Content-Encoding: a piece the event loop can afford between yields.
 _DECODE_STEP = 1 << 20
 
@@ -110,6 +114,10 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
     def __init__(self, *, max_connections: int | None = None) -> None:
         self._max_connections = max_connections
         self._session: aiohttp.ClientSession | None = None
+        # What each request would otherwise convert anew: a client talks to a few URLs with one
+        # set of timeouts (both bounded all the same).
+        self._urls: dict[str, URL] = {}
+        self._timeouts: dict[tuple[float | None, float | None], aiohttp.ClientTimeout] = {}
 
     def _get_session(self) -> aiohttp.ClientSession:
         if self._session is None:
@@ -122,8 +130,29 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
                 read_bufsize=_READ_BUFSIZE,
                 cookie_jar=aiohttp.DummyCookieJar(),
                 timeout=aiohttp.ClientTimeout(total=None),
+                # The request's own headers go as they are: aiohttp adds none of these.
+                skip_auto_headers=("User-Agent", "Accept", "Accept-Encoding", "Content-Type"),
             )
         return self._session
+
+    def _url(self, url: httpx.URL) -> URL:
+        """``url`` as yarl's, parsed once per URL (the last :data:`_CACHED_URLS` of them)."""
+        text = str(url)
+        parsed = self._urls.get(text)
+        if parsed is None:
+            if len(self._urls) >= _CACHED_URLS:
+                self._urls.clear()
+            parsed = self._urls[text] = URL(text, encoded=True)
+        return parsed
+
+    def _timeout(self, phases: dict[str, float | None]) -> aiohttp.ClientTimeout:
+        key = (phases.get("connect"), phases.get("read"))
+        timeout = self._timeouts.get(key)
+        if timeout is None:
+            if len(self._timeouts) >= _CACHED_URLS:
+                self._timeouts.clear()
+            timeout = self._timeouts[key] = aiohttp.ClientTimeout(total=None, sock_connect=key[0], sock_read=key[1])
+        return timeout
 
     async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
         """Send ``request`` through aiohttp.
@@ -135,12 +164,10 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
             httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError,
             httpx.UnsupportedProtocol: what aiohttp met, as httpx names it.
         """
-        phases = request.extensions.get("timeout", {})
-        timeout = aiohttp.ClientTimeout(
-            total=None, sock_connect=phases.get("connect"), sock_read=phases.get("read")
-        )
-        body = b"".join([piece async for piece in request.stream])
-        # The body is whole here: aiohttp sends it with its own Content-Length, never chunked.
+        timeout = self._timeout(request.extensions.get("timeout", {}))
+        # Whole here (a request made with content= is read already): aiohttp sends it with its
+        # own Content-Length, never chunked.
+        body = await request.aread()
         headers = [
             (k.decode("latin-1"), v.decode("latin-1"))
             for k, v in request.headers.raw
@@ -149,12 +176,11 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
         try:
             response = await self._get_session().request(
                 request.method,
-                URL(str(request.url), encoded=True),
+                self._url(request.url),
                 headers=headers,
                 data=body or None,
                 allow_redirects=False,
                 timeout=timeout,
-                skip_auto_headers=("User-Agent", "Accept", "Accept-Encoding", "Content-Type"),
             )
         except aiohttp.ClientError as exc:
             raise _httpx_error(exc, request) from None
@@ -316,8 +342,8 @@ _TRAVEL_HEADERS = frozenset({"content-encoding", "content-length", "transfer-enc
 
 async def send_capped(http: httpx.AsyncClient, request: httpx.Request, max_bytes: int) -> httpx.Response:
     """Send ``request`` through ``http`` and read the answer whole under the cap ``max_bytes``, as
-    :func:`read_answer` does: the one way the client reads a pod's or the controller's answer and
-    the controller a pod's. Callers bound the whole exchange with ``asyncio.timeout``.
+    :func:`read_answer` does: how the client reads the controller's answer and the controller a
+    pod's (the client reaches pods through :func:`exchange`). Callers bound the whole exchange with ``asyncio.timeout``.
 
     Returns:
         the response, its body read and decoded (no Content-Encoding left to decode).
@@ -335,6 +361,24 @@ def _with_body(response: httpx.Response, content: bytes) -> httpx.Response:
     how it travelled (encoding, length, chunking)."""
     headers = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in _TRAVEL_HEADERS]
     return httpx.Response(response.status_code, headers=headers, content=content, request=response.request)
+
+
+async def exchange(transport: httpx.AsyncBaseTransport, request: httpx.Request, max_bytes: int) -> tuple[int, bytes]:
+    """Send ``request`` through ``transport`` itself and read its answer as :func:`read_answer`
+    does: the client's path to a pod. No ``httpx.AsyncClient`` around the transport: a pod's
+    requests use none of what it adds (redirects, auth, cookies, event hooks, default headers;
+    ``request`` carries its own), and it cost ~0.3 ms of client CPU a call (docs/benchmarks.md).
+
+    Returns:
+        the answer's status code and its body, decoded.
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.HTTPError: what the transport met (another transport may raise its own errors).
+    """
+    response = await transport.handle_async_request(request)
+    response.request = request
+    return response.status_code, await read_answer(response, max_bytes)
 
 
 def get_answer(

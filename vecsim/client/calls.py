@@ -380,7 +380,15 @@ async def run_call(
             unanswered += [step_keys[r] for r in todo.step_rows]
             raise PodUnavailableError({pod: unanswered}, exc.reason) from None
 
-    results = await asyncio.gather(*(one_pod(p, w) for p, w in work.items()), return_exceptions=True)
+    if len(work) == 1:
+        # One pod (a stage of one pod, a vector env of one): awaited here, without the task and
+        # the two event-loop turns that gather spends on it.
+        try:
+            results: list[BaseException | None] = [await one_pod(*next(iter(work.items())))]
+        except Exception as exc:  # noqa: BLE001 - as gather(return_exceptions=True) keeps it
+            results = [exc]
+    else:
+        results = await asyncio.gather(*(one_pod(p, w) for p, w in work.items()), return_exceptions=True)
     book.set_state_ids([reset_keys[r] for r in answered.reset_rows], [int(state_ids[r]) for r in answered.reset_rows])
     finished = time.perf_counter()
     for batch in (reset_batch, step_batch):

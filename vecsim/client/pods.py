@@ -1,4 +1,4 @@
-"""How the client reaches pods: one httpx client over one transport, on one background event loop.
+"""How the client reaches pods: one httpx transport, on one background event loop.
 
 The client code above this module sees three calls per pod (``info``, ``reset``, ``step``) and
 three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no usable
@@ -13,19 +13,21 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import json
 import logging
 import sys
 import threading
-from collections.abc import Callable, Coroutine
+from collections.abc import Coroutine
 from typing import Any, TypeVar
 
 import httpx
 import numpy as np
 
+import vecsim
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
-from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, send_capped
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, exchange
 
 logger = logging.getLogger(__name__)
 
@@ -138,30 +140,37 @@ class EventLoopThread:
         self.loop.close()
 
 
-def _detail(response: httpx.Response) -> str:
+def _detail(status: int, content: bytes) -> str:
+    """What a refusal says: its JSON ``detail``, else the start of its body or its status's phrase."""
     try:
-        body = response.json()
+        body = json.loads(content)
     except ValueError:
-        return response.text[:500] or response.reason_phrase
+        return content.decode("utf-8", errors="replace")[:500] or httpx.codes.get_reason_phrase(status)
     if isinstance(body, dict) and "detail" in body:
         return str(body["detail"])
     return str(body)[:500]
 
 
+# Headers every request to a pod carries besides its own: the Content-Encodings read_answer decodes.
+_BASE_HEADERS = {"Accept-Encoding": "gzip, deflate", "User-Agent": f"vecsim/{vecsim.__version__}"}
+
+
 class PodConnection:
     """One pod's data plane: ``POST /v1/reset``, ``POST /v1/step`` in wire format, ``GET /v1/info``.
 
-    Lives on the client's event loop and sends through the shared ``httpx.AsyncClient`` that
-    ``http()`` returns. Every call, answer included, is bounded by ``timeout_s`` as a whole, and an
-    answer by ``max_answer_bytes`` (the client sets it from the job's spaces). Resets and steps
-    carry the job's ``token`` (``Authorization: Bearer``) when one is given.
+    Lives on the client's event loop and hands each request straight to ``transport`` (any
+    ``httpx.AsyncBaseTransport``, shared by all pods; :func:`vecsim.transport.exchange`), its URL
+    and headers built once per pod. Every call, answer included, is bounded by
+    ``timeout_s`` as a whole, and an answer by ``max_answer_bytes`` (the client sets it from the
+    job's spaces). Resets and steps carry the job's ``token`` (``Authorization: Bearer``) when one
+    is given.
     """
 
     def __init__(
         self,
         name: str,
         url: str,
-        http: Callable[[], httpx.AsyncClient],
+        transport: httpx.AsyncBaseTransport,
         timeout_s: float,
         token: str | None = None,
         max_answer_bytes: int = DEFAULT_MAX_ANSWER_BYTES,
@@ -170,15 +179,32 @@ class PodConnection:
         self.url = url.rstrip("/")
         self.timeout_s = timeout_s
         self.max_answer_bytes = max_answer_bytes
-        self._http = http
-        self._auth = bearer_headers(token)
+        self._transport = transport
+        self._urls: dict[str, httpx.URL] = {}
+        auth = bearer_headers(token)
+        self._info_headers = httpx.Headers(_BASE_HEADERS)
+        self._wire_headers = httpx.Headers(
+            {**_BASE_HEADERS, "Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **auth}
+        )
+        self._json_headers = httpx.Headers({**_BASE_HEADERS, "Accept": "application/json", **auth})
+
+    def _url(self, path: str) -> httpx.URL:
+        """The pod's URL of ``path``, parsed once (a pod has a handful of paths)."""
+        url = self._urls.get(path)
+        if url is None:
+            url = self._urls[path] = httpx.URL(f"{self.url}{path}")
+        return url
 
     async def _request(
-        self, method: str, path: str, held: list[str], extra_answer_bytes: int = 0, **kwargs: Any
-    ) -> httpx.Response:
-        """Send one request and read its answer whole, within the timeout and the size cap
-        (``max_answer_bytes``, plus ``extra_answer_bytes`` for what this request asks for beyond
-        one observation per env: per-action flags and recorded frames of a chunk).
+        self, method: str, path: str, held: list[str], headers: httpx.Headers, extra_answer_bytes: int = 0, **body: Any
+    ) -> tuple[int, bytes]:
+        """Send one request (``body``: httpx's ``content=`` or ``json=``) and read its answer
+        whole, within the timeout and the size cap (``max_answer_bytes``, plus
+        ``extra_answer_bytes`` for what this request asks for beyond one observation per env:
+        per-action flags and recorded frames of a chunk).
+
+        Returns:
+            the answer's status code and its body, decoded.
 
         Raises:
             PodUnavailableError: anything that kept a usable answer from arriving.
@@ -186,9 +212,8 @@ class PodConnection:
         try:
             # asyncio.timeout, not wait_for: wait_for wraps every request in a task of its own.
             async with asyncio.timeout(self.timeout_s):
-                http = self._http()
-                request = http.build_request(method, f"{self.url}{path}", **kwargs)
-                return await send_capped(http, request, self.max_answer_bytes + extra_answer_bytes)
+                request = httpx.Request(method, self._url(path), headers=headers, **body)
+                return await exchange(self._transport, request, self.max_answer_bytes + extra_answer_bytes)
         except TimeoutError:
             reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
@@ -202,11 +227,11 @@ class PodConnection:
         Raises:
             PodUnavailableError, PodRequestError.
         """
-        response = await self._request("GET", "/v1/info", [])
-        if response.status_code != 200:
-            raise PodRequestError(self.name, response.status_code, _detail(response))
+        status, content = await self._request("GET", "/v1/info", [], self._info_headers)
+        if status != 200:
+            raise PodRequestError(self.name, status, _detail(status, content))
         try:
-            info = response.json()
+            info = json.loads(content)
         except ValueError as exc:
             raise PodRequestError(self.name, None, f"answer to /v1/info is not JSON: {exc}") from None
         if not isinstance(info, dict):
@@ -221,19 +246,13 @@ class PodConnection:
             PodUnavailableError: no usable answer (none in time, a 503, not a JSON object).
             PodRequestError: any other refusal (a 409 included: the caller re-reads nothing here).
         """
-        response = await self._request(
-            "POST",
-            f"/v1/{op}",
-            held,
-            json=body,
-            headers={"Accept": "application/json", **self._auth},
-        )
-        if response.status_code == 503:
-            raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
-        if response.status_code != 200:
-            raise PodRequestError(self.name, response.status_code, _detail(response))
+        status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, json=body)
+        if status == 503:
+            raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
+        if status != 200:
+            raise PodRequestError(self.name, status, _detail(status, content))
         try:
-            answer = response.json()
+            answer = json.loads(content)
         except ValueError as exc:
             raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not JSON: {exc}") from None
         if not isinstance(answer, dict):
@@ -254,23 +273,18 @@ class PodConnection:
             StaleGenerationError: 409, the pod holds another generation than the request carried.
             PodRequestError: any other refusal (the request was at fault).
         """
-        response = await self._request(
-            "POST",
-            f"/v1/{op}",
-            held,
-            extra_answer_bytes,
-            content=wire.encode(body),
-            headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **self._auth},
+        status, content = await self._request(
+            "POST", f"/v1/{op}", held, self._wire_headers, extra_answer_bytes, content=wire.encode(body)
         )
-        if response.status_code == 409:
-            raise StaleGenerationError(self.name, body.get("generation"), _detail(response))
-        if response.status_code == 503:
-            raise PodUnavailableError({self.name: held}, f"503: {_detail(response)}")
-        if response.status_code != 200:
-            raise PodRequestError(self.name, response.status_code, _detail(response))
+        if status == 409:
+            raise StaleGenerationError(self.name, body.get("generation"), _detail(status, content))
+        if status == 503:
+            raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
+        if status != 200:
+            raise PodRequestError(self.name, status, _detail(status, content))
         # A broken answer is this pod's failure alone, like no answer: its envs' state is unknown.
         try:
-            answer = wire.decode(response.content)
+            answer = wire.decode(content)
         except wire.WireError as exc:
             raise PodUnavailableError({self.name: held}, f"answer to /v1/{op} is not valid wire: {exc}") from None
         if not isinstance(answer, dict):

@@ -62,7 +62,7 @@ from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import get_answer, make_async_client
+from vecsim.transport import get_answer, make_async_client, make_transport
 
 logger = logging.getLogger(__name__)
 
@@ -124,8 +124,8 @@ class StageClient:
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
-        self._transport = transport
-        self._http: httpx.AsyncClient | None = None
+        self._transport = transport if transport is not None else make_transport()
+        self._http: httpx.AsyncClient | None = None  # over the transport: the routing re-reads only
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}
         self._pods_lock = threading.RLock()
@@ -551,8 +551,8 @@ class StageClient:
 
     async def _aclose(self) -> None:
         if self._http is not None:
-            await self._http.aclose()
-        elif self._transport is not None:
+            await self._http.aclose()  # and the transport under it
+        else:
             await self._transport.aclose()
 
     def __enter__(self) -> StageClient:
@@ -577,7 +577,8 @@ class StageClient:
     # -- what runs on the loop ------------------------------------------------------------------
 
     def _http_client(self) -> httpx.AsyncClient:
-        """The one ``httpx.AsyncClient`` every pod is reached through (made on the client's loop)."""
+        """An ``httpx.AsyncClient`` over the client's transport, for the controller's routing
+        re-reads (made on the client's loop); pods are reached through the transport itself."""
         if self._http is None:
             self._http = make_async_client(self._transport)
         return self._http
@@ -591,7 +592,7 @@ class StageClient:
                     known = self._pods.get(routed.pod)
                     if known is None or known.url != routed.url.rstrip("/"):
                         self._pods[routed.pod] = PodConnection(
-                            routed.pod, routed.url, self._http_client, self.timeout_s, self._token
+                            routed.pod, routed.url, self._transport, self.timeout_s, self._token
                         )
                     self._pods[routed.pod].max_answer_bytes = self._info.answer_cap(
                         routed.num_envs, self.max_answer_bytes
