@@ -515,7 +515,8 @@ def main() -> None:
         for name, groups in cpu.items()
     }
     main_stats = pstats.Stats(main_profile)
-    loop_stats = pstats.Stats(loop_profile)
+    # An empty profile (the loop thread's, from Python 3.12) cannot make a Stats object.
+    loop_stats = pstats.Stats(loop_profile) if profile_loop else None
     pod_total = sum(v[2] for v in pod_stats.stats.values())  # type: ignore[attr-defined]
     result = {
         "quick": ARGS.quick,
@@ -530,7 +531,7 @@ def main() -> None:
         "client_profile": {
             "wall_ms_per_call": round(1e3 * client_wall / pcalls, 3),
             "main_thread_top": scale(top_costs(main_stats, client_wall), pcalls),
-            "loop_thread_top": scale(top_costs(loop_stats, client_wall), pcalls),
+            "loop_thread_top": [] if loop_stats is None else scale(top_costs(loop_stats, client_wall), pcalls),
         },
         "pod_profile": {
             "wall_ms_per_call": round(1e3 * pod_wall / pcalls, 3),
