@@ -16,11 +16,11 @@ the pod sends an order and the worker answers with its result, or with its failu
 ``reset(seed=..., options=...)`` (seed -1: None), or step them through a chunk of K actions each,
 recording the frames of some), ``env_attr`` (get, call or set attributes of named envs). A
 ``run`` travels as a small binary message (local indices, then state ids, seeds or the actions in the
-action space's dtype: :func:`_encode_run`), and its reply too when it carries no frames, own
-info or errors (three numbers: :data:`_DONE_MESSAGE`); the rest (``build``, ``env_attr``, a
-seeded reset with options, replies with info, errors or frames) is pickled, between the pod and
-its own processes. Each message is one frame of multiprocessing's ``Connection`` (``send_bytes``,
-``recv_bytes``), one in flight on a pipe at a time. A call sends an order only to the workers that
+action space's dtype: :func:`_encode_run`); the other orders (``build``, ``env_attr``, a seeded
+reset with options) as a one-byte message saying that an object follows, then the object; every
+reply is one object. Objects are multiprocessing's own pickled messages (``Connection.send``,
+``recv``) between the pod and its own processes: vecsim's code unpickles nothing itself. One
+exchange is in flight on a pipe at a time. A call sends an order only to the workers that
 host an env it names; the others hear nothing, and the call waits for those it messaged alone
 (up to the step timeout: a hung worker is found when it has work, a dead one on any call, since
 every call first and last polls every worker's pipe and process, one ``poll`` for all).
@@ -62,7 +62,6 @@ import math
 import multiprocessing
 import multiprocessing.connection
 import os
-import pickle
 import select
 import struct
 import threading
@@ -470,10 +469,12 @@ class _Worker:
 # What a worker process is asked to do: a _Worker method, with its arguments.
 _WORKER_ORDERS = frozenset({"build", "run", "env_attr"})
 
-# The messages on a worker's pipe, each one multiprocessing frame (``Connection.send_bytes``);
-# a message's first byte says what it is. One message is in flight on a pipe at a time (an
-# order, then its reply).
-# Pickle of (order, args) to a worker, or of (ok, result) from one.
+# An order to a worker is one multiprocessing frame (``Connection.send_bytes``) whose first byte
+# says what it is: a binary run order, or _PICKLED, "an object follows": the next message is
+# multiprocessing's own pickled ``(order, args)`` (``Connection.send``/``recv``). A worker's reply
+# is always such an object, ``(ok, result)``. vecsim's code unpickles nothing itself; these are
+# the pod's own processes, as with any multiprocessing pipe. One exchange (an order, then its
+# reply) is in flight on a pipe at a time.
 _PICKLED = ord("p")
 # A run order in binary: _RUN_HEAD (tag, kind, whether frames are recorded, m envs, chunk K),
 # their local indices int64[m], then for _STEP the actions [m, K, *action shape] in the action space's
@@ -482,10 +483,6 @@ _PICKLED = ord("p")
 _RUN = ord("r")
 _RUN_HEAD = struct.Struct("<BBBxIQ")
 _STEP, _STATE, _SEED = 0, 1, 2
-# A run's reply when it has no recorded frames, own info or errors (the common case of a robot
-# task, whose info is only vecsim's flags): tag, physics_s, render_s, renders.
-_DONE = ord("d")
-_DONE_MESSAGE = struct.Struct("<B7xddq")
 
 
 def _send(pipe: multiprocessing.connection.Connection, *parts: bytes) -> None:
@@ -550,19 +547,16 @@ def _index_tree(tree: Any, index: int) -> Any:
     return tree[index]
 
 
-def _answer(pipe: multiprocessing.connection.Connection, result: Any) -> None:
-    """Send a worker's result: a run's plain reply in binary, anything else pickled."""
-    if isinstance(result, _Reply) and not (result.frames or result.env_info or result.errors):
-        _send(pipe, _DONE_MESSAGE.pack(_DONE, result.physics_s, result.render_s, result.renders))
-    else:
-        _send(pipe, bytes((_PICKLED,)), pickle.dumps((True, result), protocol=pickle.HIGHEST_PROTOCOL))
+def _send_object(pipe: multiprocessing.connection.Connection, obj: Any) -> None:
+    """Send ``obj`` through multiprocessing's own pickled message, announced by a ``_PICKLED`` one."""
+    _send(pipe, bytes((_PICKLED,)))
+    pipe.send(obj)
 
 
 def _worker_process(index: int, spec: _WorkerSpec, pipe: multiprocessing.connection.Connection, shared: Any, workers: int) -> None:
     """A worker process: build a :class:`_Worker` writing into its part of ``shared``, then answer
-    orders until the pipe closes: a binary run order (:func:`_decode_run`) or a pickled
-    ``(order, args)``, each with ``(True, result)`` (a run's reply with no frames, info or errors
-    in binary, :data:`_DONE_MESSAGE`); a failure answers ``(False, (type name, message,
+    orders until the pipe closes: a binary run order (:func:`_decode_run`) or an ``(order, args)``
+    object, each with ``(True, result)``; a failure answers ``(False, (type name, message,
     traceback))`` and ends the process."""
     out = _index_tree(read_from_shared_memory(_results_space(spec), shared, n=workers), index)
     worker = _Worker(spec, out)
@@ -573,20 +567,20 @@ def _worker_process(index: int, spec: _WorkerSpec, pipe: multiprocessing.connect
             except EOFError:
                 return  # the pod closed its end
             if message[0] == _RUN:
-                _answer(pipe, worker.run(_decode_run(message, spec.action_space)))
+                pipe.send((True, worker.run(_decode_run(message, spec.action_space))))
                 continue
             if message[0] != _PICKLED:
                 raise RuntimeError(f"unknown message kind {message[0]!r}")
-            order, args = pickle.loads(memoryview(message)[1:])
+            order, args = pipe.recv()
             if order not in _WORKER_ORDERS:
                 raise RuntimeError(f"unknown order {order!r}")
-            _answer(pipe, getattr(worker, order)(*args))
+            pipe.send((True, getattr(worker, order)(*args)))
     except KeyboardInterrupt:
         return
     except Exception as exc:  # noqa: BLE001 - the pod is told, then this process ends
         failure = (False, (type(exc).__name__, str(exc), traceback.format_exc()))
         with contextlib.suppress(OSError):
-            _send(pipe, bytes((_PICKLED,)), pickle.dumps(failure, protocol=pickle.HIGHEST_PROTOCOL))
+            pipe.send(failure)
     finally:
         worker.close()
 
@@ -640,7 +634,7 @@ class _WorkerPool:
         of one :class:`_Order` in binary where it can be (:func:`_encode_run`), else pickled."""
         message = _encode_run(args[0]) if order == "run" and len(args) == 1 else None
         if message is None:
-            _send(self.pipes[worker], bytes((_PICKLED,)), pickle.dumps((order, args), protocol=pickle.HIGHEST_PROTOCOL))
+            _send_object(self.pipes[worker], (order, args))
         else:
             _send(self.pipes[worker], message)
 
@@ -666,18 +660,14 @@ class _WorkerPool:
             for fd, _events in ready:
                 worker = pending.pop(fd)
                 waiting.unregister(fd)
-                replies[worker] = self._decode_reply(worker, _receive(self.pipes[worker]))
+                replies[worker] = self._decode_reply(worker, self.pipes[worker])
         return replies
 
     @staticmethod
-    def _decode_reply(worker: int, message: bytearray) -> Any:
-        """A worker's result from its reply message; raises _WorkerFailure for a failure."""
-        if message[0] == _DONE:
-            _tag, physics_s, render_s, renders = _DONE_MESSAGE.unpack(message)
-            return _Reply(physics_s, render_s, renders, [], [], [])
-        if message[0] != _PICKLED:
-            raise RuntimeError(f"unknown message kind {message[0]!r}")
-        ok, result = pickle.loads(memoryview(message)[1:])
+    def _decode_reply(worker: int, pipe: multiprocessing.connection.Connection) -> Any:
+        """Read a worker's reply (an object read by multiprocessing itself); return its result.
+        Raises _WorkerFailure for a failure."""
+        ok, result = pipe.recv()
         if not ok:
             type_name, text, trace = result
             log.error("worker %d failed:\n%s", worker, trace)
