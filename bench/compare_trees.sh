@@ -5,14 +5,15 @@
 #
 #   bash bench/compare_trees.sh BEFORE_DIR AFTER_DIR OUT_DIR [REPEATS] [-- "bench_x.py args" ...]
 #
-# BEFORE_DIR / AFTER_DIR: checkouts (e.g. `git worktree add --detach /tmp/before <rev>`); each
+# BEFORE_DIR / AFTER_DIR: scratch checkouts (e.g. `git worktree add --detach /tmp/before <rev>`:
+# each benchmark also writes its usual records under that tree's out/bench and docs/img); each
 # tree's bench/ runs with that tree first on PYTHONPATH (pods and workers it starts inherit it),
 # in the project's venv (scripts/setup.sh). Without commands after `--`, the seven commands of
 # bench/run_table.sh run. Each run's RESULT line goes to OUT_DIR/<bench>_<before|after>_<i>.json
 # and the log to OUT_DIR/compare.log.
 set -u
 if [ $# -lt 3 ]; then
-  sed -n '2,14p' "$0"
+  sed -n '2,15p' "$0"
   exit 2
 fi
 before="$(cd "$1" && pwd)"
