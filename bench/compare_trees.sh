@@ -13,7 +13,7 @@
 # and the log to OUT_DIR/compare.log.
 set -u
 if [ $# -lt 3 ]; then
-  sed -n '2,15p' "$0"
+  sed -n '2,13p' "$0"
   exit 2
 fi
 before="$(cd "$1" && pwd)"
