@@ -125,6 +125,24 @@ def test_step_payload_round_trips() -> None:
     assert_same(payload, wire.decode(wire.encode(payload)))
 
 
+def test_a_repeated_header_decodes_to_fresh_values_each_time() -> None:
+    # decode keeps the checks of a header it has seen; what it returns must still be new objects.
+    message = wire.encode({"task_id": ["a", "b"], "reward": np.arange(2.0)})
+    first = wire.decode(message)
+    first["task_id"].append("c")
+    first["reward"] = None
+    second = wire.decode(message)
+    assert second["task_id"] == ["a", "b"]
+    np.testing.assert_array_equal(second["reward"], [0.0, 1.0])
+
+
+def test_a_seen_header_over_a_shorter_payload_is_refused() -> None:
+    message = wire.encode({"x": np.zeros(64, np.uint8)})
+    wire.decode(message)
+    with pytest.raises(WireError, match="outside"):
+        wire.decode(message[:-1])
+
+
 def test_decoded_arrays_are_read_only() -> None:
     decoded = wire.decode(bytearray(wire.encode(step_payload())))
     proprio = decoded["obs"]["proprio"]
