@@ -6,11 +6,13 @@ Real ``vecsim pod`` and ``vecsim controller`` processes on loopback:
 - under a file-descriptor limit of 64 (``prlimit``), a flood of 80 sockets that send nothing,
   or a request head that never ends, does not lock out a health probe: such connections are
   closed after a bounded time, and a new one evicts the idlest when too many are open;
-- a heartbeat cannot move a live pod to another URL (409); registering again can.
+- a heartbeat cannot move a live pod to another URL (409); registering again can;
+- an answer's head and body leave in one write, in order, and still before a close.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import socket
 from collections.abc import Iterator
@@ -18,6 +20,8 @@ from collections.abc import Iterator
 import httpx
 import pytest
 from service_procs import Server, assignment_file, controller_server, pod_server, running, wait_until
+
+from service.serving import COALESCE_MAX_BYTES, CoalescingWrites
 
 PENDULUM = "gym/Pendulum-v1"
 FD_LIMIT = ("prlimit", "--nofile=64:64", "--")
@@ -139,3 +143,119 @@ def test_a_heartbeat_cannot_move_a_live_pod_to_another_url_but_registering_again
     assert moved.status_code == 409 and "http://10.0.0.1:8100" in moved.json()["detail"]
     assert [p["url"] for p in still] == ["http://10.0.0.1:8100"]
     assert again.status_code == 200 and [p["url"] for p in after] == ["http://10.0.0.2:8100"]
+
+
+class _Recording:
+    """The part of an ``asyncio.Transport`` that CoalescingWrites uses, recording its calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, bytes]] = []
+        self.closing = False
+
+    def write(self, data: bytes) -> None:
+        self.calls.append(("write", bytes(data)))
+
+    def close(self) -> None:
+        self.closing = True
+        self.calls.append(("close", b""))
+
+    def abort(self) -> None:
+        self.closing = True
+        self.calls.append(("abort", b""))
+
+    def is_closing(self) -> bool:
+        return self.closing
+
+    def get_write_buffer_size(self) -> int:
+        return 0
+
+    def get_extra_info(self, name: str, default: object = None) -> object:
+        return {"peername": ("127.0.0.1", 1)}.get(name, default)
+
+
+def test_one_loop_turn_of_writes_leaves_as_one_write_in_order():
+    async def scenario() -> list[list[tuple[str, bytes]]]:
+        inner = _Recording()
+        writes = CoalescingWrites(inner, asyncio.get_running_loop())  # type: ignore[arg-type]
+        seen = []
+        writes.write(b"HTTP/1.1 200 OK\r\ncontent-length: 4\r\n\r\n")
+        writes.write(bytearray(b"body"))
+        seen.append(list(inner.calls))  # nothing yet: held until the turn ends
+        assert writes.get_write_buffer_size() == 42
+        await asyncio.sleep(0)
+        seen.append(list(inner.calls))
+        big = b"x" * (COALESCE_MAX_BYTES + 1)
+        writes.write(b"head")
+        writes.write(big)  # too big to hold: what is held goes first, then it, unjoined
+        seen.append(list(inner.calls))
+        writes.write(b"bye")
+        writes.close()  # a close hands over what is held before closing
+        seen.append(list(inner.calls))
+        assert writes.get_extra_info("peername") == ("127.0.0.1", 1)
+        await asyncio.sleep(0)
+        return seen
+
+    before, after_turn, after_big, after_close = asyncio.run(scenario())
+    assert before == []
+    assert after_turn == [("write", b"HTTP/1.1 200 OK\r\ncontent-length: 4\r\n\r\nbody")]
+    assert after_big[1:] == [("write", b"head"), ("write", b"x" * (COALESCE_MAX_BYTES + 1))]
+    assert after_close[3:] == [("write", b"bye"), ("close", b"")]
+
+
+def test_an_abort_drops_what_is_held():
+    async def scenario() -> list[tuple[str, bytes]]:
+        inner = _Recording()
+        writes = CoalescingWrites(inner, asyncio.get_running_loop())  # type: ignore[arg-type]
+        writes.write(b"never sent")
+        writes.abort()
+        await asyncio.sleep(0)
+        return inner.calls
+
+    assert asyncio.run(scenario()) == [("abort", b"")]
+
+
+def _exchange(url: str, data: bytes, until_closed: bool = False, expect: int = 1) -> bytes:
+    """Send ``data`` on one raw connection to ``url``; read ``expect`` answers (or until EOF)."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=30) as sock:
+        sock.sendall(data)
+        got = b""
+        while True:
+            chunk = sock.recv(65536)
+            if not chunk:
+                return got
+            got += chunk
+            if not until_closed and got.count(b"HTTP/1.1 ") >= expect and _complete(got, expect):
+                return got
+
+
+def _complete(got: bytes, expect: int) -> bool:
+    """Whether ``got`` holds ``expect`` whole answers with Content-Length bodies."""
+    rest = got
+    for _ in range(expect):
+        head, sep, rest = rest.partition(b"\r\n\r\n")
+        if not sep:
+            return False
+        length = next(
+            (int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length:")),
+            0,
+        )
+        if len(rest) < length:
+            return False
+        rest = rest[length:]
+    return True
+
+
+def test_answers_on_one_kept_alive_connection_arrive_whole_and_in_order(pod):
+    # Two requests sent back to back on one connection: two whole answers, the first one's.
+    get = b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\nGET /v1/info HTTP/1.1\r\nHost: x\r\n\r\n"
+    got = _exchange(pod.url, get, expect=2)
+    first, second = got.split(b"HTTP/1.1 ")[1:]
+    assert first.startswith(b"200") and b'"status"' in first
+    assert second.startswith(b"200") and b'"pod":"sim-0"' in second
+
+
+def test_a_malformed_request_is_answered_400_before_the_connection_closes(pod):
+    # uvicorn writes its 400 and closes at once: the held answer must leave before the close.
+    got = _exchange(pod.url, b"NOT A REQUEST\r\n\r\n", until_closed=True)
+    assert got.startswith(b"HTTP/1.1 400"), got[:200]
