@@ -21,7 +21,7 @@ the peak PSS, which counts pages the workers share with their forkserver once.
 Everything is built first; then the contenders take turns, the order rotating each round, and
 each figure is a ratio to the baseline of the same round.
 
-    python bench/bench_serving.py [--quick] [--rounds 5]
+    python bench/bench_serving.py [--quick] [--rounds 5] [--libero-steps 40]
 
 Prints ``RESULT {json}`` and writes out/bench/bench_serving.json.
 """
@@ -140,6 +140,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for the smoke test")
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--libero-steps", type=int, default=40,
+        help="steps of the LIBERO set per contender and round (a step is ~15-60 ms: rounds of 8, "
+        "the old count, left the median to a handful of calls)",
+    )
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
     args = parser.parse_args()
     setup_logging()
@@ -151,7 +156,7 @@ def main() -> None:
     else:
         camera = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=64, width=64)
         libero = ["libero_10/0", "libero_10/1"]
-        results["libero"] = measure("libero", libero, 2, camera, 8, args.rounds, with_auto=False)
+        results["libero"] = measure("libero", libero, 2, camera, args.libero_steps, args.rounds, with_auto=False)
         results["cheap"] = measure("cheap", ["gym/HalfCheetah-v5"], 32, CameraConfig(names=()), 100, args.rounds, True)
     headline = results.get("libero", results["cheap"])
     summary = {

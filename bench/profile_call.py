@@ -27,6 +27,7 @@ Then the client's layers (timers in this process around ``HTTPVectorEnv``/``Stag
 thread and its event-loop thread) and of the profiled pod.
 
     python bench/profile_call.py [--quick] [--calls 100] [--rounds 3] [--envs 16] [--envs-per-worker 0] [--profile-calls 300]
+        [--task libero_10/0 --cameras agentview,robot0_eye_in_hand --size 64]
 
 Prints a report on stdout and writes out/bench/profile_call.json.
 """
@@ -60,7 +61,7 @@ import numpy as np
 
 log = logging.getLogger("bench.profile_call")
 
-TASK = "gym/HalfCheetah-v5"
+TASK = "gym/HalfCheetah-v5"  # the default --task
 # Long episodes: no truncation inside the measured calls, so every call is a plain step.
 EPISODE_CAP = 1_000_000
 
@@ -224,8 +225,9 @@ def _assignment(pod: str) -> Any:
 
     return Assignment(
         generation=0, job_id="profile", pod=pod, stage_id=0,
-        tasks=(TaskBlock(task_id=TASK, env_start=0, num_envs=ARGS.envs),),
-        camera=CameraConfig(names=(), height=8, width=8), render="lean",
+        tasks=(TaskBlock(task_id=ARGS.task, env_start=0, num_envs=ARGS.envs),),
+        camera=CameraConfig(names=tuple(c for c in ARGS.cameras.split(",") if c), height=ARGS.size, width=ARGS.size),
+        render="lean",
         envs_per_worker=ARGS.envs_per_worker or AUTO_ENVS_PER_WORKER, max_episode_steps=EPISODE_CAP,
     )  # fmt: skip
 
@@ -377,14 +379,15 @@ def main() -> None:
     assignment = _assignment("in-process")
     per_worker = resolve_envs_per_worker(assignment)
     load_before = os.getloadavg()
-    log.info("%d x %s, %d envs per worker, %d cores, load %s", n, TASK, per_worker, available_cores(), load_before)
+    log.info("%d x %s, %d envs per worker, %d cores, load %s", n, ARGS.task, per_worker, available_cores(), load_before)
     rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, (calls, n, 6)).astype(np.float32)
+    action_space = make_env(ARGS.task, assignment.camera, "lean", EPISODE_CAP).action_space
+    actions = rng.uniform(-1, 1, (calls, n, *action_space.shape)).astype(action_space.dtype)
     env_indices = np.arange(n, dtype=np.int64)
     client_timers = Timers()
     _instrument_client(client_timers)
     camera = assignment.camera
-    makers = [functools.partial(make_env, TASK, camera, "lean", EPISODE_CAP) for _ in range(n)]
+    makers = [functools.partial(make_env, ARGS.task, camera, "lean", EPISODE_CAP) for _ in range(n)]
 
     with contextlib.ExitStack() as stack:
         timed = stack.enter_context(pod_process("timed", workdir))
@@ -520,7 +523,7 @@ def main() -> None:
     pod_total = sum(v[2] for v in pod_stats.stats.values())  # type: ignore[attr-defined]
     result = {
         "quick": ARGS.quick,
-        "setup": {"envs": n, "task": TASK, "envs_per_worker": per_worker, "cores": available_cores(),
+        "setup": {"envs": n, "task": ARGS.task, "cameras": ARGS.cameras, "size": ARGS.size, "envs_per_worker": per_worker, "cores": available_cores(),
                   "calls_per_round": calls, "rounds": rounds, "load_avg_before": load_before,
                   "load_avg_after": os.getloadavg()},  # fmt: skip
         "median_ms_per_call": medians,
@@ -593,6 +596,9 @@ def _report(result: dict[str, Any]) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", type=int, default=16)
+    parser.add_argument("--task", default=TASK, help="every env's task (e.g. libero_10/0)")
+    parser.add_argument("--cameras", default="", help="comma-separated camera names (none by default)")
+    parser.add_argument("--size", type=int, default=64, help="the cameras' height and width")
     parser.add_argument(
         "--envs-per-worker", type=int, default=0, help="the pods' and in_process's envs_per_worker (0: auto)"
     )
