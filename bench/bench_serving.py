@@ -8,7 +8,13 @@ autoreset and random actions:
 - ``inproc`` (the baseline): ``gymnasium.vector.AsyncVectorEnv`` in this process over the same
   envs (``vecsim.tasks.make_env``), one worker process per env: the same number of workers;
 - ``http_auto`` (cheap scenes only): the same job with ``envs_per_worker: auto``, the pod packing
-  the envs into one worker per core (benchmark 7 looks at that split in detail).
+  the envs into one worker per core (benchmark 7 looks at that split in detail);
+- ``pool`` (a diagnosis, not a target): the pod's own worker pool (``vecsim.sim.TaskGroupedVectorEnv``,
+  one env per worker) in this process, no HTTP: ``http`` / ``pool`` is what serving costs,
+  ``pool`` / ``inproc`` what vecsim's workers cost against gymnasium's.
+
+Beside each rate, the CPU seconds per env-step of the contender's processes other than this one
+(the pod's server and workers; the in-process runs' workers).
 
 Scene sets: ``libero`` (two libero_10 tasks x 2 envs, two 64x64 cameras, lean preset: the
 simulation dominates) and ``cheap`` (gym HalfCheetah-v5 x 32, no camera: the simulator is nearly
@@ -34,6 +40,7 @@ import logging
 import os
 from typing import Any
 
+import numpy as np
 import psutil
 from _perf_common import (
     READY_TIMEOUT_S,
@@ -51,7 +58,8 @@ from common import write_result
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from vecsim.client import HTTPVectorEnv
-from vecsim.config import AUTO_ENVS_PER_WORKER, CameraConfig
+from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
+from vecsim.sim import TaskGroupedVectorEnv
 from vecsim.tasks import make_env
 
 log = logging.getLogger("bench.serving")
@@ -85,6 +93,66 @@ def _job(name: str, tasks: list[str], per_task: int, camera: CameraConfig, envs_
     }
 
 
+class _PoolVectorEnv:
+    """The pod's worker pool in this process, stepped like a vector env (all envs each step)."""
+
+    def __init__(self, tasks: list[str], per_task: int, camera: CameraConfig) -> None:
+        blocks, start = [], 0
+        for task in tasks:
+            blocks.append(TaskBlock(task_id=task, env_start=start, num_envs=per_task))
+            start += per_task
+        assignment = Assignment(
+            generation=0, job_id="serving-pool", pod="pool", stage_id=0, tasks=tuple(blocks), camera=camera,
+            render="lean", envs_per_worker=1, max_episode_steps=CAP,
+        )  # fmt: skip
+        self.env = TaskGroupedVectorEnv(assignment)
+        self.num_envs = start
+        self.single_action_space = self.env.single_action_space
+        self._all = np.arange(start, dtype=np.int64)
+        self._ended = np.zeros(start, dtype=bool)
+
+    def reset(self, seed: int) -> None:
+        self.env.reset_envs(self._all, np.zeros(self.num_envs, dtype=np.int64))
+
+    def step(self, actions: np.ndarray) -> None:
+        # NEXT_STEP autoreset, as the other contenders: an env that ended is reset instead of stepped.
+        ended = self._ended
+        if ended.any():
+            self.env.reset_envs(self._all[ended], np.zeros(int(ended.sum()), dtype=np.int64))
+        going = self._all[~ended]
+        _, _, terminated, truncated, _ = self.env.step_envs(going, actions[~ended])
+        self._ended = np.zeros(self.num_envs, dtype=bool)
+        self._ended[going] = np.asarray(terminated) | np.asarray(truncated)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _tree_cpu_s(pids: list[int]) -> float:
+    """CPU seconds (user + system) used so far by the process trees of ``pids``."""
+    total = 0.0
+    for pid in pids:
+        with contextlib.suppress(psutil.Error):
+            root = psutil.Process(pid)
+            for process in [root, *root.children(recursive=True)]:
+                with contextlib.suppress(psutil.Error):
+                    times = process.cpu_times()
+                    total += times.user + times.system
+    return total
+
+
+def _with_cpu(run: Any, pids: list[int], per_call: int, sink: list[float]) -> Any:
+    """``run``, also appending to ``sink`` the CPU ms per env-step its processes spent in it."""
+
+    def measured() -> float:
+        before = _tree_cpu_s(pids)
+        rate = run()
+        sink.append(round((_tree_cpu_s(pids) - before) * 1000 / per_call, 3))
+        return rate
+
+    return measured
+
+
 def _local_job(job: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
     """``job`` run by one pod on free ports (room for a LIBERO set's envs), until it is ready."""
     config = job_config(job, replicas=1, max_envs=256, heartbeat_ttl_s=5.0)
@@ -92,7 +160,8 @@ def _local_job(job: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
 
 
 def measure(
-    name: str, tasks: list[str], per_task: int, camera: CameraConfig, steps: int, rounds: int, with_auto: bool
+    name: str, tasks: list[str], per_task: int, camera: CameraConfig, steps: int, rounds: int, with_auto: bool,
+    with_pool: bool = False,
 ) -> dict[str, Any]:
     """Build the contenders for one scene set, run the interleaved rounds; return the figures."""
     num_envs = len(tasks) * per_task
@@ -106,14 +175,25 @@ def measure(
             packed = stack.enter_context(_local_job(auto_job))
             envs["http_auto"] = HTTPVectorEnv(controller_url=packed.controller_url, token=packed.token)
         envs["inproc"] = AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP)
+        if with_pool:
+            envs["pool"] = _PoolVectorEnv(tasks, per_task, camera)
         for env in envs.values():
             stack.callback(env.close)
         trees = {"pod": [running.processes["sim-0"].pid], "inproc": _workers_and_forkserver(envs["inproc"])}
         if with_auto:
             trees["pod_auto"] = [packed.processes["sim-0"].pid]
-        contenders = {key: stepper(env, steps, seed=i) for i, (key, env) in enumerate(envs.items())}
+        if with_pool:
+            trees["pool"] = envs["pool"].env.worker_pids
+        tree_of = {"http": "pod", "http_auto": "pod_auto", "inproc": "inproc", "pool": "pool"}
+        cpu_ms: dict[str, list[float]] = {key: [] for key in envs}
+        contenders = {
+            key: _with_cpu(stepper(env, steps, seed=i), trees[tree_of[key]], steps * num_envs, cpu_ms[key])
+            for i, (key, env) in enumerate(envs.items())
+        }
         for run in contenders.values():
             run()  # warm-up
+        for sink in cpu_ms.values():
+            sink.clear()
         with contextlib.ExitStack() as sampling:
             memory = {key: sampling.enter_context(PeakRSS(pids)) for key, pids in trees.items()}
             figures = interleaved(contenders, rounds)
@@ -127,6 +207,15 @@ def measure(
         "env_steps_per_s": {name: rate_spread(values) for name, values in figures.items()},
         "ratio_http_vs_inproc": ratio,
         **({"ratio_http_auto_vs_inproc": paired_ratio(figures["http_auto"], figures["inproc"])} if with_auto else {}),
+        **(
+            {
+                "ratio_http_vs_pool": paired_ratio(figures["http"], figures["pool"]),
+                "ratio_pool_vs_inproc": paired_ratio(figures["pool"], figures["inproc"]),
+            }
+            if with_pool
+            else {}
+        ),
+        "cpu_ms_per_env_step": {key: rate_spread(values) for key, values in cpu_ms.items() if values},
         "target": TARGETS[name],
         "met": ratio["median"] >= TARGETS[name],
         "peak_rss_mib_per_env": {key: round(rss.peak_bytes / MIB / num_envs, 1) for key, rss in memory.items()},
@@ -156,7 +245,9 @@ def main() -> None:
     else:
         camera = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=64, width=64)
         libero = ["libero_10/0", "libero_10/1"]
-        results["libero"] = measure("libero", libero, 2, camera, args.libero_steps, args.rounds, with_auto=False)
+        results["libero"] = measure(
+            "libero", libero, 2, camera, args.libero_steps, args.rounds, with_auto=False, with_pool=True
+        )
         results["cheap"] = measure("cheap", ["gym/HalfCheetah-v5"], 32, CameraConfig(names=()), 100, args.rounds, True)
     headline = results.get("libero", results["cheap"])
     summary = {
