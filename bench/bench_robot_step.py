@@ -50,7 +50,7 @@ from common import spread, write_result
 
 log = logging.getLogger("bench_robot_step")
 
-PYTHON_CONTROLLER = "exact, controller from Python"
+PYTHON_CONTROLLER = "exact_python_controller"
 
 # The arrays of MuJoCo's state that an env-step carries forward, compared bit for bit.
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "qacc", "sensordata", "mocap_pos", "mocap_quat")
