@@ -48,16 +48,10 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
         arm = step.arms[0]
         controller = arm.robot.controller
         arm_step = _ArmStep(arm, np.zeros(arm.action_dim), model)
-        if not step.fused or not arm_step.start_fused(controller):
+        if not step.fused or not arm_step.start_fused(controller, step.data_arrays):
             raise SystemExit(f"{task_id}: the compiled controller (osc_substep) is not available here")
         utils = _robosuite().utils.control_utils
         kernel = _osc_kernel().osc_substep
-        kernel_args = (arm.site, *step.data_arrays, arm.jacp, arm.jacr, arm.qpos_index, arm.qvel_index,
-                       arm.mass_gather_t, arm.arm_ids, arm.gripper_ids, *arm_step.goal, arm_step.torque_low,
-                       arm_step.torque_high, arm_step.uncoupling, arm_step.gripper_step, arm_step.gripper_bias,
-                       arm_step.gripper_weight, arm.ee_pos, arm.ee_ori_mat, arm.ee_pos_vel, arm.ee_ori_vel,
-                       arm.joint_pos, arm.joint_vel, arm.j_pos, arm.j_ori, arm.j_full, arm.mass_matrix, arm.torques,
-                       arm.clipped, arm.gripper_action, arm.wrench)  # fmt: skip
 
         def python_controller() -> None:
             step._update(arm, controller)
@@ -71,10 +65,8 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
                 controller.mass_matrix, controller.J_full, controller.J_pos, controller.J_ori
             ),
             "controller from Python (_update + control)": python_controller,
-            "compiled controller (fused_control: mj_jacSite + osc_substep)": lambda: arm_step.fused_control(
-                model, data, step.data_arrays
-            ),
-            "osc_substep (in fused_control)": lambda: kernel(*kernel_args),
+            "compiled controller (fused_control: mj_jacSite + osc_substep)": lambda: arm_step.fused_control(model, data),
+            "osc_substep (in fused_control)": lambda: kernel(*arm_step.kernel_args),
         }
         timings = {name: min(timeit.repeat(call, number=number, repeat=repeats)) / number * 1e6
                    for name, call in calls.items()}  # fmt: skip

@@ -192,7 +192,9 @@ class ExactStep:
         self.arms = [_Arm(robot, self.model, self.data) for robot in inner.robots]
         data = self.data
         # MjData's arrays for osc_substep (views of buffers MuJoCo never moves).
-        self.data_arrays = (data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat)
+        self.data_arrays = (
+            data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
+        )  # fmt: skip
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
         self.fused = _osc_kernel().available()
 
@@ -265,13 +267,13 @@ class ExactStep:
             for arm in arms:
                 controller = arm.arm.robot.controller
                 if arm.fused:
-                    arm.fused_control(model, data, self.data_arrays)
+                    arm.fused_control(model, data)
                     continue
                 if controller.new_update:
                     self._update(arm.arm, controller)
                 if policy_step:
                     arm.arm.robot.control(arm.action, policy_step=True)
-                    if self.fused and arm.start_fused(controller):
+                    if self.fused and arm.start_fused(controller, self.data_arrays):
                         fused.append(arm)
                 else:
                     arm.control(controller, data)
@@ -372,39 +374,43 @@ class _ArmStep:
         self.gripper_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         self.gripper_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
         self.fused = False
+        self.kernel_args: tuple[Any, ...] = ()
 
-    def start_fused(self, controller: Any) -> bool:
+    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...]) -> bool:
         """After the policy substep: run this step's other substeps through ``osc_substep`` if it can.
 
         It can for robosuite's Panda gripper (whose ``format_action`` it computes) with one
-        action per gripper actuator; the controller's goal, gains and initial joints are read now
-        (the goal as ``run_controller`` copies it, which keeps its layout).
+        action per gripper actuator. The call's arguments are fixed for the rest of the step and
+        gathered now: MuJoCo's arrays (``data_arrays``, see :class:`ExactStep`), the arm's, the
+        controller's goal (as ``run_controller`` copies it, which keeps its layout), gains and
+        initial joints, and the buffers it fills.
         """
         arm = self.arm
         current = arm.robot.gripper.current_action
-        if (self.gripper_step is None or not controller.new_update
-                or np.shape(current) != arm.gripper_action.shape or self.gripper_step.shape != arm.gripper_action.shape):
+        shape = arm.gripper_action.shape
+        if self.gripper_step is None or self.gripper_step.shape != shape or np.shape(current) != shape:
+            return False
+        if not controller.new_update:
             return False
         arm.gripper_action[:] = current
-        self.goal = (np.array(controller.goal_pos), np.array(controller.goal_ori), controller.kp, controller.kd,
-                     controller.initial_joint)
-        self.fused = True
-        return True
-
-    def fused_control(self, model: Any, data: Any, data_arrays: tuple[np.ndarray, ...]) -> None:
-        """Controller.update and :meth:`control` for a non-policy substep, in one compiled call."""
-        arm = self.arm
-        mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
-        goal_pos, goal_ori, kp, kd, initial_joint = self.goal
-        _osc_kernel().osc_substep(
+        self.kernel_args = (
             arm.site, *data_arrays, arm.jacp, arm.jacr,
             arm.qpos_index, arm.qvel_index, arm.mass_gather_t, arm.arm_ids, arm.gripper_ids,
-            goal_pos, goal_ori, kp, kd, initial_joint, self.torque_low, self.torque_high, self.uncoupling,
+            np.array(controller.goal_pos), np.array(controller.goal_ori), controller.kp, controller.kd,
+            controller.initial_joint, self.torque_low, self.torque_high, self.uncoupling,
             self.gripper_step, self.gripper_bias, self.gripper_weight,
             arm.ee_pos, arm.ee_ori_mat, arm.ee_pos_vel, arm.ee_ori_vel, arm.joint_pos, arm.joint_vel,
             arm.j_pos, arm.j_ori, arm.j_full, arm.mass_matrix, arm.torques, arm.clipped, arm.gripper_action,
             arm.wrench,
         )  # fmt: skip
+        self.fused = True
+        return True
+
+    def fused_control(self, model: Any, data: Any) -> None:
+        """Controller.update and :meth:`control` for a non-policy substep, in one compiled call."""
+        arm = self.arm
+        mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
+        _osc_kernel().osc_substep(*self.kernel_args)
 
     def hand_over(self) -> None:
         """Leave the controller, robot and gripper holding what the last ``osc_substep`` computed.

@@ -70,9 +70,15 @@ def numpy_dgemv_library() -> str | None:
 
 @functools.cache
 def available() -> bool:
-    """Whether :func:`osc_substep` can run here bit-identically to robosuite's numpy and numba calls."""
-    if not all(isinstance(f, numba.core.dispatcher.Dispatcher) for f in (opspace_matrices, nullspace_torques, orientation_error)):
-        log.info("robosuite's control kernels are not numba-compiled (macros.ENABLE_NUMBA): no fused OSC kernel")
+    """Whether :func:`osc_substep` can run here bit-identically to robosuite's numpy and numba calls.
+
+    Call it (True) before the first :func:`osc_substep`: it loads numpy's BLAS for the kernel's
+    symbol lookup.
+    """
+    kernels = (opspace_matrices, nullspace_torques, orientation_error)
+    if numba.config.DISABLE_JIT or not all(isinstance(f, numba.core.dispatcher.Dispatcher) for f in kernels):
+        log.info("robosuite's control kernels are not numba-compiled (macros.ENABLE_NUMBA, NUMBA_DISABLE_JIT): "
+                 "no fused OSC kernel")
         return False
     path = numpy_dgemv_library()
     if path is None:
