@@ -2,9 +2,11 @@
 
 One vecsim env of one task (no cameras), pinned to one core, stepped a few times; then each part
 of a non-policy substep (``vecsim.tasks._fast_step``) is called on its own, over and over, from the
-state the steps left: MuJoCo's position and velocity stages (``_forward``), the controller's
-update (``_update``) and its torques (``_ArmStep.control``), robosuite's numba OSC kernel alone
-(``opspace_matrices``, inside ``control``), and one ``mj_step`` for scale. Each figure is the
+state the steps left: MuJoCo's position and velocity stages (``_forward``); the controller as it
+runs from Python (``_update``, then its torques ``_ArmStep.control``; robosuite's numba OSC kernel
+``opspace_matrices`` inside it alone); the same controller work as the exact path now runs it,
+one ``mj_jacSite`` and one compiled call (``_ArmStep.fused_control``; the compiled
+``vecsim.tasks._osc_kernel.osc_substep`` alone); and one ``mj_step`` for scale. Each figure is the
 fastest of ``--repeats`` rounds of ``--number`` calls, in microseconds: what the part costs when
 nothing else takes the core.
 
@@ -32,7 +34,7 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
     """Return the fastest time, in microseconds, of each part of one non-policy substep."""
     from vecsim.config import CameraConfig
     from vecsim.tasks import make_env
-    from vecsim.tasks._fast_step import ExactStep, _ArmStep, _robosuite
+    from vecsim.tasks._fast_step import ExactStep, _ArmStep, _osc_kernel, _robosuite
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     try:
@@ -46,7 +48,15 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
         arm = step.arms[0]
         controller = arm.robot.controller
         arm_step = _ArmStep(arm, np.zeros(arm.action_dim), model)
+        if not step.fused or not arm_step.start_fused(controller, step.data_arrays):
+            raise SystemExit(f"{task_id}: the compiled controller (osc_substep) is not available here")
         utils = _robosuite().utils.control_utils
+        kernel = _osc_kernel().osc_substep
+
+        def python_controller() -> None:
+            step._update(arm, controller)
+            arm_step.control(controller, data)
+
         calls: dict[str, Any] = {
             "forward (position + velocity stages)": lambda: step._forward(False),
             "_update": lambda: step._update(arm, controller),
@@ -54,6 +64,9 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
             "opspace_matrices (in control)": lambda: utils.opspace_matrices(
                 controller.mass_matrix, controller.J_full, controller.J_pos, controller.J_ori
             ),
+            "controller from Python (_update + control)": python_controller,
+            "compiled controller (fused_control: mj_jacSite + osc_substep)": lambda: arm_step.fused_control(model, data),
+            "osc_substep (in fused_control)": lambda: kernel(*arm_step.kernel_args),
         }
         timings = {name: min(timeit.repeat(call, number=number, repeat=repeats)) / number * 1e6
                    for name, call in calls.items()}  # fmt: skip

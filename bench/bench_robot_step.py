@@ -6,6 +6,9 @@ Per task, on one pinned core, no cameras, step by step:
 - ``library``: the same env on the ``library`` path (robosuite's own ``step``, as before);
 - with ``--changes``, the exact path's changes one at a time (each a subclass of ``ExactStep``
   that puts robosuite's own calls back for what is not yet changed);
+- with ``--python-controller``, the exact path with its non-policy substeps' controller run from
+  Python (robosuite's numpy and numba calls one by one), as it was before the compiled
+  ``osc_substep`` (``vecsim.tasks._osc_kernel``);
 - ``floor``: right before each of those steps, as many ``mj_step`` as the step holds (25 at
   LIBERO's 500 Hz physics and 20 Hz control) on a copy of the state the step starts from;
 - ``libero``: after each of them, one step of LIBERO's own ``OffScreenRenderEnv``
@@ -25,6 +28,7 @@ task on the exact and the library path side by side and compares them bit for bi
 
     python bench/bench_robot_step.py                                   # LIBERO-10, 160 steps each
     python bench/bench_robot_step.py --tasks libero_10/0,libero_10/5 --changes --steps 300
+    python bench/bench_robot_step.py --tasks libero_10/0,libero_10/9 --python-controller --steps 100
     python bench/bench_robot_step.py --parity-episodes --episodes 1    # 520 steps per task
     python bench/bench_robot_step.py --resets-only --resets 5          # resets: vecsim now, before, LIBERO's
 
@@ -46,6 +50,8 @@ from common import spread, write_result
 
 log = logging.getLogger("bench_robot_step")
 
+PYTHON_CONTROLLER = "exact_python_controller"
+
 # The arrays of MuJoCo's state that an env-step carries forward, compared bit for bit.
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "qacc", "sensordata", "mocap_pos", "mocap_quat")
 
@@ -64,7 +70,12 @@ def change_variants() -> dict[str, Any]:
 
     class ControllerOnly(ExactStep):
         # robosuite's forwards (the substep's and the controller update's), mj_step and
-        # per-substep observable updates; only the controller's Python is the fast one.
+        # per-substep observable updates; only the controller's Python is the fast one (from
+        # Python: the compiled controller is the last change).
+        def __init__(self, inner: Any) -> None:
+            super().__init__(inner)
+            self.fused = False
+
         def _forward(self, policy_step: bool) -> None:
             mujoco.mj_forward(self.model, self.data)
 
@@ -82,7 +93,22 @@ def change_variants() -> dict[str, Any]:
         def _observable_plan(self, substeps: int) -> Any:
             return ExactStep._observable_plan(self, substeps)
 
-    return {"controller": ControllerOnly, "+observables": PlusObservables, "+one forward (exact)": ExactStep}
+    class PlusOneForward(PlusObservables):
+        _forward = ExactStep._forward
+        _update = ExactStep._update
+        _integrate = ExactStep._integrate
+
+    return {"controller": ControllerOnly, "+observables": PlusObservables, "+one forward": PlusOneForward,
+            "+compiled controller (exact)": ExactStep}  # fmt: skip
+
+
+def python_controller(inner: Any) -> Any:
+    """Return the exact path's step for ``inner`` with its controller run from Python throughout."""
+    from vecsim.tasks._fast_step import ExactStep
+
+    step = ExactStep(inner)
+    step.fused = False
+    return step
 
 
 class LiberoOwn:
@@ -162,6 +188,8 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     env = make_env(task_id, CameraConfig(names=()), "lean")
     own = LiberoOwn(task_id) if task_id.startswith("libero") else None
     paths: dict[str, Any] = {"exact": "exact", "library": "library"}
+    if args.python_controller:
+        paths[PYTHON_CONTROLLER] = python_controller
     if args.changes:
         paths.update(change_variants())
     steppers = {}
@@ -229,6 +257,9 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     }
     row["library_over_exact"] = round(ms["library"] / ms["exact"], 3)
     row["fastest_library_over_exact"] = round(fastest["library"] / fastest["exact"], 3)
+    if PYTHON_CONTROLLER in ms:
+        row["python_controller_over_exact"] = round(ms[PYTHON_CONTROLLER] / ms["exact"], 3)
+        row["fastest_python_controller_over_exact"] = round(fastest[PYTHON_CONTROLLER] / fastest["exact"], 3)
     if own is not None:
         row["libero_over_exact"] = round(ms["libero"] / ms["exact"], 3)
         row["fastest_libero_over_exact"] = round(fastest["libero"] / fastest["exact"], 3)
@@ -374,6 +405,8 @@ def main() -> int:
     parser.add_argument("--resets-only", action="store_true", help="measure resets only (--steps ignored)")
     parser.add_argument("--physics-reps", type=int, default=30, help="turns of the physics-only timing per task")
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
+    parser.add_argument("--python-controller", action="store_true",
+                        help="also measure the exact path with its controller run from Python (before the compiled kernel)")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task with --parity-episodes")
@@ -447,11 +480,14 @@ def main() -> int:
             "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
             "libero_over_exact": across(lambda row: row.get("libero_over_exact")),
             "fastest_libero_over_exact": across(lambda row: row.get("fastest_libero_over_exact")),
+            "python_controller_over_exact": across(lambda row: row.get("python_controller_over_exact")),
+            "fastest_python_controller_over_exact": across(lambda row: row.get("fastest_python_controller_over_exact")),
             **{key: across(lambda row, k=key: row.get(k))
                for key in ("reset_libero_over_vecsim", "reset_before_over_vecsim", "fastest_reset_before_over_vecsim")},
         },
         "setup": {"tasks": tasks, "steps": args.steps, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
-                  "changes": args.changes, "load_average_at_start": load_at_start,
+                  "changes": args.changes, "python_controller": args.python_controller,
+                  "load_average_at_start": load_at_start,
                   "load_average_at_end": os.getloadavg()},
         "rows": rows,
         "seconds_total": round(time.monotonic() - started, 1),

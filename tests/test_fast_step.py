@@ -118,6 +118,25 @@ def test_exact_path_gives_robosuite_own_trajectory() -> None:
         assert run_side_by_side("tiny/lift", envs, seed=0) == STEPS
 
 
+def test_exact_path_runs_the_controller_of_non_policy_substeps_as_one_compiled_call() -> None:
+    # Where numpy's BLAS is the OpenBLAS its wheels bundle (as in this venv), the trajectory
+    # tests here and below compare the compiled controller (osc_substep) with robosuite's.
+    from vecsim.tasks import _osc_kernel
+
+    with env_pair("tiny/lift") as envs:
+        envs["exact"].reset(options={"state_id": 0})
+        envs["exact"].step(np.zeros(7, np.float32))
+        assert envs["exact"]._step_fn.fused
+        assert _osc_kernel.osc_substep.signatures
+
+
+def test_exact_path_with_the_controller_from_python_gives_robosuite_own_trajectory() -> None:
+    # What the exact path runs where the compiled controller is not available.
+    with env_pair("tiny/lift") as envs:
+        envs["exact"]._step_fn.fused = False
+        assert run_side_by_side("tiny/lift", envs, seed=0) == STEPS
+
+
 def test_exact_path_with_delayed_observables_gives_robosuite_own_trajectory() -> None:
     from robosuite.utils.observables import create_deterministic_delayer
 

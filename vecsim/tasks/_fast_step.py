@@ -16,7 +16,13 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
   ``robot.control`` reads the wrist's force/torque sensors, which the acceleration stage computes.
 - The OSC controller's per-substep work is the same numpy and numba calls on arrays of the same
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
-  property rebuilds and four Jacobian evaluations where one gives the same numbers.
+  property rebuilds and four Jacobian evaluations where one gives the same numbers. On the
+  non-policy substeps that work (after one ``mj_jacSite``) is one compiled call,
+  :func:`vecsim.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
+  own BLAS as robosuite's step does; where it cannot (:func:`vecsim.tasks._osc_kernel.available`,
+  a gripper other than robosuite's Panda gripper) the same calls run from Python. The controller,
+  robot and gripper attributes the compiled call fills are handed over as fresh arrays after the
+  last substep and before any observable samples.
 - Observables run their sampling arithmetic per group of identical timers and their sensors only
   at the substeps where robosuite's would sample; success is checked once after ``_post_action``
   (LIBERO's step and vecsim both asked, with nothing in between).
@@ -104,10 +110,35 @@ class _Arm:
         self.arm_ids = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
         self.control_dim = controller.control_dim
         self.action_dim = robot.action_dim
+        # What osc_substep fills, in the layouts robosuite's update gives (Fortran-ordered
+        # Jacobian and mass-matrix copies), handed to the controller by _ArmStep.hand_over.
+        dof = len(self.qvel_index)
+        self.ee_pos = np.zeros(3)
+        self.ee_ori_mat = np.zeros((3, 3))
+        self.ee_pos_vel = np.zeros(3)
+        self.ee_ori_vel = np.zeros(3)
+        self.joint_pos = np.zeros(dof)
+        self.joint_vel = np.zeros(dof)
+        self.j_pos = np.zeros((3, dof), order="F")
+        self.j_ori = np.zeros((3, dof), order="F")
+        self.j_full = np.zeros((6, dof), order="F")
+        self.mass_matrix = np.zeros((dof, dof), order="F")
+        self.torques = np.zeros(dof)
+        self.clipped = np.zeros(dof)
+        self.gripper_action = np.zeros(len(self.gripper_ids))
+        self.wrench = np.zeros(6)
 
 
 class _Unsupported(Exception):
     pass
+
+
+@functools.cache
+def _osc_kernel() -> Any:
+    # Imports robosuite and numba: loaded with the first exact step, not with vecsim.tasks.
+    from vecsim.tasks import _osc_kernel
+
+    return _osc_kernel
 
 
 @functools.cache
@@ -159,6 +190,13 @@ class ExactStep:
         self.model = inner.sim.model._model
         self.data = inner.sim.data._data
         self.arms = [_Arm(robot, self.model, self.data) for robot in inner.robots]
+        data = self.data
+        # MjData's arrays for osc_substep (views of buffers MuJoCo never moves).
+        self.data_arrays = (
+            data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
+        )  # fmt: skip
+        # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
+        self.fused = _osc_kernel().available()
 
     @staticmethod
     def unsupported(inner: Any) -> str | None:
@@ -222,18 +260,28 @@ class ExactStep:
             _check_arm(arm.robot)
             arms.append(_ArmStep(arm, action[cutoff : cutoff + arm.action_dim], model))
             cutoff += arm.action_dim
+        fused: list[_ArmStep] = []
         for substep in range(substeps):
             policy_step = substep == 0
             self._forward(policy_step)
             for arm in arms:
                 controller = arm.arm.robot.controller
+                if arm.fused:
+                    arm.fused_control(model, data)
+                    continue
                 if controller.new_update:
                     self._update(arm.arm, controller)
                 if policy_step:
                     arm.arm.robot.control(arm.action, policy_step=True)
+                    if self.fused and arm.start_fused(controller, self.data_arrays):
+                        fused.append(arm)
                 else:
                     arm.control(controller, data)
             self._integrate()
+            if substep and (substep == substeps - 1 or plan is None or plan.fires[substep]):
+                # At the end of the step, and where observables (which may read the controller) sample.
+                for arm in fused:
+                    arm.hand_over()
             if plan is None:
                 env._update_observables()
             else:
@@ -325,6 +373,68 @@ class _ArmStep:
         ctrl_range = model.actuator_ctrlrange[arm.gripper_ids]
         self.gripper_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         self.gripper_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
+        self.fused = False
+        self.kernel_args: tuple[Any, ...] = ()
+
+    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...]) -> bool:
+        """After the policy substep: run this step's other substeps through ``osc_substep`` if it can.
+
+        It can for robosuite's Panda gripper (whose ``format_action`` it computes) with one
+        action per gripper actuator. The call's arguments are fixed for the rest of the step and
+        gathered now: MuJoCo's arrays (``data_arrays``, see :class:`ExactStep`), the arm's, the
+        controller's goal (as ``run_controller`` copies it, which keeps its layout), gains and
+        initial joints, and the buffers it fills.
+        """
+        arm = self.arm
+        current = arm.robot.gripper.current_action
+        shape = arm.gripper_action.shape
+        if self.gripper_step is None or self.gripper_step.shape != shape or np.shape(current) != shape:
+            return False
+        if not controller.new_update:
+            return False
+        arm.gripper_action[:] = current
+        self.kernel_args = (
+            arm.site, *data_arrays, arm.jacp, arm.jacr,
+            arm.qpos_index, arm.qvel_index, arm.mass_gather_t, arm.arm_ids, arm.gripper_ids,
+            np.array(controller.goal_pos), np.array(controller.goal_ori), controller.kp, controller.kd,
+            controller.initial_joint, self.torque_low, self.torque_high, self.uncoupling,
+            self.gripper_step, self.gripper_bias, self.gripper_weight,
+            arm.ee_pos, arm.ee_ori_mat, arm.ee_pos_vel, arm.ee_ori_vel, arm.joint_pos, arm.joint_vel,
+            arm.j_pos, arm.j_ori, arm.j_full, arm.mass_matrix, arm.torques, arm.clipped, arm.gripper_action,
+            arm.wrench,
+        )  # fmt: skip
+        self.fused = True
+        return True
+
+    def fused_control(self, model: Any, data: Any) -> None:
+        """Controller.update and :meth:`control` for a non-policy substep, in one compiled call."""
+        arm = self.arm
+        mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
+        _osc_kernel().osc_substep(*self.kernel_args)
+
+    def hand_over(self) -> None:
+        """Leave the controller, robot and gripper holding what the last ``osc_substep`` computed.
+
+        As fresh arrays, as robosuite's update and control leave them: nothing handed out before
+        changes when the next substep's call refills the buffers.
+        """
+        arm = self.arm
+        robot = arm.robot
+        controller = robot.controller
+        controller.ee_pos = arm.ee_pos.copy()
+        controller.ee_ori_mat = arm.ee_ori_mat.copy()
+        controller.ee_pos_vel = arm.ee_pos_vel.copy()
+        controller.ee_ori_vel = arm.ee_ori_vel.copy()
+        controller.joint_pos = arm.joint_pos.copy()
+        controller.joint_vel = arm.joint_vel.copy()
+        controller.J_pos = arm.j_pos.copy(order="F")
+        controller.J_ori = arm.j_ori.copy(order="F")
+        controller.J_full = arm.j_full.copy(order="F")
+        controller.mass_matrix = arm.mass_matrix.copy(order="F")
+        controller.torques = arm.torques.copy()
+        controller.new_update = True
+        robot.torques = arm.clipped.copy()
+        robot.gripper.current_action = arm.gripper_action.copy()
 
     def control(self, controller: Any, data: Any) -> None:
         # SingleArm.control for a non-policy substep with OSC's run_controller inside: the same
