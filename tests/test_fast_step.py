@@ -137,6 +137,24 @@ def test_exact_path_with_the_controller_from_python_gives_robosuite_own_trajecto
         assert run_side_by_side("tiny/lift", envs, seed=0) == STEPS
 
 
+def test_a_compiled_controller_that_cannot_load_leaves_the_controller_from_python(monkeypatch, caplog) -> None:
+    # E.g. numba finding no writable place for its cache: the exact path goes on, from Python.
+    from vecsim.tasks import _fast_step
+
+    def unloadable() -> Any:
+        raise RuntimeError("cannot cache function 'osc_substep': no locator available")
+
+    monkeypatch.setattr(_fast_step, "_osc_kernel", unloadable)
+    _fast_step._fused_controller_available.cache_clear()
+    try:
+        with caplog.at_level("WARNING"), env_pair("tiny/lift") as envs:
+            assert not envs["exact"]._step_fn.fused
+            assert run_side_by_side("tiny/lift", envs, seed=0) == STEPS
+        assert "runs from Python" in caplog.text
+    finally:
+        _fast_step._fused_controller_available.cache_clear()
+
+
 def test_exact_path_with_delayed_observables_gives_robosuite_own_trajectory() -> None:
     from robosuite.utils.observables import create_deterministic_delayer
 

@@ -142,6 +142,18 @@ def _osc_kernel() -> Any:
 
 
 @functools.cache
+def _fused_controller_available() -> bool:
+    """Whether the compiled controller can run here; False (logged once) where its module cannot
+    even be loaded, e.g. numba finding no writable place for its cache."""
+    try:
+        return bool(_osc_kernel().available())
+    except Exception as exc:  # noqa: BLE001 - the controller from Python is the same arithmetic
+        log.warning("the compiled OSC controller cannot be loaded (%s: %s): the controller runs from Python",
+                    type(exc).__name__, exc)
+        return False
+
+
+@functools.cache
 def _robosuite() -> Any:
     # robosuite is imported when the first env is made, not with vecsim.tasks.
     import robosuite.controllers.base_controller
@@ -196,7 +208,7 @@ class ExactStep:
             data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
         )  # fmt: skip
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
-        self.fused = _osc_kernel().available()
+        self.fused = _fused_controller_available()
 
     @staticmethod
     def unsupported(inner: Any) -> str | None:
