@@ -195,6 +195,8 @@ class ExactStep:
         self.data_arrays = (
             data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
         )  # fmt: skip
+        # The warning counters mj_checkPos/mj_checkVel raise (views of MjData's, as the arrays).
+        self.bad_qpos, self.bad_qvel = data.warning[_BADQPOS], data.warning[_BADQVEL]
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
         self.fused = _osc_kernel().available()
 
@@ -263,6 +265,9 @@ class ExactStep:
         fused: list[_ArmStep] = []
         for substep in range(substeps):
             policy_step = substep == 0
+            if substep == 1 and fused and len(fused) == len(arms):
+                self._fused_substeps(fused, substeps, plan)
+                break
             self._forward(policy_step)
             for arm in arms:
                 controller = arm.arm.robot.controller
@@ -296,6 +301,46 @@ class ExactStep:
         }
         return observations, float(reward), success
 
+    def _fused_substeps(self, fused: list[_ArmStep], substeps: int, plan: _ObservablePlan | None) -> None:
+        # Substeps 1.. of an env-step whose arms all run the compiled controller: the loop's
+        # _forward(False), fused_control, _integrate, hand_over and observable updates, the same
+        # calls in the same order, with the loop's lookups done once.
+        env, model, data = self.env, self.model, self.data
+        fwd_position, sensor_pos = mujoco.mj_fwdPosition, mujoco.mj_sensorPos
+        fwd_velocity, sensor_vel = mujoco.mj_fwdVelocity, mujoco.mj_sensorVel
+        check_pos, check_vel, step1, step2 = mujoco.mj_checkPos, mujoco.mj_checkVel, mujoco.mj_step1, mujoco.mj_step2
+        jac_site, osc_substep = mujoco.mj_jacSite, _osc_kernel().osc_substep
+        bad_qpos, bad_qvel = self.bad_qpos, self.bad_qvel
+        calls = [(arm.arm.jacp, arm.arm.jacr, arm.arm.site, arm.kernel_args) for arm in fused]
+        last = substeps - 1
+        for substep in range(1, substeps):
+            fwd_position(model, data)
+            sensor_pos(model, data)
+            fwd_velocity(model, data)
+            sensor_vel(model, data)
+            for jacp, jacr, site, kernel_args in calls:
+                jac_site(model, data, jacp, jacr, site)
+                osc_substep(*kernel_args)
+            bad = bad_qpos.number + bad_qvel.number
+            check_pos(model, data)
+            check_vel(model, data)
+            if bad_qpos.number + bad_qvel.number != bad:
+                step1(model, data)
+            step2(model, data)
+            if plan is None:
+                for arm in fused:
+                    arm.hand_over()
+                env._update_observables()
+                continue
+            fires = plan.fires[substep]
+            if fires or substep == last:
+                for arm in fused:
+                    arm.hand_over()
+                for _, obs, elapsed, sampled in fires:
+                    obs._time_since_last_sample = elapsed
+                    obs._sampled = sampled
+                    obs.update(timestep=plan.timestep, obs_cache=env._obs_cache)
+
     def _forward(self, policy_step: bool) -> None:
         # The substep's mj_forward, and Controller.update's. Non-policy substeps need only the
         # position and velocity stages with their sensors: the acceleration stage's outputs are
@@ -315,11 +360,11 @@ class ExactStep:
         # stages are current (only ctrl changed since, read in the acceleration stage), so
         # mj_step2 finishes it.
         model, data = self.model, self.data
-        warnings = data.warning
-        bad = warnings[_BADQPOS].number + warnings[_BADQVEL].number
+        bad_qpos, bad_qvel = self.bad_qpos, self.bad_qvel
+        bad = bad_qpos.number + bad_qvel.number
         mujoco.mj_checkPos(model, data)
         mujoco.mj_checkVel(model, data)
-        if warnings[_BADQPOS].number + warnings[_BADQVEL].number != bad:
+        if bad_qpos.number + bad_qvel.number != bad:
             # The checks reset the data; mj_step's forward then starts from the reset state.
             mujoco.mj_step1(model, data)
         mujoco.mj_step2(model, data)
