@@ -150,6 +150,7 @@ def _robosuite() -> Any:
     import robosuite.robots.manipulator
     import robosuite.robots.single_arm
     import robosuite.utils.control_utils
+    import robosuite.utils.transform_utils
 
     return robosuite
 
@@ -274,9 +275,14 @@ class ExactStep:
                 if arm.fused:
                     arm.fused_control(model, data)
                     continue
-                if controller.new_update:
+                updated = controller.new_update
+                if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
+                    if self.fused and updated and arm.start_fused(controller, self.data_arrays, policy_step=True):
+                        arm.policy_control(model, data)
+                        fused.append(arm)
+                        continue
                     arm.arm.robot.control(arm.action, policy_step=True)
                     if self.fused and arm.start_fused(controller, self.data_arrays):
                         fused.append(arm)
@@ -421,22 +427,26 @@ class _ArmStep:
         self.fused = False
         self.kernel_args: tuple[Any, ...] = ()
 
-    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...]) -> bool:
-        """After the policy substep: run this step's other substeps through ``osc_substep`` if it can.
+    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...], policy_step: bool = False) -> bool:
+        """Run this step's substeps from here on through ``osc_substep`` if it can.
 
         It can for robosuite's Panda gripper (whose ``format_action`` it computes) with one
         action per gripper actuator. The call's arguments are fixed for the rest of the step and
         gathered now: MuJoCo's arrays (``data_arrays``, see :class:`ExactStep`), the arm's, the
         controller's goal (as ``run_controller`` copies it, which keeps its layout), gains and
-        initial joints, and the buffers it fills.
+        initial joints, and the buffers it fills. After the policy substep's ``robot.control``,
+        or (``policy_step``) at the policy substep, before the goal is set (:meth:`policy_control`).
         """
         arm = self.arm
         current = arm.robot.gripper.current_action
         shape = arm.gripper_action.shape
         if self.gripper_step is None or self.gripper_step.shape != shape or np.shape(current) != shape:
             return False
-        if not controller.new_update:
+        if not controller.new_update and not policy_step:
             return False
+        if policy_step:
+            # The goal osc_substep reads is the one set_goal is about to set: gathered then.
+            controller.set_goal(self.action[: arm.control_dim])
         arm.gripper_action[:] = current
         self.kernel_args = (
             arm.site, *data_arrays, arm.jacp, arm.jacr,
@@ -456,6 +466,33 @@ class _ArmStep:
         arm = self.arm
         mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
         _osc_kernel().osc_substep(*self.kernel_args)
+
+    def policy_control(self, model: Any, data: Any) -> None:
+        """SingleArm.control for the policy substep, after :meth:`start_fused` set the goal.
+
+        robosuite's ``run_controller``, torque clip and ``grip_action`` are what ``osc_substep``
+        computes (its update is the one :meth:`ExactStep._update` just made, from the same
+        state); then the robot's recent-value buffers take what ``control`` pushes, computed as
+        it computes them.
+        """
+        self.fused_control(model, data)
+        self.hand_over()
+        robot = self.arm.robot
+        controller = robot.controller
+        transform = _robosuite().utils.transform_utils
+        robot.recent_qpos.push(robot._joint_positions)
+        robot.recent_actions.push(self.action)
+        robot.recent_torques.push(robot.torques)
+        robot.recent_ee_forcetorques.push(np.concatenate((robot.ee_force, robot.ee_torque)))
+        robot.recent_ee_pose.push(np.concatenate((controller.ee_pos, transform.mat2quat(controller.ee_ori_mat))))
+        robot.recent_ee_vel.push(np.concatenate((controller.ee_pos_vel, controller.ee_ori_vel)))
+        # The end effector's acceleration: the mean of the recent velocities' differences.
+        robot.recent_ee_vel_buffer.push(np.concatenate((controller.ee_pos_vel, controller.ee_ori_vel)))
+        diffs = np.vstack(
+            [robot.recent_ee_acc.current, robot.control_freq * np.diff(robot.recent_ee_vel_buffer.buf, axis=0)]
+        )
+        window = np.ones(10) / 10.0
+        robot.recent_ee_acc.push(np.array([np.convolve(column, window, mode="valid")[0] for column in diffs.T]))
 
     def hand_over(self) -> None:
         """Leave the controller, robot and gripper holding what the last ``osc_substep`` computed.
