@@ -16,19 +16,22 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
   ``robot.control`` reads the wrist's force/torque sensors, which the acceleration stage computes.
 - The OSC controller's per-substep work is the same numpy and numba calls on arrays of the same
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
-  property rebuilds and four Jacobian evaluations where one gives the same numbers. On the
-  non-policy substeps that work (after one ``mj_jacSite``) is one compiled call,
+  property rebuilds and four Jacobian evaluations where one gives the same numbers. On every
+  substep that work (after one ``mj_jacSite``) is one compiled call,
   :func:`vecsim.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
   own BLAS as robosuite's step does; where it cannot (:func:`vecsim.tasks._osc_kernel.available`,
   a gripper other than robosuite's Panda gripper) the same calls run from Python. The controller,
   robot and gripper attributes the compiled call fills are handed over as fresh arrays after the
-  last substep and before any observable samples.
+  policy substep, after the last substep and before any observable samples. After the policy
+  substep, the other substeps run in one loop (:meth:`ExactStep._fused_substeps`).
 - Observables run their sampling arithmetic per group of identical timers and their sensors only
   at the substeps where robosuite's would sample; success is checked once after ``_post_action``
   (LIBERO's step and vecsim both asked, with nothing in between).
 
-The policy substep (the first of each env-step) runs robosuite's own ``robot.control`` (goal
-setting, recent-value buffers) after the fast controller update. Envs this does not cover (another
+On the policy substep (the first of each env-step) robosuite's ``set_goal`` sets the goal before
+the compiled call, and the robot's recent-value buffers are pushed after it as robosuite's
+``robot.control`` pushes them; where the compiled call is not used, or the controller was not
+updated at that substep (as after a reset), that substep runs robosuite's own ``robot.control``. Envs this does not cover (another
 controller, interpolators, an RK4 integrator, a control callback, plugins, energy, a viewer) take
 the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
 """
