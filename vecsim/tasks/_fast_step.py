@@ -203,6 +203,10 @@ class ExactStep:
         self.bad_qpos, self.bad_qvel = data.warning[_BADQPOS], data.warning[_BADQVEL]
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
         self.fused = _osc_kernel().available()
+        # False: the policy substep runs robosuite's robot.control; the other substeps the
+        # general loop (bench/bench_robot_step.py --second-pass, the step before those changes).
+        self.fused_policy = True
+        self.substep_loop = True
 
     @staticmethod
     def unsupported(inner: Any) -> str | None:
@@ -269,7 +273,7 @@ class ExactStep:
         fused: list[_ArmStep] = []
         for substep in range(substeps):
             policy_step = substep == 0
-            if substep == 1 and fused and len(fused) == len(arms):
+            if substep == 1 and self.substep_loop and fused and len(fused) == len(arms):
                 self._fused_substeps(fused, substeps, plan)
                 break
             self._forward(policy_step)
@@ -282,7 +286,7 @@ class ExactStep:
                 if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
-                    if self.fused and updated and arm.start_fused(controller, self.data_arrays, policy_step=True):
+                    if self.fused and self.fused_policy and updated and arm.start_fused(controller, self.data_arrays, policy_step=True):
                         arm.policy_control(model, data)
                         fused.append(arm)
                         continue
