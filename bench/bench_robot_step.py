@@ -430,7 +430,7 @@ def main() -> int:
     parser.add_argument("--python-controller", action="store_true",
                         help="also measure the exact path with its controller run from Python (before the compiled kernel)")
     parser.add_argument("--second-pass", action="store_true",
-                        help="also measure the exact path without the second pass's changes (the one substep loop, the policy substep's compiled controller)")
+                        help="also measure the exact path without its second pass's changes, and with the first only")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task with --parity-episodes")

@@ -31,9 +31,9 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
 On the policy substep (the first of each env-step) robosuite's ``set_goal`` sets the goal before
 the compiled call, and the robot's recent-value buffers are pushed after it as robosuite's
 ``robot.control`` pushes them; where the compiled call is not used, or the controller was not
-updated at that substep (as after a reset), that substep runs robosuite's own ``robot.control``. Envs this does not cover (another
-controller, interpolators, an RK4 integrator, a control callback, plugins, energy, a viewer) take
-the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
+updated at that substep (as after a reset), that substep runs robosuite's own ``robot.control``.
+Envs this does not cover (another controller, interpolators, an RK4 integrator, a control
+callback, plugins, energy, a viewer) take the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
 """
 
 from __future__ import annotations
@@ -286,7 +286,8 @@ class ExactStep:
                 if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
-                    if self.fused and self.fused_policy and updated and arm.start_fused(controller, self.data_arrays, policy_step=True):
+                    fuse = self.fused and self.fused_policy and updated
+                    if fuse and arm.start_fused(controller, self.data_arrays, policy_step=True):
                         arm.policy_control(model, data)
                         fused.append(arm)
                         continue
@@ -442,7 +443,8 @@ class _ArmStep:
         gathered now: MuJoCo's arrays (``data_arrays``, see :class:`ExactStep`), the arm's, the
         controller's goal (as ``run_controller`` copies it, which keeps its layout), gains and
         initial joints, and the buffers it fills. After the policy substep's ``robot.control``,
-        or (``policy_step``) at the policy substep, before the goal is set (:meth:`policy_control`).
+        or (``policy_step``) in its place, where it first sets the goal with robosuite's
+        ``set_goal`` (:meth:`policy_control` does the rest).
         """
         arm = self.arm
         current = arm.robot.gripper.current_action
