@@ -9,6 +9,8 @@ Per task, on one pinned core, no cameras, step by step:
 - with ``--python-controller``, the exact path with its non-policy substeps' controller run from
   Python (robosuite's numpy and numba calls one by one), as it was before the compiled
   ``osc_substep`` (``vecsim.tasks._osc_kernel``);
+- with ``--second-pass``, the exact path without its second pass's changes (the non-policy
+  substeps in one loop, the policy substep's controller compiled too), and with the first only;
 - ``floor``: right before each of those steps, as many ``mj_step`` as the step holds (25 at
   LIBERO's 500 Hz physics and 20 Hz control) on a copy of the state the step starts from;
 - ``libero``: after each of them, one step of LIBERO's own ``OffScreenRenderEnv``
@@ -51,6 +53,8 @@ from common import spread, write_result
 log = logging.getLogger("bench_robot_step")
 
 PYTHON_CONTROLLER = "exact_python_controller"
+# --second-pass: the exact path without the second pass's changes (ExactStep's flags), and with the first only.
+SECOND_PASS = {"exact_before_second_pass": (False, False), "exact_one_substep_loop": (True, False)}
 
 # The arrays of MuJoCo's state that an env-step carries forward, compared bit for bit.
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "qacc", "sensordata", "mocap_pos", "mocap_quat")
@@ -109,6 +113,18 @@ def python_controller(inner: Any) -> Any:
     step = ExactStep(inner)
     step.fused = False
     return step
+
+
+def second_pass_variant(substep_loop: bool, fused_policy: bool) -> Any:
+    """Return a maker of the exact path's step with its second pass's changes on or off."""
+    from vecsim.tasks._fast_step import ExactStep
+
+    def make(inner: Any) -> Any:
+        step = ExactStep(inner)
+        step.substep_loop, step.fused_policy = substep_loop, fused_policy
+        return step
+
+    return make
 
 
 class LiberoOwn:
@@ -192,6 +208,8 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
         paths[PYTHON_CONTROLLER] = python_controller
     if args.changes:
         paths.update(change_variants())
+    if args.second_pass:
+        paths.update({name: second_pass_variant(*flags) for name, flags in SECOND_PASS.items()})
     steppers = {}
     for name, path in paths.items():
         if isinstance(path, str):
@@ -260,6 +278,10 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     if PYTHON_CONTROLLER in ms:
         row["python_controller_over_exact"] = round(ms[PYTHON_CONTROLLER] / ms["exact"], 3)
         row["fastest_python_controller_over_exact"] = round(fastest[PYTHON_CONTROLLER] / fastest["exact"], 3)
+    for name in SECOND_PASS:
+        if name in ms:
+            row[f"{name}_over_exact"] = round(ms[name] / ms["exact"], 3)
+            row[f"fastest_{name}_over_exact"] = round(fastest[name] / fastest["exact"], 3)
     if own is not None:
         row["libero_over_exact"] = round(ms["libero"] / ms["exact"], 3)
         row["fastest_libero_over_exact"] = round(fastest["libero"] / fastest["exact"], 3)
@@ -407,6 +429,8 @@ def main() -> int:
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
     parser.add_argument("--python-controller", action="store_true",
                         help="also measure the exact path with its controller run from Python (before the compiled kernel)")
+    parser.add_argument("--second-pass", action="store_true",
+                        help="also measure the exact path without its second pass's changes, and with the first only")
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task with --parity-episodes")
@@ -482,11 +506,14 @@ def main() -> int:
             "fastest_libero_over_exact": across(lambda row: row.get("fastest_libero_over_exact")),
             "python_controller_over_exact": across(lambda row: row.get("python_controller_over_exact")),
             "fastest_python_controller_over_exact": across(lambda row: row.get("fastest_python_controller_over_exact")),
+            **{f"{prefix}{name}_over_exact": across(lambda row, k=f"{prefix}{name}_over_exact": row.get(k))
+               for name in SECOND_PASS for prefix in ("", "fastest_")},
             **{key: across(lambda row, k=key: row.get(k))
                for key in ("reset_libero_over_vecsim", "reset_before_over_vecsim", "fastest_reset_before_over_vecsim")},
         },
         "setup": {"tasks": tasks, "steps": args.steps, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
                   "changes": args.changes, "python_controller": args.python_controller,
+                  "second_pass": args.second_pass,
                   "load_average_at_start": load_at_start,
                   "load_average_at_end": os.getloadavg()},
         "rows": rows,

@@ -16,21 +16,24 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
   ``robot.control`` reads the wrist's force/torque sensors, which the acceleration stage computes.
 - The OSC controller's per-substep work is the same numpy and numba calls on arrays of the same
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
-  property rebuilds and four Jacobian evaluations where one gives the same numbers. On the
-  non-policy substeps that work (after one ``mj_jacSite``) is one compiled call,
+  property rebuilds and four Jacobian evaluations where one gives the same numbers. On every
+  substep that work (after one ``mj_jacSite``) is one compiled call,
   :func:`vecsim.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
   own BLAS as robosuite's step does; where it cannot (:func:`vecsim.tasks._osc_kernel.available`,
   a gripper other than robosuite's Panda gripper) the same calls run from Python. The controller,
   robot and gripper attributes the compiled call fills are handed over as fresh arrays after the
-  last substep and before any observable samples.
+  policy substep, after the last substep and before any observable samples. After the policy
+  substep, the other substeps run in one loop (:meth:`ExactStep._fused_substeps`).
 - Observables run their sampling arithmetic per group of identical timers and their sensors only
   at the substeps where robosuite's would sample; success is checked once after ``_post_action``
   (LIBERO's step and vecsim both asked, with nothing in between).
 
-The policy substep (the first of each env-step) runs robosuite's own ``robot.control`` (goal
-setting, recent-value buffers) after the fast controller update. Envs this does not cover (another
-controller, interpolators, an RK4 integrator, a control callback, plugins, energy, a viewer) take
-the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
+On the policy substep (the first of each env-step) robosuite's ``set_goal`` sets the goal before
+the compiled call, and the robot's recent-value buffers are pushed after it as robosuite's
+``robot.control`` pushes them; where the compiled call is not used, or the controller was not
+updated at that substep (as after a reset), that substep runs robosuite's own ``robot.control``.
+Envs this does not cover (another controller, interpolators, an RK4 integrator, a control
+callback, plugins, energy, a viewer) take the ``library`` path: the env's own ``step``. Observables with a delayer are updated every substep.
 """
 
 from __future__ import annotations
@@ -162,6 +165,7 @@ def _robosuite() -> Any:
     import robosuite.robots.manipulator
     import robosuite.robots.single_arm
     import robosuite.utils.control_utils
+    import robosuite.utils.transform_utils
 
     return robosuite
 
@@ -207,8 +211,14 @@ class ExactStep:
         self.data_arrays = (
             data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
         )  # fmt: skip
+        # The warning counters mj_checkPos/mj_checkVel raise (views of MjData's, as the arrays).
+        self.bad_qpos, self.bad_qvel = data.warning[_BADQPOS], data.warning[_BADQVEL]
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
         self.fused = _fused_controller_available()
+        # False: the policy substep runs robosuite's robot.control; the other substeps the
+        # general loop (bench/bench_robot_step.py --second-pass, the step before those changes).
+        self.fused_policy = True
+        self.substep_loop = True
 
     @staticmethod
     def unsupported(inner: Any) -> str | None:
@@ -275,15 +285,24 @@ class ExactStep:
         fused: list[_ArmStep] = []
         for substep in range(substeps):
             policy_step = substep == 0
+            if substep == 1 and self.substep_loop and fused and len(fused) == len(arms):
+                self._fused_substeps(fused, substeps, plan)
+                break
             self._forward(policy_step)
             for arm in arms:
                 controller = arm.arm.robot.controller
                 if arm.fused:
                     arm.fused_control(model, data)
                     continue
-                if controller.new_update:
+                updated = controller.new_update
+                if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
+                    fuse = self.fused and self.fused_policy and updated
+                    if fuse and arm.start_fused(controller, self.data_arrays, policy_step=True):
+                        arm.policy_control(model, data)
+                        fused.append(arm)
+                        continue
                     arm.arm.robot.control(arm.action, policy_step=True)
                     if self.fused and arm.start_fused(controller, self.data_arrays):
                         fused.append(arm)
@@ -308,6 +327,46 @@ class ExactStep:
         }
         return observations, float(reward), success
 
+    def _fused_substeps(self, fused: list[_ArmStep], substeps: int, plan: _ObservablePlan | None) -> None:
+        # Substeps 1.. of an env-step whose arms all run the compiled controller: the loop's
+        # _forward(False), fused_control, _integrate, hand_over and observable updates, the same
+        # calls in the same order, with the loop's lookups done once.
+        env, model, data = self.env, self.model, self.data
+        fwd_position, sensor_pos = mujoco.mj_fwdPosition, mujoco.mj_sensorPos
+        fwd_velocity, sensor_vel = mujoco.mj_fwdVelocity, mujoco.mj_sensorVel
+        check_pos, check_vel, step1, step2 = mujoco.mj_checkPos, mujoco.mj_checkVel, mujoco.mj_step1, mujoco.mj_step2
+        jac_site, osc_substep = mujoco.mj_jacSite, _osc_kernel().osc_substep
+        bad_qpos, bad_qvel = self.bad_qpos, self.bad_qvel
+        calls = [(arm.arm.jacp, arm.arm.jacr, arm.arm.site, arm.kernel_args) for arm in fused]
+        last = substeps - 1
+        for substep in range(1, substeps):
+            fwd_position(model, data)
+            sensor_pos(model, data)
+            fwd_velocity(model, data)
+            sensor_vel(model, data)
+            for jacp, jacr, site, kernel_args in calls:
+                jac_site(model, data, jacp, jacr, site)
+                osc_substep(*kernel_args)
+            bad = bad_qpos.number + bad_qvel.number
+            check_pos(model, data)
+            check_vel(model, data)
+            if bad_qpos.number + bad_qvel.number != bad:
+                step1(model, data)
+            step2(model, data)
+            if plan is None:
+                for arm in fused:
+                    arm.hand_over()
+                env._update_observables()
+                continue
+            fires = plan.fires[substep]
+            if fires or substep == last:
+                for arm in fused:
+                    arm.hand_over()
+                for _, obs, elapsed, sampled in fires:
+                    obs._time_since_last_sample = elapsed
+                    obs._sampled = sampled
+                    obs.update(timestep=plan.timestep, obs_cache=env._obs_cache)
+
     def _forward(self, policy_step: bool) -> None:
         # The substep's mj_forward, and Controller.update's. Non-policy substeps need only the
         # position and velocity stages with their sensors: the acceleration stage's outputs are
@@ -327,11 +386,11 @@ class ExactStep:
         # stages are current (only ctrl changed since, read in the acceleration stage), so
         # mj_step2 finishes it.
         model, data = self.model, self.data
-        warnings = data.warning
-        bad = warnings[_BADQPOS].number + warnings[_BADQVEL].number
+        bad_qpos, bad_qvel = self.bad_qpos, self.bad_qvel
+        bad = bad_qpos.number + bad_qvel.number
         mujoco.mj_checkPos(model, data)
         mujoco.mj_checkVel(model, data)
-        if warnings[_BADQPOS].number + warnings[_BADQVEL].number != bad:
+        if bad_qpos.number + bad_qvel.number != bad:
             # The checks reset the data; mj_step's forward then starts from the reset state.
             mujoco.mj_step1(model, data)
         mujoco.mj_step2(model, data)
@@ -388,22 +447,27 @@ class _ArmStep:
         self.fused = False
         self.kernel_args: tuple[Any, ...] = ()
 
-    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...]) -> bool:
-        """After the policy substep: run this step's other substeps through ``osc_substep`` if it can.
+    def start_fused(self, controller: Any, data_arrays: tuple[np.ndarray, ...], policy_step: bool = False) -> bool:
+        """Run this step's substeps from here on through ``osc_substep`` if it can.
 
         It can for robosuite's Panda gripper (whose ``format_action`` it computes) with one
         action per gripper actuator. The call's arguments are fixed for the rest of the step and
         gathered now: MuJoCo's arrays (``data_arrays``, see :class:`ExactStep`), the arm's, the
         controller's goal (as ``run_controller`` copies it, which keeps its layout), gains and
-        initial joints, and the buffers it fills.
+        initial joints, and the buffers it fills. After the policy substep's ``robot.control``,
+        or (``policy_step``) in its place, where it first sets the goal with robosuite's
+        ``set_goal`` (:meth:`policy_control` does the rest).
         """
         arm = self.arm
         current = arm.robot.gripper.current_action
         shape = arm.gripper_action.shape
         if self.gripper_step is None or self.gripper_step.shape != shape or np.shape(current) != shape:
             return False
-        if not controller.new_update:
+        if not controller.new_update and not policy_step:
             return False
+        if policy_step:
+            # The goal osc_substep reads is the one set_goal is about to set: gathered then.
+            controller.set_goal(self.action[: arm.control_dim])
         arm.gripper_action[:] = current
         self.kernel_args = (
             arm.site, *data_arrays, arm.jacp, arm.jacr,
@@ -423,6 +487,33 @@ class _ArmStep:
         arm = self.arm
         mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
         _osc_kernel().osc_substep(*self.kernel_args)
+
+    def policy_control(self, model: Any, data: Any) -> None:
+        """SingleArm.control for the policy substep, after :meth:`start_fused` set the goal.
+
+        robosuite's ``run_controller``, torque clip and ``grip_action`` are what ``osc_substep``
+        computes (its update is the one :meth:`ExactStep._update` just made, from the same
+        state); then the robot's recent-value buffers take what ``control`` pushes, computed as
+        it computes them.
+        """
+        self.fused_control(model, data)
+        self.hand_over()
+        robot = self.arm.robot
+        controller = robot.controller
+        transform = _robosuite().utils.transform_utils
+        robot.recent_qpos.push(robot._joint_positions)
+        robot.recent_actions.push(self.action)
+        robot.recent_torques.push(robot.torques)
+        robot.recent_ee_forcetorques.push(np.concatenate((robot.ee_force, robot.ee_torque)))
+        robot.recent_ee_pose.push(np.concatenate((controller.ee_pos, transform.mat2quat(controller.ee_ori_mat))))
+        robot.recent_ee_vel.push(np.concatenate((controller.ee_pos_vel, controller.ee_ori_vel)))
+        # The end effector's acceleration: the mean of the recent velocities' differences.
+        robot.recent_ee_vel_buffer.push(np.concatenate((controller.ee_pos_vel, controller.ee_ori_vel)))
+        diffs = np.vstack(
+            [robot.recent_ee_acc.current, robot.control_freq * np.diff(robot.recent_ee_vel_buffer.buf, axis=0)]
+        )
+        window = np.ones(10) / 10.0
+        robot.recent_ee_acc.push(np.array([np.convolve(column, window, mode="valid")[0] for column in diffs.T]))
 
     def hand_over(self) -> None:
         """Leave the controller, robot and gripper holding what the last ``osc_substep`` computed.
