@@ -15,6 +15,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import closing
 
@@ -24,6 +25,7 @@ import numpy as np
 import pytest
 import yaml
 from gymnasium.error import ResetNeeded
+from gymnasium.vector.async_vector_env import AsyncState
 from service_procs import (
     PodSpec,
     assignment_file,
@@ -33,6 +35,7 @@ from service_procs import (
     pod_server,
     running,
     standalone_pods,
+    wait_until,
 )
 
 from service.runner.job import LocalJob
@@ -54,6 +57,24 @@ def interrupt_main_after(delay_s: float) -> threading.Timer:
     timer = threading.Timer(delay_s, signal.pthread_kill, (threading.main_thread().ident, signal.SIGINT))
     timer.start()
     return timer
+
+
+def interrupt_main_while_stepping(env: HTTPVectorEnv, after_s: float) -> threading.Thread:
+    """SIGINT to the main thread, after ``after_s``, as soon as ``env`` has a step out that is not
+    yet answered: a real Ctrl-C inside ``step``'s wait."""
+
+    def step_out() -> bool:
+        pending = env._pending
+        return env._state == AsyncState.WAITING_STEP and pending is not None and not pending.done()
+
+    def fire() -> None:
+        time.sleep(after_s)  # let a few whole steps pass first; not synchronisation
+        wait_until(step_out, "a step in flight", timeout_s=60, every=0.0005)
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+    thread = threading.Thread(target=fire, daemon=True)
+    thread.start()
+    return thread
 
 
 @pytest.fixture
@@ -105,9 +126,11 @@ def test_ctrl_c_inside_step_leaves_the_next_reset_working_with_true_results(slow
         first, _ = env.reset(options={"state_ids": STATE_IDS})
         actions = np.zeros((2, *env.single_action_space.shape), np.float32)
         for _ in range(3):
-            timer = interrupt_main_after(0.25)
+            # Ctrl-C once a step is out and not yet answered, after a few whole steps: a Ctrl-C
+            # between two steps would interrupt no call (and leave nothing to reset).
+            timer = interrupt_main_while_stepping(env, after_s=0.25)
             with pytest.raises(KeyboardInterrupt):
-                while True:
+                for _ in range(100_000):
                     env.step(actions)
             timer.join()
             # The interrupted step's envs are in an unknown state: a step is refused until a reset.
@@ -117,6 +140,29 @@ def test_ctrl_c_inside_step_leaves_the_next_reset_working_with_true_results(slow
             assert again.keys() == first.keys()
             for now, then in zip(trees.leaves(again), trees.leaves(first)):
                 np.testing.assert_array_equal(now, then)
+
+
+def test_ctrl_c_while_an_answer_is_taken_in_leaves_the_envs_to_be_reset(slow_pod, monkeypatch):
+    # The call was answered, but what the env holds of it is partly the old step's: no step
+    # goes on from there; a reset does, with true results.
+    with closing(HTTPVectorEnv(pod_urls=[slow_pod], timeout_s=30)) as env:
+        first, _ = env.reset(options={"state_ids": STATE_IDS})
+        actions = np.zeros((2, *env.single_action_space.shape), np.float32)
+        applied = env._apply_step
+
+        def interrupted(*args):
+            applied(*args)
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(env, "_apply_step", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            env.step(actions)
+        monkeypatch.undo()
+        with pytest.raises(ResetNeeded, match="interrupted"):
+            env.step(actions)
+        again, _ = env.reset(options={"state_ids": STATE_IDS})
+        for now, then in zip(trees.leaves(again), trees.leaves(first)):
+            np.testing.assert_array_equal(now, then)
 
 
 def test_ctrl_c_while_waiting_on_a_stage_call_frees_the_stage_at_once(slow_pod, default_sigint):

@@ -9,10 +9,11 @@ explicit pod resets. The async protocol is an explicit state machine like ``Asyn
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import copy
 import logging
 import multiprocessing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -309,7 +310,8 @@ class HTTPVectorEnv(VectorEnv):
             result, done = self._apply_reset(answered)
             self._fail(error, mask & ~done, result)
             raise
-        result = self._apply_reset(batch)[0]
+        with self._failing_if_interrupted(mask):
+            result = self._apply_reset(batch)[0]
         self._raise_env_errors(batch)
         return result
 
@@ -566,9 +568,22 @@ class HTTPVectorEnv(VectorEnv):
                 result, done = self._apply_step(*error.answered)
             self._fail(error, ~done, result)
             raise
-        result = self._apply_step(reset_batch, step_batch)[0]
+        with self._failing_if_interrupted(np.ones(self.num_envs, dtype=bool)):
+            result = self._apply_step(reset_batch, step_batch)[0]
         self._raise_env_errors(step_batch, reset_batch)
         return result
+
+    @contextlib.contextmanager
+    def _failing_if_interrupted(self, envs: np.ndarray) -> Iterator[None]:
+        """Mark ``envs`` failed (to be reset before a step) if a Ctrl-C lands while an answer is
+        being taken in: what this env holds of them is then partly the old call's."""
+        try:
+            yield
+        except BaseException as exc:
+            if not isinstance(exc, Exception):
+                self._failed |= envs
+                self._autoreset[self._failed] = False
+            raise
 
     def _apply_step(
         self, reset_batch: StageBatch, step_batch: StageBatch
