@@ -147,8 +147,10 @@ class Scene:
         self.run = self._runner.submit(loop.run, requests, [f"traj-{i}" for i in range(len(requests))])
         if all(pod.holding for pod in self.pods):
             # The loop sends every stage's reset before it waits for any (the first test says so).
+            # The client notes a call once it is handed over, which can be after its pod has it.
             self.timeline.wait_for(
-                lambda: all(pod.held() for pod in self.pods), "every stage's reset held at its pod"
+                lambda: all(pod.held() and self.sent(pod.stage_id) >= len(pod.calls) for pod in self.pods),
+                "every stage's reset held at its pod and noted as sent",
             )
 
     def result(self) -> RolloutResult:
