@@ -298,7 +298,7 @@ class ExactStep:
                 if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
-                    fuse = self.fused and self.fused_policy and updated
+                    fuse = self.fused and self.fused_policy
                     if fuse and arm.start_fused(controller, self.data_arrays, policy_step=True):
                         arm.policy_control(model, data)
                         fused.append(arm)
