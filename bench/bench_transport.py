@@ -1,14 +1,15 @@
 """Transport benchmark: how fast large response bodies reach the client, per HTTP client stack.
 
 A real uvicorn server (FastAPI, in its own process, on a loopback port the kernel picked) serves
-1, 4 and 16 MiB bodies. The contenders fetch them one after another over a keep-alive
-connection, on one event loop:
+0.1 (a pod's answer of four LIBERO envs with two 64x64 cameras), 1, 4 and 16 MiB bodies. The
+contenders fetch them one after another over a keep-alive connection, on one event loop:
 
 - ``httpx``: httpx's default ``AsyncClient()`` (the baseline),
 - ``aiohttp``: a plain ``aiohttp.ClientSession()``,
-- ``vecsim-aiohttp`` and ``vecsim-httpx``: how the trainer's client reads an answer:
-  ``vecsim.transport.exchange`` (the request handed straight to ``make_transport(kind)``, the
-  answer streamed and read with ``read_answer`` under a cap), for each transport kind,
+- ``vecsim-httptools``, ``vecsim-aiohttp`` and ``vecsim-httpx``: how the trainer's client reads
+  an answer, ``vecsim.transport.fetch`` over ``make_transport(kind)``: httptools' own lean path;
+  for the other kinds the request handed straight to the transport (``exchange``), the answer
+  streamed and read with ``read_answer`` under a cap,
 - ``old-handwritten`` (with ``--old-transport PATH``): the hand-written HTTP/1.1 client vecsim
   used before (``git show <rev>:vecsim/transport.py > PATH``), its ``make_async_client("fast")``.
 
@@ -45,14 +46,19 @@ import numpy as np
 import psutil
 from common import img_dir, machine_info, out_dir, spread, write_result
 
-from vecsim.transport import DEFAULT_KIND, exchange, make_transport
+from vecsim.transport import DEFAULT_KIND, fetch, make_transport
 
 MIB = 1 << 20
-SIZES = (1 * MIB, 4 * MIB, 16 * MIB)
+SIZES = (MIB // 10, 1 * MIB, 4 * MIB, 16 * MIB)
 MAX_BODY = 64 * MIB
 FAST = f"vecsim-{DEFAULT_KIND}"
 
 Fetch = Callable[[str], Awaitable[bytes]]
+
+
+def _label(n: int, space: str = " ") -> str:
+    """A body size as the results name it: ``0.1 MiB``, ``16 MiB``."""
+    return f"{n / MIB:g}{space}MiB"
 
 
 def body_of(n: int) -> bytes:
@@ -139,7 +145,7 @@ async def measure(
     10 ms: average them over all rounds, not per round)."""
     httpx_default = httpx.AsyncClient()
     aiohttp_plain = aiohttp.ClientSession()
-    ours = {kind: make_transport(kind) for kind in ("aiohttp", "httpx")}
+    ours = {kind: make_transport(kind) for kind in ("httptools", "aiohttp", "httpx")}
     old_client = old.make_async_client("fast") if old is not None else None
 
     async def via_httpx(target: str) -> bytes:
@@ -150,10 +156,10 @@ async def measure(
             return await response.read()
 
     def via_ours(kind: str) -> Fetch:
-        async def fetch(target: str) -> bytes:
-            return (await exchange(ours[kind], httpx.Request("GET", target), MAX_BODY))[1]
+        async def get(target: str) -> bytes:
+            return (await fetch(ours[kind], "GET", target, (), b"", MAX_BODY))[1]
 
-        return fetch
+        return get
 
     async def via_old(target: str) -> bytes:
         return (await old_client.get(target)).content
@@ -161,6 +167,7 @@ async def measure(
     contenders: dict[str, Fetch] = {
         "httpx": via_httpx,
         "aiohttp": via_aiohttp,
+        "vecsim-httptools": via_ours("httptools"),
         "vecsim-aiohttp": via_ours("aiohttp"),
         "vecsim-httpx": via_ours("httpx"),
     }
@@ -174,18 +181,18 @@ async def measure(
     names = list(contenders)
     try:
         for n in sizes:  # warm-up: connections open, server bodies built, every answer checked
-            for name, fetch in contenders.items():
-                if await fetch(f"{url}/bytes/{n}") != expected[n]:
+            for name, get in contenders.items():
+                if await get(f"{url}/bytes/{n}") != expected[n]:
                     raise SystemExit(f"{name}: wrong body for {n} bytes")
         for r in range(rounds):
             for n in sizes:
                 reps = max(2, math.ceil(min_bytes / n))
                 for name in names[r % len(names) :] + names[: r % len(names)]:
-                    fetch = contenders[name]
+                    get = contenders[name]
                     cpu_client, cpu_server = _cpu(me), _cpu(server)
                     start = time.perf_counter()
                     for _ in range(reps):
-                        if len(await fetch(f"{url}/bytes/{n}")) != n:
+                        if len(await get(f"{url}/bytes/{n}")) != n:
                             raise SystemExit(f"{name}: short body for {n} bytes")
                     gbps[name][n].append(reps * n / (time.perf_counter() - start) / 1e9)
                     client_ms[name][n].append((_cpu(me) - cpu_client) / reps * 1e3)
@@ -206,17 +213,17 @@ async def profile_fast(url: str, sizes: tuple[int, ...], reps: int) -> str:
     text = io.StringIO()
     async with make_transport() as transport:
 
-        async def fetch(n: int) -> bytes:
-            return (await exchange(transport, httpx.Request("GET", f"{url}/bytes/{n}"), MAX_BODY))[1]
+        async def get(n: int) -> bytes:
+            return (await fetch(transport, "GET", f"{url}/bytes/{n}", (), b"", MAX_BODY))[1]
 
         for n in sizes:
-            await fetch(n)
+            await get(n)
             profiler = cProfile.Profile()
             profiler.enable()
             for _ in range(reps):
-                await fetch(n)
+                await get(n)
             profiler.disable()
-            text.write(f"==== {FAST}, {reps} x {n // MIB} MiB ====\n")
+            text.write(f"==== {FAST}, {reps} x {_label(n)} ====\n")
             pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
     return text.getvalue()
 
@@ -236,7 +243,7 @@ def plot(medians: dict[str, dict[int, dict[str, float]]], sizes: tuple[int, ...]
         low = [m - medians[name][n]["min"] for m, n in zip(mid, sizes)]
         high = [medians[name][n]["max"] - m for m, n in zip(mid, sizes)]
         ax.bar(xs, mid, width, yerr=[low, high], capsize=3, label=name)
-    ax.set_xticks(range(len(sizes)), [f"{n // MIB} MiB" for n in sizes])
+    ax.set_xticks(range(len(sizes)), [_label(n) for n in sizes])
     ax.set_xlabel("response body")
     ax.set_ylabel("GB/s received (median over rounds, bars: min-max)")
     ax.set_title(title, fontsize=10)
@@ -251,7 +258,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=8, help="interleaved rounds (default 8)")
     parser.add_argument("--min-mib", type=int, default=48, help="MiB fetched per contender per size per round")
-    parser.add_argument("--sizes-mib", type=int, nargs="+", default=[n // MIB for n in SIZES], help="body sizes")
+    parser.add_argument("--sizes-mib", type=float, nargs="+", default=[n / MIB for n in SIZES], help="body sizes")
     parser.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="client event loop")
     parser.add_argument("--profile", action="store_true", help="also profile the fast transport")
     parser.add_argument("--old-transport", help="an old vecsim/transport.py to measure beside (git show)")
@@ -269,7 +276,7 @@ def main() -> None:
         runner = asyncio.run
     name = "bench_transport" if args.loop == "asyncio" else f"bench_transport_{args.loop}"
 
-    sizes = tuple(n * MIB for n in args.sizes_mib)
+    sizes = tuple(round(n * MIB) for n in args.sizes_mib)
     with server_process() as (url, server):
         old = load_old_transport(args.old_transport) if args.old_transport else None
         gbps, client_ms, server_ms = runner(measure(url, server, sizes, args.rounds, args.min_mib * MIB, old))
@@ -278,11 +285,11 @@ def main() -> None:
     medians = {c: {n: spread(v) for n, v in per_size.items()} for c, per_size in gbps.items()}
 
     def per_size(table: Table, reduce: Callable[[list[float]], float], digits: int = 2) -> dict[str, dict[str, float]]:
-        return {c: {f"{n // MIB}MiB": round(reduce(v[n]), digits) for n in sizes} for c, v in table.items()}
+        return {c: {_label(n, ""): round(reduce(v[n]), digits) for n in sizes} for c, v in table.items()}
 
     def ratio(a: str, b: str) -> dict[str, float]:
         return {
-            f"{n // MIB}MiB": round(spread([x / y for x, y in zip(gbps[a][n], gbps[b][n])])["median"], 2)
+            _label(n, ""): round(spread([x / y for x, y in zip(gbps[a][n], gbps[b][n])])["median"], 2)
             for n in sizes
         }
 
@@ -292,6 +299,7 @@ def main() -> None:
         "GBps_median": per_size(gbps, statistics.median, digits=3),
         "default_vs_httpx": ratio(FAST, "httpx"),
         "default_vs_aiohttp": ratio(FAST, "aiohttp"),
+        "vecsim_httptools_vs_vecsim_aiohttp": ratio("vecsim-httptools", "vecsim-aiohttp"),
         "vecsim_aiohttp_vs_vecsim_httpx": ratio("vecsim-aiohttp", "vecsim-httpx"),
         "aiohttp_vs_httpx": ratio("aiohttp", "httpx"),
         # CPU per request (ms), mean over all rounds: where the time goes on shared cores.
@@ -317,7 +325,7 @@ def main() -> None:
     details = {
         "rounds": args.rounds,
         "min_mib_per_round": args.min_mib,
-        "GBps_per_round": {c: {f"{n // MIB}MiB": v for n, v in per_size.items()} for c, per_size in gbps.items()},
+        "GBps_per_round": {c: {_label(n, ""): v for n, v in per_size.items()} for c, per_size in gbps.items()},
     }
     write_result(name, summary, details)
 

@@ -28,12 +28,13 @@ from vecsim.transport import (
     DEFAULT_KIND,
     AnswerTooLargeError,
     exchange,
+    fetch,
     make_async_client,
     make_transport,
     read_answer,
 )
 
-KINDS = ["aiohttp", "httpx"]
+KINDS = ["httptools", "aiohttp", "httpx"]
 T = TypeVar("T")
 
 
@@ -332,16 +333,25 @@ def test_an_answer_that_stalls_between_reads_raises_read_timeout(server: str, ki
 
 
 def read_with(kind: str, url: str, max_bytes: int) -> bytes:
-    """GET ``url`` as the client asks a pod (``exchange``: straight to a transport of ``kind``,
-    the answer read with ``read_answer`` under ``max_bytes``); return the body of a 200."""
+    """GET ``url`` as the client asks a pod (``fetch``: straight to a transport of ``kind``, the
+    answer read under ``max_bytes``: httptools' own lean path, the others' through ``exchange``
+    and ``read_answer``; ``httptools/exchange``: httptools through ``exchange`` too); return the
+    body of a 200."""
 
     async def main() -> bytes:
-        async with make_transport(kind) as transport:
-            status, body = await exchange(transport, httpx.Request("GET", url), max_bytes)
+        async with make_transport(kind.split("/")[0]) as transport:  # type: ignore[arg-type]
+            if kind.endswith("/exchange"):
+                status, body = await exchange(transport, httpx.Request("GET", url), max_bytes)
+            else:
+                status, body = await fetch(transport, "GET", url, (), b"", max_bytes)
         assert status == 200
         return body
 
     return asyncio.run(main())
+
+
+# Each way an answer is read under a cap: every kind's, and httptools' through httpx's interface.
+READ_KINDS = [*KINDS, "httptools/exchange"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -363,12 +373,12 @@ def gzip_reply(body: bytes, encoding: bytes = b"gzip") -> bytes:
     )
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_an_answer_exactly_at_the_cap_arrives_whole(server: str, kind: str) -> None:
     assert read_with(kind, f"{server}/bytes/70000", 70_000) == pattern(70_000)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_a_content_length_over_the_cap_is_refused_before_the_body_is_read(kind: str) -> None:
     reply = b"HTTP/1.1 200 OK\r\nContent-Length: 100000000000\r\n\r\n" + bytes(1000)
     with raw_server(reply) as url, pytest.raises(AnswerTooLargeError, match="Content-Length 100000000000"):
@@ -376,34 +386,34 @@ def test_a_content_length_over_the_cap_is_refused_before_the_body_is_read(kind: 
 
 
 @pytest.mark.parametrize("length", [b"18446744073709551616", b"1" * 400, b"-1", b"12, 13"])
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_an_absurd_content_length_is_an_httpx_error(kind: str, length: bytes) -> None:
     with raw_server(b"HTTP/1.1 200 OK\r\nContent-Length: %s\r\n\r\n" % length) as url:
         with pytest.raises(httpx.HTTPError):
             read_with(kind, f"{url}/", 1 << 20)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_a_chunk_size_past_2_64_is_an_httpx_error(kind: str) -> None:
     reply = b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nffffffffffffffff\r\n" + bytes(1000)
     with raw_server(reply) as url, pytest.raises(httpx.HTTPError):
         read_with(kind, f"{url}/", 1 << 20)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_a_chunked_answer_that_grows_past_the_cap_stops_there(server: str, kind: str) -> None:
     with pytest.raises(AnswerTooLargeError, match="exceeds the cap of 10000 bytes"):
         read_with(kind, f"{server}/drip?chunks=50&interval=0&size=3000", 10_000)
 
 
 @pytest.mark.parametrize("encoding", [b"gzip", b"deflate"])
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_an_encoded_answer_is_decoded_once(kind: str, encoding: bytes) -> None:
     with raw_server(gzip_reply(pattern(300_000), encoding)) as url:
         assert read_with(kind, f"{url}/", 1 << 20) == pattern(300_000)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_a_gzip_bomb_stops_at_the_cap(kind: str) -> None:
     with raw_server(gzip_reply(bytes(64 << 20))) as url:
         with pytest.raises(AnswerTooLargeError, match="decoded answer exceeds the cap of 1048576 bytes"):
@@ -419,15 +429,95 @@ def test_a_gzip_bomb_stops_at_the_cap(kind: str) -> None:
     ],
     ids=["corrupt", "unsupported", "stacked"],
 )
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_an_answer_that_cannot_be_decoded_is_a_decoding_error_naming_why(kind: str, reply: bytes, what: str) -> None:
     with raw_server(reply) as url, pytest.raises(httpx.DecodingError, match=what):
         read_with(kind, f"{url}/", 1 << 20)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", READ_KINDS)
 def test_a_gzip_body_cut_short_is_a_decoding_error(kind: str) -> None:
     packed = gzip.compress(pattern(100_000))[:-20]
     reply = b"HTTP/1.1 200 OK\r\nContent-Encoding: gzip\r\nContent-Length: %d\r\n\r\n%s" % (len(packed), packed)
     with raw_server(reply) as url, pytest.raises(httpx.DecodingError, match="truncated gzip"):
         read_with(kind, f"{url}/", 1 << 20)
+
+
+# ---------------------------------------------------- httptools' lean path (the client's to a pod)
+
+
+def fetch_with(url: str, method: str = "GET", headers: tuple[tuple[str, str], ...] = (), body: bytes = b"", times: int = 1) -> list[tuple[int, bytes]]:
+    """``times`` requests through one httptools transport's lean path; their (status, body)."""
+
+    async def main() -> list[tuple[int, bytes]]:
+        async with make_transport("httptools") as transport:
+            return [await fetch(transport, method, url, headers, body, 64 << 20) for _ in range(times)]
+
+    return asyncio.run(main())
+
+
+def test_the_lean_path_carries_a_request_body_and_headers_byte_for_byte(server: str) -> None:
+    body = pattern(300_000)
+    headers = (("Content-Type", "application/x-test"), ("X-Test", "yes"))
+    [(status, echoed)] = fetch_with(f"{server}/echo", "POST", headers, body)
+    assert (status, echoed) == (200, body)
+
+
+def test_the_lean_path_takes_an_answer_larger_than_its_read_buffer_whole(server: str) -> None:
+    # 16 MiB: reading pauses at 4 MiB not yet taken and goes on once the reader takes them.
+    [(status, body)] = fetch_with(f"{server}/bytes/{16 << 20}")
+    assert status == 200 and body == pattern(16 << 20)
+
+
+def test_the_lean_path_reuses_one_keep_alive_connection(server: str) -> None:
+    peers = {body for _, body in fetch_with(f"{server}/peer", times=5)}
+    assert len(peers) == 1
+
+
+def test_the_lean_path_passes_error_statuses_and_bodies_through(server: str) -> None:
+    [(status, body)] = fetch_with(f"{server}/status/409")
+    assert status == 409 and b"status 409 as asked" in body
+
+
+def test_a_body_that_runs_until_the_server_closes_arrives_whole() -> None:
+    reply = b"HTTP/1.0 200 OK\r\nContent-Type: text/plain\r\n\r\n" + pattern(50_000)
+    with raw_server(reply) as url:
+        [(status, body)] = fetch_with(f"{url}/")
+    assert status == 200 and body == pattern(50_000)
+
+
+def test_an_informational_answer_before_the_real_one_is_skipped() -> None:
+    reply = b"HTTP/1.1 100 Continue\r\n\r\nHTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nok"
+    with raw_server(reply) as url:
+        assert fetch_with(f"{url}/") == [(200, b"ok")]
+
+
+@pytest.mark.parametrize(
+    ("reply", "what"),
+    [
+        (b"HTTP/1.1 200 OK\r\nContent-Length: 10\r\n\r\n01234", "closed the connection inside the answer's body"),
+        (b"", "closed the connection before the answer's head"),
+        (b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: x\r\nConnection: upgrade\r\n\r\n", "switched protocols"),
+        (b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\nTransfer-Encoding: chunked\r\n\r\n", "malformed answer"),
+    ],
+    ids=["cut-body", "no-head", "upgrade", "length-and-chunked"],
+)
+def test_a_broken_answer_on_the_lean_path_is_a_remote_protocol_error_naming_why(reply: bytes, what: str) -> None:
+    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError, match=what):
+        fetch_with(f"{url}/")
+
+
+@pytest.mark.parametrize("header", [("X-Test", "a\r\nInjected: yes"), ("X-Te\nst", "a"), ("X-Test", "a\x00")])
+def test_a_header_that_would_split_the_request_is_refused_before_sending(server: str, header: tuple[str, str]) -> None:
+    with pytest.raises(httpx.LocalProtocolError, match="cannot be sent"):
+        fetch_with(f"{server}/echo", "POST", (header,), b"x")
+
+
+def test_the_lean_path_refuses_a_connection_it_cannot_make(refusing_port: int) -> None:
+    with pytest.raises(httpx.ConnectError, match=f"127.0.0.1:{refusing_port}"):
+        fetch_with(f"http://127.0.0.1:{refusing_port}/v1/step", "POST", (), b"x")
+
+
+def test_the_lean_path_refuses_a_url_that_is_not_http() -> None:
+    with pytest.raises(httpx.UnsupportedProtocol, match="only http and https"):
+        fetch_with("ftp://127.0.0.1/x")

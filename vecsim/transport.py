@@ -2,10 +2,12 @@
 
 The client speaks httpx's transport interface and takes any ``httpx.AsyncBaseTransport``:
 ``httpx.ASGITransport(app)`` runs a pod in-process, ``httpx.AsyncHTTPTransport`` is httpx's own,
-and :class:`AiohttpTransport` puts aiohttp's client under httpx's API. :func:`make_transport`
-builds the default, :data:`DEFAULT_KIND`, the one ``bench/bench_transport.py`` measured fastest
-on vecsim's answers (docs/benchmarks.md). A pod's requests go straight to the transport
-(:func:`exchange`); :func:`make_async_client` puts an ``httpx.AsyncClient`` over one for the rest.
+:class:`AiohttpTransport` puts aiohttp's client under httpx's API, and
+:class:`~vecsim.http1.HttptoolsTransport` is HTTP/1.1 connections parsed by httptools.
+:func:`make_transport` builds the default, :data:`DEFAULT_KIND`, the one ``bench/bench_transport.py``
+measured fastest on vecsim's answers (docs/benchmarks.md). A pod's requests go straight to the
+transport (:func:`fetch`: the transport's own lean path where it has one, else :func:`exchange`);
+:func:`make_async_client` puts an ``httpx.AsyncClient`` over one for the rest.
 
 Answers are streamed, never read whole by the transport: :func:`read_answer` reads one under a
 size cap (a Content-Length over the cap is refused before a byte of body is read; a body that
@@ -26,6 +28,8 @@ import aiohttp
 import httpx
 from yarl import URL
 
+from vecsim.http1 import KEEPALIVE_S, HttptoolsTransport
+
 __all__ = [
     "DEFAULT_KIND",
     "DEFAULT_MAX_ANSWER_BYTES",
@@ -35,16 +39,17 @@ __all__ = [
     "TransportKind",
     "make_async_client",
     "exchange",
+    "fetch",
     "get_answer",
     "make_transport",
     "read_answer",
     "send_capped",
 ]
 
-TransportKind = Literal["aiohttp", "httpx"]
+TransportKind = Literal["httptools", "aiohttp", "httpx"]
 
-# The transport bench/bench_transport.py measured fastest on 1-16 MiB answers (docs/benchmarks.md).
-DEFAULT_KIND: TransportKind = "aiohttp"
+# The transport bench/bench_transport.py measured fastest on a pod's answers (docs/benchmarks.md).
+DEFAULT_KIND: TransportKind = "httptools"
 
 # The cap on one answer when nothing better is known (before a job's spaces are read).
 DEFAULT_MAX_ANSWER_BYTES = 64 << 20
@@ -52,8 +57,6 @@ DEFAULT_MAX_ANSWER_BYTES = 64 << 20
 # thousands of pods and tasks stays far below it.
 MAX_CONTROL_ANSWER_BYTES = 16 << 20
 
-# Idle connections are dropped before uvicorn's keep-alive timeout would close them under us.
-_KEEPALIVE_S = 4.0
 # aiohttp's read buffer: bodies of megabytes move in fewer, larger pieces.
 _READ_BUFSIZE = 1 << 20
 # URLs (and timeout settings) an AiohttpTransport keeps converted: a client's pods' paths.
@@ -122,7 +125,7 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
     def _get_session(self) -> aiohttp.ClientSession:
         if self._session is None:
             connector = aiohttp.TCPConnector(
-                limit=self._max_connections or 0, limit_per_host=0, keepalive_timeout=_KEEPALIVE_S
+                limit=self._max_connections or 0, limit_per_host=0, keepalive_timeout=KEEPALIVE_S
             )
             self._session = aiohttp.ClientSession(
                 connector=connector,
@@ -202,18 +205,21 @@ class AiohttpTransport(httpx.AsyncBaseTransport):
 
 
 def make_transport(kind: TransportKind = DEFAULT_KIND) -> httpx.AsyncBaseTransport:
-    """A transport of ``kind``: ``"aiohttp"`` (:class:`AiohttpTransport`) or ``"httpx"``
-    (``httpx.AsyncHTTPTransport``, environment proxies ignored: pods are reached directly).
+    """A transport of ``kind``: ``"httptools"`` (:class:`~vecsim.http1.HttptoolsTransport`),
+    ``"aiohttp"`` (:class:`AiohttpTransport`) or ``"httpx"`` (``httpx.AsyncHTTPTransport``,
+    environment proxies ignored: pods are reached directly).
 
     Raises:
         ValueError: unknown ``kind``.
     """
+    if kind == "httptools":
+        return HttptoolsTransport()
     if kind == "aiohttp":
         return AiohttpTransport()
     if kind == "httpx":
-        limits = httpx.Limits(max_connections=None, max_keepalive_connections=None, keepalive_expiry=_KEEPALIVE_S)
+        limits = httpx.Limits(max_connections=None, max_keepalive_connections=None, keepalive_expiry=KEEPALIVE_S)
         return httpx.AsyncHTTPTransport(limits=limits, trust_env=False)
-    raise ValueError(f"kind: {kind!r} is not one of 'aiohttp', 'httpx'")
+    raise ValueError(f"kind: {kind!r} is not one of 'httptools', 'aiohttp', 'httpx'")
 
 
 def make_async_client(
@@ -230,7 +236,7 @@ def make_async_client(
     )
 
 
-def _decoder(encoding: str, request: httpx.Request) -> Any:
+def _decoder(encoding: str, url: str, request: httpx.Request | None) -> Any:
     """A zlib decompressor for a Content-Encoding, or None for identity."""
     if encoding in ("", "identity"):
         return None
@@ -238,12 +244,20 @@ def _decoder(encoding: str, request: httpx.Request) -> Any:
         return zlib.decompressobj(zlib.MAX_WBITS | 16)
     if encoding == "deflate":
         return zlib.decompressobj(zlib.MAX_WBITS)
-    raise httpx.DecodingError(f"{request.url}: unsupported Content-Encoding {encoding!r}", request=request)
+    raise httpx.DecodingError(f"{url}: unsupported Content-Encoding {encoding!r}", request=request)
+
+
+def _values(headers: list[tuple[str, str]], name: str) -> list[str]:
+    """The values of header ``name`` (any case), each split at its commas."""
+    return [part for key, value in headers if key.lower() == name for part in value.split(",")]
 
 
 class _AnswerReader:
     """The sans-I/O part of reading an answer under a cap: checks the headers, then takes the raw
     body a piece at a time (:meth:`feed`) and gives the decoded body (:meth:`finish`).
+
+    ``url`` names the answer in errors; ``headers`` are its (name, value) pairs; ``request``, when
+    there is one, goes with the errors raised.
 
     Raises (from any method):
         AnswerTooLargeError: Content-Length, the bytes received or the decoded bytes exceed
@@ -251,29 +265,36 @@ class _AnswerReader:
         httpx.DecodingError: an unreadable Content-Length, an unsupported or corrupt encoding.
     """
 
-    def __init__(self, response: httpx.Response, max_bytes: int) -> None:
-        request = self._request = response.request
+    def __init__(
+        self, url: str, headers: list[tuple[str, str]], max_bytes: int, request: httpx.Request | None = None
+    ) -> None:
+        self._url = url
+        self._request = request
         self._max = max_bytes
-        declared = response.headers.get_list("content-length", split_commas=True)
+        declared = [value.strip() for value in _values(headers, "content-length")]
         if declared:
-            if len(set(declared)) != 1 or not declared[0].strip().isdigit():
-                raise httpx.DecodingError(f"{request.url}: bad Content-Length {declared[:4]!r:.100}", request=request)
+            if len(set(declared)) != 1 or not declared[0].isdigit():
+                raise httpx.DecodingError(f"{url}: bad Content-Length {declared[:4]!r:.100}", request=request)
             if int(declared[0]) > max_bytes:
                 raise AnswerTooLargeError(
-                    f"{request.url}: Content-Length {declared[0][:40]} exceeds the cap of {max_bytes} bytes",
-                    request=request,
+                    f"{url}: Content-Length {declared[0][:40]} exceeds the cap of {max_bytes} bytes", request=request
                 )
-        encodings = [e.strip().lower() for e in response.headers.get_list("content-encoding", split_commas=True)]
+        encodings = [e.strip().lower() for e in _values(headers, "content-encoding")]
         encodings = [e for e in encodings if e not in ("", "identity")]
         if len(encodings) > 1:
-            raise httpx.DecodingError(f"{request.url}: stacked Content-Encodings {encodings!r:.100}", request=request)
+            raise httpx.DecodingError(f"{url}: stacked Content-Encodings {encodings!r:.100}", request=request)
         self._encoding = encodings[0] if encodings else ""
-        self._decoder = _decoder(self._encoding, request)
+        self._decoder = _decoder(self._encoding, url, request)
         self._pieces: list[bytes] = []
         self._received = self._size = 0
 
+    @classmethod
+    def of(cls, response: httpx.Response, max_bytes: int) -> _AnswerReader:
+        """The reader of a streamed httpx response."""
+        return cls(str(response.request.url), response.headers.multi_items(), max_bytes, response.request)
+
     def _too_large(self, what: str) -> AnswerTooLargeError:
-        return AnswerTooLargeError(f"{self._request.url}: {what} exceeds the cap of {self._max} bytes", request=self._request)
+        return AnswerTooLargeError(f"{self._url}: {what} exceeds the cap of {self._max} bytes", request=self._request)
 
     def feed(self, piece: bytes) -> Iterator[None]:
         """Take one raw piece of the body; yields between bounded steps of decoding it."""
@@ -295,14 +316,14 @@ class _AnswerReader:
                     yield
         except zlib.error as exc:
             raise httpx.DecodingError(
-                f"{self._request.url}: corrupt {self._encoding} body: {exc}", request=self._request
+                f"{self._url}: corrupt {self._encoding} body: {exc}", request=self._request
             ) from None
 
     def finish(self) -> bytes:
         """The whole decoded body, once the raw body has ended."""
         if self._decoder is not None:
             if not self._decoder.eof:
-                raise httpx.DecodingError(f"{self._request.url}: truncated {self._encoding} body", request=self._request)
+                raise httpx.DecodingError(f"{self._url}: truncated {self._encoding} body", request=self._request)
             rest = self._decoder.flush()
             if self._size + len(rest) > self._max:
                 raise self._too_large("decoded answer")
@@ -327,7 +348,7 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         httpx.HTTPError: what the transport met while receiving.
     """
     try:
-        reader = _AnswerReader(response, max_bytes)
+        reader = _AnswerReader.of(response, max_bytes)
         async for piece in response.aiter_raw():
             for _ in reader.feed(piece):
                 await asyncio.sleep(0)
@@ -365,9 +386,10 @@ def _with_body(response: httpx.Response, content: bytes) -> httpx.Response:
 
 async def exchange(transport: httpx.AsyncBaseTransport, request: httpx.Request, max_bytes: int) -> tuple[int, bytes]:
     """Send ``request`` through ``transport`` itself and read its answer as :func:`read_answer`
-    does: the client's path to a pod. No ``httpx.AsyncClient`` around the transport: a pod's
-    requests use none of what it adds (redirects, auth, cookies, event hooks, default headers;
-    ``request`` carries its own), and it cost ~0.3 ms of client CPU a call (docs/benchmarks.md).
+    does: the client's path to a pod over a transport without a lean path (:func:`fetch`). No
+    ``httpx.AsyncClient`` around the transport: a pod's requests use none of what it adds
+    (redirects, auth, cookies, event hooks, default headers; ``request`` carries its own), and it
+    cost ~0.3 ms of client CPU a call (docs/benchmarks.md).
 
     Returns:
         the answer's status code and its body, decoded.
@@ -379,6 +401,33 @@ async def exchange(transport: httpx.AsyncBaseTransport, request: httpx.Request, 
     response = await transport.handle_async_request(request)
     response.request = request
     return response.status_code, await read_answer(response, max_bytes)
+
+
+async def fetch(
+    transport: httpx.AsyncBaseTransport,
+    method: str,
+    url: str,
+    headers: tuple[tuple[str, str], ...],
+    body: bytes,
+    max_bytes: int,
+) -> tuple[int, bytes]:
+    """Send one request to a pod and read its answer as :func:`read_answer` does: through the
+    transport's lean path when it has one (:meth:`~vecsim.http1.HttptoolsTransport.fetch`, no
+    httpx objects made: ~0.25 ms a call less on a pod's answers, docs/benchmarks.md), else as
+    an ``httpx.Request`` through :func:`exchange`. ``body`` goes with a Content-Length (none for
+    an empty GET). Callers bound it in time with ``asyncio.timeout``.
+
+    Returns:
+        the answer's status code and its body, decoded.
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.HTTPError: what the transport met (another transport may raise its own errors).
+    """
+    if isinstance(transport, HttptoolsTransport):
+        return await transport.fetch(method, url, headers, body, max_bytes)
+    request = httpx.Request(method, url, headers=list(headers), content=body or None)
+    return await exchange(transport, request, max_bytes)
 
 
 def get_answer(
@@ -400,7 +449,7 @@ def get_answer(
         request = http.build_request("GET", url, headers=headers)
         response = http.send(request, stream=True)
         try:
-            reader = _AnswerReader(response, max_bytes)
+            reader = _AnswerReader.of(response, max_bytes)
             for piece in response.iter_raw():
                 for _ in reader.feed(piece):
                     pass

@@ -27,7 +27,7 @@ import vecsim
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
-from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, exchange
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, fetch
 
 logger = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ class PodConnection:
     """One pod's data plane: ``POST /v1/reset``, ``POST /v1/step`` in wire format, ``GET /v1/info``.
 
     Lives on the client's event loop and hands each request straight to ``transport`` (any
-    ``httpx.AsyncBaseTransport``, shared by all pods; :func:`vecsim.transport.exchange`), its URL
+    ``httpx.AsyncBaseTransport``, shared by all pods; :func:`vecsim.transport.fetch`), its URLs
     and headers built once per pod. Every call, answer included, is bounded by
     ``timeout_s`` as a whole, and an answer by ``max_answer_bytes`` (the client sets it from the
     job's spaces). Resets and steps carry the job's ``token`` (``Authorization: Bearer``) when one
@@ -180,25 +180,25 @@ class PodConnection:
         self.timeout_s = timeout_s
         self.max_answer_bytes = max_answer_bytes
         self._transport = transport
-        self._urls: dict[str, httpx.URL] = {}
         auth = bearer_headers(token)
-        self._info_headers = httpx.Headers(_BASE_HEADERS)
-        self._wire_headers = httpx.Headers(
-            {**_BASE_HEADERS, "Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **auth}
+        self._info_headers = tuple(_BASE_HEADERS.items())
+        self._wire_headers = tuple(
+            {**_BASE_HEADERS, "Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, **auth}.items()
         )
-        self._json_headers = httpx.Headers({**_BASE_HEADERS, "Accept": "application/json", **auth})
-
-    def _url(self, path: str) -> httpx.URL:
-        """The pod's URL of ``path``, parsed once (a pod has a handful of paths)."""
-        url = self._urls.get(path)
-        if url is None:
-            url = self._urls[path] = httpx.URL(f"{self.url}{path}")
-        return url
+        self._json_headers = tuple(
+            {**_BASE_HEADERS, "Content-Type": "application/json", "Accept": "application/json", **auth}.items()
+        )
 
     async def _request(
-        self, method: str, path: str, held: list[str], headers: httpx.Headers, extra_answer_bytes: int = 0, **body: Any
+        self,
+        method: str,
+        path: str,
+        held: list[str],
+        headers: tuple[tuple[str, str], ...],
+        body: bytes = b"",
+        extra_answer_bytes: int = 0,
     ) -> tuple[int, bytes]:
-        """Send one request (``body``: httpx's ``content=`` or ``json=``) and read its answer
+        """Send one request and read its answer
         whole, within the timeout and the size cap (``max_answer_bytes``, plus
         ``extra_answer_bytes`` for what this request asks for beyond one observation per env:
         per-action flags and recorded frames of a chunk).
@@ -212,8 +212,8 @@ class PodConnection:
         try:
             # asyncio.timeout, not wait_for: wait_for wraps every request in a task of its own.
             async with asyncio.timeout(self.timeout_s):
-                request = httpx.Request(method, self._url(path), headers=headers, **body)
-                return await exchange(self._transport, request, self.max_answer_bytes + extra_answer_bytes)
+                max_bytes = self.max_answer_bytes + extra_answer_bytes
+                return await fetch(self._transport, method, self.url + path, headers, body, max_bytes)
         except TimeoutError:
             reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None
@@ -246,7 +246,8 @@ class PodConnection:
             PodUnavailableError: no usable answer (none in time, a 503, not a JSON object).
             PodRequestError: any other refusal (a 409 included: the caller re-reads nothing here).
         """
-        status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, json=body)
+        text = json.dumps(body, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
+        status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, text)
         if status == 503:
             raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
         if status != 200:
@@ -274,7 +275,7 @@ class PodConnection:
             PodRequestError: any other refusal (the request was at fault).
         """
         status, content = await self._request(
-            "POST", f"/v1/{op}", held, self._wire_headers, extra_answer_bytes, content=wire.encode(body)
+            "POST", f"/v1/{op}", held, self._wire_headers, wire.encode(body), extra_answer_bytes
         )
         if status == 409:
             raise StaleGenerationError(self.name, body.get("generation"), _detail(status, content))

@@ -1,0 +1,453 @@
+"""An HTTP/1.1 client transport on httptools (llhttp, the parser under uvicorn), for pods' answers.
+
+:class:`HttptoolsTransport` is an ``httpx.AsyncBaseTransport`` like any other, and it also has a
+lean path, :meth:`HttptoolsTransport.fetch`, that sends a request given as plain values and gives
+back the status and the decoded body under a size cap, with no httpx objects made on the way:
+``vecsim.transport.exchange`` takes it for the client's calls to pods. Measured against the
+other kinds on answers of a pod's size, it is what makes it the default (docs/benchmarks.md).
+
+What is vecsim's here and what is not: llhttp parses every byte that arrives (status line,
+headers, Content-Length, chunked framing) and raises on anything malformed; this module writes
+the request (a request line, the caller's headers, a Content-Length, its body, in one write),
+keeps idle connections per origin for reuse, and decides when an answer has ended where llhttp
+cannot say so itself (a body that runs until the connection closes; the answer to a HEAD).
+Header names and values that could split the request (CR, LF, NUL) are refused before a byte
+is sent. Failures are httpx's exceptions: ``ConnectError``/``ConnectTimeout``,
+``RemoteProtocolError`` (a malformed answer, a connection that ends inside one), ``ReadTimeout``,
+``LocalProtocolError`` (a request that cannot be written), ``UnsupportedProtocol``.
+
+Connections belong to the event loop that made them; one transport serves one loop, as the
+client uses it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ssl
+import time
+from collections.abc import AsyncIterator, Iterable, Sequence
+
+import httptools
+import httpx
+
+__all__ = ["HttptoolsTransport"]
+
+# Idle connections are dropped before uvicorn's keep-alive timeout would close them under us.
+KEEPALIVE_S = 4.0
+# Reading stops while this much of an answer's body waits to be taken (a reader slower than
+# the socket); it goes on once the reader has taken it.
+_HIGH_WATER = 4 << 20
+# Request heads kept encoded, by method, URL and headers: a client sends a few kinds to a few pods.
+_CACHED_HEADS = 1024
+# Statuses whose answer has no body whatever its headers say (RFC 9110).
+_NO_BODY = frozenset({204, 304})
+
+
+def _bad_header_text(text: bytes) -> bool:
+    return b"\r" in text or b"\n" in text or b"\0" in text
+
+
+class _Connection(asyncio.Protocol):
+    """One keep-alive connection: one request at a time, its answer parsed as it arrives."""
+
+    def __init__(self, origin: tuple[str, str, int]) -> None:
+        self.origin = origin
+        self.transport: asyncio.Transport | None = None
+        self.closed = False
+        self.idle_since = 0.0
+        self._waiter: asyncio.Future[None] | None = None
+        self._parser: httptools.HttpResponseParser | None = None
+        self._active = False
+        self._head_only = False
+        self._paused = False
+        self.status = 0
+        self.reason = b""
+        self.headers: list[tuple[bytes, bytes]] = []
+        self.headers_done = False
+        self.done = False
+        self.keep_alive = False
+        self.error: Exception | None = None
+        self._pieces: list[bytes] = []
+        self._buffered = 0
+        self._informational = False
+
+    # asyncio.Protocol
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        if not self._active or self._parser is None:
+            # Bytes nobody asked for (after an answer ended): the connection cannot be trusted.
+            self.close()
+            return
+        try:
+            self._parser.feed_data(data)
+        except httptools.HttpParserError as exc:
+            cause = exc.__context__ if isinstance(exc, httptools.HttpParserCallbackError) else None
+            self._fail(httpx.RemoteProtocolError(f"malformed answer: {cause or exc}"))
+            self.close()
+
+    def eof_received(self) -> bool | None:
+        return None  # close the transport; connection_lost says the rest
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.closed = True
+        if self._active and not self.done and self.error is None:
+            if self.headers_done and self._ends_at_close():
+                self.keep_alive = False
+                self.done = True
+            else:
+                where = "before the answer's head" if not self.headers_done else "inside the answer's body"
+                self.error = httpx.RemoteProtocolError(f"the server closed the connection {where}")
+        self._wake()
+
+    def pause_writing(self) -> None:  # a request body larger than the socket's buffer: written all the same
+        pass
+
+    # httptools callbacks
+
+    def on_status(self, status: bytes) -> None:
+        self.reason += status
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self.headers.append((name, value))
+
+    def on_headers_complete(self) -> None:
+        assert self._parser is not None
+        status = self._parser.get_status_code()
+        if 100 <= status < 200:
+            if status == 101:
+                raise httpx.RemoteProtocolError("the server switched protocols (101), which this client does not speak")
+            self._informational = True  # a 100 Continue or 103: the real answer follows
+            return
+        self.status = status
+        self.headers_done = True
+        if self._head_only:
+            # llhttp cannot be told an answer to HEAD has no body: the answer ends here, and the
+            # connection with it (bytes after the head would be read as the next answer's).
+            self.done = True
+            self.keep_alive = False
+        self._wake()
+
+    def on_body(self, body: bytes) -> None:
+        if self.done:
+            return
+        self._pieces.append(body)
+        self._buffered += len(body)
+        if self._buffered > _HIGH_WATER and not self._paused and self.transport is not None:
+            self._paused = True
+            self.transport.pause_reading()
+        self._wake()
+
+    def on_message_complete(self) -> None:
+        if self._informational:
+            self._informational = False
+            self.headers, self.reason = [], b""
+            return
+        if self.done:  # the answer to a HEAD, ended at its head
+            return
+        assert self._parser is not None
+        self.keep_alive = self._parser.should_keep_alive()
+        self.done = True
+        self._wake()
+
+    # the request
+
+    def _ends_at_close(self) -> bool:
+        """Whether the answer's body runs until the connection closes (no length, not chunked)."""
+        if self.status in _NO_BODY or self._head_only:
+            return True
+        names = {name.lower() for name, _ in self.headers}
+        return b"content-length" not in names and b"transfer-encoding" not in names
+
+    def start(self, data: bytes, head_only: bool) -> None:
+        """Send one request (head and body in ``data``) and begin reading its answer."""
+        self._parser = httptools.HttpResponseParser(self)
+        self._active = True
+        self._head_only = head_only
+        self.status, self.reason, self.headers = 0, b"", []
+        self.headers_done = self.done = self.keep_alive = self._informational = False
+        self.error = None
+        self._pieces, self._buffered = [], 0
+        assert self.transport is not None
+        self.transport.write(data)
+
+    def take(self) -> list[bytes]:
+        """The body's pieces that arrived since the last take (reading resumes if it paused)."""
+        pieces, self._pieces, self._buffered = self._pieces, [], 0
+        if self._paused and self.transport is not None and not self.closed:
+            self._paused = False
+            self.transport.resume_reading()
+        return pieces
+
+    async def wait(self, timeout_s: float | None) -> None:
+        """Wait for the answer to move on (its head, a piece of body, its end, a failure).
+
+        Raises:
+            httpx.ReadTimeout: nothing arrived within ``timeout_s``.
+            httpx.RemoteProtocolError: the answer is malformed or the connection ended inside it.
+        """
+        if self.error is None and not self._pieces and not self.done:
+            if self.closed:
+                raise httpx.RemoteProtocolError("the connection is closed")
+            self._waiter = asyncio.get_running_loop().create_future()
+            try:
+                if timeout_s is None:
+                    await self._waiter
+                else:
+                    try:
+                        async with asyncio.timeout(timeout_s):
+                            await self._waiter
+                    except TimeoutError:
+                        raise httpx.ReadTimeout(f"no byte of the answer for {timeout_s} s") from None
+            finally:
+                self._waiter = None
+        if self.error is not None:
+            raise self.error
+
+    def finish(self) -> bool:
+        """End the exchange; return whether the connection can carry another request."""
+        self._active = False
+        self._parser = None
+        return self.done and self.keep_alive and self.error is None and not self.closed
+
+    def _wake(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
+
+    def _fail(self, error: Exception) -> None:
+        if self.error is None:
+            self.error = error
+        self._wake()
+
+    def close(self) -> None:
+        self.closed = True
+        if self.transport is not None:
+            self.transport.close()
+        self._wake()
+
+
+class _Body(httpx.AsyncByteStream):
+    """An answer's body for httpx's interface: its pieces as they arrive; the connection goes
+    back to its transport once the body ended, and is closed if the reader stops before."""
+
+    def __init__(self, owner: HttptoolsTransport, connection: _Connection, request: httpx.Request, read_s: float | None) -> None:
+        self._owner = owner
+        self._connection = connection
+        self._request = request
+        self._read_s = read_s
+        self._released = False
+
+    async def __aiter__(self) -> AsyncIterator[bytes]:
+        connection = self._connection
+        while True:
+            try:
+                await connection.wait(self._read_s)
+            except httpx.TransportError as exc:
+                self._release()
+                raise type(exc)(f"{self._request.method} {self._request.url}: {exc}", request=self._request) from None
+            for piece in connection.take():
+                yield piece
+            if connection.done:
+                self._release()
+                return
+
+    def _release(self) -> None:
+        if not self._released:
+            self._released = True
+            self._owner.release(self._connection)
+
+    async def aclose(self) -> None:
+        self._release()
+
+
+class HttptoolsTransport(httpx.AsyncBaseTransport):
+    """HTTP/1.1 over asyncio connections, answers parsed by httptools; see the module's text.
+
+    uvicorn speaks HTTP/1.1 only, so each request in flight holds a connection of its own;
+    finished ones are kept per origin (scheme, host, port) for :data:`KEEPALIVE_S` and reused,
+    newest first. ``https`` URLs get TLS with the system's trust store.
+    """
+
+    def __init__(self) -> None:
+        self._idle: dict[tuple[str, str, int], list[_Connection]] = {}
+        self._busy: set[_Connection] = set()
+        self._heads: dict[tuple[str, str, tuple[tuple[str, str], ...]], tuple[tuple[str, str, int], bytes]] = {}
+        self._ssl: ssl.SSLContext | None = None
+        self._closed = False
+
+    # connections
+
+    async def _connection(self, origin: tuple[str, str, int], connect_s: float | None) -> _Connection:
+        if self._closed:
+            raise RuntimeError("the transport is closed")
+        idle = self._idle.get(origin)
+        now = time.monotonic()
+        while idle:
+            connection = idle.pop()
+            if not connection.closed and now - connection.idle_since < KEEPALIVE_S:
+                self._busy.add(connection)
+                return connection
+            connection.close()
+        scheme, host, port = origin
+        if scheme == "https" and self._ssl is None:
+            self._ssl = ssl.create_default_context()
+        tls = self._ssl if scheme == "https" else None
+        loop = asyncio.get_running_loop()
+        try:
+            async with asyncio.timeout(connect_s):
+                _, connection = await loop.create_connection(
+                    lambda: _Connection(origin), host, port, ssl=tls, server_hostname=host if tls else None
+                )
+        except TimeoutError:
+            raise httpx.ConnectTimeout(f"no connection to {host}:{port} within {connect_s} s") from None
+        except OSError as exc:
+            raise httpx.ConnectError(f"cannot connect to {host}:{port}: {exc}") from None
+        self._busy.add(connection)
+        return connection
+
+    def release(self, connection: _Connection) -> None:
+        """Take a connection back after its exchange: kept if it can carry another, else closed."""
+        self._busy.discard(connection)
+        if connection.finish() and not self._closed:
+            connection.idle_since = time.monotonic()
+            self._idle.setdefault(connection.origin, []).append(connection)
+        else:
+            connection.close()
+
+    # requests
+
+    @staticmethod
+    def _origin(url: httpx.URL) -> tuple[str, str, int]:
+        if url.scheme not in ("http", "https"):
+            raise httpx.UnsupportedProtocol(f"{url}: only http and https URLs are supported")
+        if not url.host:
+            raise httpx.UnsupportedProtocol(f"{url}: no host")
+        return url.scheme, url.host, url.port or (443 if url.scheme == "https" else 80)
+
+    @staticmethod
+    def _head(method: str, url: httpx.URL, headers: Iterable[tuple[bytes, bytes]], length: int | None) -> bytes:
+        """The request's head: its line, ``headers`` (a Host added if missing), a Content-Length."""
+        lines = [b"%s %s HTTP/1.1" % (method.encode("ascii"), url.raw_path)]
+        has_host = False
+        for name, value in headers:
+            if _bad_header_text(name) or _bad_header_text(value) or b":" in name or not name:
+                raise httpx.LocalProtocolError(f"header {name[:40]!r}: {value[:40]!r} cannot be sent")
+            lower = name.lower()
+            if lower in (b"content-length", b"transfer-encoding"):
+                continue  # the body is sent whole, with its own length
+            has_host = has_host or lower == b"host"
+            lines.append(name + b": " + value)
+        if not has_host:
+            lines.insert(1, b"Host: " + url.netloc)
+        if length is not None:
+            lines.append(b"Content-Length: %d" % length)
+        return b"\r\n".join(lines) + b"\r\n\r\n"
+
+    async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
+        """Send ``request``; return its answer's status and headers, the body streaming on reading.
+
+        httpx's ``connect`` timeout bounds making a connection and ``read`` each wait for the
+        answer's next bytes; a whole request is bounded by the caller (``asyncio.timeout``).
+
+        Raises:
+            httpx.ConnectError, httpx.ConnectTimeout, httpx.ReadTimeout, httpx.RemoteProtocolError,
+            httpx.LocalProtocolError, httpx.UnsupportedProtocol: as the module's text says.
+        """
+        timeouts = request.extensions.get("timeout", {})
+        body = await request.aread()
+        where = f"{request.method} {request.url}"
+        try:
+            origin = self._origin(request.url)
+            send_length = bool(body) or request.method in ("POST", "PUT", "PATCH")
+            head = self._head(request.method, request.url, request.headers.raw, len(body) if send_length else None)
+            connection = await self._connection(origin, timeouts.get("connect"))
+        except httpx.TransportError as exc:
+            raise type(exc)(f"{where}: {exc}", request=request) from None
+        try:
+            connection.start(head + body, request.method == "HEAD")
+            while not connection.headers_done:
+                await connection.wait(timeouts.get("read"))
+                if not connection.headers_done and connection.done:
+                    raise httpx.RemoteProtocolError("the answer ended without a head")
+        except BaseException as exc:
+            self.release(connection)
+            if isinstance(exc, httpx.TransportError):
+                raise type(exc)(f"{where}: {exc}", request=request) from None
+            raise
+        return httpx.Response(
+            connection.status,
+            headers=connection.headers,
+            stream=_Body(self, connection, request, timeouts.get("read")),
+            extensions={"http_version": b"HTTP/1.1", "reason_phrase": connection.reason},
+        )
+
+    def _cached_head(self, method: str, url: str, headers: tuple[tuple[str, str], ...]) -> tuple[tuple[str, str, int], bytes]:
+        """The origin and the head (without its Content-Length) of a request, made once per kind."""
+        key = (method, url, headers)
+        cached = self._heads.get(key)
+        if cached is None:
+            parsed = httpx.URL(url)
+            encoded = [(k.encode("latin-1"), v.encode("latin-1")) for k, v in headers]
+            head = self._head(method, parsed, encoded, None)[:-2]  # open: the Content-Length follows
+            if len(self._heads) >= _CACHED_HEADS:
+                self._heads.clear()
+            cached = self._heads[key] = (self._origin(parsed), head)
+        return cached
+
+    async def fetch(
+        self, method: str, url: str, headers: tuple[tuple[str, str], ...], body: bytes, max_bytes: int
+    ) -> tuple[int, bytes]:
+        """Send one request and read its answer whole under the cap ``max_bytes``, decoding a
+        gzip or deflate Content-Encoding, as ``vecsim.transport.read_answer`` does; no httpx
+        objects on the way. The caller bounds it in time (``asyncio.timeout``).
+
+        Returns:
+            the answer's status code and its decoded body.
+
+        Raises:
+            vecsim.transport.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
+            httpx.ConnectError, httpx.RemoteProtocolError, httpx.LocalProtocolError,
+            httpx.UnsupportedProtocol: as the module's text says.
+        """
+        from vecsim.transport import _AnswerReader  # noqa: PLC0415 - vecsim.transport imports this module
+
+        origin, head = self._cached_head(method, url, headers)
+        connection = await self._connection(origin, None)
+        try:
+            connection.start(b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body), method == "HEAD")
+            while not connection.headers_done:
+                await connection.wait(None)
+                if not connection.headers_done and connection.done:
+                    raise httpx.RemoteProtocolError("the answer ended without a head")
+            reader = _AnswerReader(url, _text_headers(connection.headers), max_bytes)
+            while True:
+                for piece in connection.take():
+                    for _ in reader.feed(piece):
+                        await asyncio.sleep(0)
+                if connection.done:
+                    break
+                await connection.wait(None)
+            return connection.status, reader.finish()
+        finally:
+            self.release(connection)
+
+    async def aclose(self) -> None:
+        """Close every connection, idle or in use."""
+        self._closed = True
+        for connections in self._idle.values():
+            for connection in connections:
+                connection.close()
+        self._idle.clear()
+        for connection in list(self._busy):
+            connection.close()
+        self._busy.clear()
+        with contextlib.suppress(Exception):
+            await asyncio.sleep(0)
+
+
+def _text_headers(headers: Sequence[tuple[bytes, bytes]]) -> list[tuple[str, str]]:
+    return [(name.decode("latin-1"), value.decode("latin-1")) for name, value in headers]
+
