@@ -306,6 +306,7 @@ def _instrument_client(timers: Timers) -> None:
     timers.wrap(stage, "run_call", "client.run_call (on the loop thread)")
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
     timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
+    timers.wrap(transport.HttptoolsTransport, "fetch", "client.HttptoolsTransport.fetch (request out, answer in, read under the cap)")
     timers.wrap(transport.AiohttpTransport, "handle_async_request", "client.AiohttpTransport.handle_async_request (request out, answer's head in)")
     timers.wrap(transport, "read_answer", "client.read_answer (the answer's body)")
     timers.wrap(wire, "encode", "client.wire.encode")
