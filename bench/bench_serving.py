@@ -131,15 +131,19 @@ class _PoolVectorEnv:
 
 
 def _tree_cpu_s(pids: list[int]) -> float:
-    """CPU seconds (user + system) used so far by the process trees of ``pids``."""
-    total = 0.0
+    """CPU seconds (user + system) used so far by the process trees of ``pids``, each process
+    counted once (the in-process run's workers are both named and its forkserver's children)."""
+    processes: dict[int, psutil.Process] = {}
     for pid in pids:
         with contextlib.suppress(psutil.Error):
             root = psutil.Process(pid)
             for process in [root, *root.children(recursive=True)]:
-                with contextlib.suppress(psutil.Error):
-                    times = process.cpu_times()
-                    total += times.user + times.system
+                processes[process.pid] = process
+    total = 0.0
+    for process in processes.values():
+        with contextlib.suppress(psutil.Error):
+            times = process.cpu_times()
+            total += times.user + times.system
     return total
 
 

@@ -58,7 +58,7 @@ Fetch = Callable[[str], Awaitable[bytes]]
 
 def _label(n: int, space: str = " ") -> str:
     """A body size as the results name it: ``0.1 MiB``, ``16 MiB``."""
-    return f"{n / MIB:g}{space}MiB"
+    return f"{n / MIB:.3g}{space}MiB"
 
 
 def body_of(n: int) -> bytes:
