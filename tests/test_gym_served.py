@@ -189,6 +189,8 @@ def test_get_attr_call_and_set_attr_reach_the_envs(served):
         (lambda env: env.get_attr("np_random_seed_missing"), AttributeError, "np_random_seed_missing"),
         (lambda env: env.get_attr("observation_space"), ValueError, "not JSON-serialisable"),
         (lambda env: env.set_attr("gain", [1.0, 2.0]), ValueError, "length equal to the number of environments"),
+        (lambda env: env.set_attr("gain", float("nan")), ValueError, "values are not JSON"),
+        (lambda env: env.call("scaled", object()), ValueError, "values are not JSON"),
     ],
 )
 def test_attribute_misuse_is_refused_and_changes_nothing(served, call, error, match):

@@ -243,10 +243,14 @@ class PodConnection:
         endpoints, whose results are JSON values of any shape).
 
         Raises:
+            ValueError: ``body`` is not JSON (NaN, infinity, an object JSON has no form for).
             PodUnavailableError: no usable answer (none in time, a 503, not a JSON object).
             PodRequestError: any other refusal (a 409 included: the caller re-reads nothing here).
         """
-        text = json.dumps(body, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
+        try:
+            text = json.dumps(body, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
+        except (TypeError, ValueError) as exc:  # the caller's values, before anything is sent
+            raise ValueError(f"/v1/{op}: the values are not JSON ({exc}); attributes take JSON values only") from None
         status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, text)
         if status == 503:
             raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
