@@ -486,6 +486,13 @@ def test_a_body_that_runs_until_the_server_closes_arrives_whole() -> None:
     assert status == 200 and body == pattern(50_000)
 
 
+def test_a_second_answer_to_one_request_is_not_taken_for_the_first() -> None:
+    # Both answers arrive in one piece: the first is the request's, whole; the second changes nothing.
+    reply = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nokHTTP/1.1 500 No\r\nContent-Length: 3\r\n\r\nbad"
+    with raw_server(reply) as url:
+        assert fetch_with(f"{url}/", times=2) == [(200, b"ok"), (200, b"ok")]
+
+
 def test_an_informational_answer_before_the_real_one_is_skipped() -> None:
     reply = b"HTTP/1.1 100 Continue\r\n\r\nHTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nok"
     with raw_server(reply) as url:

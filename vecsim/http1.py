@@ -108,14 +108,24 @@ class _Connection(asyncio.Protocol):
 
     # httptools callbacks
 
+    def on_message_begin(self) -> None:
+        if self.done:
+            # A second answer to one request: nothing of it is taken, and the connection, out of
+            # step with its requests, is not used again.
+            self.keep_alive = False
+
     def on_status(self, status: bytes) -> None:
-        self.reason += status
+        if not self.done:
+            self.reason += status
 
     def on_header(self, name: bytes, value: bytes) -> None:
-        self.headers.append((name, value))
+        if not self.headers_done:
+            self.headers.append((name, value))
 
     def on_headers_complete(self) -> None:
         assert self._parser is not None
+        if self.done:
+            return
         status = self._parser.get_status_code()
         if 100 <= status < 200:
             if status == 101:
@@ -146,7 +156,7 @@ class _Connection(asyncio.Protocol):
             self._informational = False
             self.headers, self.reason = [], b""
             return
-        if self.done:  # the answer to a HEAD, ended at its head
+        if self.done:  # the answer to a HEAD, ended at its head, or a second answer
             return
         assert self._parser is not None
         self.keep_alive = self._parser.should_keep_alive()
