@@ -11,9 +11,13 @@ from __future__ import annotations
 import asyncio
 import functools
 import gzip
+import shutil
+import ssl
+import subprocess
 import threading
 import zlib
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from pathlib import Path
 from typing import Any, TypeVar
 
 import httpx
@@ -24,6 +28,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response, Streami
 from service_procs import AppThread, raw_server, wait_until
 
 from vecsim import wire
+from vecsim.http1 import HttptoolsTransport
 from vecsim.transport import (
     DEFAULT_KIND,
     AnswerTooLargeError,
@@ -528,3 +533,35 @@ def test_the_lean_path_refuses_a_connection_it_cannot_make(refusing_port: int) -
 def test_the_lean_path_refuses_a_url_that_is_not_http() -> None:
     with pytest.raises(httpx.UnsupportedProtocol, match="only http and https"):
         fetch_with("ftp://127.0.0.1/x")
+
+
+@pytest.fixture(scope="module")
+def tls_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
+    """The test app over TLS on loopback, with a self-signed certificate for 127.0.0.1 made by
+    the openssl command; yields its URL and the certificate."""
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl command to make a certificate with")
+    folder = tmp_path_factory.mktemp("tls")
+    key, cert = folder / "key.pem", folder / "cert.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
+         "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    with uvicorn_server(ssl_keyfile=str(key), ssl_certfile=str(cert)) as served:
+        yield served.url.replace("http://", "https://"), cert
+
+
+def test_an_https_pod_is_reached_over_tls_with_its_certificate_checked(tls_server: tuple[str, Path]) -> None:
+    url, cert = tls_server
+
+    async def main(context: ssl.SSLContext | None) -> tuple[int, bytes]:
+        transport = HttptoolsTransport(ssl_context=context)
+        try:
+            return await fetch(transport, "GET", f"{url}/bytes/70000", (), b"", 1 << 20)
+        finally:
+            await transport.aclose()
+
+    assert asyncio.run(main(ssl.create_default_context(cafile=str(cert)))) == (200, pattern(70_000))
+    with pytest.raises(httpx.ConnectError, match="CERTIFICATE_VERIFY_FAILED"):
+        asyncio.run(main(None))  # the system's trust store does not know this certificate

@@ -278,14 +278,15 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
 
     uvicorn speaks HTTP/1.1 only, so each request in flight holds a connection of its own;
     finished ones are kept per origin (scheme, host, port) for :data:`KEEPALIVE_S` and reused,
-    newest first. ``https`` URLs get TLS with the system's trust store.
+    newest first. ``https`` URLs get TLS with ``ssl_context`` (default: the system's trust store,
+    the server's certificate and host name checked).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, ssl_context: ssl.SSLContext | None = None) -> None:
         self._idle: dict[tuple[str, str, int], list[_Connection]] = {}
         self._busy: set[_Connection] = set()
         self._heads: dict[tuple[str, str, tuple[tuple[str, str], ...]], tuple[tuple[str, str, int], bytes]] = {}
-        self._ssl: ssl.SSLContext | None = None
+        self._ssl = ssl_context
         self._closed = False
 
     # connections
