@@ -64,6 +64,20 @@ log = logging.getLogger("bench")
 READY_TIMEOUT_S = 600.0
 
 
+def process_trees(roots: Sequence[int]) -> dict[int, Any]:
+    """The live processes of the trees rooted at ``roots`` (each root and its descendants), each
+    once by pid however many trees hold it: ``{pid: psutil.Process}``."""
+    import psutil  # here, not at the top: the scaling bench also runs where psutil is missing
+
+    seen: dict[int, psutil.Process] = {}
+    for pid in roots:
+        with contextlib.suppress(psutil.Error):
+            root = psutil.Process(pid)
+            for process in [root, *root.children(recursive=True)]:
+                seen[process.pid] = process
+    return seen
+
+
 class PeakRSS:
     """Samples the summed memory of process trees in a background thread; keeps the peaks.
 
@@ -86,13 +100,7 @@ class PeakRSS:
         """Return the summed RSS of the trees now (and update the peaks)."""
         import psutil  # here, not at the top: the scaling bench also runs where psutil is missing
 
-        roots = self._roots() if callable(self._roots) else self._roots
-        seen: dict[int, psutil.Process] = {}
-        for pid in roots:
-            with contextlib.suppress(psutil.Error):
-                root = psutil.Process(pid)
-                for process in [root, *root.children(recursive=True)]:
-                    seen[process.pid] = process
+        seen = process_trees(self._roots() if callable(self._roots) else self._roots)
         rss = pss = 0
         for process in seen.values():
             with contextlib.suppress(psutil.Error):

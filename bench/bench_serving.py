@@ -49,6 +49,7 @@ from _perf_common import (
     job_config,
     local_job,
     paired_ratio,
+    process_trees,
     rate_spread,
     setup_logging,
     stepper,
@@ -133,14 +134,8 @@ class _PoolVectorEnv:
 def _tree_cpu_s(pids: list[int]) -> float:
     """CPU seconds (user + system) used so far by the process trees of ``pids``, each process
     counted once (the in-process run's workers are both named and its forkserver's children)."""
-    processes: dict[int, psutil.Process] = {}
-    for pid in pids:
-        with contextlib.suppress(psutil.Error):
-            root = psutil.Process(pid)
-            for process in [root, *root.children(recursive=True)]:
-                processes[process.pid] = process
     total = 0.0
-    for process in processes.values():
+    for process in process_trees(pids).values():
         with contextlib.suppress(psutil.Error):
             times = process.cpu_times()
             total += times.user + times.system

@@ -3,7 +3,7 @@
 :class:`HttptoolsTransport` is an ``httpx.AsyncBaseTransport`` like any other, and it also has a
 lean path, :meth:`HttptoolsTransport.fetch`, that sends a request given as plain values and gives
 back the status and the decoded body under a size cap, with no httpx objects made on the way:
-``vecsim.transport.exchange`` takes it for the client's calls to pods. Measured against the
+``vecsim.transport.fetch`` takes it for the client's calls to pods. Measured against the
 other kinds on answers of a pod's size, it is what makes it the default (docs/benchmarks.md).
 
 What is vecsim's here and what is not: llhttp parses every byte that arrives (status line,
@@ -23,13 +23,14 @@ client uses it.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import ssl
 import time
 from collections.abc import AsyncIterator, Iterable, Sequence
 
 import httptools
 import httpx
+
+from vecsim.answers import AnswerReader
 
 __all__ = ["HttptoolsTransport"]
 
@@ -172,8 +173,12 @@ class _Connection(asyncio.Protocol):
         names = {name.lower() for name, _ in self.headers}
         return b"content-length" not in names and b"transfer-encoding" not in names
 
-    def start(self, data: bytes, head_only: bool) -> None:
-        """Send one request (head and body in ``data``) and begin reading its answer."""
+    async def send(self, data: bytes, head_only: bool, read_s: float | None) -> None:
+        """Send one request (head and body in ``data``) and wait for its answer's head.
+
+        Raises:
+            httpx.ReadTimeout, httpx.RemoteProtocolError: as :meth:`wait`.
+        """
         self._parser = httptools.HttpResponseParser(self)
         self._active = True
         self._head_only = head_only
@@ -183,6 +188,10 @@ class _Connection(asyncio.Protocol):
         self._pieces, self._buffered = [], 0
         assert self.transport is not None
         self.transport.write(data)
+        while not self.headers_done:
+            await self.wait(read_s)
+            if self.done and not self.headers_done:
+                raise httpx.RemoteProtocolError("the answer ended without a head")
 
     def take(self) -> list[bytes]:
         """The body's pieces that arrived since the last take (reading resumes if it paused)."""
@@ -378,11 +387,7 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
         except httpx.TransportError as exc:
             raise type(exc)(f"{where}: {exc}", request=request) from None
         try:
-            connection.start(head + body, request.method == "HEAD")
-            while not connection.headers_done:
-                await connection.wait(timeouts.get("read"))
-                if not connection.headers_done and connection.done:
-                    raise httpx.RemoteProtocolError("the answer ended without a head")
+            await connection.send(head + body, request.method == "HEAD", timeouts.get("read"))
         except BaseException as exc:
             self.release(connection)
             if isinstance(exc, httpx.TransportError):
@@ -419,21 +424,15 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
             the answer's status code and its decoded body.
 
         Raises:
-            vecsim.transport.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
+            vecsim.answers.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
             httpx.ConnectError, httpx.RemoteProtocolError, httpx.LocalProtocolError,
             httpx.UnsupportedProtocol: as the module's text says.
         """
-        from vecsim.transport import _AnswerReader  # noqa: PLC0415 - vecsim.transport imports this module
-
         origin, head = self._cached_head(method, url, headers)
         connection = await self._connection(origin, None)
         try:
-            connection.start(b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body), method == "HEAD")
-            while not connection.headers_done:
-                await connection.wait(None)
-                if not connection.headers_done and connection.done:
-                    raise httpx.RemoteProtocolError("the answer ended without a head")
-            reader = _AnswerReader(url, _text_headers(connection.headers), max_bytes)
+            await connection.send(b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body), method == "HEAD", None)
+            reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
             while True:
                 for piece in connection.take():
                     for _ in reader.feed(piece):
@@ -455,8 +454,7 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
         for connection in list(self._busy):
             connection.close()
         self._busy.clear()
-        with contextlib.suppress(Exception):
-            await asyncio.sleep(0)
+        await asyncio.sleep(0)  # one turn of the loop: the closed connections let go of their sockets
 
 
 def _text_headers(headers: Sequence[tuple[bytes, bytes]]) -> list[tuple[str, str]]:
