@@ -27,7 +27,7 @@ the peak PSS, which counts pages the workers share with their forkserver once.
 Everything is built first; then the contenders take turns, the order rotating each round, and
 each figure is a ratio to the baseline of the same round.
 
-    python bench/bench_serving.py [--quick] [--rounds 5] [--libero-steps 40] [--sets libero cheap]
+    python bench/bench_serving.py [--quick] [--rounds 5] [--libero-steps 40] [--sets libero cheap] [--no-pool]
 
 Prints ``RESULT {json}`` and writes out/bench/bench_serving.json.
 """
@@ -235,6 +235,11 @@ def main() -> None:
         help="steps of the LIBERO set per contender and round (a step is ~15-60 ms: rounds of 8, "
         "the old count, left the median to a handful of calls)",
     )
+    parser.add_argument(
+        "--no-pool", action="store_true",
+        help="leave the pool contender out of the LIBERO set (its 4 workers, beside the pod's and "
+        "the in-process run's, need ~28 GiB of memory while they build)",
+    )
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
     parser.add_argument(
         "--sets", nargs="+", choices=("libero", "cheap"), default=["libero", "cheap"], help="the scene sets to measure"
@@ -251,7 +256,7 @@ def main() -> None:
             camera = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=64, width=64)
             libero = ["libero_10/0", "libero_10/1"]
             results["libero"] = measure(
-                "libero", libero, 2, camera, args.libero_steps, args.rounds, with_auto=False, with_pool=True
+                "libero", libero, 2, camera, args.libero_steps, args.rounds, with_auto=False, with_pool=not args.no_pool
             )
         if "cheap" in args.sets:
             cheap = ["gym/HalfCheetah-v5"]

@@ -16,6 +16,11 @@ Contenders, each timed per call, interleaved in rounds with the order rotating, 
 - ``raw_httpx``: ``POST /v1/step`` of a body encoded once, through a sync ``httpx.Client``;
 - ``raw_http_client``: the same through the standard library's ``http.client`` (keep-alive);
 - ``raw_healthz``: ``GET /healthz`` through ``http.client``: HTTP + uvicorn + FastAPI, no work;
+- ``bare_http_client``: the same ``POST /v1/step`` through ``http.client`` to a *bare* server
+  (``--serve-bare``): the same worker pool stepped on an asyncio event loop (uvloop where
+  installed) that parses requests with httptools and writes the answer (``wire.encode``) itself:
+  no uvicorn, FastAPI, validation, thread hop, auth or limits. What serving this call over HTTP
+  from Python costs at the least; not a product, a floor;
 - ``in_process``: ``TaskGroupedVectorEnv.step_envs`` in this process (same workers, no HTTP);
 - ``in_process_answer``: the same plus what the route adds (answer dict, ``batch_infos``,
   ``wire.encode``);
@@ -217,6 +222,94 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     return pod_main.main(pod_argv)
 
 
+def serve_bare(port: int) -> int:
+    """A bare HTTP service of ``_assignment``'s worker pool, the floor the pod is measured against
+    (``bare_http_client``): ``POST /v1/step`` with a wire body steps the envs on the event loop
+    and answers what the pod answers; ``GET`` of anything answers 200 (the readiness probe). One
+    process, one event loop, requests handled one at a time in arrival order."""
+    import httptools
+
+    from vecsim import wire
+    from vecsim.info import batch_infos
+    from vecsim.sim import TaskGroupedVectorEnv
+
+    env = TaskGroupedVectorEnv(_assignment("bare"))
+    head = "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {length}\r\n\r\n"
+
+    def answer(method: bytes, url: bytes, body: bytes) -> bytes:
+        if method != b"POST":
+            return head.format(status="200 OK", kind="text/plain", length=2).encode() + b"ok"
+        if url != b"/v1/step":
+            return head.format(status="404 Not Found", kind="text/plain", length=0).encode()
+        request = wire.decode(body)
+        indices = request["env_indices"]
+        obs, reward, terminated, truncated, info = env.step_envs(indices, request["actions"])
+        out = {
+            "env_indices": np.asarray(indices, dtype=np.int32), "obs": obs,
+            "reward": np.asarray(reward, dtype=np.float64), "terminated": terminated, "truncated": truncated,
+            "info": {"success": info["success"]},
+        }  # fmt: skip
+        batched = batch_infos(info["env_info"])
+        if batched:
+            out["env_info"] = batched
+        payload = wire.encode(out)
+        return head.format(status="200 OK", kind=wire.CONTENT_TYPE, length=len(payload)).encode() + payload
+
+    class BareProtocol(asyncio.Protocol):
+        def connection_made(self, transport: Any) -> None:
+            self.transport = transport
+            self.parser = httptools.HttpRequestParser(self)
+            self.url = b""
+            self.body: list[bytes] = []
+
+        def data_received(self, data: bytes) -> None:
+            try:
+                self.parser.feed_data(data)
+            except httptools.HttpParserError:
+                self.transport.close()
+
+        def on_url(self, url: bytes) -> None:
+            self.url = url
+
+        def on_body(self, body: bytes) -> None:
+            self.body.append(body)
+
+        def on_message_complete(self) -> None:
+            body, self.body = b"".join(self.body), []
+            self.transport.write(answer(self.parser.get_method(), self.url, body))
+
+    async def serve() -> None:
+        server = await asyncio.get_running_loop().create_server(BareProtocol, "127.0.0.1", port)
+        async with server:
+            await server.serve_forever()
+
+    try:
+        import uvloop
+
+        runner: Callable[[Any], Any] = uvloop.run
+    except ImportError:
+        runner = asyncio.run
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        runner(serve())
+    finally:
+        env.close()
+    return 0
+
+
+@contextlib.contextmanager
+def bare_process(workdir: Path) -> Iterator[Any]:
+    """The bare server (:func:`serve_bare`) in its own process; stopped on exit."""
+    from _perf_common import READY_TIMEOUT_S, Server, clean_env, free_port, running
+
+    port = free_port()
+    argv = ["--serve-bare", str(port), *sys.argv[1:]]
+    server = Server("bare", argv, port, clean_env(), workdir / "bare.log", program=(sys.executable, __file__))
+    with running(server):
+        server.wait_ready(READY_TIMEOUT_S)
+        yield server
+
+
 # -- the client side -----------------------------------------------------------------------------
 
 
@@ -393,6 +486,7 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         timed = stack.enter_context(pod_process("timed", workdir))
         profiled = stack.enter_context(pod_process("profiled", workdir))
+        bare = stack.enter_context(bare_process(workdir))
         vec = HTTPVectorEnv(pod_urls=[timed.url])
         stack.callback(vec.close)
         vec.reset(seed=0)
@@ -407,6 +501,8 @@ def main() -> None:
         raw = stack.enter_context(httpx.Client(base_url=timed.url, timeout=30))
         conn = http.client.HTTPConnection("127.0.0.1", timed.port, timeout=30)
         stack.callback(conn.close)
+        bare_conn = http.client.HTTPConnection("127.0.0.1", bare.port, timeout=30)
+        stack.callback(bare_conn.close)
         # The two thread hops of a call, alone: the client's sync caller to its event-loop thread
         # (EventLoopThread, as HTTPVectorEnv uses) and an event loop to a worker thread (the
         # pod's state.run, used for robot scenes; cheap scenes run inline).
@@ -421,7 +517,7 @@ def main() -> None:
             response = raw.post("/v1/step", content=bodies[t], headers=headers)
             assert response.status_code == 200, response.text
 
-        def exchange(method: str, path: str, body: bytes | None = None) -> None:
+        def exchange(method: str, path: str, body: bytes | None = None, conn: http.client.HTTPConnection = conn) -> None:
             for attempt in (0, 1):
                 try:
                     conn.request(method, path, body=body, headers=headers)
@@ -441,6 +537,9 @@ def main() -> None:
         def raw_healthz(_t: int) -> None:
             exchange("GET", "/healthz")
 
+        def bare_http_client(t: int) -> None:
+            exchange("POST", "/v1/step", bodies[t], bare_conn)
+
         def in_process_answer(t: int) -> None:
             obs, reward, terminated, truncated, info = local.step_envs(env_indices, actions[t])
             answer = {
@@ -452,11 +551,21 @@ def main() -> None:
                 answer["env_info"] = batched
             encode_answer(answer, False)
 
+        # The bare server answers what the pod answers: the same arrays, shapes and dtypes.
+        layouts = {}
+        for name, connection in (("pod", conn), ("bare", bare_conn)):
+            connection.request("POST", "/v1/step", body=bodies[0], headers=headers)
+            response = connection.getresponse()
+            assert response.status == 200, f"{name}: {response.status} {response.read()[:200]!r}"
+            layouts[name] = _layout(wire.decode(response.read()))
+        assert layouts["bare"] == layouts["pod"], f"the bare server's answer differs from the pod's: {layouts}"
+
         contenders: dict[str, Callable[[int], Any]] = {
             "http_vector_env": lambda t: vec.step(actions[t % calls]),
             "raw_httpx": raw_httpx,
             "raw_http_client": raw_http_client,
             "raw_healthz": raw_healthz,
+            "bare_http_client": bare_http_client,
             "in_process": lambda t: local.step_envs(env_indices, actions[t]),
             "in_process_answer": in_process_answer,
             "thread_hop_loop": lambda _t: hop_loop.run(_noop()),
@@ -557,6 +666,14 @@ def main() -> None:
     write_result("profile_call", result, profiles)
 
 
+def _layout(tree: Any, path: str = "") -> dict[str, tuple[tuple[int, ...], str]]:
+    """``{path: (shape, dtype)}`` of every array in a decoded answer."""
+    if isinstance(tree, dict):
+        return {k: v for key, sub in tree.items() for k, v in _layout(sub, f"{path}/{key}").items()}
+    array = np.asarray(tree)
+    return {path: (array.shape, array.dtype.str)}
+
+
 async def _noop() -> None:
     return None
 
@@ -608,10 +725,14 @@ if __name__ == "__main__":
     parser.add_argument("--profile-calls", type=int, default=300, help="calls under cProfile (client, then pod)")
     parser.add_argument("--serve-pod", choices=["timed", "profiled"], help=argparse.SUPPRESS)
     parser.add_argument("--serve-out", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--serve-bare", type=int, metavar="PORT", help=argparse.SUPPRESS)
     parser.add_argument("--quick", action="store_true", help="4 envs, a few calls: for the smoke test")
     ARGS, rest = parser.parse_known_args()
     if ARGS.quick:
         ARGS.envs, ARGS.calls, ARGS.rounds, ARGS.profile_calls = 4, 5, 1, 5
+    if ARGS.serve_bare:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        sys.exit(serve_bare(ARGS.serve_bare))
     if ARGS.serve_pod:
         sys.exit(serve_pod(ARGS.serve_pod, ARGS.serve_out, [a for a in rest if a != "--"]))
     sys.path.insert(0, str(Path(__file__).resolve().parent))
