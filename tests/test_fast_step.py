@@ -155,6 +155,36 @@ def test_a_compiled_controller_that_cannot_load_leaves_the_controller_from_pytho
         _fast_step._fused_controller_available.cache_clear()
 
 
+def test_exact_path_steps_from_a_controller_left_without_an_update_as_robosuite_does() -> None:
+    # A controller whose last update saw another pose, with new_update cleared (what a reset
+    # leaves: the controller it builds updated itself at the reset's pose, before the init state
+    # was set). robosuite's policy step then sets the goal and the torques from those stale
+    # values; the exact path must too, even where the gripper could run the compiled controller.
+    with env_pair("tiny/lift") as envs:
+        for env in envs.values():
+            env.reset(options={"state_id": 0})
+        table = actions(2)
+        for action in table[:5]:
+            for env in envs.values():
+                env.step(action.astype(np.float32))
+        earlier = {path: env.inner.sim.get_state().flatten() for path, env in envs.items()}
+        for action in table[5:10]:
+            for env in envs.values():
+                env.step(action.astype(np.float32))
+        for path, env in envs.items():
+            env.inner.sim.set_state_from_flattened(earlier[path])
+            env.inner.sim.forward()
+            assert env.inner.robots[0].controller.new_update  # left by the last step's control
+            env.inner.robots[0].controller.new_update = False
+        for step, action in enumerate(table[10:20], start=10):
+            results = {path: env.step(action.astype(np.float32)) for path, env in envs.items()}
+            exact, library = (
+                {**left_behind(envs[path]), "observation proprio": results[path][0]["proprio"]}
+                for path in ("exact", "library")
+            )
+            assert_identical("tiny/lift", step, exact, library)
+
+
 def test_exact_path_with_delayed_observables_gives_robosuite_own_trajectory() -> None:
     from robosuite.utils.observables import create_deterministic_delayer
 

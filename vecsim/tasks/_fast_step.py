@@ -298,7 +298,10 @@ class ExactStep:
                 if updated:
                     self._update(arm.arm, controller)
                 if policy_step:
-                    fuse = self.fused and self.fused_policy
+                    # The compiled policy substep computes its update from the state now; without
+                    # a new update robosuite steps from the controller's last one (after a reset,
+                    # another pose's), so that substep stays robosuite's own.
+                    fuse = self.fused and self.fused_policy and updated
                     if fuse and arm.start_fused(controller, self.data_arrays, policy_step=True):
                         arm.policy_control(model, data)
                         fused.append(arm)
