@@ -237,8 +237,8 @@ def main() -> None:
     )
     parser.add_argument(
         "--no-pool", action="store_true",
-        help="leave the pool contender out of the LIBERO set (its 4 workers, beside the pod's and "
-        "the in-process run's, need ~28 GiB of memory while they build)",
+        help="leave the pool contender out of the LIBERO set (its 4 workers building beside the pod's "
+        "and the in-process run's ran a 24 GiB machine out of memory)",
     )
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
     parser.add_argument(

@@ -222,6 +222,23 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     return pod_main.main(pod_argv)
 
 
+def step_answer(env: Any, env_indices: Any, actions: Any) -> dict[str, Any]:
+    """Step ``env`` (a ``TaskGroupedVectorEnv``) and return the answer the pod's ``/v1/step``
+    builds from the step (one action per env, no env raising), before it is encoded."""
+    from vecsim.info import batch_infos
+
+    obs, reward, terminated, truncated, info = env.step_envs(env_indices, actions)
+    answer = {
+        "env_indices": np.asarray(env_indices, dtype=np.int32), "obs": obs,
+        "reward": np.asarray(reward, dtype=np.float64), "terminated": terminated, "truncated": truncated,
+        "info": {"success": info["success"]},
+    }  # fmt: skip
+    batched = batch_infos(info["env_info"])
+    if batched:
+        answer["env_info"] = batched
+    return answer
+
+
 def serve_bare(port: int) -> int:
     """A bare HTTP service of ``_assignment``'s worker pool, the floor the pod is measured against
     (``bare_http_client``): ``POST /v1/step`` with a wire body steps the envs on the event loop
@@ -230,7 +247,6 @@ def serve_bare(port: int) -> int:
     import httptools
 
     from vecsim import wire
-    from vecsim.info import batch_infos
     from vecsim.sim import TaskGroupedVectorEnv
 
     env = TaskGroupedVectorEnv(_assignment("bare"))
@@ -242,17 +258,7 @@ def serve_bare(port: int) -> int:
         if url != b"/v1/step":
             return head.format(status="404 Not Found", kind="text/plain", length=0).encode()
         request = wire.decode(body)
-        indices = request["env_indices"]
-        obs, reward, terminated, truncated, info = env.step_envs(indices, request["actions"])
-        out = {
-            "env_indices": np.asarray(indices, dtype=np.int32), "obs": obs,
-            "reward": np.asarray(reward, dtype=np.float64), "terminated": terminated, "truncated": truncated,
-            "info": {"success": info["success"]},
-        }  # fmt: skip
-        batched = batch_infos(info["env_info"])
-        if batched:
-            out["env_info"] = batched
-        payload = wire.encode(out)
+        payload = wire.encode(step_answer(env, request["env_indices"], request["actions"]))
         return head.format(status="200 OK", kind=wire.CONTENT_TYPE, length=len(payload)).encode() + payload
 
     class BareProtocol(asyncio.Protocol):
@@ -463,7 +469,6 @@ def main() -> None:
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client.pods import EventLoopThread
-    from vecsim.info import batch_infos
     from vecsim.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
     from vecsim.tasks import make_env
 
@@ -541,15 +546,7 @@ def main() -> None:
             exchange("POST", "/v1/step", bodies[t], bare_conn)
 
         def in_process_answer(t: int) -> None:
-            obs, reward, terminated, truncated, info = local.step_envs(env_indices, actions[t])
-            answer = {
-                "env_indices": env_indices.astype(np.int32), "obs": obs, "reward": np.asarray(reward, dtype=np.float64),
-                "terminated": terminated, "truncated": truncated, "info": {"success": info["success"]},
-            }  # fmt: skip
-            batched = batch_infos(info["env_info"])
-            if batched:
-                answer["env_info"] = batched
-            encode_answer(answer, False)
+            encode_answer(step_answer(local, env_indices, actions[t]), False)
 
         # The bare server answers what the pod answers: the same arrays, shapes and dtypes.
         layouts = {}

@@ -313,8 +313,9 @@ async def fetch(
     """Send one request to a pod and read its answer as :func:`read_answer` does: through the
     transport's lean path when it has one (:meth:`~vecsim.http1.HttptoolsTransport.fetch`, no
     httpx objects made: ~0.25 ms a call less on a pod's answers, docs/benchmarks.md), else as
-    an ``httpx.Request`` through :func:`exchange`. ``body`` goes with a Content-Length (none for
-    an empty GET). Callers bound it in time with ``asyncio.timeout``.
+    an ``httpx.Request`` through :func:`exchange`. ``body`` goes with a Content-Length (the lean
+    path sends one with every request, 0 for an empty one; ``exchange`` none with an empty GET).
+    Callers bound it in time with ``asyncio.timeout``.
 
     Returns:
         the answer's status code and its body, decoded.
