@@ -191,6 +191,14 @@ def _instrument_pod(timers: Timers) -> None:
     pod_main.create_app = create_timed_app  # type: ignore[assignment]
 
 
+def write_whole(out: Path, write: Any) -> None:
+    """``write`` the record to a temporary file beside ``out``, then rename it to ``out``:
+    ``collect`` reads ``out`` as soon as it exists, so it must never see a half-written one."""
+    tmp = out.with_suffix(".tmp")
+    write(tmp)
+    tmp.rename(out)
+
+
 def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
     SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
@@ -201,9 +209,8 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
         _instrument_pod(timers)
 
         def dump(_signum: int, _frame: Any) -> None:
-            tmp = out.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"calls": len(timers.calls), "median_ms": timers.medians_ms(skip=min(20, len(timers.calls) // 2))}))
-            tmp.rename(out)
+            record = {"calls": len(timers.calls), "median_ms": timers.medians_ms(skip=min(20, len(timers.calls) // 2))}
+            write_whole(out, lambda tmp: tmp.write_text(json.dumps(record)))
 
         signal.signal(signal.SIGUSR1, dump)
         return pod_main.main(pod_argv)
@@ -211,7 +218,7 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
 
     def dump_profile(_signum: int, _frame: Any) -> None:
         profile.disable()
-        profile.dump_stats(str(out))
+        write_whole(out, lambda tmp: profile.dump_stats(str(tmp)))
 
     def clear_profile(_signum: int, _frame: Any) -> None:
         profile.clear()
