@@ -191,18 +191,11 @@ def _instrument_pod(timers: Timers) -> None:
     pod_main.create_app = create_timed_app  # type: ignore[assignment]
 
 
-def write_whole(out: Path, write: Any) -> None:
-    """``write`` the record to a temporary file beside ``out``, then rename it to ``out``:
-    ``collect`` reads ``out`` as soon as it exists, so it must never see a half-written one."""
-    tmp = out.with_suffix(".tmp")
-    write(tmp)
-    tmp.rename(out)
-
-
 def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
     SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
     from service.pod import main as pod_main
+    from vecsim.tasks._base import write_whole
 
     if mode == "timed":
         timers = Timers()
@@ -229,23 +222,6 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     return pod_main.main(pod_argv)
 
 
-def step_answer(env: Any, env_indices: Any, actions: Any) -> dict[str, Any]:
-    """Step ``env`` (a ``TaskGroupedVectorEnv``) and return the answer the pod's ``/v1/step``
-    builds from the step (one action per env, no env raising), before it is encoded."""
-    from vecsim.info import batch_infos
-
-    obs, reward, terminated, truncated, info = env.step_envs(env_indices, actions)
-    answer = {
-        "env_indices": np.asarray(env_indices, dtype=np.int32), "obs": obs,
-        "reward": np.asarray(reward, dtype=np.float64), "terminated": terminated, "truncated": truncated,
-        "info": {"success": info["success"]},
-    }  # fmt: skip
-    batched = batch_infos(info["env_info"])
-    if batched:
-        answer["env_info"] = batched
-    return answer
-
-
 def serve_bare(port: int) -> int:
     """A bare HTTP service of ``_assignment``'s worker pool, the floor the pod is measured against
     (``bare_http_client``): ``POST /v1/step`` with a wire body steps the envs on the event loop
@@ -253,6 +229,7 @@ def serve_bare(port: int) -> int:
     process, one event loop, requests handled one at a time in arrival order."""
     import httptools
 
+    from service.pod.routers.envs import step_answer
     from vecsim import wire
     from vecsim.sim import TaskGroupedVectorEnv
 
@@ -265,7 +242,8 @@ def serve_bare(port: int) -> int:
         if url != b"/v1/step":
             return head.format(status="404 Not Found", kind="text/plain", length=0).encode()
         request = wire.decode(body)
-        payload = wire.encode(step_answer(env, request["env_indices"], request["actions"]))
+        ids = np.asarray(request["env_indices"])
+        payload = wire.encode(step_answer(ids, env.step_envs(ids, request["actions"])))
         return head.format(status="200 OK", kind=wire.CONTENT_TYPE, length=len(payload)).encode() + payload
 
     class BareProtocol(asyncio.Protocol):
@@ -473,6 +451,7 @@ def main() -> None:
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
     from service.pod.bodies import encode_answer
+    from service.pod.routers.envs import step_answer
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client.pods import EventLoopThread
@@ -553,7 +532,7 @@ def main() -> None:
             exchange("POST", "/v1/step", bodies[t], bare_conn)
 
         def in_process_answer(t: int) -> None:
-            encode_answer(step_answer(local, env_indices, actions[t]), False)
+            encode_answer(step_answer(env_indices, local.step_envs(env_indices, actions[t])), False)
 
         # The bare server answers what the pod answers: the same arrays, shapes and dtypes.
         layouts = {}

@@ -35,6 +35,7 @@ from vecsim.tasks._base import (
     ensure_gl_backend,
     log,
     stdout_to_log,
+    write_whole,
 )
 from vecsim.tasks._robot import (
     RobotTaskEnv,
@@ -115,9 +116,7 @@ def ensure_config() -> Path:
             "datasets": str(package_dir.parent / "datasets"),
             "assets": str(package_dir / "assets"),
         }
-        partial = config_dir / f".config.yaml.{os.getpid()}.tmp"
-        partial.write_text(yaml.safe_dump(paths))
-        os.replace(partial, config_file)
+        write_whole(config_file, lambda partial: partial.write_text(yaml.safe_dump(paths)))
         log.info("wrote LIBERO config %s", config_file)
     return config_file
 

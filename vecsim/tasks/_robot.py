@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import os
 import random
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,6 +44,7 @@ from vecsim.tasks._base import (
     ensure_gl_backend,
     log,
     scene_seed,
+    write_whole,
 )
 from vecsim.tasks._fast_step import DEFAULT_STEP_PATH, make_step
 
@@ -460,8 +460,10 @@ def generated_states(task: TaskSpec, inner: Any) -> np.ndarray:
             _seeded_reset(task.task_id, state_id, inner)
             rows.append(inner.sim.get_state().flatten())
         states = np.stack(rows).astype(np.float64)
-        partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(partial, "wb") as handle:
-            np.save(handle, states, allow_pickle=False)
-        os.replace(partial, path)
+
+        def save(partial: Path) -> None:
+            with open(partial, "wb") as handle:  # a handle: np.save would add ".npy" to a name
+                np.save(handle, states, allow_pickle=False)
+
+        write_whole(path, save)
     return states

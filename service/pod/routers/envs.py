@@ -83,6 +83,21 @@ def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]]
     return answer
 
 
+def step_answer(ids: np.ndarray, result: tuple[Any, Any, Any, Any, dict[str, Any]]) -> dict[str, Any]:
+    """``/v1/step``'s answer to one action per env, before it is encoded: built from what
+    ``TaskGroupedVectorEnv.step_envs(ids, ...)`` returned (``result``)."""
+    obs, reward, terminated, truncated, info = result
+    answer = {
+        "env_indices": ids.astype(np.int32),
+        "obs": tuples_as_dicts(obs),
+        "reward": np.asarray(reward, dtype=np.float64),
+        "terminated": np.asarray(terminated, dtype=bool),
+        "truncated": np.asarray(truncated, dtype=bool),
+        "info": {"success": np.asarray(info["success"], dtype=bool)},
+    }
+    return _own(answer, ids, info["env_info"], info["errors"])
+
+
 async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
     """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
     turning the simulation's errors into HTTP errors."""
@@ -183,17 +198,9 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             _own(answer, req.env_indices, result.env_info, result.errors)
             applied = int(result.num_steps.sum())
         else:
-            obs, reward, terminated, truncated, info = env.step_envs(req.env_indices, req.actions)
+            result = env.step_envs(req.env_indices, req.actions)
             elapsed = time.perf_counter() - start
-            answer = {
-                "env_indices": req.env_indices.astype(np.int32),
-                "obs": tuples_as_dicts(obs),
-                "reward": np.asarray(reward, dtype=np.float64),
-                "terminated": np.asarray(terminated, dtype=bool),
-                "truncated": np.asarray(truncated, dtype=bool),
-                "info": {"success": np.asarray(info["success"], dtype=bool)},
-            }
-            _own(answer, req.env_indices, info["env_info"], info["errors"])
+            answer = step_answer(req.env_indices, result)
             applied = len(req.env_indices)
         # Read on this thread, before another call can replace it.
         timing = env.last_timing
