@@ -9,6 +9,7 @@ exceptions, so most tests run once per kind (``httpx`` being the reference).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import gzip
 import shutil
@@ -25,10 +26,10 @@ import numpy as np
 import pytest
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
-from service_procs import AppThread, raw_server, wait_until
+from service_procs import AppThread, loopback_socket, raw_server, wait_until
 
 from vecsim import wire
-from vecsim.http1 import HttptoolsTransport
+from vecsim.http1 import MAX_HEAD_BYTES, HttptoolsTransport
 from vecsim.transport import (
     DEFAULT_KIND,
     AnswerTooLargeError,
@@ -533,6 +534,108 @@ def test_the_lean_path_refuses_a_connection_it_cannot_make(refusing_port: int) -
 def test_the_lean_path_refuses_a_url_that_is_not_http() -> None:
     with pytest.raises(httpx.UnsupportedProtocol, match="only http and https"):
         fetch_with("ftp://127.0.0.1/x")
+
+
+@contextlib.contextmanager
+def closing_after_one_answer(answers: list[int]) -> Iterator[str]:
+    """A loopback server that answers the first request of each connection (kept alive), then
+    reads the next one and closes without a byte: a server closing an idle connection as a
+    request crosses its close. ``answers`` gets the number of the connection of each answer."""
+    listener = loopback_socket()
+    listener.listen(16)
+    listener.settimeout(0.1)
+    stop = threading.Event()
+
+    def serve() -> None:
+        number = 0
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                continue
+            number += 1
+            with conn:
+                conn.settimeout(5)
+                try:
+                    conn.recv(65536)
+                    conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n\r\n%d" % (len(str(number)), number))
+                    answers.append(number)
+                    conn.recv(65536)
+                except OSError:
+                    continue
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
+    finally:
+        stop.set()
+        thread.join(5)
+        listener.close()
+
+
+def test_a_kept_alive_connection_closed_as_the_request_went_out_is_retried_once_on_a_new_one() -> None:
+    answers: list[int] = []
+    with closing_after_one_answer(answers) as url:
+        got = fetch_with(f"{url}/", times=3)
+    assert got == [(200, b"1"), (200, b"2"), (200, b"3")] and answers == [1, 2, 3]
+
+
+def test_the_httpx_interface_retries_a_closed_kept_alive_connection_alike() -> None:
+    answers: list[int] = []
+    with closing_after_one_answer(answers) as url:
+
+        async def use(client: httpx.AsyncClient) -> list[bytes]:
+            return [(await client.get(f"{url}/")).content for _ in range(3)]
+
+        assert run_with("httptools", use) == [b"1", b"2", b"3"]
+
+
+def test_a_new_connection_closed_before_its_answer_is_not_retried() -> None:
+    requests: list[bytes] = []
+    with raw_server(b"", requests) as url, pytest.raises(httpx.RemoteProtocolError, match="before the answer's head"):
+        fetch_with(f"{url}/")
+    assert len(requests) == 1
+
+
+@pytest.mark.parametrize("lean", [True, False], ids=["lean", "httpx"])
+def test_an_answer_head_larger_than_the_cap_is_refused_naming_it(lean: bool) -> None:
+    reply = b"HTTP/1.1 200 OK\r\nX-Big: " + b"a" * (MAX_HEAD_BYTES + 1) + b"\r\nContent-Length: 2\r\n\r\nok"
+    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"):
+        if lean:
+            fetch_with(f"{url}/")
+        else:
+            run_with("httptools", lambda c: c.get(f"{url}/"))
+
+
+def test_an_answer_head_that_never_ends_is_refused_at_the_cap() -> None:
+    reply = b"HTTP/1.1 200 OK\r\nX-Big: " + b"a" * (4 * MAX_HEAD_BYTES)  # and the server closes
+    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"):
+        fetch_with(f"{url}/")
+
+
+def test_an_answer_head_just_under_the_cap_arrives() -> None:
+    reply = b"HTTP/1.1 200 OK\r\nX-Big: " + b"a" * (MAX_HEAD_BYTES - 100) + b"\r\nContent-Length: 2\r\n\r\nok"
+    with raw_server(reply) as url:
+        assert fetch_with(f"{url}/") == [(200, b"ok")]
+
+
+def test_idle_connections_beyond_the_bound_are_closed_as_they_come_back() -> None:
+    with uvicorn_server() as served:
+
+        async def main() -> None:
+            async with HttptoolsTransport(max_idle_per_origin=2) as transport:
+                url = f"{served.url}/peer?together=6"
+                answers = await asyncio.gather(*(fetch(transport, "GET", url, (), b"", 1 << 20) for _ in range(6)))
+                assert len({body for _, body in answers}) == 6  # six connections at once
+                await asyncio.to_thread(wait_until, lambda: served.connections() == 2, "4 of 6 connections closed", 10)
+
+        asyncio.run(main())
+
+
+def test_a_negative_idle_bound_is_refused_naming_it() -> None:
+    with pytest.raises(ValueError, match="max_idle_per_origin must be >= 0"):
+        HttptoolsTransport(max_idle_per_origin=-1)
 
 
 @pytest.fixture(scope="module")

@@ -34,8 +34,16 @@ from vecsim.answers import AnswerReader
 
 __all__ = ["HttptoolsTransport"]
 
-# Idle connections are dropped before uvicorn's keep-alive timeout would close them under us.
+# Idle connections are dropped before uvicorn's keep-alive timeout would close them under us
+# (the pod's default is 5 s); a pod set lower can still close one as a request goes out on it,
+# which is why a reused connection that ends before any byte of its answer is tried once anew.
 KEEPALIVE_S = 4.0
+# An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
+# and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
+MAX_HEAD_BYTES = 64 << 10
+# Idle connections kept per origin; more are closed as they come back. The client bounds its
+# requests in flight itself, so this only trims what a burst leaves behind.
+MAX_IDLE_PER_ORIGIN = 64
 # Reading stops while this much of an answer's body waits to be taken (a reader slower than
 # the socket); it goes on once the reader has taken it.
 _HIGH_WATER = 4 << 20
@@ -72,6 +80,9 @@ class _Connection(asyncio.Protocol):
         self._pieces: list[bytes] = []
         self._buffered = 0
         self._informational = False
+        self.received = 0  # bytes of the current exchange's answer, head included
+        self._head_bytes = 0
+        self.exchanges = 0  # requests sent on this connection
 
     # asyncio.Protocol
 
@@ -83,11 +94,16 @@ class _Connection(asyncio.Protocol):
             # Bytes nobody asked for (after an answer ended): the connection cannot be trusted.
             self.close()
             return
+        self.received += len(data)
         try:
             self._parser.feed_data(data)
         except httptools.HttpParserError as exc:
             cause = exc.__context__ if isinstance(exc, httptools.HttpParserCallbackError) else None
             self._fail(httpx.RemoteProtocolError(f"malformed answer: {cause or exc}"))
+            self.close()
+            return
+        if not self.headers_done and self.received > MAX_HEAD_BYTES:  # a head still growing
+            self._fail(httpx.RemoteProtocolError(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes"))
             self.close()
 
     def eof_received(self) -> bool | None:
@@ -122,6 +138,9 @@ class _Connection(asyncio.Protocol):
     def on_header(self, name: bytes, value: bytes) -> None:
         if not self.headers_done:
             self.headers.append((name, value))
+            self._head_bytes += len(name) + len(value) + 4
+            if self._head_bytes > MAX_HEAD_BYTES:  # a head that arrived whole in one read
+                raise httpx.RemoteProtocolError(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes")
 
     def on_headers_complete(self) -> None:
         assert self._parser is not None
@@ -186,6 +205,8 @@ class _Connection(asyncio.Protocol):
         self.headers_done = self.done = self.keep_alive = self._informational = False
         self.error = None
         self._pieces, self._buffered = [], 0
+        self.received = self._head_bytes = 0
+        self.exchanges += 1
         assert self.transport is not None
         self.transport.write(data)
         while not self.headers_done:
@@ -287,11 +308,15 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
 
     uvicorn speaks HTTP/1.1 only, so each request in flight holds a connection of its own;
     finished ones are kept per origin (scheme, host, port) for :data:`KEEPALIVE_S` and reused,
-    newest first. ``https`` URLs get TLS with ``ssl_context`` (default: the system's trust store,
+    newest first, at most ``max_idle_per_origin`` of them. An answer's head is read up to
+    :data:`MAX_HEAD_BYTES`. ``https`` URLs get TLS with ``ssl_context`` (default: the system's trust store,
     the server's certificate and host name checked).
     """
 
-    def __init__(self, *, ssl_context: ssl.SSLContext | None = None) -> None:
+    def __init__(self, *, ssl_context: ssl.SSLContext | None = None, max_idle_per_origin: int = MAX_IDLE_PER_ORIGIN) -> None:
+        if max_idle_per_origin < 0:
+            raise ValueError(f"max_idle_per_origin must be >= 0, got {max_idle_per_origin}")
+        self._max_idle = max_idle_per_origin
         self._idle: dict[tuple[str, str, int], list[_Connection]] = {}
         self._busy: set[_Connection] = set()
         self._heads: dict[tuple[str, str, tuple[tuple[str, str], ...]], tuple[tuple[str, str, int], bytes]] = {}
@@ -300,10 +325,10 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
 
     # connections
 
-    async def _connection(self, origin: tuple[str, str, int], connect_s: float | None) -> _Connection:
+    async def _connection(self, origin: tuple[str, str, int], connect_s: float | None, fresh: bool = False) -> _Connection:
         if self._closed:
             raise RuntimeError("the transport is closed")
-        idle = self._idle.get(origin)
+        idle = None if fresh else self._idle.get(origin)
         now = time.monotonic()
         while idle:
             connection = idle.pop()
@@ -331,11 +356,47 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
     def release(self, connection: _Connection) -> None:
         """Take a connection back after its exchange: kept if it can carry another, else closed."""
         self._busy.discard(connection)
-        if connection.finish() and not self._closed:
+        idle = self._idle.setdefault(connection.origin, [])
+        if connection.finish() and not self._closed and len(idle) < self._max_idle:
             connection.idle_since = time.monotonic()
-            self._idle.setdefault(connection.origin, []).append(connection)
+            idle.append(connection)
         else:
             connection.close()
+
+    async def _send(
+        self, origin: tuple[str, str, int], data: bytes, head_only: bool, connect_s: float | None, read_s: float | None
+    ) -> _Connection:
+        """Send one request on a connection to ``origin`` and wait for its answer's head; return
+        the connection, which the caller releases once the answer is read.
+
+        A reused connection that ends before the first byte of its answer is the race of a
+        server closing it idle as the request went out (a pod whose keep-alive is below
+        :data:`KEEPALIVE_S`): the server read nothing of the request, which is sent once more
+        on a new connection. A server that died meanwhile refuses that one, and a new
+        connection that ends so is an error at once.
+
+        Raises:
+            as :meth:`_connection` and :meth:`_Connection.send`.
+        """
+        connection = await self._connection(origin, connect_s)
+        try:
+            await connection.send(data, head_only, read_s)
+            return connection
+        except httpx.RemoteProtocolError:
+            closed_idle = connection.exchanges > 1 and connection.received == 0 and connection.closed
+            self.release(connection)
+            if not closed_idle:
+                raise
+        except BaseException:
+            self.release(connection)
+            raise
+        connection = await self._connection(origin, connect_s, fresh=True)
+        try:
+            await connection.send(data, head_only, read_s)
+        except BaseException:
+            self.release(connection)
+            raise
+        return connection
 
     # requests
 
@@ -383,16 +444,11 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
             origin = self._origin(request.url)
             send_length = bool(body) or request.method in ("POST", "PUT", "PATCH")
             head = self._head(request.method, request.url, request.headers.raw, len(body) if send_length else None)
-            connection = await self._connection(origin, timeouts.get("connect"))
+            connection = await self._send(
+                origin, head + body, request.method == "HEAD", timeouts.get("connect"), timeouts.get("read")
+            )
         except httpx.TransportError as exc:
             raise type(exc)(f"{where}: {exc}", request=request) from None
-        try:
-            await connection.send(head + body, request.method == "HEAD", timeouts.get("read"))
-        except BaseException as exc:
-            self.release(connection)
-            if isinstance(exc, httpx.TransportError):
-                raise type(exc)(f"{where}: {exc}", request=request) from None
-            raise
         return httpx.Response(
             connection.status,
             headers=connection.headers,
@@ -429,9 +485,9 @@ class HttptoolsTransport(httpx.AsyncBaseTransport):
             httpx.UnsupportedProtocol: as the module's text says.
         """
         origin, head = self._cached_head(method, url, headers)
-        connection = await self._connection(origin, None)
+        data = b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body)
+        connection = await self._send(origin, data, method == "HEAD", None, None)
         try:
-            await connection.send(b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body), method == "HEAD", None)
             reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
             while True:
                 for piece in connection.take():
