@@ -167,10 +167,10 @@ def test_an_unauthenticated_body_is_refused_before_it_is_read(pod):
     assert signed.status_code == 413
 
 
-def test_pod_counts_refused_requests_by_kind(pod):
+def test_pod_counts_refused_requests_by_reason(pod):
     def refused() -> float:
         text = httpx.get(f"{pod.url}/metrics", timeout=10).text
-        match = re.search(r'^vecsim_pod_errors_total\{kind="unauthorized"\} (\S+)$', text, re.M)
+        match = re.search(r'^vecsim_pod_refused_requests_total\{reason="unauthorized"\} (\S+)$', text, re.M)
         return float(match.group(1)) if match else 0.0
 
     before = refused()

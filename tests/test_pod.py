@@ -354,13 +354,13 @@ def test_metrics_count_env_steps_resets_and_latency(pods: tuple[Pod, Pod]) -> No
     assert pod_a.metric("vecsim_pod_envs") == NUM_ENVS
 
 
-def test_metrics_count_refused_requests_by_kind(pods: tuple[Pod, Pod]) -> None:
+def test_metrics_count_refused_requests_by_reason(pods: tuple[Pod, Pod]) -> None:
     pod_a, _ = pods
-    labels = {"kind": "stale_generation"}
-    before = pod_a.metric("vecsim_pod_errors_total", labels)
+    labels = {"reason": "stale_generation"}
+    before = pod_a.metric("vecsim_pod_refused_requests_total", labels)
     stale = {"generation": pod_a.generation + 1, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}
     assert pod_a.post("step", stale, send="json").status_code == 409
-    assert pod_a.metric("vecsim_pod_errors_total", labels) == before + 1
+    assert pod_a.metric("vecsim_pod_refused_requests_total", labels) == before + 1
 
 
 # --- bad input: the right 4xx, and every env exactly as it was --------------------------------

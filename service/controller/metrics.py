@@ -9,6 +9,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from ..metrics import refused_requests
+
 
 @dataclass(frozen=True)
 class Gauges:
@@ -72,12 +74,7 @@ class ControllerMetrics:
         self.pushes = Counter(
             "vecsim_controller_pushes", "Assignment pushes by result.", ["result"], registry=self.registry
         )
-        self.refused = Counter(
-            "vecsim_controller_refused_requests",
-            "Requests refused before any route saw them, by reason.",
-            ["reason"],
-            registry=self.registry,
-        )
+        self.refused = refused_requests(self.registry, "controller")
         self.reconcile_seconds = Histogram(
             "vecsim_controller_reconcile_seconds",
             "Duration of one reconcile pass, pushes included.",

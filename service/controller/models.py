@@ -6,19 +6,7 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 
-class Problem(BaseModel):
-    detail: str
-
-
 class JobProblems(BaseModel):
     detail: str
     problems: list[str] = Field(description="each thing to change for the job to be accepted")
 
-
-class Health(BaseModel):
-    status: str
-
-
-class Readiness(BaseModel):
-    status: str
-    generation: int

@@ -82,13 +82,13 @@ def create_app(settings: PodSettings) -> FastAPI:
 
     @app.exception_handler(PodError)
     async def _pod_error(request: Request, exc: PodError) -> JSONResponse:
-        state.metrics.errors.labels(exc.kind).inc()
+        state.metrics.refused.labels(reason=exc.kind).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, exc.status_code, exc.detail)
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
 
     async def _library_error(request: Request, exc: Exception) -> JSONResponse:
         status, kind = next(answer for cls, answer in LIBRARY_ERRORS.items() if isinstance(exc, cls))
-        state.metrics.errors.labels(kind).inc()
+        state.metrics.refused.labels(reason=kind).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, status, exc)
         return JSONResponse({"detail": str(exc)}, status_code=status)
 
@@ -102,7 +102,7 @@ def create_app(settings: PodSettings) -> FastAPI:
     app.add_middleware(
         BodyLimitMiddleware,
         limit=settings.max_body_bytes,
-        on_refused=state.metrics.errors.labels("body_too_large").inc,
+        on_refused=state.metrics.refused.labels(reason="body_too_large").inc,
         server=f"pod {settings.name}",
     )
     # Added last, so it runs first: a request without the token is refused before its body is read.
@@ -110,7 +110,7 @@ def create_app(settings: PodSettings) -> FastAPI:
         BearerTokenMiddleware,
         token=settings.token,
         server=f"pod {settings.name}",
-        on_refused=state.metrics.errors.labels("unauthorized").inc,
+        on_refused=state.metrics.refused.labels(reason="unauthorized").inc,
     )
     for router in (health.router, info.router, assignment.router, envs.router, metrics.router):
         app.include_router(router)

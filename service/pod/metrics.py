@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
+from ..metrics import refused_requests
+
 
 class PodMetrics:
     """Counters, gauges and the step latency histogram of one pod app."""
@@ -42,6 +44,4 @@ class PodMetrics:
         )
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
         self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
-        self.errors = Counter(
-            "vecsim_pod_errors", "Requests refused or failed, by kind.", ["kind"], registry=self.registry,
-        )
+        self.refused = refused_requests(self.registry, "pod")

@@ -262,16 +262,3 @@ class AssignmentResponse(BaseModel):
     generation: int
     rebuilt: bool
 
-
-class HealthResponse(BaseModel):
-    status: str
-
-
-class ReadyResponse(BaseModel):
-    status: str
-    generation: int | None
-    num_envs: int
-
-
-class ErrorResponse(BaseModel):
-    detail: str

@@ -7,7 +7,7 @@ from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from ..deps import get_state
-from ..models import Health, Problem, Readiness
+from ...models import Health, Problem, Readiness
 from ..state import ControllerState
 
 router = APIRouter(tags=["health"])
@@ -22,6 +22,7 @@ async def healthz() -> Health:
 @router.get(
     "/readyz",
     response_model=Readiness,
+    response_model_exclude_none=True,  # a pod's num_envs: the controller runs no envs
     responses={503: {"model": Problem, "description": "why the job is not ready"}},
     summary="Readiness of the job",
 )

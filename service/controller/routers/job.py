@@ -11,7 +11,8 @@ from vecsim.config import JobSpec
 
 from ..deps import get_state
 from ..jobs import check_job
-from ..models import JobProblems, Problem
+from ...models import Problem
+from ..models import JobProblems
 from ..state import ControllerState
 
 router = APIRouter(prefix="/v1/job", tags=["job"])

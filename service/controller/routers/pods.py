@@ -9,7 +9,7 @@ from service.contract import Heartbeat, HeartbeatAnswer
 from vecsim.config import POD_NAME_PATTERN, PodRecord, PodRegistration
 
 from ..deps import get_state
-from ..models import Problem
+from ...models import Problem
 from ..state import ControllerState, PodUrlConflictError, UnknownPodError
 
 router = APIRouter(prefix="/v1/pods", tags=["pods"])

@@ -8,7 +8,7 @@ from fastapi.responses import JSONResponse
 from vecsim.config import RoutingTable
 
 from ..deps import get_state
-from ..models import Problem
+from ...models import Problem
 from ..state import ControllerState, NoJobError, NoPlanError
 
 router = APIRouter(prefix="/v1/routing", tags=["routing"])

@@ -7,7 +7,8 @@ from fastapi import APIRouter, Depends
 from vecsim.config import Assignment
 
 from ..deps import get_state
-from ..models import AssignmentResponse, ErrorResponse
+from ...models import Problem
+from ..models import AssignmentResponse
 from ..state import PodState
 
 router = APIRouter(tags=["assignment"])
@@ -17,8 +18,8 @@ router = APIRouter(tags=["assignment"])
     "/v1/assignment",
     response_model=AssignmentResponse,
     responses={
-        409: {"model": ErrorResponse, "description": "older generation, or same generation with other content"},
-        422: {"model": ErrorResponse, "description": "another pod's assignment, too many envs, unknown task"},
+        409: {"model": Problem, "description": "older generation, or same generation with other content"},
+        422: {"model": Problem, "description": "another pod's assignment, too many envs, unknown task"},
     },
     summary="Take on an assignment; build its envs in the background",
 )

@@ -17,13 +17,13 @@ from vecsim.info import batch_infos
 from vecsim.sim import InvalidRequestError
 from vecsim.spaces import tuples_as_dicts
 
+from ...models import Problem
 from ..bodies import JSON_TYPE, encode_answer, parse_body, wants_json
 from ..deps import get_state
 from ..models import (
     AttrRequest,
     AttrResponse,
     ChunkStepResponse,
-    ErrorResponse,
     ResetRequest,
     ResetResponse,
     StepRequest,
@@ -35,13 +35,13 @@ router = APIRouter(tags=["envs"])
 T = TypeVar("T")
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorResponse, "description": "body is not valid JSON or wire"},
-    404: {"model": ErrorResponse, "description": "unknown env id"},
-    409: {"model": ErrorResponse, "description": "generation is not the pod's"},
-    413: {"model": ErrorResponse, "description": "body over the pod's limit"},
-    415: {"model": ErrorResponse, "description": "Content-Type neither JSON nor wire"},
-    422: {"model": ErrorResponse, "description": "wrong field, shape, dtype, NaN/inf, duplicate env"},
-    503: {"model": ErrorResponse, "description": "envs not built, rebuilding, or crashed"},
+    400: {"model": Problem, "description": "body is not valid JSON or wire"},
+    404: {"model": Problem, "description": "unknown env id"},
+    409: {"model": Problem, "description": "generation is not the pod's"},
+    413: {"model": Problem, "description": "body over the pod's limit"},
+    415: {"model": Problem, "description": "Content-Type neither JSON nor wire"},
+    422: {"model": Problem, "description": "wrong field, shape, dtype, NaN/inf, duplicate env"},
+    503: {"model": Problem, "description": "envs not built, rebuilding, or crashed"},
 }
 
 
