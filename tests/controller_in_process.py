@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import httpx
 
 from service.controller import ControllerSettings, create_app
-from service.controller.reconcile import PushAssignment, Reconciler
+from service.controller.reconcile import PushAssignment
+from service.controller.reconciler import Reconciler
 from service.controller.state import ControllerState
 from vecsim.config import Assignment
 

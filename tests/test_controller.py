@@ -18,10 +18,10 @@ from service.controller.reconcile import (
     Observed,
     ObservedPod,
     PushAssignment,
-    Reconciler,
     reconcile,
     safe_generation,
 )
+from service.controller.reconciler import Reconciler
 from vecsim.config import Assignment, JobSpec, TaskBlock
 from vecsim.plan import plan
 

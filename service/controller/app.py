@@ -19,7 +19,7 @@ from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, docume
 from vecsim.transport import make_async_client
 
 from .jobs import check_job
-from .reconcile import Reconciler
+from .reconciler import Reconciler
 from .routers import health, job, pods, routing
 from .settings import ControllerSettings
 from .state import ControllerState
