@@ -101,14 +101,10 @@ class TaskBlock(_Model):
     num_envs: int = Field(ge=0)
 
 
-class Assignment(_Model):
-    """What the controller tells one pod to run (``PUT /v1/assignment``)."""
+class EnvSettings(_Model):
+    """How envs are built and served, set once in the job and carried to every pod in its
+    assignment: the fields :class:`JobSpec` and :class:`Assignment` share."""
 
-    generation: int = Field(ge=0)
-    job_id: str = "default"
-    pod: str
-    stage_id: int = Field(ge=0)
-    tasks: tuple[TaskBlock, ...] = ()
     camera: CameraConfig = CameraConfig()
     render: RenderPreset | None = Field(None, description=RENDER_DOC)
     seed: int = 0
@@ -118,6 +114,16 @@ class Assignment(_Model):
     make_kwargs: dict[str, dict[str, Any]] = Field(default_factory=dict, description=MAKE_KWARGS_DOC)
 
     _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
+
+
+class Assignment(EnvSettings):
+    """What the controller tells one pod to run (``PUT /v1/assignment``)."""
+
+    generation: int = Field(ge=0)
+    job_id: str = "default"
+    pod: str
+    stage_id: int = Field(ge=0)
+    tasks: tuple[TaskBlock, ...] = ()
 
     @model_validator(mode="after")
     def _blocks_are_contiguous(self) -> "Assignment":
@@ -142,7 +148,7 @@ class Assignment(_Model):
         return self.model_dump(exclude={"generation"}) == other.model_dump(exclude={"generation"})
 
 
-class JobSpec(_Model):
+class JobSpec(EnvSettings):
     """The desired job (``PUT /v1/job``): what to simulate, over how many stages and pods."""
 
     job_id: str = "default"
@@ -151,15 +157,6 @@ class JobSpec(_Model):
     group_size: int = Field(4, ge=0, description="envs per task per stage")
     num_stages: int = Field(2, ge=1)
     pods_per_stage: int = Field(1, ge=1)
-    camera: CameraConfig = CameraConfig()
-    render: RenderPreset | None = Field(None, description=RENDER_DOC)
-    seed: int = 0
-    envs_per_worker: int = Field(AUTO_ENVS_PER_WORKER, ge=0, le=256, description=ENVS_PER_WORKER_DOC)
-    max_episode_steps: int | None = Field(None, ge=1, description=MAX_EPISODE_STEPS_DOC)
-    libero: LiberoProtocol = LiberoProtocol()
-    make_kwargs: dict[str, dict[str, Any]] = Field(default_factory=dict, description=MAKE_KWARGS_DOC)
-
-    _auto_envs_per_worker = field_validator("envs_per_worker", mode="before")(_auto_to_zero)
 
     @model_validator(mode="after")
     def _suite_or_tasks(self) -> "JobSpec":

@@ -19,7 +19,7 @@ import re
 from collections.abc import Collection, Container, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
-from vecsim.config import Assignment, JobSpec, PodRecord, RoutedPod, RoutedStage, RoutingTable, TaskBlock
+from vecsim.config import Assignment, EnvSettings, JobSpec, PodRecord, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
 def stage_of(i: int, num_stages: int) -> int:
     """Return the pipeline stage of request ``i`` of a batch: ``i % num_stages``.
@@ -144,20 +144,9 @@ class Plan:
 
 
 def _assignment(job: JobSpec, generation: int, pod: str, stage_id: int, tasks: tuple[TaskBlock, ...]) -> Assignment:
-    return Assignment(
-        generation=generation,
-        job_id=job.job_id,
-        pod=pod,
-        stage_id=stage_id,
-        tasks=tasks,
-        camera=job.camera,
-        render=job.render,
-        seed=job.seed,
-        envs_per_worker=job.envs_per_worker,
-        max_episode_steps=job.max_episode_steps,
-        libero=job.libero,
-        make_kwargs={task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}},
-    )
+    settings = {name: getattr(job, name) for name in EnvSettings.model_fields}
+    settings["make_kwargs"] = {task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}}
+    return Assignment(generation=generation, job_id=job.job_id, pod=pod, stage_id=stage_id, tasks=tasks, **settings)
 
 
 def split_tasks(tasks: Sequence[str], parts: int) -> list[tuple[str, ...]]:
