@@ -59,7 +59,7 @@ from common import write_result
 
 from vecsim.auth import bearer_headers
 from vecsim.tasks import suite_tasks
-from vecsim.transport import AiohttpTransport, make_async_client
+from vecsim.transport import HttpxTransport, make_async_client
 
 log = logging.getLogger("bench.control_plane")
 
@@ -160,7 +160,8 @@ class Fleet:
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
-        self._client = make_async_client(AiohttpTransport(max_connections=256), timeout=30.0, headers=self.headers)
+        pods_transport = HttpxTransport(httpx.AsyncHTTPTransport(limits=httpx.Limits(max_connections=256), trust_env=False))
+        self._client = make_async_client(pods_transport, timeout=30.0, headers=self.headers)
         await asyncio.gather(*(self._register(pod) for pod in self.pods.values()))
         interval = self.timing.heartbeat_interval_s
         for i, pod in enumerate(self.pods.values()):

@@ -391,8 +391,6 @@ def _instrument_client(timers: Timers) -> None:
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
     timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
     timers.wrap(transport.HttptoolsTransport, "fetch", "client.HttptoolsTransport.fetch (request out, answer in, read under the cap)")
-    timers.wrap(transport.AiohttpTransport, "handle_async_request", "client.AiohttpTransport.handle_async_request (request out, answer's head in)")
-    timers.wrap(transport, "read_answer", "client.read_answer (the answer's body)")
     timers.wrap(wire, "encode", "client.wire.encode")
     timers.wrap(wire, "decode", "client.wire.decode")
     timers.wrap(calls, "fill_batch", "client.fill_batch (answer into batch)")

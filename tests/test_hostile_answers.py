@@ -282,7 +282,7 @@ def test_an_info_answer_that_is_not_a_pods_is_a_value_error_naming_the_url(info)
     assert server.url in str(caught.value)
 
 
-@pytest.mark.parametrize("kind", ["httptools", "aiohttp", "httpx"])
+@pytest.mark.parametrize("kind", ["httptools", "httpx"])
 def test_a_pod_that_sets_a_cookie_gets_none_back_and_each_call_carries_its_own_headers(kind):
     """A pod's answers plant nothing in the client: a ``Set-Cookie`` is not sent back on the
     next call. Every step carries the wire's content type, the token and the encodings the

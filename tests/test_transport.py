@@ -29,18 +29,20 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response, Streami
 from service_procs import AppThread, loopback_socket, raw_server, wait_until
 
 from vecsim import wire
-from vecsim.http1 import MAX_HEAD_BYTES, HttptoolsTransport
 from vecsim.transport import (
     DEFAULT_KIND,
+    MAX_HEAD_BYTES,
     AnswerTooLargeError,
-    exchange,
-    fetch,
+    HttptoolsTransport,
+    HttpxTransport,
+    Transport,
+    as_transport,
     make_async_client,
     make_transport,
     read_answer,
 )
 
-KINDS = ["httptools", "aiohttp", "httpx"]
+KINDS = ["httptools", "httpx"]
 T = TypeVar("T")
 
 
@@ -339,17 +341,16 @@ def test_an_answer_that_stalls_between_reads_raises_read_timeout(server: str, ki
 
 
 def read_with(kind: str, url: str, max_bytes: int) -> bytes:
-    """GET ``url`` as the client asks a pod (``fetch``: straight to a transport of ``kind``, the
-    answer read under ``max_bytes``: httptools' own lean path, the others' through ``exchange``
-    and ``read_answer``; ``httptools/exchange``: httptools through ``exchange`` too); return the
-    body of a 200."""
+    """GET ``url`` as the client asks a pod (``Transport.fetch`` of a transport of ``kind``, the
+    answer read under ``max_bytes``; ``httptools/httpx``: httptools' connections reached through
+    httpx's interface, as ``HttpxTransport`` wraps any httpx transport); return the body of a 200."""
+
+    def transport_of(kind: str) -> Transport:
+        return HttpxTransport(HttptoolsTransport()) if kind == "httptools/httpx" else make_transport(kind)  # type: ignore[arg-type]
 
     async def main() -> bytes:
-        async with make_transport(kind.split("/")[0]) as transport:  # type: ignore[arg-type]
-            if kind.endswith("/exchange"):
-                status, body = await exchange(transport, httpx.Request("GET", url), max_bytes)
-            else:
-                status, body = await fetch(transport, "GET", url, (), b"", max_bytes)
+        async with transport_of(kind) as transport:
+            status, body = await transport.fetch("GET", url, (), b"", max_bytes)
         assert status == 200
         return body
 
@@ -357,7 +358,7 @@ def read_with(kind: str, url: str, max_bytes: int) -> bytes:
 
 
 # Each way an answer is read under a cap: every kind's, and httptools' through httpx's interface.
-READ_KINDS = [*KINDS, "httptools/exchange"]
+READ_KINDS = [*KINDS, "httptools/httpx"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -457,7 +458,7 @@ def fetch_with(url: str, method: str = "GET", headers: tuple[tuple[str, str], ..
 
     async def main() -> list[tuple[int, bytes]]:
         async with make_transport("httptools") as transport:
-            return [await fetch(transport, method, url, headers, body, 64 << 20) for _ in range(times)]
+            return [await transport.fetch(method, url, headers, body, 64 << 20) for _ in range(times)]
 
     return asyncio.run(main())
 
@@ -626,7 +627,7 @@ def test_idle_connections_beyond_the_bound_are_closed_as_they_come_back() -> Non
         async def main() -> None:
             async with HttptoolsTransport(max_idle_per_origin=2) as transport:
                 url = f"{served.url}/peer?together=6"
-                answers = await asyncio.gather(*(fetch(transport, "GET", url, (), b"", 1 << 20) for _ in range(6)))
+                answers = await asyncio.gather(*(transport.fetch("GET", url, (), b"", 1 << 20) for _ in range(6)))
                 assert len({body for _, body in answers}) == 6  # six connections at once
                 await asyncio.to_thread(wait_until, lambda: served.connections() == 2, "4 of 6 connections closed", 10)
 
@@ -661,10 +662,40 @@ def test_an_https_pod_is_reached_over_tls_with_its_certificate_checked(tls_serve
     async def main(context: ssl.SSLContext | None) -> tuple[int, bytes]:
         transport = HttptoolsTransport(ssl_context=context)
         try:
-            return await fetch(transport, "GET", f"{url}/bytes/70000", (), b"", 1 << 20)
+            return await transport.fetch("GET", f"{url}/bytes/70000", (), b"", 1 << 20)
         finally:
             await transport.aclose()
 
     assert asyncio.run(main(ssl.create_default_context(cafile=str(cert)))) == (200, pattern(70_000))
     with pytest.raises(httpx.ConnectError, match="CERTIFICATE_VERIFY_FAILED"):
         asyncio.run(main(None))  # the system's trust store does not know this certificate
+
+
+# ------------------------------------------------------------------------------ the seam
+
+
+def test_every_kind_is_a_transport_with_fetch() -> None:
+    for kind in KINDS:
+        assert isinstance(make_transport(kind), Transport)  # type: ignore[arg-type]
+
+
+def test_a_plain_httpx_transport_is_wrapped_and_a_transport_kept_as_it_is() -> None:
+    asgi = httpx.ASGITransport(app)
+    wrapped = as_transport(asgi)
+    assert isinstance(wrapped, HttpxTransport) and wrapped.wrapped is asgi
+    ours = HttptoolsTransport()
+    assert as_transport(ours) is ours
+    assert isinstance(as_transport(None), HttptoolsTransport)
+
+
+def test_something_that_is_no_transport_is_refused_naming_its_type() -> None:
+    with pytest.raises(TypeError, match="got str"):
+        as_transport("http://127.0.0.1:8100")  # type: ignore[arg-type]
+
+
+def test_an_in_process_pod_is_fetched_through_the_same_interface() -> None:
+    async def main() -> tuple[int, bytes]:
+        async with as_transport(httpx.ASGITransport(app)) as transport:
+            return await transport.fetch("GET", "http://pod/bytes/70000", (), b"", 1 << 20)
+
+    assert asyncio.run(main()) == (200, pattern(70_000))

@@ -1,4 +1,4 @@
-"""How the client reaches pods: one httpx transport, on one background event loop.
+"""How the client reaches pods: one transport, on one background event loop.
 
 The client code above this module sees three calls per pod (``info``, ``reset``, ``step``) and
 three outcomes besides an answer: :class:`~vecsim.client.errors.PodUnavailableError` (no usable
@@ -27,7 +27,7 @@ import vecsim
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
-from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, fetch
+from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, Transport
 
 logger = logging.getLogger(__name__)
 
@@ -158,8 +158,8 @@ _BASE_HEADERS = {"Accept-Encoding": "gzip, deflate", "User-Agent": f"vecsim/{vec
 class PodConnection:
     """One pod's data plane: ``POST /v1/reset``, ``POST /v1/step`` in wire format, ``GET /v1/info``.
 
-    Lives on the client's event loop and hands each request straight to ``transport`` (any
-    ``httpx.AsyncBaseTransport``, shared by all pods; :func:`vecsim.transport.fetch`), its URLs
+    Lives on the client's event loop and hands each request straight to ``transport`` (a
+    :class:`vecsim.transport.Transport`, shared by all pods: its ``fetch``), its URLs
     and headers built once per pod. Every call, answer included, is bounded by
     ``timeout_s`` as a whole, and an answer by ``max_answer_bytes`` (the client sets it from the
     job's spaces). Resets and steps carry the job's ``token`` (``Authorization: Bearer``) when one
@@ -170,7 +170,7 @@ class PodConnection:
         self,
         name: str,
         url: str,
-        transport: httpx.AsyncBaseTransport,
+        transport: Transport,
         timeout_s: float,
         token: str | None = None,
         max_answer_bytes: int = DEFAULT_MAX_ANSWER_BYTES,
@@ -213,7 +213,7 @@ class PodConnection:
             # asyncio.timeout, not wait_for: wait_for wraps every request in a task of its own.
             async with asyncio.timeout(self.timeout_s):
                 max_bytes = self.max_answer_bytes + extra_answer_bytes
-                return await fetch(self._transport, method, self.url + path, headers, body, max_bytes)
+                return await self._transport.fetch(method, self.url + path, headers, body, max_bytes)
         except TimeoutError:
             reason = f"{method} {path} at {self.url}: TimeoutError: no answer within {self.timeout_s} s"
             raise PodUnavailableError({self.name: held}, reason) from None

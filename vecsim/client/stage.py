@@ -62,7 +62,7 @@ from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import get_answer, make_async_client, make_transport
+from vecsim.transport import as_transport, get_answer, make_async_client
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +97,9 @@ class StageClient:
     re-read after a pod answers 409 (stale generation) and before each new batch is placed.
     ``timeout_s`` bounds every HTTP request as a whole, answer included: a pod that does not
     answer within it raises :class:`PodUnavailableError`. ``transport`` is how bytes reach the
-    pods (and the controller, for those re-reads), any ``httpx.AsyncBaseTransport``
-    (``httpx.ASGITransport(app)`` runs a pod in-process); left out,
+    pods (and the controller, for those re-reads): a :class:`vecsim.transport.Transport`, or
+    any ``httpx.AsyncBaseTransport`` (``httpx.ASGITransport(app)`` runs a pod in-process),
+    which the client wraps as :func:`vecsim.transport.as_transport` does; left out,
     ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
     caps one pod's answer; left out, each pod's cap follows from the job's observation space
     and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
@@ -124,7 +125,7 @@ class StageClient:
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
-        self._transport = transport if transport is not None else make_transport()
+        self._transport = as_transport(transport)
         self._http: httpx.AsyncClient | None = None  # over the transport: the routing re-reads only
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}

@@ -1,10 +1,8 @@
-"""An HTTP/1.1 client transport on httptools (llhttp, the parser under uvicorn), for pods' answers.
-
-:class:`HttptoolsTransport` is an ``httpx.AsyncBaseTransport`` like any other, and it also has a
-lean path, :meth:`HttptoolsTransport.fetch`, that sends a request given as plain values and gives
-back the status and the decoded body under a size cap, with no httpx objects made on the way:
-``vecsim.transport.fetch`` takes it for the client's calls to pods. Measured against the
-other kinds on answers of a pod's size, it is what makes it the default (docs/benchmarks.md).
+"""The default :class:`~vecsim.transport.Transport`: HTTP/1.1 on httptools (llhttp, the parser
+under uvicorn). Its :meth:`HttptoolsTransport.fetch` sends a request given as plain values and
+gives back the status and the decoded body under a size cap, with no httpx objects made on the
+way; it also serves httpx's interface (``handle_async_request``) for the control plane's
+``httpx.AsyncClient``. Why it is the default, measured: docs/api.md ("Transport").
 
 What is vecsim's here and what is not: llhttp parses every byte that arrives (status line,
 headers, Content-Length, chunked framing) and raises on anything malformed; this module writes
@@ -30,14 +28,11 @@ from collections.abc import AsyncIterator, Iterable, Sequence
 import httptools
 import httpx
 
-from vecsim.answers import AnswerReader
+from .answers import AnswerReader
+from .base import KEEPALIVE_S, Transport
 
-__all__ = ["HttptoolsTransport"]
+__all__ = ["MAX_HEAD_BYTES", "HttptoolsTransport"]
 
-# Idle connections are dropped before uvicorn's keep-alive timeout would close them under us
-# (the pod's default is 5 s); a pod set lower can still close one as a request goes out on it,
-# which is why a reused connection that ends before any byte of its answer is tried once anew.
-KEEPALIVE_S = 4.0
 # An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
 # and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
 MAX_HEAD_BYTES = 64 << 10
@@ -303,7 +298,7 @@ class _Body(httpx.AsyncByteStream):
         self._release()
 
 
-class HttptoolsTransport(httpx.AsyncBaseTransport):
+class HttptoolsTransport(Transport):
     """HTTP/1.1 over asyncio connections, answers parsed by httptools; see the module's text.
 
     uvicorn speaks HTTP/1.1 only, so each request in flight holds a connection of its own;

@@ -1,18 +1,35 @@
-"""Reading an answer's body under a size cap, whatever carried it (``vecsim.transport``'s
-transports and readers, ``vecsim.http1``'s lean path): the checks of its headers, its pieces
-counted as they arrive, a gzip or deflate Content-Encoding decoded once, a bounded piece at a
-time. Sans I/O: the callers feed it the pieces they receive.
+"""Reading an answer's body under a size cap, whatever carried it: the checks of its headers,
+its pieces counted as they arrive, a gzip or deflate Content-Encoding decoded once, a bounded
+piece at a time (:class:`AnswerReader`, sans I/O: the callers feed it the pieces they receive),
+and the control plane's readers over httpx (:func:`read_answer`, :func:`send_capped`,
+:func:`get_answer`: the controller's routing table and pushes, a pod's ``/v1/info``).
 """
 
 from __future__ import annotations
 
+import asyncio
+import time
 import zlib
 from collections.abc import Iterator
 from typing import Any
 
 import httpx
 
-__all__ = ["AnswerReader", "AnswerTooLargeError"]
+__all__ = [
+    "DEFAULT_MAX_ANSWER_BYTES",
+    "MAX_CONTROL_ANSWER_BYTES",
+    "AnswerReader",
+    "AnswerTooLargeError",
+    "get_answer",
+    "read_answer",
+    "send_capped",
+]
+
+# The cap on one answer when nothing better is known (before a job's spaces are read).
+DEFAULT_MAX_ANSWER_BYTES = 64 << 20
+# The cap on a JSON answer of the control plane (a routing table, a pod's /v1/info): a job of
+# thousands of pods and tasks stays far below it.
+MAX_CONTROL_ANSWER_BYTES = 16 << 20
 
 # Decoded output per step of a Content-Encoding: a piece the event loop can afford between yields.
 _DECODE_STEP = 1 << 20
@@ -115,3 +132,87 @@ class AnswerReader:
                 raise self._too_large("decoded answer")
             self._pieces.append(rest)
         return b"".join(self._pieces)
+
+
+async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
+    """Read a streamed response's body, decoded, refusing more than ``max_bytes`` of it.
+
+    The body is read raw (``aiter_raw``) and a gzip or deflate Content-Encoding decoded here,
+    once, at most a MiB per step with the event loop free between steps. The response is closed
+    on return or error.
+
+    Returns:
+        the decoded body.
+
+    Raises:
+        AnswerTooLargeError: Content-Length, the bytes received or the decoded bytes exceed
+            ``max_bytes``.
+        httpx.DecodingError: an unreadable Content-Length, an unsupported or corrupt encoding.
+        httpx.HTTPError: what the transport met while receiving.
+    """
+    try:
+        reader = AnswerReader.of(response, max_bytes)
+        async for piece in response.aiter_raw():
+            for _ in reader.feed(piece):
+                await asyncio.sleep(0)
+        return reader.finish()
+    finally:
+        await response.aclose()
+
+
+# What no longer holds of an answer once its body is read and decoded: how it travelled.
+_TRAVEL_HEADERS = frozenset({"content-encoding", "content-length", "transfer-encoding"})
+
+
+async def send_capped(http: httpx.AsyncClient, request: httpx.Request, max_bytes: int) -> httpx.Response:
+    """Send ``request`` through ``http`` and read the answer whole under the cap ``max_bytes``, as
+    :func:`read_answer` does: how the client reads the controller's answer and the controller a
+    pod's (the client reaches pods through a transport's ``fetch``). Callers bound the whole exchange with ``asyncio.timeout``.
+
+    Returns:
+        the response, its body read and decoded (no Content-Encoding left to decode).
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.HTTPError: what the transport met while sending or receiving.
+    """
+    response = await http.send(request, stream=True)
+    return _with_body(response, await read_answer(response, max_bytes))
+
+
+def _with_body(response: httpx.Response, content: bytes) -> httpx.Response:
+    """``response`` carrying ``content``, its body as read and decoded, without the headers of
+    how it travelled (encoding, length, chunking)."""
+    headers = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in _TRAVEL_HEADERS]
+    return httpx.Response(response.status_code, headers=headers, content=content, request=response.request)
+
+
+def get_answer(
+    url: str, *, timeout_s: float, max_bytes: int = MAX_CONTROL_ANSWER_BYTES, headers: dict[str, str] | None = None
+) -> httpx.Response:
+    """``GET url`` from a blocking caller (the controller's routing table, a pod's ``/v1/info``),
+    read whole under the cap ``max_bytes`` like :func:`send_capped`, within ``timeout_s`` in all.
+
+    Returns:
+        the response, its body read and decoded (no Content-Encoding left to decode).
+
+    Raises:
+        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
+        httpx.TimeoutException: no whole answer within ``timeout_s``.
+        httpx.HTTPError: what the transport met.
+    """
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(timeout=timeout_s, trust_env=False) as http:
+        request = http.build_request("GET", url, headers=headers)
+        response = http.send(request, stream=True)
+        try:
+            reader = AnswerReader.of(response, max_bytes)
+            for piece in response.iter_raw():
+                for _ in reader.feed(piece):
+                    pass
+                if time.monotonic() > deadline:
+                    raise httpx.ReadTimeout(f"{url}: no whole answer within {timeout_s} s", request=request)
+            content = reader.finish()
+        finally:
+            response.close()
+    return _with_body(response, content)
