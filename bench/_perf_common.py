@@ -1,4 +1,4 @@
-"""Helpers of the serving benchmarks (3-7): interleaved rounds, paired ratios, memory of process
+"""Helpers of the serving benchmarks: interleaved rounds, paired ratios, memory of process
 trees, and a bounded wait for a quiet machine.
 
 Pods, controllers and whole jobs on free loopback ports are started by the tests' helpers

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Re-run the seven benchmarks of docs/benchmarks.md's table, one after another, from the
+# Re-run the dev machine's benchmarks of docs/benchmarks.md's table, one after another, from the
 # repository root, in the project's venv (set up by scripts/setup.sh). Each writes its record to
 # out/bench/<name>.json; this prints each one's RESULT line, exit status and the load it met.
 set -u

@@ -1,4 +1,4 @@
-"""The serving benchmarks (3-7 of docs/benchmarks.md) keep working: each runs with ``--quick``
+"""The serving benchmarks of docs/benchmarks.md keep working: each runs with ``--quick``
 and prints one ``RESULT {json}`` line with the fields the benchmark table is built from.
 
 Each benchmark runs as a real script, as a person would run it, from a copy of ``bench/`` in a

@@ -58,7 +58,7 @@ def steps_on_event_loop(assignment: Assignment) -> bool:
     ``vecsim.sim.resolve_envs_per_worker`` calls them.
 
     A call of cheap scenes takes the workers a millisecond or two, and the hand-over to the worker
-    thread and back about 0.2 ms of it (docs/benchmarks.md, the per-call budget); blocking the loop
+    thread and back about 0.2 ms of it; blocking the loop
     for that long delays a health check no more than a busy loop would. Robot scenes and cameras
     take tens to hundreds of milliseconds a call, so they stay on the worker thread. A worker
     that hangs holds the loop with it, up to the pod's step timeout: health checks and heartbeats
