@@ -6,9 +6,13 @@ and on the tiny suite with 8x8 cameras; every answer is compared with one env pe
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -221,7 +225,7 @@ def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
     spec = _WorkerSpec(("tiny/lift", "tiny/stack"), (0, 1), 2, NO_CAMERA, "lean", 10, observation_space, action_space)
     worker = _Worker(spec)
     try:
-        assert worker.build() == 2
+        assert worker.build()["envs"] == 2
         assert mujoco.mj_getCacheSize(mujoco.mj_getCache()) == 0
         model = worker._envs[0].inner.sim.model._model
         with tempfile.TemporaryDirectory() as folder, pytest.raises(mujoco.FatalError, match="No XML model"):
@@ -238,3 +242,36 @@ def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> N
     assert resolve_envs_per_worker(six, cores=2) == 3
     assert resolve_envs_per_worker(six, cores=4) == 2
     assert resolve_envs_per_worker(six, cores=16) == 1
+
+
+WARM_PROBE = """
+import json, numpy as np
+from sim_envs import TINY_CAMERA, sim_assignment
+from vecsim.sim import _Worker, _WorkerSpec, assignment_spaces
+from vecsim.tasks import _fast_step
+assignment = sim_assignment([("tiny/lift", 2)], TINY_CAMERA)
+observation_space, action_space = assignment_spaces(assignment)
+worker = _Worker(_WorkerSpec(("tiny/lift", "tiny/lift"), (0, 1), 2, TINY_CAMERA, "lean", 10, observation_space, action_space))
+took = worker.build()
+compiled = bool(_fast_step._osc_kernel().osc_substep.signatures)
+env = worker._envs[0]
+after_build = env.inner.sim.get_state().flatten().tolist()
+worker._reset_env(0, 0)
+again = env.inner.sim.get_state().flatten().tolist()
+print(json.dumps({"took": took, "compiled": compiled, "same_state": after_build == again, "path": env.step_path}))
+worker.close()
+"""
+
+
+def test_the_build_warms_the_step_path_and_leaves_every_env_in_state_0() -> None:
+    # A fresh interpreter: nothing compiled or loaded before the build. After it, the compiled
+    # controller has run in this process (compiled, or loaded from numba's cache), and the env
+    # it stepped is back in state 0 exactly as a reset to state 0 leaves it.
+    tests = Path(__file__).parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, "-c", WARM_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True)
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["path"] == "exact"
+    assert report["compiled"] is True
+    assert report["same_state"] is True
+    assert set(report["took"]) == {"envs", "make", "reset", "warm", "render"} and report["took"]["envs"] == 2

@@ -306,8 +306,13 @@ class _Worker:
         self._infos: list[tuple[int, dict[str, Any]]] = []
         self._errors: list[tuple[int, str, str]] = []
 
-    def build(self) -> int:
-        """Make this worker's envs and reset each to state 0; return how many were made.
+    def build(self) -> dict[str, float]:
+        """Make this worker's envs, reset each to state 0, warm the step path and render them, so
+        that the first step a trainer sends costs what later ones do.
+
+        Returns:
+            how long each part took, in seconds (``make``, ``reset``, ``warm``, ``render``), and
+            ``envs``, how many envs were made.
 
         Raises:
             SimBuildError: an env could not be made or reset; the message names its task and env
@@ -315,6 +320,14 @@ class _Worker:
         """
         worker = self.worker
         local = 0
+        took: dict[str, float] = {}
+        clock = time.perf_counter()
+
+        def lap(part: str) -> None:
+            nonlocal clock
+            took[part] = time.perf_counter() - clock
+            clock = time.perf_counter()
+
         try:
             for local, task_id in enumerate(worker.task_ids):
                 steps = episode_limit(task_id, worker.max_episode_steps)
@@ -329,16 +342,33 @@ class _Worker:
                     )
             for env in self._envs:
                 env.defer_images = True
+            lap("make")
             for local in range(len(self._envs)):
                 self._reset_env(local, 0)
+            lap("reset")
+            local = self._warm_step_path()
+            lap("warm")
             local = -1
             self._render(list(range(len(self._envs))))
+            lap("render")
         except Exception as exc:
             failed = slice(None) if local < 0 else slice(local, local + 1)
             where = _describe(worker.task_ids[failed], worker.env_indices[failed])
             raise SimBuildError(f"{where}: {type(exc).__name__}: {exc}") from exc
         _release_compiler_memory()
-        return len(self._envs)
+        return {"envs": float(len(self._envs)), **took}
+
+    def _warm_step_path(self) -> int:
+        """Step the first env on the ``exact`` step path once and put it back in state 0: its
+        compiled controller is compiled (a fresh checkout: seconds) or loaded from numba's cache
+        here, not on the trainer's first step. The reset restores state 0 whole, so the env is
+        as the build left it. Returns the env's local index, or -1 when no env takes that path."""
+        for local, env in enumerate(self._envs):
+            if getattr(env, "step_path", None) == "exact":
+                env.step(np.zeros(env.action_space.shape, env.action_space.dtype))
+                self._reset_env(local, 0)
+                return local
+        return -1
 
     def _reset_env(
         self, local: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
@@ -900,7 +930,6 @@ class TaskGroupedVectorEnv:
             for worker in range(len(self._workers)):
                 self._pool.send(worker, "build")
             self._wait_for_build(started, build_timeout_s)
-            self._pool.receive(range(len(self._workers)), timeout_s=0)
         except SimBuildError:
             self._pool.close()
             raise
@@ -931,13 +960,18 @@ class TaskGroupedVectorEnv:
                 wait_s = min(wait_s, max(build_timeout_s - elapsed, 0.0))
             for pipe in multiprocessing.connection.wait(list(pending), timeout=wait_s):
                 pending.discard(pipe)
-                worker = self._workers[pipes[pipe]]
+                index = pipes[pipe]
+                took = self._pool.receive([index], timeout_s=None)[index]
                 log.info(
-                    "worker %d/%d ready: %s (%.1f s)",
-                    pipes[pipe] + 1,
+                    "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, step path warmed %.1f s, rendered %.1f s)",
+                    index + 1,
                     len(pipes),
-                    worker.describe(),
+                    self._workers[index].describe(),
                     time.monotonic() - started,
+                    took["make"],
+                    took["reset"],
+                    took["warm"],
+                    took["render"],
                 )
             if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
                 last_report = time.monotonic()
