@@ -58,7 +58,7 @@ class VecsimLiberoEnv:
 
     def __init__(self, cfg: Any, rank: int, world_size: int, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False) -> None:
         self.only_eval = bool(only_eval)
-        self.stage_num = int(stage_num)
+        self.stage_num = int(stage_num)  # verl-vla's name (vecsim's is num_stages), as its LiberoEnv keeps it
         self.global_process_id = int(rank) * self.stage_num + int(stage_id)
         super().__init__(cfg, rank, world_size, stage_id=stage_id)  # type: ignore[call-arg]
 
