@@ -48,7 +48,8 @@ def _get(cfg: Any, name: str, default: Any = None) -> Any:
 class VecsimLiberoEnv:
     """verl-vla's LIBERO env hooks over a vecsim job; put it before ``BaseEnv`` in the bases.
 
-    The constructor is verl-vla's ``LiberoEnv``'s (libero_env.py:260-275). This process's envs
+    The constructor is verl-vla's ``LiberoEnv``'s (libero_env.py:260-275), as its env manager
+    calls it (src/verl_vla/workers/env/env_manager.py:359-361). This process's envs
     are the job's envs ``[p * num_envs, (p + 1) * num_envs)`` with ``p = rank * stage_num +
     stage_id``, verl-vla's global process id (libero_env.py:272). ``cfg.simulator.vecsim`` names
     the job (``controller_url`` or ``pod_urls``; ``token``, ``timeout_s``, ``seed``).
