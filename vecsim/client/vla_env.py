@@ -13,9 +13,10 @@ itself a trainer's env class: the adapters in :mod:`vecsim.trainers` are, built 
 
 Each env's task is fixed by the job (``task_ids``, and ``task_indices``: the int index in its
 suite; a property, not a list made at construction, so that a job of tasks without an index, a
-gym id, still makes a VLAEnv and raises only when asked). State ids are per task; ``reset(global_state_ids=...)`` takes the trainers' suite-global
-ids (task ``t``'s rows after those of tasks ``0..t-1``, :class:`~vecsim.client.conventions.StateNumbering`)
-and refuses an id of another task than the env's. The policy's state vector is LIBERO's 8-float
+gym id, still makes a VLAEnv and raises only when asked). State ids are per task;
+``reset(global_state_ids=...)`` takes the trainers' suite-global ids (task ``t``'s rows after
+those of tasks ``0..t-1``, :class:`~vecsim.client.conventions.StateNumbering`) and refuses an id
+of another task than the env's. The policy's state vector is LIBERO's 8-float
 ``state`` where the job serves it (LIBERO tasks), else the robot's ``proprio``. Every action's
 termination and truncation is reported where it happened, also with ``auto_reset`` (RLinf moves
 them to the chunk's last column then).

@@ -57,7 +57,9 @@ class VecsimLiberoEnv:
 
     env_type = "libero"
 
-    def __init__(self, cfg: Any, rank: int, world_size: int, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False) -> None:
+    def __init__(
+        self, cfg: Any, rank: int, world_size: int, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False
+    ) -> None:
         self.only_eval = bool(only_eval)
         self.stage_num = int(stage_num)  # verl-vla's name (vecsim's is num_stages), as its LiberoEnv keeps it
         self.global_process_id = int(rank) * self.stage_num + int(stage_id)
@@ -150,7 +152,10 @@ class VecsimLiberoEnv:
         ids = self._local_ids(env_ids, "env_ids")
         action = _numpy(action)
         if action.shape != (ids.size, self.vla.action_dim):
-            raise ValueError(f"action must have shape [{ids.size}, {self.vla.action_dim}] for env_ids {ids.tolist()}, got {list(action.shape)}")
+            raise ValueError(
+                f"action must have shape [{ids.size}, {self.vla.action_dim}] for env_ids {ids.tolist()}, "
+                f"got {list(action.shape)}"
+            )
         obs, rewards, terminations, truncations, _ = self.vla.chunk_step(action[:, None, :], env_ids=self.job_env_ids[ids])
         return self._step_result(obs, ids, rewards[:, 0], terminations[:, 0], truncations[:, 0])
 
