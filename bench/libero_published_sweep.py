@@ -37,9 +37,21 @@ from libero_parity_sweep import CAMERAS, NO_OP, SETTLE_STEPS, _libero_frame, dif
 
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.tasks import get_task, make_env
-from vecsim.tasks._libero import _benchmark, ensure_config, init_states
+from vecsim.tasks._libero import _benchmark, _load_fixtures, ensure_config, fixtures_path, init_states
 
 log = logging.getLogger("bench.libero_published_sweep")
+
+
+class ReplayTimes(logging.Handler):
+    """Keeps the seconds of every replay vecsim logs ("replayed N LIBERO resets of T ... in S s")."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seconds: list[float] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.msg.startswith("replayed ") and record.args:
+            self.seconds.append(float(record.args[3]))
 
 RULES = ("published", "first_reset")
 
@@ -100,6 +112,8 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     os.environ["VECSIM_CACHE_DIR"] = args.cache_dir or tempfile.mkdtemp(prefix="vecsim-published-")
+    replays = ReplayTimes()
+    logging.getLogger("vecsim").addHandler(replays)
     ensure_config()
     episodes = sorted({int(k) for k in args.episodes.split(",")})
     actions = np.random.default_rng(13).uniform(-1.0, 1.0, (args.steps, 7)).astype(np.float32)
@@ -118,7 +132,13 @@ def main() -> None:
             seconds = round(time.perf_counter() - began, 2)
             key = f"{rule}_build_s" if f"{rule}_build_s" not in build else f"{rule}_cached_build_s"
             build[key] = seconds
+            if rule == "published" and replays.seconds and "replay_s" not in build:
+                build["replay_s"] = replays.seconds[-1]
             if key.endswith("cached_build_s"):
+                began = time.perf_counter()
+                loaded = _load_fixtures(fixtures_path(get_task(task_id), args.seed), len(env._fixtures), env.inner.sim.model.nbody)
+                build["cached_read_s"] = round(time.perf_counter() - began, 4)
+                assert loaded is not None, "the published fixtures were not cached"
                 env.close()  # built only to time the cached build
                 continue
             try:

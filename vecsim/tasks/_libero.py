@@ -20,6 +20,7 @@ import importlib.util
 import math
 import os
 import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -467,7 +468,7 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
             fixtures = _load_fixtures(path, task.num_states, model.nbody)
             if fixtures is not None:
                 return fixtures
-            log.info("replaying %d LIBERO resets of %s (seed %d) into %s", task.num_states, task.task_id, seed, path)
+            started = time.perf_counter()
             fixtures = [first]
             kept = len(inner.object_property_initializers)
             try:
@@ -479,6 +480,10 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
                 del inner.object_property_initializers[kept:]
                 model.body_pos[:], model.body_quat[:] = first.body_pos, first.body_quat
             _save_fixtures(path, fixtures)
+            log.info(
+                "replayed %d LIBERO resets of %s (seed %d) in %.2f s into %s",
+                task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
+            )  # fmt: skip
             return fixtures
 
 
