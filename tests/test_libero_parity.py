@@ -5,8 +5,10 @@ The oracle is the real ``libero`` package as published evaluations drive it: a f
 10 steps of ``[0, 0, 0, 0, 0, 0, -1]``, then the policy's actions; images as the evaluation
 scripts turn them (``raw[::-1, ::-1]``), the 8-float state as they build it. A fresh LIBERO env
 per init state, because LIBERO's hard resets move fixtures from one reset to the next
-(docs/libero.md). vecsim runs as a real pod process with the job config's defaults (no
-``render``, no ``max_episode_steps``, the default ``libero`` protocol).
+(docs/libero.md): what vecsim's ``fixture_rule: first_reset`` gives every state id (and its
+default ``published`` gives state 0). vecsim runs as a real pod process with the job config's
+defaults (no ``render``, no ``max_episode_steps``, the default ``libero`` protocol) but for that
+rule, which the published-loop test below checks at its default.
 
 One test per suite (``CASES``: two tasks, each from another init state) at 128x128, and one at
 256x256 (``CASES_256``). One more runs LIBERO in the published loop's own order (one env per
@@ -32,10 +34,10 @@ import httpx
 import mujoco
 import numpy as np
 import pytest
-from service_procs import PodSpec, assignment, standalone_pods
+from service_procs import assignment, standalone_pods
 
 from vecsim import wire
-from vecsim.config import CameraConfig
+from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.tasks import PROPRIO_KEYS, get_task, make_env
 from vecsim.tasks._libero import SETTLE_ACTION, _benchmark, ensure_config, init_states, quat_to_axis_angle
 
@@ -52,6 +54,8 @@ CASES: dict[str, tuple[tuple[str, int], ...]] = {
     "libero_10": (("libero_10/3", 25), ("libero_10/9", 49)),
     "libero_90": (("libero_90/5", 12), ("libero_90/40", 46)),
 }
+# What a freshly built LIBERO env per init state shows: its first reset's fixtures.
+FRESH_ENV_RULE = LiberoProtocol(fixture_rule="first_reset")
 # libero_10/9 has a fixture (a microwave) that LIBERO's resets move.
 CASES_256: tuple[tuple[str, int], ...] = (("libero_10/9", 49),)
 # Task -> episodes k of the published loop compared: tasks with a fixture LIBERO's resets move (a
@@ -124,17 +128,13 @@ def _tasks(cases: tuple[tuple[str, int], ...]) -> list[str]:
 def served(
     cases: tuple[tuple[str, int], ...], size: int, workdir: Path
 ) -> Iterator[tuple[str, dict[tuple[str, int], list[Frame]]]]:
-    """Start a pod hosting ``cases``' tasks (one env a task, the job config's defaults) and, while
+    """Start a pod hosting ``cases``' tasks (one env a task, the job config's defaults but
+    :data:`FRESH_ENV_RULE`) and, while
     it builds, run LIBERO's episode of every case here; yield the pod's url and the episodes."""
-    spec = PodSpec(
-        name=f"libero-{size}",
-        stage_id=0,
-        tasks=[(task, 1) for task in _tasks(cases)],
-        camera=CameraConfig(names=CAMERAS, height=size, width=size),
-        max_episode_steps=None,
-        envs_per_worker=0,
-        render=None,
-    )
+    spec = assignment(
+        f"libero-{size}", [(task, 1) for task in _tasks(cases)], camera=CameraConfig(names=CAMERAS, height=size, width=size),
+        render=None, max_episode_steps=None, envs_per_worker=0, libero=FRESH_ENV_RULE,
+    )  # fmt: skip
     with contextlib.ExitStack() as stack, ThreadPoolExecutor(1) as starter:
         starting = starter.submit(stack.enter_context, standalone_pods([spec], workdir))
         try:
@@ -213,7 +213,7 @@ def _check_sim_states(cases: tuple[tuple[str, int], ...], libero: dict[tuple[str
     failures = []
     for task, state_id in cases:
         frames = libero[(task, state_id)]
-        env = make_env(task, CameraConfig(names=()))
+        env = make_env(task, CameraConfig(names=()), libero=FRESH_ENV_RULE)
         try:
             env.reset(options={"state_id": state_id})
             ours = [env.inner.sim.get_state().flatten()]
