@@ -50,7 +50,7 @@ class ReplayTimes(logging.Handler):
         self.seconds: list[float] = []
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.msg.startswith("replayed ") and record.args:
+        if isinstance(record.msg, str) and record.msg.startswith("replayed ") and record.args:
             self.seconds.append(float(record.args[3]))
 
 RULES = ("published", "first_reset")
