@@ -72,7 +72,8 @@ def main() -> None:
                     )
                     with seeded_global_rngs(args.seed):
                         _, wall, cpu = timed(lambda: [wrapper.env.reset() for _ in range(args.real)])
-                    row["real_reset_wall_s"], row["real_reset_cpu_s"] = round(wall / args.real, 3), round(cpu / args.real, 3)
+                    row["real_reset_wall_s"] = round(wall / args.real, 3)
+                    row["real_reset_cpu_s"] = round(cpu / args.real, 3)
             finally:
                 wrapper.close()
                 mujoco.mj_clearCache(mujoco.mj_getCache())

@@ -136,7 +136,8 @@ def main() -> None:
                 build["replay_s"] = replays.seconds[-1]
             if key.endswith("cached_build_s"):
                 began = time.perf_counter()
-                loaded = _load_fixtures(fixtures_path(get_task(task_id), args.seed), len(env._fixtures), env.inner.sim.model.nbody)
+                path = fixtures_path(get_task(task_id), args.seed)
+                loaded = _load_fixtures(path, len(env._fixtures), env.inner.sim.model.nbody)
                 build["cached_read_s"] = round(time.perf_counter() - began, 4)
                 assert loaded is not None, "the published fixtures were not cached"
                 env.close()  # built only to time the cached build
@@ -168,7 +169,8 @@ def main() -> None:
         tasks=args.tasks, episodes=episodes, steps=args.steps, size=args.size, seed=args.seed,
         seconds=round(time.perf_counter() - started, 1),
     )  # fmt: skip
-    write_result(f"libero_published_sweep{'_' + args.tag if args.tag else ''}", summary, {"cases": cases, "builds": builds})
+    name = f"libero_published_sweep{'_' + args.tag if args.tag else ''}"
+    write_result(name, summary, {"cases": cases, "builds": builds})
 
 
 if __name__ == "__main__":

@@ -14,9 +14,10 @@ One test per suite (``CASES``: two tasks, each from another init state) at 128x1
 256x256 (``CASES_256``). One more runs LIBERO in the published loop's own order (one env per
 task, ``env.seed(0)`` once, one ``env.reset()`` per episode) and compares episodes ``k > 0`` of
 tasks whose fixtures LIBERO's resets move (``PUBLISHED_CASES``); and two pods, each with its own
-cache, reset to those episodes in opposite orders and must agree bit for bit. Each starts a pod for its tasks and, while it builds, runs LIBERO's
-episodes here; then compares, at the reset (after settling) and after every one of ``STEPS``
-actions, both cameras' images, ``state``, ``proprio``, reward, terminated, truncated and
+cache, reset to those episodes in opposite orders and must agree bit for bit.
+
+Each starts a pod for its tasks and, while it builds, runs LIBERO's episodes here; then
+compares, at the reset (after settling) and after every one of ``STEPS`` actions, both cameras' images, ``state``, ``proprio``, reward, terminated, truncated and
 success; and, for the 128x128 cases, the full MuJoCo state (time, qpos, qvel) of every step,
 from the env class the pod runs (in this process, without cameras). A LIBERO env holds ~650 MB,
 so pods host one suite's tasks at a time.
@@ -132,8 +133,9 @@ def served(
     :data:`FRESH_ENV_RULE`) and, while
     it builds, run LIBERO's episode of every case here; yield the pod's url and the episodes."""
     spec = assignment(
-        f"libero-{size}", [(task, 1) for task in _tasks(cases)], camera=CameraConfig(names=CAMERAS, height=size, width=size),
-        render=None, max_episode_steps=None, envs_per_worker=0, libero=FRESH_ENV_RULE,
+        f"libero-{size}", [(task, 1) for task in _tasks(cases)],
+        camera=CameraConfig(names=CAMERAS, height=size, width=size), render=None,
+        max_episode_steps=None, envs_per_worker=0, libero=FRESH_ENV_RULE,
     )  # fmt: skip
     with contextlib.ExitStack() as stack, ThreadPoolExecutor(1) as starter:
         starting = starter.submit(stack.enter_context, standalone_pods([spec], workdir))
@@ -268,8 +270,9 @@ def libero_published_loop(task_id: str, episodes: tuple[int, ...], size: int, st
 
 def _published_pod(name: str, tasks: list[str]):
     return assignment(
-        name, [(task, 1) for task in tasks], camera=CameraConfig(names=CAMERAS, height=PUBLISHED_SIZE, width=PUBLISHED_SIZE),
-        render=None, max_episode_steps=None, envs_per_worker=0,
+        name, [(task, 1) for task in tasks],
+        camera=CameraConfig(names=CAMERAS, height=PUBLISHED_SIZE, width=PUBLISHED_SIZE), render=None,
+        max_episode_steps=None, envs_per_worker=0,
     )  # fmt: skip
 
 
@@ -327,5 +330,7 @@ def test_two_pods_place_the_fixtures_of_an_episode_alike_in_any_order(tmp_path: 
                         failures.append(f"{task} k {k} step {step}: {key} of {name} differs from {first_name}'s")
                 for camera in CAMERAS:
                     if not np.array_equal(mine["obs"]["images"][camera], theirs["obs"]["images"][camera]):
-                        failures.append(f"{task} k {k} step {step}: {camera} image of {name} differs from {first_name}'s")
+                        failures.append(
+                            f"{task} k {k} step {step}: {camera} image of {name} differs from {first_name}'s"
+                        )
     assert not failures, "\n".join(failures)
