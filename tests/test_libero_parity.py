@@ -17,10 +17,11 @@ tasks whose fixtures LIBERO's resets move (``PUBLISHED_CASES``); and two pods, e
 cache, reset to those episodes in opposite orders and must agree bit for bit.
 
 Each starts a pod for its tasks and, while it builds, runs LIBERO's episodes here; then
-compares, at the reset (after settling) and after every one of ``STEPS`` actions, both cameras' images, ``state``, ``proprio``, reward, terminated, truncated and
-success; and, for the 128x128 cases, the full MuJoCo state (time, qpos, qvel) of every step,
-from the env class the pod runs (in this process, without cameras). A LIBERO env holds ~650 MB,
-so pods host one suite's tasks at a time.
+compares, at the reset (after settling) and after every one of ``STEPS`` actions, both
+cameras' images, ``state``, ``proprio``, reward, terminated, truncated and success; and, for
+the 128x128 cases, the full MuJoCo state (time, qpos, qvel) of every step, from the env class
+the pod runs (in this process, without cameras). A LIBERO env holds ~650 MB, so pods host one
+suite's tasks at a time.
 """
 
 from __future__ import annotations
