@@ -295,6 +295,7 @@ class LiberoTaskEnv(RobotTaskEnv):
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
         fixtures = self._fixtures[state_id]
         with seeded_global_rngs(self.protocol.fixture_seed):
+            # numpy's generator where episode k's reset drew (LIBERO draws nothing from Python's).
             np.random.set_state(fixtures.rng)
             for _ in range(_PLACEMENT_ATTEMPTS):
                 try:
