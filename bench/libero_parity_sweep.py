@@ -15,6 +15,11 @@ one) and of the full MuJoCo state; the summary counts the cases that are bit-ide
 against another checkout (``PYTHONPATH=/path/to/checkout``) to measure that one: it only uses
 what every vecsim version offers (``make_env``, ``reset``, ``step``, ``proprio``, ``images``).
 
+Its oracle is a fresh LIBERO env per state: what ``fixture_rule: first_reset`` gives every state.
+Under a checkout's default ``published`` rule, states ``k > 0`` of tasks whose fixtures LIBERO's
+resets move are episode ``k`` of the published loop instead: ``bench/libero_published_sweep.py``
+compares those.
+
 ``--client-settle N`` sends N no-op steps to vecsim after its reset, as a user of a checkout
 without settle steps would; ``--render`` picks vecsim's render preset.
 

@@ -36,7 +36,7 @@ VALID: dict[str, Any] = {
         "seed": 0,
         "envs_per_worker": 1,
         "max_episode_steps": 20,
-        "libero": {"image_orientation": "rotate180", "settle_steps": 10, "fixture_seed": 0},
+        "libero": {"image_orientation": "rotate180", "settle_steps": 10, "fixture_seed": 0, "fixture_rule": "published"},
     },
     "pods": {"replicas": 1, "host": "127.0.0.1", "base_port": 8100, "max_envs": 4},
     "controller": {
@@ -76,6 +76,7 @@ WRONG_FIELDS = [
     wrong("job.libero.image_orientation", "flipped", "'upright', 'rotate180' or 'raw'"),
     wrong("job.libero.settle_steps", -1, "greater than or equal to 0"),
     wrong("job.libero.fixture_seed", -7, "greater than or equal to 0"),
+    wrong("job.libero.fixture_rule", "per_reset", "'published' or 'first_reset'"),
     wrong("pods.replicas", -1, "greater than or equal to 0"),
     wrong("pods.host", None, "valid string"),
     wrong("pods.base_port", 80, "greater than or equal to 1024"),

@@ -20,6 +20,11 @@ RenderPreset = Literal["full", "fast", "lean", "lowpoly"]
 # published evaluation scripts feed their policies), "raw" (bottom row first, as OpenGL reads it
 # back: the frame robosuite and LIBERO return themselves).
 ImageOrientation = Literal["upright", "rotate180", "raw"]
+# Where a LIBERO task's fixtures stand after a reset to state id k (docs/libero.md, "Fixtures"):
+# ``published``: where LIBERO's env has them in episode k of the published evaluation loop (one
+# env per task, seeded once, reset once per episode); ``first_reset``: where a freshly built env's
+# first reset puts them, for every k.
+FixtureRule = Literal["published", "first_reset"]
 
 
 
@@ -60,6 +65,11 @@ class LiberoProtocol(_Model):
       the model, not in the init state, so this seed places them: the same for every state id of
       a task, on every pod, whatever ran before. LIBERO's own evaluations seed 0 (OpenVLA-OFT)
       or 7 (openpi).
+    - ``fixture_rule``: which of LIBERO's placements of those fixtures a reset to state id ``k``
+      restores (:data:`FixtureRule`): by default ``published``, the one LIBERO's env has in
+      episode ``k`` of the published evaluation loop after ``env.seed(fixture_seed)``;
+      ``first_reset``, the one of a freshly built env's first reset, whatever ``k``. Both are
+      functions of (task, ``k``, ``fixture_seed``) alone.
 
     Episode limits are not here: ``max_episode_steps`` left unset gives each LIBERO suite its own.
     """
@@ -67,6 +77,7 @@ class LiberoProtocol(_Model):
     image_orientation: ImageOrientation = "rotate180"
     settle_steps: int = Field(10, ge=0, le=10_000)
     fixture_seed: int = Field(0, ge=0, lt=2**32)
+    fixture_rule: FixtureRule = "published"
 
 
 MAX_EPISODE_STEPS_DOC = (

@@ -1,9 +1,10 @@
 """LIBERO's five suites (130 tasks) in LIBERO's own order, with its instructions and init states.
 
 A LIBERO task env is what LIBERO's published evaluations see (docs/libero.md): a reset to state
-id ``k`` is LIBERO's ``env.seed(fixture_seed); env.reset(); env.set_init_state(init_states[k])``
-followed by ``settle_steps`` no-op steps, and every observation is taken where LIBERO takes it
-(:class:`LiberoTaskEnv`), under the conventions of :class:`vecsim.config.LiberoProtocol`.
+id ``k`` is episode ``k`` of their loop (one env per task, ``env.seed(fixture_seed)`` once, then
+per episode ``env.reset(); env.set_init_state(init_states[k])``) followed by ``settle_steps``
+no-op steps, and every observation is taken where LIBERO takes it (:class:`LiberoTaskEnv`), under
+the conventions of :class:`vecsim.config.LiberoProtocol`.
 
 LIBERO asks questions on stdin the first time ``libero.libero`` is imported unless
 ``$LIBERO_CONFIG_PATH/config.yaml`` exists, so before any such import vecsim points
@@ -12,12 +13,15 @@ LIBERO asks questions on stdin the first time ``libero.libero`` is imported unle
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import importlib.util
 import math
 import os
 import re
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +43,7 @@ from vecsim.tasks._base import (
 )
 from vecsim.tasks._robot import (
     RobotTaskEnv,
+    _file_lock,
     robosuite_reset_without_observing,
     robot_observation_space,
     seeded_global_rngs,
@@ -70,6 +75,23 @@ _DRAWN_FIELDS = (
 # LIBERO's own reset retries placements that fail; it gives up after this many.
 _PLACEMENT_ATTEMPTS = 100
 _SCENE = re.compile(r"^([A-Z_]+_SCENE\d+)_")
+# Bumped whenever what the fixture cache (:func:`fixtures_path`) holds changes meaning.
+FIXTURES_VERSION = "v1"
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeFixtures:
+    """What one episode's reset of a LIBERO env leaves that the init state does not overwrite.
+
+    ``body_pos`` and ``body_quat`` are the model's (fixtures are placed there, not in the state);
+    ``rng`` is numpy's global generator state (``np.random.get_state()``) where the reset's last
+    attempt began drawing: the arm's starting pose, from which its controller is built, is its
+    first draws.
+    """
+
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    rng: tuple[Any, ...]
 
 
 def _package_dir() -> Path:
@@ -194,18 +216,21 @@ def libero_observation_space(camera: CameraConfig) -> gymnasium.spaces.Dict:
 class LiberoTaskEnv(RobotTaskEnv):
     """A LIBERO task behind vecsim's contract, as LIBERO's published evaluations see it.
 
-    A reset to state id ``k`` is exactly LIBERO's ``env.seed(s); env.reset();
-    env.set_init_state(init_states[k])`` on a freshly built env (``s`` the protocol's
-    ``fixture_seed``), then ``settle_steps`` steps of :data:`SETTLE_ACTION`:
+    A reset to state id ``k`` is exactly LIBERO's ``env.reset();
+    env.set_init_state(init_states[k])`` in episode ``k`` of the published evaluation loop (a
+    LIBERO env built once, ``env.seed(s)`` once, ``s`` the protocol's ``fixture_seed``), then
+    ``settle_steps`` steps of :data:`SETTLE_ACTION`; ``fixtures[k]`` holds what that reset leaves
+    besides the init state (:func:`episode_fixtures`):
 
-    - the reset draws from numpy's generator seeded ``s``, as LIBERO's does (the arm's starting
-      pose, from which its controller is built, comes from it);
-    - fixtures (cabinets, racks, microwaves) live in the model, not in the init state, and
-      LIBERO's hard reset places each one relative to where the previous reset left it, so they
-      drift from reset to reset of one LIBERO env. ``placement`` (the model's ``body_pos`` and
-      ``body_quat``) is where the first reset of a freshly built LIBERO env after
-      ``env.seed(s)`` puts them, and every reset restores it: a function of the task and the
-      seed alone;
+    - the reset draws from numpy's generator in the state ``fixtures[k].rng``, as LIBERO's reset
+      of episode ``k`` does (the arm's starting pose, from which its controller is built, comes
+      from it);
+    - fixtures (cabinets, racks, microwaves) live in the model, not in the init state, and each
+      hard reset of a LIBERO env places them anew from numpy's generator, so in the published
+      loop they differ from episode to episode. Every reset restores ``fixtures[k]``'s
+      ``body_pos`` and ``body_quat``: a function of (task, ``k``, ``s``) alone, the same on every
+      pod whatever ran before (with ``fixture_rule: first_reset``, the first reset's for every
+      ``k``);
     - the arm's controller is the one that reset built, from the reset's own arm pose; setting
       the init state does not rebuild it (LIBERO does not);
     - the observables' clocks run as LIBERO's do: the reset and the set state each force a
@@ -231,7 +256,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         camera: CameraConfig,
         max_episode_steps: int,
         protocol: LiberoProtocol,
-        placement: tuple[np.ndarray, np.ndarray],
+        fixtures: list[EpisodeFixtures],
         owner: Any = None,
         render: RenderPreset | None = None,
     ) -> None:
@@ -239,7 +264,9 @@ class LiberoTaskEnv(RobotTaskEnv):
         from robosuite.utils.observables import Observable, sensor
 
         self.protocol = protocol
-        self._placement = placement
+        if len(fixtures) != len(states):
+            raise ValueError(f"{task.task_id}: {len(fixtures)} fixture placements for {len(states)} init states")
+        self._fixtures = fixtures
         self.observation_space = libero_observation_space(camera)
         model, data = inner.sim.model._model, inner.sim.data._data
         self._frame = mujoco.MjData(model)
@@ -266,7 +293,10 @@ class LiberoTaskEnv(RobotTaskEnv):
         # LIBERO's reset loads a new model: grippers start with no integrated command.
         for robot in inner.robots:
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
+        fixtures = self._fixtures[state_id]
         with seeded_global_rngs(self.protocol.fixture_seed):
+            # numpy's generator where episode k's reset drew (LIBERO draws nothing from Python's).
+            np.random.set_state(fixtures.rng)
             for _ in range(_PLACEMENT_ATTEMPTS):
                 try:
                     robosuite_reset_without_observing(inner, without_acceleration=self.step_path == "exact")
@@ -276,7 +306,7 @@ class LiberoTaskEnv(RobotTaskEnv):
             else:
                 raise RuntimeError(f"{self.task.task_id}: LIBERO could not place the objects")
         model = inner.sim.model._model
-        model.body_pos[:], model.body_quat[:] = self._placement
+        model.body_pos[:], model.body_quat[:] = fixtures.body_pos, fixtures.body_quat
         # The sample env.reset() forces, then set_init_state's own.
         inner._update_observables(force=True)
         inner.sim.set_state_from_flattened(self.states[state_id])
@@ -296,18 +326,166 @@ class LiberoTaskEnv(RobotTaskEnv):
         return observation
 
 
-def _first_reset(task: TaskSpec, inner: Any, seed: int) -> None:
-    """LIBERO's ``env.seed(seed); env.reset()`` (retrying placements as LIBERO does, boundedly)."""
+@contextlib.contextmanager
+def _reset_entries(inner: Any) -> Iterator[list[tuple[np.ndarray, np.ndarray, tuple[Any, ...]]]]:
+    """Record, at every entry into ``inner._reset_internal`` within the block, the model's
+    ``body_pos`` and ``body_quat`` and numpy's generator state: where a reset attempt's draws begin
+    (building the model draws nothing), and, in a hard reset, the freshly loaded model's placement."""
+    entries: list[tuple[np.ndarray, np.ndarray, tuple[Any, ...]]] = []
+    original = inner._reset_internal
+
+    def reset_internal() -> None:
+        model = inner.sim.model._model
+        entries.append((model.body_pos.copy(), model.body_quat.copy(), np.random.get_state()))
+        original()
+
+    inner._reset_internal = reset_internal
+    try:
+        yield entries
+    finally:
+        del inner._reset_internal
+
+
+def _hard_reset(task: TaskSpec, inner: Any) -> None:
+    """LIBERO's ``env.reset()``: a hard reset, retried as ``ControlEnv.reset`` does (boundedly)."""
     from robosuite.utils.errors import RandomizationError
 
-    with seeded_global_rngs(seed), stdout_to_log():
-        for _ in range(_PLACEMENT_ATTEMPTS):
-            try:
-                inner.reset()
-                return
-            except RandomizationError:
-                continue
+    for _ in range(_PLACEMENT_ATTEMPTS):
+        try:
+            inner.reset()
+            return
+        except RandomizationError:
+            continue
     raise RuntimeError(f"{task.task_id}: LIBERO could not place the objects")
+
+
+def _replayed_hard_reset(task: TaskSpec, inner: Any, fresh: tuple[np.ndarray, np.ndarray], per_load: int) -> None:
+    """Make the draws of one LIBERO hard reset (``env.reset()`` with ``hard_reset=True``) and leave
+    its placement, without rebuilding the model. Returns None.
+
+    A hard reset (robosuite 1.4 ``MujocoEnv.reset``, environments/base.py) loads the model anew
+    (``_load_model``, ``_initialize_sim``), which draws nothing, then runs ``_reset_internal``,
+    which draws the arm's pose, the open/close joints and every placement. What it reads besides
+    the generator is the fresh model (``body_pos``/``body_quat``: the site-conditioned samplers
+    read site positions after ``mj_step1``) and ``object_property_initializers``, to which every
+    ``_load_model`` appends the task's open/close samplers again (``_add_placement_initializer``,
+    libero/libero/envs/bddl_base_domain.py:653,674, never cleared), so each hard reset draws one
+    more value per such sampler than the one before. This runs the same ``_reset_internal`` on the
+    same inputs: the samplers appended once more, the fresh placement restored, the data reset as
+    a fresh ``MjData``; a failed placement retries the whole, as ``ControlEnv.reset`` does.
+    """
+    from robosuite.utils.errors import RandomizationError
+
+    initializers = inner.object_property_initializers
+    model = inner.sim.model._model
+    for _ in range(_PLACEMENT_ATTEMPTS):
+        initializers.extend(initializers[:per_load])
+        model.body_pos[:], model.body_quat[:] = fresh
+        inner.sim.reset()
+        try:
+            inner._reset_internal()
+            return
+        except RandomizationError:
+            continue
+    raise RuntimeError(f"{task.task_id}: LIBERO could not place the objects")
+
+
+def fixtures_path(task: TaskSpec, seed: int) -> Path:
+    """Return where the published loop's fixtures of ``task`` under ``env.seed(seed)`` are cached."""
+    suite, index = task.task_id.split("/", 1)
+    return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / f"{index}-seed{seed}.npz"
+
+
+def _load_fixtures(path: Path, count: int, nbody: int) -> list[EpisodeFixtures] | None:
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            arrays = {name: saved[name] for name in saved.files}
+    except (OSError, ValueError, KeyError):
+        return None
+    shapes = {"body_pos": (count, nbody, 3), "body_quat": (count, nbody, 4), "rng_keys": (count, 624)}
+    if any(name not in arrays or arrays[name].shape != shape for name, shape in shapes.items()):
+        log.warning("ignoring cached LIBERO fixtures %s: not %d episodes of %d bodies", path, count, nbody)
+        return None
+    return [
+        EpisodeFixtures(
+            arrays["body_pos"][k],
+            arrays["body_quat"][k],
+            (
+                "MT19937",
+                arrays["rng_keys"][k].astype(np.uint32),
+                int(arrays["rng_pos"][k]),
+                int(arrays["rng_has_gauss"][k]),
+                float(arrays["rng_gauss"][k]),
+            ),
+        )
+        for k in range(count)
+    ]
+
+
+def _save_fixtures(path: Path, fixtures: list[EpisodeFixtures]) -> None:
+    arrays = {
+        "body_pos": np.stack([f.body_pos for f in fixtures]),
+        "body_quat": np.stack([f.body_quat for f in fixtures]),
+        "rng_keys": np.stack([np.asarray(f.rng[1], np.uint32) for f in fixtures]),
+        "rng_pos": np.array([f.rng[2] for f in fixtures], np.int64),
+        "rng_has_gauss": np.array([f.rng[3] for f in fixtures], np.int64),
+        "rng_gauss": np.array([f.rng[4] for f in fixtures], np.float64),
+    }
+
+    def save(partial: Path) -> None:
+        with open(partial, "wb") as handle:  # a handle: np.savez would add ".npz" to a name
+            np.savez(handle, **arrays)
+
+    write_whole(path, save)
+
+
+def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[EpisodeFixtures]:
+    """Reset a freshly built LIBERO env as the published loop's first episode does and return,
+    per state id ``k``, what episode ``k``'s reset leaves besides the init state.
+
+    ``inner`` must be a LIBERO env just built (``hard_reset`` on) and not reset since. Under
+    ``rule`` ``published``, entry ``k`` is episode ``k`` of the published evaluation loop
+    (``env.seed(seed)`` once, then one ``env.reset()`` per episode; the loop's steps draw nothing
+    from the generator): the first from the env's own hard reset, the others replayed
+    (:func:`_replayed_hard_reset`) and cached on disk (:func:`fixtures_path`; one process
+    computes, others wait and read). Under ``first_reset``, every entry is the first reset's.
+    Leaves the env with the first reset's placement.
+    """
+    per_load = len(inner.object_property_initializers)  # what the constructor's _load_model appended
+    with seeded_global_rngs(seed), stdout_to_log():
+        with _reset_entries(inner) as entries:
+            _hard_reset(task, inner)
+        fresh = entries[-1][:2]
+        model = inner.sim.model._model
+        first = EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
+        if rule == "first_reset":
+            return [first] * task.num_states
+        path = fixtures_path(task, seed)
+        fixtures = _load_fixtures(path, task.num_states, model.nbody)
+        if fixtures is not None:
+            return fixtures
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with _file_lock(path.with_name(path.name + ".lock")):
+            fixtures = _load_fixtures(path, task.num_states, model.nbody)
+            if fixtures is not None:
+                return fixtures
+            started = time.perf_counter()
+            fixtures = [first]
+            kept = len(inner.object_property_initializers)
+            try:
+                for _ in range(1, task.num_states):
+                    with _reset_entries(inner) as entries:
+                        _replayed_hard_reset(task, inner, fresh, per_load)
+                    fixtures.append(EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2]))
+            finally:
+                del inner.object_property_initializers[kept:]
+                model.body_pos[:], model.body_quat[:] = first.body_pos, first.body_quat
+            _save_fixtures(path, fixtures)
+            log.info(
+                "replayed %d LIBERO resets of %s (seed %d) in %.2f s into %s",
+                task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
+            )  # fmt: skip
+            return fixtures
 
 
 def make_libero_env(
@@ -317,8 +495,9 @@ def make_libero_env(
 
     The env is built as LIBERO builds it (hard reset on), reset once as LIBERO's evaluations
     do (``env.seed(fixture_seed); env.reset()``: a hard reset, which reloads the model and places
-    the fixtures), and only then switched to soft resets; :class:`LiberoTaskEnv` keeps that
-    first placement.
+    the fixtures), and only then switched to soft resets; :class:`LiberoTaskEnv` restores, at
+    each reset, the placement :func:`episode_fixtures` gives its state id under the protocol's
+    ``fixture_rule``.
 
     Raises:
         TaskSetupError: LIBERO is not installed or its assets are missing.
@@ -348,14 +527,12 @@ def make_libero_env(
             raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
     inner = wrapper.env
     try:
-        _first_reset(task, inner, protocol.fixture_seed)
+        fixtures = episode_fixtures(task, inner, protocol.fixture_seed, protocol.fixture_rule)
         inner.hard_reset = False
-        model = inner.sim.model._model
-        placement = (model.body_pos.copy(), model.body_quat.copy())
         render_presets.apply_to_robosuite(inner.sim, render)
         states = init_states(task)
         return LiberoTaskEnv(
-            task, inner, states, camera, max_episode_steps, protocol, placement, owner=wrapper, render=render
+            task, inner, states, camera, max_episode_steps, protocol, fixtures, owner=wrapper, render=render
         )
     except BaseException:
         wrapper.close()
