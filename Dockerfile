@@ -56,7 +56,7 @@ RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
  && if [ -n "$TORCH_FIND_LINKS" ]; then source="--no-index --find-links $TORCH_FIND_LINKS"; \
     else source="--index-url $TORCH_INDEX_URL"; fi \
  && "$VECSIM_VENV/bin/pip" install --no-deps $source "torch==2.13.0" \
- && "$VECSIM_VENV/bin/python" -c "import importlib.metadata as m, sys; cuda = [r for r in m.requires('torch') or [] if r.startswith('nvidia-')]; sys.exit(cuda and f'torch is a CUDA build: it needs {cuda}')"
+ && "$VECSIM_VENV/bin/python" -c "import importlib.metadata as m, sys; cuda = [r for r in m.requires('torch') or [] if r.startswith('nvidia-')]; sys.exit(f'torch is a CUDA build: it needs {cuda}' if cuda else 0)"
 
 # The README's install, step for step: a venv at $VECSIM_VENV with the pod's pinned dependencies
 # (the `pod` extra: no plotting, video or test packages), LIBERO --no-deps and its assets, and

@@ -16,7 +16,7 @@
 #                        take torch from the Dockerfile's default, PyTorch's CPU index, online
 #   DEBIAN_MIRROR        the Debian mirror debootstrap and the build's apt use (default deb.debian.org)
 # Prints the tag it built. The store is not Docker's: export the image with, for example,
-#   buildah --root "$VECSIM_IMAGE_CACHE/storage" --storage-driver vfs push vecsim:0.1.0 docker-archive:vecsim.tar
+#   CONTAINERS_STORAGE_CONF=~/.cache/vecsim/image/storage.conf buildah push vecsim:0.1.0 docker-archive:vecsim.tar
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cache="${VECSIM_IMAGE_CACHE:-$HOME/.cache/vecsim/image}"
@@ -34,10 +34,30 @@ for tool in buildah debootstrap; do
 done
 
 mkdir -p "$cache/tmp"
+# One build at a time per cache (two would write the same base tarball and store).
+exec 9>"$cache/build.lock"
+flock 9
 # buildah keeps RUN --mount=type=cache directories under TMPDIR: keep them (the pip cache) with
 # the rest of the cache instead of in /var/tmp.
 export TMPDIR="$cache/tmp"
-bah=(buildah --root "$cache/storage" --runroot "$cache/run" --storage-driver vfs)
+# The image store, in the cache: overlay where the kernel mounts overlayfs (each layer costs what
+# it changes), else vfs (each build step copies the whole root: slow, but works anywhere). The
+# choice is made once and kept in storage.conf; `CONTAINERS_STORAGE_CONF=<it> buildah ...` (and
+# podman) use the same store, as tests/test_image.py does.
+export CONTAINERS_STORAGE_CONF="$cache/storage.conf"
+if [ ! -f "$CONTAINERS_STORAGE_CONF" ]; then
+  driver=vfs
+  probe="$(mktemp -d "$cache/tmp/overlay-probe.XXXXXX")"
+  mkdir "$probe/lower" "$probe/upper" "$probe/work" "$probe/merged"
+  if mount -t overlay overlay -o "lowerdir=$probe/lower,upperdir=$probe/upper,workdir=$probe/work" "$probe/merged" 2>/dev/null; then
+    umount "$probe/merged"
+    driver=overlay
+  fi
+  rm -rf "$probe"
+  printf '[storage]\ndriver = "%s"\ngraphroot = "%s"\nrunroot = "%s"\n' "$driver" "$cache/storage" "$cache/run" \
+    >"$CONTAINERS_STORAGE_CONF"
+fi
+bah=(buildah)
 
 # 1. The base. `debian:bookworm-slim` is itself a debootstrap minbase root; ours comes from the
 #    same mirror the build's apt uses, with the same sources (bookworm, -updates, -security).
@@ -68,8 +88,8 @@ Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 EOF
     rm -rf "$rootfs"/var/lib/apt/lists/* "$rootfs"/var/cache/apt/*.bin "$rootfs"/var/cache/apt/archives/*.deb
-    tar -C "$rootfs" --exclude='./dev/*' --exclude='./proc/*' --exclude='./sys/*' -cf "$rootfs_tar.part" .
-    mv "$rootfs_tar.part" "$rootfs_tar"
+    tar -C "$rootfs" --exclude='./dev/*' --exclude='./proc/*' --exclude='./sys/*' -cf "$rootfs.tar" .
+    mv "$rootfs.tar" "$rootfs_tar"
     rm -rf "$rootfs"
   fi
   echo "[build_image] tagging $rootfs_tar as $base" >&2

@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CACHE = Path(os.environ.get("VECSIM_IMAGE_CACHE", Path.home() / ".cache" / "vecsim" / "image"))
 VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
 TAG = f"vecsim:{VERSION}"
-# The store scripts/build_image.sh builds into.
-BUILDAH = ("buildah", "--root", str(CACHE / "storage"), "--runroot", str(CACHE / "run"), "--storage-driver", "vfs")
+# The store scripts/build_image.sh builds into (it writes the storage config on its first run).
+BUILDAH = ("env", f"CONTAINERS_STORAGE_CONF={CACHE / 'storage.conf'}", "buildah")
 BUILD_TIMEOUT_S = 1800
 START_TIMEOUT_S = 120
 READY_TIMEOUT_S = 300
