@@ -115,5 +115,30 @@ if [ -f "$host_ca" ]; then
   args+=(-v "$host_ca:/run/vecsim-build/ca-certificates.crt:ro" -v "$cache/pip.conf:/etc/pip.conf:ro")
 fi
 echo "[build_image] building $tag" >&2
-"${bah[@]}" bud "${args[@]}" "$here" >&2
+# buildah 1.28 (Debian 12's) has been seen to hang after "Successfully tagged" at the end of a
+# build that ran RUN steps, holding its store's locks, idle. Its last act is to print the image
+# id: once it has, allow it a while to exit, then end it with SIGQUIT (Go prints where each of its
+# goroutines waited) and go on if the tag names that image.
+out="$(mktemp "$cache/tmp/bud-out.XXXXXX")"
+"${bah[@]}" bud "${args[@]}" "$here" >"$out" &
+bud=$!
+while kill -0 "$bud" 2>/dev/null; do
+  if grep -qE '^[0-9a-f]{64}$' "$out"; then
+    for _ in $(seq 60); do kill -0 "$bud" 2>/dev/null && sleep 1; done
+    if kill -0 "$bud" 2>/dev/null; then
+      echo "[build_image] buildah bud still running 60 s after its image id: ending it (SIGQUIT)" >&2
+      kill -QUIT "$bud"
+    fi
+    break
+  fi
+  sleep 2
+done
+rc=0
+wait "$bud" || rc=$?
+id="$(grep -E '^[0-9a-f]{64}$' "$out" | tail -1 || true)"
+rm -f "$out"
+if [ -z "$id" ] || [ "$("${bah[@]}" inspect --type image --format '{{.FromImageID}}' "$tag" 2>/dev/null)" != "$id" ]; then
+  echo "[build_image] buildah bud failed (exit $rc)" >&2
+  exit 1
+fi
 echo "$tag"

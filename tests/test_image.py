@@ -295,3 +295,79 @@ def test_controller_command_starts_and_passes_the_healthcheck(container, image_e
 
         wait_until(healthy, "the controller in the image to answer /healthz", START_TIMEOUT_S, 1.0)
         assert _run_once(container, image_env["Healthcheck"]["Test"][1:], {"VECSIM_PORT": str(port)}).returncode == 0
+
+
+# -- bad configuration in the container: the pod exits, or answers not-ready, naming the cause ----
+
+
+def _pod_env(port: int, **extra: str) -> dict[str, str]:
+    return {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), **extra}
+
+
+def _failed_detail(url: str, proc: InContainer) -> str | None:
+    """The pod's /readyz detail once its build has failed (None before)."""
+    assert proc.proc.poll() is None, f"the pod exited with {proc.proc.returncode}:\n{proc.log_text()}"
+    with contextlib.suppress(httpx.HTTPError):
+        response = httpx.get(f"{url}/readyz", timeout=5)
+        assert response.status_code == 503, f"the pod turned ready: {response.text}"
+        detail = response.json()["detail"]
+        return detail if "failed" in detail else None
+    return None
+
+
+def test_pod_with_an_unwritable_cache_answers_not_ready_naming_the_cache(container, image_env, tmp_path):
+    port = free_port()
+    cache = image_env["Env_map"]["XDG_CACHE_HOME"]
+    volumes = {
+        _owned_dir(tmp_path / "tmp", _image_uid(image_env), 0o1777): "/tmp",
+        _owned_dir(tmp_path / "cache", 0, 0o755): cache,  # root's: the pod's uid cannot write it
+    }
+    url = f"http://127.0.0.1:{port}"
+    with running(container, _pod_argv(image_env, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log") as proc:
+        detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
+        assert "Permission denied" in detail and cache in detail, detail
+        # Alive, so that the readiness probe (not liveness) keeps it out of service.
+        assert httpx.get(f"{url}/healthz", timeout=5).status_code == 200
+
+
+def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl(container, image_env, tmp_path):
+    # What the gpu-cluster overlay sets on the container, on this machine without NVIDIA's driver.
+    overlay = yaml.safe_load((ROOT / "k8s" / "overlays" / "gpu-cluster" / "sim-gpu.yaml").read_text())
+    (sim,) = overlay["spec"]["template"]["spec"]["containers"]
+    gpu_env = {item["name"]: item["value"] for item in sim["env"]}
+    assert "__EGL_VENDOR_LIBRARY_FILENAMES" in gpu_env
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    volumes = _writable_volumes(tmp_path, image_env)
+    with running(container, _pod_argv(image_env, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log") as proc:
+        detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
+        assert "EGL" in detail, detail
+
+
+def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(container, image_env, tmp_path):
+    # The manifests mark the Secret optional: without it VECSIM_TOKEN is unset and the pod
+    # starts with checking off, saying so (docs/kubernetes.md, The shared token).
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    log_path = tmp_path / "pod.log"
+    with running(container, _pod_argv(image_env), _pod_env(port), _writable_volumes(tmp_path, image_env), log_path) as proc:
+        def answering() -> bool:
+            assert proc.proc.poll() is None, f"the pod exited:\n{proc.log_text()}"
+            with contextlib.suppress(httpx.HTTPError):
+                return httpx.get(f"{url}/healthz", timeout=5).status_code == 200
+            return False
+
+        wait_until(answering, "the pod to answer /healthz", START_TIMEOUT_S, 1.0)
+        warnings = [line for line in log_path.read_text().splitlines() if " WARNING " in line]
+        assert any("VECSIM_TOKEN" in line for line in warnings), proc.log_text()
+        assert "no assignment" in httpx.get(f"{url}/readyz", timeout=5).json()["detail"]
+
+
+def test_pod_given_a_token_secret_with_a_trailing_newline_exits_naming_vecsim_token(container, image_env, tmp_path):
+    # What `kubectl create secret --from-file` of a file ending in a newline hands the container.
+    port = free_port()
+    env = _pod_env(port, VECSIM_TOKEN="s3cret\n")
+    with running(container, _pod_argv(image_env), env, _writable_volumes(tmp_path, image_env), tmp_path / "pod.log") as proc:
+        returncode = proc.proc.wait(timeout=START_TIMEOUT_S)
+        assert returncode == 2, proc.log_text()
+        assert "VECSIM_TOKEN" in proc.log_text()
