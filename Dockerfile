@@ -64,7 +64,7 @@ RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
 # layer is rebuilt only when they change), then with the source, when it finds every dependency
 # in place and only points the editable install at the packages. The pip cache survives builds.
 COPY --chown=10001:10001 pyproject.toml README.md ./
-COPY --chown=10001:10001 scripts/ scripts/
+COPY --chown=10001:10001 scripts/setup.sh scripts/
 RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 VECSIM_EXTRAS=pod scripts/setup.sh
 COPY --chown=10001:10001 vecsim/ vecsim/
 COPY --chown=10001:10001 service/ service/
