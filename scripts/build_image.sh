@@ -120,7 +120,7 @@ echo "[build_image] building $tag" >&2
 # id: once it has, allow it a while to exit, then end it with SIGQUIT (Go prints where each of its
 # goroutines waited) and go on if the tag names that image.
 out="$(mktemp "$cache/tmp/bud-out.XXXXXX")"
-"${bah[@]}" bud "${args[@]}" "$here" >"$out" &
+"${bah[@]}" bud "${args[@]}" "$here" > >(tee "$out" >&2) &
 bud=$!
 while kill -0 "$bud" 2>/dev/null; do
   if grep -qE '^[0-9a-f]{64}$' "$out"; then
@@ -136,9 +136,10 @@ done
 rc=0
 wait "$bud" || rc=$?
 id="$(grep -E '^[0-9a-f]{64}$' "$out" | tail -1 || true)"
-rm -f "$out"
 if [ -z "$id" ] || [ "$("${bah[@]}" inspect --type image --format '{{.FromImageID}}' "$tag" 2>/dev/null)" != "$id" ]; then
   echo "[build_image] buildah bud failed (exit $rc)" >&2
+  rm -f "$out"
   exit 1
 fi
+rm -f "$out"
 echo "$tag"
