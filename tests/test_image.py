@@ -14,7 +14,6 @@ import contextlib
 import json
 import logging
 import os
-import shutil
 import signal
 import subprocess
 import time
@@ -72,15 +71,15 @@ def image() -> dict[str, Any]:
     assert done.returncode == 0, f"scripts/build_image.sh failed:\n{done.stderr[-4000:]}"
     assert done.stdout.strip().splitlines()[-1] == TAG
     log.info("scripts/build_image.sh took %.0f s", time.monotonic() - started)
-    (inspected,) = [json.loads(_buildah("inspect", "--type", "image", TAG))]
-    return inspected["Docker"]["config"]
+    return json.loads(_buildah("inspect", "--type", "image", TAG))["Docker"]["config"]
 
 
 @pytest.fixture(scope="module")
 def container(image) -> Iterator[str]:
     """One working container of the image; every command below runs in it."""
     name = f"vecsim-test-{os.getpid()}"
-    _buildah("rm", name, timeout=120) if _exists(name) else None
+    if _exists(name):  # left by a run that was killed
+        _buildah("rm", name, timeout=120)
     _buildah("from", "--pull-never", "--name", name, TAG)
     try:
         yield name
@@ -154,18 +153,13 @@ def _writable_volumes(base: Path, image: Mapping[str, Any]) -> dict[Path, str]:
     uid = _image_uid(image)
     return {
         _owned_dir(base / "tmp", uid, 0o1777): "/tmp",
-        _owned_dir(base / "cache", uid): image["Env_map"]["XDG_CACHE_HOME"],
+        _owned_dir(base / "cache", uid): _image_env(image)["XDG_CACHE_HOME"],
     }
 
 
-def _env_map(image: dict[str, Any]) -> dict[str, str]:
+def _image_env(image: Mapping[str, Any]) -> dict[str, str]:
+    """The variables the image's ENV sets."""
     return dict(item.split("=", 1) for item in image["Env"])
-
-
-@pytest.fixture(scope="module")
-def image_env(image) -> dict[str, Any]:
-    image["Env_map"] = _env_map(image)
-    return image
 
 
 def _pod_argv(image: Mapping[str, Any], *extra: str) -> list[str]:
@@ -179,12 +173,12 @@ def _standalone(port: int) -> tuple[str, ...]:
 
 
 @pytest.fixture(scope="module")
-def pod(container, image_env, tmp_path_factory) -> Iterator[tuple[str, InContainer]]:
+def pod(container, image, tmp_path_factory) -> Iterator[tuple[str, InContainer]]:
     port = free_port()
     base = tmp_path_factory.mktemp("pod")
     env = {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), "VECSIM_TOKEN": "image-test-token"}
     url = f"http://127.0.0.1:{port}"
-    with running(container, _pod_argv(image_env, *_standalone(port)), env, _writable_volumes(base, image_env), base / "pod.log") as proc:
+    with running(container, _pod_argv(image, *_standalone(port)), env, _writable_volumes(base, image), base / "pod.log") as proc:
         wait_until(lambda: _ready(url, proc), f"the pod in the image to be ready\n{proc.log_text()}", READY_TIMEOUT_S, 1.0)
         yield url, proc
 
@@ -283,11 +277,11 @@ def test_images_healthcheck_command_succeeds_against_the_pod(pod, image, contain
 # -- the controller in the image -----------------------------------------------------------------
 
 
-def test_controller_command_starts_and_passes_the_healthcheck(container, image_env, tmp_path):
+def test_controller_command_starts_and_passes_the_healthcheck(container, image, tmp_path):
     port = free_port()
-    argv = [*image_env["Entrypoint"], "controller", "--config", "/app/configs/tiny.yaml", "--host", "127.0.0.1", "--port", str(port)]
+    argv = [*image["Entrypoint"], "controller", "--config", "/app/configs/tiny.yaml", "--host", "127.0.0.1", "--port", str(port)]
     env = {"VECSIM_PORT": str(port), "VECSIM_TOKEN": "image-test-token"}
-    with running(container, argv, env, _writable_volumes(tmp_path, image_env), tmp_path / "controller.log") as proc:
+    with running(container, argv, env, _writable_volumes(tmp_path, image), tmp_path / "controller.log") as proc:
         def healthy() -> bool:
             assert proc.proc.poll() is None, f"the controller exited:\n{proc.log_text()}"
             with contextlib.suppress(httpx.HTTPError):
@@ -295,7 +289,7 @@ def test_controller_command_starts_and_passes_the_healthcheck(container, image_e
             return False
 
         wait_until(healthy, "the controller in the image to answer /healthz", START_TIMEOUT_S, 1.0)
-        assert _run_once(container, image_env["Healthcheck"]["Test"][1:], {"VECSIM_PORT": str(port)}).returncode == 0
+        assert _run_once(container, image["Healthcheck"]["Test"][1:], {"VECSIM_PORT": str(port)}).returncode == 0
 
 
 # -- bad configuration in the container: the pod exits, or answers not-ready, naming the cause ----
@@ -316,22 +310,22 @@ def _failed_detail(url: str, proc: InContainer) -> str | None:
     return None
 
 
-def test_pod_with_an_unwritable_cache_answers_not_ready_naming_the_cache(container, image_env, tmp_path):
+def test_pod_with_an_unwritable_cache_answers_not_ready_naming_the_cache(container, image, tmp_path):
     port = free_port()
-    cache = image_env["Env_map"]["XDG_CACHE_HOME"]
+    cache = _image_env(image)["XDG_CACHE_HOME"]
     volumes = {
-        _owned_dir(tmp_path / "tmp", _image_uid(image_env), 0o1777): "/tmp",
+        _owned_dir(tmp_path / "tmp", _image_uid(image), 0o1777): "/tmp",
         _owned_dir(tmp_path / "cache", 0, 0o755): cache,  # root's: the pod's uid cannot write it
     }
     url = f"http://127.0.0.1:{port}"
-    with running(container, _pod_argv(image_env, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log") as proc:
+    with running(container, _pod_argv(image, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log") as proc:
         detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "Permission denied" in detail and cache in detail, detail
         # Alive, so that the readiness probe (not liveness) keeps it out of service.
         assert httpx.get(f"{url}/healthz", timeout=5).status_code == 200
 
 
-def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl(container, image_env, tmp_path):
+def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl(container, image, tmp_path):
     # What the gpu-cluster overlay sets on the container, on this machine without NVIDIA's driver.
     overlay = yaml.safe_load((ROOT / "k8s" / "overlays" / "gpu-cluster" / "sim-gpu.yaml").read_text())
     (sim,) = overlay["spec"]["template"]["spec"]["containers"]
@@ -339,19 +333,19 @@ def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl
     assert "__EGL_VENDOR_LIBRARY_FILENAMES" in gpu_env
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    volumes = _writable_volumes(tmp_path, image_env)
-    with running(container, _pod_argv(image_env, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log") as proc:
+    volumes = _writable_volumes(tmp_path, image)
+    with running(container, _pod_argv(image, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log") as proc:
         detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "EGL" in detail, detail
 
 
-def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(container, image_env, tmp_path):
+def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(container, image, tmp_path):
     # The manifests mark the Secret optional: without it VECSIM_TOKEN is unset and the pod
     # starts with checking off, saying so (docs/kubernetes.md, The shared token).
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     log_path = tmp_path / "pod.log"
-    with running(container, _pod_argv(image_env), _pod_env(port), _writable_volumes(tmp_path, image_env), log_path) as proc:
+    with running(container, _pod_argv(image), _pod_env(port), _writable_volumes(tmp_path, image), log_path) as proc:
         def answering() -> bool:
             assert proc.proc.poll() is None, f"the pod exited:\n{proc.log_text()}"
             with contextlib.suppress(httpx.HTTPError):
@@ -364,11 +358,11 @@ def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(conta
         assert "no assignment" in httpx.get(f"{url}/readyz", timeout=5).json()["detail"]
 
 
-def test_pod_given_a_token_secret_with_a_trailing_newline_exits_naming_vecsim_token(container, image_env, tmp_path):
+def test_pod_given_a_token_secret_with_a_trailing_newline_exits_naming_vecsim_token(container, image, tmp_path):
     # What `kubectl create secret --from-file` of a file ending in a newline hands the container.
     port = free_port()
     env = _pod_env(port, VECSIM_TOKEN="s3cret\n")
-    with running(container, _pod_argv(image_env), env, _writable_volumes(tmp_path, image_env), tmp_path / "pod.log") as proc:
+    with running(container, _pod_argv(image), env, _writable_volumes(tmp_path, image), tmp_path / "pod.log") as proc:
         returncode = proc.proc.wait(timeout=START_TIMEOUT_S)
         assert returncode == 2, proc.log_text()
         assert "VECSIM_TOKEN" in proc.log_text()
