@@ -2,24 +2,28 @@
 # One image for sim pods and the controller: `vecsim pod` (the default command) or
 # `vecsim controller --config ...`. Build from the repository root:
 #   docker build -t vecsim:0.1.0 .
-# The tag is the version in pyproject.toml; the Kubernetes manifests pin it.
-FROM nvidia/cuda:12.4.1-runtime-ubuntu22.04
+# or, on a machine without a registry, scripts/build_image.sh (makes this base with debootstrap,
+# then builds this same file with buildah). The tag is the version in pyproject.toml; the
+# Kubernetes manifests pin it.
+FROM debian:bookworm-slim
 
 ARG DEBIAN_FRONTEND=noninteractive
+# Where the CPU build of torch comes from. PyPI's torch for Linux is the CUDA build (GBs the pod
+# never uses: it renders through EGL and runs torch only for LIBERO's init states), so torch is
+# installed from here first and setup.sh finds its pin already met. An offline build points
+# TORCH_FIND_LINKS at a mounted directory holding the wheel instead (scripts/build_image.sh).
+ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+ARG TORCH_FIND_LINKS=
 
-# Python 3.11 from deadsnakes (Ubuntu 22.04 itself ships only a 3.11 release candidate).
-# EGL goes through libglvnd: on GPU nodes the container runtime mounts NVIDIA's EGL library
-# (NVIDIA_DRIVER_CAPABILITIES includes graphics) and the vendor file below points at it; on CPU
-# nodes Mesa's software EGL answers instead. tini reaps the sim worker processes.
+# Debian's Python 3.11 (the project's Python). EGL goes through libglvnd: on GPU nodes the
+# container runtime mounts NVIDIA's EGL library (NVIDIA_DRIVER_CAPABILITIES includes graphics) and
+# the vendor file below points at it; on CPU nodes Mesa's software EGL answers instead. OpenCV
+# (robosuite's) loads libGL and GLib. tini reaps the sim worker processes.
 RUN apt-get update \
- && apt-get install -y --no-install-recommends ca-certificates gnupg software-properties-common \
- && add-apt-repository -y ppa:deadsnakes/ppa \
- && apt-get update \
  && apt-get install -y --no-install-recommends \
-      python3.11 python3.11-venv \
-      libglvnd0 libegl1 libgl1 libgles2 libopengl0 libegl-mesa0 libgl1-mesa-dri \
+      ca-certificates python3.11 python3.11-venv \
+      libglvnd0 libegl1 libgl1 libgles2 libopengl0 libegl-mesa0 libgl1-mesa-dri libglib2.0-0 \
       tini \
- && apt-get purge -y --auto-remove software-properties-common gnupg \
  && rm -rf /var/lib/apt/lists/* \
  && mkdir -p /usr/share/glvnd/egl_vendor.d \
  && printf '{"file_format_version": "1.0.0", "ICD": {"library_path": "libEGL_nvidia.so.0"}}\n' \
@@ -46,15 +50,25 @@ ENV HOME=/home/vecsim \
 USER 10001:10001
 WORKDIR /app
 
+# torch's CPU build alone (its own dependencies come from PyPI through setup.sh's pin below).
+RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
+    python3.11 -m venv "$VECSIM_VENV" \
+ && if [ -n "$TORCH_FIND_LINKS" ]; then source="--no-index --find-links $TORCH_FIND_LINKS"; \
+    else source="--index-url $TORCH_INDEX_URL"; fi \
+ && "$VECSIM_VENV/bin/pip" install --no-deps $source "torch==2.13.0" \
+ && "$VECSIM_VENV/bin/python" -c "import importlib.metadata as m, sys; cuda = [r for r in m.requires('torch') or [] if r.startswith('nvidia-')]; sys.exit(f'torch is a CUDA build: it needs {cuda}' if cuda else 0)"
+
+# The README's install, step for step: a venv at $VECSIM_VENV with the pod's pinned dependencies
+# (the `pod` extra: no plotting, video or test packages), LIBERO --no-deps and its assets, and
+# the link to them. It runs twice: first with only what decides the dependencies (so this slow
+# layer is rebuilt only when they change), then with the source, when it finds every dependency
+# in place and only points the editable install at the packages. The pip cache survives builds.
 COPY --chown=10001:10001 pyproject.toml README.md ./
-COPY --chown=10001:10001 scripts/ scripts/
+COPY --chown=10001:10001 scripts/setup.sh scripts/
+RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 VECSIM_EXTRAS=pod scripts/setup.sh
 COPY --chown=10001:10001 vecsim/ vecsim/
 COPY --chown=10001:10001 service/ service/
 COPY --chown=10001:10001 configs/ configs/
-
-# The README's install, step for step: a venv at $VECSIM_VENV with the pod's pinned dependencies
-# (the `pod` extra: no plotting, video or test packages), LIBERO --no-deps and its assets. The pip
-# cache survives between builds.
 RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 VECSIM_EXTRAS=pod scripts/setup.sh
 
 # Bytecode for the project's own modules now: the running container's root is read-only.

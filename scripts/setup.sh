@@ -45,6 +45,21 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
+# The tests also build the pod image without a registry or Docker daemon (tests/test_image.py,
+# scripts/build_image.sh): buildah and debootstrap, from Debian, where we may install them.
+case ",$extras," in
+  *,test,*)
+    if ! command -v buildah >/dev/null || ! command -v debootstrap >/dev/null; then
+      if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        echo "[setup] installing buildah and debootstrap (for the image test)" >&2
+        apt-get update -qq && apt-get install -y -qq buildah debootstrap >/dev/null
+      else
+        echo "[setup] warning: buildah/debootstrap missing; tests/test_image.py needs them (and root)" >&2
+      fi
+    fi
+    ;;
+esac
+
 # The tests also check the trainer's install, `pip install vecsim` without extras (no simulator,
 # no torch), in a venv of its own beside this one (tests/test_light_client.py).
 case ",$extras," in

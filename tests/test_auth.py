@@ -440,3 +440,11 @@ def test_vecsim_up_without_a_token_writes_the_one_it_made_to_a_file_only_its_own
             output, _ = runner.communicate(timeout=30)
     assert f"export VECSIM_TOKEN=$(cat {token_file})".encode() in output
     assert token.encode() not in output
+
+
+def test_a_token_ending_in_a_newline_is_refused_naming_the_variable():
+    # What `kubectl create secret --from-file` of a file ending in a newline holds.
+    from vecsim.auth import check_token
+
+    with pytest.raises(ValueError, match="VECSIM_TOKEN"):
+        check_token("s3cret\n")

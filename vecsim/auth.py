@@ -60,7 +60,9 @@ def check_token(token: str | None, source: str = TOKEN_ENV) -> str | None:
     """
     if not token:
         return None
-    if not _TOKEN_CHARS.match(token):
+    # fullmatch: match's "$" also matches before a final newline, which a Secret made from a
+    # file often ends in.
+    if not _TOKEN_CHARS.fullmatch(token):
         raise ValueError(f"{source}: the token must be visible ASCII characters without spaces")
     return token
 
