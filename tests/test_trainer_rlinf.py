@@ -212,6 +212,7 @@ def both_envs(cfg_theirs: Any, cfg_ours: Any) -> Iterator[tuple[Any, Any]]:
         theirs.env.close()
 
 
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("auto_reset", [False, True], ids=["no-auto-reset", "auto-reset"])
 def test_rlinf_env_worker_sees_what_rlinf_libero_env_gives(pod_url: str, auto_reset: bool) -> None:
     chunks = scripted_chunks(4 if not auto_reset else 5)

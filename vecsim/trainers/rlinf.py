@@ -214,8 +214,8 @@ class VecsimLiberoEnv:
                 f"which has {len(table.stages)}: give the job one stage per RLinf env process and pipeline stage"
             )
         self._stage_envs = [e for e in routed_envs(table) if e.stage_id == self.stage_id]
-        num_states = self._client.num_states()
-        instructions = self._client.instructions()
+        num_states = self._client.num_states
+        instructions = self._client.instructions
         # task index -> the job's task id, count and instruction, for this suite's tasks only
         self._job_tasks = {suite_task_index(t): t for t in num_states if suite_of(t) == self.suite}
         if not self._job_tasks:
