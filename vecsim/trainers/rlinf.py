@@ -533,7 +533,8 @@ class VecsimLiberoEnv:
             terminations = success[:, k].copy()
             truncations = self.elapsed_steps >= self.cfg.max_episode_steps
             step_reward = self._calc_step_reward(terminations)
-            infos = self._record_metrics(step_reward, terminations, {})
+            # RLinf's vector env tags every env's step info with its index (envs/venv/venv.py:808)
+            infos = self._record_metrics(step_reward, terminations, {"env_id": list(range(self.num_envs))})
             if self.ignore_terminations:
                 infos["episode"]["success_at_end"] = _to_tensor(terminations)
                 terminations[:] = False
