@@ -225,3 +225,116 @@ def test_rlinf_env_worker_sees_what_rlinf_libero_env_gives(pod_url: str, auto_re
     assert truncations.any(), "the script should end an episode inside chunk 2"
     problems = [d for (name, a), (_, b) in zip(expected, got) for d in differences(a, b, name)]
     assert not problems, "\n".join(problems[:20])
+
+
+# -- bad input: a clear error naming the field, and no env changed --------------------------------
+
+
+@pytest.fixture()
+def ours(pod_url: str) -> Iterator[Any]:
+    env = vecsim_env(rlinf_config(False, pod_url))
+    try:
+        yield env
+    finally:
+        env.close()
+
+
+def first_chunk_obs(env: Any, before: Any = None) -> Any:
+    """Reset both slots to state 0, run ``before`` (if any), step one scripted chunk; its obs."""
+    env.is_start = False
+    env.reset(reset_state_ids=np.array([0, 0]))
+    if before is not None:
+        before()
+    return env.chunk_step(scripted_chunks(1)[0])[0][-1]
+
+
+def test_a_chunk_of_the_wrong_shape_is_refused_naming_it_and_changes_no_env(ours: Any) -> None:
+    expected = first_chunk_obs(ours)
+
+    def bad() -> None:
+        with pytest.raises(ValueError, match="chunk_actions"):
+            ours.chunk_step(np.zeros((NUM_ENVS, K, 6)))
+        with pytest.raises(ValueError, match="chunk_actions"):
+            ours.chunk_step(np.zeros((NUM_ENVS + 1, K, 7)))
+        with pytest.raises(ValueError, match="chunk_actions"):
+            ours.chunk_step(np.full((NUM_ENVS, K, 7), np.nan))
+        assert ours.elapsed_steps.tolist() == [0, 0]
+
+    assert not differences(expected, first_chunk_obs(ours, bad), "obs")
+
+
+def test_unknown_env_indices_and_reset_ids_are_refused_naming_them_and_change_no_env(ours: Any) -> None:
+    expected = first_chunk_obs(ours)
+
+    def bad() -> None:
+        with pytest.raises(ValueError, match="env_idx"):
+            ours.reset(env_idx=[NUM_ENVS], reset_state_ids=np.array([0]))
+        with pytest.raises(ValueError, match="reset_state_ids"):
+            ours.reset(env_idx=[0], reset_state_ids=np.array([500]))  # libero_spatial has 10 x 50
+        with pytest.raises(ValueError, match="libero_spatial/1"):
+            ours.reset(env_idx=[0], reset_state_ids=np.array([50]))  # task 1: not served by the job
+
+    assert not differences(expected, first_chunk_obs(ours, bad), "obs")
+
+
+def test_more_slots_of_a_task_than_the_stage_holds_is_refused_naming_the_task(pod_url: str) -> None:
+    from vecsim.trainers.rlinf import VecsimLiberoEnv
+
+    cfg = rlinf_config(False, pod_url, group_size=2 * NUM_ENVS)
+    env = VecsimLiberoEnv(cfg.env.train, 2 * NUM_ENVS, 0, 1, None)
+    try:
+        with pytest.raises(ValueError, match=f"stage 0 has {NUM_ENVS} env.* of task '{TASK}'"):
+            env.reset()
+    finally:
+        env.close()
+
+
+def test_stepping_after_close_raises(pod_url: str) -> None:
+    from gymnasium.error import ClosedEnvironmentError
+
+    env = vecsim_env(rlinf_config(False, pod_url))
+    env.reset()
+    env.close()
+    with pytest.raises(ClosedEnvironmentError):
+        env.chunk_step(np.zeros((NUM_ENVS, K, 7)))
+    with pytest.raises(ClosedEnvironmentError):
+        env.reset()
+
+
+def test_an_env_config_naming_no_job_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    from vecsim.trainers.rlinf import CONTROLLER_URL_ENV, VecsimLiberoEnv
+
+    monkeypatch.delenv(CONTROLLER_URL_ENV, raising=False)
+    cfg = rlinf_config(False, None)
+    cfg.env.train.vecsim = {}
+    with pytest.raises(ValueError, match="controller_url"):
+        VecsimLiberoEnv(cfg.env.train, NUM_ENVS, 0, 1, None)
+
+
+def test_register_picks_vecsim_env_only_for_configs_with_a_vecsim_block() -> None:
+    ensure_config()
+    import vecsim.trainers.rlinf
+    from rlinf.envs.libero.libero_env import LiberoEnv
+
+    vecsim.trainers.rlinf.register()
+    vecsim.trainers.rlinf.register()  # idempotent
+    import rlinf.envs
+    import rlinf.workers.env.env_worker as env_worker
+
+    with_block, without = rlinf_config(False, "http://127.0.0.1:1"), rlinf_config(False, None)
+    for lookup in (rlinf.envs.get_env_cls, env_worker.get_env_cls):
+        assert lookup("libero", with_block.env.train) is vecsim.trainers.rlinf.VecsimLiberoEnv
+        assert lookup("libero", without.env.train) is LiberoEnv
+
+
+def test_slots_keep_their_env_while_their_task_stays_and_spread_over_pods() -> None:
+    from vecsim.client.routing import RoutedEnv
+    from vecsim.trainers.rlinf import place_slots
+
+    envs = [RoutedEnv(pod, i, task, 0) for pod in ("a", "b") for i, task in enumerate(["s/0", "s/0", "s/1"])]
+    first = place_slots(envs, {}, {0: "s/0", 1: "s/0", 2: "s/1"}, 0)
+    assert [(first[s].pod, first[s].env_index) for s in range(3)] == [("a", 0), ("b", 0), ("a", 2)]
+    again = place_slots(envs, first, {0: "s/0", 2: "s/0"}, 0)
+    assert again[0] == first[0] and again[2].task_id == "s/0" and again[2] not in (first[0], first[1])
+    with pytest.raises(ValueError, match="task 's/1'"):
+        place_slots(envs, {}, {0: "s/1", 1: "s/1", 2: "s/1"}, 0)
