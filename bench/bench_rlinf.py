@@ -44,7 +44,7 @@ from _perf_common import paired_ratio, rate_spread, setup_logging
 from bench_gpu_scale import cores_first, cpu_topology, gl_probe, split_cores
 from common import write_result
 
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, TaskBlock
 
 log = logging.getLogger("bench.rlinf")
 

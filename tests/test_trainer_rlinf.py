@@ -17,9 +17,7 @@ env here seeds every slot with the job's (0); fixtures (LIBERO's cabinets) are p
 from __future__ import annotations
 
 import contextlib
-import os
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np

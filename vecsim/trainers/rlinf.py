@@ -50,8 +50,6 @@ CONTROLLER_URL_ENV = "VECSIM_CONTROLLER_URL"
 # (libero_env.py:395-402), also over tasks the job does not serve.
 LIBERO_SUITE_TASKS = {"libero_spatial": 10, "libero_object": 10, "libero_goal": 10, "libero_10": 10, "libero_90": 90}
 ACTION_DIM = 7
-# RLinf's settle: 15 steps inside reset() (libero_env.py:701-707).
-RLINF_SETTLE_STEPS = 15
 # Client-side settle actions go out at most this many a call (well under the pods' max_chunk).
 SETTLE_CHUNK = 16
 
@@ -547,6 +545,7 @@ class VecsimLiberoEnv:
 
     def step(self, actions: Any = None, auto_reset: bool = True) -> tuple[Any, Any, Any, Any, dict]:
         """One action per slot (libero_env.py:718-747)."""
+        self._check_open()
         chunk = self._check_actions(actions, 2)
         obs_list, rewards, terms, truncs, infos_list = self._step_chunk(chunk)
         obs, infos = obs_list[-1], infos_list[-1]
@@ -564,6 +563,7 @@ class VecsimLiberoEnv:
         """
         import torch
 
+        self._check_open()
         chunk = self._check_actions(chunk_actions, 3)
         obs_list, rewards, terms, truncs, infos_list = self._step_chunk(chunk)
         chunk_rewards = torch.stack(rewards, dim=1)
