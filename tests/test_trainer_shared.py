@@ -199,6 +199,21 @@ def test_stage_client_freezes_ended_trajectories_without_a_request(pods):
     assert np.array_equal(frozen.obs["proprio"], first.obs["proprio"])
 
 
+def test_stage_client_freezes_only_the_ended_trajectories_of_a_call(pods):
+    client, keys = _stage_client(pods, "freeze")
+    with client:
+        client.step_stage(0, dict(zip(keys, _chunk(4, seed=1)))).result(60)
+        routes = client.routes
+        on_first = [k for k in keys if routes[k].pod == "sim-0"]
+        client.reset_stage(0, on_first).result(60)
+        sent = _step_requests(pods)
+        batch = client.step_stage(0, dict(zip(keys, _chunk(4, seed=2)))).result(60)
+        assert _step_requests(pods) == [sent[0] + 1, sent[1]]  # only the pod with live trajectories
+    steps = dict(zip(batch.traj_keys, batch.num_steps.tolist()))
+    assert all(steps[k] == EPISODE for k in on_first) and all(steps[k] == 0 for k in keys if k not in on_first)
+    assert client.ended_traj_keys == sorted(keys)  # the reset ones ended again in this chunk
+
+
 def test_ended_envs_must_be_a_known_mode(pods):
     with pytest.raises(ValueError, match="ended_envs must be one of"):
         StageClient.from_pods([pods[0].url], ended_envs="skip")

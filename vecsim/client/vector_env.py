@@ -176,18 +176,18 @@ class HTTPVectorEnv(VectorEnv):
         if controller_url is not None:
             table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
             self.client = StageClient(
-                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
-                ended_envs=self.ended_envs,
+                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
+                token=token, ended_envs=self.ended_envs,
             )  # fmt: skip
         elif routing is not None:
             self.client = StageClient(
-                routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
-                ended_envs=self.ended_envs,
+                routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
+                token=token, ended_envs=self.ended_envs,
             )  # fmt: skip
         else:
             self.client = StageClient.from_pods(
-                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
-                ended_envs=self.ended_envs,
+                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
+                token=token, ended_envs=self.ended_envs,
             )  # fmt: skip
         try:
             self._setup(num_envs)

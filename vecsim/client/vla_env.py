@@ -2,8 +2,9 @@
 
 VLA-RL trainers talk to their simulator through a small contract: ``reset`` of chosen envs to
 chosen initial states, and ``chunk_step(actions[num_envs, K, action_dim])`` answering per-action
-rewards, terminations and truncations. :class:`VLAEnv` gives a vecsim job that shape; the
-trainers' own env classes are re-enacted over it in :mod:`vecsim.trainers` (docs/trainers.md)::
+rewards, terminations and truncations. :class:`VLAEnv` gives a vecsim job that shape; it is not
+itself a trainer's env class: the adapters in :mod:`vecsim.trainers` are, built on it
+(docs/trainers.md)::
 
     env = VLAEnv("http://controller:8000", keys="lerobot", camera_keys="lerobot")
     obs, info = env.reset(env_ids=[0, 1, 2], state_ids=[4, 4, 7])
@@ -11,12 +12,14 @@ trainers' own env classes are re-enacted over it in :mod:`vecsim.trainers` (docs
     obs, *_ = env.chunk_step(actions[:2], env_ids=[0, 2])                      # only envs 0 and 2
 
 Each env's task is fixed by the job (``task_ids``, and ``task_indices``: the int index in its
-suite). State ids are per task; ``reset(global_state_ids=...)`` takes the trainers' suite-global
-ids (task ``t``'s rows after those of tasks ``0..t-1``, :class:`~vecsim.client.conventions.StateNumbering`)
-and refuses an id of another task than the env's. The policy's state vector is LIBERO's 8-float
+suite; a property, not a list made at construction, so that a job of tasks without an index, a
+gym id, still makes a VLAEnv and raises only when asked). State ids are per task;
+``reset(global_state_ids=...)`` takes the trainers' suite-global ids (task ``t``'s rows after
+those of tasks ``0..t-1``, :class:`~vecsim.client.conventions.StateNumbering`) and refuses an id
+of another task than the env's. The policy's state vector is LIBERO's 8-float
 ``state`` where the job serves it (LIBERO tasks), else the robot's ``proprio``. Every action's
 termination and truncation is reported where it happened, also with ``auto_reset`` (RLinf moves
-them to the chunk's last column then; its adapter does that).
+them to the chunk's last column then).
 
 It is a thin layer over :class:`~vecsim.client.vector_env.HTTPVectorEnv`: autoreset disabled, or
 gymnasium's same-step autoreset with ``auto_reset=True``.

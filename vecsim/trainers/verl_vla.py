@@ -48,7 +48,8 @@ def _get(cfg: Any, name: str, default: Any = None) -> Any:
 class VecsimLiberoEnv:
     """verl-vla's LIBERO env hooks over a vecsim job; put it before ``BaseEnv`` in the bases.
 
-    The constructor is verl-vla's ``LiberoEnv``'s (libero_env.py:260-275). This process's envs
+    The constructor is verl-vla's ``LiberoEnv``'s (libero_env.py:260-275), as its env manager
+    calls it (src/verl_vla/workers/env/env_manager.py:359-361). This process's envs
     are the job's envs ``[p * num_envs, (p + 1) * num_envs)`` with ``p = rank * stage_num +
     stage_id``, verl-vla's global process id (libero_env.py:272). ``cfg.simulator.vecsim`` names
     the job (``controller_url`` or ``pod_urls``; ``token``, ``timeout_s``, ``seed``).
@@ -56,9 +57,11 @@ class VecsimLiberoEnv:
 
     env_type = "libero"
 
-    def __init__(self, cfg: Any, rank: int, world_size: int, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False) -> None:
+    def __init__(
+        self, cfg: Any, rank: int, world_size: int, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False
+    ) -> None:
         self.only_eval = bool(only_eval)
-        self.stage_num = int(stage_num)
+        self.stage_num = int(stage_num)  # verl-vla's name (vecsim's is num_stages), as its LiberoEnv keeps it
         self.global_process_id = int(rank) * self.stage_num + int(stage_id)
         super().__init__(cfg, rank, world_size, stage_id=stage_id)  # type: ignore[call-arg]
 
@@ -149,7 +152,10 @@ class VecsimLiberoEnv:
         ids = self._local_ids(env_ids, "env_ids")
         action = _numpy(action)
         if action.shape != (ids.size, self.vla.action_dim):
-            raise ValueError(f"action must have shape [{ids.size}, {self.vla.action_dim}] for env_ids {ids.tolist()}, got {list(action.shape)}")
+            raise ValueError(
+                f"action must have shape [{ids.size}, {self.vla.action_dim}] for env_ids {ids.tolist()}, "
+                f"got {list(action.shape)}"
+            )
         obs, rewards, terminations, truncations, _ = self.vla.chunk_step(action[:, None, :], env_ids=self.job_env_ids[ids])
         return self._step_result(obs, ids, rewards[:, 0], terminations[:, 0], truncations[:, 0])
 
