@@ -208,7 +208,9 @@ def scripted_chunks(num_envs: int, k: int, count: int) -> list[Any]:
     return [torch.tensor(rng.uniform(-0.5, 0.5, (num_envs, k, 7)), dtype=torch.float32) for _ in range(count)]
 
 
-def run_size(args: argparse.Namespace, num_envs: int, pins: list[str], driver: list[int], workdir: Path) -> dict[str, Any]:
+def run_size(
+    args: argparse.Namespace, num_envs: int, pins: list[str], driver: list[int], workdir: Path
+) -> dict[str, Any]:
     tasks = slot_tasks(num_envs, args.tasks)
     ids = reset_ids(num_envs, args.tasks)
     chunks = scripted_chunks(num_envs, args.k, args.chunks)

@@ -172,7 +172,8 @@ def differences(theirs: Any, ours: Any, where: str) -> list[str]:
     import torch
 
     if dataclasses.is_dataclass(theirs) and not isinstance(theirs, type):
-        return [d for f in dataclasses.fields(theirs) for d in differences(getattr(theirs, f.name), getattr(ours, f.name), f"{where}.{f.name}")]
+        fields = [f.name for f in dataclasses.fields(theirs)]
+        return [d for f in fields for d in differences(getattr(theirs, f), getattr(ours, f), f"{where}.{f}")]
     if type(theirs) is not type(ours):
         return [f"{where}: {type(theirs).__name__} vs {type(ours).__name__}"]
     if isinstance(theirs, dict):

@@ -217,7 +217,9 @@ class VecsimLiberoEnv:
         # task index -> the job's task id, count and instruction, for this suite's tasks only
         self._job_tasks = {suite_task_index(t): t for t in num_states if suite_of(t) == self.suite}
         if not self._job_tasks:
-            raise ValueError(f"the job serves no task of task_suite_name {self.suite!r} (its tasks: {sorted(num_states)})")
+            raise ValueError(
+                f"the job serves no task of task_suite_name {self.suite!r} (its tasks: {sorted(num_states)})"
+            )
         counts = {num_states[t] for t in self._job_tasks.values()}
         if len(counts) != 1:
             raise ValueError(f"the job's {self.suite} tasks have different state counts {sorted(counts)}")
@@ -281,7 +283,8 @@ class VecsimLiberoEnv:
             else:
                 ids = _interleaved_eval_ids(self.trial_id_bins, self.cumsum_trial_id_bins)
             return _round_robin(ids, self.total_num_processes)
-        ids = self._valid_reset_state_ids.copy() if self._valid_reset_state_ids is not None else np.arange(self.total_num_group_envs)
+        valid = self._valid_reset_state_ids
+        ids = valid.copy() if valid is not None else np.arange(self.total_num_group_envs)
         self._generator_ordered.shuffle(ids)
         if len(ids) < self.total_num_processes:
             ids = np.tile(ids, (self.total_num_processes // len(ids)) + 1)
