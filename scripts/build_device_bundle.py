@@ -110,6 +110,13 @@ WHEELS = (
     "easydict",
     "future",
     "bddl",
+    # bench/bench_rlinf.py runs RLinf's own LiberoEnv: rlinf and what its LIBERO env imports
+    # (Ray, 79 MB, stays behind: the bench stands in for rlinf.scheduler when Ray is absent).
+    "rlinf",
+    "omegaconf",
+    "gym",
+    "cloudpickle",
+    "dill",
 )
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
              "manylinux1_x86_64", "manylinux_2_24_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64",

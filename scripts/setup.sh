@@ -60,6 +60,23 @@ case ",$extras," in
     ;;
 esac
 
+# RLinf's own LIBERO env and env worker judge vecsim's RLinf adapter (tests/test_trainer_rlinf.py,
+# bench/bench_rlinf.py). rlinf's declared dependencies pull a CUDA torch, vLLM and more: install it
+# bare, then only what rlinf/envs/libero/*, rlinf/envs/__init__.py and
+# rlinf/workers/env/env_worker.py import (old gym for LiberoEnv, Ray and protobuf for the worker).
+case ",$extras," in
+  *,test,*)
+    rlinf_stamp="$venv/.vecsim-rlinf-$stamp_src"
+    if [ ! -f "$rlinf_stamp" ]; then
+      echo "[setup] installing rlinf (no deps) and what its env modules import" >&2
+      "$venv/bin/python" -m pip install -q --no-deps "rlinf==0.3.0" "gym==0.26.2" "ray==2.60.0"
+      "$venv/bin/python" -m pip install -q "omegaconf==2.4.0" "protobuf" "click" "jsonschema" "msgpack"
+      rm -f "$venv"/.vecsim-rlinf-*
+      touch "$rlinf_stamp"
+    fi
+    ;;
+esac
+
 # The tests also check the trainer's install, `pip install vecsim` without extras (no simulator,
 # no torch), in a venv of its own beside this one (tests/test_light_client.py).
 case ",$extras," in

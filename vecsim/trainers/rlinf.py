@@ -1,0 +1,742 @@
+"""RLinf's LIBERO env contract over a vecsim job: ``env_type: libero`` plus a ``vecsim:`` block.
+
+:class:`VecsimLiberoEnv` has the constructor, attributes and methods of RLinf 0.3.0's
+``rlinf.envs.libero.libero_env.LiberoEnv`` (cited below as ``libero_env.py:<line>``), so RLinf's
+own ``EnvWorker`` drives it unchanged; :func:`register` makes ``get_env_cls("libero", cfg)``
+return it for every env config that has a ``vecsim`` block (the job's address:
+``vecsim.controller_url``, ``vecsim.pod_urls``, or ``$VECSIM_CONTROLLER_URL``)::
+
+    # env.train / env.eval of the RLinf config, beside RLinf's own LIBERO keys:
+    #   vecsim: {controller_url: "http://controller:8000"}
+    import vecsim.trainers.rlinf
+    vecsim.trainers.rlinf.register()   # in every process that builds envs (Ray: a worker setup hook)
+
+The task mapping rule. RLinf's reset id is suite-global (task ``t``'s rows come after those of
+tasks ``0..t-1``; 50 a task for LIBERO) and RLinf rebuilds an env for whatever task it draws; a
+vecsim env's task is fixed by the job. So each RLinf env slot runs each episode on a free env of
+the drawn task on the job stage ``vecsim.stage_id`` (default: the env's ``seed_offset``): a slot
+keeps its env while its task stays, else it takes the free env of the task on the pod holding
+the fewest slots. A stage needs as many envs of a task as slots may draw it at once
+(``num_envs`` of every task RLinf may draw, or fewer with ``task_id_filter`` / GRPO groups); a
+reset that does not fit raises ``ValueError`` naming the task, the reset ids and the stage.
+RLinf's bookkeeping (reset-id draws, rewards, episode statistics, flags) runs here, re-enacted
+from its code; the pods run physics and report success (``ended_envs="step"``: ended envs keep
+being stepped, as RLinf steps them). docs/trainers.md ("RLinf") lists what differs.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium.error import ClosedEnvironmentError
+
+from vecsim.client.conventions import camera_key_map, suite_of, suite_task_index
+from vecsim.client.routing import RoutedEnv, TrajRoute, routed_envs
+from vecsim.client.stage import StageBatch, StageClient
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CONTROLLER_URL_ENV", "LIBERO_SUITE_TASKS", "VecsimLiberoEnv", "place_slots", "register"]
+
+# Where the job is when the env config's vecsim block names none.
+CONTROLLER_URL_ENV = "VECSIM_CONTROLLER_URL"
+# How many tasks each LIBERO suite has: RLinf numbers reset ids over the whole suite
+# (libero_env.py:395-402), also over tasks the job does not serve.
+LIBERO_SUITE_TASKS = {"libero_spatial": 10, "libero_object": 10, "libero_goal": 10, "libero_10": 10, "libero_90": 90}
+ACTION_DIM = 7
+# Client-side settle actions go out at most this many a call (well under the pods' max_chunk).
+SETTLE_CHUNK = 16
+
+
+def _opt(cfg: Any, key: str, default: Any = None) -> Any:
+    """``cfg.get(key, default)`` for an OmegaConf config or a plain mapping."""
+    value = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
+    return default if value is None else value
+
+
+def _to_tensor(value: Any) -> Any:
+    """RLinf's ``rlinf.envs.utils.to_tensor`` on CPU (envs/utils.py:53-101): float64 -> float32."""
+    import torch
+
+    if value is None:
+        return None
+    if isinstance(value, dict):
+        return {k: _to_tensor(v) for k, v in value.items()}
+    if isinstance(value, torch.Tensor):
+        out = value
+    elif isinstance(value, np.ndarray):
+        if value.dtype == object:
+            return [_to_tensor(x) for x in value]
+        if value.dtype == np.uint16:
+            value = value.astype(np.int32)
+        elif value.dtype == np.uint32:
+            value = value.astype(np.int64)
+        out = torch.tensor(value)
+    else:
+        out = torch.tensor(value)
+    return out.to(torch.float32) if out.dtype == torch.float64 else out
+
+
+def place_slots(
+    stage_envs: Sequence[RoutedEnv], held: Mapping[int, RoutedEnv], requests: Mapping[int, str], stage_id: int
+) -> dict[int, RoutedEnv]:
+    """Return the env each requesting slot runs its next episode on (the module's mapping rule).
+
+    ``held``: the env each slot holds now; ``requests``: slot -> task id of its next episode.
+    Slots not requesting keep their envs; a requesting slot keeps its env when its task stays,
+    else takes a free env of the task on the pod holding the fewest slots (lowest index first).
+
+    Raises:
+        ValueError: the stage has no free env of a requested task (names task, slots, stage).
+    """
+    taken = {(e.pod, e.env_index) for slot, e in held.items() if slot not in requests}
+    placed: dict[int, RoutedEnv] = {}
+    for slot, task in requests.items():
+        env = held.get(slot)
+        if env is not None and env.task_id == task and (env.pod, env.env_index) not in taken:
+            placed[slot] = env
+            taken.add((env.pod, env.env_index))
+    pod_order = {e.pod: i for i, e in reversed(list(enumerate(stage_envs)))}
+    for slot, task in requests.items():
+        if slot in placed:
+            continue
+        free = [e for e in stage_envs if e.task_id == task and (e.pod, e.env_index) not in taken]
+        if not free:
+            of_task = [e for e in stage_envs if e.task_id == task]
+            wanted = sorted(s for s, t in requests.items() if t == task)
+            raise ValueError(
+                f"stage {stage_id} has {len(of_task)} env(s) of task {task!r} and slots {wanted} ask for it "
+                f"while {len(of_task) - len([s for s in wanted if s in placed])} are held by other slots: "
+                f"give the job's stage as many envs of each task as the RLinf env's slots may draw at once"
+            )
+        load = Counter(pod for pod, _ in taken)
+        env = min(free, key=lambda e: (load[e.pod], pod_order[e.pod], e.env_index))
+        placed[slot] = env
+        taken.add((env.pod, env.env_index))
+    return placed
+
+
+class VecsimLiberoEnv:
+    """RLinf's ``LiberoEnv`` (constructor, ``reset``, ``step``, ``chunk_step``, reset-id draws)
+    over a vecsim job; see the module docstring for the config and the task mapping rule.
+
+    RLinf's options are read where RLinf reads them (``cfg.reward_coef``, ``use_rel_reward``,
+    ``use_step_penalty``, ``ignore_terminations``, ``auto_reset``, ``max_episode_steps``,
+    ``use_fixed_reset_state_ids``, ``use_ordered_reset_state_ids``, ``task_id_filter``,
+    ``specific_reset_id``, ``is_eval``, ``group_size``, ``seed``, ``reset_gripper_open``). The
+    ``vecsim`` block adds: ``controller_url`` | ``pod_urls``, ``stage_id``, ``timeout_s``,
+    ``camera_keys`` (default ``"rlinf"``: agentview -> main_images, eye-in-hand -> wrist_images)
+    and ``settle_steps``: unset, the job's own settle (``libero: {settle_steps: 15}`` for RLinf's
+    15 steps with ``reset_gripper_open: true``); a number N, N settle actions sent by this env
+    after each reset, RLinf's own (arm still, gripper -1 if ``reset_gripper_open`` else 0), the
+    job's ``settle_steps`` then 0. ``obs_list`` holds the chunk's last observation in its last
+    entry and ``None`` before it (the pods render once a chunk).
+    """
+
+    def __init__(self, cfg: Any, num_envs: int, seed_offset: int, total_num_processes: int, worker_info: Any) -> None:
+        vcfg = _opt(cfg, "vecsim", {})
+        self.seed_offset = seed_offset
+        self.cfg = cfg
+        self.total_num_processes = total_num_processes
+        self.worker_info = worker_info
+        self.seed = cfg.seed + seed_offset
+        self._is_start = True
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        self.num_envs = int(num_envs)
+        self.group_size = cfg.group_size
+        if self.group_size < 1 or self.num_envs % self.group_size:
+            raise ValueError(f"group_size {self.group_size} must divide num_envs {self.num_envs}")
+        self.num_group = self.num_envs // self.group_size
+        self.use_fixed_reset_state_ids = cfg.use_fixed_reset_state_ids
+        self.specific_reset_id = _opt(cfg, "specific_reset_id")
+        self.task_id_filter = _opt(cfg, "task_id_filter")
+        if self.task_id_filter is not None:
+            self.task_id_filter = list(self.task_id_filter)
+        self.ignore_terminations = cfg.ignore_terminations
+        self.auto_reset = cfg.auto_reset
+        self.is_eval = _opt(cfg, "is_eval", False)
+        self._generator = np.random.default_rng(seed=self.seed)
+        self._generator_ordered = np.random.default_rng(seed=0)
+        self.start_idx = 0
+        self.suite = str(cfg.task_suite_name).lower()
+        if self.suite not in LIBERO_SUITE_TASKS:
+            raise ValueError(f"task_suite_name {cfg.task_suite_name!r} is not one of {sorted(LIBERO_SUITE_TASKS)}")
+        self._settle_steps = _opt(vcfg, "settle_steps")
+        if self._settle_steps is not None and (not isinstance(self._settle_steps, int) or self._settle_steps < 0):
+            raise ValueError(f"vecsim.settle_steps must be a non-negative int or unset, got {self._settle_steps!r}")
+        self._camera_keys = camera_key_map(_opt(vcfg, "camera_keys", "rlinf"))
+        self._closed = False
+
+        self._client = _connect(vcfg)
+        try:
+            self._setup_job(vcfg)
+        except BaseException:
+            self._client.close()
+            raise
+
+        self._compute_total_num_group_envs()
+        self.reset_state_ids_all = self.get_reset_state_ids_all()
+        if self.is_eval:
+            pool = self.reset_state_ids_all[self.seed_offset]
+            self._eval_reset_pool = pool[pool >= 0].copy()
+        else:
+            self._eval_reset_pool = np.array([], dtype=np.int64)
+        self.update_reset_state_ids()
+        self.task_ids, self.trial_ids = self._get_task_and_trial_ids_from_reset_state_ids(self.reset_state_ids)
+        self.task_descriptions = [self._instruction(t) for t in self.task_ids]
+
+        self.prev_step_reward = np.zeros(self.num_envs)
+        self.use_rel_reward = cfg.use_rel_reward
+        self.use_step_penalty = getattr(cfg, "use_step_penalty", False)
+        self._init_metrics()
+        self._elapsed_steps = np.zeros(self.num_envs, dtype=np.int32)
+        self.video_cfg = _opt(cfg, "video_cfg")
+        self.current_raw_obs = None  # RLinf's name; here {key: array[num_envs, ...]} once reset
+        self._held: dict[int, RoutedEnv] = {}
+
+    # -- the job ----------------------------------------------------------------------------------
+
+    def _setup_job(self, vcfg: Any) -> None:
+        table = self._client.routing
+        self.stage_id = int(_opt(vcfg, "stage_id", self.seed_offset))
+        if not 0 <= self.stage_id < len(table.stages):
+            raise ValueError(
+                f"vecsim.stage_id {self.stage_id} (default: the env's seed_offset) is not a stage of the job, "
+                f"which has {len(table.stages)}: give the job one stage per RLinf env process and pipeline stage"
+            )
+        self._stage_envs = [e for e in routed_envs(table) if e.stage_id == self.stage_id]
+        num_states = self._client.num_states
+        instructions = self._client.instructions
+        # task index -> the job's task id, count and instruction, for this suite's tasks only
+        self._job_tasks = {suite_task_index(t): t for t in num_states if suite_of(t) == self.suite}
+        if not self._job_tasks:
+            raise ValueError(
+                f"the job serves no task of task_suite_name {self.suite!r} (its tasks: {sorted(num_states)})"
+            )
+        counts = {num_states[t] for t in self._job_tasks.values()}
+        if len(counts) != 1:
+            raise ValueError(f"the job's {self.suite} tasks have different state counts {sorted(counts)}")
+        self._states_per_task = counts.pop()
+        self._instructions = {i: instructions.get(t, "") for i, t in self._job_tasks.items()}
+        if self.task_id_filter is not None:
+            missing = [t for t in self.task_id_filter if isinstance(t, (int, np.integer)) and t not in self._job_tasks]
+            if missing:
+                raise ValueError(f"task_id_filter names tasks {missing} of {self.suite} that the job does not serve")
+        self._keys = [f"rlinf{self.seed_offset}-{i}" for i in range(self.num_envs)]
+
+    def _instruction(self, task_index: int) -> str:
+        return self._instructions.get(int(task_index), "")
+
+    # -- RLinf's reset-id bookkeeping, re-enacted (libero_env.py:395-539) ---------------------------
+
+    def _compute_total_num_group_envs(self) -> None:
+        # libero_env.py:395-429, with per-task counts from the job's /v1/info instead of LIBERO's files
+        self.trial_id_bins = [self._states_per_task] * LIBERO_SUITE_TASKS[self.suite]
+        self.total_num_group_envs = sum(self.trial_id_bins)
+        self.cumsum_trial_id_bins = np.cumsum(self.trial_id_bins)
+        if self.task_id_filter is None:
+            self._valid_reset_state_ids = None
+            return
+        num_tasks = len(self.trial_id_bins)
+        validated = []
+        for tid in self.task_id_filter:
+            if not isinstance(tid, (int, np.integer)):
+                raise ValueError(f"task_id_filter must contain ints, got {type(tid).__name__}: {tid}")
+            if not 0 <= int(tid) < num_tasks:
+                raise ValueError(f"task_id {int(tid)} in task_id_filter is out of range [0, {num_tasks - 1}]")
+            validated.append(int(tid))
+        ids: list[int] = []
+        for tid in sorted(set(validated)):
+            start = self.cumsum_trial_id_bins[tid - 1] if tid > 0 else 0
+            ids.extend(range(start, self.cumsum_trial_id_bins[tid]))
+        self._valid_reset_state_ids = np.array(ids)
+
+    def update_reset_state_ids(self) -> None:
+        """Draw the next group-shared reset ids (libero_env.py:431-436); RLinf's ``finish_rollout`` calls it."""
+        if self.is_eval or self.cfg.use_ordered_reset_state_ids:
+            reset_state_ids = self._get_ordered_reset_state_ids(self.num_group)
+        else:
+            reset_state_ids = self._get_random_reset_state_ids(self.num_group)
+        self.reset_state_ids = reset_state_ids.repeat(self.group_size)
+
+    def _get_random_reset_state_ids(self, num_reset_states: int) -> np.ndarray:
+        # libero_env.py:443-457
+        if self.specific_reset_id is not None:
+            return self.specific_reset_id * np.ones((num_reset_states,), dtype=int)
+        if self._valid_reset_state_ids is not None:
+            indices = self._generator.integers(low=0, high=len(self._valid_reset_state_ids), size=(num_reset_states,))
+            return self._valid_reset_state_ids[indices]
+        return self._generator.integers(low=0, high=self.total_num_group_envs, size=(num_reset_states,))
+
+    def get_reset_state_ids_all(self) -> np.ndarray:
+        """Every process's reset-id pool (libero_env.py:459-488), eval order interleaved by task."""
+        if self.is_eval:
+            if self._valid_reset_state_ids is not None:
+                ids = self._valid_reset_state_ids.copy()
+            else:
+                ids = _interleaved_eval_ids(self.trial_id_bins, self.cumsum_trial_id_bins)
+            return _round_robin(ids, self.total_num_processes)
+        valid = self._valid_reset_state_ids
+        ids = valid.copy() if valid is not None else np.arange(self.total_num_group_envs)
+        self._generator_ordered.shuffle(ids)
+        if len(ids) < self.total_num_processes:
+            ids = np.tile(ids, (self.total_num_processes // len(ids)) + 1)
+        ids = ids[: len(ids) - (len(ids) % self.total_num_processes)]
+        return ids.reshape(self.total_num_processes, -1)
+
+    def _get_ordered_reset_state_ids(self, num_reset_states: int) -> np.ndarray:
+        # libero_env.py:490-513
+        if self.specific_reset_id is not None:
+            return self.specific_reset_id * np.ones((num_reset_states,), dtype=int)
+        if self.is_eval:
+            pool = self._eval_reset_pool
+            result = np.full((num_reset_states,), -1, dtype=np.int64)
+            if self.start_idx >= len(pool):
+                return result
+            end = min(self.start_idx + num_reset_states, len(pool))
+            result[: end - self.start_idx] = pool[self.start_idx : end]
+            self.start_idx = end
+            return result
+        if self.start_idx + num_reset_states > len(self.reset_state_ids_all[0]):
+            self.reset_state_ids_all = self.get_reset_state_ids_all()
+            self.start_idx = 0
+        ids = self.reset_state_ids_all[self.seed_offset][self.start_idx : self.start_idx + num_reset_states]
+        self.start_idx += num_reset_states
+        return ids
+
+    def _get_task_and_trial_ids_from_reset_state_ids(self, reset_state_ids: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(task indices, rows)`` of suite-global reset ids (libero_env.py:515-528).
+
+        Raises:
+            ValueError: an id outside the suite's range (RLinf drops it silently; names it here).
+        """
+        ids = np.asarray(reset_state_ids).reshape(-1)
+        if ids.dtype.kind not in "iu":
+            raise ValueError(f"reset_state_ids must be integers, got dtype {ids.dtype}")
+        bad = [int(i) for i in ids if not 0 <= i < self.total_num_group_envs]
+        if bad:
+            raise ValueError(
+                f"reset_state_ids {bad} are outside {self.suite}'s 0..{self.total_num_group_envs - 1} "
+                f"({len(self.trial_id_bins)} tasks x {self._states_per_task} states)"
+            )
+        tasks = np.searchsorted(self.cumsum_trial_id_bins, ids, side="right")
+        starts = np.concatenate([[0], self.cumsum_trial_id_bins])[tasks]
+        return tasks.astype(np.int64), (ids - starts).astype(np.int64)
+
+    # -- RLinf's properties and metrics (libero_env.py:541-607) -------------------------------------
+
+    @property
+    def elapsed_steps(self) -> np.ndarray:
+        return self._elapsed_steps
+
+    @property
+    def info_logging_keys(self) -> list[str]:
+        return []
+
+    @property
+    def is_start(self) -> bool:
+        return self._is_start
+
+    @is_start.setter
+    def is_start(self, value: bool) -> None:
+        self._is_start = value
+
+    def _init_metrics(self) -> None:
+        self.success_once = np.zeros(self.num_envs, dtype=bool)
+        self.fail_once = np.zeros(self.num_envs, dtype=bool)
+        self.returns = np.zeros(self.num_envs)
+        self.success_episode_len = np.zeros(self.num_envs, dtype=np.int32)
+        self._task_success_stats: dict[int, dict[str, int]] = {}
+        self._eval_seen_trials: set[tuple[int, int]] = set()
+
+    def _reset_metrics(self, env_idx: np.ndarray) -> None:
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[env_idx] = True
+        self.prev_step_reward[mask] = 0.0
+        self.success_once[mask] = False
+        self.fail_once[mask] = False
+        self.returns[mask] = 0
+        self.success_episode_len[mask] = 0
+        self._elapsed_steps[env_idx] = 0
+
+    def _record_metrics(self, step_reward: np.ndarray, terminations: np.ndarray, infos: dict) -> dict:
+        # libero_env.py:583-607
+        self.returns += step_reward * (~self.success_once)
+        new_success = terminations & ~self.success_once
+        if new_success.any():
+            self.success_episode_len[new_success] = self.elapsed_steps[new_success]
+        self.success_once = self.success_once | terminations
+        episode = {
+            "success_once": self.success_once.copy(),
+            "return": self.returns.copy(),
+            "episode_len": self.elapsed_steps.copy(),
+        }
+        length = np.where(self.success_once, self.success_episode_len, self.elapsed_steps)
+        episode["reward"] = episode["return"] / np.maximum(length, 1)
+        infos["episode"] = _to_tensor(episode)
+        return infos
+
+    def _calc_step_reward(self, terminations: np.ndarray) -> np.ndarray:
+        # libero_env.py:878-888: RLinf's reward, from the pod's per-action success
+        step_penalty = -1 if self.use_step_penalty else 0
+        reward = step_penalty + self.cfg.reward_coef * terminations
+        if self.use_rel_reward:
+            diff = reward - self.prev_step_reward
+            self.prev_step_reward = reward
+            return diff
+        return reward
+
+    # -- observations ------------------------------------------------------------------------------
+
+    def _wrap_obs(self) -> dict[str, Any]:
+        import torch
+
+        obs: dict[str, Any] = {key: torch.from_numpy(array.copy()) for key, array in self.current_raw_obs.items()}
+        obs["task_descriptions"] = self.task_descriptions
+        return obs
+
+    def _store_obs(self, rows: Sequence[int], batch_obs: Mapping[str, Any]) -> None:
+        images = batch_obs.get("images", {})
+        picked = {self._camera_keys[c]: np.asarray(images[c]) for c in self._camera_keys if c in images}
+        if "state" not in batch_obs:
+            raise ValueError("the job's observations have no 'state' (LIBERO's 8-float state): serve LIBERO tasks")
+        picked["states"] = np.asarray(batch_obs["state"], dtype=np.float32)
+        if self.current_raw_obs is None:
+            self.current_raw_obs = {k: np.zeros((self.num_envs, *v.shape[1:]), v.dtype) for k, v in picked.items()}
+        for key, value in picked.items():
+            self.current_raw_obs[key][list(rows)] = value
+
+    # -- reset ------------------------------------------------------------------------------------
+
+    def _check_env_idx(self, env_idx: Any) -> np.ndarray:
+        idx = np.asarray(env_idx).reshape(-1)
+        if idx.size and idx.dtype.kind not in "iu":
+            raise ValueError(f"env_idx must be integers, got dtype {idx.dtype}")
+        idx = idx.astype(np.int64)
+        bad = [int(i) for i in idx if not 0 <= i < self.num_envs]
+        if bad:
+            raise ValueError(f"env_idx {bad} outside 0..{self.num_envs - 1}")
+        if len(set(idx.tolist())) != len(idx):
+            raise ValueError(f"env_idx {idx.tolist()} repeats an env")
+        return idx
+
+    def _reconfigure(self, reset_state_ids: Any, env_idx: np.ndarray) -> None:
+        """Run each slot's next episode on an env of its task, reset to its row (libero_env.py:649-673)."""
+        tasks, rows = self._get_task_and_trial_ids_from_reset_state_ids(reset_state_ids)
+        if len(tasks) != len(env_idx):
+            raise ValueError(f"got {len(tasks)} reset_state_ids for {len(env_idx)} envs (env_idx)")
+        missing = sorted({int(t) for t in tasks} - set(self._job_tasks))
+        if missing:
+            raise ValueError(
+                f"reset_state_ids {[int(i) for i, t in zip(np.reshape(reset_state_ids, -1), tasks) if t in missing]} "
+                f"are of tasks {[f'{self.suite}/{t}' for t in missing]}, which the job does not serve"
+            )
+        requests = {int(slot): self._job_tasks[int(t)] for slot, t in zip(env_idx, tasks)}
+        placed = place_slots(self._stage_envs, self._held, requests, self.stage_id)
+        held = {**self._held, **placed}
+        self._check_open()
+        live = self._client.routes
+        row_of = {int(slot): int(row) for slot, row in zip(env_idx, rows)}
+        routes = {}
+        for slot, env in sorted(held.items()):
+            key = self._keys[slot]
+            state_id = row_of[slot] if slot in row_of else live[key].state_id
+            routes[key] = TrajRoute(env.pod, env.env_index, env.task_id, self.stage_id, state_id)
+        self._client.set_routes(routes)
+        self._held = held
+        keys = [self._keys[int(slot)] for slot in env_idx]
+        batch = self._client.reset_stage(self.stage_id, keys).result()
+        if self._settle_steps:
+            batch = self._settle(keys)
+        _raise_errors(batch)
+        self._store_obs(env_idx, batch.obs)
+        self.task_ids[env_idx] = tasks
+        self.trial_ids[env_idx] = rows
+        descriptions = list(self.task_descriptions)
+        for slot, task in zip(env_idx, tasks):
+            descriptions[int(slot)] = self._instruction(task)
+        self.task_descriptions = descriptions
+
+    def _settle(self, keys: list[str]) -> StageBatch:
+        action = np.zeros(ACTION_DIM)
+        if self.cfg.reset_gripper_open:
+            action[-1] = -1
+        left, batch = self._settle_steps, None
+        while left:
+            k = min(left, SETTLE_CHUNK)
+            batch = self._client.step_stage(self.stage_id, {key: np.tile(action, (k, 1)) for key in keys}).result()
+            left -= k
+        return batch
+
+    def reset(self, env_idx: Any = None, reset_state_ids: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Reset slots ``env_idx`` (all) to ``reset_state_ids`` (RLinf's draw), as libero_env.py:675-716.
+
+        Raises:
+            ValueError: an env index or reset id out of range, ids of a task the job does not
+                serve, or no free env of a task on the stage; no env is changed then.
+            ClosedEnvironmentError: the env is closed.
+        """
+        self._check_open()
+        env_idx = np.arange(self.num_envs) if env_idx is None else self._check_env_idx(env_idx)
+        if reset_state_ids is not None:
+            self._get_task_and_trial_ids_from_reset_state_ids(reset_state_ids)
+        if self.is_start:
+            if self.is_eval:
+                self._task_success_stats = {}
+                self._eval_seen_trials = set()
+                self.start_idx = 0
+                pool = self.reset_state_ids_all[self.seed_offset]
+                self._eval_reset_pool = pool[pool >= 0].copy()
+                self.update_reset_state_ids()
+            reset_state_ids = self.reset_state_ids if self.use_fixed_reset_state_ids else None
+            self._is_start = False
+        if reset_state_ids is None:
+            reset_state_ids = self._get_random_reset_state_ids(len(env_idx))
+        self._reconfigure(reset_state_ids, env_idx)
+        obs = self._wrap_obs()
+        self._reset_metrics(env_idx)
+        return obs, {}
+
+    # -- steps ------------------------------------------------------------------------------------
+
+    def _check_actions(self, actions: Any, ndim: int) -> np.ndarray:
+        if hasattr(actions, "detach"):
+            actions = actions.detach().cpu().numpy()
+        actions = np.asarray(actions)
+        name = "chunk_actions" if ndim == 3 else "actions"
+        want = "[num_envs, K, 7]" if ndim == 3 else "[num_envs, 7]"
+        if actions.ndim != ndim or actions.shape[0] != self.num_envs or actions.shape[-1] != ACTION_DIM:
+            raise ValueError(f"{name} must be {want} with num_envs={self.num_envs}, got shape {actions.shape}")
+        if actions.dtype.kind not in "fiu" or not np.isfinite(actions).all():
+            raise ValueError(f"{name} must be finite numbers, got dtype {actions.dtype}")
+        if self.current_raw_obs is None:
+            raise ValueError("reset() the env before stepping it")
+        return actions.reshape(self.num_envs, -1, ACTION_DIM)
+
+    def _step_chunk(self, chunk: np.ndarray) -> tuple[list, list, list, list, list]:
+        """Step every slot through ``chunk`` in one call a pod; RLinf's ``step`` bookkeeping per action."""
+        self._check_open()
+        batch = self._client.step_stage(self.stage_id, {key: chunk[i] for i, key in enumerate(self._keys)}).result()
+        _raise_errors(batch)
+        success = np.asarray(batch.success, dtype=bool).reshape(self.num_envs, -1)
+        self._store_obs(range(self.num_envs), batch.obs)
+        obs_list, rewards, terms, truncs, infos_list = [], [], [], [], []
+        for k in range(chunk.shape[1]):
+            # libero_env.py:723-736, the env's `done` being the pod's success of that action
+            self._elapsed_steps += 1
+            terminations = success[:, k].copy()
+            truncations = self.elapsed_steps >= self.cfg.max_episode_steps
+            step_reward = self._calc_step_reward(terminations)
+            # RLinf's vector env tags every env's step info with its index (envs/venv/venv.py:808)
+            infos = self._record_metrics(step_reward, terminations, {"env_id": list(range(self.num_envs))})
+            if self.ignore_terminations:
+                infos["episode"]["success_at_end"] = _to_tensor(terminations)
+                terminations[:] = False
+            obs_list.append(self._wrap_obs() if k == chunk.shape[1] - 1 else None)
+            infos_list.append(infos)
+            rewards.append(_to_tensor(step_reward))
+            terms.append(_to_tensor(terminations))
+            truncs.append(_to_tensor(truncations))
+        return obs_list, rewards, terms, truncs, infos_list
+
+    def step(self, actions: Any = None, auto_reset: bool = True) -> tuple[Any, Any, Any, Any, dict]:
+        """One action per slot (libero_env.py:718-747)."""
+        self._check_open()
+        chunk = self._check_actions(actions, 2)
+        obs_list, rewards, terms, truncs, infos_list = self._step_chunk(chunk)
+        obs, infos = obs_list[-1], infos_list[-1]
+        dones = terms[-1].numpy() | truncs[-1].numpy()
+        if dones.any() and auto_reset and self.auto_reset:
+            obs, infos, _ = self._handle_auto_reset(dones, obs, infos)
+        return obs, rewards[-1], terms[-1], truncs[-1], infos
+
+    def chunk_step(self, chunk_actions: Any) -> tuple[list, Any, Any, Any, list]:
+        """K actions per slot in one call a pod (libero_env.py:749-814 for flags and auto-reset).
+
+        Raises:
+            ValueError: ``chunk_actions`` not ``[num_envs, K, 7]`` finite numbers, or no reset yet.
+            ClosedEnvironmentError: the env is closed.
+        """
+        import torch
+
+        self._check_open()
+        chunk = self._check_actions(chunk_actions, 3)
+        obs_list, rewards, terms, truncs, infos_list = self._step_chunk(chunk)
+        chunk_rewards = torch.stack(rewards, dim=1)
+        raw_terminations = torch.stack(terms, dim=1)
+        raw_truncations = torch.stack(truncs, dim=1)
+        past_terminations = raw_terminations.any(dim=1)
+        past_truncations = raw_truncations.any(dim=1)
+        past_dones = torch.logical_or(past_terminations, past_truncations)
+        eval_count_mask = None
+        if past_dones.any() and self.auto_reset:
+            obs_list[-1], infos_list[-1], eval_count_mask = self._handle_auto_reset(
+                past_dones.cpu().numpy(), obs_list[-1], infos_list[-1]
+            )
+        if self.auto_reset or self.ignore_terminations:
+            chunk_terminations = torch.zeros_like(raw_terminations)
+            chunk_terminations[:, -1] = past_terminations
+            chunk_truncations = torch.zeros_like(raw_truncations)
+            chunk_truncations[:, -1] = past_truncations
+            if eval_count_mask is not None:
+                mask = torch.tensor(eval_count_mask, dtype=torch.bool)
+                chunk_terminations[:, -1] &= mask
+                chunk_truncations[:, -1] &= mask
+        else:
+            chunk_terminations = raw_terminations.clone()
+            chunk_truncations = raw_truncations.clone()
+        return obs_list, chunk_rewards, chunk_terminations, chunk_truncations, infos_list
+
+    # -- auto-reset (libero_env.py:816-876) ----------------------------------------------------------
+
+    def _handle_auto_reset(self, dones: np.ndarray, final_obs: Any, infos: dict) -> tuple[Any, dict, Any]:
+        if self.is_eval:
+            return self._handle_eval_auto_reset(dones, final_obs, infos)
+        obs, infos = self._handle_train_auto_reset(dones, final_obs, infos)
+        return obs, infos, None
+
+    def _handle_eval_auto_reset(self, dones: np.ndarray, last_obs: Any, infos: dict) -> tuple[Any, dict, np.ndarray]:
+        final_obs = copy.deepcopy(last_obs)
+        env_idx = np.arange(0, self.num_envs)[dones]
+        final_info = copy.deepcopy(infos)
+        count_mask = self._count_completed(env_idx, final_info)
+        new_ids = self._get_ordered_reset_state_ids(len(env_idx))
+        valid = new_ids >= 0
+        to_reset = env_idx[valid]
+        if len(to_reset) > 0:
+            self.reset_state_ids[to_reset] = new_ids[valid]
+            obs, infos = self.reset(env_idx=to_reset, reset_state_ids=self.reset_state_ids[to_reset])
+        else:
+            obs, infos = last_obs, {}
+        infos["final_observation"] = final_obs
+        infos["final_info"] = final_info
+        infos["_final_info"] = np.asarray(dones, dtype=bool) & count_mask
+        infos["_final_observation"] = dones
+        infos["_elapsed_steps"] = dones
+        return obs, infos, count_mask
+
+    def _count_completed(self, env_idx: np.ndarray, final_info: dict) -> np.ndarray:
+        # rlinf/envs/libero/utils.py record_completed_episode_task_stats: each (task, trial) once
+        count_mask = np.zeros(self.num_envs, dtype=bool)
+        episode = final_info.get("episode")
+        if not episode or "success_once" not in episode:
+            return count_mask
+        success = np.asarray(episode["success_once"])
+        for eid in env_idx:
+            key = (int(self.task_ids[eid]), int(self.trial_ids[eid]))
+            if key in self._eval_seen_trials:
+                logger.warning("[libero eval] duplicate episode skipped: task_id=%d, trial_id=%d", *key)
+                continue
+            self._eval_seen_trials.add(key)
+            count_mask[eid] = True
+            stats = self._task_success_stats.setdefault(key[0], {"success": 0, "total": 0})
+            stats["total"] += 1
+            stats["success"] += int(bool(success[eid]))
+        return count_mask
+
+    def _handle_train_auto_reset(self, dones: np.ndarray, last_obs: Any, infos: dict) -> tuple[Any, dict]:
+        final_obs = copy.deepcopy(last_obs)
+        env_idx = np.arange(0, self.num_envs)[dones]
+        final_info = copy.deepcopy(infos)
+        if self.use_fixed_reset_state_ids:
+            self.update_reset_state_ids()
+            obs, infos = self.reset(env_idx=env_idx, reset_state_ids=self.reset_state_ids[env_idx])
+        else:
+            obs, infos = self.reset(env_idx=env_idx, reset_state_ids=None)
+        infos["final_observation"] = final_obs
+        infos["final_info"] = final_info
+        infos["_final_info"] = np.asarray(dones, dtype=bool)
+        infos["_final_observation"] = dones
+        infos["_elapsed_steps"] = dones
+        return obs, infos
+
+    # -- life -------------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ClosedEnvironmentError(f"VecsimLiberoEnv (seed_offset {self.seed_offset}) is closed")
+
+    def close(self) -> None:
+        """Close the job's client (the pods keep running); later resets and steps raise."""
+        if not self._closed:
+            self._closed = True
+            self._client.close()
+
+
+def _interleaved_eval_ids(bins: Sequence[int], cumsum: np.ndarray) -> np.ndarray:
+    # rlinf/envs/libero/utils.py build_interleaved_eval_reset_state_ids: (task0, trial0), (task1, trial0), ...
+    ids = [
+        (cumsum[t - 1] if t > 0 else 0) + trial
+        for trial in range(max(bins, default=0))
+        for t in range(len(bins))
+        if trial < bins[t]
+    ]
+    return np.array(ids, dtype=np.int64)
+
+
+def _round_robin(ids: np.ndarray, n_procs: int) -> np.ndarray:
+    # rlinf/envs/libero/utils.py distribute_reset_state_ids_round_robin
+    width = int(np.bincount(np.arange(len(ids)) % n_procs, minlength=n_procs).max())
+    out = np.full((n_procs, width), -1, dtype=np.int64)
+    for i, state_id in enumerate(ids):
+        out[i % n_procs, i // n_procs] = state_id
+    return out
+
+
+def _raise_errors(batch: StageBatch) -> None:
+    if batch.errors:
+        raise RuntimeError("; ".join(f"{key}: {kind}: {message}" for key, kind, message in batch.errors))
+
+
+def _connect(vcfg: Any) -> StageClient:
+    """The job's client: ``vcfg.pod_urls``, ``vcfg.controller_url`` or ``$VECSIM_CONTROLLER_URL``."""
+    timeout_s = float(_opt(vcfg, "timeout_s", 120.0))
+    ended = str(_opt(vcfg, "ended_envs", "step"))
+    pod_urls = _opt(vcfg, "pod_urls")
+    if pod_urls:
+        return StageClient.from_pods(list(pod_urls), timeout_s=timeout_s, ended_envs=ended)
+    url = _opt(vcfg, "controller_url") or os.environ.get(CONTROLLER_URL_ENV)
+    if not url:
+        raise ValueError(
+            f"the env config's vecsim block names no job: set vecsim.controller_url or vecsim.pod_urls, "
+            f"or ${CONTROLLER_URL_ENV}"
+        )
+    return StageClient.from_controller(
+        str(url), timeout_s=timeout_s, wait_ready_s=float(_opt(vcfg, "wait_ready_s", 0.0)), ended_envs=ended
+    )
+
+
+def register() -> None:
+    """Make RLinf's ``get_env_cls("libero", cfg)`` return :class:`VecsimLiberoEnv` when ``cfg`` has
+    a ``vecsim`` block (RLinf's own LIBERO env otherwise). Idempotent.
+
+    RLinf has no registry for env classes (``rlinf/envs/__init__.py``: an enum and an if-chain),
+    and its workers bind ``get_env_cls`` at import, so this wraps the function in ``rlinf.envs``
+    and in the worker modules already imported. Run it in each process that builds envs (under
+    Ray, e.g. ``runtime_env={"worker_process_setup_hook": "vecsim.trainers.rlinf.register"}``).
+    """
+    import sys
+
+    import rlinf.envs
+
+    original = rlinf.envs.get_env_cls
+    if getattr(original, "_vecsim_wraps", None) is None:
+
+        def get_env_cls(env_type: str, env_cfg: Any = None) -> Any:
+            if env_type == "libero" and env_cfg is not None and _opt(env_cfg, "vecsim") is not None:
+                return VecsimLiberoEnv
+            return original(env_type, env_cfg)
+
+        get_env_cls._vecsim_wraps = original  # type: ignore[attr-defined]
+        rlinf.envs.get_env_cls = get_env_cls
+    for name in ("rlinf.workers.env.env_worker", "rlinf.workers.env.async_env_worker"):
+        module = sys.modules.get(name)
+        if module is not None and hasattr(module, "get_env_cls"):
+            module.get_env_cls = rlinf.envs.get_env_cls
