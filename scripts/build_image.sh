@@ -100,7 +100,9 @@ EOF
   "${bah[@]}" rm "$ctr" >/dev/null
 fi
 
-# 2. The Dockerfile as it is. Build-time mounts only (none of them ends up in the image):
+# 2. The Dockerfile as it is. Build-time mounts only: their contents stay out of the image, but
+#    buildah leaves their empty mount points in it (an empty /etc/pip.conf, /mnt/torch-wheels/,
+#    /run/vecsim-build/), which change nothing:
 #    - torch's CPU wheel directory, when given;
 #    - this machine's CA bundle for pip, through a pip config: where HTTPS goes through a proxy
 #      with its own CA, pip inside the build must trust what the host trusts.
