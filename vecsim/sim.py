@@ -235,7 +235,13 @@ def _attr_op(target: gymnasium.Env, op: str, name: str, payload: Any) -> Any:
         attr = target.get_wrapper_attr(name)
         args, kwargs = payload
         return _jsonable(attr(*args, **kwargs) if callable(attr) else attr, f"the result of {name!r}")
-    current = target.get_wrapper_attr(name)
+    try:
+        current = target.get_wrapper_attr(name)
+    except AttributeError:
+        # gymnasium's set_wrapper_attr (force=True) makes an attribute no layer has yet, as
+        # its vector envs' set_attr does; the value came as JSON.
+        target.set_wrapper_attr(name, payload)
+        return None
     if callable(current) or isinstance(current, (gymnasium.Space, np.random.Generator)):
         raise ValueError(f"{what} is a {type(current).__name__}; set_attr sets JSON-valued attributes only")
     _jsonable(current, what)
