@@ -161,6 +161,37 @@ def test_http_and_sync_agree_on_seeded_resets(pod_urls):
         sync.close()
 
 
+def test_np_random_seed_is_each_envs_seed_and_stays_through_unseeded_resets(make_vec):
+    env = make_vec()
+    env.reset(seed=42)
+    assert env.np_random_seed == tuple(42 + i for i in range(NUM_ENVS))
+    env.reset(seed=None)
+    assert env.np_random_seed == tuple(42 + i for i in range(NUM_ENVS))
+
+
+def test_reset_options_no_env_reads_are_ignored_and_vecsims_own_still_checked(pod_urls):
+    # LeRobot's rollout resets with options of its own; a gymnasium env ignores what it does not know.
+    env = HTTPVectorEnv(pod_urls=pod_urls)
+    try:
+        ids = [4, 0, 4, 49]
+        plain, _ = env.reset(options={"state_ids": ids})
+        env.step(_zeros(env))
+        extra, info = env.reset(options={"state_ids": ids, "lerobot_new_rollout": True})
+        assert _rows_equal(plain, extra, slice(None)) and list(info["state_id"]) == ids
+        with pytest.raises(ValueError, match=r"state id 50 for env 2"):
+            env.reset(options={"state_ids": [0, 0, 50, 0], "lerobot_new_rollout": True})
+    finally:
+        env.close()
+
+
+def test_set_attr_makes_an_attribute_no_layer_of_the_env_has_yet(make_vec):
+    # gymnasium's set_wrapper_attr(force=True), which its vector envs' set_attr uses.
+    env = make_vec()
+    env.reset(seed=0)
+    env.set_attr("max_count", [2, 3, 3, 4])
+    assert env.get_attr("max_count") == (2, 3, 3, 4)
+
+
 # -- partial resets ------------------------------------------------------------------------------
 
 
