@@ -20,6 +20,7 @@ import atexit
 import contextlib
 import json
 import os
+import signal
 import sys
 import weakref
 from pathlib import Path
@@ -38,11 +39,24 @@ from service_procs import PodSpec, standalone_pods  # noqa: E402
 
 from vecsim.client import HTTPVectorEnv  # noqa: E402
 
-_stack = contextlib.ExitStack()
-atexit.register(_stack.close)
-# (id, kwargs, env count) -> [(pod url, the vector env using it now)]: two vector envs open at
-# once (a test comparing two) get a pod each.
+# (id, kwargs, env count) -> [[pod url, the vector env using it now, the pod's ExitStack]]: two
+# vector envs open at once (a test comparing two) get a pod each. At most MAX_PODS run at once:
+# idle ones are stopped, oldest first, to make room.
+MAX_PODS = 6
 _pods: dict[tuple[str, str, int], list[list]] = {}
+
+
+def _stop_all() -> None:
+    for pool in _pods.values():
+        for slot in pool:
+            slot[2].close()
+    _pods.clear()
+
+
+atexit.register(_stop_all)
+signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that atexit stops the pods
+
+
 _SHIM_IDS = {"SlowEnv": "gymtests_shim:SlowEnv-v0", "CustomSpaceEnv": "gymtests_shim:CustomSpaceEnv-v0"}
 
 
@@ -59,16 +73,26 @@ def _served(env: gymnasium.Env) -> tuple[str, dict] | None:
     return spec.id, kwargs
 
 
+def _idle(slot: list) -> bool:
+    user = slot[1]()
+    return user is None or user.closed
+
+
 def _pod(gym_id: str, kwargs: dict, num_envs: int) -> list:
-    """A pod serving ``num_envs`` envs of the id that no open vector env uses: [url, user]."""
+    """A pod serving ``num_envs`` envs of the id that no open vector env uses: [url, user, stack]."""
     pool = _pods.setdefault((gym_id, json.dumps(kwargs, sort_keys=True, default=str), num_envs), [])
     for slot in pool:
-        user = slot[1]()
-        if user is None or user.closed:
+        if _idle(slot):
             return slot
+    running = [(key, slot) for key, slots in _pods.items() for slot in slots]
+    for key, slot in running[: max(0, len(running) + 1 - MAX_PODS)]:
+        if _idle(slot):
+            slot[2].close()
+            _pods[key].remove(slot)
     task = f"gym/{gym_id}"
-    spec = PodSpec(f"gym-{sum(map(len, _pods.values()))}", 0, [(task, num_envs)], max_episode_steps=None, make_kwargs={task: kwargs} if kwargs else {})
-    pool.append([_stack.enter_context(standalone_pods([spec]))[0].url, lambda: None])
+    spec = PodSpec("gym", 0, [(task, num_envs)], max_episode_steps=None, make_kwargs={task: kwargs} if kwargs else {})
+    stack = contextlib.ExitStack()
+    pool.append([stack.enter_context(standalone_pods([spec]))[0].url, lambda: None, stack])
     return pool[-1]
 
 
