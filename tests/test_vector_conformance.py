@@ -216,6 +216,12 @@ def test_reset_options_no_env_reads_are_ignored_and_vecsims_own_still_checked(po
         env.close()
 
 
+def test_max_episode_steps_is_served_by_timelimits_name(make_vec):
+    # LeRobot's rollout reads call("_max_episode_steps")[0]; gymnasium's TimeLimit names it so.
+    env = make_vec()
+    assert env.get_attr("_max_episode_steps") == env.call("_max_episode_steps") == (EPISODE,) * NUM_ENVS
+
+
 def test_set_attr_makes_an_attribute_no_layer_of_the_env_has_yet(make_vec):
     # gymnasium's set_wrapper_attr(force=True), which its vector envs' set_attr uses.
     env = make_vec()
