@@ -54,7 +54,7 @@ def _stop_all() -> None:
 
 
 atexit.register(_stop_all)
-signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that atexit stops the pods
+signal.signal(signal.SIGTERM, signal.default_int_handler)  # pytest stops; atexit stops the pods
 
 
 _SHIM_IDS = {"SlowEnv": "gymtests_shim:SlowEnv-v0", "CustomSpaceEnv": "gymtests_shim:CustomSpaceEnv-v0"}
@@ -90,7 +90,10 @@ def _pod(gym_id: str, kwargs: dict, num_envs: int) -> list:
             slot[2].close()
             _pods[key].remove(slot)
     task = f"gym/{gym_id}"
-    spec = PodSpec("gym", 0, [(task, num_envs)], max_episode_steps=None, make_kwargs={task: kwargs} if kwargs else {})
+    spec = PodSpec(
+        "gym", 0, [(task, num_envs)], max_episode_steps=None, envs_per_worker=num_envs,  # one worker: quick to start
+        make_kwargs={task: kwargs} if kwargs else {},
+    )
     stack = contextlib.ExitStack()
     pool.append([stack.enter_context(standalone_pods([spec]))[0].url, lambda: None, stack])
     return pool[-1]
