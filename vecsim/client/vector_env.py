@@ -373,14 +373,17 @@ class HTTPVectorEnv(VectorEnv):
     def _reset_mask(self, mask: Any) -> np.ndarray:
         if mask is None:
             return np.ones(self.num_envs, dtype=bool)
+        # gymnasium's own wording (SyncVectorEnv.reset), which its tests match.
         if not isinstance(mask, np.ndarray):
-            raise TypeError(f"options['reset_mask'] must be a numpy array, got {type(mask).__name__}")
+            raise TypeError(f"`options['reset_mask']` must be a numpy array, got {type(mask)}")
         if mask.shape != (self.num_envs,):
-            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+            raise ValueError(f"`options['reset_mask']` must have shape `({self.num_envs},)`, got {mask.shape}")
         if mask.dtype != np.bool_:
-            raise TypeError(f"options['reset_mask'] must have dtype bool, got {mask.dtype}")
+            raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
         if not mask.any():
-            raise ValueError("options['reset_mask'] must have at least one True value")
+            raise ValueError(
+                f"`options['reset_mask']` must contain a boolean array with at least one True value, got reset_mask={mask}"
+            )
         return mask.copy()
 
     def _seeds(self, seed: Any) -> list[int | None]:
@@ -494,9 +497,12 @@ class HTTPVectorEnv(VectorEnv):
             ResetNeeded: an env was never reset, got no answer in its last call, or (DISABLED)
                 ended and was not reset.
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
+            TypeError: a scalar in place of a batch of actions.
         """
         actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         expected = (self.num_envs, *self.single_action_space.shape)
+        if actions.ndim == 0:  # as gymnasium's vector envs, which cannot iterate over it
+            raise TypeError(f"actions must be a batch of {self.num_envs} actions, got the scalar {actions!r}")
         if actions.shape != expected:
             raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
         self._send_step(actions, chunk=None)
