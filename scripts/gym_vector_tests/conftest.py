@@ -118,8 +118,8 @@ def _vecsim_instead_of(local_class: type):
             return local_class(env_fns, *args, autoreset_mode=autoreset_mode, **kwargs)
         gym_id, make_kwargs = served[0]
         seeds = [env.np_random_seed if env.unwrapped._np_random is not None else None for env in envs]
-        slot = _pod(gym_id, make_kwargs, len(envs))
         _reached.add(os.environ.get("PYTEST_CURRENT_TEST", "?").rsplit(" ", 1)[0])
+        slot = _pod(gym_id, make_kwargs, len(envs))
         vector = HTTPVectorEnv(pod_urls=[slot[0]], autoreset_mode=autoreset_mode, timeout_s=30)
         slot[1] = weakref.ref(vector)
         if any(seed is not None for seed in seeds):
