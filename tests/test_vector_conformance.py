@@ -22,6 +22,7 @@ from gymnasium.vector.utils import batch_space
 from service_procs import NO_CAMERA, PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv
+from vecsim.config import CameraConfig
 from vecsim.tasks import make_env
 
 TASK = "gym/InvertedPendulum-v5"
@@ -159,6 +160,74 @@ def test_http_and_sync_agree_on_seeded_resets(pod_urls):
     finally:
         http.close()
         sync.close()
+
+
+def test_np_random_seed_is_each_envs_seed_as_gymnasiums_vector_env_gives_it(pod_urls):
+    # gymnasium's SyncVectorEnv of the gymnasium env itself is the judge (vecsim's task env
+    # keeps its gymnasium env inside, where the pods read attributes).
+    gym_id = TASK.removeprefix("gym/")
+    http = HTTPVectorEnv(pod_urls=pod_urls)
+    sync = SyncVectorEnv([lambda: gymnasium.make(gym_id)] * NUM_ENVS)
+    try:
+        for seed in (42, None):  # an unseeded reset keeps the seeds
+            http.reset(seed=seed)
+            sync.reset(seed=seed)
+            assert http.np_random_seed == sync.np_random_seed == tuple(42 + i for i in range(NUM_ENVS))
+    finally:
+        http.close()
+        sync.close()
+
+
+def test_fixed_state_envs_draw_state_ids_from_their_own_seeded_generators(tmp_path):
+    # A gym task with a camera resets to fixed states, as robot tasks do: each env draws its
+    # state ids (its reset's, then its autoresets') from its own generator, seeded seed + i.
+    spec = PodSpec("sim-cam", 0, [(TASK, 3)], camera=CameraConfig(names=("render",), height=8, width=8), max_episode_steps=EPISODE)
+    with standalone_pods([spec], tmp_path) as pods:
+        env = HTTPVectorEnv(pod_urls=[pods[0].url])
+        try:
+
+            def draws(seed):
+                _, info = env.reset(seed=seed)
+                for _ in range(EPISODE + 1):  # the step after the episode's end autoresets
+                    *_, step_info = env.step(_zeros(env))
+                return list(info["state_id"]), list(step_info["state_id"]), env.np_random_seed
+
+            first = draws(7)
+            assert draws(7) == first and first[2] == (7, 8, 9)
+            other = draws([7, 100, 9])
+            assert [other[0][i] for i in (0, 2)] == [first[0][i] for i in (0, 2)]
+            assert [other[1][i] for i in (0, 2)] == [first[1][i] for i in (0, 2)]
+        finally:
+            env.close()
+
+
+def test_reset_options_no_env_reads_are_ignored_and_vecsims_own_still_checked(pod_urls):
+    # LeRobot's rollout resets with options of its own; a gymnasium env ignores what it does not know.
+    env = HTTPVectorEnv(pod_urls=pod_urls)
+    try:
+        ids = [4, 0, 4, 49]
+        plain, _ = env.reset(options={"state_ids": ids})
+        env.step(_zeros(env))
+        extra, info = env.reset(options={"state_ids": ids, "lerobot_new_rollout": True})
+        assert _rows_equal(plain, extra, slice(None)) and list(info["state_id"]) == ids
+        with pytest.raises(ValueError, match=r"state id 50 for env 2"):
+            env.reset(options={"state_ids": [0, 0, 50, 0], "lerobot_new_rollout": True})
+    finally:
+        env.close()
+
+
+def test_max_episode_steps_is_served_by_timelimits_name(make_vec):
+    # LeRobot's rollout reads call("_max_episode_steps")[0]; gymnasium's TimeLimit names it so.
+    env = make_vec()
+    assert env.get_attr("_max_episode_steps") == env.call("_max_episode_steps") == (EPISODE,) * NUM_ENVS
+
+
+def test_set_attr_makes_an_attribute_no_layer_of_the_env_has_yet(make_vec):
+    # gymnasium's set_wrapper_attr(force=True), which its vector envs' set_attr uses.
+    env = make_vec()
+    env.reset(seed=0)
+    env.set_attr("max_count", [2, 3, 3, 4])
+    assert env.get_attr("max_count") == (2, 3, 3, 4)
 
 
 # -- partial resets ------------------------------------------------------------------------------

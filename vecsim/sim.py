@@ -88,6 +88,9 @@ _MAX_STATE_ID = 2**31 - 1
 _MAX_SEED = 2**63 - 1
 # What get_attr / call / set_attr may name: public attributes; close stays the pod's to call.
 _REFUSED_ATTRS = frozenset({"close", "reset", "step", "unwrapped", "np_random"})
+# Private names served all the same (get and call): TimeLimit's limit, which gymnasium's own
+# code and trainers' eval loops (LeRobot's rollout) read by this name.
+_SERVED_PRIVATE_ATTRS = frozenset({"_max_episode_steps"})
 # Columns of a worker's per-env, per-action result rows.
 _REWARD, _TERMINATED, _TRUNCATED, _SUCCESS = 0, 1, 2, 3
 # The longest chunk a pod takes by default: the chunk axis of a worker's shared result rows.
@@ -235,7 +238,13 @@ def _attr_op(target: gymnasium.Env, op: str, name: str, payload: Any) -> Any:
         attr = target.get_wrapper_attr(name)
         args, kwargs = payload
         return _jsonable(attr(*args, **kwargs) if callable(attr) else attr, f"the result of {name!r}")
-    current = target.get_wrapper_attr(name)
+    try:
+        current = target.get_wrapper_attr(name)
+    except AttributeError:
+        # gymnasium's set_wrapper_attr (force=True) makes an attribute no layer has yet, as
+        # its vector envs' set_attr does; the value came as JSON.
+        target.set_wrapper_attr(name, payload)
+        return None
     if callable(current) or isinstance(current, (gymnasium.Space, np.random.Generator)):
         raise ValueError(f"{what} is a {type(current).__name__}; set_attr sets JSON-valued attributes only")
     _jsonable(current, what)
@@ -1357,7 +1366,9 @@ class TaskGroupedVectorEnv:
         ids = self._env_indices(env_indices)
         if op not in ("get", "call", "set"):
             raise InvalidRequestError(f"op: {op!r} is not one of get, call, set")
-        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_"):
+        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
+            raise InvalidRequestError(f"name: {name!r:.60} is not a public attribute name")
+        if name.startswith("_") and (name not in _SERVED_PRIVATE_ATTRS or op == "set"):
             raise InvalidRequestError(f"name: {name!r:.60} is not a public attribute name")
         if name in _REFUSED_ATTRS:
             raise InvalidRequestError(f"name: {name!r} is the pod's to use; it is not served")

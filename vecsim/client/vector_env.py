@@ -107,10 +107,12 @@ class HTTPVectorEnv(VectorEnv):
     gymnasium's rule: env ``i`` gets ``seed + i`` (int), ``seed[i]`` (list) or None. A gym task
     resets as the env's own ``reset(seed=..., options=...)`` (every option but ``reset_mask`` and
     ``state_ids`` goes to the envs; autoresets are ``reset()`` with no seed, as locally); a robot
-    task resets to a fixed initial state drawn with that seed. ``options`` ``reset_mask`` (bool
-    array) resets only those envs, ``state_ids`` (one per env; with a mask only the masked ones
-    are used) puts envs in fixed initial states, gym tasks too. Robot tasks' autoresets draw
-    state ids from :attr:`np_random`, seeded by ``reset(seed=int)``.
+    task resets to a fixed initial state drawn from the env's own generator, which a seed
+    reseeds (as a gymnasium env's ``np_random``), and so do its autoresets. ``options``
+    ``reset_mask`` (bool array) resets only those envs, ``state_ids`` (one per env; with a mask
+    only the masked ones are used) puts envs in fixed initial states, gym tasks too. Options no
+    env here reads (a robot task's, or any beside ``state_ids``) are ignored, as gymnasium envs
+    ignore options they do not know. :attr:`np_random_seed` is one seed per env.
 
     An env that raises (in its reset, step or an attribute call) raises its exception here, its
     type rebuilt when it is a builtin one (``ValueError``, ...; any other comes as a
@@ -239,6 +241,7 @@ class HTTPVectorEnv(VectorEnv):
         self._ever_reset = np.zeros(self.num_envs, dtype=bool)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
         self._failed = np.zeros(self.num_envs, dtype=bool)  # no answer in their last call: reset them
+        self._env_rngs: dict[int, tuple[np.random.Generator, int]] = {}  # env -> (generator, its seed)
         self._state = AsyncState.DEFAULT
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
@@ -266,8 +269,7 @@ class HTTPVectorEnv(VectorEnv):
         Raises:
             ClosedEnvironmentError: the env is closed.
             AlreadyPendingCallError: a reset or step is still waiting to be taken.
-            TypeError, ValueError: a bad seed, ``reset_mask`` or ``state_ids`` (named), or an
-                unknown option.
+            TypeError, ValueError: a bad seed, ``reset_mask`` or ``state_ids`` (named).
         """
         self._assert_open()
         seeds = self._seeds(seed)
@@ -279,21 +281,23 @@ class HTTPVectorEnv(VectorEnv):
         options = dict(options or {})
         env_options = {k: v for k, v in options.items() if k not in _RESET_OPTIONS}
         if env_options and (not self._native or options.get("state_ids") is not None):
-            raise ValueError(
-                f"unknown reset option(s) {sorted(env_options)}; HTTPVectorEnv takes {sorted(_RESET_OPTIONS)}"
-                + (" (a gym task's own options go without state_ids)" if self._native else "")
-            )
+            # As a gymnasium env ignores options it does not know (LeRobot's rollout passes its
+            # own), those that no env here reads are dropped; vecsim's own are still checked.
+            logger.debug("reset options %s go to no env here; ignored", sorted(env_options))
+            env_options = {}
         mask = self._reset_mask(options.get("reset_mask"))
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            self._np_random, self._np_random_seed = seeding.np_random(int(seed))
         indices = np.flatnonzero(mask)
+        # One generator per env, as each of gymnasium's envs has its own: a seed reseeds it.
+        reseeded = {int(i): seeding.np_random(seeds[i]) for i in indices if seeds[i] is not None}
         if self._native and options.get("state_ids") is None:
             self._place_lost_envs(mask)
+            self._env_rngs.update(reseeded)
             self._pending = self.client.call(seeds={self._keys[i]: seeds[i] for i in indices}, options=env_options)
             self._pending_fixed = False
         else:
-            state_ids = self._state_ids_for_reset(seeds, options.get("state_ids"), mask)
+            state_ids = self._state_ids_for_reset(reseeded, options.get("state_ids"), mask)
             self._place_lost_envs(mask)
+            self._env_rngs.update(reseeded)
             self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
             self._pending_fixed = True
         self._pending_mask = mask
@@ -382,14 +386,17 @@ class HTTPVectorEnv(VectorEnv):
     def _reset_mask(self, mask: Any) -> np.ndarray:
         if mask is None:
             return np.ones(self.num_envs, dtype=bool)
+        # gymnasium's own wording (SyncVectorEnv.reset), which its tests match.
         if not isinstance(mask, np.ndarray):
-            raise TypeError(f"options['reset_mask'] must be a numpy array, got {type(mask).__name__}")
+            raise TypeError(f"`options['reset_mask']` must be a numpy array, got {type(mask)}")
         if mask.shape != (self.num_envs,):
-            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+            raise ValueError(f"`options['reset_mask']` must have shape `({self.num_envs},)`, got {mask.shape}")
         if mask.dtype != np.bool_:
-            raise TypeError(f"options['reset_mask'] must have dtype bool, got {mask.dtype}")
+            raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
         if not mask.any():
-            raise ValueError("options['reset_mask'] must have at least one True value")
+            raise ValueError(
+                f"`options['reset_mask']` must contain a boolean array with at least one True value, got reset_mask={mask}"
+            )
         return mask.copy()
 
     def _seeds(self, seed: Any) -> list[int | None]:
@@ -408,7 +415,9 @@ class HTTPVectorEnv(VectorEnv):
                 raise TypeError(f"seed for env {i} must be an int or None, got {s!r}")
         return [None if s is None else int(s) for s in seeds]
 
-    def _state_ids_for_reset(self, seeds: list[int | None], state_ids: Any, mask: np.ndarray) -> np.ndarray:
+    def _state_ids_for_reset(
+        self, reseeded: dict[int, tuple[np.random.Generator, int]], state_ids: Any, mask: np.ndarray
+    ) -> np.ndarray:
         if state_ids is not None:
             ids = np.asarray(state_ids)
             if ids.shape != (self.num_envs,) or ids.dtype.kind not in "iu":
@@ -419,7 +428,7 @@ class HTTPVectorEnv(VectorEnv):
             ids = ids.astype(np.int64)
         else:
             ids = np.array(
-                [self._draw_state_id(i, s) if m else 0 for i, (s, m) in enumerate(zip(seeds, mask))], dtype=np.int64
+                [self._draw_state_id(i, reseeded.get(i)) if m else 0 for i, m in enumerate(mask)], dtype=np.int64
             )
         for i in np.flatnonzero(mask):
             limit = self._num_states[self.task_ids[i]]
@@ -427,10 +436,25 @@ class HTTPVectorEnv(VectorEnv):
                 raise ValueError(f"state id {ids[i]} for env {i} ({self.task_ids[i]}) is outside 0..{limit - 1}")
         return ids
 
-    def _draw_state_id(self, i: int, seed: int | None) -> int:
+    def _draw_state_id(self, i: int, reseeded: tuple[np.random.Generator, int] | None = None) -> int:
+        """Env ``i``'s next state id, from its own generator (or ``reseeded``, its new one)."""
         limit = self._num_states[self.task_ids[i]]
-        rng = self.np_random if seed is None else np.random.default_rng(seed)
-        return int(rng.integers(limit))
+        return int((reseeded or self._env_rng(i))[0].integers(limit))
+
+    def _env_rng(self, i: int) -> tuple[np.random.Generator, int]:
+        # Made on first use, from fresh entropy, as a gymnasium env's np_random is.
+        if i not in self._env_rngs:
+            self._env_rngs[i] = seeding.np_random()
+        return self._env_rngs[i]
+
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:
+        """Each env's seed, as gymnasium's vector envs give it (one per env): a gym task's own
+        ``np_random_seed``; for a robot task the seed of the generator its state ids are drawn
+        from (``seed + i`` after ``reset(seed=seed)``; a seed of fresh entropy before any)."""
+        if self._native:
+            return self.get_attr("np_random_seed")
+        return tuple(int(self._env_rng(i)[1]) for i in range(self.num_envs))
 
     # -- step -----------------------------------------------------------------------------------
 
@@ -519,9 +543,12 @@ class HTTPVectorEnv(VectorEnv):
             ResetNeeded: an env was never reset, got no answer in its last call, or (DISABLED)
                 ended and was not reset.
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
+            TypeError: a scalar in place of a batch of actions.
         """
         actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         expected = (self.num_envs, *self.single_action_space.shape)
+        if actions.ndim == 0:  # as gymnasium's vector envs, which cannot iterate over it
+            raise TypeError(f"actions must be a batch of {self.num_envs} actions, got the scalar {actions!r}")
         if actions.shape != expected:
             raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
         self._send_step(actions, chunk=None)
@@ -587,11 +614,11 @@ class HTTPVectorEnv(VectorEnv):
 
     def _autoresets(self, envs: Any) -> dict[str, Any]:
         """The ``client.call`` arguments that autoreset ``envs``: a gym task's own ``reset()`` (no
-        seed, as gymnasium's vector envs do), a robot task's reset to a state id drawn from
-        :attr:`np_random`."""
+        seed, as gymnasium's vector envs do), a robot task's reset to a state id drawn from the
+        env's own generator."""
         if self._native:
             return {"seeds": {self._keys[i]: None for i in envs}} if len(envs) else {}
-        return {"reset": {self._keys[i]: self._draw_state_id(i, None) for i in envs}}
+        return {"reset": {self._keys[i]: self._draw_state_id(i) for i in envs}}
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Wait for the step sent by :meth:`step_async`; return ``(obs, reward, terminated, truncated, info)``.

@@ -117,6 +117,11 @@ class TaskEnv(gymnasium.Env):
         self.max_episode_steps = int(max_episode_steps)
         self._elapsed = 0
 
+    @property
+    def _max_episode_steps(self) -> int:
+        """The episode limit by the name gymnasium's ``TimeLimit`` gives it (trainers read it)."""
+        return self.max_episode_steps
+
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
