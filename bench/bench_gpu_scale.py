@@ -630,7 +630,9 @@ def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
 class TimedStageClient(StageClient):
     """A StageClient that records every request to a pod: ``(pod, op, begin, end)``
     (``time.perf_counter()``), the round trip as the client sees it (HTTP, the pod's work,
-    decoding), so a stage call's per-pod times and its slowest pod are known."""
+    decoding), so a stage call's per-pod times and its slowest pod are known. This bench's
+    clients step ended envs on (``ended_envs="step"``): its service runs take a fixed number of
+    one-action steps, the pods' work whether or not an episode ended."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         if not callable(getattr(StageClient, "_post", None)):  # the hook below would never run
@@ -914,9 +916,9 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
     per_pod: dict[int, TimedStageClient] = {}
     try:
         for p in plan.pod_counts:
-            clients[p] = TimedStageClient(regroup(table, names[:p], 1), token=job.token, timeout_s=300)
+            clients[p] = TimedStageClient(regroup(table, names[:p], 1), token=job.token, timeout_s=300, ended_envs="step")
             if p > 1:
-                per_pod[p] = TimedStageClient(regroup(table, names[:p], p), token=job.token, timeout_s=300)
+                per_pod[p] = TimedStageClient(regroup(table, names[:p], p), token=job.token, timeout_s=300, ended_envs="step")
         full = clients[plan.pods]
         space, action = full.observation_space, full.action_space
         policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
@@ -1041,9 +1043,9 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
     half = plan.pods // 2
     clients: dict[str, TimedStageClient] = {}
     try:
-        clients["stages=1"] = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300)
-        clients["stages=2"] = TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
-        clients["half"] = TimedStageClient(regroup(table, names[:half], 1), token=job.token, timeout_s=300)
+        clients["stages=1"] = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300, ended_envs="step")
+        clients["stages=2"] = TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300, ended_envs="step")
+        clients["half"] = TimedStageClient(regroup(table, names[:half], 1), token=job.token, timeout_s=300, ended_envs="step")
         one, two = clients["stages=1"], clients["stages=2"]
         for client in (one, clients["half"]):  # warm-up
             service_rollout(client, min(plan.service_steps, 2), 300)

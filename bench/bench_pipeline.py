@@ -211,7 +211,8 @@ def main() -> None:
         pods = stack.enter_context(
             standalone_pods(assignments, cores=[str(sim_core)] * PODS, ready_timeout_s=READY_TIMEOUT_S)
         )
-        clients = {s: StageClient(routing(pods, task, s, per_pod)) for s in (1, 2, 4)}
+        # Steps go on past episode ends: the calls are timed, not the episodes.
+        clients = {s: StageClient(routing(pods, task, s, per_pod), ended_envs="step") for s in (1, 2, 4)}
         for client in clients.values():
             stack.callback(client.close)
         policy, calibration = calibrate(clients[2], task, envs, calls)

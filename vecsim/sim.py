@@ -265,7 +265,8 @@ class _Order:
     """Work for one worker in one call: its envs at ``local_indices`` (in that order), each reset
     to a fixed state (``state_ids``), reset by the env's own ``reset(seed, options)`` (``seeds``,
     -1 for None), or stepped through a chunk of actions (``actions`` ``[m, K, ...]``, ``record``
-    the envs whose every frame is kept). Exactly one of ``state_ids``, ``seeds``, ``actions``."""
+    the envs whose every frame is kept; ``past_end``: apply every action, also after the env
+    terminated or truncated). Exactly one of ``state_ids``, ``seeds``, ``actions``."""
 
     local_indices: np.ndarray
     state_ids: np.ndarray | None = None
@@ -273,6 +274,7 @@ class _Order:
     options: dict[str, Any] | None = None
     actions: np.ndarray | None = None
     record: np.ndarray | None = None
+    past_end: bool = False
 
 
 @dataclass(frozen=True)
@@ -390,9 +392,12 @@ class _Worker:
         if own:
             self._infos.append((local, own))
 
-    def _step_env(self, local: int, chunk: np.ndarray, record: bool) -> tuple[list[dict[str, np.ndarray]], float]:
-        """Apply ``chunk``'s actions to one env until it terminates or truncates; return the
-        frames recorded after each applied action but the last, and the seconds spent drawing them."""
+    def _step_env(
+        self, local: int, chunk: np.ndarray, record: bool, past_end: bool = False
+    ) -> tuple[list[dict[str, np.ndarray]], float]:
+        """Apply ``chunk``'s actions to one env until it terminates or truncates (``past_end``: all
+        of them, as LIBERO's and the trainers' own envs are stepped on); return the frames
+        recorded after each applied action but the last, and the seconds spent drawing them."""
         env = self._envs[local]
         rows = self._out["flags"][local]
         rows[:] = 0.0
@@ -403,7 +408,7 @@ class _Worker:
         for k, action in enumerate(chunk):
             observation, reward, terminated, truncated, info = env.step(action)
             rows[k] = (reward, terminated, truncated, info["success"])
-            if terminated or truncated:
+            if (terminated or truncated) and not past_end:
                 break
             if record and k + 1 < len(chunk) and env.renderer is not None:
                 drawn = time.perf_counter()
@@ -429,7 +434,7 @@ class _Worker:
                 try:
                     if order.actions is not None:
                         record = order.record is not None and bool(order.record[i])
-                        frames, drawing_s = self._step_env(local, order.actions[i], record)
+                        frames, drawing_s = self._step_env(local, order.actions[i], record, order.past_end)
                         render_s += drawing_s
                         if record:
                             recorded.append((local, frames))
@@ -536,7 +541,9 @@ def _encode_run(order: _Order) -> bytes | None:
     m = len(order.local_indices)
     if order.actions is not None:
         k = order.actions.shape[1]
-        head = _RUN_HEAD.pack(_RUN, _STEP, order.record is not None, m, k)
+        # The flags byte: bit 0 a record mask follows, bit 1 step past each env's end.
+        flags = int(order.record is not None) | (int(order.past_end) << 1)
+        head = _RUN_HEAD.pack(_RUN, _STEP, flags, m, k)
         parts = [head, local, np.ascontiguousarray(order.actions).tobytes()]
         if order.record is not None:
             parts.append(np.ascontiguousarray(order.record, dtype=bool).tobytes())
@@ -563,8 +570,8 @@ def _decode_run(message: bytearray, action_space: gymnasium.Space) -> _Order:
         shape = (m, k, *action_space.shape)
         actions = np.frombuffer(message, action_space.dtype, math.prod(shape), offset).reshape(shape)
         offset += actions.nbytes
-        recorded = np.frombuffer(message, bool, m, offset) if record else None
-        return _Order(local, actions=actions, record=recorded)
+        recorded = np.frombuffer(message, bool, m, offset) if record & 1 else None
+        return _Order(local, actions=actions, record=recorded, past_end=bool(record & 2))
     values = np.frombuffer(message, np.int64, m, offset)
     return _Order(local, seeds=values) if kind == _SEED else _Order(local, state_ids=values)
 
@@ -1215,11 +1222,15 @@ class TaskGroupedVectorEnv:
             {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors},
         )
 
-    def chunk_step_envs(self, env_indices: Any, actions: Any, record_env_indices: Any = ()) -> ChunkResult:
+    def chunk_step_envs(
+        self, env_indices: Any, actions: Any, record_env_indices: Any = (), step_past_end: bool = False
+    ) -> ChunkResult:
         """Apply a chunk of K actions to each named env, in order; no other env advances.
 
         Env ``env_indices[i]`` takes ``actions[i, 0]``, ``actions[i, 1]``, ... and stops at its first
-        termination or truncation (its later actions are not applied). Cameras are rendered once
+        termination or truncation (its later actions are not applied), or with ``step_past_end``
+        applies all K (an ended env is stepped on: physics go on, its flags and reward are what
+        the scene computes, its episode limit keeps counting; ``num_steps`` is K). Cameras are rendered once
         per env, after its last applied action; the envs in ``record_env_indices`` (a subset of
         ``env_indices``) are also rendered after each of their other applied actions. K = 0 moves
         nothing and answers the envs' current observations.
@@ -1237,24 +1248,30 @@ class TaskGroupedVectorEnv:
         """
         ids = self._env_indices(env_indices)
         chunk = self._chunk(actions, ids)
-        return self._step_chunks(ids, chunk, self._record(record_env_indices, ids))
+        return self._step_chunks(ids, chunk, self._record(record_env_indices, ids), bool(step_past_end))
 
-    def _step_chunks(self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray) -> ChunkResult:
+    def _step_chunks(
+        self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray, past_end: bool = False
+    ) -> ChunkResult:
         n, k = chunk.shape[:2]
         workers, local_indices = self._location[ids].T
         if n == 0 or k == 0:
             obs = self._empty_obs() if n == 0 else self._current(workers, local_indices)
-            result = self._result(obs, np.zeros((n, k, 4)), recorded)
+            result = self._result(obs, np.zeros((n, k, 4)), recorded, past_end)
             return dataclasses.replace(result, env_info=[{} for _ in range(n)])
         record = np.zeros(n, dtype=bool)
         record[recorded] = True
         orders = {
-            worker: _Order(local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None)
+            worker: _Order(
+                local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None, past_end=past_end
+            )
             for worker, rows in self._by_worker(workers, local_indices)
         }
         obs, rows, replies = self._run(orders, workers, local_indices)
         env_info, errors = self._per_row(replies, ids)
-        result = dataclasses.replace(self._result(obs, rows[:, :k], recorded), env_info=env_info, errors=errors)
+        result = dataclasses.replace(
+            self._result(obs, rows[:, :k], recorded, past_end), env_info=env_info, errors=errors
+        )
         drawn = {(worker, local): frames for worker, reply in replies.items() for local, frames in reply.frames}
         for index, row in enumerate(recorded):
             before_last = drawn[(int(workers[row]), int(local_indices[row]))]
@@ -1265,10 +1282,12 @@ class TaskGroupedVectorEnv:
                 out[index, last] = obs["images"][camera][row]
         return result
 
-    def _result(self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray) -> ChunkResult:
+    def _result(self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray, past_end: bool = False) -> ChunkResult:
         """The answer over result rows ``[n, K, 4]``; recorded envs' frames zeroed, to be filled."""
         n, k = rows.shape[:2]
         stopped = (rows[:, :, _TERMINATED] != 0) | (rows[:, :, _TRUNCATED] != 0)
+        if past_end:
+            stopped = np.zeros_like(stopped)  # every env applied all K
         # An env stops at its first termination or truncation; one that never did applied all K.
         first_stop = np.argmax(stopped, axis=1) if k else np.zeros(n, dtype=np.int64)
         num_steps = np.where(stopped.any(axis=1), first_stop + 1, k).astype(np.int32)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, WithJsonSchema
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, StrictBool, WithJsonSchema
 
 from vecsim import wire
 
@@ -130,6 +130,12 @@ class StepRequest(_Request):
         default_factory=lambda: np.zeros(0, dtype=np.int64),
         description="chunks only: env ids (among env_indices) whose camera frame after every applied action "
         "is answered in frames",
+    )
+    step_past_end: StrictBool = Field(
+        False,
+        description="chunks only: apply all K actions to every env, also after it terminated or truncated "
+        "(its flags and reward as the scene computes them, its episode limit counting on; num_steps K); "
+        "left false, each env stops at its first termination or truncation",
     )
 
 

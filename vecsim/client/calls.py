@@ -27,7 +27,7 @@ from vecsim.client.pods import EventLoopThread
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
 
-__all__ = ["PendingCall", "StageBatch", "check_actions", "completed", "empty_batch", "run_call", "take_rows"]
+__all__ = ["Ended", "PendingCall", "StageBatch", "check_actions", "completed", "empty_batch", "run_call", "take_rows"]
 
 T = TypeVar("T")
 
@@ -177,6 +177,34 @@ def take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
     )
 
 
+@dataclass(frozen=True)
+class Ended:
+    """What a trajectory's env was when its episode ended: its observation (one env's), its
+    last termination, truncation and success flags. A frozen env answers these, unstepped."""
+
+    obs: Any
+    terminated: bool
+    truncated: bool
+    success: bool
+
+
+def ended_rows(batch: StageBatch) -> dict[str, Ended]:
+    """The rows of a step answer whose env terminated or truncated (at any action), as :class:`Ended`."""
+    flags = batch.terminated | batch.truncated
+    ended = flags if flags.ndim == 1 else flags.any(axis=1)
+    out: dict[str, Ended] = {}
+    for j in np.flatnonzero(ended):
+        if batch.terminated.ndim == 1:
+            last = (batch.terminated[j], batch.truncated[j], batch.success[j])
+        else:
+            # The flags where the env ended: its last applied action (num_steps of K), or the
+            # last action for an env stepped past its end.
+            k = max(int(batch.num_steps[j]) - 1, 0)
+            last = (batch.terminated[j, k], batch.truncated[j, k], batch.success[j, k])
+        out[batch.traj_keys[j]] = Ended(trees.row(batch.obs, int(j)), *(bool(v) for v in last))
+    return out
+
+
 @dataclass
 class _PodWork:
     """What one call asks of one pod: resets first, then steps (rows index the call's batches)."""
@@ -314,10 +342,16 @@ async def run_call(
     pick: int | None,
     recorded: set[str],
     seeded: tuple[list[int | None], dict[str, Any]] | None = None,
+    frozen: Mapping[str, Ended] | None = None,
+    step_past_end: bool = False,
 ) -> tuple[StageBatch, StageBatch]:
     """Carry out one call on the routes in ``book``: each pod its resets (to ``state_ids``, or
     the envs' own reset with ``seeded`` = (seeds, options)), then its steps, pods concurrently.
     Returns ``(reset_batch, step_batch)``; records the state ids reset to in ``book``.
+
+    Step keys in ``frozen`` are not sent: their rows answer what their env was when it ended
+    (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the pods
+    to apply every action of a chunk, also after an env's end.
 
     Raises:
         PodUnavailableError, RoutingChangedError, ...: :func:`~vecsim.client.errors.call_error`
@@ -333,10 +367,14 @@ async def run_call(
     work: dict[str, _PodWork] = {}
     for row, key in enumerate(reset_keys):
         work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
+    frozen = frozen or {}
     for row, key in enumerate(step_keys):
-        work.setdefault(routes[key].pod, _PodWork()).step_rows.append(row)
+        if key in frozen:
+            _put_frozen(step_batch, row, frozen[key])
+        else:
+            work.setdefault(routes[key].pod, _PodWork()).step_rows.append(row)
     # Rows whose pod answered: they are delivered even when another pod of the call fails.
-    answered = _PodWork()
+    answered = _PodWork(step_rows=[row for row, key in enumerate(step_keys) if key in frozen])
 
     async def send(pod: str, op: str, row_list: list[int], all_keys: Sequence[str], field: str,
                    values: np.ndarray, batch: StageBatch) -> None:  # fmt: skip
@@ -349,6 +387,8 @@ async def run_call(
                 body["options"] = seeded[1]
         else:
             body[field] = values[rows]
+        if op == "step" and step_past_end and chunk is not None:
+            body["step_past_end"] = True
         record = [k for k in keys if k in recorded]
         if record:
             body["record_env_indices"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
@@ -380,11 +420,13 @@ async def run_call(
             unanswered += [step_keys[r] for r in todo.step_rows]
             raise PodUnavailableError({pod: unanswered}, exc.reason) from None
 
-    if len(work) == 1:
+    if not work:
+        results: list[BaseException | None] = []
+    elif len(work) == 1:
         # One pod (a stage of one pod, a vector env of one): awaited here, without the task and
         # the two event-loop turns that gather spends on it.
         try:
-            results: list[BaseException | None] = [await one_pod(*next(iter(work.items())))]
+            results = [await one_pod(*next(iter(work.items())))]
         except Exception as exc:  # noqa: BLE001 - as gather(return_exceptions=True) keeps it
             results = [exc]
     else:
@@ -402,6 +444,16 @@ async def run_call(
         raise call_error(errors, partial if pick is None else partial[pick])
     return reset_batch, step_batch
 
+
+
+def _put_frozen(batch: StageBatch, row: int, ended: Ended) -> None:
+    """Row ``row`` of a step answer as a frozen env's: its ended observation and held flags."""
+    trees.put_rows(batch.obs, trees.map_leaves(lambda leaf: np.asarray(leaf)[None], ended.obs), np.array([row]))
+    batch.reward[row] = 0.0
+    batch.terminated[row] = ended.terminated
+    batch.truncated[row] = ended.truncated
+    batch.success[row] = ended.success
+    batch.num_steps[row] = 0
 
 
 def single_action_ndim(info: JobInfo) -> int:

@@ -42,19 +42,21 @@ from typing import Any, TypeVar
 import httpx
 import numpy as np
 from gymnasium import Space
-from gymnasium.error import ClosedEnvironmentError
+from gymnasium.error import ClosedEnvironmentError, ResetNeeded
 
 from vecsim.auth import token_from_env
 from vecsim.client.calls import (
+    Ended,
     PendingCall,
     StageBatch,
     check_actions,
     completed,
     empty_batch,
+    ended_rows,
     run_call,
     single_action_ndim,
 )
-from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
+from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
 from vecsim.client.pods import EventLoopThread, PodConnection
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
@@ -66,7 +68,22 @@ from vecsim.transport import as_transport, get_answer, make_async_client
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PendingCall", "StageBatch", "StageClient", "fetch_routing"]
+__all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "check_ended_envs", "fetch_routing"]
+
+# What stepping a trajectory whose episode ended does: refuse (ResetNeeded), step its env on
+# (the pod applies every action, also past the end), or answer it unstepped with its flags held.
+ENDED_ENVS = ("raise", "step", "freeze")
+
+
+def check_ended_envs(value: str) -> str:
+    """Return ``value`` if it is one of :data:`ENDED_ENVS`.
+
+    Raises:
+        ValueError: any other value (names the valid ones).
+    """
+    if value not in ENDED_ENVS:
+        raise ValueError(f"ended_envs must be one of {list(ENDED_ENVS)}, got {value!r}")
+    return value
 
 T = TypeVar("T")
 
@@ -105,6 +122,14 @@ class StageClient:
     and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
     job's shared token, sent with every reset and step; left out, ``VECSIM_TOKEN`` is used
     (none: the pods must run without one).
+
+    ``ended_envs`` says what a step of a trajectory whose env terminated or truncated (and was
+    not reset since) does: ``"raise"`` refuses it with ``ResetNeeded`` before anything is sent;
+    ``"step"`` steps the env on, and a chunk applies all its K actions, also past an end (as
+    RLinf's and LIBERO's own envs are stepped, the trainer masking afterwards); ``"freeze"``
+    sends nothing for it and answers its observation at the end, reward 0, its termination and
+    truncation held at every action, ``num_steps`` 0. Under ``"raise"`` and ``"freeze"`` a chunk
+    stops each env at its first end.
     """
 
     def __init__(
@@ -116,7 +141,9 @@ class StageClient:
         transport: httpx.AsyncBaseTransport | None = None,
         max_answer_bytes: int | None = None,
         token: str | None = None,
+        ended_envs: str = "raise",
     ) -> None:
+        self.ended_envs = check_ended_envs(ended_envs)
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
             raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
         if max_answer_bytes is not None and max_answer_bytes < 1:
@@ -129,6 +156,7 @@ class StageClient:
         self._http: httpx.AsyncClient | None = None  # over the transport: the routing re-reads only
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}
+        self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
         self._pods_lock = threading.RLock()
         self._states = StageStates()
         self._batches = itertools.count()
@@ -151,6 +179,7 @@ class StageClient:
         transport: httpx.AsyncBaseTransport | None = None,
         max_answer_bytes: int | None = None,
         token: str | None = None,
+        ended_envs: str = "raise",
     ) -> StageClient:
         """Return a client over the controller's routing table (see :func:`fetch_routing`, which
         waits up to ``wait_ready_s`` for a controller that is down, restarting or not planned).
@@ -166,6 +195,7 @@ class StageClient:
             transport=transport,
             max_answer_bytes=max_answer_bytes,
             token=token,
+            ended_envs=ended_envs,
         )
 
     @classmethod
@@ -177,6 +207,7 @@ class StageClient:
         transport: httpx.AsyncBaseTransport | None = None,
         max_answer_bytes: int | None = None,
         token: str | None = None,
+        ended_envs: str = "raise",
     ) -> StageClient:
         """Return a client over standalone pods (no controller), reading each pod's ``/v1/info``.
 
@@ -204,6 +235,7 @@ class StageClient:
             transport=transport,
             max_answer_bytes=max_answer_bytes,
             token=token,
+            ended_envs=ended_envs,
         )
         try:
             client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
@@ -309,7 +341,21 @@ class StageClient:
         self._replace_routes(dict(routes))
 
     def _replace_routes(self, routes: dict[str, TrajRoute]) -> None:
-        self._states.while_idle("placing a new batch", lambda: self._book.replace(routes))
+        def replace() -> None:
+            old = self._book.routes()
+            self._book.replace(routes)
+            # An ended trajectory stays ended only while it keeps its env.
+            for key in list(self._ended):
+                before, now = old.get(key), routes.get(key)
+                if now is None or before is None or (before.pod, before.env_index) != (now.pod, now.env_index):
+                    del self._ended[key]
+
+        self._states.while_idle("placing a new batch", replace)
+
+    @property
+    def ended_traj_keys(self) -> list[str]:
+        """The trajectories whose env terminated or truncated and was not reset since."""
+        return sorted(self._ended)
 
     # -- calls ----------------------------------------------------------------------------------
 
@@ -351,6 +397,7 @@ class StageClient:
         Raises:
             ValueError: no such stage, a key not live on it, an action of the wrong shape or not
                 finite, or chunks of different lengths (names the traj_key).
+            ResetNeeded: (``ended_envs="raise"``) a trajectory whose env ended and was not reset.
             RoutingChangedError, AlreadyPendingCallError, ClosedEnvironmentError: as
                 :meth:`reset_stage`, whose notes on the result's errors hold here too.
         """
@@ -485,6 +532,13 @@ class StageClient:
             raise ValueError("traj_keys repeat within one call")
         self._book.check_lost([*reset_keys, *step])
         routes = self._book.live(itertools.chain(reset_keys, step))
+        ended = [k for k in step if k in self._ended]
+        if ended and self.ended_envs == "raise":
+            raise ResetNeeded(
+                f"traj_keys {ended} ended (terminated or truncated) and were not reset; reset them, or "
+                "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
+            )
+        frozen = {k: self._ended[k] for k in ended} if self.ended_envs == "freeze" else {}
         state_ids = np.array(
             [reset_map[k] if reset_map is not None and seeds is None else routes[k].state_id for k in reset_keys],
             dtype=np.int64,
@@ -511,9 +565,22 @@ class StageClient:
 
         async def run() -> tuple[StageBatch, StageBatch]:
             try:
-                return await run_call(
-                    self._book, self._info, self._post, reset_keys, state_ids, list(step), actions, pick, recorded, seeded
-                )
+                try:
+                    batches = await run_call(
+                        self._book, self._info, self._post, reset_keys, state_ids, list(step), actions, pick,
+                        recorded, seeded, frozen, self.ended_envs == "step",
+                    )  # fmt: skip
+                except (PodUnavailableError, RoutingChangedError) as error:
+                    if error.answered is not None:
+                        if pick is None:
+                            self._note_ended(*error.answered)
+                        elif pick == 0:
+                            self._note_ended(error.answered, None)
+                        else:
+                            self._note_ended(None, error.answered)
+                    raise
+                self._note_ended(*batches)
+                return batches
             finally:
                 # Before the answer is handed over: a caller whose result() returned finds its
                 # stages idle.
@@ -524,6 +591,15 @@ class StageClient:
         future.add_done_callback(lambda _f: self._states.end(states, token))
         token.pending = PendingCall(future, pick, self._loop)
         return token.pending
+
+    def _note_ended(self, reset_batch: StageBatch | None, step_batch: StageBatch | None) -> None:
+        """Keep track of which trajectories ended: reset ones did not, stepped ones may have."""
+        if reset_batch is not None:
+            for key in reset_batch.traj_keys:
+                self._ended.pop(key, None)
+        if step_batch is not None:
+            failed = {key for key, _type, _message in step_batch.errors}
+            self._ended.update({k: e for k, e in ended_rows(step_batch).items() if k not in self._ended and k not in failed})
 
     def stage_state(self, stage_id: int) -> StageState:
         """What a stage is doing: ``IDLE`` or waiting on a reset, a step or a mixed call.

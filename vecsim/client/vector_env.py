@@ -30,7 +30,7 @@ from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 from vecsim import trees
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
 from vecsim.config import RoutingTable, RunnerConfig, load_job_config
 from vecsim.info import merge_rows
 
@@ -133,6 +133,12 @@ class HTTPVectorEnv(VectorEnv):
     with only the answered envs' rows meaningful and only theirs marked in the info's ``_key``
     masks). The failed envs must then be reset (``reset(options={"reset_mask": m})`` with ``m``
     covering them) before the next step; the others go on as they are.
+
+    ``ended_envs`` (as :class:`StageClient`'s) says what stepping an env that terminated or
+    truncated and was not reset does when nothing autoresets it (``autoreset_mode`` DISABLED):
+    ``"raise"`` (``ResetNeeded``), ``"step"`` (the env is stepped on; a chunk applies all K
+    actions, also past an end) or ``"freeze"`` (not stepped: its observation stays, reward 0,
+    its flags held, ``num_steps`` 0). ``chunk_step(actions, env_ids=...)`` steps only some envs.
     """
 
     def __init__(
@@ -149,12 +155,13 @@ class HTTPVectorEnv(VectorEnv):
         transport: httpx.AsyncBaseTransport | None = None,
         max_answer_bytes: int | None = None,
         token: str | None = None,
+        ended_envs: str = "raise",
     ) -> None:
         """Connect to the job and read its envs and spaces.
 
         Raises:
             ValueError: not exactly one source given, a ``num_envs`` that is not the job's, a job
-                without envs, or an unknown autoreset mode.
+                without envs, an unknown autoreset mode or ``ended_envs``.
             PodUnavailableError, PodRequestError: the controller or a pod did not answer well.
             TimeoutError: the controller's routing table was not ready within ``wait_ready_s``.
         """
@@ -163,19 +170,25 @@ class HTTPVectorEnv(VectorEnv):
         if len(given) != 1:
             raise ValueError(f"give exactly one of {', '.join(sources)}; got {given or 'none'}")
         self.autoreset_mode = autoreset_mode_of(autoreset_mode)
+        self.ended_envs = check_ended_envs(ended_envs)
         if job_config is not None:
             controller_url = _controller_url_of(job_config)
         if controller_url is not None:
             table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
             self.client = StageClient(
-                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token
-            )
+                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
+                ended_envs=self.ended_envs,
+            )  # fmt: skip
         elif routing is not None:
-            self.client = StageClient(routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token)
+            self.client = StageClient(
+                routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
+                ended_envs=self.ended_envs,
+            )  # fmt: skip
         else:
             self.client = StageClient.from_pods(
-                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token
-            )
+                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes, token=token,
+                ended_envs=self.ended_envs,
+            )  # fmt: skip
         try:
             self._setup(num_envs)
         except BaseException:
@@ -430,35 +443,68 @@ class HTTPVectorEnv(VectorEnv):
         self.step_async(actions)
         return self.step_wait()
 
-    def chunk_step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every env with its chunk ``actions[i]`` (``[num_envs, K, action dim]``).
+    def chunk_step(
+        self, actions: Any, env_ids: Sequence[int] | np.ndarray | None = None
+    ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every env with its chunk ``actions[i]`` (``[num_envs, K, action dim]``), or only
+        the envs ``env_ids`` (``actions`` ``[len(env_ids), K, action dim]``, row j for
+        ``env_ids[j]``): the others are not touched, and pods with none of them get no request.
 
         Returns:
             ``(obs, reward float64[num_envs, K], terminated bool[num_envs, K], truncated
             bool[num_envs, K], info)``: entries after an env stopped are 0/false; ``obs`` is after
             each env's last applied action; ``info`` adds ``num_steps`` (actions applied, with
             its ``_num_steps`` mask) to ``step``'s keys, ``success`` being after the last action.
+            Arrays stay ``[num_envs, ...]``; envs left out of ``env_ids`` answer 0/false and are
+            unmarked in the info's masks.
 
         Raises:
-            as :meth:`step_async` (for chunks) and :meth:`step_wait`.
+            as :meth:`step_async` (for chunks) and :meth:`step_wait`; ``ValueError`` for
+            ``env_ids`` out of range or repeated.
         """
-        self.chunk_step_async(actions)
+        self.chunk_step_async(actions, env_ids)
         return self.step_wait()
 
-    def chunk_step_async(self, actions: Any) -> None:
-        """Send a chunk step (``[num_envs, K, action dim]``) and return at once; :meth:`step_wait`
-        takes the answer, shaped as :meth:`chunk_step` says.
+    def chunk_step_async(self, actions: Any, env_ids: Sequence[int] | np.ndarray | None = None) -> None:
+        """Send a chunk step (``[num_envs, K, action dim]``, or ``[len(env_ids), K, action dim]``
+        for the envs ``env_ids``) and return at once; :meth:`step_wait` takes the answer, shaped
+        as :meth:`chunk_step` says.
 
         Raises:
-            as :meth:`step_async`; ``ValueError`` for a chunk of the wrong shape.
+            as :meth:`step_async`; ``ValueError`` for a chunk of the wrong shape or bad ``env_ids``.
         """
         if not isinstance(self.single_action_space, Box):
             raise TypeError(f"chunk_step takes chunks of Box actions; this job's action space is {self.single_action_space}")
+        envs = self._subset(env_ids)
         actions = np.asarray(actions, dtype=self.single_action_space.dtype)
-        expected = (self.num_envs, "K", *self.single_action_space.shape)
-        if actions.ndim != len(expected) or actions.shape[0] != self.num_envs or actions.shape[2:] != expected[2:]:
+        n = int(envs.sum())
+        expected = (n, "K", *self.single_action_space.shape)
+        if actions.ndim != len(expected) or actions.shape[0] != n or actions.shape[2:] != expected[2:]:
             raise ValueError(f"chunk actions must have shape {list(expected)}, got {list(actions.shape)}")
-        self._send_step(actions, chunk=actions.shape[1])
+        if env_ids is not None:  # one row per env, rows of envs left out unused
+            full = np.zeros((self.num_envs, *actions.shape[1:]), dtype=actions.dtype)
+            full[np.asarray(env_ids, dtype=np.int64).reshape(-1)] = actions
+            actions = full
+        self._send_step(actions, chunk=actions.shape[1], envs=envs)
+
+    def _subset(self, env_ids: Any) -> np.ndarray:
+        """The mask of ``env_ids`` (None: every env).
+
+        Raises:
+            ValueError: ids that are not distinct ints in ``0..num_envs-1`` (names them).
+        """
+        mask = np.zeros(self.num_envs, dtype=bool)
+        if env_ids is None:
+            mask[:] = True
+            return mask
+        ids = np.asarray(env_ids).reshape(-1)
+        if ids.size and ids.dtype.kind not in "iu":
+            raise ValueError(f"env_ids must be ints, got {ids.tolist()}")
+        ids = ids.astype(np.int64)
+        if ((ids < 0) | (ids >= self.num_envs)).any() or len(set(ids.tolist())) != ids.size:
+            raise ValueError(f"env_ids must be distinct env indices 0..{self.num_envs - 1}, got {ids.tolist()}")
+        mask[ids] = True
+        return mask
 
     def step_async(self, actions: Any) -> None:
         """Send the step and return at once; :meth:`step_wait` takes the answer.
@@ -480,32 +526,36 @@ class HTTPVectorEnv(VectorEnv):
             raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
         self._send_step(actions, chunk=None)
 
-    def _send_step(self, actions: np.ndarray, chunk: int | None) -> None:
+    def _send_step(self, actions: np.ndarray, chunk: int | None, envs: np.ndarray | None = None) -> None:
+        """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env."""
+        envs = np.ones(self.num_envs, dtype=bool) if envs is None else envs
         self._assert_open()
         if self._state != AsyncState.DEFAULT:
             raise AlreadyPendingCallError(
                 f"Calling `step_async` while waiting for a pending call to `{self._state.value}` to complete.",
                 str(self._state.value),
             )
-        if not self._ever_reset.all():
-            raise ResetNeeded(f"envs {np.flatnonzero(~self._ever_reset).tolist()} were never reset; call reset() first")
-        if self._failed.any():
-            failed = np.flatnonzero(self._failed).tolist()
+        if not self._ever_reset[envs].all():
+            raise ResetNeeded(f"envs {np.flatnonzero(envs & ~self._ever_reset).tolist()} were never reset; call reset() first")
+        if (self._failed & envs).any():
+            failed = np.flatnonzero(self._failed & envs).tolist()
             raise ResetNeeded(
                 f"envs {failed} got no answer in their last call (their pod failed, or the call was "
                 "interrupted); reset them with "
                 "reset(options={'reset_mask': mask}) before stepping"
             )
-        if self.autoreset_mode == AutoresetMode.DISABLED and self._autoreset.any():
+        ended = self._autoreset & envs
+        if self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise" and ended.any():
             raise ResetNeeded(
-                f"envs {np.flatnonzero(self._autoreset).tolist()} ended and autoreset is disabled; "
-                "reset them with reset(options={'reset_mask': mask}) before stepping"
+                f"envs {np.flatnonzero(ended).tolist()} ended and autoreset is disabled; "
+                "reset them with reset(options={'reset_mask': mask}) before stepping, or make the env "
+                "with ended_envs='step' or 'freeze'"
             )
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            resetting = self._autoreset.copy()
+            resetting = ended.copy()
         else:
             resetting = np.zeros(self.num_envs, dtype=bool)
-        step = {self._keys[i]: actions[i] for i in np.flatnonzero(~resetting)}
+        step = {self._keys[i]: actions[i] for i in np.flatnonzero(envs & ~resetting)}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._pending = self.client.submit(self._step_then_reset(step))
         else:

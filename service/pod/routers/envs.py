@@ -165,7 +165,8 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
 async def step(request: Request, state: PodState = Depends(get_state)) -> Response:
     """Apply ``actions[i]`` to ``env_indices[i]``; answers their observations, rewards, termination
     and truncation flags and success. A chunk (``actions`` ``[n, K, action dim]``) is applied in
-    order, each env stopping at its first termination or truncation, its cameras rendered once
+    order, each env stopping at its first termination or truncation (``step_past_end``: applying
+    all K, as trainers that step ended envs and mask afterwards expect), its cameras rendered once
     after its last applied action; the answer's per-action arrays are ``[n, K]`` and
     ``num_steps`` says how many actions each env took. Other envs do not move; the pod never
     autoresets; no env ids (or K = 0) is a no-op."""
@@ -173,6 +174,11 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
     is_chunk = req.actions.ndim == len(env.single_action_space.shape or ()) + 2
+    if req.step_past_end and not is_chunk:
+        raise InvalidRequestError(
+            f"step_past_end: pod {state.settings.name} steps past an env's end in chunks only; "
+            "send actions as [n, K, action dim]"
+        )
     if req.record_env_indices.size and not is_chunk:
         raise InvalidRequestError(
             f"record_env_indices: pod {state.settings.name} records frames of chunks only; "
@@ -182,7 +188,7 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     def work() -> tuple[Response, float, sim.CallTiming, int]:
         start = time.perf_counter()
         if is_chunk:
-            result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices)
+            result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices, req.step_past_end)
             elapsed = time.perf_counter() - start
             answer: dict[str, Any] = {
                 "env_indices": req.env_indices.astype(np.int32),

@@ -1,0 +1,1 @@
+"""Adapters that give a vecsim job the env contract of an RL trainer (docs/trainers.md)."""
