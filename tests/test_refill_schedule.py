@@ -212,3 +212,19 @@ def test_a_waiting_request_that_only_a_dead_pod_could_run_is_reported_lost(jobs)
     waited = result.lost["r1"]
     assert (waited.route.task_id, waited.route.state_id, waited.steps) == (TASK, 1, 0)
     assert "no env of task" in waited.reason
+
+
+def test_per_request_horizons_end_each_trajectory_at_its_own_cap(jobs):
+    job = jobs([1], envs_per_pod=2)
+    job.pods[0].open()
+    loop = EnvLoop(job.client, job.policy, horizon=4, keep_obs=())
+    result = loop.run([(TASK, 0)] * 3, ["short", "long", "after"], horizons=[1, 4, 2])
+    lengths = {key: (t.length, t.truncated, t.route.env_index) for key, t in result.trajectories.items()}
+    # "after" waits for an env and takes the one "short" left after its one action.
+    assert lengths == {"short": (1, True, 0), "long": (4, True, 1), "after": (2, True, 0)}
+
+
+def test_a_horizon_past_the_loops_is_refused_naming_its_request(jobs):
+    job = jobs([1])
+    with pytest.raises(ValueError, match=r"horizons\[1\] is 5: each must be 1..4"):
+        EnvLoop(job.client, job.policy, horizon=4).run([(TASK, 0), (TASK, 0)], horizons=[4, 5])

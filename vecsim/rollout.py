@@ -287,8 +287,15 @@ class EnvLoop:
         self.max_batch = max_batch
         self.batch_wait_s = float(batch_wait_s)
 
-    def run(self, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str] | None = None) -> RolloutResult:
+    def run(
+        self,
+        requests: Sequence[tuple[str, int]],
+        traj_keys: Sequence[str] | None = None,
+        horizons: Sequence[int] | None = None,
+    ) -> RolloutResult:
         """Roll out one trajectory per request ``(task_id, state_id)``; return them with stats.
+
+        ``horizons``, when given, caps each request's trajectory on its own (each 1..``horizon``).
 
         Request ``i`` runs on stage ``stage_of(i, S)``. There may be more requests than envs: a
         request for which its stage has no free env of its task waits, and starts (reset to its
@@ -302,8 +309,8 @@ class EnvLoop:
 
         Raises:
             CapacityError: a stage has no env of a request's task at all.
-            ValueError: a malformed request or traj_keys, or videos of trajectories or a camera
-                that are not there.
+            ValueError: a malformed request, traj_keys or horizons, or videos of trajectories or
+                a camera that are not there.
             PodRequestError, StaleGenerationError: from the client (a refused request).
         """
         started = time.perf_counter()
@@ -311,6 +318,13 @@ class EnvLoop:
         keys = list(traj_keys) if traj_keys is not None else self.client.new_traj_keys(len(requests))
         if len(keys) != len(requests) or len(set(keys)) != len(keys):
             raise ValueError(f"traj_keys: need {len(requests)} distinct keys, one per request, got {len(keys)}")
+        caps = [self.horizon] * len(requests) if horizons is None else [int(h) for h in horizons]
+        if len(caps) != len(requests):
+            raise ValueError(f"horizons: need one per request ({len(requests)}), got {len(caps)}")
+        bad = [i for i, h in enumerate(caps) if not 1 <= h <= self.horizon]
+        if bad:
+            raise ValueError(f"horizons[{bad[0]}] is {caps[bad[0]]}: each must be 1..{self.horizon} (the loop's horizon)")
+        cap_of = dict(zip(keys, caps))
         stages = [stage_of(i, self.client.num_stages) for i in range(len(requests))] if requests else []
         first = _first_wave(self.client.routing, requests, stages)
         routes = self.client.reset_trajectories(
@@ -322,7 +336,7 @@ class EnvLoop:
         waiting = {stage: [i for i in range(len(requests)) if i not in placed and stages[i] == stage]
                    for stage in set(stages)}  # fmt: skip
         instructions = self.client.instructions
-        buffers = {key: _Buffer(key, route, self.keep_obs) for key, route in routes.items()}
+        buffers = {key: _Buffer(key, route, self.keep_obs, cap_of[key]) for key, route in routes.items()}
         recorded = self._recorded_keys(keys)
         recorder = _Recorder(recorded, self._video_camera())
         clock = _Clock(started, self.log_every_s)
@@ -348,7 +362,7 @@ class EnvLoop:
                         for row, key in enumerate(batch.traj_keys):
                             buffers[key].add(batch, row)
                             recorder.add(key, batch, row)
-                            if buffers[key].ended(self.horizon):
+                            if buffers[key].ended():
                                 ended.append(key)
                             else:
                                 live.append((pod, batch, row))
@@ -356,7 +370,7 @@ class EnvLoop:
                 # Refill: the waiting requests of this stage start on the envs free now, on pods
                 # without a call in flight (the ones just landed first).
                 idle = landed + [pod for pod in stage_pods[stage] if pod not in inflight.calls and pod not in landed]
-                resets = self._refill(stage, waiting.get(stage, []), ended, requests, keys, idle, failed, buffers)
+                resets = self._refill(stage, waiting.get(stage, []), ended, requests, keys, cap_of, idle, failed, buffers)
                 stepped = list(dict.fromkeys(pod for pod, _, _ in live))
                 for pod in resets:
                     if pod not in stepped:  # nothing to step there: reset at once, before the policy
@@ -369,7 +383,7 @@ class EnvLoop:
                     rows = [j for j, (on, _, _) in enumerate(live) if on == pod]
                     row_keys = [live[j][1].traj_keys[live[j][2]] for j in rows]
                     # One call, one chunk length: the pod's shortest remaining horizon cuts them all.
-                    left = min(self.horizon - len(buffers[key].actions) for key in row_keys)
+                    left = min(buffers[key].left() for key in row_keys)
                     step = {key: _within(actions[j], left) for j, key in zip(rows, row_keys)}
                     self._send(pod, resets.get(pod, []), step, inflight, buffers, lost, recorded)
         except BaseException:
@@ -420,6 +434,7 @@ class EnvLoop:
         ended: list[str],
         requests: Sequence[tuple[str, int]],
         keys: Sequence[str],
+        cap_of: Mapping[str, int],
         pods: list[str],
         failed: set[str],
         buffers: dict[str, _Buffer],
@@ -437,7 +452,7 @@ class EnvLoop:
             if route is None:
                 continue
             waiting.remove(i)
-            buffers[keys[i]] = _Buffer(keys[i], route, self.keep_obs)
+            buffers[keys[i]] = _Buffer(keys[i], route, self.keep_obs, cap_of[keys[i]])
             resets.setdefault(route.pod, []).append(keys[i])
         return resets
 
@@ -620,8 +635,8 @@ def _take_row(obs: Any, row: int, keep: tuple[str, ...] | None) -> Any:
 class _Buffer:
     """What one trajectory has seen so far."""
 
-    def __init__(self, key: str, route: TrajRoute, keep_obs: tuple[str, ...]) -> None:
-        self.key, self.route, self.keep_obs = key, route, keep_obs
+    def __init__(self, key: str, route: TrajRoute, keep_obs: tuple[str, ...], horizon: int) -> None:
+        self.key, self.route, self.keep_obs, self.horizon = key, route, keep_obs, horizon
         self.observations: list[Any] = []
         self.actions: list[np.ndarray] = []
         self.rewards: list[float] = []
@@ -652,8 +667,12 @@ class _Buffer:
         """Note the action (``[A]``) or chunk (``[K, A]``) sent; :meth:`add` keeps what was applied."""
         self.sent = action[None] if action.ndim == 1 else action
 
-    def ended(self, horizon: int) -> bool:
-        if len(self.actions) >= horizon and not (self.terminated or self.truncated):
+    def left(self) -> int:
+        """Actions left before the horizon."""
+        return self.horizon - len(self.actions)
+
+    def ended(self) -> bool:
+        if len(self.actions) >= self.horizon and not (self.terminated or self.truncated):
             self.truncated = True  # the horizon is a time limit
         return self.terminated or self.truncated
 
