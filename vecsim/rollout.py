@@ -447,9 +447,13 @@ class EnvLoop:
         live = self.client.routes
         self.client.retire_trajectories([key for key in ended if key in live])
         candidates = [pod for pod in pods if pod not in failed]
+        full: set[str] = set()  # tasks with no free env left on the candidates
         for i in list(waiting):
+            if requests[i][0] in full:
+                continue
             route = self.client.place_trajectory(keys[i], requests[i], stage, candidates)
             if route is None:
+                full.add(requests[i][0])
                 continue
             waiting.remove(i)
             buffers[keys[i]] = _Buffer(keys[i], route, self.keep_obs, cap_of[keys[i]])
