@@ -18,6 +18,7 @@ import torch
 from scripted_pod import TASK, TOKEN, WAIT_S, PodRouter, ScriptedPod, Timeline
 
 from vecsim.client import StageClient
+from vecsim.client.stagestate import StageState
 from vecsim.client.routing import routing_from_pod_infos
 from vecsim.rollout import EnvLoop, RolloutResult
 
@@ -228,3 +229,26 @@ def test_a_horizon_past_the_loops_is_refused_naming_its_request(jobs):
     job = jobs([1])
     with pytest.raises(ValueError, match=r"horizons\[1\] is 5: each must be 1..4"):
         EnvLoop(job.client, job.policy, horizon=4).run([(TASK, 0), (TASK, 0)], horizons=[4, 5])
+
+
+class InterruptedPolicy(NotingPolicy):
+    """Raises KeyboardInterrupt (a Ctrl-C) at its first call."""
+
+    def __call__(self, obs: dict[str, torch.Tensor], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
+        if not self.calls:
+            self.calls.append([])
+            raise KeyboardInterrupt
+        return super().__call__(obs, instructions, task_ids)
+
+
+def test_ctrl_c_while_another_pod_is_in_flight_leaves_the_client_usable(jobs):
+    job = jobs([2])
+    fast, slow = job.pod("pod-0a"), job.pod("pod-0b")
+    fast.open()  # the slow pod's reset stays in flight when the policy is interrupted
+    loop = EnvLoop(job.client, InterruptedPolicy(job.timeline), horizon=2, keep_obs=())
+    with pytest.raises(KeyboardInterrupt):
+        loop.run([(TASK, 0), (TASK, 0)])
+    assert job.client.stage_state(0) is StageState.IDLE
+    slow.open()
+    result = EnvLoop(job.client, job.policy, horizon=2, keep_obs=()).run([(TASK, 0), (TASK, 0)])
+    assert [t.length for t in result.trajectories.values()] == [2, 2] and result.lost == {}
