@@ -237,7 +237,8 @@ class EnvLoop:
     gif). Progress is logged every ``log_every_s`` seconds.
 
     ``max_batch``: the most observations one policy call gets (None: no bound).
-    ``batch_wait_s``: how long the loop waits, once a pod's answer is in, for more pods of its stage to land before the policy runs (0: never waits).
+    ``batch_wait_s``: how long the loop waits, once a pod's answer is in, for more of its stage's
+    pods to land before the policy runs (0: never waits).
     """
 
     def __init__(

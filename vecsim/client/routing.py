@@ -146,7 +146,8 @@ def place_requests(
     if stages is not None:
         for i, stage_id in enumerate(stages):
             if stage_id not in by_id:
-                raise ValueError(f"request {i}: stage {stage_id} is not in the routing table (stages 0..{len(by_id) - 1})")
+                stages_in_table = f"stages 0..{len(by_id) - 1}"
+                raise ValueError(f"request {i}: stage {stage_id} is not in the routing table ({stages_in_table})")
     stage_ids = list(stages) if stages is not None else [stage_of(i, len(by_id)) for i in range(len(checked))]
 
     # free[stage][task][pod] = env indices not yet taken, lowest first (popped from the end)

@@ -379,7 +379,9 @@ class StageClient:
         routes = self._book.live(traj_keys)
         busy = sorted({routes[k].pod for k in traj_keys if self._states.pod_busy(routes[k].stage_id, routes[k].pod)})
         if busy:
-            raise AlreadyPendingCallError(f"pods {busy} wait on a call; take its result before retiring their trajectories", "step")
+            raise AlreadyPendingCallError(
+                f"pods {busy} wait on a call; take its result before retiring their trajectories", "step"
+            )
         self._book.retire(list(traj_keys))
         for key in traj_keys:
             self._ended.pop(key, None)
