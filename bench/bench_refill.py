@@ -11,13 +11,16 @@ rounds, on the same pods:
   ends when its longest trajectory ends, its other envs idle meanwhile (the rollout before refill).
 
 Both apply exactly the same actions (the sum of the horizons); env-steps/s = that sum / wall time.
-The policy is scripted (zeros: no policy cost), so the ratio measures the envs' idle time alone.
-Ideal ratio: (longest / mean horizon) of a wave, ~1.67 for 20-100%, less the drain of the refill
-run's tail. Target (issue 27): refill >= 1.3x batch-at-once.
+The policy is scripted: zeros, each call taking ``--policy-ms`` (a sleep, as a GPU forward pass
+takes about the same time for any batch). Ideal ratio: (longest / mean horizon) of a wave, ~1.67
+for 20-100%, less the drain of the refill run's tail, where the envs' idle time costs: cores of
+their own, or a per-call cost (policy, HTTP). Where the pods' cores are shared by all their envs
+and the policy is free (a loaded small box), a call of fewer live envs is just faster and refill
+gains little. Target (issue 27): refill >= 1.3x batch-at-once.
 
     python bench/bench_refill.py --quick     # smoke: a gym scene at 8x8, 2 pods of 2 envs
     python bench/bench_refill.py             # dev box: tiny/lift 32x32, 2 pods of 4 envs
-    python bench/bench_refill.py --gpu       # GPU node: libero_10/0 128x128, 12 pods pinned one per core
+    python bench/bench_refill.py --gpu       # GPU node: libero_10/0 128x128, 12 pods of 1 env pinned one per core
 
 Prints ``RESULT {json}`` and writes out/bench/bench_refill.json.
 """
@@ -48,12 +51,16 @@ SHORTEST = 0.2  # the shortest episode, as a fraction of the horizon
 
 
 class ScriptedPolicy:
-    """Zero actions of the job's action shape: the benchmark times the envs, not a policy."""
+    """Zero actions of the job's action shape, each call taking ``call_s`` (a sleep: a GPU
+    forward pass, whose time hardly depends on the batch, without taking the pods' cores)."""
 
-    def __init__(self, action_dim: int) -> None:
+    def __init__(self, action_dim: int, call_s: float) -> None:
         self.action_dim = action_dim
+        self.call_s = call_s
 
     def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
+        if self.call_s > 0:
+            time.sleep(self.call_s)
         return torch.zeros((len(task_ids), self.action_dim))
 
 
@@ -69,7 +76,7 @@ def settings(args: argparse.Namespace) -> dict[str, Any]:
     if args.quick:
         mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2}
     elif args.gpu:
-        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 4, "size": 128, "horizon": 100, "waves": 4, "rounds": 2}
+        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2}
     else:
         mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3}
     for key in mode:
@@ -91,6 +98,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, help="the longest episode, in actions")
     parser.add_argument("--waves", type=int, help="trajectories per env: N = waves x envs")
     parser.add_argument("--rounds", type=int, help="interleaved rounds")
+    parser.add_argument("--policy-ms", type=float, default=0.0, help="how long each policy call takes (a sleep)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
     args = parser.parse_args()
@@ -119,7 +127,7 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         running = stack.enter_context(standalone_pods(assignments, cores=pins, ready_timeout_s=READY_TIMEOUT_S))
         client = stack.enter_context(StageClient.from_pods([pod.url for pod in running], timeout_s=120))
-        policy = ScriptedPolicy(int(np.prod(client.action_space.shape)))
+        policy = ScriptedPolicy(int(np.prod(client.action_space.shape)), args.policy_ms / 1000)
         loop = EnvLoop(client, policy, horizon=mode["horizon"], keep_obs=())
 
         def refill() -> float:
@@ -158,7 +166,7 @@ def main() -> None:
             **mode,
             "envs": envs,
             "trajectories": n,
-            "policy": "scripted zeros",
+            "policy": f"scripted zeros, {args.policy_ms:g} ms a call",
             "pinned": pins is not None,
             "horizons_min_mean_max": [min(horizons), round(statistics.mean(horizons), 1), max(horizons)],
             "ideal_ratio": round(sum(max(w) for w in waves) * envs / expected_steps, 3),
