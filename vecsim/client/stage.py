@@ -376,13 +376,14 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
+        traj_keys = list(dict.fromkeys(traj_keys))
         routes = self._book.live(traj_keys)
         busy = sorted({routes[k].pod for k in traj_keys if self._states.pod_busy(routes[k].stage_id, routes[k].pod)})
         if busy:
             raise AlreadyPendingCallError(
                 f"pods {busy} wait on a call; take its result before retiring their trajectories", "step"
             )
-        self._book.retire(list(traj_keys))
+        self._book.retire(traj_keys)
         for key in traj_keys:
             self._ended.pop(key, None)
 
