@@ -108,3 +108,15 @@ def test_profile_call_reports_every_layer_of_one_step(tmp_path: Path) -> None:
     assert result["pod_layers_median_ms"]["median_ms"]["pod.step_envs"] > 0
     details = json.loads(written.read_text())["details"]
     assert details["pod_profile"]["main_thread_top"] and details["client_profile"]["loop_thread_top"]
+
+
+@pytest.mark.timeout(300)
+def test_refill_benchmark_reports_refill_against_batch_at_once_over_the_same_steps(tmp_path: Path) -> None:
+    result, written = run_quick("bench_refill.py", tmp_path)
+    assert_common(result, "bench_refill", written)
+    assert set(result["env_steps_per_s"]) == {"refill", "batch"}
+    assert result["ratio_refill_vs_batch"]["n"] == result["setup"]["rounds"]
+    steps = result["setup"]["env_steps_per_run"]
+    assert result["env_steps_median"] == {"refill": steps, "batch": steps}
+    low, _mean, high = result["setup"]["horizons_min_mean_max"]
+    assert low < high == result["setup"]["horizon"]

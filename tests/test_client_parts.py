@@ -9,6 +9,7 @@ from gymnasium.error import AlreadyPendingCallError
 from vecsim import trees
 from vecsim.client.errors import RoutingChangedError
 from vecsim.client.routebook import RouteBook
+from vecsim.client.routing import TrajRoute
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
@@ -106,6 +107,32 @@ def test_a_malformed_new_table_changes_nothing():
     assert book.generation == 1 and list(book.routes()) == ["k0"]
 
 
+def test_a_part_of_a_batch_is_placed_on_the_stages_given():
+    book = RouteBook(TWO_STAGES)
+    routes = book.place([("a", 0), ("a", 1)], ["k0", "k1"], stages=[1, 1])
+    assert [(r.pod, r.env_index, r.stage_id) for r in routes.values()] == [("sim-1", 0, 1), ("sim-1", 1, 1)]
+
+
+def test_admit_takes_the_lowest_free_env_of_the_task_on_the_first_pod_that_has_one():
+    table = _table([_pod("p0", ("a", 1), ("b", 1)), _pod("p1", ("a", 2))])
+    book = RouteBook(table)
+    book.replace({"k0": TrajRoute("p0", 0, "a", 0, 0)})
+    route = book.admit("k1", "a", 7, 0, ["p0", "p1"])
+    assert (route.pod, route.env_index, route.state_id) == ("p1", 0, 7)
+    assert book.admit("k2", "b", 0, 0, ["p1"]) is None  # p1 has no env of b: nothing changes
+    assert list(book.routes()) == ["k0", "k1"]
+
+
+def test_a_retired_trajectory_frees_its_env_for_the_next():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 1)], ["k0", "k1"], stages=[0, 0]))
+    assert book.admit("k2", "a", 2, 0, ["sim-0"]) is None
+    book.retire(["k0"])
+    assert (book.admit("k2", "a", 2, 0, ["sim-0"]).env_index, list(book.routes())) == (0, ["k1", "k2"])
+    with pytest.raises(ValueError, match=r"traj_keys \['k0'\] are not live"):
+        book.retire(["k0"])
+
+
 # -- the stages' state machine -----------------------------------------------------------------
 
 
@@ -170,6 +197,28 @@ def test_end_all_frees_every_stage_and_names_each_call_once():
     states.begin({2: StageState.WAITING_RESET}, b)
     assert {id(c) for c in states.end_all()} == {id(a), id(b)}
     assert states.busy() == []
+
+
+def test_calls_on_different_pods_of_a_stage_wait_side_by_side():
+    states, a, b = StageStates(), object(), object()
+    states.begin({0: StageState.WAITING_STEP}, a, pod="p0")
+    states.begin({0: StageState.WAITING_RESET}, b, pod="p1")
+    assert states.state(0) is StageState.WAITING_CALL and states.pod_busy(0, "p0") and not states.pod_busy(0, "p2")
+    states.end([0], a)
+    assert states.state(0) is StageState.WAITING_RESET and not states.pod_busy(0, "p0")
+
+
+def test_a_pod_call_conflicts_with_a_call_on_its_pod_or_its_whole_stage():
+    states = StageStates()
+    states.begin({0: StageState.WAITING_STEP}, object(), pod="p0")
+    with pytest.raises(AlreadyPendingCallError, match=r"pod p0 of stage\(s\) \[0\] already wait"):
+        states.begin({0: StageState.WAITING_STEP}, object(), pod="p0")
+    with pytest.raises(AlreadyPendingCallError, match=r"stage\(s\) \[0\] already wait"):
+        states.begin({0: StageState.WAITING_STEP}, object())
+    whole = StageStates()
+    whole.begin({1: StageState.WAITING_STEP}, object())
+    with pytest.raises(AlreadyPendingCallError):
+        whole.begin({1: StageState.WAITING_STEP}, object(), pod="p3")
 
 
 # -- observation trees ------------------------------------------------------------------------

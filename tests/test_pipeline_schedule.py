@@ -30,8 +30,10 @@ LOOP_EVENTS = ("reset", "step", "take", "policy")
 class RecordingClient(StageClient):
     """A real StageClient that notes, on the caller's thread, each call sent and each answer taken.
 
-    Every call comes back as a :class:`_Watched` pending call (same answer, same errors);
-    ``calls[stage]`` lists them, so the test can wait for an answer to land.
+    The loop sends one call per pod (``pod_call``); each is noted as ``("reset", s)`` (resets
+    only) or ``("step", s)`` for the pod's stage s, and comes back as a :class:`_Watched` pending
+    call (same answer, same errors); ``calls[stage]`` lists them, so the test can wait for an
+    answer to land.
     """
 
     def __init__(self, routing: RoutingTable, timeline: Timeline, **kwargs: Any) -> None:
@@ -39,16 +41,20 @@ class RecordingClient(StageClient):
         self.timeline = timeline
         self.calls: dict[int, list[_Watched]] = {}
 
-    def reset_stage(self, stage_id: int, traj_keys: Sequence[str] | None = None) -> PendingCall[StageBatch]:
-        return self._watch(stage_id, "reset", super().reset_stage(stage_id, traj_keys))
+    def pod_call(
+        self,
+        pod: str,
+        *,
+        reset: Sequence[str] | Mapping[str, int] = (),
+        step: Mapping[str, Any] | None = None,
+        record: Sequence[str] = (),
+    ) -> PendingCall[tuple[StageBatch, StageBatch]]:
+        stage = {routed.pod: s.stage_id for s in self.routing.stages for routed in s.pods}[pod]
+        call = super().pod_call(pod, reset=reset, step=step, record=record)
+        return self._watch(stage, "step" if step else "reset", call)
 
-    def step_stage(
-        self, stage_id: int, actions_by_traj_key: Mapping[str, Any], record: Sequence[str] = ()
-    ) -> PendingCall[StageBatch]:
-        return self._watch(stage_id, "step", super().step_stage(stage_id, actions_by_traj_key, record))
-
-    def _watch(self, stage: int, op: str, call: PendingCall[StageBatch]) -> _Watched:
-        relay: concurrent.futures.Future[StageBatch] = concurrent.futures.Future()
+    def _watch(self, stage: int, op: str, call: PendingCall[Any]) -> _Watched:
+        relay: concurrent.futures.Future[Any] = concurrent.futures.Future()
 
         async def forward() -> None:
             try:
@@ -63,14 +69,14 @@ class RecordingClient(StageClient):
         return watched
 
 
-class _Watched(PendingCall[StageBatch]):
+class _Watched(PendingCall[Any]):
     """A pending call whose ``result()`` is noted as ``("take", stage)``."""
 
-    def __init__(self, future: concurrent.futures.Future[StageBatch], stage: int, timeline: Timeline) -> None:
+    def __init__(self, future: concurrent.futures.Future[Any], stage: int, timeline: Timeline) -> None:
         super().__init__(future)
         self.stage, self.timeline = stage, timeline
 
-    def result(self, timeout: float | None = None) -> StageBatch:
+    def result(self, timeout: float | None = None) -> Any:
         try:
             return super().result(timeout)
         finally:

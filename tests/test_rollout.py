@@ -127,9 +127,32 @@ def test_a_batch_not_a_multiple_of_the_stages_runs_with_stage_sizes_differing_by
     assert stages == {0: 2, 1: 1}
 
 
-def test_a_batch_over_capacity_is_refused_naming_task_and_stage(client, policy):
-    with pytest.raises(CapacityError, match=f"stage 0 has {GROUP_SIZE} env\\(s\\) of task '{LIFT}'"):
-        EnvLoop(client, policy, horizon=1).run([(LIFT, k) for k in range(2 * GROUP_SIZE + 2)])
+def test_more_requests_than_envs_all_run_refilling_envs_whose_trajectories_ended(client, policy):
+    # Three LIFT requests per stage for GROUP_SIZE = 2 LIFT envs per stage: one waits for an env.
+    requests = [(LIFT, k) for k in range(6)] + [(STACK, 0), (STACK, 1)]
+    result = EnvLoop(client, policy, horizon=2).run(requests, [f"r{i}" for i in range(len(requests))])
+    assert list(result.trajectories) == [f"r{i}" for i in range(len(requests))] and result.lost == {}
+    for i, ((task_id, state_id), trajectory) in enumerate(zip(requests, result.trajectories.values())):
+        assert (trajectory.route.task_id, trajectory.route.state_id) == (task_id, state_id)
+        assert trajectory.route.stage_id == stage_of(i, 2) and trajectory.length == 2
+    lift_envs = Counter((t.route.pod, t.route.env_index) for t in result.trajectories.values() if t.route.task_id == LIFT)
+    assert sorted(lift_envs.values()) == [1, 1, 2, 2]  # per stage, one env ran two trajectories in turn
+
+
+def test_a_refilled_trajectory_starts_from_the_same_observation_as_a_first_one(client, policy):
+    requests = [(LIFT, 0), (LIFT, 1), (LIFT, 2), (LIFT, 3), (LIFT, 4)]  # (LIFT, 4) waits on stage 0
+    refilled = EnvLoop(client, policy, horizon=1).run(requests).trajectories
+    alone = EnvLoop(client, policy, horizon=1).run([(LIFT, 4)]).trajectories
+    (first,) = alone.values()
+    (late,) = [t for t in refilled.values() if t.route.state_id == 4]
+    assert late.route.stage_id == first.route.stage_id == 0
+    assert torch.equal(late.observations["proprio"][0], first.observations["proprio"][0])
+    assert torch.equal(late.observations["images"]["agentview"][0], first.observations["images"]["agentview"][0])
+
+
+def test_a_request_of_a_task_its_stage_has_no_env_of_is_refused_naming_task_and_stage(client, policy):
+    with pytest.raises(CapacityError, match="stage 0 has 0 env\\(s\\) of task 'tiny/absent'"):
+        EnvLoop(client, policy, horizon=1).run([("tiny/absent", 0)])
 
 
 @pytest.mark.parametrize("video_format", ["mp4", "gif"])

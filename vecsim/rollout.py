@@ -1,36 +1,41 @@
 """EnvLoop: the pipelined rollout. Read :meth:`EnvLoop.run` top to bottom.
 
-Reset every trajectory, then loop over the stages: wait for stage s's observations, run the
-policy on them, send stage s's actions without waiting, and go on to the next stage, so the policy
-works on one stage while the pods simulate the others. The next stage is the first in turn
-(s+1, s+2, ...) whose observations are already in; only when none is does the loop wait, for
-whichever lands first. So a slow pod holds up its own stage only: with a stage per pod (or per
-group of pods), fast pods step on while a slow one finishes. A trajectory ends on termination,
+Reset every trajectory, each pod in a call of its own (:meth:`StageClient.pod_call`), then loop:
+take the answers of the next stage in turn (s+1, s+2, ...) of which some pod's answer is in
+(waiting, only when none is, for whichever lands first), run the policy on the observations of
+that stage's landed pods, and send each of those pods its next actions without waiting. There
+is no lockstep over a stage's pods: a pod's answer is used when it lands, and a slow pod holds
+up only its own envs. ``max_batch`` bounds a policy call; ``batch_wait_s`` lets the loop wait a
+little for more of the stage's pods before the policy runs. A trajectory ends on termination,
 truncation or the horizon and is not stepped again. The result is per-trajectory tensors keyed
-by traj_key, plus timing stats and, for chosen trajectories, videos of a camera.
+by traj_key in request order, plus timing stats and, for chosen trajectories, videos of a camera.
+
+Refill: a batch may hold more requests than the job has envs. Request ``i`` belongs to stage
+``i % S`` (:func:`vecsim.sampler.stage_of`), as the sampler drew it; the first requests of each
+(stage, task) start at once, and each of the others starts, reset to its state id, on an env of
+its task on its stage as soon as one's trajectory ends (in the call that steps that pod's other
+envs). A GRPO group's requests may so run at different times; the result reports them together.
 
 A policy may act in chunks: returning ``[n, K, action_dim]``, each trajectory's K actions go to
 its pod in one call (applied in order, stopping at a termination or truncation, rendered once).
 The loop records every applied action and its reward; the horizon counts actions, not calls (a
-chunk that would pass it is cut to fit). Videos of a chunked rollout carry every action's frame:
-the pods render those frames for the recorded trajectories only.
-
-Batches whose size is not a multiple of the number of stages are accepted: request ``i`` goes to
-stage ``i % S`` (:func:`vecsim.sampler.stage_of`), so stage sizes differ by at most one. An empty
-batch is a no-op, and a stage without trajectories is never called.
+chunk that would pass a trajectory's horizon is cut to fit, for all of that pod's call). Videos
+of a chunked rollout carry every action's frame: the pods render them for the recorded
+trajectories only. An empty batch is a no-op, and a pod without trajectories is never called.
 
 A pod that dies, hangs past the client's timeout or rebuilds its envs mid-episode does not fail
 the rollout: its trajectories are reported lost by traj_key (:attr:`RolloutResult.lost`, with
-their route, to resample) and every other trajectory runs on, those of the other pods of the
-same stage call included (the client's error carries their rows: ``error.answered``).
+their route, to resample), no waiting request starts on it, and every other trajectory runs on.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 import zlib
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +48,7 @@ from torch import nn
 
 from vecsim import trees
 from vecsim.client import (
+    CapacityError,
     PendingCall,
     PodUnavailableError,
     RoutingChangedError,
@@ -50,6 +56,9 @@ from vecsim.client import (
     StageClient,
     TrajRoute,
 )
+from vecsim.client.routing import check_request
+from vecsim.config import RoutingTable
+from vecsim.plan import stage_of
 
 logger = logging.getLogger(__name__)
 
@@ -226,6 +235,10 @@ class EnvLoop:
     ``record`` names traj_keys (or a count of the first trajectories) whose camera ``camera``
     (default: the first) is written to ``video_dir`` as ``<traj_key>.<video_format>`` (mp4 or
     gif). Progress is logged every ``log_every_s`` seconds.
+
+    ``max_batch``: the most observations one policy call gets (None: no bound).
+    ``batch_wait_s``: how long the loop waits, once a pod's answer is in, for more of its stage's
+    pods to land before the policy runs (0: never waits).
     """
 
     def __init__(
@@ -242,12 +255,14 @@ class EnvLoop:
         video_format: str = "mp4",
         video_fps: int = 10,
         log_every_s: float = 10.0,
+        max_batch: int | None = None,
+        batch_wait_s: float = 0.0,
     ) -> None:
         """Set the loop up; nothing runs until :meth:`run`.
 
         Raises:
-            ValueError: ``horizon < 1``, videos asked for without ``video_dir``, or an unknown
-                ``video_format``.
+            ValueError: ``horizon < 1``, videos asked for without ``video_dir``, an unknown
+                ``video_format``, ``max_batch < 1`` or a negative ``batch_wait_s``.
         """
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -255,6 +270,10 @@ class EnvLoop:
             raise ValueError("record asks for videos: give video_dir")
         if video_format not in ("mp4", "gif"):
             raise ValueError(f"video_format must be 'mp4' or 'gif', got {video_format!r}")
+        if max_batch is not None and max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1 or None, got {max_batch}")
+        if not (batch_wait_s >= 0 and math.isfinite(batch_wait_s)):
+            raise ValueError(f"batch_wait_s must be a finite number >= 0, got {batch_wait_s}")
         self.client = client
         self.policy = policy
         self.horizon = int(horizon)
@@ -266,105 +285,216 @@ class EnvLoop:
         self.video_format = video_format
         self.video_fps = video_fps
         self.log_every_s = log_every_s
+        self.max_batch = max_batch
+        self.batch_wait_s = float(batch_wait_s)
 
-    def run(self, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str] | None = None) -> RolloutResult:
+    def run(
+        self,
+        requests: Sequence[tuple[str, int]],
+        traj_keys: Sequence[str] | None = None,
+        horizons: Sequence[int] | None = None,
+    ) -> RolloutResult:
         """Roll out one trajectory per request ``(task_id, state_id)``; return them with stats.
 
+        ``horizons``, when given, caps each request's trajectory on its own (each 1..``horizon``).
+
+        Request ``i`` runs on stage ``stage_of(i, S)``. There may be more requests than envs: a
+        request for which its stage has no free env of its task waits, and starts (reset to its
+        state id) on the first such env whose trajectory ends. The result holds every request's
+        trajectory, in request order, whenever it ran.
+
         Trajectories whose pod went away (``PodUnavailableError``, ``RoutingChangedError``) end
-        up in the result's ``lost``, not in its ``trajectories``; the trajectories of the pods
-        that answered the same call go on.
+        up in the result's ``lost``, not in its ``trajectories``; the trajectories of the other
+        pods go on. Waiting requests that no env was left for (their task's envs on their stage
+        all on failed pods) are lost too, with ``steps`` 0 and a route of pod ``""``, env -1.
 
         Raises:
-            CapacityError: a stage lacks envs for a task (see ``StageClient.reset_trajectories``).
-            ValueError: a malformed request, or videos of trajectories or a camera that are not
-                there.
+            CapacityError: a stage has no env of a request's task at all.
+            ValueError: a malformed request, traj_keys or horizons, or videos of trajectories or
+                a camera that are not there.
             PodRequestError, StaleGenerationError: from the client (a refused request).
         """
         started = time.perf_counter()
-        routes = self.client.reset_trajectories(requests, traj_keys)
+        requests = list(requests)
+        keys = list(traj_keys) if traj_keys is not None else self.client.new_traj_keys(len(requests))
+        if len(keys) != len(requests) or len(set(keys)) != len(keys):
+            raise ValueError(f"traj_keys: need {len(requests)} distinct keys, one per request, got {len(keys)}")
+        caps = [self.horizon] * len(requests) if horizons is None else [int(h) for h in horizons]
+        if len(caps) != len(requests):
+            raise ValueError(f"horizons: need one per request ({len(requests)}), got {len(caps)}")
+        bad = [i for i, h in enumerate(caps) if not 1 <= h <= self.horizon]
+        if bad:
+            raise ValueError(f"horizons[{bad[0]}] is {caps[bad[0]]}: each must be 1..{self.horizon} (the loop's horizon)")
+        cap_of = dict(zip(keys, caps))
+        stages = [stage_of(i, self.client.num_stages) for i in range(len(requests))] if requests else []
+        first = _first_wave(self.client.routing, requests, stages)
+        routes = self.client.reset_trajectories(
+            [requests[i] for i in first], [keys[i] for i in first], [stages[i] for i in first]
+        )
         if not routes:
             return RolloutResult({}, RolloutStats())
+        placed = set(first)
+        waiting = {stage: [i for i in range(len(requests)) if i not in placed and stages[i] == stage]
+                   for stage in set(stages)}  # fmt: skip
         instructions = self.client.instructions
-        buffers = {key: _Buffer(key, route, self.keep_obs) for key, route in routes.items()}
-        recorded = self._recorded_keys(list(routes))
+        buffers = {key: _Buffer(key, route, self.keep_obs, cap_of[key]) for key, route in routes.items()}
+        recorded = self._recorded_keys(keys)
         recorder = _Recorder(recorded, self._video_camera())
         clock = _Clock(started, self.log_every_s)
-
-        # Reset every stage at once; then serve whichever stage is next in line.
-        pending: dict[int, PendingCall[StageBatch]] = {
-            stage: self.client.reset_stage(stage)
-            for stage in range(self.client.num_stages)
-            if self.client.stage_traj_keys(stage)
-        }
-        carried = {stage: self.client.stage_traj_keys(stage) for stage in pending}
+        stage_pods = {stage.stage_id: [routed.pod for routed in stage.pods] for stage in self.client.routing.stages}
+        pod_stage = {pod: stage for stage, pods in stage_pods.items() for pod in pods}
+        inflight = _InFlight(pod_stage)
         lost: dict[str, LostTrajectory] = {}
-        turn = -1  # the stage served last
-        while pending:
-            stage = clock.next_ready(pending, turn)  # the next stage in turn whose answer is in
-            turn = stage
-            try:
-                batch = clock.take(stage, pending.pop(stage))  # stage s's observations
-            except (PodUnavailableError, RoutingChangedError) as exc:
-                # The failed pods' trajectories are lost; the pods that answered go on.
-                batch = exc.answered
-                answered = set(batch.traj_keys) if batch is not None else set()
-                lost.update(self._lose([k for k in carried[stage] if k not in answered], buffers, exc))
-                if not answered:
-                    continue
-                clock.simulated(stage, batch)
-            live = []
-            for row, key in enumerate(batch.traj_keys):
-                buffers[key].add(batch, row)
-                recorder.add(key, batch, row)
-                if not buffers[key].ended(self.horizon):
-                    live.append(row)
-            clock.maybe_log(buffers)
-            if not live:
-                continue  # this stage is finished
-            with clock.in_policy(stage):
-                actions = self._act(batch, live, instructions)  # the policy, on stage s
-            # A stage's live trajectories have taken the same number of actions (one that applied
-            # fewer stopped), so one cut keeps every chunk within the horizon and of one length.
-            left = self.horizon - len(buffers[batch.traj_keys[live[0]]].actions)
-            step = {batch.traj_keys[row]: _within(actions[row], left) for row in live}
-            sent = self._send(stage, step, buffers, lost, recorded)  # don't wait: on to the next stage
-            if sent is not None:
-                pending[stage], carried[stage] = sent
+        failed: set[str] = set()  # pods that failed a call: no request is started on them any more
 
-        trajectories = {key: buffer.finish() for key, buffer in buffers.items() if key not in lost}
+        try:
+            # Reset every pod at once; then serve whichever stage is next in line, pod by pod.
+            for pod in pod_stage:
+                self._send(pod, [key for key, route in routes.items() if route.pod == pod], {}, inflight, buffers, lost, recorded)
+            turn = -1  # the stage served last
+            while inflight.calls:
+                stage = clock.next_ready(inflight, turn)  # the next stage in turn with a pod's answer in
+                turn = stage
+                landed = clock.gather(stage, inflight, self.max_batch, self.batch_wait_s)
+                live: list[tuple[str, StageBatch, int]] = []  # (pod, batch, row) still running
+                ended: list[str] = []
+                for pod in landed:
+                    for batch in self._take(pod, stage, inflight, clock, buffers, lost, failed):
+                        for row, key in enumerate(batch.traj_keys):
+                            buffers[key].add(batch, row)
+                            recorder.add(key, batch, row)
+                            if buffers[key].ended():
+                                ended.append(key)
+                            else:
+                                live.append((pod, batch, row))
+                clock.maybe_log(buffers)
+                # Refill: the waiting requests of this stage start on the envs free now, on pods
+                # without a call in flight (the ones just landed first).
+                idle = landed + [pod for pod in stage_pods[stage] if pod not in inflight.calls and pod not in landed]
+                resets = self._refill(stage, waiting.get(stage, []), ended, requests, keys, cap_of, idle, failed, buffers)
+                stepped = list(dict.fromkeys(pod for pod, _, _ in live))
+                for pod in resets:
+                    if pod not in stepped:  # nothing to step there: reset at once, before the policy
+                        self._send(pod, resets[pod], {}, inflight, buffers, lost, recorded)
+                if not live:
+                    continue
+                with clock.in_policy(stage):
+                    actions = self._act(live, instructions)  # the policy, on the stage's landed pods
+                for pod in stepped:  # each pod its next actions as soon as they exist
+                    rows = [j for j, (on, _, _) in enumerate(live) if on == pod]
+                    row_keys = [live[j][1].traj_keys[live[j][2]] for j in rows]
+                    # One call, one chunk length: the pod's shortest remaining horizon cuts them all.
+                    left = min(buffers[key].left() for key in row_keys)
+                    step = {key: _within(actions[j], left) for j, key in zip(rows, row_keys)}
+                    self._send(pod, resets.get(pod, []), step, inflight, buffers, lost, recorded)
+        except BaseException:
+            inflight.cancel_all()  # Ctrl-C or a refused call: the client takes new calls at once
+            raise
+
+        for stage, left_over in waiting.items():
+            for i in left_over:
+                key, (task_id, state_id) = keys[i], requests[i]
+                lost[key] = LostTrajectory(
+                    traj_key=key,
+                    route=TrajRoute("", -1, task_id, stage, int(state_id)),
+                    steps=0,
+                    reason=f"no env of task {task_id!r} on stage {stage} was left: its pods failed",
+                )
+        trajectories = {key: buffers[key].finish() for key in keys if key in buffers and key not in lost}
         videos = self._write_videos(recorder)
         return RolloutResult(trajectories, clock.stats(trajectories), videos, lost)
 
-    def _send(
+    def _take(
+        self,
+        pod: str,
+        stage: int,
+        inflight: _InFlight,
+        clock: _Clock,
+        buffers: Mapping[str, _Buffer],
+        lost: dict[str, LostTrajectory],
+        failed: set[str],
+    ) -> list[StageBatch]:
+        """A landed pod call's answers (resets, then steps); a failed one's trajectories without
+        an answer are lost, those with one go on."""
+        call, carried = inflight.pop(pod)
+        try:
+            return [batch for batch in clock.take(stage, call) if batch.n]
+        except (PodUnavailableError, RoutingChangedError) as exc:
+            failed.add(pod)
+            answered = [batch for batch in (exc.answered or ()) if batch is not None and batch.n]
+            got = {key for batch in answered for key in batch.traj_keys}
+            lost.update(self._lose([key for key in carried if key not in got], buffers, exc))
+            if answered:
+                clock.simulated(stage, answered[0])
+            return answered
+
+    def _refill(
         self,
         stage: int,
+        waiting: list[int],
+        ended: list[str],
+        requests: Sequence[tuple[str, int]],
+        keys: Sequence[str],
+        cap_of: Mapping[str, int],
+        pods: list[str],
+        failed: set[str],
+        buffers: dict[str, _Buffer],
+    ) -> dict[str, list[str]]:
+        """Free the envs of ``ended`` trajectories and place waiting requests (in request order)
+        on free envs of their task on ``pods``; return the new traj_keys to reset, by pod."""
+        resets: dict[str, list[str]] = {}
+        if not waiting:
+            return resets
+        live = self.client.routes
+        self.client.retire_trajectories([key for key in ended if key in live])
+        candidates = [pod for pod in pods if pod not in failed]
+        full: set[str] = set()  # tasks with no free env left on the candidates
+        for i in list(waiting):
+            if requests[i][0] in full:
+                continue
+            route = self.client.place_trajectory(keys[i], requests[i], stage, candidates)
+            if route is None:
+                full.add(requests[i][0])
+                continue
+            waiting.remove(i)
+            buffers[keys[i]] = _Buffer(keys[i], route, self.keep_obs, cap_of[keys[i]])
+            resets.setdefault(route.pod, []).append(keys[i])
+        return resets
+
+    def _send(
+        self,
+        pod: str,
+        reset: list[str],
         step: dict[str, np.ndarray],
+        inflight: _InFlight,
         buffers: Mapping[str, _Buffer],
         lost: dict[str, LostTrajectory],
         recorded: Sequence[str] = (),
-    ) -> tuple[PendingCall[StageBatch], list[str]] | None:
-        """Send a stage's actions; return the call and the traj_keys it carries (None: nothing left).
+    ) -> None:
+        """Send one pod its resets and its actions in one call, noted in ``inflight`` (nothing to
+        send: no call).
 
-        Trajectories whose envs went away when another stage's call re-read the routing are
-        refused before anything is sent: they are lost, and the rest is sent without them.
+        Trajectories whose envs went away when another call re-read the routing are refused
+        before anything is sent: they are lost, and the rest is sent without them.
         """
-        while step:
+        while reset or step:
             try:
-                chunked = next(iter(step.values())).ndim == 2
+                chunked = bool(step) and next(iter(step.values())).ndim == 2
                 record = [key for key in recorded if key in step] if chunked else []
-                call = self.client.step_stage(stage, step, record=record)
+                call = self.client.pod_call(pod, reset=reset, step=step, record=record)
             except RoutingChangedError as exc:
                 named = set(exc.traj_keys)
-                gone = [key for key in step if key in named]
+                gone = [key for key in [*reset, *step] if key in named]
                 if not gone:
                     raise  # not about these trajectories: sending again would meet it again
                 lost.update(self._lose(gone, buffers, exc))
-                step = {key: action for key, action in step.items() if key not in gone}
+                reset = [key for key in reset if key not in named]
+                step = {key: action for key, action in step.items() if key not in named}
                 continue
             for key, action in step.items():
                 buffers[key].act(action)
-            return call, list(step)
-        return None
+            inflight.add(pod, call, [*reset, *step])
+            return
 
     @staticmethod
     def _lose(
@@ -384,15 +514,19 @@ class EnvLoop:
             for key in keys
         }
 
-    def _act(self, batch: StageBatch, rows: list[int], instructions: Mapping[str, str]) -> dict[int, np.ndarray]:
-        """Run the policy on rows ``rows`` of a batch; return ``{row: action or chunk}`` as float32 arrays."""
-        index = np.asarray(rows)
-        obs = _to_tensors(batch.obs, index, self.device)
-        task_ids = [batch.task_ids[r] for r in rows]
-        with torch.no_grad():
-            actions = self.policy(obs, [instructions.get(t, "") for t in task_ids], task_ids)
-        actions = actions.detach().to("cpu", torch.float32).numpy()
-        return {row: actions[j] for j, row in enumerate(rows)}
+    def _act(self, rows: list[tuple[str, StageBatch, int]], instructions: Mapping[str, str]) -> list[np.ndarray]:
+        """Run the policy on ``rows`` (``(pod, batch, row)``), at most ``max_batch`` a call;
+        return each row's action or chunk as a float32 array."""
+        size = self.max_batch or len(rows)
+        out: list[np.ndarray] = []
+        for begin in range(0, len(rows), size):
+            part = rows[begin : begin + size]
+            obs = _to_tensors(_gather_obs([(batch, row) for _, batch, row in part]), self.device)
+            task_ids = [batch.task_ids[row] for _, batch, row in part]
+            with torch.no_grad():
+                actions = self.policy(obs, [instructions.get(t, "") for t in task_ids], task_ids)
+            out.extend(actions.detach().to("cpu", torch.float32).numpy())
+        return out
 
     def _video_camera(self) -> str | None:
         """The camera to record, checked against the observation space before anything runs."""
@@ -433,8 +567,62 @@ class EnvLoop:
 # -- helpers of the loop -------------------------------------------------------------------------
 
 
-def _to_tensors(obs: Any, rows: np.ndarray, device: torch.device) -> Any:
-    return trees.map_leaves(lambda leaf: torch.from_numpy(np.ascontiguousarray(leaf[rows])).to(device), obs)
+def _to_tensors(obs: Any, device: torch.device) -> Any:
+    return trees.map_leaves(lambda leaf: torch.from_numpy(np.ascontiguousarray(leaf)).to(device), obs)
+
+
+def _gather_obs(rows: list[tuple[StageBatch, int]]) -> Any:
+    """One batched observation of the given rows of several answers, in order."""
+    parts: list[tuple[StageBatch, list[int]]] = []
+    for batch, row in rows:
+        if parts and parts[-1][0] is batch:
+            parts[-1][1].append(row)
+        else:
+            parts.append((batch, [row]))
+    taken = [trees.take_rows(batch.obs, np.asarray(index)) for batch, index in parts]
+    return taken[0] if len(taken) == 1 else _concat(taken)
+
+
+def _concat(trees_: list[Any]) -> Any:
+    """One tree whose leaves concatenate the trees' leaves along the first axis."""
+    first = trees_[0]
+    if isinstance(first, dict):
+        return {key: _concat([tree[key] for tree in trees_]) for key in first}
+    if isinstance(first, tuple):
+        return tuple(_concat([tree[i] for tree in trees_]) for i in range(len(first)))
+    return np.concatenate(trees_)
+
+
+def _first_wave(table: RoutingTable, requests: Sequence[tuple[str, int]], stages: Sequence[int]) -> list[int]:
+    """The indices of the requests placed at the start: in request order, as many of each
+    (stage, task) as the stage has envs of the task; the others wait for a free env.
+
+    Raises:
+        ValueError: a malformed request (names it).
+        CapacityError: a stage has no env of a request's task (names task, stage and requests).
+    """
+    checked = [check_request(i, request) for i, request in enumerate(requests)]
+    capacity: dict[tuple[int, str], int] = {}
+    pods: dict[tuple[int, str], list[str]] = {}
+    for stage in table.stages:
+        for routed in stage.pods:
+            for block in routed.tasks:
+                where = (stage.stage_id, block.task_id)
+                capacity[where] = capacity.get(where, 0) + block.num_envs
+                pods.setdefault(where, []).append(routed.pod)
+    if not table.stages:
+        return list(range(len(requests)))  # the client names the table without stages
+    wave: list[int] = []
+    taken: Counter[tuple[int, str]] = Counter()
+    for i, (task_id, _) in enumerate(checked):
+        where = (stages[i], task_id)
+        if not capacity.get(where):
+            asked = [j for j, (t, _) in enumerate(checked) if (stages[j], t) == where]
+            raise CapacityError(task_id, stages[i], 0, asked, sorted(set(pods.get(where, []))))
+        if taken[where] < capacity[where]:
+            taken[where] += 1
+            wave.append(i)
+    return wave
 
 
 def _within(action: np.ndarray, left: int) -> np.ndarray:
@@ -452,8 +640,8 @@ def _take_row(obs: Any, row: int, keep: tuple[str, ...] | None) -> Any:
 class _Buffer:
     """What one trajectory has seen so far."""
 
-    def __init__(self, key: str, route: TrajRoute, keep_obs: tuple[str, ...]) -> None:
-        self.key, self.route, self.keep_obs = key, route, keep_obs
+    def __init__(self, key: str, route: TrajRoute, keep_obs: tuple[str, ...], horizon: int) -> None:
+        self.key, self.route, self.keep_obs, self.horizon = key, route, keep_obs, horizon
         self.observations: list[Any] = []
         self.actions: list[np.ndarray] = []
         self.rewards: list[float] = []
@@ -484,8 +672,12 @@ class _Buffer:
         """Note the action (``[A]``) or chunk (``[K, A]``) sent; :meth:`add` keeps what was applied."""
         self.sent = action[None] if action.ndim == 1 else action
 
-    def ended(self, horizon: int) -> bool:
-        if len(self.actions) >= horizon and not (self.terminated or self.truncated):
+    def left(self) -> int:
+        """Actions left before the horizon."""
+        return self.horizon - len(self.actions)
+
+    def ended(self) -> bool:
+        if len(self.actions) >= self.horizon and not (self.terminated or self.truncated):
             self.truncated = True  # the horizon is a time limit
         return self.terminated or self.truncated
 
@@ -528,6 +720,26 @@ class _Recorder:
             self.frames[key].append(np.array(batch.obs["images"][self.camera][row]))
 
 
+class _InFlight:
+    """The call in flight on each pod (at most one) and the traj_keys it carries."""
+
+    def __init__(self, stage_of: Mapping[str, int]) -> None:
+        self.stage_of = stage_of
+        self.calls: dict[str, tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]] = {}
+
+    def add(self, pod: str, call: PendingCall[tuple[StageBatch, StageBatch]], keys: list[str]) -> None:
+        self.calls[pod] = (call, keys)
+
+    def pop(self, pod: str) -> tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]:
+        return self.calls.pop(pod)
+
+    def cancel_all(self) -> None:
+        """Cancel every call in flight (what the pods did stays done)."""
+        for call, _ in self.calls.values():
+            call.cancel()
+        self.calls.clear()
+
+
 class _Clock:
     """Timing of one rollout: policy intervals, stage-call intervals, waits, progress logs."""
 
@@ -540,25 +752,42 @@ class _Clock:
         self.timeline: list[tuple[str, int, float, float]] = []
         self.wait_s = 0.0
 
-    def next_ready(self, pending: Mapping[int, PendingCall[StageBatch]], after: int) -> int:
-        """Return the first stage after ``after``, in turn, whose call has finished; when none
-        has, wait (timed as waiting) until one does."""
-        order = sorted(pending, key=lambda stage: (stage <= after, stage))
+    def next_ready(self, inflight: _InFlight, after: int) -> int:
+        """Return the first stage after ``after``, in turn, of which a pod's call has finished;
+        when none has, wait (timed as waiting) until one does."""
         begin = time.perf_counter()
         try:
             while True:
-                for stage in order:
-                    if pending[stage].done():
-                        return stage
-                PendingCall.wait_any([pending[stage] for stage in order])
+                landed = {inflight.stage_of[pod] for pod, (call, _) in inflight.calls.items() if call.done()}
+                if landed:
+                    return min(landed, key=lambda stage: (stage <= after, stage))
+                PendingCall.wait_any([call for call, _ in inflight.calls.values()])
         finally:
             self.wait_s += time.perf_counter() - begin
 
-    def take(self, stage: int, call: PendingCall[StageBatch]) -> StageBatch:
+    def gather(self, stage: int, inflight: _InFlight, max_batch: int | None, wait_s: float) -> list[str]:
+        """The pods of ``stage`` whose calls have finished, in the stage's pod order; with
+        ``wait_s`` > 0, first wait up to that long (timed as waiting) for the stage's other pods
+        while their rows would still fit in ``max_batch``."""
+        deadline = time.perf_counter() + wait_s
+        begin = time.perf_counter()
+        while True:
+            mine = [pod for pod in inflight.calls if inflight.stage_of[pod] == stage]
+            landed = [pod for pod in mine if inflight.calls[pod][0].done()]
+            rows = sum(len(inflight.calls[pod][1]) for pod in landed)
+            others = [inflight.calls[pod][0] for pod in mine if pod not in landed]
+            left = deadline - time.perf_counter()
+            if not others or left <= 0 or (max_batch is not None and rows >= max_batch):
+                break
+            PendingCall.wait_any(others, left)
+        self.wait_s += time.perf_counter() - begin
+        return landed
+
+    def take(self, stage: int, call: PendingCall[tuple[StageBatch, StageBatch]]) -> tuple[StageBatch, StageBatch]:
         """The answer of a finished call (raising what the call raised), recorded."""
-        batch = call.result()
-        self.simulated(stage, batch)
-        return batch
+        batches = call.result()
+        self.simulated(stage, batches[0])
+        return batches
 
     def simulated(self, stage: int, batch: StageBatch) -> None:
         """Record the interval a stage call's answer spent in flight."""

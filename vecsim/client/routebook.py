@@ -108,10 +108,51 @@ class RouteBook:
 
     # -- changes --------------------------------------------------------------------------------
 
-    def place(self, requests: Sequence[tuple[str, int]], keys: Sequence[str]) -> dict[str, TrajRoute]:
+    def place(
+        self, requests: Sequence[tuple[str, int]], keys: Sequence[str], stages: Sequence[int] | None = None
+    ) -> dict[str, TrajRoute]:
         """Routes for a new batch on the table in use (:func:`~vecsim.client.routing.place_requests`);
         nothing is replaced yet (see :meth:`replace`)."""
-        return place_requests(self._table, requests, keys)
+        return place_requests(self._table, requests, keys, stages)
+
+    def admit(self, key: str, task_id: str, state_id: int, stage_id: int, pods: Sequence[str]) -> TrajRoute | None:
+        """Add one live trajectory on the lowest env of its task that no live trajectory holds, on
+        the first of ``pods`` (pods of stage ``stage_id``, in the caller's order of preference) that
+        has one; return its route, or None (nothing changes) when none has.
+
+        Raises:
+            ValueError: ``key`` is live already.
+        """
+        stage = stage_by_id(self._table)[stage_id]
+        envs = {routed.pod: routed for routed in stage.pods}
+        with self._lock:
+            if key in self._routes:
+                raise ValueError(f"traj_key {key!r} is live already")
+            held = {(route.pod, route.env_index) for route in self._routes.values()}
+            for pod in pods:
+                routed = envs.get(pod)
+                blocks = [block for block in routed.tasks if block.task_id == task_id] if routed else []
+                for block in blocks:
+                    for env in range(block.env_start, block.env_start + block.num_envs):
+                        if (pod, env) not in held:
+                            route = TrajRoute(pod, env, task_id, stage_id, int(state_id))
+                            self._routes[key] = route
+                            self._lost.pop(key, None)
+                            return route
+        return None
+
+    def retire(self, keys: Sequence[str]) -> None:
+        """Drop live trajectories (their envs are free for :meth:`admit`).
+
+        Raises:
+            ValueError: a key that is not live (nothing changes).
+        """
+        with self._lock:
+            unknown = [key for key in keys if key not in self._routes]
+            if unknown:
+                raise ValueError(f"traj_keys {unknown} are not live trajectories")
+            for key in keys:
+                del self._routes[key]
 
     def check_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Raises ``ValueError`` for routes that do not fit the table (see ``validate_routes``)."""

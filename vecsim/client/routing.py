@@ -98,7 +98,8 @@ def _task_at(pod: RoutedPod, env_index: int) -> str | None:
     return None
 
 
-def _check_request(i: int, request: Any) -> tuple[str, int]:
+def check_request(i: int, request: Any) -> tuple[str, int]:
+    """Request ``i`` as ``(task_id, state_id)``; ``ValueError`` naming it when malformed."""
     if not isinstance(request, (tuple, list)) or len(request) != 2:
         raise ValueError(f"request {i}: expected a (task_id, state_id) pair, got {request!r}")
     task_id, state_id = request
@@ -110,9 +111,13 @@ def _check_request(i: int, request: Any) -> tuple[str, int]:
 
 
 def place_requests(
-    table: RoutingTable, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str]
+    table: RoutingTable,
+    requests: Sequence[tuple[str, int]],
+    traj_keys: Sequence[str],
+    stages: Sequence[int] | None = None,
 ) -> dict[str, TrajRoute]:
-    """Place request ``i`` on a free env of its task on a pod of stage ``stage_of(i, S)``.
+    """Place request ``i`` on a free env of its task on a pod of stage ``stage_of(i, S)`` (or of
+    stage ``stages[i]``, for a part of a larger batch that keeps the whole batch's stages).
 
     Within a stage a request goes to the pod with free envs of its task that holds the fewest
     trajectories of the batch so far (the pods of a stage step in parallel, so even loads finish
@@ -130,16 +135,24 @@ def place_requests(
         raise ValueError(f"got {len(traj_keys)} traj_keys for {len(requests)} requests")
     if len(set(traj_keys)) != len(traj_keys):
         raise ValueError("traj_keys must be unique")
-    checked = [_check_request(i, r) for i, r in enumerate(requests)]
+    if stages is not None and len(stages) != len(requests):
+        raise ValueError(f"got {len(stages)} stages for {len(requests)} requests")
+    checked = [check_request(i, r) for i, r in enumerate(requests)]
     if not checked:
         return {}
-    stages = stage_by_id(table)
-    if not stages:
+    by_id = stage_by_id(table)
+    if not by_id:
         raise ValueError(f"routing table generation {table.generation} has no stages; is the job ready?")
+    if stages is not None:
+        for i, stage_id in enumerate(stages):
+            if stage_id not in by_id:
+                stages_in_table = f"stages 0..{len(by_id) - 1}"
+                raise ValueError(f"request {i}: stage {stage_id} is not in the routing table ({stages_in_table})")
+    stage_ids = list(stages) if stages is not None else [stage_of(i, len(by_id)) for i in range(len(checked))]
 
     # free[stage][task][pod] = env indices not yet taken, lowest first (popped from the end)
     free: dict[int, dict[str, dict[str, list[int]]]] = {}
-    for stage_id, stage in stages.items():
+    for stage_id, stage in by_id.items():
         by_task: dict[str, dict[str, list[int]]] = {}
         for pod in stage.pods:
             for block in pod.tasks:
@@ -149,7 +162,7 @@ def place_requests(
 
     wanted: dict[tuple[int, str], list[int]] = {}
     for i, (task_id, _) in enumerate(checked):
-        wanted.setdefault((stage_of(i, len(stages)), task_id), []).append(i)
+        wanted.setdefault((stage_ids[i], task_id), []).append(i)
     for (stage_id, task_id), indices in wanted.items():
         pods = free[stage_id].get(task_id, {})
         capacity = sum(len(envs) for envs in pods.values())
@@ -159,7 +172,7 @@ def place_requests(
     load: dict[str, int] = {}
     routes = {}
     for i, (task_id, state_id) in enumerate(checked):
-        stage_id = stage_of(i, len(stages))
+        stage_id = stage_ids[i]
         pods = free[stage_id][task_id]
         pod = min((name for name in pods if pods[name]), key=lambda name: (load.get(name, 0), -len(pods[name])))
         load[pod] = load.get(pod, 0) + 1

@@ -14,7 +14,9 @@ Every call returns a :class:`PendingCall` at once (awaitable, or ``.result()`` f
 the HTTP runs on the client's own event loop thread, all pods of a call concurrently, over one
 keep-alive connection pool per pod, and the answers land in batch arrays allocated before the
 requests go out. Each stage is a small state machine like gymnasium's ``AsyncVectorEnv``: idle, or
-waiting on one call; a second call on a waiting stage raises ``AlreadyPendingCallError``.
+waiting on one call; a second call on a waiting stage raises ``AlreadyPendingCallError``. A
+:meth:`StageClient.pod_call` holds one pod of its stage only, so pods of a stage can each wait on
+a call of their own (no lockstep over a stage's pods).
 
 This class is the facade over the parts, each its own module: the route book
 (:mod:`~vecsim.client.routebook`, pure), the stages' states (:mod:`~vecsim.client.stagestate`,
@@ -42,7 +44,7 @@ from typing import Any, TypeVar
 import httpx
 import numpy as np
 from gymnasium import Space
-from gymnasium.error import ClosedEnvironmentError, ResetNeeded
+from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, ResetNeeded
 
 from vecsim.auth import token_from_env
 from vecsim.client.calls import (
@@ -61,7 +63,7 @@ from vecsim.client.jobinfo import JobInfo
 from vecsim.client.pods import EventLoopThread, PodConnection
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
 from vecsim.client.routebook import RouteBook
-from vecsim.client.routing import TrajRoute, routing_from_pod_infos
+from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
 from vecsim.transport import as_transport, get_answer, make_async_client
@@ -304,9 +306,13 @@ class StageClient:
     # -- placing trajectories -------------------------------------------------------------------
 
     def reset_trajectories(
-        self, requests: Sequence[tuple[str, int]], traj_keys: Sequence[str] | None = None
+        self,
+        requests: Sequence[tuple[str, int]],
+        traj_keys: Sequence[str] | None = None,
+        stages: Sequence[int] | None = None,
     ) -> dict[str, TrajRoute]:
-        """Place a new batch of trajectories: request ``i`` on stage ``stage_of(i, S)``.
+        """Place a new batch of trajectories: request ``i`` on stage ``stage_of(i, S)`` (or on
+        ``stages[i]``: a part of a larger batch placed now, keeping the whole batch's stages).
 
         Replaces the live trajectories (no HTTP here; :meth:`reset_stage` puts the envs in their
         state ids). ``traj_keys`` defaults to fresh keys ``"<batch>-<i>"``. Returns
@@ -323,11 +329,63 @@ class StageClient:
         # reassignment finished before the batch costs the batch nothing (not while calls run).
         if not self._states.busy():
             self._refresher.before_batch(self._loop)
-        batch = next(self._batches)
-        keys = list(traj_keys) if traj_keys is not None else [f"{batch}-{i}" for i in range(len(requests))]
-        routes = self._book.place(requests, keys)
+        keys = list(traj_keys) if traj_keys is not None else self.new_traj_keys(len(requests))
+        routes = self._book.place(requests, keys, stages)
         self._replace_routes(routes)
         return dict(routes)
+
+    def new_traj_keys(self, n: int) -> list[str]:
+        """Fresh traj_keys ``"<batch>-<i>"`` for a batch of ``n`` requests (what
+        :meth:`reset_trajectories` uses when given none)."""
+        batch = next(self._batches)
+        return [f"{batch}-{i}" for i in range(n)]
+
+    def place_trajectory(
+        self, traj_key: str, request: tuple[str, int], stage_id: int, pods: Sequence[str] | None = None
+    ) -> TrajRoute | None:
+        """Add one live trajectory to the batch (no HTTP; a reset puts its env in its state id):
+        request ``(task_id, state_id)`` on the lowest env of its task that no live trajectory
+        holds, on the first of ``pods`` (default: the stage's pods in table order) that has one.
+        Returns its route, or None (nothing placed) when no such env is free. For refilling the
+        envs of ended trajectories (see :meth:`retire_trajectories`) while other calls run.
+
+        Raises:
+            ValueError: a malformed request, no such stage, a pod not of the stage, or a
+                traj_key live already.
+            ClosedEnvironmentError: the client is closed.
+        """
+        self._check_stage(stage_id)
+        task_id, state_id = check_request(0, request)
+        stage_pods = [routed.pod for routed in stage_by_id(self._book.table)[stage_id].pods]
+        chosen = stage_pods if pods is None else list(pods)
+        strangers = [pod for pod in chosen if pod not in stage_pods]
+        if strangers:
+            raise ValueError(f"pods {strangers} are not pods of stage {stage_id} ({stage_pods})")
+        route = self._book.admit(traj_key, task_id, state_id, stage_id, chosen)
+        if route is not None:
+            self._ended.pop(traj_key, None)
+        return route
+
+    def retire_trajectories(self, traj_keys: Sequence[str]) -> None:
+        """Drop live trajectories (ended ones): their envs become free for
+        :meth:`place_trajectory`. The rest of the batch and the calls in flight are untouched.
+
+        Raises:
+            ValueError: a key that is not live.
+            AlreadyPendingCallError: a key's pod (or stage) waits on a call.
+            ClosedEnvironmentError: the client is closed.
+        """
+        self._check_open()
+        traj_keys = list(dict.fromkeys(traj_keys))
+        routes = self._book.live(traj_keys)
+        busy = sorted({routes[k].pod for k in traj_keys if self._states.pod_busy(routes[k].stage_id, routes[k].pod)})
+        if busy:
+            raise AlreadyPendingCallError(
+                f"pods {busy} wait on a call; take its result before retiring their trajectories", "step"
+            )
+        self._book.retire(traj_keys)
+        for key in traj_keys:
+            self._ended.pop(key, None)
 
     def set_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Make ``routes`` the live trajectories, as given (for callers that place envs themselves).
@@ -440,6 +498,35 @@ class StageClient:
             raise ValueError("options go with seeds (the envs' own reset)")
         return self._submit(reset=reset, step=step or {}, pick=None, record=record)
 
+    def pod_call(
+        self,
+        pod: str,
+        *,
+        reset: Sequence[str] | Mapping[str, int] = (),
+        step: Mapping[str, Any] | None = None,
+        record: Sequence[str] = (),
+    ) -> PendingCall[tuple[StageBatch, StageBatch]]:
+        """:meth:`call` on the trajectories of one pod, holding only that pod: the other pods of
+        its stage take calls meanwhile, so each pod's answer is usable when it lands and a slow
+        pod holds up only its own trajectories. Answers, errors and arguments as :meth:`call`'s.
+
+        Raises:
+            ValueError: an unknown pod, a key not on ``pod``, or as :meth:`call`.
+            AlreadyPendingCallError: the pod (or its whole stage) already waits on a call.
+            RoutingChangedError, ClosedEnvironmentError: as :meth:`call`.
+        """
+        self._check_open()
+        step = dict(step or {})
+        keys = [*reset, *step]
+        self._book.check_lost(keys)
+        routes = self._book.live(keys)
+        if pod not in {routed.pod for stage in self._book.table.stages for routed in stage.pods}:
+            raise ValueError(f"pod {pod!r} is not in the routing table")
+        elsewhere = [key for key in keys if routes[key].pod != pod]
+        if elsewhere:
+            raise ValueError(f"traj_key {elsewhere[0]!r} runs on pod {routes[elsewhere[0]].pod}, not {pod}")
+        return self._submit(reset=reset, step=step, pick=None, record=record, pod=pod)
+
     def env_attr(
         self, op: str, keys: Sequence[str], name: str, payload: Any = None
     ) -> PendingCall[tuple[list[Any], list[tuple[str, str, str]]]]:
@@ -517,6 +604,7 @@ class StageClient:
         record: Sequence[str] = (),
         seeds: Mapping[str, int | None] | None = None,
         options: Mapping[str, Any] | None = None,
+        pod: str | None = None,
     ) -> PendingCall[Any]:
         self._check_open()
         step = dict(step)
@@ -586,7 +674,7 @@ class StageClient:
                 # stages idle.
                 self._states.end(states, token)
 
-        future = self._states.begin(states, token, lambda: self._loop.submit(run()))
+        future = self._states.begin(states, token, lambda: self._loop.submit(run()), pod=pod)
         # A call cancelled before it started never runs its finally.
         future.add_done_callback(lambda _f: self._states.end(states, token))
         token.pending = PendingCall(future, pick, self._loop)
