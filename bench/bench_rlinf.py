@@ -39,7 +39,14 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+# One BLAS/OpenMP thread a process, for RLinf's env processes (spawned: they read this
+# environment) and for the pods alike. Left at the libraries' defaults (a thread per core each),
+# RLinf's LiberoEnv measured 7.4-7.7 env-steps/s on the H100 node, and ~180 with these
+# (docs/benchmarks.md, "Trainers"); vecsim's pods measured the same either way.
+for _threads in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_threads, "1")
+
+import numpy as np  # noqa: E402 - after the thread settings, which BLAS reads as it loads
 from _perf_common import paired_ratio, rate_spread, setup_logging
 from bench_gpu_scale import cores_first, cpu_topology, gl_probe, split_cores
 from common import write_result
