@@ -415,29 +415,27 @@ class AppThread:
 
 
 @contextlib.contextmanager
-def raw_server(reply: bytes, requests: list[bytes] | None = None) -> Iterator[str]:
-    """A TCP server on loopback that reads one request per connection, sends ``reply`` and
-    closes; yields its URL. Each request it answered is appended to ``requests``, if given."""
+def socket_server(handle: Callable[[socket.socket, int], None]) -> Iterator[str]:
+    """A TCP server on loopback that calls ``handle(connection, number)`` for each connection it
+    accepts (numbered from 1; a 5 s timeout set, closed after; an ``OSError`` in it ends that
+    connection only), one at a time; yields its URL."""
     listener = loopback_socket()
     listener.listen(16)
     listener.settimeout(0.1)
     stop = threading.Event()
 
     def serve() -> None:
+        number = 0
         while not stop.is_set():
             try:
                 conn, _ = listener.accept()
             except TimeoutError:
                 continue
+            number += 1
             with conn:
                 conn.settimeout(5)
-                try:
-                    request = conn.recv(65536)
-                    conn.sendall(reply)
-                except OSError:
-                    continue
-                if requests is not None:
-                    requests.append(request)
+                with contextlib.suppress(OSError):
+                    handle(conn, number)
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
@@ -447,6 +445,21 @@ def raw_server(reply: bytes, requests: list[bytes] | None = None) -> Iterator[st
         stop.set()
         thread.join(5)
         listener.close()
+
+
+@contextlib.contextmanager
+def raw_server(reply: bytes, requests: list[bytes] | None = None) -> Iterator[str]:
+    """A TCP server on loopback that reads one request per connection, sends ``reply`` and
+    closes; yields its URL. Each request it answered is appended to ``requests``, if given."""
+
+    def answer(conn: socket.socket, _number: int) -> None:
+        request = conn.recv(65536)
+        conn.sendall(reply)
+        if requests is not None:
+            requests.append(request)
+
+    with socket_server(answer) as url:
+        yield url
 
 
 def post_wire(url: str, op: str, body: dict[str, Any], token: str | None, timeout: float = 60) -> httpx.Response:

@@ -13,6 +13,7 @@ import contextlib
 import functools
 import gzip
 import shutil
+import socket
 import ssl
 import subprocess
 import threading
@@ -26,7 +27,7 @@ import numpy as np
 import pytest
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
-from service_procs import AppThread, loopback_socket, raw_server, wait_until
+from service_procs import AppThread, raw_server, socket_server, wait_until
 
 from vecsim import wire
 from vecsim.transport import (
@@ -542,37 +543,15 @@ def closing_after_one_answer(answers: list[int]) -> Iterator[str]:
     """A loopback server that answers the first request of each connection (kept alive), then
     reads the next one and closes without a byte: a server closing an idle connection as a
     request crosses its close. ``answers`` gets the number of the connection of each answer."""
-    listener = loopback_socket()
-    listener.listen(16)
-    listener.settimeout(0.1)
-    stop = threading.Event()
 
-    def serve() -> None:
-        number = 0
-        while not stop.is_set():
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
-            number += 1
-            with conn:
-                conn.settimeout(5)
-                try:
-                    conn.recv(65536)
-                    conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n\r\n%d" % (len(str(number)), number))
-                    answers.append(number)
-                    conn.recv(65536)
-                except OSError:
-                    continue
+    def answer_once(conn: socket.socket, number: int) -> None:
+        conn.recv(65536)
+        conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n\r\n%d" % (len(str(number)), number))
+        answers.append(number)
+        conn.recv(65536)
 
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{listener.getsockname()[1]}"
-    finally:
-        stop.set()
-        thread.join(5)
-        listener.close()
+    with socket_server(answer_once) as url:
+        yield url
 
 
 def test_a_kept_alive_connection_closed_as_the_request_went_out_is_retried_once_on_a_new_one() -> None:
