@@ -12,6 +12,8 @@ Conventions set equal: the settle is RLinf's (15 steps of ``[0]*6 + [-1]`` insid
 RLinf seeds env slot ``i`` with ``seed * n + i`` before each reset (libero_env.py:663,
 envs/venv/venv.py:858-864), vecsim every env with the job's ``fixture_seed``, so RLinf's vector
 env here seeds every slot with the job's (0); fixtures (LIBERO's cabinets) are placed from it.
+Seeded before every reset, each of RLinf's resets places the fixtures as a fresh env's first
+reset does: the job's ``fixture_rule: first_reset`` (docs/libero.md), not the published loop's.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def pod_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         render=None,
         max_episode_steps=None,
         envs_per_worker=0,
-        libero={"settle_steps": 15, "fixture_seed": FIXTURE_SEED},
+        libero={"settle_steps": 15, "fixture_seed": FIXTURE_SEED, "fixture_rule": "first_reset"},
     )
     with standalone_pods([spec], tmp_path_factory.mktemp("rlinf-pod")) as pods:
         yield pods[0].url
