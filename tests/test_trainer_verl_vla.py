@@ -436,7 +436,7 @@ def test_base_env_steps_a_subset_of_envs_through_the_one_action_hook(env, pods):
     [
         (lambda e: e.step(torch.zeros(2, K, 6)), r"action must have shape \[2, T >= 1, 7\]"),
         (lambda e: e.step(torch.zeros(3, K, 7)), r"action must have shape \[2, T >= 1, 7\]"),
-        (lambda e: e.env_step(np.zeros((1, 7)), env_ids=[5]), r"env_ids must be distinct env ids 0..1"),
+        (lambda e: e.env_step(np.zeros((1, 7)), env_ids=[5]), r"env_ids must be distinct env indices 0..1"),
         (lambda e: e.env_step(np.zeros((2, 7)), env_ids=[1]), r"action must have shape \[1, 7\]"),
         (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([150])}), r"env 0 runs libero_spatial/0"),
         (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([200])}), r"outside 0..199"),

@@ -18,7 +18,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["CAMERA_KEYS", "StateNumbering", "camera_key_map", "suite_of", "suite_task_index"]
+__all__ = ["CAMERA_KEYS", "StateNumbering", "camera_key_map", "env_indices", "suite_of", "suite_task_index"]
 
 # vecsim camera name -> the key each trainer's LIBERO policy reads the image under.
 CAMERA_KEYS: dict[str, dict[str, str]] = {
@@ -55,6 +55,22 @@ def camera_key_map(camera_keys: str | Mapping[str, str]) -> dict[str, str]:
     if repeated:
         raise ValueError(f"camera_keys: keys {repeated} are given to more than one camera")
     return mapping
+
+
+def env_indices(env_ids: object, num_envs: int, field: str = "env_ids") -> np.ndarray:
+    """``env_ids`` as an int64 array of env indices, checked against ``num_envs`` envs.
+
+    Raises:
+        ValueError: ids that are not ints, or not distinct indices ``0..num_envs-1`` (names
+            ``field`` and the ids).
+    """
+    ids = np.asarray(env_ids).reshape(-1)
+    if ids.size and ids.dtype.kind not in "iu":
+        raise ValueError(f"{field} must be ints, got {ids.tolist()}")
+    ids = ids.astype(np.int64)
+    if ((ids < 0) | (ids >= num_envs)).any() or len(set(ids.tolist())) != ids.size:
+        raise ValueError(f"{field} must be distinct env indices 0..{num_envs - 1}, got {ids.tolist()}")
+    return ids
 
 
 def suite_of(task_id: str) -> str:

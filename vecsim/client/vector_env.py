@@ -28,6 +28,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
+from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
@@ -521,13 +522,7 @@ class HTTPVectorEnv(VectorEnv):
         if env_ids is None:
             mask[:] = True
             return mask
-        ids = np.asarray(env_ids).reshape(-1)
-        if ids.size and ids.dtype.kind not in "iu":
-            raise ValueError(f"env_ids must be ints, got {ids.tolist()}")
-        ids = ids.astype(np.int64)
-        if ((ids < 0) | (ids >= self.num_envs)).any() or len(set(ids.tolist())) != ids.size:
-            raise ValueError(f"env_ids must be distinct env indices 0..{self.num_envs - 1}, got {ids.tolist()}")
-        mask[ids] = True
+        mask[env_indices(env_ids, self.num_envs)] = True
         return mask
 
     def step_async(self, actions: Any) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from vecsim.client.conventions import StateNumbering, suite_of, suite_task_index
+from vecsim.client.conventions import StateNumbering, env_indices, suite_of, suite_task_index
 from vecsim.client.vla_env import VLAEnv
 
 __all__ = ["VecsimLiberoEnv"]
@@ -120,7 +120,7 @@ class VecsimLiberoEnv:
             ValueError: env ids that are not distinct ints in ``0..num_envs-1``, or a reset state
                 id out of range or of another task than its env's (names the field); nothing is reset.
         """
-        ids = self._local_ids(env_ids, "env_ids")
+        ids = env_indices(env_ids, self.num_envs)
         if reset_eval:
             self._eval_cursor[:] = 0
         if extra is not None:
@@ -149,7 +149,7 @@ class VecsimLiberoEnv:
             ValueError: ``action`` not ``[len(env_ids), action dim]``, or bad ``env_ids``.
             ClosedEnvironmentError: after ``env_close``.
         """
-        ids = self._local_ids(env_ids, "env_ids")
+        ids = env_indices(env_ids, self.num_envs)
         action = _numpy(action)
         if action.shape != (ids.size, self.vla.action_dim):
             raise ValueError(
@@ -216,15 +216,6 @@ class VecsimLiberoEnv:
         return result
 
     # -- helpers --------------------------------------------------------------------------------
-
-    def _local_ids(self, env_ids: Any, field: str) -> np.ndarray:
-        ids = np.asarray(env_ids).reshape(-1)
-        if ids.size and ids.dtype.kind not in "iu":
-            raise ValueError(f"{field} must be ints, got {ids.tolist()}")
-        ids = ids.astype(np.int64)
-        if ((ids < 0) | (ids >= self.num_envs)).any() or len(set(ids.tolist())) != ids.size:
-            raise ValueError(f"{field} must be distinct env ids 0..{self.num_envs - 1}, got {ids.tolist()}")
-        return ids
 
     def _draw_state(self, i: int) -> int:
         task = self._tasks[i]
