@@ -1,7 +1,7 @@
 """Action chunks at scale: env-steps/s of a node at K = 1, 4, 8, 16 actions per call, pipelining
 at K = 8, and the physics-only rate of the same cores.
 
-One job as ``bench_gpu_scale.py --only scaling`` builds it (its ``runner_config``): ``--pods``
+One job as ``bench_gpu_scale.py --only scaling`` builds it (its ``job_config``): ``--pods``
 pods pinned one per core (physical cores first), every pod serving the same task mix in one
 worker (default LIBERO-10's ten tasks, one env each, two cameras at ``--size``, ``lean``), the
 trainer in this process on the cores left over. Contenders, in interleaved rounds, every one
@@ -312,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
-    config = gs.runner_config(plan, pins, "chunks", plan.pods)
+    config = gs.job_config(plan, pins, "chunks", plan.pods)
     started = time.monotonic()
     with gs.running_job(config, args.copy_to) as job, gs.MemoryWatch(plan.max_memory_gib) as memory:
         table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))

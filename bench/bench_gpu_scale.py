@@ -91,7 +91,7 @@ from gymnasium import spaces
 from torch import nn
 
 from vecsim.client import StageClient, fetch_routing
-from vecsim.config import RoutedStage, RoutingTable, RunnerConfig
+from vecsim.config import JobConfig, RoutedStage, RoutingTable
 from vecsim.rollout import EnvLoop, RolloutStats
 
 log = logging.getLogger("bench.gpu_scale")
@@ -475,11 +475,11 @@ def camera(plan: Plan) -> dict[str, Any]:
     return {"names": list(names), "height": plan.size, "width": plan.size}
 
 
-def runner_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -> RunnerConfig:
+def job_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -> JobConfig:
     """``replicas`` pods, each serving the plan's whole task mix (``envs_per_task`` envs of each
     task) in one worker process: one job stage per pod, since the controller gives every stage
     every task. Pod ``i`` is pinned to ``pins[i % len(pins)]``."""
-    return RunnerConfig.model_validate(
+    return JobConfig.model_validate(
         {
             "job": {
                 "job_id": job_id,
@@ -511,7 +511,7 @@ def runner_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -
 
 @contextlib.contextmanager
 def running_job(
-    config: RunnerConfig, keep_logs: Path | None = None, env: dict[str, str] | None = None
+    config: JobConfig, keep_logs: Path | None = None, env: dict[str, str] | None = None
 ) -> Iterator[Any]:
     """Start a LocalJob (not waiting for it); yield it; stop every process it started on exit.
     When the body fails, the job's logs go to ``keep_logs/<job id>-logs.tar.gz``."""
@@ -1152,7 +1152,7 @@ def render_rollouts(plan: Plan, pins: Sequence[str], name: str, env: dict[str, s
     """Start a one-pod job of ``plan.tasks[0]`` with ``env`` on core ``pins[0]``; run a warm-up
     and then ``rounds`` rollouts of ``plan.horizon`` steps (fewer once the deadline nears; at
     least one); return them and the first one's observations, ``{traj_key: observations}``."""
-    config = runner_config(plan, pins, f"render-{name}", 1)
+    config = job_config(plan, pins, f"render-{name}", 1)
     with running_job(config, env=env) as job:
         table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         table = fetch_routing(job.controller_url, wait_ready_s=30)
@@ -1557,7 +1557,7 @@ def run_mode(args: argparse.Namespace) -> int:
              topology["physical_cores"], pod_pins, trainer)  # fmt: skip
 
     started = time.monotonic()
-    config = runner_config(plan, pins, f"gpu-{plan.mode}", plan.pods)
+    config = job_config(plan, pins, f"gpu-{plan.mode}", plan.pods)
     with running_job(config, args.copy_to) as job, MemoryWatch(plan.max_memory_gib) as memory:
         table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started

@@ -40,7 +40,7 @@ from common import RESULT_PREFIX, command_line, machine_info, write_result
 from service.runner import LocalJob
 from service.runner.ports import free_port, free_port_block
 from vecsim.client import RoutedEnv, StageClient, TrajRoute, routed_envs
-from vecsim.config import RunnerConfig, load_job_config
+from vecsim.config import JobConfig, load_job_config
 from vecsim.tasks import get_task
 
 log = logging.getLogger("soak")
@@ -58,16 +58,16 @@ BUILT_IN_JOB = {
 MIB = 1 << 20
 
 
-def soak_config(path: str | None) -> RunnerConfig:
+def soak_config(path: str | None) -> JobConfig:
     """The job to soak on free loopback ports: ``path``'s, or the built-in one."""
-    config = load_job_config(path) if path else RunnerConfig.model_validate({"job": BUILT_IN_JOB})
+    config = load_job_config(path) if path else JobConfig.model_validate({"job": BUILT_IN_JOB})
     job = config.job
     replicas = max(config.pods.replicas, job.pods_needed)
     port = free_port()
     base_port = free_port_block(replicas, avoid={port})
     pods = {**config.pods.model_dump(), "replicas": replicas, "host": "127.0.0.1", "base_port": base_port}
     controller = {**config.controller.model_dump(), "host": "127.0.0.1", "port": port}
-    return RunnerConfig.model_validate({"job": job.model_dump(mode="json"), "pods": pods, "controller": controller})
+    return JobConfig.model_validate({"job": job.model_dump(mode="json"), "pods": pods, "controller": controller})
 
 
 def tree_rss(pid: int | None) -> int:

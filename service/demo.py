@@ -23,7 +23,7 @@ import torch
 from service.runner import LocalJob, format_status
 from service.runner.ports import free_port, free_port_block, port_free
 from vecsim.client import StageClient
-from vecsim.config import RunnerConfig, load_job_config
+from vecsim.config import JobConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.sampler import TaskBalancedSampler, TaskInstances
 from vecsim.tasks import episode_limit, get_task
@@ -50,7 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def with_free_ports(config: RunnerConfig) -> RunnerConfig:
+def with_free_ports(config: JobConfig) -> JobConfig:
     """Return ``config`` moved to free ports when its own are taken (a demo should just run).
 
     Pods need ``replicas`` consecutive ports from ``base_port``; the first free block of

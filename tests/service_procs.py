@@ -36,7 +36,7 @@ import uvicorn
 from service.runner.job import LocalJob
 from service.runner.ports import free_port, free_port_block
 from vecsim import wire
-from vecsim.config import Assignment, CameraConfig, RenderPreset, RunnerConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, JobConfig, RenderPreset, TaskBlock
 
 START_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 240.0
@@ -335,10 +335,10 @@ def standalone_pods(
 
 def job_config(
     job: Mapping[str, Any], replicas: int, *, max_envs: int = 16, heartbeat_ttl_s: float = 3.0
-) -> RunnerConfig:
-    """A RunnerConfig for ``job`` with ``replicas`` pods, every port free, heartbeats quick."""
+) -> JobConfig:
+    """A JobConfig for ``job`` with ``replicas`` pods, every port free, heartbeats quick."""
     controller_port = free_port()
-    return RunnerConfig.model_validate(
+    return JobConfig.model_validate(
         {
             "job": dict(job),
             "pods": {
@@ -358,7 +358,7 @@ def job_config(
 
 @contextlib.contextmanager
 def local_job(
-    config: RunnerConfig, workdir: Path | None = None, *, ready_timeout_s: float = READY_TIMEOUT_S
+    config: JobConfig, workdir: Path | None = None, *, ready_timeout_s: float = READY_TIMEOUT_S
 ) -> Iterator[LocalJob]:
     """Run the job (controller + pods; logs in a fresh temporary ``workdir`` if none is given),
     wait until its routing is ready, yield it, stop it all."""

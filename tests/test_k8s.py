@@ -321,7 +321,7 @@ def test_controller_args_serve_the_mounted_job_on_the_container_port(target: str
     assert Path(args.pop("config")).name == name
     config = tmp_path / name
     config.write_text(text)
-    settings = ControllerSettings.from_runner_config(load_job_config(config), **args)
+    settings = ControllerSettings.from_job_config(load_job_config(config), **args)
     assert settings.host == "0.0.0.0"
     assert settings.port == next(p["containerPort"] for p in c["ports"] if p["name"] == "http")
     create_app(settings, reconcile=False)

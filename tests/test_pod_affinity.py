@@ -17,18 +17,18 @@ from vecsim.config import (
     CameraConfig,
     ConfigError,
     ControllerConfig,
+    JobConfig,
     JobSpec,
     PodsConfig,
-    RunnerConfig,
     load_job_config,
 )
 
 
 def cheetah_config(
     cpu_affinity: tuple[str, ...], replicas: int = 1, render_gpus: tuple[int, ...] = ()
-) -> RunnerConfig:
+) -> JobConfig:
     base = free_port_block(replicas + 1)
-    return RunnerConfig(
+    return JobConfig(
         job=JobSpec(
             job_id="pinned", tasks=("gym/HalfCheetah-v5",), group_size=2, num_stages=1, pods_per_stage=replicas,
             camera=CameraConfig(names=()), envs_per_worker=1, max_episode_steps=50,

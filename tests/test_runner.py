@@ -18,13 +18,13 @@ from service_procs import free_port_block, wait_until
 
 from service.runner import Backoff, JobRejectedError, LocalJob, ManagedProcess, PodStatus, format_status
 from service.runner.main import main as up_main
-from vecsim.config import CameraConfig, ControllerConfig, JobSpec, PodsConfig, RoutingTable, RunnerConfig
+from vecsim.config import CameraConfig, ControllerConfig, JobConfig, JobSpec, PodsConfig, RoutingTable
 from vecsim.probes import Probe, Probes
 
 PYTHON = sys.executable
 
 
-def tiny_config(replicas: int = 2, **job: object) -> RunnerConfig:
+def tiny_config(replicas: int = 2, **job: object) -> JobConfig:
     base = free_port_block(replicas + 1)
     fields: dict[str, object] = dict(
         job_id="tiny-test",
@@ -36,7 +36,7 @@ def tiny_config(replicas: int = 2, **job: object) -> RunnerConfig:
         max_episode_steps=20,
     )
     fields.update(job)
-    return RunnerConfig(
+    return JobConfig(
         job=JobSpec(**fields),
         pods=PodsConfig(replicas=replicas, base_port=base + 1, max_envs=8),
         controller=ControllerConfig(port=base, heartbeat_interval_s=0.5, heartbeat_ttl_s=3.0, reconcile_interval_s=0.2),

@@ -306,7 +306,7 @@ class ControllerConfig(_Model):
     reconcile_interval_s: float = Field(0.5, gt=0)
 
 
-class RunnerConfig(_Model):
+class JobConfig(_Model):
     """A whole local job: the YAML that ``vecsim up -c`` and ``configs/*.yaml`` hold."""
 
     job: JobSpec
@@ -318,8 +318,8 @@ class ConfigError(ValueError):
     """A config file that cannot be used; the message names the file and the field."""
 
 
-def load_job_config(path: str | Path) -> RunnerConfig:
-    """Read a job config YAML into a :class:`RunnerConfig`.
+def load_job_config(path: str | Path) -> JobConfig:
+    """Read a job config YAML into a :class:`JobConfig`.
 
     Raises:
         ConfigError: the file is missing, is not YAML, or a field is wrong (named in the message).
@@ -334,7 +334,7 @@ def load_job_config(path: str | Path) -> RunnerConfig:
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping with a 'job' key, got {type(raw).__name__}")
     try:
-        return RunnerConfig.model_validate(raw)
+        return JobConfig.model_validate(raw)
     except ValidationError as exc:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}" for err in exc.errors()

@@ -55,7 +55,7 @@ def main(argv: list[str]) -> int:
     try:
         overrides["token"] = token_from_env()
         if args.config:
-            settings = ControllerSettings.from_runner_config(load_job_config(args.config), **overrides)
+            settings = ControllerSettings.from_job_config(load_job_config(args.config), **overrides)
         else:
             settings = ControllerSettings.model_validate({k: v for k, v in overrides.items() if v is not None})
         app = create_app(settings)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from vecsim.auth import check_token
-from vecsim.config import JobSpec, RunnerConfig
+from vecsim.config import JobConfig, JobSpec
 
 # Registrations, heartbeats and job specs are small JSON documents.
 DEFAULT_MAX_BODY_BYTES = 1024 * 1024
@@ -69,7 +69,7 @@ class ControllerSettings(BaseModel):
         return min(self.stall_threshold_s, self.heartbeat_ttl_s / 2)
 
     @classmethod
-    def from_runner_config(cls, config: RunnerConfig, **overrides: object) -> ControllerSettings:
+    def from_job_config(cls, config: JobConfig, **overrides: object) -> ControllerSettings:
         """Returns settings taken from a job config's ``controller`` section and ``job``.
 
         ``overrides`` whose value is ``None`` are ignored (unset command-line flags).

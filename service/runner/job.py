@@ -30,7 +30,7 @@ import httpx
 
 from service.controller.jobs import check_job
 from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
-from vecsim.config import PodCapacity, PodRecord, RoutingTable, RunnerConfig, parse_cpu_list
+from vecsim.config import JobConfig, PodCapacity, PodRecord, RoutingTable, parse_cpu_list
 from vecsim.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
 from .ports import port_free
@@ -66,7 +66,7 @@ class LocalJob:
 
     def __init__(
         self,
-        config: RunnerConfig,
+        config: JobConfig,
         *,
         log_dir: str | Path | None = None,
         namespace: str = "default",

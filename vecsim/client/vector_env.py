@@ -32,7 +32,7 @@ from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
-from vecsim.config import RoutingTable, RunnerConfig, load_job_config
+from vecsim.config import JobConfig, RoutingTable, load_job_config
 from vecsim.info import merge_rows
 
 logger = logging.getLogger(__name__)
@@ -82,15 +82,15 @@ def _row_success(batch: StageBatch) -> np.ndarray:
     return batch.success[np.arange(batch.n), last] & (batch.num_steps > 0)
 
 
-def _controller_url_of(job_config: RunnerConfig | str | Path) -> str:
-    config = job_config if isinstance(job_config, RunnerConfig) else load_job_config(job_config)
+def _controller_url_of(job_config: JobConfig | str | Path) -> str:
+    config = job_config if isinstance(job_config, JobConfig) else load_job_config(job_config)
     return f"http://{config.controller.host}:{config.controller.port}"
 
 
 class HTTPVectorEnv(VectorEnv):
     """Every env of a vecsim job as one gymnasium vector env.
 
-    Give exactly one of ``controller_url``, ``job_config`` (a :class:`RunnerConfig` or its YAML
+    Give exactly one of ``controller_url``, ``job_config`` (a :class:`JobConfig` or its YAML
     path; the controller is at its ``controller.host:port``), ``routing`` (a routing table) or
     ``pod_urls`` (standalone pods). ``num_envs`` is set by the job; passing it only checks it.
     ``timeout_s`` bounds every request to a pod; ``transport``, ``max_answer_bytes`` and ``token``
@@ -148,7 +148,7 @@ class HTTPVectorEnv(VectorEnv):
         self,
         controller_url: str | None = None,
         *,
-        job_config: RunnerConfig | str | Path | None = None,
+        job_config: JobConfig | str | Path | None = None,
         routing: RoutingTable | None = None,
         pod_urls: Sequence[str] | None = None,
         num_envs: int | None = None,

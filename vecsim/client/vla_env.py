@@ -38,7 +38,7 @@ from gymnasium.vector import AutoresetMode
 
 from vecsim.client.conventions import StateNumbering, camera_key_map, suite_of, suite_task_index
 from vecsim.client.vector_env import HTTPVectorEnv
-from vecsim.config import RoutingTable, RunnerConfig
+from vecsim.config import JobConfig, RoutingTable
 
 __all__ = ["VLAEnv"]
 
@@ -78,7 +78,7 @@ class VLAEnv:
         self,
         controller_url: str | None = None,
         *,
-        job_config: RunnerConfig | str | Path | None = None,
+        job_config: JobConfig | str | Path | None = None,
         routing: RoutingTable | None = None,
         pod_urls: Sequence[str] | None = None,
         keys: Keys = "vecsim",
