@@ -14,13 +14,15 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from service.http import BodyLimitMiddleware, describe_validation_error
+from service.routers import probe_router
 from vecsim import __version__
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
 from vecsim.transport import make_async_client
 
+from .deps import get_state
 from .jobs import check_job
 from .reconciler import Reconciler
-from .routers import health, job, pods, routing
+from .routers import job, pods, routing
 from .settings import ControllerSettings
 from .state import ControllerState
 
@@ -107,8 +109,8 @@ def create_app(
         server="the controller",
         on_refused=state.metrics.refused.labels(reason="unauthorized").inc,
     )
-    for module in (pods, job, routing, health):
-        app.include_router(module.router)
+    for router in (pods.router, job.router, routing.router, probe_router(get_state)):
+        app.include_router(router)
     default_openapi = app.openapi
     app.openapi = lambda: document_bearer_security(default_openapi())  # type: ignore[method-assign]
     return app

@@ -3,23 +3,22 @@ often it reconciles, and optionally the job it starts with."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field
 
-from vecsim.auth import check_token
 from vecsim.config import JobConfig, JobSpec
+
+from ..settings import ServerSettings
 
 # Registrations, heartbeats and job specs are small JSON documents.
 DEFAULT_MAX_BODY_BYTES = 1024 * 1024
 
 
-class ControllerSettings(BaseModel):
-    """Everything the controller needs before it starts serving."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class ControllerSettings(ServerSettings):
+    """Everything the controller needs before it starts serving (the token and uvicorn's limits:
+    :class:`service.settings.ServerSettings`)."""
 
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
-    heartbeat_interval_s: float = Field(1.0, gt=0, description="how often pods are expected to heartbeat")
     heartbeat_ttl_s: float = Field(5.0, gt=0, description="a pod not heard from for this long is dropped")
     reconcile_interval_s: float = Field(0.5, gt=0)
     stall_threshold_s: float = Field(
@@ -41,27 +40,7 @@ class ControllerSettings(BaseModel):
         "their retries and a restarted controller hears every pod before it plans",
     )
     job: JobSpec | None = None
-    token: str | None = Field(
-        None,
-        repr=False,
-        description="the job's shared token (VECSIM_TOKEN): required on every request that changes state, "
-        "and sent with every assignment pushed to a pod; None turns checking off",
-    )
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="largest request body accepted (413 above)")
-    header_timeout_s: float = Field(
-        10.0, gt=0, description="a connection that sends no whole request head this soon is closed"
-    )
-    keep_alive_s: float = Field(5.0, gt=0, description="an idle kept-alive connection is closed after this long")
-    max_connections: int = Field(
-        1024, ge=4, description="connections kept at most (lowered to half the fd limit); the idlest goes for a new one"
-    )
-    access_log: bool = False
-    log_level: str = "info"
-
-    @field_validator("token")
-    @classmethod
-    def _usable_token(cls, token: str | None) -> str | None:
-        return check_token(token)
 
     @property
     def stall_after_s(self) -> float:

@@ -12,9 +12,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from prometheus_client import CollectorRegistry
+
 from vecsim.config import Assignment, JobSpec, PodCapacity, PodRecord, PodRegistration, RoutingTable
 from vecsim.plan import Plan, Slot, adopt, plan
 
+from ..models import Problem, Readiness
 from .metrics import ControllerMetrics, Gauges
 from .reconcile import Action, Desired, Observed, ObservedPod, desired_assignments, safe_generation, satisfied
 from .settings import ControllerSettings
@@ -364,6 +367,19 @@ class ControllerState:
     @property
     def ready(self) -> bool:
         return not self.problems()
+
+    def readiness(self) -> Readiness | Problem:
+        """``/readyz``'s answer: ready once every slot's pod runs the plan and is ready, else
+        what is missing."""
+        problems = self.problems()
+        if problems or self.plan is None:
+            return Problem(detail="not ready: " + "; ".join(problems))
+        return Readiness(status="ready", generation=self.plan.generation)
+
+    @property
+    def registry(self) -> CollectorRegistry:
+        """The controller's metrics registry, which ``/metrics`` serves."""
+        return self.metrics.registry
 
     def routing(self) -> RoutingTable:
         """Returns the routing table of the current plan.

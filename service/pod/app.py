@@ -14,13 +14,15 @@ from fastapi.responses import JSONResponse
 import vecsim
 from service.contract import Heartbeat
 from service.http import BodyLimitMiddleware, describe_validation_error
+from service.routers import probe_router
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
 from vecsim.sim import InvalidRequestError
 
 from .agent import ControllerAgent
+from .deps import get_state
 from .errors import LIBRARY_ERRORS, PodError
 from .metrics import PodMetrics
-from .routers import assignment, envs, health, info, metrics
+from .routers import assignment, envs, info
 from .settings import PodSettings
 from .state import PodState
 
@@ -82,13 +84,13 @@ def create_app(settings: PodSettings) -> FastAPI:
 
     @app.exception_handler(PodError)
     async def _pod_error(request: Request, exc: PodError) -> JSONResponse:
-        state.metrics.refused.labels(reason=exc.kind).inc()
+        state.metrics.refused.labels(reason=exc.reason).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, exc.status_code, exc.detail)
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
 
     async def _library_error(request: Request, exc: Exception) -> JSONResponse:
-        status, kind = next(answer for cls, answer in LIBRARY_ERRORS.items() if isinstance(exc, cls))
-        state.metrics.refused.labels(reason=kind).inc()
+        status, reason = next(answer for cls, answer in LIBRARY_ERRORS.items() if isinstance(exc, cls))
+        state.metrics.refused.labels(reason=reason).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, status, exc)
         return JSONResponse({"detail": str(exc)}, status_code=status)
 
@@ -112,7 +114,7 @@ def create_app(settings: PodSettings) -> FastAPI:
         server=f"pod {settings.name}",
         on_refused=state.metrics.refused.labels(reason="unauthorized").inc,
     )
-    for router in (health.router, info.router, assignment.router, envs.router, metrics.router):
+    for router in (probe_router(get_state), info.router, assignment.router, envs.router):
         app.include_router(router)
     default_openapi = app.openapi
     app.openapi = lambda: document_bearer_security(default_openapi())  # type: ignore[method-assign]

@@ -6,15 +6,9 @@ from __future__ import annotations
 
 from fastapi import Request
 
-from .metrics import PodMetrics
 from .state import PodState
 
 
 async def get_state(request: Request) -> PodState:
     """The pod's state: assignment, envs and worker thread."""
     return request.app.state.pod
-
-
-async def get_metrics(request: Request) -> PodMetrics:
-    """The pod's metrics and their registry."""
-    return request.app.state.pod.metrics

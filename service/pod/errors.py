@@ -1,5 +1,5 @@
 """How the pod answers what it refuses: JSON ``{"detail": "<what is wrong>"}`` with a status, and
-a ``kind`` that labels the errors metric.
+a ``reason`` that labels ``vecsim_pod_refused_requests``.
 
 The library's own errors are answered as they are (one class per concept, defined once in
 :mod:`vecsim.sim`): ``UnknownEnvError`` 404, ``InvalidRequestError`` 422, ``SimCrashedError`` 503
@@ -25,7 +25,7 @@ class PodError(Exception):
     """A request the pod refuses; ``detail`` names the field, env or pod at fault."""
 
     status_code = 400
-    kind = "bad_request"
+    reason = "bad_request"
 
     def __init__(self, detail: str) -> None:
         super().__init__(detail)
@@ -34,27 +34,27 @@ class PodError(Exception):
 
 class MalformedBodyError(PodError):
     status_code = 400
-    kind = "malformed_body"
+    reason = "malformed_body"
 
 
 class StaleGenerationError(PodError):
     """The request's generation is not the pod's (the client re-reads the routing table)."""
 
     status_code = 409
-    kind = "stale_generation"
+    reason = "stale_generation"
 
 
 class UnsupportedMediaTypeError(PodError):
     status_code = 415
-    kind = "unsupported_media_type"
+    reason = "unsupported_media_type"
 
 
 class NotReadyError(PodError):
     status_code = 503
-    kind = "not_ready"
+    reason = "not_ready"
 
 
-# The library's errors the pod answers with, by class: (status, metric kind).
+# The library's errors the pod answers with, by class: (status, metric reason).
 LIBRARY_ERRORS: dict[type[Exception], tuple[int, str]] = {
     UnknownEnvError: (404, "unknown_env"),
     InvalidRequestError: (422, "invalid_request"),

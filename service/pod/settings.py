@@ -11,11 +11,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError
 
-from vecsim.auth import check_token
 from vecsim.config import POD_NAME_PATTERN, Assignment
 from vecsim.sim import DEFAULT_MAX_CHUNK
+
+from ..settings import ServerSettings
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
 # The device node the NVIDIA driver creates: present exactly where a GPU is usable for EGL.
@@ -48,14 +49,13 @@ class SettingsError(ValueError):
     """Settings that cannot be used; the message names the variable or flag at fault."""
 
 
-class PodSettings(BaseModel):
-    """Everything a pod needs to know before it starts serving.
+class PodSettings(ServerSettings):
+    """Everything a pod needs to know before it starts serving (the token and uvicorn's limits:
+    :class:`service.settings.ServerSettings`).
 
     ``assignment`` is set only in standalone mode, where the pod builds its envs at start-up
     without a controller.
     """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     name: str = Field("sim-0", min_length=1, max_length=63, pattern=POD_NAME_PATTERN)
     namespace: str = "default"
@@ -64,12 +64,8 @@ class PodSettings(BaseModel):
     port: int = Field(8100, ge=1, le=65535)
     advertise_url: str | None = None
     controller_url: str | None = None
-    # The job's shared token: required on PUT /v1/assignment, POST /v1/reset and /v1/step, and
-    # sent to the controller. None turns checking off (local development).
-    token: str | None = Field(None, repr=False)
     max_envs: int = Field(64, ge=0)
     gpu: bool | None = None
-    heartbeat_interval_s: float = Field(1.0, gt=0)
     max_backoff_s: float = Field(10.0, gt=0)
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1)
     # A worker that answers no reset or step within this long counts as crashed (503, rebuild).
@@ -78,20 +74,7 @@ class PodSettings(BaseModel):
     build_timeout_s: float = Field(900.0, gt=0)
     # The most actions per env one step call takes (stated in /v1/info).
     max_chunk: int = Field(DEFAULT_MAX_CHUNK, ge=1)
-    # A connection must send a whole request head this soon after opening (or after its first
-    # byte, when kept alive); idle kept-alive connections close after keep_alive_s. At most
-    # max_connections are kept (lowered to half the fd limit), the idlest closed for a new one.
-    header_timeout_s: float = Field(10.0, gt=0)
-    keep_alive_s: float = Field(5.0, gt=0)
-    max_connections: int = Field(1024, ge=4)
-    access_log: bool = False
-    log_level: str = "info"
     assignment: Assignment | None = None
-
-    @field_validator("token")
-    @classmethod
-    def _usable_token(cls, token: str | None) -> str | None:
-        return check_token(token)
 
     @property
     def bind_host(self) -> str:

@@ -16,10 +16,13 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, TypeVar
 
+from prometheus_client import CollectorRegistry
+
 from vecsim.config import Assignment
 from vecsim.sim import InvalidRequestError, TaskGroupedVectorEnv, assignment_spaces
 from vecsim.tasks import TaskSetupError, UnknownTaskError, get_task
 
+from ..models import Problem, Readiness
 from .errors import NotReadyError, StaleGenerationError
 from .metrics import PodMetrics
 from .settings import PodSettings
@@ -97,6 +100,18 @@ class PodState:
     @property
     def ready(self) -> bool:
         return self.phase == "ready"
+
+    def readiness(self) -> Readiness | Problem:
+        """``/readyz``'s answer: ready once the envs of the current assignment are built and
+        rendered a frame; else why not (no assignment, building or rebuilding, failed)."""
+        if not self.ready or self.env is None:
+            return Problem(detail=f"pod {self.settings.name} is not ready: {self.detail}")
+        return Readiness(status="ready", generation=self.generation, num_envs=self.env.num_envs)
+
+    @property
+    def registry(self) -> CollectorRegistry:
+        """The pod's metrics registry, which ``/metrics`` serves."""
+        return self.metrics.registry
 
     async def run(self, fn: Callable[..., T], *args: object) -> T:
         """Run ``fn(*args)`` on the worker thread, after everything submitted before it.

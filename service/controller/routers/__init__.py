@@ -1,1 +1,1 @@
-"""One router per resource: pods, job, routing, health (with metrics)."""
+"""One router per resource: pods, job, routing (health and metrics: ``service.routers``)."""
