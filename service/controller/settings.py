@@ -53,14 +53,7 @@ class ControllerSettings(ServerSettings):
 
         ``overrides`` whose value is ``None`` are ignored (unset command-line flags).
         """
-        c = config.controller
-        values: dict[str, object] = dict(
-            host=c.host,
-            port=c.port,
-            heartbeat_interval_s=c.heartbeat_interval_s,
-            heartbeat_ttl_s=c.heartbeat_ttl_s,
-            reconcile_interval_s=c.reconcile_interval_s,
-            job=config.job,
-        )
+        # Every field of the section is a setting of the same name: one list of them, the config's.
+        values: dict[str, object] = {**config.controller.model_dump(), "job": config.job}
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls.model_validate(values)
