@@ -476,6 +476,17 @@ async def test_metrics_report_pods_generation_and_heartbeats():
         assert "vecsim_controller_reconcile_seconds_count 1.0" in text
 
 
+async def test_each_refused_request_is_counted_under_its_reason():
+    async with controller() as c:
+        await c.api.get("/v1/job")  # no job yet: 404
+        await c.api.post("/v1/pods/sim-3/heartbeat", json={"url": "http://x", "ready": False})  # unknown pod: 404
+        await c.api.put("/v1/job", json={**JOB, "num_stages": 0})  # a malformed job: 422
+        await c.api.put("/v1/job", json={**JOB, "tasks": ["tiny/no-such-task"]})  # a job that cannot run: 422
+        text = (await c.api.get("/metrics")).text
+        for reason in ("no_job", "unknown_pod", "invalid_request", "job_rejected"):
+            assert f'vecsim_controller_refused_requests_total{{reason="{reason}"}} 1.0' in text, reason
+
+
 async def test_openapi_documents_every_endpoint():
     async with controller() as c:
         paths = (await c.api.get("/openapi.json")).json()["paths"]

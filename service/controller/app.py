@@ -14,6 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from service.http import BodyLimitMiddleware, describe_validation_error
+from service.metrics import refusal
 from service.routers import probe_router
 from vecsim import __version__
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
@@ -94,7 +95,7 @@ def create_app(
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         # One line naming each field at fault, like every other refusal (docs/api.md).
-        return JSONResponse({"detail": describe_validation_error(exc)}, status_code=422)
+        return refusal(state.metrics.refused, 422, "invalid_request", describe_validation_error(exc))
 
     app.add_middleware(
         BodyLimitMiddleware,

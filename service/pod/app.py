@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse
 import vecsim
 from service.contract import Heartbeat
 from service.http import BodyLimitMiddleware, describe_validation_error
+from service.metrics import refusal
 from service.routers import probe_router
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
 from vecsim.sim import InvalidRequestError
@@ -84,15 +85,13 @@ def create_app(settings: PodSettings) -> FastAPI:
 
     @app.exception_handler(PodError)
     async def _pod_error(request: Request, exc: PodError) -> JSONResponse:
-        state.metrics.refused.labels(reason=exc.reason).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, exc.status_code, exc.detail)
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        return refusal(state.metrics.refused, exc.status_code, exc.reason, exc.detail)
 
     async def _library_error(request: Request, exc: Exception) -> JSONResponse:
         status, reason = next(answer for cls, answer in LIBRARY_ERRORS.items() if isinstance(exc, cls))
-        state.metrics.refused.labels(reason=reason).inc()
         log.debug("%s %s -> %d: %s", request.method, request.url.path, status, exc)
-        return JSONResponse({"detail": str(exc)}, status_code=status)
+        return refusal(state.metrics.refused, status, reason, str(exc))
 
     for library_error in LIBRARY_ERRORS:
         app.add_exception_handler(library_error, _library_error)

@@ -7,6 +7,7 @@ import asyncio
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
+from service.metrics import refusal
 from vecsim.config import JobSpec
 
 from ..deps import get_state
@@ -33,9 +34,8 @@ async def put_job(job: JobSpec, state: ControllerState = Depends(get_state)) -> 
     # Reading a gym task's spaces makes an env: keep that off the event loop.
     tasks, problems = await asyncio.to_thread(check_job, job, state.records())
     if problems:
-        return JSONResponse(
-            {"detail": f"job {job.job_id!r} rejected: " + "; ".join(problems), "problems": problems}, status_code=422
-        )
+        detail = f"job {job.job_id!r} rejected: " + "; ".join(problems)
+        return refusal(state.metrics.refused, 422, "job_rejected", detail, problems=problems)
     state.set_job(job, tasks)
     return job
 
@@ -44,5 +44,5 @@ async def put_job(job: JobSpec, state: ControllerState = Depends(get_state)) -> 
 async def get_job(state: ControllerState = Depends(get_state)) -> JobSpec | JSONResponse:
     """The job last accepted by ``PUT /v1/job`` (or given at start-up)."""
     if state.job is None:
-        return JSONResponse({"detail": "no job: PUT /v1/job first"}, status_code=404)
+        return refusal(state.metrics.refused, 404, "no_job", "no job: PUT /v1/job first")
     return state.job

@@ -6,6 +6,7 @@ from fastapi import APIRouter, Depends, Path
 from fastapi.responses import JSONResponse
 
 from service.contract import Heartbeat, HeartbeatAnswer
+from service.metrics import refusal
 from vecsim.config import POD_NAME_PATTERN, PodRecord, PodRegistration
 
 from ..deps import get_state
@@ -48,11 +49,11 @@ async def heartbeat(
     a pod to another URL (409): a pod that moved registers again."""
     if body.assignment is not None and body.generation is not None and body.generation != body.assignment.generation:
         detail = f"generation: {body.generation} differs from assignment.generation {body.assignment.generation}"
-        return JSONResponse({"detail": detail}, status_code=422)
+        return refusal(state.metrics.refused, 422, "invalid_request", detail)
     try:
         generation = state.heartbeat(pod, body.url, body.assignment, body.ready)
     except UnknownPodError as exc:
-        return JSONResponse({"detail": str(exc)}, status_code=404)
+        return refusal(state.metrics.refused, 404, "unknown_pod", str(exc))
     except PodUrlConflictError as exc:
-        return JSONResponse({"detail": str(exc)}, status_code=409)
+        return refusal(state.metrics.refused, 409, "url_conflict", str(exc))
     return HeartbeatAnswer(generation=generation)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
+from service.metrics import refusal
 from vecsim.config import RoutingTable
 
 from ..deps import get_state
@@ -28,6 +29,6 @@ async def routing(state: ControllerState = Depends(get_state)) -> RoutingTable |
     try:
         return state.routing()
     except NoJobError as exc:
-        return JSONResponse({"detail": str(exc)}, status_code=404)
+        return refusal(state.metrics.refused, 404, "no_job", str(exc))
     except NoPlanError as exc:
-        return JSONResponse({"detail": str(exc)}, status_code=503)
+        return refusal(state.metrics.refused, 503, "no_plan", str(exc))
