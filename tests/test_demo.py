@@ -111,3 +111,26 @@ def _processes_marked(marker: str) -> list[str]:
         with contextlib.suppress(psutil.NoSuchProcess):
             found.append(" ".join(proc.cmdline()))
     return found
+
+
+def test_step_costs_compare_each_pods_first_stepping_call_with_its_median_and_skip_resets() -> None:
+    from service.demo import step_costs
+
+    # (stage_id, pod, begin_s, end_s, resets, steps): sim-0's reset-only call is no step; its
+    # first step took 1.5 s against a median of 0.5 s; sim-1 stepped once after a mixed call.
+    calls = [
+        (0, "sim-0", 0.0, 3.0, 2, 0),
+        (0, "sim-0", 3.0, 4.5, 0, 2),
+        (1, "sim-1", 0.0, 0.4, 1, 1),
+        (0, "sim-0", 4.6, 5.1, 0, 2),
+        (0, "sim-0", 5.2, 5.6, 0, 2),
+        (0, "sim-0", 5.7, 6.3, 0, 2),
+    ]
+    costs = step_costs(calls)
+    by_pod = {p["pod"]: p for p in costs["per_pod"]}
+    assert by_pod["sim-0"]["calls"] == 4
+    assert by_pod["sim-0"]["first_s"] == pytest.approx(1.5)
+    assert by_pod["sim-0"]["median_s"] == pytest.approx(0.55)
+    assert by_pod["sim-1"]["ratio"] == pytest.approx(1.0)
+    assert costs["first_over_median"] == pytest.approx(1.5 / 0.55)
+    assert step_costs([(0, "sim-0", 0.0, 1.0, 3, 0)]) == {"first_over_median": None, "per_pod": []}
