@@ -383,13 +383,15 @@ class _Worker:
         """Step the first env of each step path once and put it back in state 0, so that what a
         first step compiles or loads happens here, not on the trainer's first step: the exact
         path's compiled controller (a fresh checkout: seconds), and robosuite's own numba kernels
-        that only a turning arm reaches. The action is off-centre in every dimension because
-        robosuite's OSC ``set_goal`` (robosuite 1.4, controllers/osc.py:258-261) skips
-        ``set_goal_orientation`` for a zero rotation, and only that calls the numba-compiled
-        ``quat2mat`` (utils/control_utils.py:176): a zero action left it to the trainer's first
-        step (measured ~0.1 s a worker loading it from numba's cache; compiling takes seconds). The reset restores state
-        0 whole, so the env is as the build left it. Returns the last env stepped's local index,
-        or -1 when no env has a step path (gym tasks: nothing is compiled)."""
+        that only a turning arm reaches.
+
+        The action is off-centre in every dimension: robosuite's OSC ``set_goal`` (robosuite 1.4,
+        controllers/osc.py:258-261) skips ``set_goal_orientation`` for a zero rotation, and only
+        that calls the numba-compiled ``quat2mat`` (utils/control_utils.py:176), so a zero action
+        left it to the trainer's first step (~0.1 s a worker loading it from numba's cache,
+        measured; compiling it takes seconds). The reset restores state 0 whole, so the env is
+        as the build left it. Returns the last env stepped's local index, or -1 when no env has
+        a step path (gym tasks: nothing of theirs is compiled)."""
         warmed: set[str] = set()
         last = -1
         for local, env in enumerate(self._envs):
