@@ -49,6 +49,13 @@ def test_the_demo_rolls_out_on_a_local_job_writes_its_pictures_and_leaves_nothin
     assert {r["stage_id"] for r in routes.values()} == {0, 1}
     assert len({(r["pod"], r["env_index"]) for r in routes.values()}) == 6  # one env per trajectory
     assert (out / "timeline.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The first step against the median, per pod: each pod stepped its trajectories 4 times.
+    costs = summary["step_costs"]
+    assert {p["pod"] for p in costs["per_pod"]} == {r["pod"] for r in routes.values()}
+    assert all(p["calls"] == 4 for p in costs["per_pod"])
+    assert costs["first_over_median"] == max(p["ratio"] for p in costs["per_pod"])
+    assert "first step / median step" in done.stdout
+    assert summary["policy_warmup_s"] > 0
     (video,) = summary["videos"].values()
     assert Path(video).stat().st_size > 0
     assert _processes_marked(marker) == [], "the demo left processes running"
