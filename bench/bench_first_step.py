@@ -9,8 +9,9 @@ and in rendering (both summed over the pod's workers). The client's round trip l
 ``step`` time is HTTP, the wire and the client; a first step whose ``physics`` or ``render``
 stands out is the pod's to warm during its build (issue 28: "ready means ready").
 
-    python bench/bench_first_step.py                     # the tiny job, 8 steps per pod
-    PYTHONPATH=<other checkout> python bench/bench_first_step.py   # the same, on another checkout's pods
+    python bench/bench_first_step.py       # the tiny job, 8 steps per pod, from the checkout's root
+    cd <other checkout> && PYTHONPATH=$PWD python <this checkout>/bench/bench_first_step.py
+                                           # the same on another checkout's code (pods import the cwd's)
 
 Prints one line per call and ``RESULT {json}`` (per pod: each call's times, and the first
 step's client and physics time over the later steps' medians).
