@@ -49,6 +49,13 @@ def test_the_demo_rolls_out_on_a_local_job_writes_its_pictures_and_leaves_nothin
     assert {r["stage_id"] for r in routes.values()} == {0, 1}
     assert len({(r["pod"], r["env_index"]) for r in routes.values()}) == 6  # one env per trajectory
     assert (out / "timeline.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The first step against the median, per pod: each pod stepped its trajectories 4 times.
+    costs = summary["step_costs"]
+    assert {p["pod"] for p in costs["per_pod"]} == {r["pod"] for r in routes.values()}
+    assert all(p["calls"] == 4 for p in costs["per_pod"])
+    assert costs["first_over_median"] == max(p["ratio"] for p in costs["per_pod"])
+    assert "first step / median step" in done.stdout
+    assert summary["policy_warmup_s"] > 0
     (video,) = summary["videos"].values()
     assert Path(video).stat().st_size > 0
     assert _processes_marked(marker) == [], "the demo left processes running"
@@ -111,3 +118,26 @@ def _processes_marked(marker: str) -> list[str]:
         with contextlib.suppress(psutil.NoSuchProcess):
             found.append(" ".join(proc.cmdline()))
     return found
+
+
+def test_step_costs_compare_each_pods_first_stepping_call_with_its_median_and_skip_resets() -> None:
+    from service.demo import step_costs
+
+    # (stage_id, pod, begin_s, end_s, resets, steps): sim-0's reset-only call is no step; its
+    # first step took 1.5 s against a median of 0.5 s; sim-1 stepped once after a mixed call.
+    calls = [
+        (0, "sim-0", 0.0, 3.0, 2, 0),
+        (0, "sim-0", 3.0, 4.5, 0, 2),
+        (1, "sim-1", 0.0, 0.4, 1, 1),
+        (0, "sim-0", 4.6, 5.1, 0, 2),
+        (0, "sim-0", 5.2, 5.6, 0, 2),
+        (0, "sim-0", 5.7, 6.3, 0, 2),
+    ]
+    costs = step_costs(calls)
+    by_pod = {p["pod"]: p for p in costs["per_pod"]}
+    assert by_pod["sim-0"]["calls"] == 4
+    assert by_pod["sim-0"]["first_s"] == pytest.approx(1.5)
+    assert by_pod["sim-0"]["median_s"] == pytest.approx(0.55)
+    assert by_pod["sim-1"]["ratio"] == pytest.approx(1.0)
+    assert costs["first_over_median"] == pytest.approx(1.5 / 0.55)
+    assert step_costs([(0, "sim-0", 0.0, 1.0, 3, 0)]) == {"first_over_median": None, "per_pod": []}

@@ -275,3 +275,43 @@ def test_the_build_warms_the_step_path_and_leaves_every_env_in_state_0() -> None
     assert report["compiled"] is True
     assert report["same_state"] is True
     assert set(report["took"]) == {"envs", "make", "reset", "warm", "render"} and report["took"]["envs"] == 2
+
+
+FIRST_STEP_PROBE = """
+import json, sys, numpy as np, numba
+from sim_envs import TINY_CAMERA, sim_assignment
+from vecsim.sim import _Worker, _WorkerSpec, assignment_spaces
+from vecsim.tasks import _fast_step
+
+def compiled():
+    # Every numba function loaded so far, with the signatures it has compiled or loaded.
+    found = {"osc_substep": [str(s) for s in _fast_step._osc_kernel().osc_substep.signatures]}
+    for name, module in list(sys.modules.items()):
+        for attr, value in list(vars(module).items()) if module is not None else ():
+            if isinstance(value, numba.core.dispatcher.Dispatcher):
+                found[f"{name}.{attr}"] = [str(s) for s in value.signatures]
+    return found
+
+assignment = sim_assignment([("tiny/lift", 1)], TINY_CAMERA)
+observation_space, action_space = assignment_spaces(assignment)
+worker = _Worker(_WorkerSpec(("tiny/lift",), (0,), 1, TINY_CAMERA, "lean", 10, observation_space, action_space))
+worker.build()
+before = compiled()
+worker._reset_env(0, 3)
+action = np.random.default_rng(0).uniform(-1.0, 1.0, action_space.shape).astype(np.float32)
+worker._envs[0].step(action)
+after = compiled()
+print(json.dumps({"new": {k: v for k, v in after.items() if before.get(k) != v}, "kernels": len(after)}))
+worker.close()
+"""
+
+
+def test_after_the_build_a_first_step_with_a_turning_arm_compiles_or_loads_nothing() -> None:
+    # A fresh interpreter: what the trainer's first step would compile or load from numba's
+    # cache (robosuite's quat2mat runs only when the arm turns) the build has done already.
+    tests = Path(__file__).parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, "-c", FIRST_STEP_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True)
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["kernels"] > 1
+    assert report["new"] == {}

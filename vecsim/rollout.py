@@ -199,6 +199,10 @@ class RolloutStats:
     success_per_task: dict[str, float] = field(default_factory=dict)
     # (what, stage_id, begin_s, end_s) from the rollout's start; what is "policy" or "sim".
     timeline: list[tuple[str, int, float, float]] = field(default_factory=list)
+    # One per pod call, in the order they landed: (stage_id, pod, begin_s, end_s, resets, steps),
+    # the call's time in flight from the rollout's start and how many trajectories it reset and
+    # stepped (a first step's cost against later ones: service/demo.py's step_costs).
+    pod_calls: list[tuple[int, str, float, float, int, int]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -418,7 +422,7 @@ class EnvLoop:
         an answer are lost, those with one go on."""
         call, carried = inflight.pop(pod)
         try:
-            return [batch for batch in clock.take(stage, call) if batch.n]
+            return [batch for batch in clock.take(stage, call, pod) if batch.n]
         except (PodUnavailableError, RoutingChangedError) as exc:
             failed.add(pod)
             answered = [batch for batch in (exc.answered or ()) if batch is not None and batch.n]
@@ -750,6 +754,7 @@ class _Clock:
         self.policy: list[tuple[float, float]] = []
         self.simulation: list[tuple[float, float]] = []
         self.timeline: list[tuple[str, int, float, float]] = []
+        self.pod_calls: list[tuple[int, str, float, float, int, int]] = []
         self.wait_s = 0.0
 
     def next_ready(self, inflight: _InFlight, after: int) -> int:
@@ -783,10 +788,16 @@ class _Clock:
         self.wait_s += time.perf_counter() - begin
         return landed
 
-    def take(self, stage: int, call: PendingCall[tuple[StageBatch, StageBatch]]) -> tuple[StageBatch, StageBatch]:
+    def take(
+        self, stage: int, call: PendingCall[tuple[StageBatch, StageBatch]], pod: str = ""
+    ) -> tuple[StageBatch, StageBatch]:
         """The answer of a finished call (raising what the call raised), recorded."""
         batches = call.result()
         self.simulated(stage, batches[0])
+        reset, step = batches
+        self.pod_calls.append(
+            (stage, pod, reset.submitted_at - self.started, reset.finished_at - self.started, reset.n, step.n)
+        )
         return batches
 
     def simulated(self, stage: int, batch: StageBatch) -> None:
@@ -834,6 +845,7 @@ class _Clock:
             overlap_fraction=overlap / policy if policy > 0 else 0.0,
             success_per_task={task: float(np.mean(s)) for task, s in per_task.items()},
             timeline=sorted(self.timeline, key=lambda item: item[2]),
+            pod_calls=list(self.pod_calls),
         )
 
 

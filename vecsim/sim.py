@@ -161,6 +161,16 @@ class _WorkerSpec:
         return _describe(self.task_ids, self.env_indices)
 
 
+def _warm_action(space: gymnasium.spaces.Box) -> np.ndarray:
+    """An action a quarter of the way from the centre of ``space`` to its upper bound in every
+    dimension (0.25 where unbounded): it moves and turns the arm and the gripper, so a step
+    with it reaches every branch a trainer's actions reach."""
+    low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+    bounded = np.isfinite(low) & np.isfinite(high)
+    centre = np.where(bounded, (low + high) / 2, 0.0)
+    return (centre + np.where(bounded, (high - low) / 8, 0.25)).astype(space.dtype)
+
+
 def _release_compiler_memory() -> None:
     """Free what MuJoCo's XML compiler holds after a model is made, and give freed heap back.
 
@@ -370,16 +380,29 @@ class _Worker:
         return {"envs": float(len(self._envs)), **took}
 
     def _warm_step_path(self) -> int:
-        """Step the first env on the ``exact`` step path once and put it back in state 0: its
-        compiled controller is compiled (a fresh checkout: seconds) or loaded from numba's cache
-        here, not on the trainer's first step. The reset restores state 0 whole, so the env is
-        as the build left it. Returns the env's local index, or -1 when no env takes that path."""
+        """Step the first env of each step path once and put it back in state 0, so that what a
+        first step compiles or loads happens here, not on the trainer's first step: the exact
+        path's compiled controller (a fresh checkout: seconds), and robosuite's own numba kernels
+        that only a turning arm reaches.
+
+        The action is off-centre in every dimension: robosuite's OSC ``set_goal`` (robosuite 1.4,
+        controllers/osc.py:258-261) skips ``set_goal_orientation`` for a zero rotation, and only
+        that calls the numba-compiled ``quat2mat`` (utils/control_utils.py:176), so a zero action
+        left it to the trainer's first step (~0.1 s a worker loading it from numba's cache,
+        measured; compiling it takes seconds). The reset restores state 0 whole, so the env is
+        as the build left it. Returns the last env stepped's local index, or -1 when no env has
+        a step path (gym tasks: nothing of theirs is compiled)."""
+        warmed: set[str] = set()
+        last = -1
         for local, env in enumerate(self._envs):
-            if getattr(env, "step_path", None) == "exact":
-                env.step(np.zeros(env.action_space.shape, env.action_space.dtype))
-                self._reset_env(local, 0)
-                return local
-        return -1
+            path = getattr(env, "step_path", None)
+            if path is None or path in warmed:
+                continue
+            env.step(_warm_action(env.action_space))
+            self._reset_env(local, 0)
+            warmed.add(path)
+            last = local
+        return last
 
     def _reset_env(
         self, local: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
@@ -945,7 +968,7 @@ class TaskGroupedVectorEnv:
         try:
             for worker in range(len(self._workers)):
                 self._pool.send(worker, "build")
-            self._wait_for_build(started, build_timeout_s)
+            took = self._wait_for_build(started, build_timeout_s)
         except SimBuildError:
             self._pool.close()
             raise
@@ -958,11 +981,21 @@ class TaskGroupedVectorEnv:
             self._pool.close()
             raise SimBuildError(f"building envs failed: {type(exc).__name__}: {exc}") from exc
         log.info("built %d envs in %.1f s", self.num_envs, time.monotonic() - started)
+        if took:
+            # The warm-up, in one line: what a trainer's first call would otherwise have paid.
+            log.info(
+                "warm-up done: first step (step path, compiled kernels) %.1f s, first render of "
+                "every camera %.1f s (slowest worker's)",
+                max(t["warm"] for t in took),
+                max(t["render"] for t in took),
+            )
 
-    def _wait_for_build(self, started: float, build_timeout_s: float | None) -> None:
+    def _wait_for_build(self, started: float, build_timeout_s: float | None) -> list[dict[str, float]]:
+        """Wait for every worker's build, logging each as it lands; return their timings."""
         assert self._pool is not None
         pipes = {pipe: index for index, pipe in enumerate(self._pool.pipes)}
         pending = set(pipes)
+        timings: list[dict[str, float]] = []
         last_report = started
         while pending:
             elapsed = time.monotonic() - started
@@ -978,8 +1011,10 @@ class TaskGroupedVectorEnv:
                 pending.discard(pipe)
                 index = pipes[pipe]
                 took = self._pool.receive([index], timeout_s=None)[index]
+                timings.append(took)
                 log.info(
-                    "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, step path warmed %.1f s, rendered %.1f s)",
+                    "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, warmed the first step %.1f s, "
+                    "warmed the cameras %.1f s)",
                     index + 1,
                     len(pipes),
                     self._workers[index].describe(),
@@ -997,6 +1032,7 @@ class TaskGroupedVectorEnv:
                     len(pipes),
                     last_report - started,
                 )
+        return timings
 
     # Validation: everything is checked before any worker is touched.
 
