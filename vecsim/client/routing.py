@@ -212,6 +212,10 @@ def validate_routes(table: RoutingTable, routes: Mapping[str, TrajRoute]) -> Non
                 f"traj_key {key}: pod {route.pod} is on stage(s) {on_stages[route.pod]}, not {route.stage_id}"
             )
         task = _task_at(pod, route.env_index)
+        if task is None:
+            raise ValueError(
+                f"traj_key {key}: env {route.env_index} of pod {route.pod} is not one of stage {route.stage_id}'s envs"
+            )
         if task != route.task_id:
             raise ValueError(
                 f"traj_key {key}: env {route.env_index} of pod {route.pod} on stage {route.stage_id} runs "
