@@ -632,22 +632,34 @@ def regroup(table: RoutingTable, pods: Sequence[str], stages: int) -> RoutingTab
 
 def regroup_slices(table: RoutingTable, pods: Sequence[str], stages: int) -> RoutingTable:
     """The trainer's view in the ``slices`` layout: every named pod in every stage, its envs
-    alternating stage by stage in env order (env k of a pod on stage ``k % stages``), as
-    ``vecsim.plan.slice_blocks`` lays out a ``slices`` job's pods."""
+    alternating stage by stage in env order, as ``vecsim.plan.slice_blocks`` lays out a
+    ``slices`` job's pods. The alternation runs on from one pod to the next (the k-th env of
+    all the pods' envs is on stage ``k % stages``), so that stages stay equal in size when a pod
+    has an odd number of envs and the pods an even one."""
     by_name = {p.pod: p for stage in table.stages for p in stage.pods}
     grouped: list[list[RoutedPod]] = [[] for _ in range(stages)]
+    first = 0  # the stage of the next pod's first env
     for name in pods:
         routed = by_name[name]
         envs = [(b.task_id, e) for b in routed.tasks for e in range(b.env_start, b.env_start + b.num_envs)]
         for s in range(stages):
-            blocks = tuple(TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for task, env in envs[s::stages])
+            mine = envs[(s - first) % stages :: stages]
+            blocks = tuple(TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for task, env in mine)
             grouped[s].append(routed.model_copy(update={"tasks": blocks, "num_envs": len(blocks)}))
+        first = (first + len(envs)) % stages
     stage_list = tuple(RoutedStage(stage_id=s, pods=tuple(grouped[s])) for s in range(stages))
     return table.model_copy(update={"stages": stage_list})
 
 
 def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
-    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``."""
+    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``.
+
+    Raises:
+        ValueError: the stages differ in size (request i's stage is i % S: they must not).
+    """
+    sizes = [stage.num_envs for stage in table.stages]
+    if len(set(sizes)) > 1:
+        raise ValueError(f"stages of {sizes} envs: every stage needs as many envs (change the pods or envs per task)")
     per_stage = [
         [(block.task_id, (pod_index * 7 + k) % 50) for pod_index, pod in enumerate(stage.pods)
          for block in pod.tasks for k in range(block.num_envs)]  # fmt: skip
