@@ -14,8 +14,9 @@ Probe (the pod's concurrency): one stage's chunk-step call alone, then both stag
 at once; the pod runs calls one at a time (one sim thread, ``service/pod/state.py``), so both
 together take about twice one, and a call of a stage whose envs sit on one worker leaves the
 other workers idle. Rollouts: ``EnvLoop`` with a policy that sleeps ``--policy-ms`` per call (a
-GPU forward pass, which takes no pod core; default: the one-stage call time measured by the
-probe), chunks of ``--chunk`` actions, interleaved rounds; env-steps/s and each two-stage
+GPU forward pass, which takes no pod core, for a batch of every env, pro rata for fewer;
+default: the one-stage call time measured by the probe), chunks of ``--chunk`` actions,
+interleaved rounds; env-steps/s and each two-stage
 contender against ``one_stage``.
 
     python bench/bench_stage_slices.py --quick   # smoke: gym scene, 8x8, under a minute
@@ -50,14 +51,16 @@ VIEWS = ("slices", "stage_major", "one_stage")
 
 
 class SleepPolicy:
-    """Zero chunks ``[n, K, action_dim]``, each call taking ``call_s`` (a sleep)."""
+    """Zero chunks ``[n, K, action_dim]``, a call of n rows taking ``batch_s x n / batch`` (a
+    sleep: a forward pass that takes no pod core and whose time follows its batch, as a large
+    GPU batch's does)."""
 
-    def __init__(self, action_dim: int, chunk: int, call_s: float) -> None:
-        self.action_dim, self.chunk, self.call_s = action_dim, chunk, call_s
+    def __init__(self, action_dim: int, chunk: int, batch_s: float, batch: int) -> None:
+        self.action_dim, self.chunk, self.batch_s, self.batch = action_dim, chunk, batch_s, batch
 
     def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
-        if self.call_s > 0:
-            time.sleep(self.call_s)
+        if self.batch_s > 0:
+            time.sleep(self.batch_s * len(task_ids) / self.batch)
         return torch.zeros((len(task_ids), self.chunk, self.action_dim))
 
 
@@ -134,7 +137,9 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, help="actions per trajectory")
     parser.add_argument("--rounds", type=int)
     parser.add_argument("--probe-calls", type=int)
-    parser.add_argument("--policy-ms", type=float, help="each policy call's sleep (default: the probe's one-stage call)")
+    parser.add_argument("--policy-ms", type=float,
+                        help="the policy's sleep for a batch of every env, pro rata for fewer (default: the probe's "
+                        "one-stage call: policy as slow as the simulation)")
     args = parser.parse_args()
     setup_logging()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -153,7 +158,7 @@ def main() -> None:
         probes = {name: probe(clients[name], mode["chunk"], mode["probe_calls"]) for name in VIEWS}
         log.info("probe: %s", probes)
         policy_ms = args.policy_ms if args.policy_ms is not None else probes["one_stage"]["stage0_alone_ms"]
-        policy = SleepPolicy(int(np.prod(own.action_space.shape)), mode["chunk"], policy_ms / 1000)
+        policy = SleepPolicy(int(np.prod(own.action_space.shape)), mode["chunk"], policy_ms / 1000, assignment.num_envs)
 
         def rollout(name: str) -> float:
             # Request i on stage i % S, as the sampler interleaves them; one per env.
