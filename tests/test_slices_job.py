@@ -7,6 +7,7 @@ loses its own trajectories of every stage and nothing else.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 from collections.abc import Iterator
@@ -127,6 +128,7 @@ def test_a_stage_without_trajectories_is_a_no_op_on_pods_that_hold_it(job):
 def test_a_dead_pod_loses_only_its_own_trajectories_of_every_stage(job):
     # Last in this file: the runner starts sim-1 again and the job moves to a new generation.
     process = job.processes["sim-1"]
+    before = routing(job)
     requests = full_batch()
     with StageClient.from_controller(job.controller_url, timeout_s=20, token=job.token) as client:
         policy = StillPolicy(client.action_space.shape[0], fault=lambda: os.killpg(process.pid, signal.SIGKILL), at=2)
@@ -140,4 +142,16 @@ def test_a_dead_pod_loses_only_its_own_trajectories_of_every_stage(job):
     for trajectory in result.trajectories.values():
         assert trajectory.route.pod == "sim-0" and trajectory.length == EPISODE
     assert {t.route.stage_id for t in result.trajectories.values()} == {0, 1}
+    # The runner starts sim-1 again under its name; it takes its slot, envs of both stages, back.
     wait_until(lambda: process.restarts > 0, "sim-1 restarted")
+
+    def ready_again() -> RoutingTable | None:
+        with contextlib.suppress(httpx.HTTPError, ValueError):
+            table = routing(job)
+            return table if table.ready and table.generation > before.generation else None
+        return None
+
+    after = wait_until(ready_again, "the job ready at a new generation", timeout_s=180)
+    assert [[(p.pod, p.tasks) for p in s.pods] for s in after.stages] == [
+        [(p.pod, p.tasks) for p in s.pods] for s in before.stages
+    ]
