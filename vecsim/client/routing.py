@@ -218,8 +218,7 @@ def validate_routes(table: RoutingTable, routes: Mapping[str, TrajRoute]) -> Non
             )
         if task != route.task_id:
             raise ValueError(
-                f"traj_key {key}: env {route.env_index} of pod {route.pod} on stage {route.stage_id} runs "
-                f"{task!r}, not {route.task_id!r}"
+                f"traj_key {key}: env {route.env_index} of pod {route.pod} runs {task!r}, not {route.task_id!r}"
             )
         if route.state_id < 0:
             raise ValueError(f"traj_key {key}: state_id must be >= 0, got {route.state_id}")
@@ -270,20 +269,23 @@ def _read_pod_info(url: str, info: Any) -> tuple[dict[int, RoutedPod], int | Non
         ValueError: the answer is not a pod's (a field missing or of the wrong kind; URL named),
             or a block has no stage and neither has the pod.
     """
+    unstaged = False
     try:
         name = str(info["pod"])
         pod_stage = info.get("stage_id")
         by_stage: dict[int, list[TaskBlock]] = {}
         for t in info["tasks"]:
-            stage = t.get("stage_id", pod_stage)
+            stage = t.get("stage_id")
+            stage = pod_stage if stage is None else stage
             if stage is None:
-                raise ValueError(f"pod {name} at {url} has no stage")
+                unstaged = True
+                break
             by_stage.setdefault(int(stage), []).append(
                 TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"], stage_id=t.get("stage_id"))
             )
-        if not by_stage:
-            if pod_stage is None:
-                raise ValueError(f"pod {name} at {url} has no stage")
+        if not by_stage and pod_stage is None:
+            unstaged = True
+        elif not by_stage:
             by_stage[int(pod_stage)] = []
         routed = {
             stage: RoutedPod(pod=name, url=url, num_envs=sum(b.num_envs for b in blocks), tasks=tuple(blocks))
@@ -293,10 +295,12 @@ def _read_pod_info(url: str, info: Any) -> tuple[dict[int, RoutedPod], int | Non
             # One stage: the pod's num_envs, as it reports it.
             routed = {stage: pod.model_copy(update={"num_envs": int(info["num_envs"])}) for stage, pod in routed.items()}
         generation = info.get("generation")
-        return routed, None if generation is None else int(generation), bool(info.get("ready"))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
         raise ValueError(f"the /v1/info answer of {url} is not a pod's ({what})"[:500]) from None
+    if unstaged:
+        raise ValueError(f"pod {name} at {url} has no stage")
+    return routed, None if generation is None else int(generation), bool(info.get("ready"))
 
 
 def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_id: str = "standalone") -> RoutingTable:
