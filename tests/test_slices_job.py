@@ -14,12 +14,13 @@ from collections.abc import Iterator
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 import torch
 from service_procs import job_config, local_job, wait_until
 
 from service.runner import LocalJob
-from vecsim.client import StageClient
+from vecsim.client import HTTPVectorEnv, StageClient
 from vecsim.client.routing import routed_envs
 from vecsim.config import CameraConfig, RoutingTable
 from vecsim.rollout import EnvLoop
@@ -123,6 +124,21 @@ def test_a_stage_without_trajectories_is_a_no_op_on_pods_that_hold_it(job):
         result = EnvLoop(client, StillPolicy(client.action_space.shape[0]), horizon=2).run([(LIFT, 1)])
     (trajectory,) = result.trajectories.values()
     assert trajectory.route.stage_id == 0 and trajectory.length == 2
+
+
+def test_a_vector_env_over_a_slices_job_has_every_env_of_both_stages_once_in_stage_major_order(job):
+    table = routing(job)
+    env = HTTPVectorEnv(job.controller_url, timeout_s=60, token=job.token)
+    try:
+        assert env.num_envs == table.num_envs
+        env.reset(seed=0)
+        placed = [(r.stage_id, r.pod, r.env_index, r.task_id) for _, r in sorted(env.routes.items())]
+        assert placed == [(e.stage_id, e.pod, e.env_index, e.task_id) for e in routed_envs(table)]
+        assert [stage for stage, *_ in placed] == sorted(stage for stage, *_ in placed)
+        _, reward, _, truncated, _ = env.step(np.zeros((env.num_envs, *env.single_action_space.shape)))
+        assert reward.shape == (table.num_envs,) and not truncated.any()
+    finally:
+        env.close()
 
 
 def test_a_dead_pod_loses_only_its_own_trajectories_of_every_stage(job):
