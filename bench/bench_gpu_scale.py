@@ -18,11 +18,16 @@ controller gives every pod the whole mix); the trainer groups pods into its own 
   of waiting for the slowest pod is known; the pods' ``/metrics`` split a pod's time into
   physics, rendering and the rest.
 - ``--only pipeline``: ``--pipeline-cores`` C cores, 2C pods, pod i and pod i+C on core i.
-  1 stage = all 2C pods (both pods of a core simulate at once); 2 stages = pods 0..C-1 against
-  C..2C-1 (one stage simulates while the other's observations are in the policy). The policy is
+  1 stage = all 2C pods' envs (both pods of a core simulate at once); 2 stages in each
+  ``--stage-layout`` (the job setting's two values, side by side in interleaved rounds):
+  ``pods``: pods 0..C-1 against C..2C-1 (one stage simulates while the other's observations are
+  in the policy); ``slices``: every pod's envs alternate stage 0, stage 1, ... (a stage is a
+  slice of every pod, as the ``slices`` job plan lays them out). The policy is
   a ViT-B/16-style encoder per camera (bf16) whose depth is calibrated so that its forward pass
   on the 1-stage batch lasts as long as the 1-stage simulation call (the service alone), captured
   in a CUDA graph per batch size, so its launches cost the trainer's Python thread little.
+  ``--chunk K``: the policy acts in chunks of K actions (its one action repeated K times), the
+  service's calls step K actions too (K=8 is issue 27's case).
 
 Commands::
 
@@ -32,8 +37,11 @@ Commands::
     # a machine of 2 GPUs: pods render on GPU 1, the policy runs on GPU 0
     python bench/bench_gpu_scale.py --gpu --only pipeline --render-gpu 1 --tag render-gpu1 --copy-to "$OUT"
     python bench/bench_gpu_scale.py --cpu-small --only scaling     # here: 2 pods, 2 LIBERO tasks, 64x64
+    # issue 27's case: two stages against one at K=8, both layouts side by side
+    source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only pipeline --chunk 8 --copy-to "$OUT"
+    python bench/bench_gpu_scale.py --quick --chunk 8   # here, under ~2 min: a cheap gym scene, tiny ViT
 
-Each writes out/bench/bench_gpu_scale_<scaling|pipeline>[_cpu|_dry].json and its plots under
+Each writes out/bench/bench_gpu_scale_<scaling|pipeline>[_cpu|_dry|_quick].json and its plots under
 docs/img/, and prints one ``RESULT {json}`` line; ``--copy-to`` also copies them into a folder,
 with a failed job's logs (``<job id>-logs.tar.gz``). Rounds stop being added at ``--deadline``
 seconds after the start; the job's start-up is bounded by it too, and memory in use above
@@ -91,7 +99,7 @@ from gymnasium import spaces
 from torch import nn
 
 from vecsim.client import StageClient, fetch_routing
-from vecsim.config import JobConfig, RoutedStage, RoutingTable
+from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 from vecsim.rollout import EnvLoop, RolloutStats
 
 log = logging.getLogger("bench.gpu_scale")
@@ -104,6 +112,9 @@ NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.jso
                        "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")  # fmt: skip
 GL_LIBRARY = re.compile(r"EGL|GLX|GLdispatch|nvidia|mesa|LLVM|_dri\.so|gallium|gbm|glapi")
 MAX_EPISODE_STEPS = 520
+STAGE_LAYOUTS = ("slices", "pods")  # vecsim.config.StageLayout's values, in --stage-layout's default order
+QUICK_TASKS = ("gym/HalfCheetah-v5",)  # --quick: a cheap scene, so the run fits in about 2 min
+QUICK_ENVS_PER_TASK = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +140,8 @@ class Plan:
     deadline_s: float
     render_preset: str = "lean"
     render_gpu: int | None = None  # the EGL device pods render on (None: the default one)
+    chunk: int = 1  # actions per env per call (the policy's chunk K)
+    stage_layouts: tuple[str, ...] = ("slices", "pods")  # the 2-stage layouts measured
 
     @property
     def envs_per_pod(self) -> int:
@@ -617,8 +630,36 @@ def regroup(table: RoutingTable, pods: Sequence[str], stages: int) -> RoutingTab
     return table.model_copy(update={"stages": tuple(grouped)})
 
 
+def regroup_slices(table: RoutingTable, pods: Sequence[str], stages: int) -> RoutingTable:
+    """The trainer's view in the ``slices`` layout: every named pod in every stage, its envs
+    alternating stage by stage in env order, as ``vecsim.plan.slice_blocks`` lays out a
+    ``slices`` job's pods. The alternation runs on from one pod to the next (the k-th env of
+    all the pods' envs is on stage ``k % stages``), so that stages stay equal in size when a pod
+    has an odd number of envs and the pods an even one."""
+    by_name = {p.pod: p for stage in table.stages for p in stage.pods}
+    grouped: list[list[RoutedPod]] = [[] for _ in range(stages)]
+    first = 0  # the stage of the next pod's first env
+    for name in pods:
+        routed = by_name[name]
+        envs = [(b.task_id, e) for b in routed.tasks for e in range(b.env_start, b.env_start + b.num_envs)]
+        for s in range(stages):
+            mine = envs[(s - first) % stages :: stages]
+            blocks = tuple(TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for task, env in mine)
+            grouped[s].append(routed.model_copy(update={"tasks": blocks, "num_envs": len(blocks)}))
+        first = (first + len(envs)) % stages
+    stage_list = tuple(RoutedStage(stage_id=s, pods=tuple(grouped[s])) for s in range(stages))
+    return table.model_copy(update={"stages": stage_list})
+
+
 def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
-    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``."""
+    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``.
+
+    Raises:
+        ValueError: the stages differ in size (request i's stage is i % S: they must not).
+    """
+    sizes = [stage.num_envs for stage in table.stages]
+    if len(set(sizes)) > 1:
+        raise ValueError(f"stages of {sizes} envs: every stage needs as many envs (change the pods or envs per task)")
     per_stage = [
         [(block.task_id, (pod_index * 7 + k) % 50) for pod_index, pod in enumerate(stage.pods)
          for block in pod.tasks for k in range(block.num_envs)]  # fmt: skip
@@ -721,6 +762,18 @@ def counted(client: StageClient) -> Iterator[dict[str, Any]]:
     out["stage_of_pod"] = {p.pod: stage.stage_id for stage in client.routing.stages for p in stage.pods}
 
 
+class Chunked:
+    """A policy acting in chunks of ``k`` actions: its one action per observation, repeated ``k``
+    times (``[n, k, action_dim]``); ``k`` 1 is the policy itself."""
+
+    def __init__(self, policy: Callable[..., torch.Tensor], k: int) -> None:
+        self.policy, self.k = policy, k
+
+    def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
+        actions = self.policy(obs, instructions, task_ids)
+        return actions if self.k == 1 else actions.unsqueeze(1).expand(-1, self.k, -1).contiguous()
+
+
 def loop_rollout(client: StageClient, policy: Callable[..., torch.Tensor], horizon: int, device: str) -> Measured:
     """Run one EnvLoop rollout (reset, then ``horizon`` steps of every env); return its stats
     with the pods' counters and the client's per-pod requests over it.
@@ -745,10 +798,19 @@ def scripted_actions(space: spaces.Box, step: int, n: int) -> np.ndarray:
     return np.broadcast_to(action.astype(np.float32), (n, len(low)))
 
 
-def service_rollout(client: StageClient, steps: int, timeout_s: float) -> Measured:
+def scripted_chunks(space: spaces.Box, step: int, n: int, chunk: int) -> np.ndarray:
+    """``scripted_actions`` of step ``step``; with ``chunk`` > 1, ``[n, chunk, action_dim]``
+    (steps ``step * chunk`` onwards)."""
+    if chunk == 1:
+        return scripted_actions(space, step, n)
+    return np.stack([scripted_actions(space, step * chunk + k, n) for k in range(chunk)], axis=1)
+
+
+def service_rollout(client: StageClient, steps: int, timeout_s: float, chunk: int = 1) -> Measured:
     """The service alone, no policy: reset every env of the client's table, then ``steps`` calls
-    stepping all of them with scripted actions (every stage's call sent at once, then all
-    awaited). Env-steps/s count the steps' time only; the stats' timeline holds every call.
+    stepping all of them with scripted actions, ``chunk`` per env and call (every stage's call
+    sent at once, then all awaited). Env-steps/s count the steps' time only; the stats' timeline
+    holds every call.
 
     Raises:
         TimeoutError: a call took longer than ``timeout_s``.
@@ -764,7 +826,7 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float) -> Measur
         stepping = time.perf_counter()
         for step in range(steps):
             keys = {s: client.stage_traj_keys(s) for s in stages}
-            calls = {s: client.step_stage(s, dict(zip(keys[s], scripted_actions(action_space, step, len(keys[s])))))
+            calls = {s: client.step_stage(s, dict(zip(keys[s], scripted_chunks(action_space, step, len(keys[s]), chunk))))
                      for s in stages}  # fmt: skip
             for stage, call in calls.items():
                 batch = call.result(timeout_s)
@@ -773,7 +835,7 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float) -> Measur
                     log.warning("stage %d: %d envs ended at step %d", stage,
                                 int((batch.terminated | batch.truncated).sum()), step)
         ended = time.perf_counter()
-    env_steps = steps * len(routes)
+    env_steps = steps * len(routes) * chunk
     stats = RolloutStats(num_trajectories=len(routes), env_steps=env_steps, wall_s=ended - started,
                          env_steps_per_s=env_steps / max(ended - stepping, 1e-9), simulation_s=ended - started,
                          timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
@@ -1038,39 +1100,56 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
 def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
     """2C pods on C cores (pods i and i+C share core i): the service alone in one stage and one
     half alone (the target of the calibration), then the EnvLoop with the calibrated graphed ViT
-    in 1 stage (all pods) against 2 stages (pods 0..C-1, C..2C-1), interleaved rounds."""
+    in 1 stage (all pods) against 2 stages in each of ``plan.stage_layouts`` (``pods``: pods
+    0..C-1, C..2C-1; ``slices``: every pod's envs alternating stages), interleaved rounds. Every
+    call steps ``plan.chunk`` actions per env."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     half = plan.pods // 2
+    two_stages = {"pods": regroup(table, names, 2), "slices": regroup_slices(table, names, 2)}
     clients: dict[str, TimedStageClient] = {}
+
+    def client_of(routing: RoutingTable) -> TimedStageClient:
+        return TimedStageClient(routing, token=job.token, timeout_s=300, ended_envs="step")
+
     try:
-        clients["stages=1"] = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300, ended_envs="step")
-        clients["stages=2"] = TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300, ended_envs="step")
-        clients["half"] = TimedStageClient(regroup(table, names[:half], 1), token=job.token, timeout_s=300, ended_envs="step")
-        one, two = clients["stages=1"], clients["stages=2"]
+        clients["stages=1"] = client_of(regroup(table, names, 1))
+        for layout in plan.stage_layouts:
+            clients[f"{layout}/stages=2"] = client_of(two_stages[layout])
+        clients["half"] = client_of(regroup(table, names[:half], 1))
+        one = clients["stages=1"]
+        k = plan.chunk
         for client in (one, clients["half"]):  # warm-up
-            service_rollout(client, min(plan.service_steps, 2), 300)
-        service = interleave({"service/stages=1": lambda: service_rollout(one, plan.service_steps, 300),
-                              "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300)},
+            service_rollout(client, min(plan.service_steps, 2), 300, k)
+        service = interleave({"service/stages=1": lambda: service_rollout(one, plan.service_steps, 300, k),
+                              "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300, k)},
                              plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))  # fmt: skip
         target_ms = breakdown(service["service/stages=1"])["stage_call_ms"]
         batch = one.routing.num_envs
-        stage_sizes = [stage.num_envs for stage in two.routing.stages]
+        stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages})
         space, action = one.observation_space, one.action_space
         graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes])
-        for name in ("stages=1", "stages=2"):  # warm-up of the loop
-            loop_rollout(clients[name], graphed, min(plan.horizon, 2), plan.device)
+        policy = Chunked(graphed, k)
+        contenders = ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
+        for name in contenders:  # warm-up of the loop
+            loop_rollout(clients[name], policy, min(plan.horizon, 2 * k), plan.device)
         log.info("warm-up done, %.0f s left", deadline.left())
-        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, graphed, plan.horizon, plan.device))
-                            for name in ("stages=1", "stages=2")}, plan.rounds, deadline, reserve_s=20)  # fmt: skip
+        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device))
+                            for name in contenders}, plan.rounds, deadline, reserve_s=20)  # fmt: skip
     finally:
         for client in clients.values():
             client.close()
     rates = {name: [m.env_steps_per_s for m in runs] for name, runs in loops.items()}
     return {
-        "policy": policy_info,
+        "policy": {**policy_info, "chunk": plan.chunk},
         "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
         "loop": {name: summarise(runs) for name, runs in loops.items()},
-        "speedup_2_vs_1": paired_ratio(rates["stages=2"], rates["stages=1"]),
+        "speedup_2_vs_1": {
+            layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1"]) for layout in plan.stage_layouts
+        },
+        "stage_envs": {
+            layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
+            for layout in plan.stage_layouts
+        },
         "per_round": {name: [round(m.env_steps_per_s, 2) for m in runs] for name, runs in {**service, **loops}.items()},
     }
 
@@ -1441,24 +1520,28 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     plt = _pyplot()
     loop, policy = summary["loop"], summary["policy"]
     fig, (left, right) = plt.subplots(1, 2, figsize=(10.0, 4.0))
-    rates = [loop[f"stages={s}"]["env_steps_per_s"]["median"] for s in (1, 2)]
-    bars = left.bar(["1 stage\n(all pods)", "2 stages\n(pods sharing cores split)"], rates,
-                    color=["tab:blue", "tab:orange"])  # fmt: skip
+    layouts = list(summary["speedup_2_vs_1"])
+    names = ["stages=1", *(f"{layout}/stages=2" for layout in layouts)]
+    rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
+    labels = ["1 stage\n(all pods)", *(f"2 stages\n({layout})" for layout in layouts)]
+    bars = left.bar(labels, rates, color=["tab:blue", "tab:orange", "tab:green"][: len(names)])
     left.bar_label(bars, fmt="%.1f", fontsize=8)
     left.set_ylabel("env-steps/s")
-    left.set_title(f"pipelining: {summary['speedup_2_vs_1']['median']:.2f}x (target {PIPELINE_TARGET}x)", fontsize=9)
-    labels = ["1 stage", "2 stages"]
-    x = np.arange(2)
+    ratios = ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in summary["speedup_2_vs_1"].items())
+    left.set_title(f"pipelining at K={policy.get('chunk', 1)}: {ratios} (target {PIPELINE_TARGET}x)", fontsize=9)
+    x = np.arange(len(names))
     width = 0.27
-    alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0),
-             statistics.mean(policy["forward_ms"].get(str(b), 0) for b in summary["setup"]["stage_envs"])]
+    sizes = summary["setup"]["stage_envs_by_layout"]
+    alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] + [
+        statistics.mean(policy["forward_ms"].get(str(sum(stage)), 0) for stage in sizes[layout]) for layout in layouts
+    ]
     for offset, (label, values) in enumerate((
-        ("stage call (loop)", [loop[f"stages={s}"]["time_split_ms"]["stage_call_ms"] for s in (1, 2)]),
-        ("policy per call (loop)", [loop[f"stages={s}"]["time_split_ms"]["policy_ms"] for s in (1, 2)]),
+        ("stage call (loop)", [loop[name]["time_split_ms"]["stage_call_ms"] for name in names]),
+        ("policy per call (loop)", [loop[name]["time_split_ms"]["policy_ms"] for name in names]),
         ("policy alone" + (" (CUDA graph)" if policy["cuda_graphs"] else " (eager)"), alone),
     )):  # fmt: skip
         right.bar(x + (offset - 1) * width, values, width, label=label)
-    right.set_xticks(x, labels)
+    right.set_xticks(x, [label.replace("\n", " ") for label in labels], fontsize=7)
     right.set_ylabel("ms")
     right.set_title(f"{policy['name'].split(' + ')[0]}", fontsize=8)
     right.legend(fontsize=7)
@@ -1478,12 +1561,15 @@ def camera_names(setup: dict[str, Any]) -> list[str]:
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
-    """The run's sizes: ``--gpu`` or ``--cpu-small`` defaults, ``--dry`` shrinks, then overrides."""
+    """The run's sizes: ``--gpu``, ``--cpu-small`` or ``--quick`` defaults, ``--dry`` shrinks,
+    then overrides."""
     from vecsim.tasks import suite_tasks
 
-    gpu, dry = args.gpu, args.dry
+    gpu, dry, quick = args.gpu, args.dry, args.quick
     if args.tasks:
         tasks = tuple(t for t in args.tasks.split(",") if t)
+    elif quick:
+        tasks = QUICK_TASKS
     else:
         every = tuple(t.task_id for t in suite_tasks("libero_10"))
         tasks = every if gpu else every[:2]
@@ -1502,25 +1588,35 @@ def make_plan(args: argparse.Namespace) -> Plan:
         counts = tuple(sorted({c for c in given if 1 <= c <= pods} | {1, pods}))
     cuda = torch.cuda.is_available()
     max_depth = args.vit_max_depth or (512 if gpu else 256)
+    chunk = args.chunk
+    if chunk < 1:
+        raise SystemExit(f"--chunk must be at least 1, got {chunk}")
+    layouts = tuple(dict.fromkeys(x for x in args.stage_layout.split(",") if x))
+    if not layouts or set(layouts) - set(STAGE_LAYOUTS):
+        raise SystemExit(f"--stage-layout: a comma-separated list of {list(STAGE_LAYOUTS)}, got {args.stage_layout!r}")
+    # The horizon counts actions: by default as many calls at K as at K=1.
+    horizon = 2 * chunk if dry else args.horizon or (30 if gpu else 6 if quick else 3) * chunk
     return Plan(
         mode=args.only,
         tasks=tasks[:per_pod],
-        size=args.size or (256 if gpu else 64),
-        envs_per_task=args.envs_per_task or 1,
+        size=args.size or (256 if gpu else 16 if quick else 64),
+        envs_per_task=args.envs_per_task or (QUICK_ENVS_PER_TASK if quick else 1),
         pods=pods,
         pod_counts=counts,
         pipeline_cores=cores,
-        horizon=2 if dry else args.horizon or (30 if gpu else 3),
+        horizon=horizon,
         service_steps=2 if dry else args.service_steps or (30 if gpu else 3),
-        rounds=1 if dry else args.rounds or (3 if gpu else 1),
+        rounds=1 if dry else args.rounds or (3 if gpu else 2 if quick else 1),
         device="cuda" if cuda else "cpu",
         dtype="bfloat16" if cuda else "float32",
-        vit_width=args.vit_width or (768 if gpu else 192),
-        vit_max_depth=min(max_depth, 4) if dry else max_depth,
+        vit_width=args.vit_width or (768 if gpu else 64 if quick else 192),
+        vit_max_depth=min(max_depth, 4) if dry else min(max_depth, 32) if quick else max_depth,
         max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
         render_preset=args.render_preset,
         render_gpu=args.render_gpu,
+        chunk=chunk,
+        stage_layouts=layouts,
     )
 
 
@@ -1534,7 +1630,8 @@ def run_mode(args: argparse.Namespace) -> int:
     """``--only scaling`` or ``--only pipeline`` (with ``--gpu``, ``--cpu-small``, ``--dry``)."""
     deadline = Deadline(args.deadline)
     plan = make_plan(args)
-    tag = ("_dry" if args.dry else "" if args.gpu else "_cpu") + (f"_{args.tag}" if args.tag else "")
+    tag = ("_dry" if args.dry else "" if args.gpu else "_quick" if args.quick else "_cpu") + (
+        f"_{args.tag}" if args.tag else "")  # fmt: skip
     gl = gl_probe()
     gpu = gpu_name()
     log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu, torch.__version__, plan.device)
@@ -1600,6 +1697,7 @@ def run_mode(args: argparse.Namespace) -> int:
     }
     details = {"per_round": measured.pop("per_round")}
     summary: dict[str, Any] = {"quick": not args.gpu, "dry": args.dry}
+    setup["chunk"] = plan.chunk
     if plan.mode == "scaling":
         physical = topology["physical_cores"]
         top = f"pods={plan.pods}"
@@ -1623,13 +1721,16 @@ def run_mode(args: argparse.Namespace) -> int:
                     "scaling_loop_stage_per_pod": loop_per_pod is not None and loop_per_pod >= SCALING_TARGET},
         })  # fmt: skip
     else:
-        speedup = measured["speedup_2_vs_1"]["median"]
+        speedups = {layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1"].items()}
         setup["stage_envs"] = [plan.envs_per_pod * (plan.pods // 2)] * 2
+        setup["stage_envs_by_layout"] = measured.pop("stage_envs")
         summary.update({
             "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy",
-            "ratio": speedup,
-            "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage",
-            "met": {"pipelining": speedup >= PIPELINE_TARGET},
+            # The headline: the first layout measured (--stage-layout's order; 'slices' by default).
+            "ratio": speedups[plan.stage_layouts[0]],
+            "ratio_by_layout": speedups,
+            "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage at K={plan.chunk}",
+            "met": {f"pipelining_{layout}": speedup >= PIPELINE_TARGET for layout, speedup in speedups.items()},
         })  # fmt: skip
     summary.update({"setup": setup, "topology": topology, "gpu": gpu, "gl": gl, **measured})
     if args.dry:
@@ -1652,6 +1753,8 @@ def main() -> int:
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--gpu", action="store_true", help="LIBERO-10 at 256x256 with its defaults; GL must be NVIDIA's")
     mode.add_argument("--cpu-small", action="store_true", help="2 LIBERO-10 tasks per pod, 64x64, few pods (Mesa)")
+    mode.add_argument("--quick", action="store_true",
+                      help="--only pipeline on this machine in about 2 min: a cheap gym scene, 16x16, a tiny ViT")
     mode.add_argument("--render-compare", action="store_true",
                       help="one pod of one scene (default libero_10/0, 256x256, 4 envs): default EGL, then Mesa's")
     parser.add_argument("--only", choices=("scaling", "pipeline"),
@@ -1669,6 +1772,11 @@ def main() -> int:
     parser.add_argument("--horizon", type=int, help="steps per trajectory in each EnvLoop rollout")
     parser.add_argument("--service-steps", type=int, help="steps per service-alone rollout")
     parser.add_argument("--rounds", type=int)
+    parser.add_argument("--chunk", type=int, default=1,
+                        help="pipeline: actions per env per call, the policy's chunk K (default 1; issue 27: 8)")
+    parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
+                        help="pipeline: the 2-stage layouts to measure against 1 stage, comma-separated "
+                        "(slices, pods; default both, side by side)")
     parser.add_argument("--vit-width", type=int, help="pipeline: the ViT's width (default 768; --cpu-small 192)")
     parser.add_argument("--vit-max-depth", type=int,
                         help="pipeline: the calibration's cap (default 512; --cpu-small 256)")
@@ -1685,8 +1793,17 @@ def main() -> int:
     args = parser.parse_args()
     setup_logging()
     os.environ.setdefault("MUJOCO_GL", "egl")
+    if args.gpu and not torch.cuda.is_available():
+        # Before anything starts (GL probe, pods): a machine without a GPU fails at once.
+        log.error("--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
+                  torch.__version__)  # fmt: skip
+        return 2
     if args.render_compare:
         return render_compare(args)
+    if args.quick:
+        if args.only not in (None, "pipeline"):
+            parser.error("--quick measures the pipeline only: leave --only out or say --only pipeline")
+        args.only = "pipeline"
     if args.only is None:
         parser.error("--only scaling or --only pipeline: each measurement is its own run")
     return run_mode(args)

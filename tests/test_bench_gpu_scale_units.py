@@ -88,3 +88,33 @@ def test_memory_below_the_limit_lets_the_run_finish_and_keeps_the_peak(bench):
     with bench.MemoryWatch(limit_gib=1e6, every_s=0.05) as watch:
         pass
     assert watch.tripped is None and watch.peak_gib > 0
+
+
+def test_the_slices_view_puts_every_pod_in_both_stages_with_its_envs_alternating(bench):
+    from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
+
+    pods = [
+        RoutedPod(pod=f"sim-{i}", url=f"http://127.0.0.1:{8100 + i}", num_envs=3,
+                  tasks=(TaskBlock(task_id="a", env_start=0, num_envs=2), TaskBlock(task_id="b", env_start=2, num_envs=1)))
+        for i in range(2)
+    ]  # fmt: skip
+    table = RoutingTable(generation=1, job_id="j", ready=True,
+                         stages=tuple(RoutedStage(stage_id=i, pods=(p,)) for i, p in enumerate(pods)))  # fmt: skip
+    sliced = bench.regroup_slices(table, ["sim-0", "sim-1"], 2)
+    assert [[p.pod for p in stage.pods] for stage in sliced.stages] == [["sim-0", "sim-1"]] * 2
+    envs = {(s.stage_id, p.pod): [(b.task_id, b.env_start) for b in p.tasks] for s in sliced.stages for p in s.pods}
+    assert envs[(0, "sim-0")] == [("a", 0), ("b", 2)] and envs[(1, "sim-0")] == [("a", 1)]
+    # The alternation runs on into the next pod: its first env is on stage 1, so stages stay even.
+    assert envs[(1, "sim-1")] == [("a", 0), ("b", 2)] and envs[(0, "sim-1")] == [("a", 1)]
+    assert [stage.num_envs for stage in sliced.stages] == [3, 3]
+    # Request i on stage i % 2: stage 0's a, b, a against stage 1's a, a, b.
+    assert [task for task, _ in bench.requests_for(sliced)] == ["a", "a", "b", "a", "a", "b"]
+
+
+def test_a_chunked_policy_repeats_its_action_k_times(bench):
+    import torch
+
+    policy = bench.Chunked(lambda obs, instructions, task_ids: torch.arange(6.0).view(3, 2), 4)
+    chunks = policy({}, [""] * 3, [""] * 3)
+    assert chunks.shape == (3, 4, 2) and torch.equal(chunks[:, 3], torch.arange(6.0).view(3, 2))
+    assert bench.Chunked(lambda *a: torch.ones(3, 2), 1)({}, [], []).shape == (3, 2)

@@ -118,13 +118,17 @@ def test_scaling_records_the_cpu_topology_pins_memory_and_every_pods_task_mix(sc
 def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_stages(pipeline):
     summary, root = pipeline
     assert summary["name"] == "bench_gpu_scale_pipeline_cpu" and isinstance(summary["ratio"], float)
-    assert set(summary["met"]) == {"pipelining"}
+    assert set(summary["met"]) == {"pipelining_slices", "pipelining_pods"}
     setup = summary["setup"]
     assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
-    assert set(summary["loop"]) == {"stages=1", "stages=2"}
+    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
     assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
-    assert summary["speedup_2_vs_1"]["n"] == 1
-    assert summary["loop"]["stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1"].items()} == {"slices": 1, "pods": 1}
+    assert summary["ratio"] == summary["ratio_by_layout"]["slices"]
+    # pods: a stage is one pod; slices: every pod holds half its envs on each stage.
+    assert setup["stage_envs_by_layout"] == {"pods": [[2], [2]], "slices": [[1, 1], [1, 1]]}
+    assert summary["loop"]["pods/stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert summary["loop"]["slices/stages=2"]["time_split_ms"]["pods_per_call"] == 1
     assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
     assert all((root / p).is_file() for p in summary["plots"])
 
@@ -138,6 +142,7 @@ def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
     assert policy["name"].startswith("ViT") and 1 <= policy["depth"] <= summary["setup"]["vit_max_depth"]
     assert policy["capped"] == (policy["depth_wanted"] > summary["setup"]["vit_max_depth"])
     assert policy["target_batch"] == 4 and set(policy["forward_ms"]) == {"2", "4"}
+    assert policy["chunk"] == 1
 
 
 @pytest.mark.timeout(180)
@@ -171,7 +176,29 @@ def test_a_run_without_only_is_refused_naming_the_option(tmp_path):
 
 
 @pytest.mark.timeout(60)
-def test_gpu_mode_refuses_a_renderer_that_is_not_nvidias(tmp_path):
-    done = run_bench(tmp_path, "--gpu", "--only", "scaling", "--dry", *GYM, timeout=50)
-    assert done.returncode == 2 and "not NVIDIA" in done.stderr
-    assert "RESULT" not in done.stdout
+def test_gpu_mode_fails_at_once_where_torch_sees_no_gpu(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    done = run_bench(tmp_path, "--gpu", "--only", "pipeline", "--chunk", "8", *GYM, timeout=50)
+    assert done.returncode == 2 and "--gpu: torch sees no CUDA device" in done.stderr
+    assert "RESULT" not in done.stdout and "starting" not in done.stderr  # no job was started
+
+
+@pytest.mark.timeout(150)
+def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
+    done = run_bench(tmp_path, "--quick", "--chunk", "4", "--rounds", "1", timeout=140)
+    summary = result_of(done)
+    assert summary["name"] == "bench_gpu_scale_pipeline_quick" and summary["setup"]["chunk"] == 4
+    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
+    assert set(summary["ratio_by_layout"]) == {"slices", "pods"} and summary["target"].endswith("at K=4")
+    # The horizon counts actions: a chunk of K takes K of them per call.
+    assert summary["setup"]["horizon"] % 4 == 0
+    assert (tmp_path / "out" / "bench" / "bench_gpu_scale_pipeline_quick.json").is_file()
+
+
+@pytest.mark.timeout(60)
+def test_an_unknown_stage_layout_is_refused_naming_the_option(tmp_path):
+    done = run_bench(tmp_path, "--quick", "--stage-layout", "slices,rows", timeout=50)
+    assert done.returncode != 0 and "--stage-layout" in done.stderr

@@ -25,6 +25,15 @@ ImageOrientation = Literal["upright", "rotate180", "raw"]
 # env per task, seeded once, reset once per episode); ``first_reset``: where a freshly built env's
 # first reset puts them, for every k.
 FixtureRule = Literal["published", "first_reset"]
+# How a job's pipeline stages sit on its pods (docs/control-plane.md, "Stage layouts"):
+# ``slices``: every pod holds envs of every stage, so a stage is a slice of every pod (RLinf's
+# layout: while the policy works on one stage, every pod simulates another); ``pods``: each pod
+# holds one stage's envs (the seed's layout, for sim nodes apart from the trainer's).
+StageLayout = Literal["slices", "pods"]
+STAGE_LAYOUT_DOC = (
+    "how stages sit on pods: 'slices' (every pod holds envs of every stage; pods_per_stage counts "
+    "all the job's pods) or 'pods' (each pod holds one stage; pods_per_stage pods per stage)"
+)
 
 
 
@@ -105,11 +114,16 @@ def _auto_to_zero(value: object) -> object:
 
 
 class TaskBlock(_Model):
-    """A contiguous block of a pod's envs that all run one task."""
+    """A contiguous block of a pod's envs that all run one task for one stage.
+
+    ``stage_id`` is the stage the block's envs serve; ``None``: the stage of the pod's
+    assignment (a pod of the ``pods`` layout holds one stage, so its blocks leave it unset).
+    """
 
     task_id: str
     env_start: int = Field(ge=0)
     num_envs: int = Field(ge=0)
+    stage_id: int | None = Field(None, ge=0)
 
 
 class EnvSettings(_Model):
@@ -128,13 +142,32 @@ class EnvSettings(_Model):
 
 
 class Assignment(EnvSettings):
-    """What the controller tells one pod to run (``PUT /v1/assignment``)."""
+    """What the controller tells one pod to run (``PUT /v1/assignment``).
+
+    ``stage_id`` is the pod's one stage (``pods`` layout), or ``None`` when the pod holds envs of
+    several stages (``slices`` layout): then every block names its own ``stage_id``.
+    """
 
     generation: int = Field(ge=0)
     job_id: str = "default"
     pod: str
-    stage_id: int = Field(ge=0)
+    stage_id: int | None = Field(ge=0)
     tasks: tuple[TaskBlock, ...] = ()
+
+    @model_validator(mode="after")
+    def _blocks_have_stages(self) -> "Assignment":
+        if self.stage_id is None:
+            unstaged = [b.task_id for b in self.tasks if b.stage_id is None]
+            if unstaged:
+                raise ValueError(
+                    f"tasks: block for {unstaged[0]!r} has no stage_id; an assignment without a stage_id "
+                    "(the 'slices' layout) names the stage of every block"
+                )
+        return self
+
+    def stage_of_block(self, block: TaskBlock) -> int | None:
+        """The stage ``block``'s envs serve: its own ``stage_id``, else the assignment's."""
+        return block.stage_id if block.stage_id is not None else self.stage_id
 
     @model_validator(mode="after")
     def _blocks_are_contiguous(self) -> "Assignment":
@@ -167,7 +200,15 @@ class JobSpec(EnvSettings):
     tasks: tuple[str, ...] = ()
     group_size: int = Field(4, ge=0, description="envs per task per stage")
     num_stages: int = Field(2, ge=1)
-    pods_per_stage: int = Field(1, ge=1)
+    pods_per_stage: int = Field(
+        1,
+        ge=1,
+        description=(
+            "'pods' layout: the pods of each stage (num_stages x pods_per_stage pods in all); "
+            "'slices' layout: the job's pods, each holding every stage's share of its tasks"
+        ),
+    )
+    stage_layout: StageLayout = Field("pods", description=STAGE_LAYOUT_DOC)
 
     @model_validator(mode="after")
     def _suite_or_tasks(self) -> "JobSpec":
@@ -179,6 +220,10 @@ class JobSpec(EnvSettings):
 
     @property
     def pods_needed(self) -> int:
+        """The pods that hold the job's envs (its slots): ``pods_per_stage`` in the ``slices``
+        layout, ``num_stages x pods_per_stage`` in the ``pods`` layout."""
+        if self.stage_layout == "slices":
+            return self.pods_per_stage
         return self.num_stages * self.pods_per_stage
 
 

@@ -1,9 +1,13 @@
 """Planning: which pod runs which tasks for which pipeline stage (pure, no I/O).
 
-A job asks for ``num_stages`` stages of ``pods_per_stage`` *slots* each. Every stage runs all
-the job's tasks, ``group_size`` envs per task; a stage's tasks split over its slots in
-contiguous ranges, remainders spread evenly over the first slots (10 tasks over 3 slots ->
-4, 3, 3). A slot with no tasks is a spare with zero envs.
+Every stage runs all the job's tasks, ``group_size`` envs per task. The job's ``stage_layout``
+says how stages sit on *slots* (one pod each). ``pods``: ``num_stages`` stages of
+``pods_per_stage`` slots, a stage's tasks split over its slots. ``slices``: ``pods_per_stage``
+slots in all, each holding every stage's share of its tasks; a task's envs alternate stage by
+stage (env 0 stage 0, env 1 stage 1, ...), so that each worker process of the pod, which hosts
+consecutive envs, holds envs of every stage and stays busy whichever stage the pod steps. Tasks
+split over slots in contiguous ranges, remainders spread over the first slots (10 tasks over 3
+slots -> 4, 3, 3). A slot with no tasks is a spare with zero envs.
 
 Slot holders are stable: :func:`plan` keeps a slot's pod while that pod is alive. A slot whose
 pod is gone stays unfilled until a pod of the same name comes back (the StatefulSet
@@ -36,19 +40,20 @@ def stage_of(i: int, num_stages: int) -> int:
     return i % num_stages
 
 
-SlotKey = tuple[int, int]
-"""``(stage_id, index of the slot within its stage)``."""
+SlotKey = tuple[int | None, int]
+"""``(stage_id, index of the slot within its stage)``; stage ``None``: a ``slices`` slot (every stage)."""
 
 
 @dataclass(frozen=True)
 class Slot:
     """One pod's worth of a stage: a contiguous range of the job's tasks and who runs it.
 
-    ``pod`` is the holder (``None``: unfilled); ``last_pod`` remembers who held it last, so
-    that the slot goes back to a pod of that name when it returns.
+    ``stage_id`` ``None``: a slot of the ``slices`` layout, whose blocks serve every stage (each
+    block names its own). ``pod`` is the holder (``None``: unfilled); ``last_pod`` remembers who
+    held it last, so that the slot goes back to a pod of that name when it returns.
     """
 
-    stage_id: int
+    stage_id: int | None
     index: int
     tasks: tuple[TaskBlock, ...]
     pod: str | None = None
@@ -59,12 +64,23 @@ class Slot:
         return (self.stage_id, self.index)
 
     @property
+    def name(self) -> str:
+        """``stage 1 slot 0``, or ``slot 0 (every stage)`` for a ``slices`` slot: for messages."""
+        return f"slot {self.index} (every stage)" if self.stage_id is None else f"stage {self.stage_id} slot {self.index}"
+
+    @property
     def num_envs(self) -> int:
         return sum(block.num_envs for block in self.tasks)
 
     @property
     def task_ids(self) -> tuple[str, ...]:
-        return tuple(block.task_id for block in self.tasks)
+        return tuple(dict.fromkeys(block.task_id for block in self.tasks))
+
+    def blocks_of(self, stage_id: int) -> tuple[TaskBlock, ...]:
+        """The slot's blocks whose envs serve ``stage_id``."""
+        if self.stage_id is not None:
+            return self.tasks if self.stage_id == stage_id else ()
+        return tuple(block for block in self.tasks if block.stage_id == stage_id)
 
 
 @dataclass(frozen=True)
@@ -125,7 +141,9 @@ class Plan:
         return replace(self, generation=generation)
 
     def routing_table(self, urls: Mapping[str, str], *, ready: bool = False) -> RoutingTable:
-        """Returns the routing table of this plan: each stage's filled slots with their pods' urls.
+        """Returns the routing table of this plan: each stage's filled slots with their pods' urls
+        and, per pod, the blocks (env ids) that serve the stage. In the ``slices`` layout every
+        pod is in every stage, each time with that stage's blocks only.
 
         Raises:
             KeyError: a slot holder has no entry in ``urls`` (the message names the pod).
@@ -134,16 +152,20 @@ class Plan:
         for stage_id in range(self.job.num_stages):
             routed = []
             for slot in self.slots:
-                if slot.stage_id != stage_id or slot.pod is None:
+                if slot.stage_id not in (stage_id, None) or slot.pod is None:
                     continue
                 if slot.pod not in urls:
                     raise KeyError(f"no url for pod {slot.pod!r} (holds slot {slot.key})")
-                routed.append(RoutedPod(pod=slot.pod, url=urls[slot.pod], num_envs=slot.num_envs, tasks=slot.tasks))
+                blocks = slot.blocks_of(stage_id)
+                num_envs = sum(block.num_envs for block in blocks)
+                routed.append(RoutedPod(pod=slot.pod, url=urls[slot.pod], num_envs=num_envs, tasks=blocks))
             stages.append(RoutedStage(stage_id=stage_id, pods=tuple(routed)))
         return RoutingTable(generation=self.generation, job_id=self.job_id, ready=ready, stages=tuple(stages))
 
 
-def _assignment(job: JobSpec, generation: int, pod: str, stage_id: int, tasks: tuple[TaskBlock, ...]) -> Assignment:
+def _assignment(
+    job: JobSpec, generation: int, pod: str, stage_id: int | None, tasks: tuple[TaskBlock, ...]
+) -> Assignment:
     settings = {name: getattr(job, name) for name in EnvSettings.model_fields}
     settings["make_kwargs"] = {task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}}
     return Assignment(generation=generation, job_id=job.job_id, pod=pod, stage_id=stage_id, tasks=tasks, **settings)
@@ -166,8 +188,36 @@ def split_tasks(tasks: Sequence[str], parts: int) -> list[tuple[str, ...]]:
     return ranges
 
 
+def slice_blocks(task_range: Sequence[str], group_size: int, num_stages: int) -> tuple[TaskBlock, ...]:
+    """Returns a ``slices`` slot's blocks: per task, ``group_size x num_stages`` consecutive envs
+    whose stages alternate (env ``k`` of the task serves stage ``k % num_stages``), one block per
+    env (one per task and stage for ``group_size`` 0: empty blocks, as the ``pods`` layout has).
+    With one stage, one block per task."""
+    blocks: list[TaskBlock] = []
+    start = 0
+    for task_id in task_range:
+        if group_size == 0:
+            blocks += [TaskBlock(task_id=task_id, env_start=start, num_envs=0, stage_id=s) for s in range(num_stages)]
+            continue
+        for k in range(group_size * num_stages):
+            stage_id = k % num_stages
+            last = blocks[-1] if blocks else None
+            if last is not None and last.task_id == task_id and last.stage_id == stage_id:
+                blocks[-1] = last.model_copy(update={"num_envs": last.num_envs + 1})
+            else:
+                blocks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=1, stage_id=stage_id))
+            start += 1
+    return tuple(blocks)
+
+
 def slot_contents(job: JobSpec, tasks: Sequence[str]) -> list[Slot]:
-    """Returns the job's unfilled slots, stage-major, each with its task blocks."""
+    """Returns the job's unfilled slots, each with its task blocks: stage-major for the ``pods``
+    layout, ``pods_per_stage`` slots of stage ``None`` (every stage) for ``slices``."""
+    if job.stage_layout == "slices":
+        return [
+            Slot(stage_id=None, index=index, tasks=slice_blocks(task_range, job.group_size, job.num_stages))
+            for index, task_range in enumerate(split_tasks(tasks, job.pods_per_stage))
+        ]
     slots = []
     for stage_id in range(job.num_stages):
         for index, task_range in enumerate(split_tasks(tasks, job.pods_per_stage)):
@@ -311,12 +361,14 @@ def validate_job(
         if known_tasks is not None and task_id not in known_tasks:
             problems.append(f"tasks: unknown task {task_id!r}; use a task id of a known suite (e.g. 'tiny/lift')")
     per_slot_tasks = math.ceil(len(tasks) / job.pods_per_stage) if tasks else 0
-    slot_envs = per_slot_tasks * job.group_size
+    stages_per_slot = job.num_stages if job.stage_layout == "slices" else 1
+    slot_envs = per_slot_tasks * job.group_size * stages_per_slot
+    times_stages = f" x {job.num_stages} stages (stage_layout 'slices')" if stages_per_slot > 1 else ""
     for record in sorted(pods, key=lambda r: pod_sort_key(r.pod)):
         if record.capacity.max_envs < slot_envs:
             problems.append(
                 f"capacity: pod {record.pod!r} holds at most {record.capacity.max_envs} envs but a slot needs "
-                f"{slot_envs} ({per_slot_tasks} tasks x group_size {job.group_size}); raise pods_per_stage "
+                f"{slot_envs} ({per_slot_tasks} tasks x group_size {job.group_size}{times_stages}); raise pods_per_stage "
                 f"(now {job.pods_per_stage}), lower group_size, or raise the pods' max_envs (VECSIM_MAX_ENVS)"
             )
     return problems

@@ -1,6 +1,7 @@
 """EnvLoop: the pipelined rollout. Read :meth:`EnvLoop.run` top to bottom.
 
-Reset every trajectory, each pod in a call of its own (:meth:`StageClient.pod_call`), then loop:
+Reset every trajectory, one call per lane (a stage's envs on one pod: a pod of the ``slices``
+layout is in a lane of every stage, :meth:`StageClient.pod_call`), then loop:
 take the answers of the next stage in turn (s+1, s+2, ...) of which some pod's answer is in
 (waiting, only when none is, for whichever lands first), run the policy on the observations of
 that stage's landed pods, and send each of those pods its next actions without waiting. There
@@ -74,6 +75,8 @@ __all__ = [
 
 # policy(observations, instructions, task_ids) -> actions [n, action_dim] or chunks [n, K, action_dim]
 Policy = Callable[[dict[str, Any], list[str], list[str]], torch.Tensor]
+# (stage_id, pod): one stage's envs on one pod, what one call of the loop steps.
+Lane = tuple[int, str]
 
 
 # -- the example policy --------------------------------------------------------------------------
@@ -345,22 +348,26 @@ class EnvLoop:
         recorded = self._recorded_keys(keys)
         recorder = _Recorder(recorded, self._video_camera())
         clock = _Clock(started, self.log_every_s)
-        stage_pods = {stage.stage_id: [routed.pod for routed in stage.pods] for stage in self.client.routing.stages}
-        pod_stage = {pod: stage for stage, pods in stage_pods.items() for pod in pods}
+        # A lane is one stage's envs on one pod, (stage, pod): the unit a call goes to. A pod of
+        # the 'slices' layout is in a lane of every stage, each with a call of its own.
+        stage_pods = {stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
+                      for stage in self.client.routing.stages}  # fmt: skip
+        pod_stage = {lane: lane[0] for lanes in stage_pods.values() for lane in lanes}
         inflight = _InFlight(pod_stage)
         lost: dict[str, LostTrajectory] = {}
         failed: set[str] = set()  # pods that failed a call: no request is started on them any more
 
         try:
-            # Reset every pod at once; then serve whichever stage is next in line, pod by pod.
+            # Reset every lane at once; then serve whichever stage is next in line, lane by lane.
             for pod in pod_stage:
-                self._send(pod, [key for key, route in routes.items() if route.pod == pod], {}, inflight, buffers, lost, recorded)
+                self._send(pod, [key for key, route in routes.items() if (route.stage_id, route.pod) == pod], {},
+                           inflight, buffers, lost, recorded)  # fmt: skip
             turn = -1  # the stage served last
             while inflight.calls:
                 stage = clock.next_ready(inflight, turn)  # the next stage in turn with a pod's answer in
                 turn = stage
                 landed = clock.gather(stage, inflight, self.max_batch, self.batch_wait_s)
-                live: list[tuple[str, StageBatch, int]] = []  # (pod, batch, row) still running
+                live: list[tuple[Lane, StageBatch, int]] = []  # (lane, batch, row) still running
                 ended: list[str] = []
                 for pod in landed:
                     for batch in self._take(pod, stage, inflight, clock, buffers, lost, failed):
@@ -410,7 +417,7 @@ class EnvLoop:
 
     def _take(
         self,
-        pod: str,
+        pod: Lane,
         stage: int,
         inflight: _InFlight,
         clock: _Clock,
@@ -424,7 +431,7 @@ class EnvLoop:
         try:
             return [batch for batch in clock.take(stage, call, pod) if batch.n]
         except (PodUnavailableError, RoutingChangedError) as exc:
-            failed.add(pod)
+            failed.add(pod[1])
             answered = [batch for batch in (exc.answered or ()) if batch is not None and batch.n]
             got = {key for batch in answered for key in batch.traj_keys}
             lost.update(self._lose([key for key in carried if key not in got], buffers, exc))
@@ -440,18 +447,18 @@ class EnvLoop:
         requests: Sequence[tuple[str, int]],
         keys: Sequence[str],
         cap_of: Mapping[str, int],
-        pods: list[str],
+        pods: list[Lane],
         failed: set[str],
         buffers: dict[str, _Buffer],
-    ) -> dict[str, list[str]]:
+    ) -> dict[Lane, list[str]]:
         """Free the envs of ``ended`` trajectories and place waiting requests (in request order)
-        on free envs of their task on ``pods``; return the new traj_keys to reset, by pod."""
-        resets: dict[str, list[str]] = {}
+        on free envs of their task on the lanes ``pods``; return the new traj_keys to reset, by lane."""
+        resets: dict[Lane, list[str]] = {}
         if not waiting:
             return resets
         live = self.client.routes
         self.client.retire_trajectories([key for key in ended if key in live])
-        candidates = [pod for pod in pods if pod not in failed]
+        candidates = [pod for _, pod in pods if pod not in failed]
         full: set[str] = set()  # tasks with no free env left on the candidates
         for i in list(waiting):
             if requests[i][0] in full:
@@ -462,12 +469,12 @@ class EnvLoop:
                 continue
             waiting.remove(i)
             buffers[keys[i]] = _Buffer(keys[i], route, self.keep_obs, cap_of[keys[i]])
-            resets.setdefault(route.pod, []).append(keys[i])
+            resets.setdefault((route.stage_id, route.pod), []).append(keys[i])
         return resets
 
     def _send(
         self,
-        pod: str,
+        pod: Lane,
         reset: list[str],
         step: dict[str, np.ndarray],
         inflight: _InFlight,
@@ -475,8 +482,8 @@ class EnvLoop:
         lost: dict[str, LostTrajectory],
         recorded: Sequence[str] = (),
     ) -> None:
-        """Send one pod its resets and its actions in one call, noted in ``inflight`` (nothing to
-        send: no call).
+        """Send one lane (a stage's envs on a pod) its resets and its actions in one call, noted in
+        ``inflight`` (nothing to send: no call).
 
         Trajectories whose envs went away when another call re-read the routing are refused
         before anything is sent: they are lost, and the rest is sent without them.
@@ -485,7 +492,7 @@ class EnvLoop:
             try:
                 chunked = bool(step) and next(iter(step.values())).ndim == 2
                 record = [key for key in recorded if key in step] if chunked else []
-                call = self.client.pod_call(pod, reset=reset, step=step, record=record)
+                call = self.client.pod_call(pod[1], reset=reset, step=step, record=record)
             except RoutingChangedError as exc:
                 named = set(exc.traj_keys)
                 gone = [key for key in [*reset, *step] if key in named]
@@ -518,8 +525,8 @@ class EnvLoop:
             for key in keys
         }
 
-    def _act(self, rows: list[tuple[str, StageBatch, int]], instructions: Mapping[str, str]) -> list[np.ndarray]:
-        """Run the policy on ``rows`` (``(pod, batch, row)``), at most ``max_batch`` a call;
+    def _act(self, rows: list[tuple[Lane, StageBatch, int]], instructions: Mapping[str, str]) -> list[np.ndarray]:
+        """Run the policy on ``rows`` (``(lane, batch, row)``), at most ``max_batch`` a call;
         return each row's action or chunk as a float32 array."""
         size = self.max_batch or len(rows)
         out: list[np.ndarray] = []
@@ -725,16 +732,16 @@ class _Recorder:
 
 
 class _InFlight:
-    """The call in flight on each pod (at most one) and the traj_keys it carries."""
+    """The call in flight on each lane (at most one) and the traj_keys it carries."""
 
-    def __init__(self, stage_of: Mapping[str, int]) -> None:
+    def __init__(self, stage_of: Mapping[Lane, int]) -> None:
         self.stage_of = stage_of
-        self.calls: dict[str, tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]] = {}
+        self.calls: dict[Lane, tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]] = {}
 
-    def add(self, pod: str, call: PendingCall[tuple[StageBatch, StageBatch]], keys: list[str]) -> None:
+    def add(self, pod: Lane, call: PendingCall[tuple[StageBatch, StageBatch]], keys: list[str]) -> None:
         self.calls[pod] = (call, keys)
 
-    def pop(self, pod: str) -> tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]:
+    def pop(self, pod: Lane) -> tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]:
         return self.calls.pop(pod)
 
     def cancel_all(self) -> None:
@@ -770,7 +777,7 @@ class _Clock:
         finally:
             self.wait_s += time.perf_counter() - begin
 
-    def gather(self, stage: int, inflight: _InFlight, max_batch: int | None, wait_s: float) -> list[str]:
+    def gather(self, stage: int, inflight: _InFlight, max_batch: int | None, wait_s: float) -> list[Lane]:
         """The pods of ``stage`` whose calls have finished, in the stage's pod order; with
         ``wait_s`` > 0, first wait up to that long (timed as waiting) for the stage's other pods
         while their rows would still fit in ``max_batch``."""

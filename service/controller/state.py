@@ -226,8 +226,9 @@ class ControllerState:
         """Makes ``job`` (with its resolved ``tasks``) the desired job; the next pass plans it."""
         if job != self.job or tuple(tasks) != self.tasks:
             log.info(
-                "job %s: %d tasks, %d stages x %d pods", job.job_id, len(tasks), job.num_stages, job.pods_per_stage
-            )
+                "job %s: %d tasks, %d stages, stage_layout %s, pods_per_stage %d (%d pods)",
+                job.job_id, len(tasks), job.num_stages, job.stage_layout, job.pods_per_stage, job.pods_needed,
+            )  # fmt: skip
         self.job = job
         self.tasks = tuple(tasks)
         self.changes += 1
@@ -270,7 +271,7 @@ class ControllerState:
             log.info(
                 "plan generation %d: %s; unfilled %s",
                 new.generation,
-                ", ".join(f"{s.pod}=stage {s.stage_id} slot {s.index}" for s in new.slots if s.pod) or "no pods",
+                ", ".join(f"{s.pod}={s.name}" for s in new.slots if s.pod) or "no pods",
                 [s.key for s in new.unfilled] or "none",
             )
         self.plan = new
@@ -362,7 +363,7 @@ class ControllerState:
     def _unfilled_problem(self, slot: Slot, spares: list[tuple[str, int]]) -> str:
         small = [name for name, max_envs in spares if max_envs < slot.num_envs]
         why = f" (pods {', '.join(small)} have max_envs below the {slot.num_envs} envs it needs)" if small else ""
-        return f"stage {slot.stage_id} slot {slot.index} has no pod{why}"
+        return f"{slot.name} has no pod{why}"
 
     @property
     def ready(self) -> bool:

@@ -236,6 +236,9 @@ class TaskInfo(BaseModel):
     instruction: str
     env_start: int
     num_envs: int
+    stage_id: int | None = Field(
+        None, description="the stage this block's envs serve; null: the pod's stage_id (a pod of one stage)"
+    )
     num_states: int = Field(description="how many fixed initial states the task has (state ids 0..num_states-1)")
     reset: str = Field(
         "state_id",
@@ -249,7 +252,9 @@ class InfoResponse(BaseModel):
     envs are built."""
 
     pod: str
-    stage_id: int | None
+    stage_id: int | None = Field(
+        description="the pod's stage; null when it has no assignment or holds several stages ('slices': see each task block)"
+    )
     generation: int | None
     ready: bool
     num_envs: int

@@ -160,9 +160,13 @@ class LocalJob:
                 problems.append(f"{field}: port {port} on {host} is in use by another process; choose another {field}")
         problems += self._affinity_problems()
         if pods.replicas < job.pods_needed:
+            slots = (
+                f"pods_per_stage {job.pods_per_stage} slots (stage_layout 'slices': each holds every stage)"
+                if job.stage_layout == "slices"
+                else f"{job.num_stages} stages x {job.pods_per_stage} pods_per_stage = {job.pods_needed} slots"
+            )
             problems.append(
-                f"pods.replicas: {pods.replicas} pods cannot fill {job.num_stages} stages x {job.pods_per_stage} "
-                f"pods_per_stage = {job.pods_needed} slots; raise pods.replicas to at least {job.pods_needed}"
+                f"pods.replicas: {pods.replicas} pods cannot fill {slots}; raise pods.replicas to at least {job.pods_needed}"
             )
         return problems
 

@@ -44,7 +44,13 @@ def collect_status(
                 table = RoutingTable.model_validate(response.json())
                 for stage in table.stages:
                     for pod in stage.pods:
-                        routed[pod.pod] = (stage.stage_id, tuple(t.task_id for t in pod.tasks), pod.num_envs)
+                        if pod.pod in routed:  # a pod of every stage ('slices'): no one stage, all its envs
+                            _, tasks, num_envs = routed[pod.pod]
+                            more = tuple(t.task_id for t in pod.tasks if t.task_id not in tasks)
+                            routed[pod.pod] = (None, tasks + more, num_envs + pod.num_envs)
+                        else:
+                            tasks = tuple(dict.fromkeys(t.task_id for t in pod.tasks))
+                            routed[pod.pod] = (stage.stage_id, tasks, pod.num_envs)
     except (httpx.HTTPError, ValueError):
         pass
     rows = []

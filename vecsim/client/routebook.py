@@ -58,8 +58,8 @@ class RouteBook:
             return [key for key, route in self._routes.items() if route.stage_id == stage_id]
 
     def pods_with_envs(self) -> list[str]:
-        """The table's pods that have envs, stage by stage."""
-        return [p.pod for stage in self._table.stages for p in stage.pods if p.num_envs > 0]
+        """The table's pods that have envs, stage by stage, each once."""
+        return list(dict.fromkeys(p.pod for stage in self._table.stages for p in stage.pods if p.num_envs > 0))
 
     def holders(self) -> list[str]:
         """The sorted names of the pods that run live trajectories."""

@@ -52,8 +52,11 @@ class RoutedEnv:
 def stage_by_id(table: RoutingTable) -> dict[int, RoutedStage]:
     """Return the table's stages keyed by stage id.
 
+    A pod may be in several stages (the ``slices`` layout), each time with env ids of its own.
+
     Raises:
-        ValueError: the stage ids are not exactly ``0..S-1``, or a pod appears in two stages.
+        ValueError: the stage ids are not exactly ``0..S-1``, a pod appears twice in one stage,
+            or one env of a pod appears in two stages.
     """
     stages = {stage.stage_id: stage for stage in table.stages}
     if sorted(stages) != list(range(len(table.stages))):
@@ -61,15 +64,23 @@ def stage_by_id(table: RoutingTable) -> dict[int, RoutedStage]:
             f"routing table generation {table.generation}: stage ids must be 0..{len(table.stages) - 1}, "
             f"got {[s.stage_id for s in table.stages]}"
         )
-    owner: dict[str, int] = {}
+    owner: dict[tuple[str, int], int] = {}
     for stage in table.stages:
+        names = [pod.pod for pod in stage.pods]
+        if len(set(names)) != len(names):
+            twice = next(name for name in names if names.count(name) > 1)
+            raise ValueError(
+                f"routing table generation {table.generation}: pod {twice} appears twice in stage {stage.stage_id}"
+            )
         for pod in stage.pods:
-            if pod.pod in owner:
-                raise ValueError(
-                    f"routing table generation {table.generation}: pod {pod.pod} is in stages "
-                    f"{owner[pod.pod]} and {stage.stage_id}; a pod belongs to one stage"
-                )
-            owner[pod.pod] = stage.stage_id
+            for block in pod.tasks:
+                for env in range(block.env_start, block.env_start + block.num_envs):
+                    other = owner.setdefault((pod.pod, env), stage.stage_id)
+                    if other != stage.stage_id:
+                        raise ValueError(
+                            f"routing table generation {table.generation}: env {env} of pod {pod.pod} is in "
+                            f"stages {other} and {stage.stage_id}; an env belongs to one stage"
+                        )
     return stages
 
 
@@ -187,15 +198,24 @@ def validate_routes(table: RoutingTable, routes: Mapping[str, TrajRoute]) -> Non
         ValueError: naming the first traj_key whose route does not fit the table.
     """
     stages = stage_by_id(table)
-    pods = {pod.pod: (stage_id, pod) for stage_id, stage in stages.items() for pod in stage.pods}
+    pods = {(stage_id, pod.pod): pod for stage_id, stage in stages.items() for pod in stage.pods}
+    on_stages: dict[str, list[int]] = {}
+    for stage_id, name in pods:
+        on_stages.setdefault(name, []).append(stage_id)
     taken: dict[tuple[str, int], str] = {}
     for key, route in routes.items():
-        if route.pod not in pods:
+        if route.pod not in on_stages:
             raise ValueError(f"traj_key {key}: pod {route.pod} is not in routing generation {table.generation}")
-        stage_id, pod = pods[route.pod]
-        if stage_id != route.stage_id:
-            raise ValueError(f"traj_key {key}: pod {route.pod} is on stage {stage_id}, not {route.stage_id}")
+        pod = pods.get((route.stage_id, route.pod))
+        if pod is None:
+            raise ValueError(
+                f"traj_key {key}: pod {route.pod} is on stage(s) {on_stages[route.pod]}, not {route.stage_id}"
+            )
         task = _task_at(pod, route.env_index)
+        if task is None:
+            raise ValueError(
+                f"traj_key {key}: env {route.env_index} of pod {route.pod} is not one of stage {route.stage_id}'s envs"
+            )
         if task != route.task_id:
             raise ValueError(
                 f"traj_key {key}: env {route.env_index} of pod {route.pod} runs {task!r}, not {route.task_id!r}"
@@ -210,12 +230,21 @@ def validate_routes(table: RoutingTable, routes: Mapping[str, TrajRoute]) -> Non
 def changed_routes(old: RoutingTable, new: RoutingTable, routes: Mapping[str, TrajRoute]) -> list[str]:
     """Return the traj_keys whose pod is not the same in ``new`` as in ``old``.
 
-    A pod is the same when it keeps its stage, its URL and all its task blocks; any change to its
-    blocks makes it rebuild its envs, so every trajectory on it is gone.
+    A pod is the same when it keeps its URL and its task blocks in every stage it is in; any
+    change to its blocks makes it rebuild its envs, so every trajectory on it is gone.
     """
 
-    def index(table: RoutingTable) -> dict[str, tuple[int, RoutedPod]]:
-        return {pod.pod: (stage.stage_id, pod) for stage in table.stages for pod in stage.pods}
+    def index(table: RoutingTable) -> dict[str, dict[int, RoutedPod]]:
+        pods: dict[str, dict[int, RoutedPod]] = {}
+        for stage in table.stages:
+            for pod in stage.pods:
+                pods.setdefault(pod.pod, {})[stage.stage_id] = pod
+        return pods
+
+    def same(was: dict[int, RoutedPod], now: dict[int, RoutedPod]) -> bool:
+        return sorted(was) == sorted(now) and all(
+            was[s].url == now[s].url and was[s].tasks == now[s].tasks for s in was
+        )
 
     before, after = index(old), index(new)
     moved = []
@@ -224,38 +253,54 @@ def changed_routes(old: RoutingTable, new: RoutingTable, routes: Mapping[str, Tr
         if (
             was is None
             or now is None
-            or was[0] != now[0]
-            or was[1].url != now[1].url
-            or was[1].tasks != now[1].tasks
-            or _task_at(now[1], route.env_index) != route.task_id
+            or not same(was, now)
+            or route.stage_id not in now
+            or _task_at(now[route.stage_id], route.env_index) != route.task_id
         ):
             moved.append(key)
     return moved
 
 
-def _read_pod_info(url: str, info: Any) -> tuple[RoutedPod, int | None, int | None, bool]:
-    """``(pod, stage_id, generation, ready)`` out of one pod's ``/v1/info`` answer.
+def _read_pod_info(url: str, info: Any) -> tuple[dict[int, RoutedPod], int | None, bool]:
+    """``({stage_id: pod}, generation, ready)`` out of one pod's ``/v1/info`` answer: the pod
+    once per stage it holds envs of (blocks without a stage of their own serve the pod's).
 
     Raises:
-        ValueError: the answer is not a pod's (a field missing or of the wrong kind; URL named).
+        ValueError: the answer is not a pod's (a field missing or of the wrong kind; URL named),
+            or a block has no stage and neither has the pod.
     """
+    unstaged = False
     try:
         name = str(info["pod"])
-        blocks = tuple(
-            TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"]) for t in info["tasks"]
-        )
-        routed = RoutedPod(pod=name, url=url, num_envs=int(info["num_envs"]), tasks=blocks)
-        stage = info.get("stage_id")
+        pod_stage = info.get("stage_id")
+        by_stage: dict[int, list[TaskBlock]] = {}
+        for t in info["tasks"]:
+            stage = t.get("stage_id")
+            stage = pod_stage if stage is None else stage
+            if stage is None:
+                unstaged = True
+                break
+            by_stage.setdefault(int(stage), []).append(
+                TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"], stage_id=t.get("stage_id"))
+            )
+        if not by_stage and pod_stage is None:
+            unstaged = True
+        elif not by_stage:
+            by_stage[int(pod_stage)] = []
+        routed = {
+            stage: RoutedPod(pod=name, url=url, num_envs=sum(b.num_envs for b in blocks), tasks=tuple(blocks))
+            for stage, blocks in by_stage.items()
+        }
+        if len(routed) == 1 and pod_stage is not None:
+            # One stage: the pod's num_envs, as it reports it.
+            routed = {stage: pod.model_copy(update={"num_envs": int(info["num_envs"])}) for stage, pod in routed.items()}
         generation = info.get("generation")
-        return (
-            routed,
-            None if stage is None else int(stage),
-            None if generation is None else int(generation),
-            bool(info.get("ready")),
-        )
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
         raise ValueError(f"the /v1/info answer of {url} is not a pod's ({what})"[:500]) from None
+    if unstaged:
+        raise ValueError(f"pod {name} at {url} has no stage")
+    return routed, None if generation is None else int(generation), bool(info.get("ready"))
 
 
 def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_id: str = "standalone") -> RoutingTable:
@@ -268,22 +313,22 @@ def routing_from_pod_infos(infos: Sequence[tuple[str, Mapping[str, Any]]], job_i
             generations, or a duplicate pod name.
     """
     pods = [_read_pod_info(url, info) for url, info in infos]
-    generations = {generation for _, _, generation, _ in pods}
+    generations = {generation for _, generation, _ in pods}
     if len(generations) > 1:
         raise ValueError(f"pods disagree on the generation: {sorted(map(str, generations))}")
     by_stage: dict[int, list[RoutedPod]] = {}
     seen: set[str] = set()
-    for routed, stage, _, _ in pods:
-        if routed.pod in seen:
-            raise ValueError(f"two pods are named {routed.pod}")
-        seen.add(routed.pod)
-        if stage is None:
-            raise ValueError(f"pod {routed.pod} at {routed.url} has no stage")
-        by_stage.setdefault(stage, []).append(routed)
+    for routed, _, _ in pods:
+        name = next(iter(routed.values())).pod
+        if name in seen:
+            raise ValueError(f"two pods are named {name}")
+        seen.add(name)
+        for stage, pod in routed.items():
+            by_stage.setdefault(stage, []).append(pod)
     generation = generations.pop() if generations else 0
     return RoutingTable(
         generation=int(generation or 0),
         job_id=job_id,
-        ready=all(ready for _, _, _, ready in pods),
+        ready=all(ready for _, _, ready in pods),
         stages=tuple(RoutedStage(stage_id=s, pods=tuple(by_stage[s])) for s in sorted(by_stage)),
     )

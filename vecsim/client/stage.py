@@ -752,6 +752,11 @@ class StageClient:
         """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
         with its answer cap (runs on the caller's thread and on the loop)."""
         with self._pods_lock:
+            # A pod of several stages ('slices') answers at most all its envs, whatever the stage.
+            envs: dict[str, int] = {}
+            for stage in self._book.table.stages:
+                for routed in stage.pods:
+                    envs[routed.pod] = envs.get(routed.pod, 0) + routed.num_envs
             for stage in self._book.table.stages:
                 for routed in stage.pods:
                     known = self._pods.get(routed.pod)
@@ -760,7 +765,7 @@ class StageClient:
                             routed.pod, routed.url, self._transport, self.timeout_s, self._token
                         )
                     self._pods[routed.pod].max_answer_bytes = self._info.answer_cap(
-                        routed.num_envs, self.max_answer_bytes
+                        envs[routed.pod], self.max_answer_bytes
                     )
 
     async def _pod_info(self, pod: str) -> dict[str, Any]:

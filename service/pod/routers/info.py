@@ -30,6 +30,7 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
                 num_states=spec.num_states,
                 env_start=block.env_start,
                 num_envs=block.num_envs,
+                stage_id=block.stage_id,
                 reset="seed" if block.task_id.startswith("gym/") and not assignment.camera.names else "state_id",
             )
         )
