@@ -14,7 +14,7 @@ from service_procs import job_config, local_job
 from vecsim.client import CapacityError, StageClient
 from vecsim.config import CameraConfig
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, write_video
-from vecsim.sampler import TaskBalancedSampler, TaskInstances, stage_of
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances, stage_of
 
 LIFT, STACK = "tiny/lift", "tiny/stack"
 GROUP_SIZE = 2
