@@ -18,16 +18,22 @@ applying ``--actions`` actions per env (so every K does the same physics):
 
 Before the job starts, ``--pods`` processes pinned to the pods' cores step the same task mix
 without cameras, HTTP or pods (``bench_physics_scaling.worker``) for ``--physics-seconds``: the
-physics-only rate of the node, the ceiling the chunked node is held against.
+physics-only rate of the node. Then the same processes build the mix with the pods' cameras and
+render preset and, for each K, apply K actions per env and render every camera once, in one
+batch of the same renderer as a pod's worker (EGL on the GPU node): the ceiling, the node's
+simulation alone (issue 27). Every contender is reported as a fraction of both, and
+``per_env_step_ms`` puts the pods' own physics and render time per env-step (their ``/metrics``)
+next to the bare processes'.
 
-Targets (the chunks issue): ``loop/K=8`` >= 1.5x ``loop/K=1`` (paired by round), and the node at
-K = 8 >= 0.8 of the physics-only rate.
+Targets: ``loop/K=8`` >= 1.5x ``loop/K=1`` (paired by round), the node at K = 8 >= 0.8 of the
+physics-only rate (the chunks issue), and ``loop/K=8`` >= 0.9 of the ceiling at K = 8 (issue 27).
 
 Commands::
 
     source .device/setup.sh && python bench/bench_chunks.py --gpu --copy-to "$OUT"   # the GPU machine
     python bench/bench_chunks.py --gpu --dry       # probe: 1 pod, K = 1 and 4, 4 actions; fails fast
     python bench/bench_chunks.py --cpu-small       # here: 2 pods of 2 tiny tasks, 32x32, K = 1 and 4
+    python bench/bench_chunks.py --quick           # smoke: 2 pods of a gym scene, 16x16, K = 1 and 8
 
 Writes out/bench/bench_chunks[_cpu|_dry].json and prints one ``RESULT {json}`` line; ``--copy-to``
 also copies it into a folder, with a failed job's logs. Rounds stop being added at ``--deadline``
@@ -47,6 +53,7 @@ import shutil
 import statistics
 import sys
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -66,7 +73,10 @@ log = logging.getLogger("bench.chunks")
 
 CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
 PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
+CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
 PIPELINE_K = 8
+# --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
+QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +150,53 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
     return gs.Measured(stats, **seen)
 
 
+def _pinned(pins: Sequence[str], target: Callable[..., None], args: Callable[[int, int], tuple[Any, ...]],
+            reports: int, timeout_s: float) -> list[Any]:
+    """Run ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
+    pod core (``pins``), all at once; return the ``reports`` payloads of its ``("rate", index,
+    payload)`` messages, in arrival order.
+
+    Raises:
+        RuntimeError: a process failed (its traceback) or did not report within ``timeout_s``.
+    """
+    context = multiprocessing.get_context("spawn")
+    count = len(pins)
+    barrier, results = context.Barrier(count), context.Queue()
+    procs = []
+    for i, pin in enumerate(pins):
+        cpu = int(pin.split(",")[0])
+        procs.append(context.Process(target=target, args=(i, cpu, *args(i, cpu), barrier, results), daemon=True))
+    for proc in procs:
+        proc.start()
+    end = time.monotonic() + timeout_s
+    payloads: list[Any] = []
+    try:
+        while len(payloads) < reports:
+            try:
+                kind, index, payload = results.get(timeout=min(max(end - time.monotonic(), 0.1), 5.0))
+            except queue.Empty:
+                dead = [i for i, proc in enumerate(procs) if proc.exitcode not in (None, 0)]
+                if dead:  # a process that died before it could report: fail now, not at the timeout
+                    raise RuntimeError(f"pinned processes {dead} exited without a rate") from None
+                if time.monotonic() < end:
+                    continue
+                raise RuntimeError(f"{len(payloads)} of {reports} rates came from the pinned processes in {timeout_s:.0f} s")
+            if kind == "error":
+                raise RuntimeError(f"pinned process {index} failed:\n{payload}")
+            if kind == "rate":
+                payloads.append(payload)
+    finally:
+        for proc in procs:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.kill()
+    return payloads
+
+
+def _spread(rates: Sequence[float]) -> dict[str, float]:
+    return {"min": round(min(rates), 2), "mean": round(statistics.mean(rates), 2), "max": round(max(rates), 2)}
+
+
 def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, timeout_s: float) -> dict[str, Any]:
     """The node's physics-only rate: one process per pod core (``pins``), each stepping the
     task mix without cameras for ``seconds``, all at once; env-steps/s summed over them.
@@ -147,46 +204,97 @@ def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, time
     Raises:
         RuntimeError: a process failed (its traceback) or did not answer within ``timeout_s``.
     """
-    context = multiprocessing.get_context("spawn")
-    count = len(pins)
-    barrier, results = context.Barrier(count), context.Queue()
-    procs = [
-        context.Process(target=physics_worker, args=(i, int(pin.split(",")[0]), list(tasks), [count], ["exact"], 1,
-                                                      seconds, barrier, results), daemon=True)  # fmt: skip
-        for i, pin in enumerate(pins)
-    ]
-    for proc in procs:
-        proc.start()
-    end = time.monotonic() + timeout_s
-    rates: list[float] = []
-    try:
-        while len(rates) < count:
-            try:
-                kind, index, payload = results.get(timeout=min(max(end - time.monotonic(), 0.1), 5.0))
-            except queue.Empty:
-                dead = [i for i, proc in enumerate(procs) if proc.exitcode not in (None, 0)]
-                if dead:  # a process that died before it could report: fail now, not at the timeout
-                    raise RuntimeError(f"physics-only processes {dead} exited without a rate") from None
-                if time.monotonic() < end:
-                    continue
-                raise RuntimeError(f"physics-only: {len(rates)} of {count} processes answered in {timeout_s:.0f} s")
-            if kind == "error":
-                raise RuntimeError(f"physics-only process {index} failed:\n{payload}")
-            if kind == "rate":
-                rates.append(payload[3])  # (round, count, step path, rate)
-    finally:
-        for proc in procs:
-            proc.join(timeout=10)
-            if proc.is_alive():
-                proc.kill()
+    args = lambda i, cpu: (list(tasks), [len(pins)], ["exact"], 1, seconds)  # noqa: E731
+    rates = [payload[3] for payload in _pinned(pins, physics_worker, args, len(pins), timeout_s)]  # (round, count, path, rate)
     return {
         "env_steps_per_s": round(sum(rates), 1),
-        "per_process": {"min": round(min(rates), 2), "mean": round(statistics.mean(rates), 2),
-                        "max": round(max(rates), 2)},  # fmt: skip
-        "processes": count,
+        "per_process": _spread(rates),
+        # One process per core steps its envs one after another: a step's time is 1 / its rate.
+        "ms_per_env_step": round(1000 / statistics.mean(rates), 3),
+        "processes": len(pins),
         "pinned_to": list(pins),
         "seconds": seconds,
     }
+
+
+def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any], preset: str, envs_per_task: int,
+                   chunks: list[int], seconds: float, barrier: Any, results: Any) -> None:  # fmt: skip
+    """Pin to ``cpu``; build the task mix as a pod's worker does (``envs_per_task`` envs of each
+    task, the job's cameras and render preset); then for each K, in step with the other
+    processes: apply K actions to every env (resetting one that ended), and render every env's
+    cameras once, in one batch of the process's renderer, as the pod's worker does after a
+    chunk (``vecsim.sim._Worker._draw``). Reports ``("rate", index, (K, env-steps/s, physics
+    seconds, render seconds, env-steps))``."""
+    logging.basicConfig(level=logging.WARNING)
+    try:
+        os.sched_setaffinity(0, {cpu})
+        from vecsim.config import CameraConfig
+        from vecsim.tasks import make_env
+
+        cameras = CameraConfig(**camera)
+        envs = [make_env(task, cameras, preset) for task in tasks for _ in range(envs_per_task)]
+        for env in envs:
+            env.defer_images = True
+            env.reset(options={"state_id": 0})
+        renderer = envs[0].renderer
+        views = [env.camera_views[c] for c in range(len(envs[0].image_names)) for env in envs]
+        rng = np.random.default_rng(index)
+        actions = [rng.uniform(-0.3, 0.3, (64, *env.action_space.shape)).astype(np.float32) for env in envs]
+
+        def chunk_all(turn: int, k: int) -> tuple[int, float, float]:
+            started, steps = time.perf_counter(), 0
+            for env, table in zip(envs, actions):
+                for j in range(k):
+                    _, _, terminated, truncated, _ = env.step(table[(turn * k + j) % len(table)])
+                    steps += 1
+                    if terminated or truncated:
+                        env.reset(options={"state_id": 0})
+                        break
+            stepped = time.perf_counter()
+            if renderer is not None:
+                renderer.render(views)
+            return steps, stepped - started, time.perf_counter() - stepped
+
+        chunk_all(0, 1)  # warm-up: the renderer's first frame, the controller's first step
+        for k in chunks:
+            barrier.wait(timeout=900)
+            turns = steps = 0
+            physics = render = 0.0
+            started = time.perf_counter()
+            while time.perf_counter() - started < seconds:
+                applied, physics_s, render_s = chunk_all(turns, k)
+                turns, steps, physics, render = turns + 1, steps + applied, physics + physics_s, render + render_s
+            results.put(("rate", index, (k, steps / (time.perf_counter() - started), physics, render, steps)))
+            barrier.wait(timeout=900)
+    except Exception:
+        results.put(("error", index, traceback.format_exc()))
+        barrier.abort()
+
+
+def ceiling(pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: float, timeout_s: float) -> dict[str, Any]:
+    """The node's simulation alone (issue 27's ceiling): the processes and task mix of
+    :func:`physics_only`, with the pods' cameras rendered once per K actions
+    (:func:`ceiling_worker`), no HTTP or pods; per K, env-steps/s summed over the processes and
+    the physics and render milliseconds per env-step.
+
+    Raises:
+        RuntimeError: a process failed (its traceback) or did not answer within ``timeout_s``.
+    """
+    args = lambda i, cpu: (list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task,  # noqa: E731
+                           list(chunks), seconds)  # fmt: skip
+    reports = _pinned(pins, ceiling_worker, args, len(pins) * len(chunks), timeout_s)
+    out: dict[str, Any] = {"processes": len(pins), "pinned_to": list(pins), "seconds_per_k": seconds,
+                           "camera": gs.camera(plan), "render_preset": plan.render_preset}  # fmt: skip
+    for k in chunks:
+        mine = [r for r in reports if r[0] == k]
+        steps = max(sum(r[4] for r in mine), 1)
+        out[f"K={k}"] = {
+            "env_steps_per_s": round(sum(r[1] for r in mine), 1),
+            "per_process": _spread([r[1] for r in mine]),
+            "physics_ms_per_env_step": round(1000 * sum(r[2] for r in mine) / steps, 3),
+            "render_ms_per_env_step": round(1000 * sum(r[3] for r in mine) / steps, 3),
+        }
+    return out
 
 
 def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline) -> dict[str, Any]:
@@ -308,6 +416,9 @@ def run(args: argparse.Namespace) -> int:
     log.info("physics only: %d processes on %s, %.0f s", plan.pods, pod_pins, settings.physics_seconds)
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
+    log.info("ceiling: %d processes, cameras %s once per K, %g s per K", plan.pods, gs.camera(plan), settings.physics_seconds)
+    top = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0))
+    log.info("ceiling: %s", {k: v["env_steps_per_s"] for k, v in top.items() if k.startswith("K=")})
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
@@ -322,21 +433,35 @@ def run(args: argparse.Namespace) -> int:
 
     node = physics["env_steps_per_s"]
     for kind in ("service", "loop"):
-        for row in measured[kind].values():
+        for at_k, row in measured[kind].items():
             row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
-    at = f"K={PIPELINE_K}"
+            limit = top[at_k]["env_steps_per_s"]
+            row["fraction_of_ceiling"] = round(row["env_steps_per_s"]["median"] / limit, 3) if limit else None
+    at = f"K={PIPELINE_K}" if PIPELINE_K in settings.chunks else f"K={settings.chunks[-1]}"
     chunk_gain = measured["loop"].get(at, {}).get("over_K=1") or {}
     node_fraction = measured["loop"].get(at, {}).get("fraction_of_physics_only")
+    # Where a pod's step time goes beyond the bare processes' (same cores, same task mix).
+    per_env_step_ms = {
+        "bare_physics_only": physics["ms_per_env_step"],
+        **{f"bare_ceiling/{k}": {key: top[k][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
+           for k in top if k.startswith("K=")},
+        **{f"pod/{kind}/{k}": {key: row["time_split_ms"][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
+           for kind in ("service", "loop") for k, row in measured[kind].items()},
+    }  # fmt: skip
+    print_table(measured, physics, top)
     summary: dict[str, Any] = {
         "quick": not args.gpu,
         "dry": args.dry,
         "baseline": "K = 1 of the same job, same round (paired); and the physics-only rate of the pods' cores",
         "ratio": chunk_gain.get("median"),
         "ratio_of_physics_only": node_fraction,
-        "target": f"loop K={PIPELINE_K} >= {CHUNK_TARGET}x K=1, and >= {PHYSICS_TARGET} of physics-only",
+        "ratio_of_ceiling": measured["loop"].get(at, {}).get("fraction_of_ceiling"),
+        "target": f"loop K={PIPELINE_K} >= {CHUNK_TARGET}x K=1, >= {PHYSICS_TARGET} of physics-only and "
+                  f">= {CEILING_TARGET} of the ceiling",
         "met": {
             "chunks": chunk_gain.get("median") is not None and chunk_gain["median"] >= CHUNK_TARGET,
             "physics_only": node_fraction is not None and node_fraction >= PHYSICS_TARGET,
+            "ceiling": (measured["loop"].get(at, {}).get("fraction_of_ceiling") or 0.0) >= CEILING_TARGET,
         },
         "setup": {
             **dataclasses.asdict(plan),
@@ -349,6 +474,8 @@ def run(args: argparse.Namespace) -> int:
             "memory_used_gib_peak": memory.peak_gib,
         },
         "physics_only": physics,
+        "ceiling": top,
+        "per_env_step_ms": per_env_step_ms,
         "topology": topology,
         "gl": gl,
         **measured,
@@ -361,11 +488,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def print_table(measured: dict[str, Any], physics: dict[str, Any], top: dict[str, Any]) -> None:
+    """The figures as a table on stdout: each contender's env-steps/s, of physics-only and of the
+    ceiling (cameras once per K) at its K."""
+    rows = [("physics only", "", physics["env_steps_per_s"], "1.0", "")]
+    rows += [("ceiling (cameras once per K)", k, top[k]["env_steps_per_s"], "", "1.0") for k in top if k.startswith("K=")]
+    for kind, name in (("service", "service alone"), ("loop", "EnvLoop")):
+        for k, row in measured[kind].items():
+            rows.append((name, k, row["env_steps_per_s"]["median"], f"{row['fraction_of_physics_only']}",
+                         f"{row['fraction_of_ceiling']}"))
+    print(f"{'contender':<30} {'K':>6} {'env-steps/s':>12} {'of physics-only':>16} {'of ceiling':>11}")
+    for name, k, rate, of_physics, of_top in rows:
+        print(f"{name:<30} {k:>6} {rate:>12.1f} {of_physics:>16} {of_top:>11}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--gpu", action="store_true", help="LIBERO-10, 256x256 x 2 cameras, 12 pods; GL must be NVIDIA's")
     mode.add_argument("--cpu-small", action="store_true", help="2 pods of tiny/lift + tiny/door, 32x32 (Mesa)")
+    mode.add_argument("--quick", action="store_true",
+                      help="--cpu-small on HalfCheetah (2 envs a pod), 16x16, 8 actions, K = 1 and 8: a smoke run")
     parser.add_argument("--dry", action="store_true", help="1 pod, K = 1 and 4, 4 actions, 1 round: fails fast")
     parser.add_argument("--tasks", help="comma-separated task ids every pod serves")
     parser.add_argument("--envs-per-task", type=int, help="envs per task per pod (default 1)")
@@ -381,6 +524,11 @@ def main() -> int:
     parser.add_argument("--deadline", type=float, default=540.0, help="seconds: stop adding rounds after this")
     parser.add_argument("--copy-to", type=Path, help="also copy the JSON (and a failed job's logs) here")
     args = parser.parse_args()
+    if args.quick:
+        args.cpu_small = True
+        for name, value in QUICK.items():
+            if getattr(args, name) is None:
+                setattr(args, name, value)
     setup_logging()
     os.environ.setdefault("MUJOCO_GL", "egl")
     if math.isnan(args.deadline) or args.deadline <= 0:

@@ -37,7 +37,7 @@ from service.runner import LocalJob
 from vecsim.client import StageClient
 from vecsim.config import load_job_config
 from vecsim.rollout import ExampleCNNPolicy
-from vecsim.sampler import TaskBalancedSampler, TaskInstances
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances
 from vecsim.transport.answers import get_answer
 
 COUNTERS = {

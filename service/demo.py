@@ -32,7 +32,7 @@ from service.runner.ports import free_port, free_port_block, port_free
 from vecsim.client import StageClient
 from vecsim.config import JobConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
-from vecsim.sampler import TaskBalancedSampler, TaskInstances
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances
 from vecsim.tasks import episode_limit, get_task
 from vecsim.trees import map_leaves
 

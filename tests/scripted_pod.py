@@ -1,7 +1,8 @@
 """In-process scripted pods: the client's data plane with answers held until the test lets them go.
 
 A :class:`ScriptedPod` is an ASGI app speaking the pod protocol as the client uses it:
-``GET /v1/info`` (JSON), ``POST /v1/reset`` and ``POST /v1/step`` (vecsim's wire both ways, the
+``GET /v1/info`` (JSON), ``POST /v1/reset`` and ``POST /v1/step`` (with or without resets of
+other envs in it; vecsim's wire both ways, the
 job's bearer token, the routing generation, 409/422 refusals in the pod's ``{"detail": ...}``
 form). Its envs are counters, so every answer is known in advance:
 
@@ -107,7 +108,8 @@ def _open_gate(gate: asyncio.Future[None]) -> None:
 class ScriptedPod:
     """One pod of counter envs (see the module docstring), an ASGI app at ``self.app``.
 
-    ``calls`` lists every reset and step that arrived, in order, as ``(op, env_indices)``;
+    ``calls`` lists every reset and step that arrived, in order, as ``(op, env_indices)``, a step
+    that also resets envs (a refill) as ``("reset+step", (reset env ids, stepped env ids))``;
     ``actions`` the actions array of every step, in order.
     """
 
@@ -177,9 +179,9 @@ class ScriptedPod:
 
     # -- the data plane -------------------------------------------------------------------------
 
-    async def _hold(self, op: str, env_indices: np.ndarray) -> None:
+    async def _hold(self, op: str, env_indices: np.ndarray | tuple[Any, ...]) -> None:
         """Note the call's arrival; wait until the test lets it answer."""
-        ids = tuple(int(e) for e in env_indices)
+        ids = env_indices if isinstance(env_indices, tuple) else tuple(int(e) for e in env_indices)
         gate: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         with self.timeline.lock:
             self.calls.append((op, ids))
@@ -200,7 +202,8 @@ class ScriptedPod:
             body = wire.decode(await request.body())
         except wire.WireError as exc:
             return _refuse(400, f"body is not valid wire: {exc}")
-        if not fields <= set(body) or not set(body) <= fields | {"record_env_indices"}:
+        optional = {"record_env_indices", "reset_env_indices", "reset_state_ids"} if "actions" in fields else set()
+        if not fields <= set(body) or not set(body) <= fields | optional:
             return _refuse(422, f"body has fields {sorted(body)}, expected {sorted(fields)}")
         if int(body["generation"]) != self.generation:
             return _refuse(409, f"pod {self.name} holds generation {self.generation}, not {int(body['generation'])}")
@@ -222,10 +225,14 @@ class ScriptedPod:
         if state_ids.shape != env_indices.shape:
             return _refuse(422, f"state_ids has shape {list(state_ids.shape)}, env_indices {list(env_indices.shape)}")
         await self._hold("reset", env_indices)
+        return _answer(self._reset_envs(env_indices, state_ids))
+
+    def _reset_envs(self, env_indices: np.ndarray, state_ids: np.ndarray) -> dict[str, Any]:
+        """Reset the envs; return the reset answer."""
         self._state_ids[env_indices], self._steps[env_indices], self._ended[env_indices] = state_ids, 0, False
         n = len(env_indices)
         info = {"success": np.zeros(n, bool), "task_id": [TASK] * n}
-        return _answer({"env_indices": env_indices.astype(np.int32), "obs": self._obs(env_indices), "info": info})
+        return {"env_indices": env_indices.astype(np.int32), "obs": self._obs(env_indices), "info": info}
 
     async def _step(self, request: Request) -> Response:
         body = await self._read(request, {"generation", "env_indices", "actions"})
@@ -240,7 +247,15 @@ class ScriptedPod:
         ended = [int(e) for e in env_indices if self._ended[e]]
         if ended:
             return _refuse(422, f"env(s) {ended} of pod {self.name} terminated; reset before stepping them")
-        await self._hold("step", env_indices)
+        resets = np.asarray(body.get("reset_env_indices", np.zeros(0, np.int64)))
+        reset_states = np.asarray(body.get("reset_state_ids", np.zeros(0, np.int64)))
+        if reset_states.shape != resets.shape or set(resets.tolist()) & set(env_indices.tolist()):
+            return _refuse(422, f"reset_env_indices {resets.tolist()}: one state id each, none of env_indices")
+        if resets.size:
+            await self._hold("reset+step", (tuple(resets.tolist()), tuple(env_indices.tolist())))
+            reset_answer = self._reset_envs(resets, reset_states)
+        else:
+            await self._hold("step", env_indices)
         self.actions.append(np.array(actions))
         chunks = actions if chunked else actions[:, None, :]
         n, k = chunks.shape[:2]
@@ -264,6 +279,8 @@ class ScriptedPod:
         }
         if chunked:
             answer["num_steps"] = num_steps
+        if resets.size:
+            answer["reset"] = reset_answer
         return _answer(answer)
 
     def _obs(self, env_indices: np.ndarray) -> dict[str, np.ndarray]:

@@ -38,11 +38,12 @@ def summary(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], P
 @pytest.mark.timeout(180)
 def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
     result, root = summary
-    assert result["name"] == "bench_chunks_cpu" and set(result["met"]) == {"chunks", "physics_only"}
+    assert result["name"] == "bench_chunks_cpu" and set(result["met"]) == {"chunks", "physics_only", "ceiling"}
     for kind in ("service", "loop"):
         assert set(result[kind]) == {"K=1", "K=8"}
         for row in result[kind].values():
             assert row["env_steps_per_s"]["median"] > 0 and row["fraction_of_physics_only"] > 0
+            assert row["fraction_of_ceiling"] > 0
         assert result[kind]["K=8"]["over_K=1"]["n"] == 1
     assert result["physics_only"]["processes"] == 2 and result["physics_only"]["env_steps_per_s"] > 0
     assert isinstance(result["ratio"], float) and isinstance(result["ratio_of_physics_only"], float)
@@ -50,6 +51,19 @@ def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
     assert set(record["details"]["per_round"]) == {
         "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8",
     }  # fmt: skip
+
+
+@pytest.mark.timeout(180)
+def test_chunks_bench_holds_the_node_against_its_ceiling_with_cameras_and_the_pods_physics_against_the_bare(summary):
+    result, _ = summary
+    ceiling = result["ceiling"]
+    assert ceiling["processes"] == 2 and ceiling["camera"]["height"] == 16
+    for k in ("K=1", "K=8"):
+        assert ceiling[k]["env_steps_per_s"] > 0 and ceiling[k]["render_ms_per_env_step"] > 0
+    assert isinstance(result["ratio_of_ceiling"], float)
+    times = result["per_env_step_ms"]
+    assert times["bare_physics_only"] > 0 and times["bare_ceiling/K=8"]["physics_ms_per_env_step"] > 0
+    assert times["pod/loop/K=8"]["physics_ms_per_env_step"] > 0
 
 
 @pytest.mark.timeout(180)

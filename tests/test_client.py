@@ -34,7 +34,7 @@ from vecsim.client import (
 from vecsim.client.stagestate import StageState
 from vecsim.client.routing import changed_routes, routing_from_pod_infos, validate_routes
 from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
-from vecsim.sampler import TaskBalancedSampler, stage_of
+from vecsim.rollout.sampler import TaskBalancedSampler, stage_of
 
 
 def _pod(name: str, port: int, blocks: list[tuple[str, int]]) -> RoutedPod:

@@ -288,6 +288,20 @@ def test_step_of_some_envs_leaves_the_others_untouched(pods: tuple[Pod, Pod]) ->
     assert_same_tree(pod_a.step(untouched, actions), pod_b.step(untouched, actions), "untouched envs")
 
 
+@pytest.mark.parametrize("chunk", [None, 3], ids=["one-action", "chunk"])
+def test_a_step_that_resets_other_envs_answers_as_a_reset_and_a_step_would(pods: tuple[Pod, Pod], chunk: int | None) -> None:
+    pod_a, pod_b = pods
+    actions = actions_for([0, 3], seed=5)
+    if chunk is not None:
+        actions = np.repeat(actions[:, None], chunk, axis=1)
+    body = {"generation": pod_a.generation, "env_indices": np.asarray([0, 3], np.int64), "actions": actions,
+            "reset_env_indices": np.asarray([2, 1], np.int64), "reset_state_ids": np.asarray([6, 7], np.int64)}
+    answer = pod_a.call("step", body)
+    assert_same_tree(answer.pop("reset"), pod_b.reset([2, 1], [6, 7]), "reset")
+    assert_same_tree(answer, pod_b.step([0, 3], actions), "step")
+    assert_states_match(pod_a, pod_b)
+
+
 @pytest.mark.parametrize(("send", "accept"), [("json", "json"), ("json", "wire"), ("wire", "json")])
 def test_json_and_wire_paths_agree_exactly(pods: tuple[Pod, Pod], send: str, accept: str) -> None:
     pod_a, pod_b = pods
@@ -422,6 +436,16 @@ def _bad_requests() -> list[Any]:
         pytest.param(reset_json(state_ids=None, seeds=[1, 2], options=[3]), 422, ["options"], id="options-not-an-object"),
         pytest.param(step_wire([0, 2], np.zeros((2, ACTION_DIM, 1), np.float32)), 422, ["actions"], id="3d-actions"),
         pytest.param(step_json(actions=None), 422, ["actions"], id="missing-actions"),
+        pytest.param(step_json(reset_env_indices=[1, 2], reset_state_ids=[1, 1]), 422, ["reset_env_indices", "2"],
+                     id="refill-env-also-stepped"),
+        pytest.param(step_json(reset_env_indices=[1], reset_state_ids=[1, 1]), 422, ["reset_state_ids"],
+                     id="refill-state-ids-of-other-length"),
+        pytest.param(step_json(reset_env_indices=[1], reset_state_ids=[999]), 422, ["reset_state_ids", "999"],
+                     id="refill-state-id-out-of-range"),
+        pytest.param(step_json(reset_env_indices=[9], reset_state_ids=[1]), 404, ["reset_env_indices", "9"],
+                     id="refill-unknown-env"),
+        pytest.param(step_json(actions=[[0.1] * ACTION_DIM, ["NaN"] * ACTION_DIM], reset_env_indices=[1],
+                               reset_state_ids=[1]), 422, ["actions", "2"], id="refill-with-a-nan-action"),
         pytest.param(step_json(env_indices=[0.0, 2.0]), 422, ["env_indices"], id="float-env-ids"),
         pytest.param(step_json(generation="3"), 422, ["generation"], id="string-generation"),
         pytest.param(step_json(extra=1), 422, ["extra"], id="unknown-field"),

@@ -160,10 +160,10 @@ def test_an_env_whose_trajectory_ended_starts_the_next_waiting_request_at_once(j
     result = job.result()
     assert pod.calls == [
         ("reset", (0, 1)), ("step", (0, 1)),  # r0 ends at its 1st action, r1 goes on
-        ("reset", (0,)), ("step", (1,)),      # r2 starts on env 0 in the call that steps r1
+        ("reset+step", ((0,), (1,))),         # r2 starts on env 0 in the request that steps r1
         ("step", (0, 1)),                     # r2 and r1 both end
         ("reset", (0, 1)), ("step", (0, 1)),  # r3 and r4 start at once; r4 ends
-        ("reset", (1,)), ("step", (0,)),      # r5 starts on env 1 in the call that steps r3, which ends
+        ("reset+step", ((1,), (0,))),         # r5 starts on env 1 in the request that steps r3, which ends
         ("step", (1,)), ("step", (1,)), ("step", (1,)), ("step", (1,)),  # r5 runs to the horizon
     ]  # fmt: skip
     assert list(result.trajectories) == [f"r{i}" for i in range(6)] and result.lost == {}

@@ -14,7 +14,7 @@ from service_procs import job_config, local_job
 from vecsim.client import CapacityError, StageClient
 from vecsim.config import CameraConfig
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, write_video
-from vecsim.sampler import TaskBalancedSampler, TaskInstances, stage_of
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances, stage_of
 
 LIFT, STACK = "tiny/lift", "tiny/stack"
 GROUP_SIZE = 2
@@ -146,6 +146,20 @@ def test_a_refilled_trajectory_starts_from_the_same_observation_as_a_first_one(c
     (first,) = alone.values()
     (late,) = [t for t in refilled.values() if t.route.state_id == 4]
     assert late.route.stage_id == first.route.stage_id == 0
+    assert torch.equal(late.observations["proprio"][0], first.observations["proprio"][0])
+    assert torch.equal(late.observations["images"]["agentview"][0], first.observations["images"]["agentview"][0])
+
+
+def test_a_refill_reset_riding_in_a_step_request_starts_as_a_first_one_and_runs_its_horizon(client, policy):
+    # Stage 0 runs r0 (one action) and r2 (three): r4 starts on r0's env in the request that
+    # steps r2, the reset and the step in one /v1/step.
+    requests = [(LIFT, 0), (LIFT, 1), (LIFT, 2), (LIFT, 3), (LIFT, 4)]
+    keys = [f"r{i}" for i in range(5)]
+    result = EnvLoop(client, policy, horizon=3).run(requests, keys, horizons=[1, 1, 3, 1, 2])
+    (first,) = EnvLoop(client, policy, horizon=1).run([(LIFT, 4)]).trajectories.values()
+    late = result.trajectories["r4"]
+    assert late.route.env_index == result.trajectories["r0"].route.env_index and late.route.stage_id == 0
+    assert late.length == 2 and late.observations["proprio"].shape[0] == 3 and result.lost == {}
     assert torch.equal(late.observations["proprio"][0], first.observations["proprio"][0])
     assert torch.equal(late.observations["images"]["agentview"][0], first.observations["images"]["agentview"][0])
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from torch.utils.data import DataLoader
 
 from vecsim.config import JobSpec
-from vecsim.sampler import TaskBalancedSampler, TaskInstances, stage_of, task_ids_of
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances, stage_of, task_ids_of
 
 
 @st.composite

@@ -24,7 +24,7 @@ from vecsim.client import HTTPVectorEnv, StageClient
 from vecsim.client.routing import routed_envs
 from vecsim.config import CameraConfig, RoutingTable
 from vecsim.rollout import EnvLoop
-from vecsim.sampler import TaskBalancedSampler, TaskInstances, stage_of
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances, stage_of
 
 LIFT, STACK = "tiny/lift", "tiny/stack"
 GROUP_SIZE = 2

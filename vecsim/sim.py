@@ -77,7 +77,7 @@ import gymnasium
 import numpy as np
 from gymnasium.vector.utils import batch_space, create_empty_array, create_shared_memory, read_from_shared_memory
 
-from vecsim import wire
+from vecsim import trees, wire
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
 from vecsim.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
 from vecsim.tasks._gym import VECSIM_INFO_KEYS, GymTaskEnv
@@ -1036,23 +1036,23 @@ class TaskGroupedVectorEnv:
 
     # Validation: everything is checked before any worker is touched.
 
-    def _env_indices(self, env_indices: Any) -> np.ndarray:
-        ids = _int_array("env_indices", env_indices)
+    def _env_indices(self, env_indices: Any, field: str = "env_indices") -> np.ndarray:
+        ids = _int_array(field, env_indices)
         if ids.size:
             bad = ids[(ids < 0) | (ids >= self.num_envs)]
             if bad.size:
                 have = f"envs 0..{self.num_envs - 1}" if self.num_envs else "no envs"
-                raise UnknownEnvError(f"env_indices: env {int(bad[0])} does not exist; this pod has {have}")
+                raise UnknownEnvError(f"{field}: env {int(bad[0])} does not exist; this pod has {have}")
             values, counts = np.unique(ids, return_counts=True)
             if (counts > 1).any():
                 twice = int(values[counts > 1][0])
-                raise InvalidRequestError(f"env_indices: env {twice} is named more than once")
+                raise InvalidRequestError(f"{field}: env {twice} is named more than once")
         return ids.astype(np.int64)
 
-    def _state_ids(self, state_ids: Any, ids: np.ndarray) -> np.ndarray:
-        states = _int_array("state_ids", state_ids)
+    def _state_ids(self, state_ids: Any, ids: np.ndarray, field: str = "state_ids") -> np.ndarray:
+        states = _int_array(field, state_ids)
         if states.size != ids.size:
-            raise InvalidRequestError(f"state_ids: {states.size} state ids for {ids.size} env_indices")
+            raise InvalidRequestError(f"{field}: {states.size} state ids for {ids.size} env_indices")
         if ids.size:
             limits = self._num_states[ids]
             bad = np.flatnonzero((states < 0) | (states >= limits))
@@ -1060,7 +1060,7 @@ class TaskGroupedVectorEnv:
                 i = int(bad[0])
                 env = int(ids[i])
                 raise InvalidRequestError(
-                    f"state_ids: state {int(states[i])} for env {env} is out of range "
+                    f"{field}: state {int(states[i])} for env {env} is out of range "
                     f"0..{int(limits[i]) - 1} of task {self.task_ids[env]!r}"
                 )
         return states.astype(np.int64)
@@ -1258,7 +1258,7 @@ class TaskGroupedVectorEnv:
             SimCrashedError: a worker died, hung or failed (the pod must rebuild).
         """
         ids = self._env_indices(env_indices)
-        result = self._step_chunks(ids, self._actions(actions, ids), np.zeros(0, dtype=np.int64))
+        _, result = self._step_chunks(ids, self._actions(actions, ids), np.zeros(0, dtype=np.int64))
         return (
             result.obs,
             result.reward[:, 0],
@@ -1293,27 +1293,94 @@ class TaskGroupedVectorEnv:
         """
         ids = self._env_indices(env_indices)
         chunk = self._chunk(actions, ids)
-        return self._step_chunks(ids, chunk, self._record(record_env_indices, ids), bool(step_past_end))
+        return self._step_chunks(ids, chunk, self._record(record_env_indices, ids), bool(step_past_end))[1]
+
+    def reset_and_step_envs(
+        self,
+        reset_env_indices: Any,
+        state_ids: Any,
+        env_indices: Any,
+        actions: Any,
+        *,
+        chunked: bool = True,
+        record_env_indices: Any = (),
+        step_past_end: bool = False,
+    ) -> tuple[tuple[Any, dict[str, Any]], ChunkResult]:
+        """Reset some envs to fixed initial states and step other envs, in one call of the
+        workers: what a rollout's refill asks of a pod, so that an env's reset runs beside the
+        steps of the pod's other envs instead of before them.
+
+        ``reset_env_indices``/``state_ids`` as :meth:`reset_envs`'s; ``env_indices``/``actions``
+        (a chunk per env with ``chunked``, else one action per env), ``record_env_indices`` and
+        ``step_past_end`` as :meth:`chunk_step_envs`'s (one action per env answers chunks of one).
+        The two sets of envs are disjoint. Everything is checked before any env moves.
+
+        Returns:
+            ``((obs, info), result)``: what :meth:`reset_envs` returns over the reset envs, and
+            the :class:`ChunkResult` over the stepped ones.
+
+        Raises:
+            UnknownEnvError, InvalidRequestError, SimCrashedError: as those two methods'; and
+                InvalidRequestError for an env both reset and stepped (names it).
+        """
+        reset_ids = self._env_indices(reset_env_indices, "reset_env_indices")
+        states = self._state_ids(state_ids, reset_ids, "reset_state_ids")
+        ids = self._env_indices(env_indices)
+        both = np.intersect1d(reset_ids, ids)
+        if both.size:
+            raise InvalidRequestError(f"reset_env_indices: env {int(both[0])} is also stepped (env_indices)")
+        chunk = self._chunk(actions, ids) if chunked else self._actions(actions, ids)
+        recorded = self._record(record_env_indices, ids)
+        if reset_ids.size and ids.size and chunk.shape[1]:
+            return self._step_chunks(ids, chunk, recorded, bool(step_past_end), (reset_ids, states))
+        reset = self.reset_envs(reset_ids, states)
+        return reset, self._step_chunks(ids, chunk, recorded, bool(step_past_end))[1]
 
     def _step_chunks(
-        self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray, past_end: bool = False
-    ) -> ChunkResult:
+        self,
+        ids: np.ndarray,
+        chunk: np.ndarray,
+        recorded: np.ndarray,
+        past_end: bool = False,
+        reset: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[tuple[Any, dict[str, Any]] | None, ChunkResult]:
+        """Step ``ids`` through ``chunk``; with ``reset`` (env ids, state ids; disjoint from
+        ``ids``, none of them empty), reset those envs in the same worker call. Returns the
+        reset's ``(obs, info)`` (None without one) and the step's result."""
         n, k = chunk.shape[:2]
         workers, local_indices = self._location[ids].T
         if n == 0 or k == 0:
             obs = self._empty_obs() if n == 0 else self._current(workers, local_indices)
             result = self._result(obs, np.zeros((n, k, 4)), recorded, past_end)
-            return dataclasses.replace(result, env_info=[{} for _ in range(n)])
+            return None, dataclasses.replace(result, env_info=[{} for _ in range(n)])
         record = np.zeros(n, dtype=bool)
         record[recorded] = True
-        orders = {
-            worker: _Order(
+        orders: dict[int, _Order | tuple[_Order, ...]] = {}
+        if reset is not None:
+            reset_workers, reset_locals = self._location[reset[0]].T
+            for worker, rows in self._by_worker(reset_workers, reset_locals):
+                orders[worker] = _Order(reset_locals[rows], state_ids=reset[1][rows])
+            workers = np.concatenate([workers, reset_workers])
+            local_indices = np.concatenate([local_indices, reset_locals])
+        for worker, rows in self._by_worker(workers[:n], local_indices[:n]):
+            step = _Order(
                 local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None, past_end=past_end
             )
-            for worker, rows in self._by_worker(workers, local_indices)
-        }
+            # A worker with envs of both runs its resets, then its steps, in one order.
+            orders[worker] = (orders[worker], step) if worker in orders else step
         obs, rows, replies = self._run(orders, workers, local_indices)
-        env_info, errors = self._per_row(replies, ids)
+        all_ids = ids if reset is None else np.concatenate([ids, reset[0]])
+        env_info, errors = self._per_row(replies, all_ids)
+        reset_answer = None
+        if reset is not None:
+            reset_answer = (trees.map_leaves(lambda leaf: leaf[n:], obs), {
+                "success": rows[n:, 0, _SUCCESS] != 0,
+                "task_id": [self.task_ids[i] for i in reset[0]],
+                "env_info": env_info[n:],
+                "errors": [dataclasses.replace(e, row=e.row - n) for e in errors if e.row >= n],
+            })  # fmt: skip
+            obs, rows = trees.map_leaves(lambda leaf: leaf[:n], obs), rows[:n]
+            env_info, errors = env_info[:n], [e for e in errors if e.row < n]
         result = dataclasses.replace(
             self._result(obs, rows[:, :k], recorded, past_end), env_info=env_info, errors=errors
         )
@@ -1325,7 +1392,7 @@ class TaskGroupedVectorEnv:
                 for step, frame in enumerate(before_last):
                     out[index, step] = frame[camera][0]
                 out[index, last] = obs["images"][camera][row]
-        return result
+        return reset_answer, result
 
     def _result(self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray, past_end: bool = False) -> ChunkResult:
         """The answer over result rows ``[n, K, 4]``; recorded envs' frames zeroed, to be filled."""
@@ -1495,7 +1562,8 @@ class TaskGroupedVectorEnv:
         assert self._pool is not None
         try:
             for worker, arg in args.items():
-                self._pool.send(worker, order, arg)
+                # A tuple is several orders for one worker (a reset and a step of one call).
+                self._pool.send(worker, order, *(arg if isinstance(arg, tuple) else (arg,)))
             replies = self._pool.receive(list(args), self._timeout_s)
         except multiprocessing.TimeoutError as exc:
             self._broken = f"the workers did not answer within {self._timeout_s} s ({exc})"
@@ -1508,7 +1576,7 @@ class TaskGroupedVectorEnv:
         return replies
 
     def _run(
-        self, orders: dict[int, _Order], workers: np.ndarray, local_indices: np.ndarray
+        self, orders: dict[int, _Order | tuple[_Order, ...]], workers: np.ndarray, local_indices: np.ndarray
     ) -> tuple[Any, np.ndarray, dict[int, _Reply]]:
         """Send each worker of ``orders`` its order (no other worker hears of the call); return
         the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the replies."""

@@ -137,6 +137,15 @@ class StepRequest(_Request):
         "(its flags and reward as the scene computes them, its episode limit counting on; num_steps K); "
         "left false, each env stops at its first termination or truncation",
     )
+    reset_env_indices: IntVector = Field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64),
+        description="env ids (none of env_indices) reset in the same call, as /v1/reset does, "
+        "beside the steps (a rollout's refill); their answer is the answer's reset",
+    )
+    reset_state_ids: IntVector = Field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64),
+        description="one fixed initial state id per reset_env_indices entry",
+    )
 
 
 class ResetInfo(BaseModel):
@@ -187,6 +196,7 @@ class StepResponse(BaseModel):
     info: StepInfo
     env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC)
     errors: EnvErrors | None = Field(None, description="present when an env raised")
+    reset: ResetResponse | None = Field(None, description="with reset_env_indices: the reset envs' answer")
 
 
 class ChunkStepInfo(BaseModel):
@@ -209,6 +219,7 @@ class ChunkStepResponse(BaseModel):
     )
     env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC + "; after each env's last applied action")
     errors: EnvErrors | None = Field(None, description="present when an env raised")
+    reset: ResetResponse | None = Field(None, description="with reset_env_indices: the reset envs' answer")
 
 
 class AttrRequest(_Request):

@@ -346,7 +346,8 @@ async def run_call(
     step_past_end: bool = False,
 ) -> tuple[StageBatch, StageBatch]:
     """Carry out one call on the routes in ``book``: each pod its resets (to ``state_ids``, or
-    the envs' own reset with ``seeded`` = (seeds, options)), then its steps, pods concurrently.
+    the envs' own reset with ``seeded`` = (seeds, options)), then its steps, pods concurrently; a
+    pod with both fixed-state resets and steps gets them in one ``/v1/step`` request.
     Returns ``(reset_batch, step_batch)``; records the state ids reset to in ``book``.
 
     Step keys in ``frozen`` are not sent: their rows answer what their env was when it ended
@@ -376,11 +377,15 @@ async def run_call(
     # Rows whose pod answered: they are delivered even when another pod of the call fails.
     answered = _PodWork(step_rows=[row for row, key in enumerate(step_keys) if key in frozen])
 
+    def env_ids(keys: Sequence[str]) -> np.ndarray:
+        return np.array([routes[k].env_index for k in keys], dtype=np.int64)
+
     async def send(pod: str, op: str, row_list: list[int], all_keys: Sequence[str], field: str,
-                   values: np.ndarray, batch: StageBatch) -> None:  # fmt: skip
+                   values: np.ndarray, batch: StageBatch, refill: list[int] | None = None) -> None:  # fmt: skip
+        """One request; a step with ``refill`` (reset rows) also resets those envs in it."""
         rows = np.asarray(row_list)
         keys = [all_keys[r] for r in rows]
-        body = {"env_indices": np.array([routes[k].env_index for k in keys], dtype=np.int64)}
+        body = {"env_indices": env_ids(keys)}
         if op == "reset" and seeded is not None:
             body["seeds"] = [seeded[0][r] for r in rows]
             if seeded[1]:
@@ -391,14 +396,25 @@ async def run_call(
             body["step_past_end"] = True
         record = [k for k in keys if k in recorded]
         if record:
-            body["record_env_indices"] = np.array([routes[k].env_index for k in record], dtype=np.int64)
+            body["record_env_indices"] = env_ids(record)
+        reset_rows = np.asarray(refill or [], dtype=np.int64)
+        resetting = [reset_keys[r] for r in reset_rows]
+        if resetting:
+            body["reset_env_indices"] = env_ids(resetting)
+            body["reset_state_ids"] = state_ids[reset_rows]
         extra = info.chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
-        answer = await post(pod, op, body, keys, extra)
+        answer = await post(pod, op, body, [*resetting, *keys], extra)
         try:
+            if resetting:
+                reset = answer.get("reset")
+                said = np.asarray(reset.get("env_indices", ())) if isinstance(reset, dict) else None
+                if said is None or not np.array_equal(said, body["reset_env_indices"]):
+                    raise PodRequestError(pod, None, f"answer's reset is not for env ids {body['reset_env_indices'].tolist()}")
+                fill_batch(reset_batch, reset, reset_rows, pod, check_tasks=True)
             fill_batch(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
         except PodRequestError as exc:
             # An answer of the wrong shape or tasks: the pod's rows are unusable, not the call.
-            raise PodUnavailableError({pod: keys}, exc.detail) from None
+            raise PodUnavailableError({pod: [*resetting, *keys]}, exc.detail) from None
         for j, key in enumerate(record):
             frames = answer.get("frames") or {}
             batch.frames[key] = {camera: np.asarray(images)[j] for camera, images in frames.items()}
@@ -406,6 +422,12 @@ async def run_call(
     async def one_pod(pod: str, todo: _PodWork) -> None:
         reset_done = False
         try:
+            if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.size:
+                # A refill: the resets ride in the step's request, and run beside its steps.
+                await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch, todo.reset_rows)
+                answered.reset_rows.extend(todo.reset_rows)
+                answered.step_rows.extend(todo.step_rows)
+                return
             if todo.reset_rows:
                 await send(pod, "reset", todo.reset_rows, reset_keys, "state_ids", state_ids, reset_batch)
                 answered.reset_rows.extend(todo.reset_rows)

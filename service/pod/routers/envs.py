@@ -98,6 +98,17 @@ def step_answer(ids: np.ndarray, result: tuple[Any, Any, Any, Any, dict[str, Any
     return _own(answer, ids, info["env_info"], info["errors"])
 
 
+def reset_answer(ids: np.ndarray, obs: Any, info: dict[str, Any]) -> dict[str, Any]:
+    """``/v1/reset``'s answer (and a step's ``reset``), before it is encoded: built from what
+    ``TaskGroupedVectorEnv.reset_envs(ids, ...)`` returned."""
+    answer = {
+        "env_indices": ids.astype(np.int32),
+        "obs": tuples_as_dicts(obs),
+        "info": {"success": np.asarray(info["success"], dtype=bool), "task_id": list(info["task_id"])},
+    }
+    return _own(answer, ids, info["env_info"], info["errors"])
+
+
 async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
     """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
     turning the simulation's errors into HTTP errors."""
@@ -130,12 +141,7 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
 
     def work() -> Response:
         obs, info = env.reset_envs(req.env_indices, req.state_ids, seeds=req.seeds, options=req.options)
-        answer = {
-            "env_indices": req.env_indices.astype(np.int32),
-            "obs": tuples_as_dicts(obs),
-            "info": {"success": np.asarray(info["success"], dtype=bool), "task_id": list(info["task_id"])},
-        }
-        return encode_answer(_own(answer, req.env_indices, info["env_info"], info["errors"]), as_json)
+        return encode_answer(reset_answer(req.env_indices, obs, info), as_json)
 
     response = await _simulate(state, env, work)
     state.metrics.env_resets.inc(len(req.env_indices))
@@ -169,7 +175,10 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     all K, as trainers that step ended envs and mask afterwards expect), its cameras rendered once
     after its last applied action; the answer's per-action arrays are ``[n, K]`` and
     ``num_steps`` says how many actions each env took. Other envs do not move; the pod never
-    autoresets; no env ids (or K = 0) is a no-op."""
+    autoresets; no env ids (or K = 0) is a no-op. With ``reset_env_indices`` and
+    ``reset_state_ids``, those envs (none of ``env_indices``) are reset to fixed states in the
+    same call, their ``/v1/reset`` answer under ``reset``: a rollout's refill, whose resets so run
+    beside the steps of the pod's other envs."""
     req = parse_body(request, await request.body(), StepRequest)
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
@@ -185,11 +194,25 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             "send actions as [n, K, action dim]"
         )
 
+    resetting = bool(req.reset_env_indices.size or req.reset_state_ids.size)
+
     def work() -> tuple[Response, float, sim.CallTiming, int]:
         start = time.perf_counter()
-        if is_chunk:
+        reset: tuple[Any, dict[str, Any]] | None = None
+        if resetting:
+            reset, result = env.reset_and_step_envs(
+                req.reset_env_indices, req.reset_state_ids, req.env_indices, req.actions, chunked=is_chunk,
+                record_env_indices=req.record_env_indices, step_past_end=req.step_past_end,
+            )  # fmt: skip
+            if not is_chunk:  # one action per env: the answer's arrays are [n]
+                result = (result.obs, result.reward[:, 0], result.terminated[:, 0], result.truncated[:, 0],
+                          {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors})  # fmt: skip
+        elif is_chunk:
             result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices, req.step_past_end)
-            elapsed = time.perf_counter() - start
+        else:
+            result = env.step_envs(req.env_indices, req.actions)
+        elapsed = time.perf_counter() - start
+        if is_chunk:
             answer: dict[str, Any] = {
                 "env_indices": req.env_indices.astype(np.int32),
                 "obs": tuples_as_dicts(result.obs),
@@ -204,15 +227,17 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             _own(answer, req.env_indices, result.env_info, result.errors)
             applied = int(result.num_steps.sum())
         else:
-            result = env.step_envs(req.env_indices, req.actions)
-            elapsed = time.perf_counter() - start
             answer = step_answer(req.env_indices, result)
             applied = len(req.env_indices)
+        if reset is not None:
+            answer["reset"] = reset_answer(req.reset_env_indices, *reset)
         # Read on this thread, before another call can replace it.
         timing = env.last_timing
         return encode_answer(answer, as_json), elapsed, timing, applied
 
     response, elapsed, timing, applied = await _simulate(state, env, work)
+    if resetting:
+        state.metrics.env_resets.inc(len(req.reset_env_indices))
     state.metrics.env_steps.inc(applied)
     state.metrics.env_renders.inc(timing.renders)
     state.metrics.step_seconds.observe(elapsed)

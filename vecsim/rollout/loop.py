@@ -12,7 +12,7 @@ truncation or the horizon and is not stepped again. The result is per-trajectory
 by traj_key in request order, plus timing stats and, for chosen trajectories, videos of a camera.
 
 Refill: a batch may hold more requests than the job has envs. Request ``i`` belongs to stage
-``i % S`` (:func:`vecsim.sampler.stage_of`), as the sampler drew it; the first requests of each
+``i % S`` (:func:`vecsim.rollout.sampler.stage_of`), as the sampler drew it; the first requests of each
 (stage, task) start at once, and each of the others starts, reset to its state id, on an env of
 its task on its stage as soon as one's trajectory ends (in the call that steps that pod's other
 envs). A GRPO group's requests may so run at different times; the result reports them together.

@@ -1,0 +1,31 @@
+"""Training-side rollouts: :class:`EnvLoop`, the pipelined rollout of a policy over a job's
+stages (:mod:`vecsim.rollout.loop`), and :class:`TaskBalancedSampler`, which draws its
+trajectory requests (:mod:`vecsim.rollout.sampler`).
+
+    from vecsim.rollout import EnvLoop, TaskBalancedSampler
+"""
+
+from vecsim.rollout.loop import (
+    EnvLoop,
+    ExampleCNNPolicy,
+    LostTrajectory,
+    RolloutResult,
+    RolloutStats,
+    Trajectory,
+    write_video,
+)
+from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances, stage_of, task_ids_of
+
+__all__ = [
+    "EnvLoop",
+    "ExampleCNNPolicy",
+    "LostTrajectory",
+    "RolloutResult",
+    "RolloutStats",
+    "TaskBalancedSampler",
+    "TaskInstances",
+    "Trajectory",
+    "stage_of",
+    "task_ids_of",
+    "write_video",
+]
