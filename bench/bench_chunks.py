@@ -251,7 +251,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
 
 def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
     """``--gpu`` (LIBERO-10, 256x256, 12 pods) or ``--cpu-small`` defaults; ``--dry`` shrinks."""
-    from vecsim.tasks import suite_tasks
+    from vecsim.engine.tasks import suite_tasks
 
     gpu, dry = args.gpu, args.dry
     if args.tasks:

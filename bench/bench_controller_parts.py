@@ -1,12 +1,12 @@
 """Where a non-policy physics substep of the exact step path spends its time, part by part.
 
 One vecsim env of one task (no cameras), pinned to one core, stepped a few times; then each part
-of a non-policy substep (``vecsim.tasks._fast_step``) is called on its own, over and over, from the
+of a non-policy substep (``vecsim.engine.tasks._fast_step``) is called on its own, over and over, from the
 state the steps left: MuJoCo's position and velocity stages (``_forward``); the controller as it
 runs from Python (``_update``, then its torques ``_ArmStep.control``; robosuite's numba OSC kernel
 ``opspace_matrices`` inside it alone); the same controller work as the exact path now runs it,
 one ``mj_jacSite`` and one compiled call (``_ArmStep.fused_control``; the compiled
-``vecsim.tasks._osc_kernel.osc_substep`` alone); and one ``mj_step`` for scale. Each figure is the
+``vecsim.engine.tasks._osc_kernel.osc_substep`` alone); and one ``mj_step`` for scale. Each figure is the
 fastest of ``--repeats`` rounds of ``--number`` calls, in microseconds: what the part costs when
 nothing else takes the core.
 
@@ -33,8 +33,8 @@ log = logging.getLogger("bench_controller_parts")
 def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
     """Return the fastest time, in microseconds, of each part of one non-policy substep."""
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
-    from vecsim.tasks._fast_step import ExactStep, _ArmStep, _osc_kernel, _robosuite
+    from vecsim.engine.tasks import make_env
+    from vecsim.engine.tasks._fast_step import ExactStep, _ArmStep, _osc_kernel, _robosuite
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     try:

@@ -179,7 +179,7 @@ def rlinf_config(suite: str, num_envs: int, size: int, pod_urls: Sequence[str] |
 
 def build_rlinf(cfg: Any, num_envs: int, sim_cores: set[int], driver_cores: set[int]) -> Any:
     """RLinf's own LiberoEnv, its env processes started while this process runs on the sim cores."""
-    from vecsim.tasks._libero import ensure_config
+    from vecsim.engine.tasks._libero import ensure_config
 
     ensure_config()
     from rlinf.envs.libero.libero_env import LiberoEnv

@@ -145,7 +145,8 @@ def _instrument_pod(timers: Timers) -> None:
     import service.pod.main as pod_main
     import service.pod.routers.envs as routes
     from service.http import BodyLimitMiddleware
-    from vecsim import sim, wire
+    from vecsim import wire
+    from vecsim.engine import sim
     from vecsim.auth import BearerTokenMiddleware
 
     timers.wrap(BearerTokenMiddleware, "__call__", "pod.auth_middleware (incl. all below)")
@@ -195,7 +196,7 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
     SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
     from service.pod import main as pod_main
-    from vecsim.tasks._base import write_whole
+    from vecsim.engine.tasks._base import write_whole
 
     if mode == "timed":
         timers = Timers()
@@ -231,7 +232,7 @@ def serve_bare(port: int) -> int:
 
     from service.pod.routers.envs import step_answer
     from vecsim import wire
-    from vecsim.sim import TaskGroupedVectorEnv
+    from vecsim.engine.sim import TaskGroupedVectorEnv
 
     env = TaskGroupedVectorEnv(_assignment("bare"))
     head = "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {length}\r\n\r\n"
@@ -453,8 +454,8 @@ def main() -> None:
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client.pods import EventLoopThread
-    from vecsim.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
-    from vecsim.tasks import make_env
+    from vecsim.engine.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
+    from vecsim.engine.tasks import make_env
 
     setup_logging()
     n, calls, rounds = ARGS.envs, ARGS.calls, ARGS.rounds

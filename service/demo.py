@@ -26,7 +26,7 @@ from vecsim.client import StageClient
 from vecsim.config import RunnerConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.sampler import TaskBalancedSampler, TaskInstances
-from vecsim.tasks import episode_limit, get_task
+from vecsim.engine.tasks import episode_limit, get_task
 
 logger = logging.getLogger("service.demo")
 

@@ -351,7 +351,7 @@ UNPICKLERS = {"pickle", "_pickle", "cPickle", "cloudpickle", "dill", "shelve", "
 # Calls that unpickle: torch.load (pickle underneath), pandas.read_pickle.
 UNPICKLING_CALLS = {"torch.load", "pd.read_pickle", "pandas.read_pickle"}
 # The one unpickling load vecsim reaches: LIBERO's own init states, read from files inside the
-# installed package (vecsim.tasks._libero points LIBERO's config at them), never from the network.
+# installed package (vecsim.engine.tasks._libero points LIBERO's config at them), never from the network.
 ALLOWED = {("libero/benchmark/__init__.py", "get_task_init_states", "torch.load")}
 
 

@@ -1,7 +1,7 @@
 """The batched render path gives exactly the pixels of rendering one env at a time.
 
 References are robosuite's and gymnasium's own renderers (one GL context and one render context
-per env, one readback per camera) with the same preset applied through :mod:`vecsim.render`.
+per env, one readback per camera) with the same preset applied through :mod:`vecsim.engine.render`.
 Software EGL (Mesa) here, so the scenes are the tiny suite and Pusher, the cameras small; one
 LIBERO scene stands for LIBERO.
 """
@@ -17,11 +17,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from vecsim import batch_render, render
-from vecsim.batch_render import BatchRenderer, same_render_assets, shared_renderer
+from vecsim.engine import batch_render, render
+from vecsim.engine.batch_render import BatchRenderer, same_render_assets, shared_renderer
 from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
-from vecsim.sim import _Order, _Worker, _WorkerSpec, assignment_spaces
-from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
+from vecsim.engine.sim import _Order, _Worker, _WorkerSpec, assignment_spaces
+from vecsim.engine.tasks import RobotTaskEnv, derive_seed, make_env
 
 PRESETS = ("full", "fast", "lean", "lowpoly")
 CAMERAS = ("agentview", "robot0_eye_in_hand")

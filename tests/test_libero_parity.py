@@ -40,8 +40,8 @@ from service_procs import assignment, standalone_pods
 
 from vecsim import wire
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.tasks import PROPRIO_KEYS, get_task, make_env
-from vecsim.tasks._libero import SETTLE_ACTION, _benchmark, ensure_config, init_states, quat_to_axis_angle
+from vecsim.engine.tasks import PROPRIO_KEYS, get_task, make_env
+from vecsim.engine.tasks._libero import SETTLE_ACTION, _benchmark, ensure_config, init_states, quat_to_axis_angle
 
 pytestmark = pytest.mark.libero
 

@@ -27,9 +27,9 @@ from sim_envs import (
     sim_assignment,
 )
 
-from vecsim.batch_render import shared_renderer
+from vecsim.engine.batch_render import shared_renderer
 from vecsim.config import AUTO_ENVS_PER_WORKER
-from vecsim.sim import (
+from vecsim.engine.sim import (
     InvalidRequestError,
     SimCrashedError,
     TaskGroupedVectorEnv,
@@ -247,8 +247,8 @@ def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> N
 WARM_PROBE = """
 import json, numpy as np
 from sim_envs import TINY_CAMERA, sim_assignment
-from vecsim.sim import _Worker, _WorkerSpec, assignment_spaces
-from vecsim.tasks import _fast_step
+from vecsim.engine.sim import _Worker, _WorkerSpec, assignment_spaces
+from vecsim.engine.tasks import _fast_step
 assignment = sim_assignment([("tiny/lift", 2)], TINY_CAMERA)
 observation_space, action_space = assignment_spaces(assignment)
 worker = _Worker(_WorkerSpec(("tiny/lift", "tiny/lift"), (0, 1), 2, TINY_CAMERA, "lean", 10, observation_space, action_space))

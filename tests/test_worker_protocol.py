@@ -1,4 +1,4 @@
-"""The messages between a pod and its worker processes (``vecsim.sim``): messages on a real pipe,
+"""The messages between a pod and its worker processes (``vecsim.engine.sim``): messages on a real pipe,
 and run orders in binary. The behaviour they carry (steps, resets, errors, dead and hung workers)
 is specified in test_sim*.py and test_faults*.py on real workers."""
 
@@ -12,7 +12,7 @@ import gymnasium
 import numpy as np
 import pytest
 
-from vecsim.sim import _Order, _decode_run, _encode_run, _receive, _send
+from vecsim.engine.sim import _Order, _decode_run, _encode_run, _receive, _send
 
 BOX = gymnasium.spaces.Box(-1.0, 1.0, (2, 3), np.float32)
 

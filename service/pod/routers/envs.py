@@ -12,9 +12,10 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from PIL import Image
 
-from vecsim import sim, wire
+from vecsim import wire
+from vecsim.engine import sim
 from vecsim.info import batch_infos
-from vecsim.sim import InvalidRequestError
+from vecsim.engine.sim import InvalidRequestError
 from vecsim.spaces import tuples_as_dicts
 
 from ...models import Problem

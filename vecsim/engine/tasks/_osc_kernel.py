@@ -34,7 +34,7 @@ import numpy as np
 from numba import types
 from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
 
-from vecsim.tasks._base import log
+from vecsim.engine.tasks._base import log
 
 # numpy's wheels bundle OpenBLAS built with 64-bit integers and these symbol names.
 _DGEMV_SYMBOL = "scipy_cblas_dgemv64_"

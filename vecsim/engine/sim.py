@@ -35,7 +35,7 @@ vecsim's keys), the exceptions envs raised (the env that raised is named in the 
 other env of the call goes on: :class:`EnvError`), and recorded frames. Camera images are
 rendered once, after every order of a call has run (after an env's last applied action), for
 exactly the envs reset or stepped, all their cameras in one batch of this worker's renderer
-(:mod:`vecsim.batch_render`: one GL context per worker; envs of one scene share a render context,
+(:mod:`vecsim.engine.batch_render`: one GL context per worker; envs of one scene share a render context,
 and each scene's views are read back at once). An env whose frames are recorded is also rendered
 after each of its other applied actions; those frames travel back through the pipe.
 
@@ -79,10 +79,10 @@ from gymnasium.vector.utils import batch_space, create_empty_array, create_share
 
 from vecsim import wire
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
-from vecsim.tasks._gym import VECSIM_INFO_KEYS, GymTaskEnv
+from vecsim.engine.tasks import TaskEnv, episode_limit, get_task, make_env, task_spaces
+from vecsim.engine.tasks._gym import VECSIM_INFO_KEYS, GymTaskEnv
 
-log = logging.getLogger("vecsim.sim")
+log = logging.getLogger("vecsim.engine.sim")
 
 _MAX_STATE_ID = 2**31 - 1
 _MAX_SEED = 2**63 - 1

@@ -30,9 +30,9 @@ import mujoco
 import numpy as np
 import yaml
 
-from vecsim import render as render_presets
+from vecsim.engine import render as render_presets
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.tasks._base import (
+from vecsim.engine.tasks._base import (
     TaskSetupError,
     TaskSpec,
     cache_dir,
@@ -41,7 +41,7 @@ from vecsim.tasks._base import (
     stdout_to_log,
     write_whole,
 )
-from vecsim.tasks._robot import (
+from vecsim.engine.tasks._robot import (
     RobotTaskEnv,
     _file_lock,
     robosuite_reset_without_observing,
@@ -237,7 +237,7 @@ class LiberoTaskEnv(RobotTaskEnv):
       sample, which moves every later sample to physics substep 24 of a step's 25.
 
     The reset takes the env's step path (:meth:`set_step_path`): on ``exact``, robosuite's reset
-    runs its forwards without their acceleration stage (:func:`vecsim.tasks._robot.forwards_without_acceleration`:
+    runs its forwards without their acceleration stage (:func:`vecsim.engine.tasks._robot.forwards_without_acceleration`:
     the arm's controller and the placements read only position and velocity results, and the
     full ``mj_forward`` after the init state is set computes the rest again) and the settle
     steps take the exact path; on ``library``, robosuite's reset and LIBERO's ``step`` run as they

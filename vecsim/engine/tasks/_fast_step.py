@@ -18,8 +18,8 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
   property rebuilds and four Jacobian evaluations where one gives the same numbers. On every
   substep that work (after one ``mj_jacSite``) is one compiled call,
-  :func:`vecsim.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
-  own BLAS as robosuite's step does; where it cannot (:func:`vecsim.tasks._osc_kernel.available`,
+  :func:`vecsim.engine.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
+  own BLAS as robosuite's step does; where it cannot (:func:`vecsim.engine.tasks._osc_kernel.available`,
   a gripper other than robosuite's Panda gripper) the same calls run from Python. The controller,
   robot and gripper attributes the compiled call fills are handed over as fresh arrays after the
   policy substep, after the last substep and before any observable samples. After the policy
@@ -46,7 +46,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from vecsim.tasks._base import log
+from vecsim.engine.tasks._base import log
 
 STEP_PATHS: tuple[str, ...] = ("exact", "library")
 DEFAULT_STEP_PATH = "exact"
@@ -138,8 +138,8 @@ class _Unsupported(Exception):
 
 @functools.cache
 def _osc_kernel() -> Any:
-    # Imports robosuite and numba: loaded with the first exact step, not with vecsim.tasks.
-    from vecsim.tasks import _osc_kernel
+    # Imports robosuite and numba: loaded with the first exact step, not with vecsim.engine.tasks.
+    from vecsim.engine.tasks import _osc_kernel
 
     return _osc_kernel
 
@@ -158,7 +158,7 @@ def _fused_controller_available() -> bool:
 
 @functools.cache
 def _robosuite() -> Any:
-    # robosuite is imported when the first env is made, not with vecsim.tasks.
+    # robosuite is imported when the first env is made, not with vecsim.engine.tasks.
     import robosuite.controllers.base_controller
     import robosuite.controllers.osc
     import robosuite.models.grippers.panda_gripper

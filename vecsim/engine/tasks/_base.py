@@ -15,7 +15,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-log = logging.getLogger("vecsim.tasks")
+log = logging.getLogger("vecsim.engine.tasks")
 
 
 @dataclass(frozen=True)

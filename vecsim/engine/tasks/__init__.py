@@ -25,10 +25,10 @@ from typing import Any
 import gymnasium
 
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, UnknownTaskError, cache_dir, derive_seed
-from vecsim.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
-from vecsim.tasks._libero import LIBERO_SUITES, libero_observation_space, libero_specs, make_libero_env
-from vecsim.tasks._robot import (
+from vecsim.engine.tasks._base import TaskEnv, TaskSetupError, TaskSpec, UnknownTaskError, cache_dir, derive_seed
+from vecsim.engine.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
+from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space, libero_specs, make_libero_env
+from vecsim.engine.tasks._robot import (
     PROPRIO_KEYS,
     RobotTaskEnv,
     make_robosuite_env,
