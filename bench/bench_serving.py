@@ -9,7 +9,7 @@ autoreset and random actions:
   envs (``vecsim.engine.tasks.make_env``), one worker process per env: the same number of workers;
 - ``http_auto`` (cheap scenes only): the same job with ``envs_per_worker: auto``, the pod packing
   the envs into one worker per core (benchmark 7 looks at that split in detail);
-- ``pool`` (a diagnosis, not a target): the pod's own worker pool (``vecsim.engine.sim.TaskGroupedVectorEnv``,
+- ``pool`` (a diagnosis, not a target): the pod's own worker pool (``vecsim.engine.TaskGroupedVectorEnv``,
   one env per worker) in this process, no HTTP: ``http`` / ``pool`` is what serving costs,
   ``pool`` / ``inproc`` what vecsim's workers cost against gymnasium's.
 
@@ -60,7 +60,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
-from vecsim.engine.sim import TaskGroupedVectorEnv
+from vecsim.engine import TaskGroupedVectorEnv
 from vecsim.engine.tasks import make_env
 
 log = logging.getLogger("bench.serving")

@@ -146,7 +146,7 @@ def _instrument_pod(timers: Timers) -> None:
     import service.pod.routers.envs as routes
     from service.http import BodyLimitMiddleware
     from vecsim import wire
-    from vecsim.engine import sim
+    from vecsim.engine import checks, pool, vector_env
     from vecsim.auth import BearerTokenMiddleware
 
     timers.wrap(BearerTokenMiddleware, "__call__", "pod.auth_middleware (incl. all below)")
@@ -155,12 +155,12 @@ def _instrument_pod(timers: Timers) -> None:
     timers.wrap(routes, "parse_body", "pod.parse_body (wire.decode+pydantic)")
     timers.wrap(wire, "decode", "pod.wire.decode")
     timers.wrap(routes, "_simulate", "pod.simulate (work(): step + answer + encode)")
-    timers.wrap(sim.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_actions", "pod.step_envs.validate_actions")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
-    timers.wrap(sim._WorkerPool, "send", "pod.worker_pool.send (an order to one worker's pipe)")
-    timers.wrap(sim._WorkerPool, "receive", "pod.worker_pool.receive (the workers' replies)")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
+    timers.wrap(checks, "actions", "pod.step_envs.validate_actions")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
+    timers.wrap(pool.WorkerPool, "send", "pod.worker_pool.send (an order to one worker's pipe)")
+    timers.wrap(pool.WorkerPool, "receive", "pod.worker_pool.receive (the workers' replies)")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
     timers.wrap(routes, "batch_infos", "pod.batch_infos")
     timers.wrap(routes, "encode_answer", "pod.encode_answer (wire.encode + Response)")
     timers.wrap(wire, "encode", "pod.wire.encode")
@@ -232,7 +232,7 @@ def serve_bare(port: int) -> int:
 
     from service.pod.routers.envs import step_answer
     from vecsim import wire
-    from vecsim.engine.sim import TaskGroupedVectorEnv
+    from vecsim.engine import TaskGroupedVectorEnv
 
     env = TaskGroupedVectorEnv(_assignment("bare"))
     head = "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {length}\r\n\r\n"
@@ -454,7 +454,7 @@ def main() -> None:
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client.pods import EventLoopThread
-    from vecsim.engine.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
+    from vecsim.engine import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
     from vecsim.engine.tasks import make_env
 
     setup_logging()

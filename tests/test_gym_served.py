@@ -23,7 +23,7 @@ from service_procs import PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv, PodRequestError
 from vecsim.config import Assignment, CameraConfig, TaskBlock
-from vecsim.engine.sim import assignment_spaces
+from vecsim.engine import assignment_spaces
 from vecsim.spaces import check_travels
 from vecsim.engine.tasks import TaskSetupError, task_spaces
 

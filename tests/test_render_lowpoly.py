@@ -17,7 +17,7 @@ import pytest
 from vecsim.engine import mesh_lod, render
 from vecsim.engine.batch_render import BatchRenderer
 from vecsim.config import Assignment, CameraConfig, JobSpec, TaskBlock
-from vecsim.engine.sim import TaskGroupedVectorEnv
+from vecsim.engine import TaskGroupedVectorEnv
 from vecsim.engine.tasks import RobotTaskEnv, make_env
 
 CAMERA = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=24, width=32)

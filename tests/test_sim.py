@@ -15,7 +15,7 @@ import pytest
 from sim_envs import CAMERAS, TINY_CAMERA, env_rows, kill_worker, sim_assignment
 
 from vecsim.config import CameraConfig
-from vecsim.engine.sim import (
+from vecsim.engine import (
     InvalidRequestError,
     SimBuildError,
     SimCrashedError,

@@ -15,7 +15,7 @@ import vecsim
 from service.contract import Heartbeat
 from service.http import BodyLimitMiddleware, describe_validation_error
 from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
-from vecsim.engine.sim import InvalidRequestError
+from vecsim.engine import InvalidRequestError
 
 from .agent import ControllerAgent
 from .errors import LIBRARY_ERRORS, PodError

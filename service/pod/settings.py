@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from vecsim.auth import check_token
 from vecsim.config import POD_NAME_PATTERN, Assignment
-from vecsim.engine.sim import DEFAULT_MAX_CHUNK
+from vecsim.engine import DEFAULT_MAX_CHUNK
 
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
 # The device node the NVIDIA driver creates: present exactly where a GPU is usable for EGL.
