@@ -70,7 +70,7 @@ def action_table(steps: int, seed: int) -> np.ndarray:
 
 def change_variants() -> dict[str, Any]:
     """Return the exact path's changes as cumulative ``ExactStep`` subclasses, first to last."""
-    from vecsim.engine.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     class ControllerOnly(ExactStep):
         # robosuite's forwards (the substep's and the controller update's), mj_step and
@@ -108,7 +108,7 @@ def change_variants() -> dict[str, Any]:
 
 def python_controller(inner: Any) -> Any:
     """Return the exact path's step for ``inner`` with its controller run from Python throughout."""
-    from vecsim.engine.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     step = ExactStep(inner)
     step.fused = False
@@ -117,7 +117,7 @@ def python_controller(inner: Any) -> Any:
 
 def second_pass_variant(substep_loop: bool, fused_policy: bool) -> Any:
     """Return a maker of the exact path's step with its second pass's changes on or off."""
-    from vecsim.engine.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     def make(inner: Any) -> Any:
         step = ExactStep(inner)
@@ -131,13 +131,12 @@ class LiberoOwn:
     """LIBERO's own ``OffScreenRenderEnv`` of one task, reset LIBERO's way."""
 
     def __init__(self, task_id: str) -> None:
-        from vecsim.engine.tasks._base import stdout_to_log
-        from vecsim.engine.tasks._libero import _benchmark, init_states
+        from vecsim.engine.tasks import init_states, libero_benchmark, stdout_to_log
         from vecsim.engine.tasks import get_task
 
         suite, index = task_id.split("/", 1)
-        # _benchmark writes LIBERO's config first: importing LIBERO without it asks on stdin.
-        bddl_file = _benchmark(suite).get_task_bddl_file_path(int(index))
+        # libero_benchmark writes LIBERO's config first: importing LIBERO without it asks on stdin.
+        bddl_file = libero_benchmark(suite).get_task_bddl_file_path(int(index))
         with stdout_to_log():
             from libero.libero.envs import OffScreenRenderEnv
 
@@ -333,7 +332,7 @@ def measure_resets(env: Any, own: LiberoOwn | None, count: int) -> dict[str, lis
     vecsim reset before) and ``forwards_cut`` (the forwards cut, settle steps still on LIBERO's
     own step): the two changes one at a time. All three leave the env bit-identical.
     """
-    from vecsim.engine.tasks._fast_step import library_step
+    from vecsim.engine.tasks import library_step
 
     def on_path(path: str, settle_on_library: bool = False) -> Any:
         def reset(state_id: int) -> float:

@@ -24,8 +24,14 @@ import mujoco
 from common import write_result
 
 from vecsim.engine.tasks import get_task
-from vecsim.engine.tasks._libero import _benchmark, _load_fixtures, ensure_config, episode_fixtures, fixtures_path
-from vecsim.engine.tasks._robot import seeded_global_rngs
+from vecsim.engine.tasks import (
+    ensure_config,
+    episode_fixtures,
+    fixtures_path,
+    libero_benchmark,
+    load_fixtures,
+    seeded_global_rngs,
+)
 
 log = logging.getLogger("bench.libero_fixture_cost")
 
@@ -41,7 +47,7 @@ def build(task_id: str) -> Any:
 
     suite, index = task_id.split("/")
     return OffScreenRenderEnv(
-        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
         hard_reset=True, ignore_done=True,
     )  # fmt: skip
 
@@ -68,7 +74,7 @@ def main() -> None:
                 if label == "cached":
                     path = fixtures_path(task, args.seed)
                     _, row["read_wall_s"], row["read_cpu_s"] = timed(
-                        lambda: _load_fixtures(path, len(fixtures), wrapper.env.sim.model.nbody)
+                        lambda: load_fixtures(path, len(fixtures), wrapper.env.sim.model.nbody)
                     )
                     with seeded_global_rngs(args.seed):
                         _, wall, cpu = timed(lambda: [wrapper.env.reset() for _ in range(args.real)])

@@ -47,7 +47,7 @@ from PIL import Image
 
 from vecsim.config import CameraConfig
 from vecsim.engine.tasks import get_task, make_env
-from vecsim.engine.tasks._libero import _benchmark, ensure_config, init_states
+from vecsim.engine.tasks import ensure_config, init_states, libero_benchmark
 
 log = logging.getLogger("bench.libero_parity_sweep")
 
@@ -73,7 +73,7 @@ def libero_frames(task_id: str, state_id: int, size: int, actions: np.ndarray) -
 
     suite, index = task_id.split("/")
     env = OffScreenRenderEnv(
-        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
     )
     try:
         env.seed(0)

@@ -144,10 +144,9 @@ def _instrument_pod(timers: Timers) -> None:
 
     import service.pod.main as pod_main
     import service.pod.routers.envs as routes
-    from service.http import BodyLimitMiddleware
+    from service.http import BearerTokenMiddleware, BodyLimitMiddleware
     from vecsim import wire
     from vecsim.engine import checks, pool, vector_env
-    from vecsim.auth import BearerTokenMiddleware
 
     timers.wrap(BearerTokenMiddleware, "__call__", "pod.auth_middleware (incl. all below)")
     timers.wrap(BodyLimitMiddleware, "__call__", "pod.body_limit_middleware (incl. routing+route)")
@@ -196,7 +195,7 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
     SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
     from service.pod import main as pod_main
-    from vecsim.engine.tasks._base import write_whole
+    from vecsim.files import write_whole
 
     if mode == "timed":
         timers = Timers()

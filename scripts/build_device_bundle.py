@@ -365,7 +365,7 @@ def trimmed_members(root: Path, wanted: set[Path], skip: tuple[str, ...] = ()) -
 
 def libero_skips(libero_root: Path, task_ids: list[str]) -> tuple[str, ...]:
     """Return LIBERO's task files and init states of every suite and task not in ``task_ids``."""
-    from vecsim.engine.tasks._libero import _benchmark
+    from vecsim.engine.tasks import libero_benchmark
 
     wanted: dict[str, set[int]] = {}
     for task_id in task_ids:
@@ -378,7 +378,7 @@ def libero_skips(libero_root: Path, task_ids: list[str]) -> tuple[str, ...]:
             if suite.is_dir() and suite.name not in wanted:
                 skips.append(f"{folder}/{suite.name}/")
     for suite, indices in wanted.items():
-        bench = _benchmark(suite)
+        bench = libero_benchmark(suite)
         for index in range(bench.n_tasks):
             if index not in indices:
                 task = bench.get_task(index)

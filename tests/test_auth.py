@@ -307,7 +307,7 @@ def test_without_a_token_checking_is_off_and_both_servers_warn_at_start_up(tmp_p
 def test_an_unusable_token_stops_the_server_at_start_naming_the_variable_not_the_token(command):
     bad = "two words"
     result = subprocess.run(
-        [sys.executable, "-m", "vecsim.cli", command, "--port", "9"],
+        [sys.executable, "-m", "service.cli", command, "--port", "9"],
         env=clean_env(VECSIM_TOKEN=bad),
         capture_output=True,
         text=True,
@@ -409,7 +409,7 @@ def test_vecsim_up_without_a_token_writes_the_one_it_made_to_a_file_only_its_own
     path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
     logs = tmp_path / "logs"
     runner = subprocess.Popen(
-        [sys.executable, "-m", "vecsim.cli", "up", "-c", str(path), "--log-dir", str(logs), "--grace", "10"],
+        [sys.executable, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(logs), "--grace", "10"],
         env=clean_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -253,7 +253,7 @@ assignment = sim_assignment([("tiny/lift", 2)], TINY_CAMERA)
 observation_space, action_space = assignment_spaces(assignment)
 worker = Worker(WorkerSpec(("tiny/lift", "tiny/lift"), (0, 1), 2, TINY_CAMERA, "lean", 10, observation_space, action_space))
 took = worker.build()
-compiled = bool(_fast_step._osc_kernel().osc_substep.signatures)
+compiled = bool(_fast_step.osc_kernel().osc_substep.signatures)
 env = worker._envs[0]
 after_build = env.inner.sim.get_state().flatten().tolist()
 worker._reset_env(0, 0)

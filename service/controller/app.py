@@ -13,9 +13,9 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.http import BodyLimitMiddleware, describe_validation_error
+from service.http import BearerTokenMiddleware, BodyLimitMiddleware, describe_validation_error, document_bearer_security
 from vecsim import __version__
-from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
+from vecsim.auth import TOKEN_ENV, bearer_headers
 from vecsim.transport import make_async_client
 
 from .jobs import check_job

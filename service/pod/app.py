@@ -13,8 +13,8 @@ from fastapi.responses import JSONResponse
 
 import vecsim
 from service.contract import Heartbeat
-from service.http import BodyLimitMiddleware, describe_validation_error
-from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
+from service.http import BearerTokenMiddleware, BodyLimitMiddleware, describe_validation_error, document_bearer_security
+from vecsim.auth import TOKEN_ENV
 from vecsim.engine import InvalidRequestError
 
 from .agent import ControllerAgent

@@ -44,9 +44,9 @@ from vecsim.engine.tasks._base import (
     ensure_gl_backend,
     log,
     scene_seed,
-    write_whole,
 )
 from vecsim.engine.tasks._fast_step import DEFAULT_STEP_PATH, make_step
+from vecsim.files import write_whole
 
 PROPRIO_KEYS: tuple[str, ...] = (
     "robot0_joint_pos_cos",
