@@ -398,7 +398,7 @@ def test_the_one_allowed_unpickling_load_is_libero_reading_its_own_init_state_fi
         pytest.skip("LIBERO is not installed")
     root = Path(next(iter(spec.submodule_search_locations)))
     assert unpickling_uses(root / "libero" / "benchmark" / "__init__.py", root) == ALLOWED
-    libero_glue = (REPO / "vecsim" / "tasks" / "_libero.py").read_text()
+    libero_glue = (REPO / "vecsim" / "engine" / "tasks" / "_libero.py").read_text()
     assert '"init_states": str(package_dir / "init_files")' in libero_glue
 
 
