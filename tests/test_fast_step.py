@@ -144,7 +144,7 @@ def test_a_compiled_controller_that_cannot_load_leaves_the_controller_from_pytho
     def unloadable() -> Any:
         raise RuntimeError("cannot cache function 'osc_substep': no locator available")
 
-    monkeypatch.setattr(_fast_step, "_osc_kernel", unloadable)
+    monkeypatch.setattr(_fast_step, "osc_kernel", unloadable)
     _fast_step._fused_controller_available.cache_clear()
     try:
         with caplog.at_level("WARNING"), env_pair("tiny/lift") as envs:
