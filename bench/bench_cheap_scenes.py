@@ -4,12 +4,12 @@ own AsyncVectorEnv of the same envs on the same cores.
 For a scene whose physics costs ~0.05 ms a step (gymnasium's HalfCheetah-v5), one process per
 env spends more on the inter-process hop than on the physics. A pod's workers each host a batch
 of envs (``envs_per_worker``); with ``envs_per_worker: auto`` (0, the default) the pod picks the
-split itself (``vecsim.sim.resolve_envs_per_worker``): for cheap scenes the fewest envs per worker
+split itself (``vecsim.engine.resolve_envs_per_worker``): for cheap scenes the fewest envs per worker
 that keep its workers within its cores, for robot scenes or cameras one env per worker.
 
 Contenders, each stepping all N envs once per call with NEXT_STEP autoreset, same episode cap:
 
-- ``async``: ``gymnasium.vector.AsyncVectorEnv`` over ``vecsim.tasks.make_env``, one process per
+- ``async``: ``gymnasium.vector.AsyncVectorEnv`` over ``vecsim.engine.tasks.make_env``, one process per
   env, in this process (the baseline);
 - ``pod_auto``: one pod (``vecsim pod``) with ``envs_per_worker: auto``, reached over HTTP by
   ``HTTPVectorEnv``;
@@ -43,8 +43,8 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
-from vecsim.sim import available_cores, resolve_envs_per_worker
-from vecsim.tasks import make_env
+from vecsim.engine import available_cores, resolve_envs_per_worker
+from vecsim.engine.tasks import make_env
 
 log = logging.getLogger("bench.cheap_scenes")
 

@@ -223,13 +223,13 @@ def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any
     task, the job's cameras and render preset); then for each K, in step with the other
     processes: apply K actions to every env (resetting one that ended), and render every env's
     cameras once, in one batch of the process's renderer, as the pod's worker does after a
-    chunk (``vecsim.sim._Worker._draw``). Reports ``("rate", index, (K, env-steps/s, physics
+    chunk (``vecsim.engine.worker.Worker._draw``). Reports ``("rate", index, (K, env-steps/s, physics
     seconds, render seconds, env-steps))``."""
     logging.basicConfig(level=logging.WARNING)
     try:
         os.sched_setaffinity(0, {cpu})
         from vecsim.config import CameraConfig
-        from vecsim.tasks import make_env
+        from vecsim.engine.tasks import make_env
 
         cameras = CameraConfig(**camera)
         envs = [make_env(task, cameras, preset) for task in tasks for _ in range(envs_per_task)]
@@ -359,7 +359,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
 
 def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
     """``--gpu`` (LIBERO-10, 256x256, 12 pods) or ``--cpu-small`` defaults; ``--dry`` shrinks."""
-    from vecsim.tasks import suite_tasks
+    from vecsim.engine.tasks import suite_tasks
 
     gpu, dry = args.gpu, args.dry
     if args.tasks:

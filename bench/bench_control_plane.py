@@ -58,7 +58,7 @@ from aiohttp import web
 from common import write_result
 
 from vecsim.auth import bearer_headers
-from vecsim.tasks import suite_tasks
+from vecsim.engine.tasks import suite_tasks
 from vecsim.transport import HttpxTransport, make_async_client
 
 log = logging.getLogger("bench.control_plane")

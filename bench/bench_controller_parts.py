@@ -1,12 +1,12 @@
 """Where a non-policy physics substep of the exact step path spends its time, part by part.
 
 One vecsim env of one task (no cameras), pinned to one core, stepped a few times; then each part
-of a non-policy substep (``vecsim.tasks._fast_step``) is called on its own, over and over, from the
+of a non-policy substep (``vecsim.engine.tasks._fast_step``) is called on its own, over and over, from the
 state the steps left: MuJoCo's position and velocity stages (``_forward``); the controller as it
-runs from Python (``_update``, then its torques ``_ArmStep.control``; robosuite's numba OSC kernel
+runs from Python (``_update``, then its torques ``ArmStep.control``; robosuite's numba OSC kernel
 ``opspace_matrices`` inside it alone); the same controller work as the exact path now runs it,
-one ``mj_jacSite`` and one compiled call (``_ArmStep.fused_control``; the compiled
-``vecsim.tasks._osc_kernel.osc_substep`` alone); and one ``mj_step`` for scale. Each figure is the
+one ``mj_jacSite`` and one compiled call (``ArmStep.fused_control``; the compiled
+``vecsim.engine.tasks._osc_kernel.osc_substep`` alone); and one ``mj_step`` for scale. Each figure is the
 fastest of ``--repeats`` rounds of ``--number`` calls, in microseconds: what the part costs when
 nothing else takes the core.
 
@@ -32,9 +32,10 @@ log = logging.getLogger("bench_controller_parts")
 
 def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
     """Return the fastest time, in microseconds, of each part of one non-policy substep."""
+    import robosuite.utils.control_utils
+
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
-    from vecsim.tasks._fast_step import ExactStep, _ArmStep, _osc_kernel, _robosuite
+    from vecsim.engine.tasks import ArmStep, ExactStep, make_env, osc_kernel
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     try:
@@ -47,11 +48,11 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
         model, data = step.model, step.data
         arm = step.arms[0]
         controller = arm.robot.controller
-        arm_step = _ArmStep(arm, np.zeros(arm.action_dim), model)
+        arm_step = ArmStep(arm, np.zeros(arm.action_dim), model)
         if not step.fused or not arm_step.start_fused(controller, step.data_arrays):
             raise SystemExit(f"{task_id}: the compiled controller (osc_substep) is not available here")
-        utils = _robosuite().utils.control_utils
-        kernel = _osc_kernel().osc_substep
+        utils = robosuite.utils.control_utils
+        kernel = osc_kernel().osc_substep
 
         def python_controller() -> None:
             step._update(arm, controller)

@@ -375,7 +375,7 @@ def parameters_m(policy: nn.Module) -> float:
 def gl_probe(extra_env: dict[str, str] | None = None, timeout_s: float = 120.0) -> dict[str, Any]:
     """Return the GL backend/vendor/renderer/version a pod process would render with (made in a
     child process with this environment plus ``extra_env``), or ``{"error": ...}``."""
-    code = "import json; from vecsim.batch_render import gl_info; print(json.dumps(gl_info()))"
+    code = "import json; from vecsim.engine.batch_render import gl_info; print(json.dumps(gl_info()))"
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **(extra_env or {})}
     try:
         done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout_s)
@@ -1158,7 +1158,7 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
 
 
 RENDER_PROBE_CODE = (
-    "import json; from vecsim.batch_render import gl_info; info = gl_info(); "
+    "import json; from vecsim.engine.batch_render import gl_info; info = gl_info(); "
     "info['libraries'] = sorted({l.split()[-1] for l in open('/proc/self/maps') if '.so' in l.split()[-1]}); "
     "print(json.dumps(info))"
 )
@@ -1563,7 +1563,7 @@ def camera_names(setup: dict[str, Any]) -> list[str]:
 def make_plan(args: argparse.Namespace) -> Plan:
     """The run's sizes: ``--gpu``, ``--cpu-small`` or ``--quick`` defaults, ``--dry`` shrinks,
     then overrides."""
-    from vecsim.tasks import suite_tasks
+    from vecsim.engine.tasks import suite_tasks
 
     gpu, dry, quick = args.gpu, args.dry, args.quick
     if args.tasks:

@@ -2,7 +2,7 @@
 
 For each scene (LIBERO-10 tasks, robosuite Lift) at one state, renders both cameras with the
 model's meshes (``lean``) and with meshes simplified on grids of ``--cells`` metres (``lean``'s
-passes, :mod:`vecsim.mesh_lod`), and reports per cell: the triangles kept, the time to simplify,
+passes, :mod:`vecsim.engine.mesh_lod`), and reports per cell: the triangles kept, the time to simplify,
 the quality against the full meshes (PSNR and mean absolute difference, per camera), and the
 render cost. On Mesa the cost is CPU seconds per frame of this process (llvmpipe's threads are
 its own), which the other load of a shared machine hardly moves; with ``--wall`` it is
@@ -29,11 +29,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 from common import img_dir, write_result
 
-from vecsim import mesh_lod
-from vecsim.batch_render import BatchRenderer, CameraView
+from vecsim.engine import mesh_lod
+from vecsim.engine.batch_render import BatchRenderer, CameraView
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.render import LOWPOLY_CELL, PRESETS
-from vecsim.tasks import make_env
+from vecsim.engine.render import LOWPOLY_CELL, PRESETS
+from vecsim.engine.tasks import make_env
 
 # LIBERO scenes drawn upright at the state a reset sets, as the other scenes are (no settle steps).
 AS_SET = LiberoProtocol(image_orientation="upright", settle_steps=0)

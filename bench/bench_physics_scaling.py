@@ -14,7 +14,7 @@ slowest and the fastest process, and the ratio to P x the 1-process figure of th
     python bench/bench_physics_scaling.py --procs 1,2 --tasks libero_10/0,libero_10/1 --seconds 2
     python bench/bench_physics_scaling.py --step-paths exact,library   # vecsim's step path vs robosuite's
 
-``--step-paths`` names the robot envs' step paths to measure (``vecsim.tasks._fast_step``:
+``--step-paths`` names the robot envs' step paths to measure (``vecsim.engine.tasks._fast_step``:
 ``exact``, vecsim's default, and ``library``, the env's own ``step``), interleaved within each
 round; both give the same trajectories, so their rates compare directly (``over_library``).
 
@@ -45,7 +45,7 @@ def worker(index: int, cpu: int, tasks: list[str], counts: list[int], paths: lis
     try:
         os.sched_setaffinity(0, {cpu})
         from vecsim.config import CameraConfig
-        from vecsim.tasks import make_env
+        from vecsim.engine.tasks import make_env
 
         envs = [make_env(task, CameraConfig(names=()), "lean") for task in tasks]
         for env in envs:
@@ -94,7 +94,7 @@ def main() -> int:
     if args.tasks:
         tasks = [t for t in args.tasks.split(",") if t]
     else:
-        from vecsim.tasks import suite_tasks
+        from vecsim.engine.tasks import suite_tasks
 
         tasks = [t.task_id for t in suite_tasks("libero_10")]
     counts = sorted({int(c) for c in args.procs.split(",")} | {1})

@@ -109,7 +109,7 @@ class Scene:
 
     def __init__(self, task_id: str, plan: Plan) -> None:
         from vecsim.config import CameraConfig, LiberoProtocol
-        from vecsim.tasks import make_env
+        from vecsim.engine.tasks import make_env
 
         self.task_id = task_id
         self.gym = task_id.startswith("gym/")
@@ -130,8 +130,8 @@ class Scene:
 
     def renderer(self, path: str) -> Any:
         """Return (made once) the batch renderer of a preset or pass variant, models attached."""
-        from vecsim import render
-        from vecsim.batch_render import BatchRenderer
+        from vecsim.engine import render
+        from vecsim.engine.batch_render import BatchRenderer
 
         if path not in self.renderers:
             preset = path if path in PRESETS else dataclasses.replace(render.settings("full"), **PASSES[path])
@@ -233,7 +233,7 @@ def _measure(scene: Scene, config: Config, seconds: float) -> tuple[int, float]:
 def worker(index: int, plan: Plan, barrier: Any, results: Any) -> None:
     """One process of the node: build each scene, measure each config in lockstep, report."""
     logging.basicConfig(level=logging.WARNING)
-    from vecsim.batch_render import gl_info
+    from vecsim.engine.batch_render import gl_info
 
     try:
         results.put(("gl", index, gl_info()))
@@ -342,12 +342,12 @@ def _check_scene(name: str, plan: Plan) -> tuple[dict[str, Any], dict[str, np.nd
 
 def _preset_default(scene: Scene, env: Any, preset: str) -> list[Callable[[], np.ndarray]]:
     """The default path's renderer of ``env`` with ``preset`` applied: upright images."""
-    from vecsim import render
+    from vecsim.engine import render
 
     if scene.gym:
         import gymnasium
 
-        from vecsim.tasks import derive_seed
+        from vecsim.engine.tasks import derive_seed
 
         # gymnasium aims its camera when it makes its viewer; vecsim aims its own when it makes
         # the env: make the viewer at once, then bring the env to the same state.
@@ -530,7 +530,7 @@ def main() -> int:
         parser.error(f"--scenes: unknown {sorted(unknown)}; choose from {sorted(SCENES)}")
     started = time.monotonic()
 
-    from vecsim.batch_render import gl_info
+    from vecsim.engine.batch_render import gl_info
 
     # The parent's GL context is only for this check; workers are spawned, not forked.
     gl = gl_info()

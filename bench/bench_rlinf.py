@@ -139,7 +139,7 @@ def standalone_pods(assignments: Sequence[Assignment], pins: Sequence[str], work
             path = workdir / f"{assignment.pod}.json"
             path.write_text(assignment.model_dump_json())
             port = _free_port()
-            argv = ["taskset", "-c", pin, sys.executable, "-m", "vecsim.cli", "pod", "--host", "127.0.0.1",
+            argv = ["taskset", "-c", pin, sys.executable, "-m", "service.cli", "pod", "--host", "127.0.0.1",
                     "--port", str(port), "--log-level", "warning", "--assignment", str(path), "--name", assignment.pod]  # fmt: skip
             log_file = (workdir / f"{assignment.pod}.log").open("ab")
             procs.append(subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
@@ -179,7 +179,7 @@ def rlinf_config(suite: str, num_envs: int, size: int, pod_urls: Sequence[str] |
 
 def build_rlinf(cfg: Any, num_envs: int, sim_cores: set[int], driver_cores: set[int]) -> Any:
     """RLinf's own LiberoEnv, its env processes started while this process runs on the sim cores."""
-    from vecsim.tasks._libero import ensure_config
+    from vecsim.engine.tasks import ensure_config
 
     ensure_config()
     from rlinf.envs.libero.libero_env import LiberoEnv

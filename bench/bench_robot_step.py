@@ -2,13 +2,13 @@
 
 Per task, on one pinned core, no cameras, step by step:
 
-- ``exact``: vecsim's env (``make_env``) on its default step path (``vecsim.tasks._fast_step``);
+- ``exact``: vecsim's env (``make_env``) on its default step path (``vecsim.engine.tasks._fast_step``);
 - ``library``: the same env on the ``library`` path (robosuite's own ``step``, as before);
 - with ``--changes``, the exact path's changes one at a time (each a subclass of ``ExactStep``
   that puts robosuite's own calls back for what is not yet changed);
 - with ``--python-controller``, the exact path with its non-policy substeps' controller run from
   Python (robosuite's numpy and numba calls one by one), as it was before the compiled
-  ``osc_substep`` (``vecsim.tasks._osc_kernel``);
+  ``osc_substep`` (``vecsim.engine.tasks._osc_kernel``);
 - with ``--second-pass``, the exact path without its second pass's changes (the non-policy
   substeps in one loop, the policy substep's controller compiled too), and with the first only;
 - ``floor``: right before each of those steps, as many ``mj_step`` as the step holds (25 at
@@ -70,7 +70,7 @@ def action_table(steps: int, seed: int) -> np.ndarray:
 
 def change_variants() -> dict[str, Any]:
     """Return the exact path's changes as cumulative ``ExactStep`` subclasses, first to last."""
-    from vecsim.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     class ControllerOnly(ExactStep):
         # robosuite's forwards (the substep's and the controller update's), mj_step and
@@ -108,7 +108,7 @@ def change_variants() -> dict[str, Any]:
 
 def python_controller(inner: Any) -> Any:
     """Return the exact path's step for ``inner`` with its controller run from Python throughout."""
-    from vecsim.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     step = ExactStep(inner)
     step.fused = False
@@ -117,7 +117,7 @@ def python_controller(inner: Any) -> Any:
 
 def second_pass_variant(substep_loop: bool, fused_policy: bool) -> Any:
     """Return a maker of the exact path's step with its second pass's changes on or off."""
-    from vecsim.tasks._fast_step import ExactStep
+    from vecsim.engine.tasks import ExactStep
 
     def make(inner: Any) -> Any:
         step = ExactStep(inner)
@@ -131,13 +131,12 @@ class LiberoOwn:
     """LIBERO's own ``OffScreenRenderEnv`` of one task, reset LIBERO's way."""
 
     def __init__(self, task_id: str) -> None:
-        from vecsim.tasks._base import stdout_to_log
-        from vecsim.tasks._libero import _benchmark, init_states
-        from vecsim.tasks import get_task
+        from vecsim.engine.tasks import init_states, libero_benchmark, stdout_to_log
+        from vecsim.engine.tasks import get_task
 
         suite, index = task_id.split("/", 1)
-        # _benchmark writes LIBERO's config first: importing LIBERO without it asks on stdin.
-        bddl_file = _benchmark(suite).get_task_bddl_file_path(int(index))
+        # libero_benchmark writes LIBERO's config first: importing LIBERO without it asks on stdin.
+        bddl_file = libero_benchmark(suite).get_task_bddl_file_path(int(index))
         with stdout_to_log():
             from libero.libero.envs import OffScreenRenderEnv
 
@@ -199,7 +198,7 @@ def measure_task(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     trajectory after each vecsim step. Figures are medians over the steps.
     """
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
+    from vecsim.engine.tasks import make_env
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     own = LiberoOwn(task_id) if task_id.startswith("libero") else None
@@ -307,7 +306,7 @@ def reset_figures(resets: dict[str, list[float]]) -> dict[str, Any]:
 def measure_task_resets(task_id: str, args: argparse.Namespace) -> dict[str, Any]:
     """Measure one task's resets only (:func:`measure_resets`)."""
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
+    from vecsim.engine.tasks import make_env
 
     env = make_env(task_id, CameraConfig(names=()), "lean")
     own = LiberoOwn(task_id) if task_id.startswith("libero") else None
@@ -333,7 +332,7 @@ def measure_resets(env: Any, own: LiberoOwn | None, count: int) -> dict[str, lis
     vecsim reset before) and ``forwards_cut`` (the forwards cut, settle steps still on LIBERO's
     own step): the two changes one at a time. All three leave the env bit-identical.
     """
-    from vecsim.tasks._fast_step import library_step
+    from vecsim.engine.tasks import library_step
 
     def on_path(path: str, settle_on_library: bool = False) -> Any:
         def reset(state_id: int) -> float:
@@ -376,7 +375,7 @@ def parity_episode(task_id: str, episode: int, steps: int, path: str) -> dict[st
     It stops at the first difference.
     """
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
+    from vecsim.engine.tasks import make_env
 
     envs = {p: make_env(task_id, CameraConfig(names=()), "lean", max_episode_steps=steps) for p in (path, "library")}
     try:
@@ -443,7 +442,7 @@ def main() -> int:
     if args.tasks:
         tasks = [t for t in args.tasks.split(",") if t]
     else:
-        from vecsim.tasks import suite_tasks
+        from vecsim.engine.tasks import suite_tasks
 
         tasks = [t.task_id for t in suite_tasks("libero_10")]
     started = time.monotonic()

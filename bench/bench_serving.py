@@ -6,10 +6,10 @@ autoreset and random actions:
 - ``http``: ``HTTPVectorEnv`` over a whole local job (``service.runner.LocalJob``: controller +
   one pod, token on), the pod running one env per worker process;
 - ``inproc`` (the baseline): ``gymnasium.vector.AsyncVectorEnv`` in this process over the same
-  envs (``vecsim.tasks.make_env``), one worker process per env: the same number of workers;
+  envs (``vecsim.engine.tasks.make_env``), one worker process per env: the same number of workers;
 - ``http_auto`` (cheap scenes only): the same job with ``envs_per_worker: auto``, the pod packing
   the envs into one worker per core (benchmark 7 looks at that split in detail);
-- ``pool`` (a diagnosis, not a target): the pod's own worker pool (``vecsim.sim.TaskGroupedVectorEnv``,
+- ``pool`` (a diagnosis, not a target): the pod's own worker pool (``vecsim.engine.TaskGroupedVectorEnv``,
   one env per worker) in this process, no HTTP: ``http`` / ``pool`` is what serving costs,
   ``pool`` / ``inproc`` what vecsim's workers cost against gymnasium's.
 
@@ -60,8 +60,8 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
-from vecsim.sim import TaskGroupedVectorEnv
-from vecsim.tasks import make_env
+from vecsim.engine import TaskGroupedVectorEnv
+from vecsim.engine.tasks import make_env
 
 log = logging.getLogger("bench.serving")
 

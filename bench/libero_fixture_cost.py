@@ -1,7 +1,7 @@
 """What the published fixture rule costs: replaying LIBERO's resets, reading them back, and LIBERO's own.
 
 Per task: a LIBERO env built as vecsim builds it (``hard_reset`` on), then
-``vecsim.tasks._libero.episode_fixtures(..., "published")`` with an empty cache (one real hard
+``vecsim.engine.tasks._libero.episode_fixtures(..., "published")`` with an empty cache (one real hard
 reset, then 49 replayed ones, saved), the same read back from the cache (one hard reset, the file
 read), and, for comparison, ``--real`` more real hard resets of that env (``env.reset()`` as the
 published loop runs it, what computing episode ``k`` by ``k`` real resets would cost each).
@@ -23,9 +23,15 @@ from typing import Any
 import mujoco
 from common import write_result
 
-from vecsim.tasks import get_task
-from vecsim.tasks._libero import _benchmark, _load_fixtures, ensure_config, episode_fixtures, fixtures_path
-from vecsim.tasks._robot import seeded_global_rngs
+from vecsim.engine.tasks import get_task
+from vecsim.engine.tasks import (
+    ensure_config,
+    episode_fixtures,
+    fixtures_path,
+    libero_benchmark,
+    load_fixtures,
+    seeded_global_rngs,
+)
 
 log = logging.getLogger("bench.libero_fixture_cost")
 
@@ -41,7 +47,7 @@ def build(task_id: str) -> Any:
 
     suite, index = task_id.split("/")
     return OffScreenRenderEnv(
-        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
         hard_reset=True, ignore_done=True,
     )  # fmt: skip
 
@@ -68,7 +74,7 @@ def main() -> None:
                 if label == "cached":
                     path = fixtures_path(task, args.seed)
                     _, row["read_wall_s"], row["read_cpu_s"] = timed(
-                        lambda: _load_fixtures(path, len(fixtures), wrapper.env.sim.model.nbody)
+                        lambda: load_fixtures(path, len(fixtures), wrapper.env.sim.model.nbody)
                     )
                     with seeded_global_rngs(args.seed):
                         _, wall, cpu = timed(lambda: [wrapper.env.reset() for _ in range(args.real)])

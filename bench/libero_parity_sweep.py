@@ -5,7 +5,7 @@ oracle is what a published LIBERO evaluation shows its policy first: a freshly b
 ``OffScreenRenderEnv``, ``env.seed(0); env.reset(); env.set_init_state(init_states[k])``, 10
 steps of ``[0, 0, 0, 0, 0, 0, -1]``, images turned ``raw[::-1, ::-1]``, the 8-float state
 (eef position, robosuite's axis-angle of the eef quaternion, gripper joints). vecsim is one env
-per task (``vecsim.tasks.make_env`` with the defaults of the checkout it imports), reset to
+per task (``vecsim.engine.tasks.make_env`` with the defaults of the checkout it imports), reset to
 state ``k``: what its first observation is. ``--steps N`` then applies N fixed random actions to
 both and keeps the worst difference over them.
 
@@ -46,8 +46,8 @@ from common import write_result
 from PIL import Image
 
 from vecsim.config import CameraConfig
-from vecsim.tasks import get_task, make_env
-from vecsim.tasks._libero import _benchmark, ensure_config, init_states
+from vecsim.engine.tasks import get_task, make_env
+from vecsim.engine.tasks import ensure_config, init_states, libero_benchmark
 
 log = logging.getLogger("bench.libero_parity_sweep")
 
@@ -73,7 +73,7 @@ def libero_frames(task_id: str, state_id: int, size: int, actions: np.ndarray) -
 
     suite, index = task_id.split("/")
     env = OffScreenRenderEnv(
-        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
     )
     try:
         env.seed(0)

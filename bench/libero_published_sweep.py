@@ -8,7 +8,7 @@ episode, so episode ``k``'s scene depends on ``k``. Every episode up to the larg
 reset and settled; for the episodes asked for (default 0, 1, 17, 49) the first frame and the
 frames after ``--steps`` fixed random actions (default 20) are kept.
 
-vecsim is ``vecsim.tasks.make_env`` in this process (the env class a pod runs), reset to state
+vecsim is ``vecsim.engine.tasks.make_env`` in this process (the env class a pod runs), reset to state
 ``k``, twice: with the job config's defaults (``fixture_rule: published``) and with
 ``fixture_rule: first_reset`` (vecsim's rule before, a fresh env's first placement for every
 ``k``). Per (task, k, rule) it records the worst difference over the frames of each quantity
@@ -36,8 +36,8 @@ from common import write_result
 from libero_parity_sweep import CAMERAS, NO_OP, SETTLE_STEPS, _libero_frame, differences, exact, vecsim_frame, worst
 
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.tasks import get_task, make_env
-from vecsim.tasks._libero import _benchmark, _load_fixtures, ensure_config, fixtures_path, init_states
+from vecsim.engine.tasks import get_task, make_env
+from vecsim.engine.tasks import ensure_config, fixtures_path, init_states, libero_benchmark, load_fixtures
 
 log = logging.getLogger("bench.libero_published_sweep")
 
@@ -65,7 +65,7 @@ def libero_loop(task_id: str, episodes: list[int], size: int, seed: int, actions
     states = init_states(get_task(task_id))
     started = time.perf_counter()
     env = OffScreenRenderEnv(
-        bddl_file_name=_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
     )
     timings: dict[str, float] = {"build_s": time.perf_counter() - started, "resets_s": 0.0}
     frames: dict[int, list[dict[str, Any]]] = {}
@@ -137,7 +137,7 @@ def main() -> None:
             if key.endswith("cached_build_s"):
                 began = time.perf_counter()
                 path = fixtures_path(get_task(task_id), args.seed)
-                loaded = _load_fixtures(path, len(env._fixtures), env.inner.sim.model.nbody)
+                loaded = load_fixtures(path, len(env._fixtures), env.inner.sim.model.nbody)
                 build["cached_read_s"] = round(time.perf_counter() - began, 4)
                 assert loaded is not None, "the published fixtures were not cached"
                 env.close()  # built only to time the cached build

@@ -144,9 +144,9 @@ def _instrument_pod(timers: Timers) -> None:
 
     import service.pod.main as pod_main
     import service.pod.routers.envs as routes
-    from service.http import BodyLimitMiddleware
-    from vecsim import sim, wire
-    from vecsim.auth import BearerTokenMiddleware
+    from service.http import BearerTokenMiddleware, BodyLimitMiddleware
+    from vecsim import wire
+    from vecsim.engine import checks, pool, vector_env
 
     timers.wrap(BearerTokenMiddleware, "__call__", "pod.auth_middleware (incl. all below)")
     timers.wrap(BodyLimitMiddleware, "__call__", "pod.body_limit_middleware (incl. routing+route)")
@@ -154,12 +154,12 @@ def _instrument_pod(timers: Timers) -> None:
     timers.wrap(routes, "parse_body", "pod.parse_body (wire.decode+pydantic)")
     timers.wrap(wire, "decode", "pod.wire.decode")
     timers.wrap(routes, "_simulate", "pod.simulate (work(): step + answer + encode)")
-    timers.wrap(sim.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_actions", "pod.step_envs.validate_actions")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
-    timers.wrap(sim._WorkerPool, "send", "pod.worker_pool.send (an order to one worker's pipe)")
-    timers.wrap(sim._WorkerPool, "receive", "pod.worker_pool.receive (the workers' replies)")
-    timers.wrap(sim.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "step_envs", "pod.step_envs")
+    timers.wrap(checks, "actions", "pod.step_envs.validate_actions")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "_run", "pod.step_envs._run (lock+pipes+gather)")
+    timers.wrap(pool.WorkerPool, "send", "pod.worker_pool.send (an order to one worker's pipe)")
+    timers.wrap(pool.WorkerPool, "receive", "pod.worker_pool.receive (the workers' replies)")
+    timers.wrap(vector_env.TaskGroupedVectorEnv, "_per_row", "pod.step_envs._per_row (info rows)")
     timers.wrap(routes, "batch_infos", "pod.batch_infos")
     timers.wrap(routes, "encode_answer", "pod.encode_answer (wire.encode + Response)")
     timers.wrap(wire, "encode", "pod.wire.encode")
@@ -195,7 +195,7 @@ def serve_pod(mode: str, out: Path, pod_argv: list[str]) -> int:
     """Run ``vecsim pod`` with ``pod_argv``; ``mode`` "timed" (timers, written to ``out`` on
     SIGUSR1) or "profiled" (cProfile of the main thread, written to ``out`` on SIGUSR1)."""
     from service.pod import main as pod_main
-    from vecsim.tasks._base import write_whole
+    from vecsim.files import write_whole
 
     if mode == "timed":
         timers = Timers()
@@ -231,7 +231,7 @@ def serve_bare(port: int) -> int:
 
     from service.pod.routers.envs import step_answer
     from vecsim import wire
-    from vecsim.sim import TaskGroupedVectorEnv
+    from vecsim.engine import TaskGroupedVectorEnv
 
     env = TaskGroupedVectorEnv(_assignment("bare"))
     head = "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {length}\r\n\r\n"
@@ -453,8 +453,8 @@ def main() -> None:
     from vecsim import wire
     from vecsim.client import HTTPVectorEnv
     from vecsim.client.pods import EventLoopThread
-    from vecsim.sim import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
-    from vecsim.tasks import make_env
+    from vecsim.engine import TaskGroupedVectorEnv, available_cores, resolve_envs_per_worker
+    from vecsim.engine.tasks import make_env
 
     setup_logging()
     n, calls, rounds = ARGS.envs, ARGS.calls, ARGS.rounds

@@ -2,7 +2,7 @@
 
 For one task (default LIBERO-10 task 0) at one size, this renders the env's cameras in batches
 (``--views`` views a batch, the env's cameras repeated, as a worker hosting several envs would)
-through :class:`vecsim.batch_render.BatchRenderer` and measures frames/s with one thing changed
+through :class:`vecsim.engine.batch_render.BatchRenderer` and measures frames/s with one thing changed
 at a time:
 
 - ``lean``: the preset as shipped (the baseline of every ratio);
@@ -10,7 +10,7 @@ at a time:
 - ``no_multisampling``: the offscreen buffer without its 4 samples a pixel;
 - ``no_visual_meshes``: geom group 1 hidden (robosuite's visual meshes), what the rest costs;
 - ``lowpoly``: the ``lowpoly`` preset as shipped (lean's passes, meshes simplified on a grid of
-  ``vecsim.render.LOWPOLY_CELL``), and ``cell=X``: the same on a grid of X metres (``--cells``);
+  ``vecsim.engine.render.LOWPOLY_CELL``), and ``cell=X``: the same on a grid of X metres (``--cells``);
   each also with its picture's quality against ``lean`` (PSNR and mean absolute difference per
   camera, one state) and the triangles its meshes keep;
 - ``faces/K``: the visual meshes keep every K-th triangle (a timing proxy for lighter meshes:
@@ -47,11 +47,11 @@ import psutil
 from bench_lowpoly import quality
 from common import write_result
 
-from vecsim import mesh_lod
-from vecsim.batch_render import BatchRenderer, CameraView, gl_info
+from vecsim.engine import mesh_lod
+from vecsim.engine.batch_render import BatchRenderer, CameraView, gl_info
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.render import LOWPOLY_CELL, PRESETS
-from vecsim.tasks import make_env
+from vecsim.engine.render import LOWPOLY_CELL, PRESETS
+from vecsim.engine.tasks import make_env
 
 # LIBERO scenes drawn upright at the state a reset sets, as the other scenes are (no settle steps).
 AS_SET = LiberoProtocol(image_orientation="upright", settle_steps=0)

@@ -41,7 +41,7 @@ from service.runner import LocalJob
 from service.runner.ports import free_port, free_port_block
 from vecsim.client import RoutedEnv, StageClient, TrajRoute, routed_envs
 from vecsim.config import JobConfig, load_job_config
-from vecsim.tasks import get_task
+from vecsim.engine.tasks import get_task
 
 log = logging.getLogger("soak")
 

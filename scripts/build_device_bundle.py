@@ -312,7 +312,7 @@ def download_mesa(out: Path) -> dict[str, Any]:
 
 def default_tasks() -> list[str]:
     """Return the full bundle's target tasks: the robosuite Panda tasks and all of LIBERO-10."""
-    from vecsim.tasks import suite_tasks
+    from vecsim.engine.tasks import suite_tasks
 
     return [*ROBOSUITE_TASKS, *(task.task_id for task in suite_tasks(LIBERO_SUITE))]
 
@@ -321,7 +321,7 @@ def scene_files(task_ids: list[str]) -> set[Path]:
     """Build each task's scene here and return every file its final MJCF loads (real paths)."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
+    from vecsim.engine.tasks import make_env
 
     no_camera = CameraConfig(names=())
     files: set[Path] = set()
@@ -365,7 +365,7 @@ def trimmed_members(root: Path, wanted: set[Path], skip: tuple[str, ...] = ()) -
 
 def libero_skips(libero_root: Path, task_ids: list[str]) -> tuple[str, ...]:
     """Return LIBERO's task files and init states of every suite and task not in ``task_ids``."""
-    from vecsim.tasks._libero import _benchmark
+    from vecsim.engine.tasks import libero_benchmark
 
     wanted: dict[str, set[int]] = {}
     for task_id in task_ids:
@@ -378,7 +378,7 @@ def libero_skips(libero_root: Path, task_ids: list[str]) -> tuple[str, ...]:
             if suite.is_dir() and suite.name not in wanted:
                 skips.append(f"{folder}/{suite.name}/")
     for suite, indices in wanted.items():
-        bench = _benchmark(suite)
+        bench = libero_benchmark(suite)
         for index in range(bench.n_tasks):
             if index not in indices:
                 task = bench.get_task(index)
@@ -575,7 +575,7 @@ VERIFY_CODE = textwrap.dedent(
     import numpy as np
     import robosuite
     from vecsim.config import CameraConfig
-    from vecsim.tasks import make_env
+    from vecsim.engine.tasks import make_env
     assert robosuite.__file__.startswith(sys.argv[1]), robosuite.__file__
     import libero
     assert libero.__path__[0].startswith(sys.argv[1]), libero.__path__
@@ -593,7 +593,7 @@ VERIFY_CODE = textwrap.dedent(
 MESA_PROBE_CODE = textwrap.dedent(
     """
     import json
-    from vecsim.batch_render import gl_info
+    from vecsim.engine.batch_render import gl_info
     info = gl_info()
     with open("/proc/self/maps") as maps:
         info["libraries"] = sorted({line.split()[-1] for line in maps if ".so" in line.split()[-1]})

@@ -33,7 +33,7 @@ from vecsim.client import StageClient
 from vecsim.config import JobConfig, load_job_config
 from vecsim.rollout import EnvLoop, ExampleCNNPolicy, RolloutResult
 from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances
-from vecsim.tasks import episode_limit, get_task
+from vecsim.engine.tasks import episode_limit, get_task
 from vecsim.trees import map_leaves
 
 logger = logging.getLogger("service.demo")

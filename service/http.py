@@ -1,8 +1,10 @@
-"""HTTP plumbing both servers (pod and controller) use: the request body limit and the one-line
-description of a validation error."""
+"""HTTP plumbing both servers (pod and controller) use: the request body limit, the one-line
+description of a validation error, and the job's bearer token: the middleware that checks it
+(:mod:`vecsim.auth` holds the check itself, which the client shares) and its OpenAPI description."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import Any
 
@@ -10,6 +12,11 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from vecsim.auth import OPEN_METHODS, TOKEN_ENV, authorization_problem, check_token
+
+# The OpenAPI security scheme that names the job's token.
+SECURITY_SCHEME = "vecsimToken"
 
 
 def describe_validation_error(exc: ValidationError | Any) -> str:
@@ -81,3 +88,79 @@ class BodyLimitMiddleware:
         self.on_refused()
         response = JSONResponse({"detail": detail}, status_code=413)
         await response(scope, receive, send)
+
+
+class BearerTokenMiddleware:
+    """ASGI middleware: a request with a method outside :data:`OPEN_METHODS` gets 401 unless it
+    carries ``token``; nothing of the request (not even its body) is read before the check.
+
+    ``server`` names the server in the 401's ``detail`` (``"pod sim-0"``, ``"the controller"``);
+    ``on_refused`` is called once per refused request (a metric). With ``token`` None every
+    request passes.
+    """
+
+    def __init__(
+        self, app: ASGIApp, token: str | None, server: str, on_refused: Callable[[], None] | None = None
+    ) -> None:
+        self.app = app
+        self.token = check_token(token)
+        self.server = server
+        self.on_refused = on_refused
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or self.token is None or scope["method"] in OPEN_METHODS:
+            await self.app(scope, receive, send)
+            return
+        header = None
+        for name, value in scope.get("headers", ()):
+            if name == b"authorization":
+                header = value.decode("latin-1")
+                break
+        problem = authorization_problem(header, self.token, self.server)
+        if problem is None:
+            await self.app(scope, receive, send)
+            return
+        if self.on_refused is not None:
+            self.on_refused()
+        body = json.dumps({"detail": problem}).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 401,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"www-authenticate", b'Bearer realm="vecsim"'),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+def document_bearer_security(schema: dict[str, Any]) -> dict[str, Any]:
+    """Mark every operation of an OpenAPI ``schema`` whose method changes state as needing the
+    bearer token, with its 401 answer. Changes ``schema`` in place.
+
+    Returns:
+        ``schema``.
+    """
+    components = schema.setdefault("components", {})
+    components.setdefault("securitySchemes", {})[SECURITY_SCHEME] = {
+        "type": "http",
+        "scheme": "bearer",
+        "description": f"the job's shared token ({TOKEN_ENV}); required on every request that changes state",
+    }
+    components.setdefault("schemas", {}).setdefault(
+        "Unauthorized",
+        {"type": "object", "properties": {"detail": {"type": "string"}}, "required": ["detail"]},
+    )
+    for operations in schema.get("paths", {}).values():
+        for method, operation in operations.items():
+            if method.upper() in OPEN_METHODS or not isinstance(operation, dict):
+                continue
+            operation["security"] = [{SECURITY_SCHEME: []}]
+            operation.setdefault("responses", {})["401"] = {
+                "description": "no bearer token, or not the job's",
+                "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Unauthorized"}}},
+            }
+    return schema

@@ -88,12 +88,12 @@ def clean_env(**extra: str) -> dict[str, str]:
 
 
 # The program a Server runs by default: the ``vecsim`` command.
-VECSIM_CLI = (sys.executable, "-m", "vecsim.cli")
+VECSIM_CLI = (sys.executable, "-m", "service.cli")
 
 
 class Server:
-    """One ``python -m vecsim.cli <argv>`` process (``program`` in place of ``python -m
-    vecsim.cli``, when given) serving on ``<host>:<port>``; nothing runs before :meth:`start`
+    """One ``python -m service.cli <argv>`` process (``program`` in place of ``python -m
+    service.cli``, when given) serving on ``<host>:<port>``; nothing runs before :meth:`start`
     (use :func:`running`, which always stops it)."""
 
     def __init__(

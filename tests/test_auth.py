@@ -307,7 +307,7 @@ def test_without_a_token_checking_is_off_and_both_servers_warn_at_start_up(tmp_p
 def test_an_unusable_token_stops_the_server_at_start_naming_the_variable_not_the_token(command):
     bad = "two words"
     result = subprocess.run(
-        [sys.executable, "-m", "vecsim.cli", command, "--port", "9"],
+        [sys.executable, "-m", "service.cli", command, "--port", "9"],
         env=clean_env(VECSIM_TOKEN=bad),
         capture_output=True,
         text=True,
@@ -351,7 +351,7 @@ UNPICKLERS = {"pickle", "_pickle", "cPickle", "cloudpickle", "dill", "shelve", "
 # Calls that unpickle: torch.load (pickle underneath), pandas.read_pickle.
 UNPICKLING_CALLS = {"torch.load", "pd.read_pickle", "pandas.read_pickle"}
 # The one unpickling load vecsim reaches: LIBERO's own init states, read from files inside the
-# installed package (vecsim.tasks._libero points LIBERO's config at them), never from the network.
+# installed package (vecsim.engine.tasks._libero points LIBERO's config at them), never from the network.
 ALLOWED = {("libero/benchmark/__init__.py", "get_task_init_states", "torch.load")}
 
 
@@ -398,7 +398,7 @@ def test_the_one_allowed_unpickling_load_is_libero_reading_its_own_init_state_fi
         pytest.skip("LIBERO is not installed")
     root = Path(next(iter(spec.submodule_search_locations)))
     assert unpickling_uses(root / "libero" / "benchmark" / "__init__.py", root) == ALLOWED
-    libero_glue = (REPO / "vecsim" / "tasks" / "_libero.py").read_text()
+    libero_glue = (REPO / "vecsim" / "engine" / "tasks" / "_libero.py").read_text()
     assert '"init_states": str(package_dir / "init_files")' in libero_glue
 
 
@@ -409,7 +409,7 @@ def test_vecsim_up_without_a_token_writes_the_one_it_made_to_a_file_only_its_own
     path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
     logs = tmp_path / "logs"
     runner = subprocess.Popen(
-        [sys.executable, "-m", "vecsim.cli", "up", "-c", str(path), "--log-dir", str(logs), "--grace", "10"],
+        [sys.executable, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(logs), "--grace", "10"],
         env=clean_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

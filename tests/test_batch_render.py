@@ -1,7 +1,7 @@
 """The batched render path gives exactly the pixels of rendering one env at a time.
 
 References are robosuite's and gymnasium's own renderers (one GL context and one render context
-per env, one readback per camera) with the same preset applied through :mod:`vecsim.render`.
+per env, one readback per camera) with the same preset applied through :mod:`vecsim.engine.render`.
 Software EGL (Mesa) here, so the scenes are the tiny suite and Pusher, the cameras small; one
 LIBERO scene stands for LIBERO.
 """
@@ -17,11 +17,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from vecsim import batch_render, render
-from vecsim.batch_render import BatchRenderer, same_render_assets, shared_renderer
+from vecsim.engine import batch_render, render
+from vecsim.engine.batch_render import BatchRenderer, same_render_assets, shared_renderer
 from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
-from vecsim.sim import _Order, _Worker, _WorkerSpec, assignment_spaces
-from vecsim.tasks import RobotTaskEnv, derive_seed, make_env
+from vecsim.engine import assignment_spaces
+from vecsim.engine.protocol import Order
+from vecsim.engine.worker import Worker, WorkerSpec
+from vecsim.engine.tasks import RobotTaskEnv, derive_seed, make_env
 
 PRESETS = ("full", "fast", "lean", "lowpoly")
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -227,8 +229,8 @@ def test_a_worker_renders_only_the_envs_it_reset_or_stepped_in_one_readback() ->
         envs_per_worker=3,
     )
     observation_space, action_space = assignment_spaces(assignment)
-    spec = _WorkerSpec(("tiny/lift",) * 3, (0, 1, 2), 3, CAMERA, "lean", 10, observation_space, action_space)
-    worker = _Worker(spec)
+    spec = WorkerSpec(("tiny/lift",) * 3, (0, 1, 2), 3, CAMERA, "lean", 10, observation_space, action_space)
+    worker = Worker(spec)
     try:
         worker.build()
         renderer = shared_renderer(HEIGHT, WIDTH, "lean")
@@ -236,7 +238,7 @@ def test_a_worker_renders_only_the_envs_it_reset_or_stepped_in_one_readback() ->
         idle = out["obs"]["images"]["agentview"][1].copy()
         views, readbacks = renderer.views_rendered, renderer.readbacks
         chunk = np.array([[action_space.sample()]])  # a chunk of one action for env 0
-        worker.run(_Order(np.array([0]), actions=chunk), _Order(np.array([2]), state_ids=np.array([4])))
+        worker.run(Order(np.array([0]), actions=chunk), Order(np.array([2]), state_ids=np.array([4])))
         assert renderer.views_rendered - views == 2 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 1
         assert np.array_equal(out["obs"]["images"]["agentview"][1], idle)

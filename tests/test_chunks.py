@@ -27,7 +27,7 @@ from vecsim import wire
 from vecsim.client import HTTPVectorEnv, StageClient, VLAEnv
 from vecsim.config import CameraConfig
 from vecsim.rollout import EnvLoop
-from vecsim.sim import DEFAULT_MAX_CHUNK
+from vecsim.engine import DEFAULT_MAX_CHUNK
 
 TASK = "gym/HalfCheetah-v5"
 EPISODE = 6

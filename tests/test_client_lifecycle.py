@@ -237,7 +237,7 @@ def test_vecsim_up_logs_its_probes_at_debug_and_the_job_it_sent_at_info(tmp_path
     path = tmp_path / "job.yaml"
     path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
     runner = subprocess.Popen(
-        [sys.executable, "-m", "vecsim.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs"),
+        [sys.executable, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs"),
          "--grace", "10", "--status-every", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
         env={**os.environ, "VECSIM_TOKEN": TOKEN},

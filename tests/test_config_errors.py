@@ -223,7 +223,7 @@ def test_vecsim_up_refuses_a_port_in_use_naming_the_field(tmp_path, capsys):
 def test_the_real_command_exits_2_naming_the_field(tmp_path, command):
     path = write(tmp_path, with_value("job.camera.height", 4))
     result = subprocess.run(
-        [sys.executable, "-m", "vecsim.cli", *command, str(path)],
+        [sys.executable, "-m", "service.cli", *command, str(path)],
         env=clean_env(),
         capture_output=True,
         text=True,

@@ -24,7 +24,7 @@ def run_demo(out: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], s
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), MARK: marker}
     env.pop("VECSIM_TOKEN", None)
     done = subprocess.run(
-        [sys.executable, "-m", "vecsim.cli", "demo", "--out", str(out), *args],
+        [sys.executable, "-m", "service.cli", "demo", "--out", str(out), *args],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=380,
     )  # fmt: skip
     return done, marker
@@ -71,7 +71,7 @@ def test_the_demo_says_so_and_exits_non_zero_when_it_loses_trajectories(tmp_path
     marker = uuid.uuid4().hex
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), MARK: marker}
     env.pop("VECSIM_TOKEN", None)
-    command = [sys.executable, "-m", "vecsim.cli", "demo", "--out", str(out), "--batch", "4", "--horizon", "50",
+    command = [sys.executable, "-m", "service.cli", "demo", "--out", str(out), "--batch", "4", "--horizon", "50",
                "--videos", "0", "--timeout-s", "8", "--ready-timeout", "300"]  # fmt: skip
     demo = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stopped: list[psutil.Process] = []
@@ -79,7 +79,7 @@ def test_the_demo_says_so_and_exits_non_zero_when_it_loses_trajectories(tmp_path
         assert demo.stderr is not None
         for line in demo.stderr:  # bounded: the demo ends, and the test's timeout bounds it
             if "rolling out" in line:
-                stopped = [p for p in _marked(marker) if "vecsim.cli pod" in " ".join(p.cmdline())]
+                stopped = [p for p in _marked(marker) if "service.cli pod" in " ".join(p.cmdline())]
                 for pod in stopped:
                     pod.suspend()
                 break

@@ -125,7 +125,7 @@ def test_entrypoint_is_the_vecsim_console_script() -> None:
 
 
 def test_default_command_is_a_sim_pod() -> None:
-    from vecsim.cli import COMMANDS
+    from service.cli import COMMANDS
 
     command = only("CMD")[-1].exec_form()
     assert command == ["pod"]

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, JobSpec, TaskBlock
-from vecsim.sim import TaskGroupedVectorEnv, auto_envs_per_worker, available_cores, resolve_envs_per_worker
+from vecsim.engine import TaskGroupedVectorEnv, auto_envs_per_worker, available_cores, resolve_envs_per_worker
 
 CHEETAH = "gym/HalfCheetah-v5"
 

@@ -1,4 +1,4 @@
-"""The exact step path (vecsim.tasks._fast_step) gives robosuite's and LIBERO's own trajectories.
+"""The exact step path (vecsim.engine.tasks._fast_step) gives robosuite's and LIBERO's own trajectories.
 
 Each test builds the same task twice, one env on the ``exact`` path (vecsim's default) and one on
 the ``library`` path (the env's own ``step``: robosuite's, or LIBERO's for a LIBERO scene), resets
@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from vecsim.config import CameraConfig
-from vecsim.tasks import TaskEnv, make_env
+from vecsim.engine.tasks import TaskEnv, make_env
 
 STEPS = 60
 RESET_AT = 35
@@ -121,7 +121,7 @@ def test_exact_path_gives_robosuite_own_trajectory() -> None:
 def test_exact_path_runs_the_controller_of_non_policy_substeps_as_one_compiled_call() -> None:
     # Where numpy's BLAS is the OpenBLAS its wheels bundle (as in this venv), the trajectory
     # tests here and below compare the compiled controller (osc_substep) with robosuite's.
-    from vecsim.tasks import _osc_kernel
+    from vecsim.engine.tasks import _osc_kernel
 
     with env_pair("tiny/lift") as envs:
         envs["exact"].reset(options={"state_id": 0})
@@ -139,12 +139,12 @@ def test_exact_path_with_the_controller_from_python_gives_robosuite_own_trajecto
 
 def test_a_compiled_controller_that_cannot_load_leaves_the_controller_from_python(monkeypatch, caplog) -> None:
     # E.g. numba finding no writable place for its cache: the exact path goes on, from Python.
-    from vecsim.tasks import _fast_step
+    from vecsim.engine.tasks import _fast_step
 
     def unloadable() -> Any:
         raise RuntimeError("cannot cache function 'osc_substep': no locator available")
 
-    monkeypatch.setattr(_fast_step, "_osc_kernel", unloadable)
+    monkeypatch.setattr(_fast_step, "osc_kernel", unloadable)
     _fast_step._fused_controller_available.cache_clear()
     try:
         with caplog.at_level("WARNING"), env_pair("tiny/lift") as envs:

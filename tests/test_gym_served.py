@@ -23,9 +23,9 @@ from service_procs import PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv, PodRequestError
 from vecsim.config import Assignment, CameraConfig, TaskBlock
-from vecsim.sim import assignment_spaces
+from vecsim.engine import assignment_spaces
 from vecsim.spaces import check_travels
-from vecsim.tasks import TaskSetupError, task_spaces
+from vecsim.engine.tasks import TaskSetupError, task_spaces
 
 CUSTOM = "gym_custom_env:Custom-v0"
 EPISODE = 8

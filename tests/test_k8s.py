@@ -121,7 +121,7 @@ def served_paths(component: str) -> set[str]:
 
 
 def assert_probes_follow(c: dict[str, Any], probes: Any, who: str) -> None:
-    """Every probe of container ``c`` has the path and timings of ``probes`` (a vecsim.probes.Probes)."""
+    """Every probe of container ``c`` has the path and timings of ``probes`` (a service.probes.Probes)."""
     for kind in ("startup", "readiness", "liveness"):
         want, probe = getattr(probes, kind), c[f"{kind}Probe"]
         assert probe["httpGet"]["path"] == want.path, f"{who} {kind}Probe path"
@@ -367,7 +367,7 @@ def test_probe_paths_are_served_by_the_app_in_the_container(target: str) -> None
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_probes_follow_vecsim_probes(target: str) -> None:
-    from vecsim import probes
+    from service import probes
 
     objects = build(target)
     assert_probes_follow(container(the(objects, "StatefulSet"), "sim"), probes.POD, "sim")
@@ -376,7 +376,7 @@ def test_probes_follow_vecsim_probes(target: str) -> None:
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_pods_get_the_shared_termination_grace_period(target: str) -> None:
-    from vecsim import probes
+    from service import probes
 
     for pod_spec, c in all_containers(build(target)):
         assert pod_spec["terminationGracePeriodSeconds"] == probes.TERMINATION_GRACE_S, c["name"]

@@ -40,8 +40,8 @@ from service_procs import assignment, standalone_pods
 
 from vecsim import wire
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.tasks import PROPRIO_KEYS, get_task, make_env
-from vecsim.tasks._libero import SETTLE_ACTION, _benchmark, ensure_config, init_states, quat_to_axis_angle
+from vecsim.engine.tasks import PROPRIO_KEYS, get_task, make_env
+from vecsim.engine.tasks._libero import SETTLE_ACTION, ensure_config, init_states, libero_benchmark, quat_to_axis_angle
 
 pytestmark = pytest.mark.libero
 
@@ -103,7 +103,7 @@ def libero_episode(task_id: str, state_id: int, size: int) -> list[Frame]:
     from libero.libero.envs import OffScreenRenderEnv
 
     suite, index = task_id.split("/")
-    bddl = _benchmark(suite).get_task_bddl_file_path(int(index))
+    bddl = libero_benchmark(suite).get_task_bddl_file_path(int(index))
     env = OffScreenRenderEnv(bddl_file_name=bddl, camera_heights=size, camera_widths=size)
     try:
         env.seed(0)
@@ -246,7 +246,7 @@ def libero_published_loop(task_id: str, episodes: tuple[int, ...], size: int, st
     from libero.libero.envs import OffScreenRenderEnv
 
     suite, index = task_id.split("/")
-    bddl = _benchmark(suite).get_task_bddl_file_path(int(index))
+    bddl = libero_benchmark(suite).get_task_bddl_file_path(int(index))
     states = init_states(get_task(task_id))
     env = OffScreenRenderEnv(bddl_file_name=bddl, camera_heights=size, camera_widths=size)
     frames: dict[int, list[Frame]] = {}

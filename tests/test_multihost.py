@@ -125,7 +125,7 @@ def hosts(network: Network, tmp_path_factory) -> Iterator[dict[str, ManagedProce
                 "controller",
                 PYTHON,
                 "-m",
-                "vecsim.cli",
+                "service.cli",
                 "controller",
                 "--host",
                 network.addresses["controller"],
@@ -148,7 +148,7 @@ def hosts(network: Network, tmp_path_factory) -> Iterator[dict[str, ManagedProce
         pod_ip = network.addresses[name]
         processes[name] = ManagedProcess(
             name,
-            network.exec_argv(name, PYTHON, "-m", "vecsim.cli", "pod"),
+            network.exec_argv(name, PYTHON, "-m", "service.cli", "pod"),
             env={
                 **env,
                 "POD_NAME": name,

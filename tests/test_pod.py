@@ -686,7 +686,7 @@ def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_threa
 )
 def test_cli_refuses_an_unusable_standalone_assignment(args: list[str], named: str) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "vecsim.cli", "pod", "--port", str(free_port()), *args],
+        [sys.executable, "-m", "service.cli", "pod", "--port", str(free_port()), *args],
         capture_output=True, text=True, timeout=60, env={**os.environ, "POD_NAME": "sim-5"},
     )
     assert done.returncode == 2

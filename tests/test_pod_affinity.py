@@ -69,7 +69,7 @@ def test_pods_take_render_gpus_in_turn_and_a_negative_device_is_refused_naming_t
 
 def test_a_pinned_pod_runs_its_usual_command_under_taskset():
     unpinned = LocalJob(cheetah_config(())).pod_argv("sim-0")
-    assert unpinned[-3:] == ["-m", "vecsim.cli", "pod"]
+    assert unpinned[-3:] == ["-m", "service.cli", "pod"]
     assert LocalJob(cheetah_config(("0",))).pod_argv("sim-0") == ["taskset", "-c", "0", *unpinned]
 
 

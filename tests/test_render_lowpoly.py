@@ -14,11 +14,11 @@ import numpy as np
 import pydantic
 import pytest
 
-from vecsim import mesh_lod, render
-from vecsim.batch_render import BatchRenderer
+from vecsim.engine import mesh_lod, render
+from vecsim.engine.batch_render import BatchRenderer
 from vecsim.config import Assignment, CameraConfig, JobSpec, TaskBlock
-from vecsim.sim import TaskGroupedVectorEnv
-from vecsim.tasks import RobotTaskEnv, make_env
+from vecsim.engine import TaskGroupedVectorEnv
+from vecsim.engine.tasks import RobotTaskEnv, make_env
 
 CAMERA = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=24, width=32)
 MESH_FIELDS = (

@@ -16,10 +16,11 @@ import yaml
 
 from service_procs import free_port_block, wait_until
 
+from service.probes import Probe, Probes
 from service.runner import Backoff, JobRejectedError, LocalJob, ManagedProcess, PodStatus, format_status
 from service.runner.main import main as up_main
 from vecsim.config import CameraConfig, ControllerConfig, JobConfig, JobSpec, PodsConfig, RoutingTable
-from vecsim.probes import Probe, Probes
+from service.probes import Probe, Probes
 
 PYTHON = sys.executable
 
@@ -281,7 +282,7 @@ def test_ctrl_c_to_vecsim_up_leaves_no_process_behind(tmp_path):
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
     runner = subprocess.Popen(
-        [PYTHON, "-m", "vecsim.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs"), "--grace", "10"],
+        [PYTHON, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs"), "--grace", "10"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         start_new_session=True,

@@ -15,14 +15,14 @@ import pytest
 from sim_envs import CAMERAS, TINY_CAMERA, env_rows, kill_worker, sim_assignment
 
 from vecsim.config import CameraConfig
-from vecsim.sim import (
+from vecsim.engine import (
     InvalidRequestError,
     SimBuildError,
     SimCrashedError,
     TaskGroupedVectorEnv,
     UnknownEnvError,
 )
-from vecsim.tasks import UnknownTaskError, make_env
+from vecsim.engine.tasks import UnknownTaskError, make_env
 
 CHEETAH = "gym/HalfCheetah-v5"
 def _batched(obs: dict[str, Any]) -> dict[str, Any]:

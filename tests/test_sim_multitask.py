@@ -27,19 +27,18 @@ from sim_envs import (
     sim_assignment,
 )
 
-from vecsim.batch_render import shared_renderer
+from vecsim.engine.batch_render import shared_renderer
 from vecsim.config import AUTO_ENVS_PER_WORKER
-from vecsim.sim import (
+from vecsim.engine import (
     InvalidRequestError,
     SimCrashedError,
     TaskGroupedVectorEnv,
     UnknownEnvError,
-    _Order,
-    _Worker,
-    _WorkerSpec,
     assignment_spaces,
     resolve_envs_per_worker,
 )
+from vecsim.engine.protocol import Order
+from vecsim.engine.worker import Worker, WorkerSpec
 
 CHEETAH_V5 = "gym/HalfCheetah-v5"
 CHEETAH_V4 = "gym/HalfCheetah-v4"
@@ -203,13 +202,13 @@ def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> N
     assignment = sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)
     observation_space, action_space = assignment_spaces(assignment)
     tasks = ("tiny/lift", "tiny/door", "tiny/door")
-    worker = _Worker(_WorkerSpec(tasks, (0, 1, 2), 3, TINY_CAMERA, "lean", 10, observation_space, action_space))
+    worker = Worker(WorkerSpec(tasks, (0, 1, 2), 3, TINY_CAMERA, "lean", 10, observation_space, action_space))
     try:
         worker.build()
         renderer = shared_renderer(TINY_CAMERA.height, TINY_CAMERA.width, "lean")
         views, readbacks = renderer.views_rendered, renderer.readbacks
         chunks = np.stack([[action_space.sample()] for _ in range(2)])  # a chunk of one action per env
-        worker.run(_Order(np.array([0, 2]), actions=chunks), _Order(np.array([1]), state_ids=np.array([5])))
+        worker.run(Order(np.array([0, 2]), actions=chunks), Order(np.array([1]), state_ids=np.array([5])))
         assert renderer.views_rendered - views == 3 * len(CAMERAS)
         assert renderer.readbacks - readbacks == 2
         for slot, env in enumerate(worker._envs):
@@ -222,8 +221,8 @@ def test_one_worker_renders_scenes_of_two_tasks_in_one_readback_per_scene() -> N
 def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
     assignment = sim_assignment([("tiny/lift", 1), ("tiny/stack", 1)])
     observation_space, action_space = assignment_spaces(assignment)
-    spec = _WorkerSpec(("tiny/lift", "tiny/stack"), (0, 1), 2, NO_CAMERA, "lean", 10, observation_space, action_space)
-    worker = _Worker(spec)
+    spec = WorkerSpec(("tiny/lift", "tiny/stack"), (0, 1), 2, NO_CAMERA, "lean", 10, observation_space, action_space)
+    worker = Worker(spec)
     try:
         assert worker.build()["envs"] == 2
         assert mujoco.mj_getCacheSize(mujoco.mj_getCache()) == 0
@@ -247,13 +246,14 @@ def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> N
 WARM_PROBE = """
 import json, numpy as np
 from sim_envs import TINY_CAMERA, sim_assignment
-from vecsim.sim import _Worker, _WorkerSpec, assignment_spaces
-from vecsim.tasks import _fast_step
+from vecsim.engine import assignment_spaces
+from vecsim.engine.worker import Worker, WorkerSpec
+from vecsim.engine.tasks import _fast_step
 assignment = sim_assignment([("tiny/lift", 2)], TINY_CAMERA)
 observation_space, action_space = assignment_spaces(assignment)
-worker = _Worker(_WorkerSpec(("tiny/lift", "tiny/lift"), (0, 1), 2, TINY_CAMERA, "lean", 10, observation_space, action_space))
+worker = Worker(WorkerSpec(("tiny/lift", "tiny/lift"), (0, 1), 2, TINY_CAMERA, "lean", 10, observation_space, action_space))
 took = worker.build()
-compiled = bool(_fast_step._osc_kernel().osc_substep.signatures)
+compiled = bool(_fast_step.osc_kernel().osc_substep.signatures)
 env = worker._envs[0]
 after_build = env.inner.sim.get_state().flatten().tolist()
 worker._reset_env(0, 0)
@@ -280,12 +280,13 @@ def test_the_build_warms_the_step_path_and_leaves_every_env_in_state_0() -> None
 FIRST_STEP_PROBE = """
 import json, sys, numpy as np, numba
 from sim_envs import TINY_CAMERA, sim_assignment
-from vecsim.sim import _Worker, _WorkerSpec, assignment_spaces
-from vecsim.tasks import _fast_step
+from vecsim.engine import assignment_spaces
+from vecsim.engine.worker import Worker, WorkerSpec
+from vecsim.engine.tasks import _fast_step
 
 def compiled():
     # Every numba function loaded so far, with the signatures it has compiled or loaded.
-    found = {"osc_substep": [str(s) for s in _fast_step._osc_kernel().osc_substep.signatures]}
+    found = {"osc_substep": [str(s) for s in _fast_step.osc_kernel().osc_substep.signatures]}
     for name, module in list(sys.modules.items()):
         for attr, value in list(vars(module).items()) if module is not None else ():
             if isinstance(value, numba.core.dispatcher.Dispatcher):
@@ -294,7 +295,7 @@ def compiled():
 
 assignment = sim_assignment([("tiny/lift", 1)], TINY_CAMERA)
 observation_space, action_space = assignment_spaces(assignment)
-worker = _Worker(_WorkerSpec(("tiny/lift",), (0,), 1, TINY_CAMERA, "lean", 10, observation_space, action_space))
+worker = Worker(WorkerSpec(("tiny/lift",), (0,), 1, TINY_CAMERA, "lean", 10, observation_space, action_space))
 worker.build()
 before = compiled()
 worker._reset_env(0, 3)

@@ -10,7 +10,7 @@ from service_procs import PodSpec, assignment
 
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig
-from vecsim.sim import CallTiming, TaskGroupedVectorEnv
+from vecsim.engine import CallTiming, TaskGroupedVectorEnv
 
 CHEETAH = "gym/HalfCheetah-v5"
 

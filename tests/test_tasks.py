@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 import yaml
 
-from vecsim import render
+from vecsim.engine import render
 from vecsim.config import CameraConfig
-from vecsim.tasks import (
+from vecsim.engine.tasks import (
     PROPRIO_KEYS,
     TaskEnv,
     TaskSetupError,
@@ -36,7 +36,7 @@ from vecsim.tasks import (
     suite_tasks,
     task_spaces,
 )
-from vecsim.tasks._libero import LIBERO_SUITES, STATE_DIM, check_assets, quat_to_axis_angle
+from vecsim.engine.tasks._libero import LIBERO_SUITES, STATE_DIM, check_assets, quat_to_axis_angle
 
 TINY_CAMERA = CameraConfig(height=8, width=8)
 ACTIONS = np.random.default_rng(7).uniform(-1.0, 1.0, (5, 7)).astype(np.float32)
@@ -192,7 +192,7 @@ def test_gym_task_takes_its_episode_length_from_gymnasium() -> None:
 
 
 def test_derived_seeds_do_not_depend_on_the_process() -> None:
-    code = "from vecsim.tasks import derive_seed; print(derive_seed('tiny/lift', 3))"
+    code = "from vecsim.engine.tasks import derive_seed; print(derive_seed('tiny/lift', 3))"
     outputs = {
         subprocess.run(
             [sys.executable, "-c", code],
@@ -424,7 +424,7 @@ def test_libero_reset_is_bit_identical_whatever_came_before(libero_env: TaskEnv)
 def test_libero_config_is_written_without_asking_anything(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "LIBERO_CONFIG_PATH"}
     env["VECSIM_CACHE_DIR"] = str(tmp_path)
-    code = "from vecsim.tasks import get_task; print(get_task('libero_goal/0').instruction)"
+    code = "from vecsim.engine.tasks import get_task; print(get_task('libero_goal/0').instruction)"
     done = subprocess.run(
         [sys.executable, "-c", code],
         env=env,

@@ -23,7 +23,7 @@ import pytest
 from service_procs import assignment, standalone_pods
 
 from vecsim.config import CameraConfig, LiberoProtocol
-from vecsim.tasks._libero import ensure_config
+from vecsim.engine.tasks._libero import ensure_config
 from vecsim.trainers.lerobot import LeRobotVectorEnv
 
 pytestmark = pytest.mark.libero

@@ -30,7 +30,7 @@ pytest.importorskip("rlinf")
 from service_procs import assignment, standalone_pods  # noqa: E402
 
 from vecsim.config import CameraConfig  # noqa: E402
-from vecsim.tasks._libero import ensure_config  # noqa: E402
+from vecsim.engine.tasks._libero import ensure_config  # noqa: E402
 
 pytestmark = pytest.mark.libero
 

@@ -2,7 +2,7 @@
 
 Every test taking ``make_vec`` runs twice: on :class:`HTTPVectorEnv` over real standalone pods
 (two stages, one pod each) and on gymnasium's ``SyncVectorEnv`` built from the same task envs
-(``vecsim.tasks.make_env``). The async-protocol tests run on HTTPVectorEnv and gymnasium's
+(``vecsim.engine.tasks.make_env``). The async-protocol tests run on HTTPVectorEnv and gymnasium's
 ``AsyncVectorEnv`` instead (``SyncVectorEnv`` has no ``step_async``).
 
 The task is ``gym/InvertedPendulum-v5`` without cameras and with 3-step episodes: under zero
@@ -23,7 +23,7 @@ from service_procs import NO_CAMERA, PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import CameraConfig
-from vecsim.tasks import make_env
+from vecsim.engine.tasks import make_env
 
 TASK = "gym/InvertedPendulum-v5"
 EPISODE = 3

@@ -1,4 +1,4 @@
-"""The messages between a pod and its worker processes (``vecsim.sim``): messages on a real pipe,
+"""The messages between a pod and its worker processes (``vecsim.engine.protocol``): messages on a real pipe,
 and run orders in binary. The behaviour they carry (steps, resets, errors, dead and hung workers)
 is specified in test_sim*.py and test_faults*.py on real workers."""
 
@@ -12,7 +12,7 @@ import gymnasium
 import numpy as np
 import pytest
 
-from vecsim.sim import _Order, _decode_run, _encode_run, _receive, _send
+from vecsim.engine.protocol import Order, decode_run, encode_run, receive, send
 
 BOX = gymnasium.spaces.Box(-1.0, 1.0, (2, 3), np.float32)
 
@@ -21,9 +21,9 @@ def test_a_message_larger_than_the_pipe_arrives_whole_and_writable() -> None:
     parent, child = multiprocessing.Pipe()
     message = os.urandom(3 * 65536 + 7)
     # The writer blocks until the reader drains the pipe, so it writes from another thread.
-    writer = threading.Thread(target=_send, args=(child, message[:10], message[10:]))
+    writer = threading.Thread(target=send, args=(child, message[:10], message[10:]))
     writer.start()
-    received = _receive(parent)
+    received = receive(parent)
     writer.join()
     assert bytes(received) == message
     received[0] ^= 1  # writable: arrays decoded from a message are writable too
@@ -35,14 +35,14 @@ def test_reading_a_pipe_whose_other_end_closed_is_eof() -> None:
     parent, child = multiprocessing.Pipe()
     child.close()
     with pytest.raises(EOFError):
-        _receive(parent)
+        receive(parent)
     parent.close()
 
 
 def test_a_chunk_step_order_round_trips_with_its_dtype_shape_and_recorded_envs() -> None:
     actions = np.arange(2 * 4 * 6, dtype=np.float32).reshape(2, 4, 2, 3) / 10
-    order = _Order(np.array([3, 1]), actions=actions, record=np.array([False, True]))
-    decoded = _decode_run(bytearray(_encode_run(order)), BOX)
+    order = Order(np.array([3, 1]), actions=actions, record=np.array([False, True]))
+    decoded = decode_run(bytearray(encode_run(order)), BOX)
     assert decoded.local_indices.tolist() == [3, 1]
     assert decoded.actions.dtype == np.float32 and decoded.actions.shape == (2, 4, 2, 3)
     np.testing.assert_array_equal(decoded.actions, actions)
@@ -53,18 +53,18 @@ def test_a_chunk_step_order_round_trips_with_its_dtype_shape_and_recorded_envs()
 
 def test_a_step_order_of_discrete_actions_keeps_the_spaces_integer_dtype() -> None:
     space = gymnasium.spaces.Discrete(5)
-    order = _Order(np.array([0]), actions=np.array([[4]], dtype=space.dtype))
-    decoded = _decode_run(bytearray(_encode_run(order)), space)
+    order = Order(np.array([0]), actions=np.array([[4]], dtype=space.dtype))
+    decoded = decode_run(bytearray(encode_run(order)), space)
     assert decoded.actions.dtype == space.dtype and decoded.actions.tolist() == [[4]]
     assert decoded.record is None
 
 
 def test_reset_orders_round_trip_state_ids_and_seeds_with_none_as_minus_one() -> None:
-    states = _decode_run(bytearray(_encode_run(_Order(np.array([0, 2]), state_ids=np.array([7, 0])))), BOX)
+    states = decode_run(bytearray(encode_run(Order(np.array([0, 2]), state_ids=np.array([7, 0])))), BOX)
     assert (states.local_indices.tolist(), states.state_ids.tolist(), states.seeds, states.actions) == ([0, 2], [7, 0], None, None)
-    seeds = _decode_run(bytearray(_encode_run(_Order(np.array([1]), seeds=np.array([-1])))), BOX)
+    seeds = decode_run(bytearray(encode_run(Order(np.array([1]), seeds=np.array([-1])))), BOX)
     assert (seeds.seeds.tolist(), seeds.state_ids, seeds.options) == ([-1], None, None)
 
 
 def test_a_seeded_reset_with_options_is_not_binary() -> None:
-    assert _encode_run(_Order(np.array([0]), seeds=np.array([3]), options={"x_init": 0.5})) is None
+    assert encode_run(Order(np.array([0]), seeds=np.array([3]), options={"x_init": 0.5})) is None

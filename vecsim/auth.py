@@ -7,29 +7,25 @@ registering, heartbeating, setting the job); reading (health, readiness, metrics
 stays open. With no token configured, checking is off (local development): the servers log a
 warning at start-up.
 
-Here: reading the token from the environment, the header a caller sends, the constant-time
-check, an ASGI middleware that applies it (no web framework needed), and the OpenAPI
-description of it. Nothing here ever puts the token in a message or a log line.
+Here: reading the token from the environment, the header a caller sends and the constant-time
+check, shared by the client and both servers. The servers' ASGI middleware that applies it, and
+the OpenAPI description of it, are in ``service.http``. Nothing here ever puts the token in a
+message or a log line.
 """
 
 from __future__ import annotations
 
 import hmac
-import json
 import os
 import re
-from collections.abc import Awaitable, Callable, Mapping, MutableMapping
-from typing import Any
+from collections.abc import Mapping
 
 __all__ = [
     "OPEN_METHODS",
-    "SECURITY_SCHEME",
     "TOKEN_ENV",
-    "BearerTokenMiddleware",
     "authorization_problem",
     "bearer_headers",
     "check_token",
-    "document_bearer_security",
     "token_from_env",
     "tokens_match",
 ]
@@ -37,15 +33,8 @@ __all__ = [
 TOKEN_ENV = "VECSIM_TOKEN"
 # Methods that only read: open to anyone who can reach the server.
 OPEN_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
-SECURITY_SCHEME = "vecsimToken"
 # What an HTTP header value may carry without quoting: visible ASCII, no spaces.
 _TOKEN_CHARS = re.compile(r"^[\x21-\x7e]+$")
-
-Scope = MutableMapping[str, Any]
-Message = MutableMapping[str, Any]
-Receive = Callable[[], Awaitable[Message]]
-Send = Callable[[Message], Awaitable[None]]
-ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 
 def check_token(token: str | None, source: str = TOKEN_ENV) -> str | None:
@@ -107,79 +96,3 @@ def authorization_problem(header: str | None, token: str | None, server: str) ->
     if not tokens_match(given.strip(), token):
         return f"{server} refused the bearer token: it is not the job's {TOKEN_ENV}"
     return None
-
-
-class BearerTokenMiddleware:
-    """ASGI middleware: a request with a method outside :data:`OPEN_METHODS` gets 401 unless it
-    carries ``token``; nothing of the request (not even its body) is read before the check.
-
-    ``server`` names the server in the 401's ``detail`` (``"pod sim-0"``, ``"the controller"``);
-    ``on_refused`` is called once per refused request (a metric). With ``token`` None every
-    request passes.
-    """
-
-    def __init__(
-        self, app: ASGIApp, token: str | None, server: str, on_refused: Callable[[], None] | None = None
-    ) -> None:
-        self.app = app
-        self.token = check_token(token)
-        self.server = server
-        self.on_refused = on_refused
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or self.token is None or scope["method"] in OPEN_METHODS:
-            await self.app(scope, receive, send)
-            return
-        header = None
-        for name, value in scope.get("headers", ()):
-            if name == b"authorization":
-                header = value.decode("latin-1")
-                break
-        problem = authorization_problem(header, self.token, self.server)
-        if problem is None:
-            await self.app(scope, receive, send)
-            return
-        if self.on_refused is not None:
-            self.on_refused()
-        body = json.dumps({"detail": problem}).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 401,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"www-authenticate", b'Bearer realm="vecsim"'),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
-
-
-def document_bearer_security(schema: dict[str, Any]) -> dict[str, Any]:
-    """Mark every operation of an OpenAPI ``schema`` whose method changes state as needing the
-    bearer token, with its 401 answer. Changes ``schema`` in place.
-
-    Returns:
-        ``schema``.
-    """
-    components = schema.setdefault("components", {})
-    components.setdefault("securitySchemes", {})[SECURITY_SCHEME] = {
-        "type": "http",
-        "scheme": "bearer",
-        "description": f"the job's shared token ({TOKEN_ENV}); required on every request that changes state",
-    }
-    components.setdefault("schemas", {}).setdefault(
-        "Unauthorized",
-        {"type": "object", "properties": {"detail": {"type": "string"}}, "required": ["detail"]},
-    )
-    for operations in schema.get("paths", {}).values():
-        for method, operation in operations.items():
-            if method.upper() in OPEN_METHODS or not isinstance(operation, dict):
-                continue
-            operation["security"] = [{SECURITY_SCHEME: []}]
-            operation.setdefault("responses", {})["401"] = {
-                "description": "no bearer token, or not the job's",
-                "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Unauthorized"}}},
-            }
-    return schema

@@ -101,7 +101,7 @@ MAKE_KWARGS_DOC = (
 RENDER_DOC = "render preset; unset: 'full' for LIBERO tasks (LIBERO's own pixels), 'lean' for the others"
 
 
-# 0 (the default) asks the pod to choose (vecsim.sim.resolve_envs_per_worker); YAML and JSON may say "auto".
+# 0 (the default) asks the pod to choose (vecsim.engine.resolve_envs_per_worker); YAML and JSON may say "auto".
 AUTO_ENVS_PER_WORKER = 0
 ENVS_PER_WORKER_DOC = (
     "envs hosted by one worker process, consecutive env indices of one task or several; 0 or "

@@ -13,11 +13,11 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.http import BodyLimitMiddleware, describe_validation_error
+from service.http import BearerTokenMiddleware, BodyLimitMiddleware, describe_validation_error, document_bearer_security
 from service.metrics import refusal
 from service.routers import probe_router
 from vecsim import __version__
-from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, bearer_headers, document_bearer_security
+from vecsim.auth import TOKEN_ENV, bearer_headers
 from vecsim.transport import make_async_client
 
 from .deps import get_state

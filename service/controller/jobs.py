@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Container, Iterable
 
-from vecsim import tasks as registry
+from vecsim.engine import tasks as registry
 from vecsim.config import CameraConfig, JobSpec, PodRecord
 from vecsim.plan import validate_job
 

@@ -8,10 +8,10 @@ import sys
 
 import uvicorn
 
+from service.probes import quiet_probe_logs
 from service.serving import uvicorn_limits
 from vecsim.auth import token_from_env
 from vecsim.config import ConfigError, load_job_config
-from vecsim.probes import quiet_probe_logs
 
 from .app import create_app
 from .settings import ControllerSettings

@@ -13,11 +13,11 @@ from fastapi.responses import JSONResponse
 
 import vecsim
 from service.contract import Heartbeat
-from service.http import BodyLimitMiddleware, describe_validation_error
+from service.http import BearerTokenMiddleware, BodyLimitMiddleware, describe_validation_error, document_bearer_security
 from service.metrics import refusal
 from service.routers import probe_router
-from vecsim.auth import TOKEN_ENV, BearerTokenMiddleware, document_bearer_security
-from vecsim.sim import InvalidRequestError
+from vecsim.auth import TOKEN_ENV
+from vecsim.engine import InvalidRequestError
 
 from .agent import ControllerAgent
 from .deps import get_state

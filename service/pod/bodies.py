@@ -16,7 +16,7 @@ from pydantic import BaseModel, ValidationError
 
 from service.http import describe_validation_error
 from vecsim import wire
-from vecsim.sim import InvalidRequestError
+from vecsim.engine import InvalidRequestError
 
 from .errors import MalformedBodyError, UnsupportedMediaTypeError
 

@@ -2,14 +2,14 @@
 a ``reason`` that labels ``vecsim_pod_refused_requests``.
 
 The library's own errors are answered as they are (one class per concept, defined once in
-:mod:`vecsim.sim`): ``UnknownEnvError`` 404, ``InvalidRequestError`` 422, ``SimCrashedError`` 503
+:mod:`vecsim.engine.errors`): ``UnknownEnvError`` 404, ``InvalidRequestError`` 422, ``SimCrashedError`` 503
 (:data:`LIBRARY_ERRORS`). The classes here are for what only the HTTP layer knows: a body it
 cannot read, a media type it does not speak, a stale generation, a pod not ready.
 """
 
 from __future__ import annotations
 
-from vecsim.sim import InvalidRequestError, SimCrashedError, UnknownEnvError
+from vecsim.engine import InvalidRequestError, SimCrashedError, UnknownEnvError
 
 __all__ = [
     "LIBRARY_ERRORS",

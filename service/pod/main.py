@@ -19,11 +19,11 @@ from pathlib import Path
 import uvicorn
 from pydantic import ValidationError
 
+from service.probes import quiet_probe_logs
 from service.serving import uvicorn_limits
 from vecsim.config import Assignment, ConfigError, JobSpec, load_job_config
+from vecsim.engine.tasks import normalize_task_id, suite_tasks
 from vecsim.plan import Plan, slot_contents
-from vecsim.probes import quiet_probe_logs
-from vecsim.tasks import normalize_task_id, suite_tasks
 
 from .app import create_app
 from .errors import PodError

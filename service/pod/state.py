@@ -19,8 +19,8 @@ from typing import Literal, TypeVar
 from prometheus_client import CollectorRegistry
 
 from vecsim.config import Assignment
-from vecsim.sim import InvalidRequestError, TaskGroupedVectorEnv, assignment_spaces
-from vecsim.tasks import TaskSetupError, UnknownTaskError, get_task
+from vecsim.engine import InvalidRequestError, TaskGroupedVectorEnv, assignment_spaces
+from vecsim.engine.tasks import TaskSetupError, UnknownTaskError, get_task
 
 from ..models import Problem, Readiness
 from .errors import NotReadyError, StaleGenerationError
@@ -58,7 +58,7 @@ def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
 def steps_on_event_loop(assignment: Assignment) -> bool:
     """Whether the pod resets and steps ``assignment``'s envs on its event loop rather than on
     its worker thread: when every scene is cheap (a ``gym/*`` task, no camera), as
-    ``vecsim.sim.resolve_envs_per_worker`` calls them.
+    ``vecsim.engine.resolve_envs_per_worker`` calls them.
 
     A call of cheap scenes takes the workers a millisecond or two, and the hand-over to the worker
     thread and back about 0.2 ms of it; blocking the loop

@@ -29,9 +29,10 @@ from pathlib import Path
 import httpx
 
 from service.controller.jobs import check_job
+from service.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
 from vecsim.config import JobConfig, PodCapacity, PodRecord, RoutingTable, parse_cpu_list
-from vecsim.probes import CONTROLLER, POD, TERMINATION_GRACE_S
+from service.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
 from .ports import port_free
 from .process import Backoff, ManagedProcess
@@ -135,7 +136,7 @@ class LocalJob:
     def _controller_argv(self) -> list[str]:
         c = self.config.controller
         return [
-            self._python, "-m", "vecsim.cli", "controller",
+            self._python, "-m", "service.cli", "controller",
             "--host", c.host,
             "--port", str(c.port),
             "--heartbeat-interval", str(c.heartbeat_interval_s),
@@ -189,7 +190,7 @@ class LocalJob:
     def pod_argv(self, name: str) -> list[str]:
         """Returns the command that runs pod ``name``: ``vecsim pod``, under ``taskset -c`` when
         ``pods.cpu_affinity`` pins it (its env workers inherit the pin)."""
-        argv = [self._python, "-m", "vecsim.cli", "pod"]
+        argv = [self._python, "-m", "service.cli", "pod"]
         cpus = self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]))
         return argv if cpus is None else ["taskset", "-c", cpus, *argv]
 

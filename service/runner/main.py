@@ -11,9 +11,9 @@ import threading
 import time
 from types import FrameType
 
+from service.probes import PROBE_PATHS, quiet_probe_logs
 from vecsim.auth import TOKEN_ENV
 from vecsim.config import ConfigError, load_job_config
-from vecsim.probes import PROBE_PATHS, quiet_probe_logs
 
 from .job import JobRejectedError, LocalJob
 from .status import format_status

@@ -2,7 +2,7 @@
 
 The process runs in a process group of its own (so a terminal's Ctrl-C reaches only the runner,
 and a stop reaches everything the process started, e.g. its env workers). A thread watches it:
-it runs the startup probe, then readiness and liveness probes (``vecsim.probes``); when the
+it runs the startup probe, then readiness and liveness probes (``service.probes``); when the
 process exits or a startup/liveness probe fails, it restarts it after an exponential backoff.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import httpx
 
-from vecsim.probes import TERMINATION_GRACE_S, Probe, Probes
+from service.probes import TERMINATION_GRACE_S, Probe, Probes
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ LEROBOT_CAMERA_KEYS: dict[str, str] = {"agentview": "image", "robot0_eye_in_hand
 # LiberoEnv.metadata (envs/libero.py): eval_policy writes its videos at this rate.
 LEROBOT_RENDER_FPS = 80
 
-# Offsets of the pods' 23-float ``proprio`` (vecsim.tasks._robot.PROPRIO_KEYS).
+# Offsets of the pods' 23-float ``proprio`` (vecsim.engine.tasks._robot.PROPRIO_KEYS).
 _COS, _SIN, _EEF_POS, _EEF_QUAT, _GRIPPER_QPOS = slice(0, 7), slice(7, 14), slice(14, 17), slice(17, 21), slice(21, 23)
 
 

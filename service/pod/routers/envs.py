@@ -12,9 +12,9 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from PIL import Image
 
-from vecsim import sim, wire
+from vecsim import wire
+from vecsim.engine import CallTiming, EnvError, InvalidRequestError, SimCrashedError, TaskGroupedVectorEnv, UnknownEnvError
 from vecsim.info import batch_infos
-from vecsim.sim import InvalidRequestError
 from vecsim.spaces import tuples_as_dicts
 
 from ...models import Problem
@@ -69,7 +69,7 @@ def _answer_doc(model: type[Any]) -> dict[int | str, dict[str, Any]]:
     }
 
 
-def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]], errors: list[sim.EnvError]) -> dict[str, Any]:
+def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]], errors: list[EnvError]) -> dict[str, Any]:
     """Add the envs' own info and the envs that raised to ``answer``; return it."""
     batched = batch_infos(env_info)
     if batched:
@@ -109,18 +109,18 @@ def reset_answer(ids: np.ndarray, obs: Any, info: dict[str, Any]) -> dict[str, A
     return _own(answer, ids, info["env_info"], info["errors"])
 
 
-async def _simulate(state: PodState, env: sim.TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
+async def _simulate(state: PodState, env: TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
     """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
     turning the simulation's errors into HTTP errors."""
     try:
         if state.inline:
             return work()
         return await state.run(work)
-    except (sim.UnknownEnvError, sim.InvalidRequestError) as exc:
+    except (UnknownEnvError, InvalidRequestError) as exc:
         raise type(exc)(f"pod {state.settings.name}: {exc}") from None
-    except sim.SimCrashedError as exc:
+    except SimCrashedError as exc:
         state.rebuild_after_crash(env, str(exc))
-        raise sim.SimCrashedError(f"pod {state.settings.name}: simulation crashed, rebuilding its envs: {exc}") from None
+        raise SimCrashedError(f"pod {state.settings.name}: simulation crashed, rebuilding its envs: {exc}") from None
 
 
 @router.post(
@@ -196,7 +196,7 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
 
     resetting = bool(req.reset_env_indices.size or req.reset_state_ids.size)
 
-    def work() -> tuple[Response, float, sim.CallTiming, int]:
+    def work() -> tuple[Response, float, CallTiming, int]:
         start = time.perf_counter()
         reset: tuple[Any, dict[str, Any]] | None = None
         if resetting:

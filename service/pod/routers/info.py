@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 from vecsim.spaces import space_to_json
-from vecsim.tasks import get_task
+from vecsim.engine.tasks import get_task
 
 from ..deps import get_state
 from ..models import InfoResponse, TaskInfo

@@ -38,12 +38,12 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from vecsim import mesh_lod
-from vecsim import render as render_presets
+from vecsim.engine import mesh_lod
+from vecsim.engine import render as render_presets
 from vecsim.config import ImageOrientation, RenderPreset
-from vecsim.render import RenderSettings
+from vecsim.engine.render import RenderSettings
 
-log = logging.getLogger("vecsim.batch_render")
+log = logging.getLogger("vecsim.engine.batch_render")
 
 # Scenes hold this many geoms; MuJoCo's and robosuite's 1000 drops geoms of big scenes silently.
 MAX_SCENE_GEOMS = 10_000
@@ -249,7 +249,7 @@ class BatchRenderer:
     """Renders batches of camera views of ``height`` x ``width`` pixels under one render preset.
 
     ``preset`` is a preset's name or, to measure other combinations of passes, any
-    :class:`~vecsim.render.RenderSettings` (``preset`` then reads ``custom``).
+    :class:`~vecsim.engine.render.RenderSettings` (``preset`` then reads ``custom``).
 
     Envs ``attach`` their model (with how many cameras they will ask for) when they are built and
     ``detach`` it when they close; ``render`` draws any views of attached models.

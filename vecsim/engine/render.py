@@ -7,7 +7,7 @@ Four presets, named in :class:`vecsim.config.Assignment` (``render``):
 - ``fast``: shadows on a 1024x1024 shadow map; no reflections.
 - ``lean``: no shadows (and no shadow map at all), no reflections, no skybox.
 - ``lowpoly``: ``lean``'s passes, drawing meshes simplified on a grid of ``LOWPOLY_CELL`` metres
-  (:mod:`vecsim.mesh_lod`). Physics keeps the model's meshes; only the render context gets the
+  (:mod:`vecsim.engine.mesh_lod`). Physics keeps the model's meshes; only the render context gets the
   lighter ones. For scenes bound by triangle count (LIBERO's scanned objects and backgrounds).
 
 The default 4096x4096 shadow map is what makes default rendering slow, on a GPU as much as in
@@ -15,7 +15,7 @@ Mesa's software renderer. Its size is read from ``model.vis.quality.shadowsize``
 render context (``MjrContext``) is made, so it must be set before that; the scene flags can change
 at any time. Rendering is deterministic for a given model, state and preset.
 
-vecsim's envs render through :mod:`vecsim.batch_render`, which applies a preset with
+vecsim's envs render through :mod:`vecsim.engine.batch_render`, which applies a preset with
 :func:`apply_to_model` (to a render context it makes) and :func:`apply_to_scene`.
 :func:`apply_to_robosuite` and :func:`apply_to_gymnasium` apply one to robosuite's and
 gymnasium's own renderers: the default path, which tests and benchmarks compare against.
@@ -32,7 +32,7 @@ from typing import Any
 
 import mujoco
 
-from vecsim import mesh_lod
+from vecsim.engine import mesh_lod
 from vecsim.config import RenderPreset
 
 
@@ -43,7 +43,7 @@ class RenderSettings:
     ``shadow_size`` None keeps the model's own shadow map size; ``multisamples`` None keeps the
     model's own multisampling of offscreen buffers (MuJoCo's default is 4 samples a pixel);
     ``mesh_cell`` None draws the model's own meshes, a length (metres) draws meshes simplified on
-    a grid of that cell (:mod:`vecsim.mesh_lod`).
+    a grid of that cell (:mod:`vecsim.engine.mesh_lod`).
     Benchmarks build other settings than the presets' to measure what each pass costs.
     """
 

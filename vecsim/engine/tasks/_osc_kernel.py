@@ -1,7 +1,7 @@
 """robosuite's OSC update and torques for one non-policy physics substep, as one numba function.
 
 :func:`osc_substep` does what the exact step path's ``_update`` (after ``mj_jacSite``) and
-``_ArmStep.control`` do with some 30 numpy calls and three numba dispatches, in one dispatch, with
+``ArmStep.control`` do with some 30 numpy calls and three numba dispatches, in one dispatch, with
 bit-identical results. Each operation is the one robosuite's step runs, on the same inputs:
 
 - robosuite's numba kernels (``orientation_error``, ``opspace_matrices``, ``nullspace_torques``)
@@ -34,7 +34,7 @@ import numpy as np
 from numba import types
 from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
 
-from vecsim.tasks._base import log
+from vecsim.engine.tasks._base import log
 
 # numpy's wheels bundle OpenBLAS built with 64-bit integers and these symbol names.
 _DGEMV_SYMBOL = "scipy_cblas_dgemv64_"

@@ -18,8 +18,8 @@ reward and success is bit-identical to robosuite's (and LIBERO's, whose step is 
   shapes and memory layouts (numba compiles per layout), without robosuite's per-call lookups,
   property rebuilds and four Jacobian evaluations where one gives the same numbers. On every
   substep that work (after one ``mj_jacSite``) is one compiled call,
-  :func:`vecsim.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
-  own BLAS as robosuite's step does; where it cannot (:func:`vecsim.tasks._osc_kernel.available`,
+  :func:`vecsim.engine.tasks._osc_kernel.osc_substep`, which calls robosuite's numba kernels and numpy's
+  own BLAS as robosuite's step does; where it cannot (:func:`vecsim.engine.tasks._osc_kernel.available`,
   a gripper other than robosuite's Panda gripper) the same calls run from Python. The controller,
   robot and gripper attributes the compiled call fills are handed over as fresh arrays after the
   policy substep, after the last substep and before any observable samples. After the policy
@@ -46,7 +46,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from vecsim.tasks._base import log
+from vecsim.engine.tasks._base import log
 
 STEP_PATHS: tuple[str, ...] = ("exact", "library")
 DEFAULT_STEP_PATH = "exact"
@@ -114,7 +114,7 @@ class _Arm:
         self.control_dim = controller.control_dim
         self.action_dim = robot.action_dim
         # What osc_substep fills, in the layouts robosuite's update gives (Fortran-ordered
-        # Jacobian and mass-matrix copies), handed to the controller by _ArmStep.hand_over.
+        # Jacobian and mass-matrix copies), handed to the controller by ArmStep.hand_over.
         dof = len(self.qvel_index)
         self.ee_pos = np.zeros(3)
         self.ee_ori_mat = np.zeros((3, 3))
@@ -137,9 +137,9 @@ class _Unsupported(Exception):
 
 
 @functools.cache
-def _osc_kernel() -> Any:
-    # Imports robosuite and numba: loaded with the first exact step, not with vecsim.tasks.
-    from vecsim.tasks import _osc_kernel
+def osc_kernel() -> Any:
+    # Imports robosuite and numba: loaded with the first exact step, not with vecsim.engine.tasks.
+    from vecsim.engine.tasks import _osc_kernel
 
     return _osc_kernel
 
@@ -149,7 +149,7 @@ def _fused_controller_available() -> bool:
     """Whether the compiled controller can run here; False (logged once) where its module cannot
     even be loaded, e.g. numba finding no writable place for its cache."""
     try:
-        return bool(_osc_kernel().available())
+        return bool(osc_kernel().available())
     except Exception as exc:  # noqa: BLE001 - the controller from Python is the same arithmetic
         log.warning("the compiled OSC controller cannot be loaded (%s: %s): the controller runs from Python",
                     type(exc).__name__, exc)
@@ -158,7 +158,7 @@ def _fused_controller_available() -> bool:
 
 @functools.cache
 def _robosuite() -> Any:
-    # robosuite is imported when the first env is made, not with vecsim.tasks.
+    # robosuite is imported when the first env is made, not with vecsim.engine.tasks.
     import robosuite.controllers.base_controller
     import robosuite.controllers.osc
     import robosuite.models.grippers.panda_gripper
@@ -280,9 +280,9 @@ class ExactStep:
         cutoff = 0
         for arm in self.arms:
             _check_arm(arm.robot)
-            arms.append(_ArmStep(arm, action[cutoff : cutoff + arm.action_dim], model))
+            arms.append(ArmStep(arm, action[cutoff : cutoff + arm.action_dim], model))
             cutoff += arm.action_dim
-        fused: list[_ArmStep] = []
+        fused: list[ArmStep] = []
         for substep in range(substeps):
             policy_step = substep == 0
             if substep == 1 and self.substep_loop and fused and len(fused) == len(arms):
@@ -330,7 +330,7 @@ class ExactStep:
         }
         return observations, float(reward), success
 
-    def _fused_substeps(self, fused: list[_ArmStep], substeps: int, plan: _ObservablePlan | None) -> None:
+    def _fused_substeps(self, fused: list[ArmStep], substeps: int, plan: _ObservablePlan | None) -> None:
         # Substeps 1.. of an env-step whose arms all run the compiled controller: the loop's
         # _forward(False), fused_control, _integrate, hand_over and observable updates, the same
         # calls in the same order, with the loop's lookups done once.
@@ -338,7 +338,7 @@ class ExactStep:
         fwd_position, sensor_pos = mujoco.mj_fwdPosition, mujoco.mj_sensorPos
         fwd_velocity, sensor_vel = mujoco.mj_fwdVelocity, mujoco.mj_sensorVel
         check_pos, check_vel, step1, step2 = mujoco.mj_checkPos, mujoco.mj_checkVel, mujoco.mj_step1, mujoco.mj_step2
-        jac_site, osc_substep = mujoco.mj_jacSite, _osc_kernel().osc_substep
+        jac_site, osc_substep = mujoco.mj_jacSite, osc_kernel().osc_substep
         bad_qpos, bad_qvel = self.bad_qpos, self.bad_qvel
         calls = [(arm.arm.jacp, arm.arm.jacr, arm.arm.site, arm.kernel_args) for arm in fused]
         last = substeps - 1
@@ -424,7 +424,7 @@ class ExactStep:
         controller.new_update = False
 
 
-class _ArmStep:
+class ArmStep:
     """One arm's share of one env-step: its action and what stays fixed over the substeps."""
 
     def __init__(self, arm: _Arm, action: np.ndarray, model: Any) -> None:
@@ -489,7 +489,7 @@ class _ArmStep:
         """Controller.update and :meth:`control` for a non-policy substep, in one compiled call."""
         arm = self.arm
         mujoco.mj_jacSite(model, data, arm.jacp, arm.jacr, arm.site)
-        _osc_kernel().osc_substep(*self.kernel_args)
+        osc_kernel().osc_substep(*self.kernel_args)
 
     def policy_control(self, model: Any, data: Any) -> None:
         """SingleArm.control for the policy substep, after :meth:`start_fused` set the goal.

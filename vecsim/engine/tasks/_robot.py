@@ -11,7 +11,7 @@ command, step counters, object placements LIBERO writes into the model), so a re
 robosuite's own reset under a seed derived from (task, state id), clears MuJoCo's history, sets
 the flattened state, and only then makes the controllers, which read the state they start from.
 
-Cameras are drawn by vecsim's batch renderer (:mod:`vecsim.batch_render`), not by robosuite:
+Cameras are drawn by vecsim's batch renderer (:mod:`vecsim.engine.batch_render`), not by robosuite:
 robosuite's camera observables and its own render context are switched off, and each env's
 images are rendered once per reset or step, of the sim as the action's last physics substep
 leaves it (where robosuite's camera observables render, with no extra ``mj_forward``, so the
@@ -32,10 +32,10 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from vecsim import render as render_presets
-from vecsim.batch_render import BatchRenderer, CameraView, fixed_camera, shared_renderer
+from vecsim.engine import render as render_presets
+from vecsim.engine.batch_render import BatchRenderer, CameraView, fixed_camera, shared_renderer
 from vecsim.config import CameraConfig, RenderPreset
-from vecsim.tasks._base import (
+from vecsim.engine.tasks._base import (
     TaskEnv,
     TaskSetupError,
     TaskSpec,
@@ -44,9 +44,9 @@ from vecsim.tasks._base import (
     ensure_gl_backend,
     log,
     scene_seed,
-    write_whole,
 )
-from vecsim.tasks._fast_step import DEFAULT_STEP_PATH, make_step
+from vecsim.engine.tasks._fast_step import DEFAULT_STEP_PATH, make_step
+from vecsim.files import write_whole
 
 PROPRIO_KEYS: tuple[str, ...] = (
     "robot0_joint_pos_cos",
@@ -169,7 +169,7 @@ class RobotTaskEnv(TaskEnv):
 
     ``states`` holds one flattened MuJoCo state per state id. ``terminated`` is success, as in
     LIBERO; the reward is the env's own (sparse) reward. ``render`` is the render preset; None
-    takes the one :func:`vecsim.render.apply_to_robosuite` gave ``inner.sim`` (else ``lean``).
+    takes the one :func:`vecsim.engine.render.apply_to_robosuite` gave ``inner.sim`` (else ``lean``).
 
     Camera images come from :attr:`renderer`, this process's batch renderer for the camera size
     and preset; :attr:`camera_views` holds one view per camera name. With :attr:`defer_images`
@@ -216,12 +216,12 @@ class RobotTaskEnv(TaskEnv):
         self._step_fn, self.step_path = make_step(inner, DEFAULT_STEP_PATH)
 
     def set_step_path(self, path: str) -> None:
-        """Step with ``path`` (:mod:`vecsim.tasks._fast_step`). Returns None.
+        """Step with ``path`` (:mod:`vecsim.engine.tasks._fast_step`). Returns None.
 
         ``exact`` (the default) and ``library`` (the env's own ``step``) give bit-identical
         trajectories. :attr:`step_path` names the path taken (``exact`` falls back to
         ``library`` where it does not cover the env). A LIBERO task's reset takes the path too
-        (:class:`vecsim.tasks._libero.LiberoTaskEnv`).
+        (:class:`vecsim.engine.tasks._libero.LiberoTaskEnv`).
 
         Raises:
             ValueError: an unknown path.

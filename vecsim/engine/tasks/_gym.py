@@ -25,11 +25,11 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from vecsim import render as render_presets
-from vecsim.batch_render import BatchRenderer, CameraView, shared_renderer
+from vecsim.engine import render as render_presets
+from vecsim.engine.batch_render import BatchRenderer, CameraView, shared_renderer
 from vecsim.config import CameraConfig
 from vecsim.spaces import check_action_space, check_travels
-from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_seed, ensure_gl_backend
+from vecsim.engine.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_seed, ensure_gl_backend
 
 GYM_NUM_STATES = 50
 GYM_DEFAULT_MAX_EPISODE_STEPS = 1000

@@ -7,7 +7,7 @@ import hashlib
 import io
 import logging
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,7 +15,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-log = logging.getLogger("vecsim.tasks")
+log = logging.getLogger("vecsim.engine.tasks")
 
 
 @dataclass(frozen=True)
@@ -69,15 +69,6 @@ def _hash_seed(text: str) -> int:
 def cache_dir() -> Path:
     """Return vecsim's cache folder: ``$VECSIM_CACHE_DIR`` or ``~/.cache/vecsim``."""
     return Path(os.environ.get("VECSIM_CACHE_DIR") or Path.home() / ".cache" / "vecsim")
-
-
-def write_whole(path: Path, write: Callable[[Path], Any]) -> None:
-    """Make ``path`` by calling ``write`` on a hidden file beside it (named for this process),
-    then renaming that file to ``path``: a reader, or another process making the same file,
-    never sees a half-written one."""
-    partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    write(partial)
-    os.replace(partial, path)
 
 
 def ensure_gl_backend() -> None:

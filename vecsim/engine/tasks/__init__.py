@@ -25,21 +25,44 @@ from typing import Any
 import gymnasium
 
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.tasks._base import TaskEnv, TaskSetupError, TaskSpec, UnknownTaskError, cache_dir, derive_seed
-from vecsim.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
-from vecsim.tasks._libero import LIBERO_SUITES, libero_observation_space, libero_specs, make_libero_env
-from vecsim.tasks._robot import (
+from vecsim.engine.tasks._base import (
+    TaskEnv,
+    TaskSetupError,
+    TaskSpec,
+    UnknownTaskError,
+    cache_dir,
+    derive_seed,
+    stdout_to_log,
+)
+from vecsim.engine.tasks._fast_step import ArmStep, ExactStep, library_step, osc_kernel
+from vecsim.engine.tasks._gym import GymTaskEnv, gym_spaces, gym_spec
+from vecsim.engine.tasks._libero import (
+    LIBERO_SUITES,
+    ensure_config,
+    episode_fixtures,
+    fixtures_path,
+    init_states,
+    libero_benchmark,
+    libero_observation_space,
+    libero_specs,
+    load_fixtures,
+    make_libero_env,
+)
+from vecsim.engine.tasks._robot import (
     PROPRIO_KEYS,
     RobotTaskEnv,
     make_robosuite_env,
     robosuite_specs,
     robot_action_space,
     robot_observation_space,
+    seeded_global_rngs,
     states_path,
 )
 
 __all__ = [
     "PROPRIO_KEYS",
+    "ArmStep",
+    "ExactStep",
     "GymTaskEnv",
     "RobotTaskEnv",
     "TaskEnv",
@@ -49,14 +72,24 @@ __all__ = [
     "cache_dir",
     "default_render",
     "derive_seed",
+    "ensure_config",
+    "episode_fixtures",
     "episode_limit",
+    "fixtures_path",
     "get_task",
+    "init_states",
+    "libero_benchmark",
+    "library_step",
     "list_suites",
+    "load_fixtures",
     "make_env",
     "normalize_task_id",
+    "osc_kernel",
     "robot_action_space",
     "robot_observation_space",
+    "seeded_global_rngs",
     "states_path",
+    "stdout_to_log",
     "suite_tasks",
     "task_spaces",
 ]

@@ -30,24 +30,24 @@ import mujoco
 import numpy as np
 import yaml
 
-from vecsim import render as render_presets
+from vecsim.engine import render as render_presets
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.tasks._base import (
+from vecsim.engine.tasks._base import (
     TaskSetupError,
     TaskSpec,
     cache_dir,
     ensure_gl_backend,
     log,
     stdout_to_log,
-    write_whole,
 )
-from vecsim.tasks._robot import (
+from vecsim.engine.tasks._robot import (
     RobotTaskEnv,
     _file_lock,
     robosuite_reset_without_observing,
     robot_observation_space,
     seeded_global_rngs,
 )
+from vecsim.files import write_whole
 
 # Suite -> default episode length: the step budgets of LIBERO's published evaluations (the
 # longest training demonstration of the suite plus a margin), settle steps not counted.
@@ -144,7 +144,7 @@ def ensure_config() -> Path:
 
 
 @functools.cache
-def _benchmark(suite: str) -> Any:
+def libero_benchmark(suite: str) -> Any:
     ensure_config()
     with stdout_to_log():
         from libero.libero import benchmark
@@ -158,7 +158,7 @@ def libero_specs(suite: str) -> list[TaskSpec]:
     Raises:
         TaskSetupError: LIBERO is not installed or its assets are missing.
     """
-    bench = _benchmark(suite)
+    bench = libero_benchmark(suite)
     specs = []
     for index, task in enumerate(bench.tasks):
         match = _SCENE.match(task.name)
@@ -183,7 +183,7 @@ def init_states(task: TaskSpec) -> np.ndarray:
     """
     suite, index = task.task_id.split("/", 1)
     with stdout_to_log():
-        states = _benchmark(suite).get_task_init_states(int(index))
+        states = libero_benchmark(suite).get_task_init_states(int(index))
     return np.asarray(states, dtype=np.float64)
 
 
@@ -237,7 +237,7 @@ class LiberoTaskEnv(RobotTaskEnv):
       sample, which moves every later sample to physics substep 24 of a step's 25.
 
     The reset takes the env's step path (:meth:`set_step_path`): on ``exact``, robosuite's reset
-    runs its forwards without their acceleration stage (:func:`vecsim.tasks._robot.forwards_without_acceleration`:
+    runs its forwards without their acceleration stage (:func:`vecsim.engine.tasks._robot.forwards_without_acceleration`:
     the arm's controller and the placements read only position and velocity results, and the
     full ``mj_forward`` after the init state is set computes the rest again) and the settle
     steps take the exact path; on ``library``, robosuite's reset and LIBERO's ``step`` run as they
@@ -396,7 +396,7 @@ def fixtures_path(task: TaskSpec, seed: int) -> Path:
     return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / f"{index}-seed{seed}.npz"
 
 
-def _load_fixtures(path: Path, count: int, nbody: int) -> list[EpisodeFixtures] | None:
+def load_fixtures(path: Path, count: int, nbody: int) -> list[EpisodeFixtures] | None:
     try:
         with np.load(path, allow_pickle=False) as saved:
             arrays = {name: saved[name] for name in saved.files}
@@ -461,12 +461,12 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
         if rule == "first_reset":
             return [first] * task.num_states
         path = fixtures_path(task, seed)
-        fixtures = _load_fixtures(path, task.num_states, model.nbody)
+        fixtures = load_fixtures(path, task.num_states, model.nbody)
         if fixtures is not None:
             return fixtures
         path.parent.mkdir(parents=True, exist_ok=True)
         with _file_lock(path.with_name(path.name + ".lock")):
-            fixtures = _load_fixtures(path, task.num_states, model.nbody)
+            fixtures = load_fixtures(path, task.num_states, model.nbody)
             if fixtures is not None:
                 return fixtures
             started = time.perf_counter()
@@ -506,7 +506,7 @@ def make_libero_env(
     render_presets.settings(render)
     ensure_gl_backend()
     suite, index = task.task_id.split("/", 1)
-    bench = _benchmark(suite)
+    bench = libero_benchmark(suite)
     cameras = list(camera.names)
     with stdout_to_log():
         from libero.libero.envs import OffScreenRenderEnv
