@@ -1,6 +1,6 @@
 """The Dockerfile's text: a Debian base the offline build can make, torch's CPU build, a non-root
 user, the README's install script, the ``vecsim`` console script as entrypoint, a health check,
-EGL, and a build context that holds everything it copies. tests/test_image.py builds the image
+EGL, and a build context that holds everything it copies. tests/deploy/test_image.py builds the image
 from this same file and runs it."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The ``lowpoly`` preset: lighter meshes for the render context only, deterministic, seam-aware.
 
 Bit-exactness against robosuite's and gymnasium's own renderers and batch-against-alone under
-``lowpoly`` are in ``tests/test_batch_render.py`` (its presets include it). Here: what the
+``lowpoly`` are in ``tests/engine/test_batch_render.py`` (its presets include it). Here: what the
 simplification keeps, that physics never sees it, and that the preset goes wherever presets go.
 """
 

@@ -1,5 +1,5 @@
 """EnvLoop's schedule, specified exactly: in-process scripted pods whose every answer the test
-releases (tests/scripted_pod.py), a real StageClient over them, and a policy that notes its calls.
+releases (tests/support/scripted_pod.py), a real StageClient over them, and a policy that notes its calls.
 
 The loop's own thread writes ``("reset", s)`` / ``("step", s)`` when it sends stage s's call,
 ``("take", s)`` when it takes stage s's answer and ``("policy", s)`` when it runs the policy on

@@ -1,4 +1,4 @@
-"""EnvLoop without lockstep, and with refill, specified against scripted pods (tests/scripted_pod.py)
+"""EnvLoop without lockstep, and with refill, specified against scripted pods (tests/support/scripted_pod.py)
 whose answers the test releases: the pods of one stage answer independently, and a batch holds more
 requests than the job has envs.
 
