@@ -18,6 +18,10 @@ import pytest
 from support import ROOT
 
 REPO = ROOT
+
+# A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
+pytestmark = pytest.mark.slow
+
 ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--actions", "8",
         "--chunks", "1,8", "--physics-seconds", "0.5"]  # fmt: skip
 

@@ -20,6 +20,10 @@ import pytest
 from support import ROOT
 
 BENCH = ROOT / "bench"
+
+# A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
+pytestmark = pytest.mark.slow
+
 COMMON_FIELDS = {"name", "command", "machine", "baseline", "ratio", "target", "met", "quick"}
 
 

@@ -61,6 +61,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], 
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_scaling_names_its_target_the_machine_and_its_record(scaling):
     summary, root = scaling
     assert summary["name"] == "bench_gpu_scale_scaling_cpu" and summary["quick"] is True and summary["dry"] is False
@@ -75,6 +76,7 @@ def test_scaling_names_its_target_the_machine_and_its_record(scaling):
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_scaling_measures_the_service_alone_and_the_loop_at_every_pod_count(scaling):
     summary, _ = scaling
     for kind in ("service", "loop", "loop_per_pod"):
@@ -91,6 +93,7 @@ def test_scaling_measures_the_service_alone_and_the_loop_at_every_pod_count(scal
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_scaling_records_the_slowest_pod_next_to_the_mean(scaling):
     summary, _ = scaling
     slowest = summary["service"]["pods=2"]["slowest_pod"]
@@ -102,6 +105,7 @@ def test_scaling_records_the_slowest_pod_next_to_the_mean(scaling):
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_scaling_records_the_cpu_topology_pins_memory_and_every_pods_task_mix(scaling):
     summary, root = scaling
     topology, setup = summary["topology"], summary["setup"]
@@ -116,6 +120,7 @@ def test_scaling_records_the_cpu_topology_pins_memory_and_every_pods_task_mix(sc
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_stages(pipeline):
     summary, root = pipeline
     assert summary["name"] == "bench_gpu_scale_pipeline_cpu" and isinstance(summary["ratio"], float)
@@ -131,6 +136,7 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
     summary, _ = pipeline
     service, policy = summary["service"], summary["policy"]
@@ -142,6 +148,7 @@ def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
 
 
 @pytest.mark.timeout(180)
+@pytest.mark.slow
 def test_pipeline_records_the_pods_render_preset_and_render_gpu(pipeline):
     summary, _ = pipeline
     setup = summary["setup"]

@@ -300,6 +300,7 @@ def test_vla_env_with_auto_reset_resets_envs_that_ended_inside_the_chunk(pods):
     assert after["num_steps"].tolist() == [2] * env.num_envs  # fresh episodes
 
 
+@pytest.mark.slow
 def test_a_client_takes_a_long_recorded_chunk_whose_frames_outweigh_its_observations(start_pods):
     # 2 envs x 48 recorded 64x64 frames (~1.2 MB) are more than the default answer cap for one
     # observation per env: the cap grows with the call's K and recorded envs.

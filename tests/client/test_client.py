@@ -378,6 +378,7 @@ def lone_pod(start_pods):
     return pod
 
 
+@pytest.mark.slow
 def test_a_partitioned_pod_raises_pod_unavailable_naming_it_and_its_trajectories(lone_pod):
     with StageClient.from_pods([lone_pod.url], timeout_s=1.5) as client:
         routes = client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
@@ -442,6 +443,7 @@ def test_http_vector_env_comes_from_a_controller_url_or_a_job_config(job, tmp_pa
             env.close()
 
 
+@pytest.mark.slow
 def test_a_changed_job_raises_routing_changed_naming_the_lost_trajectories(fresh_job):
     with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         routes = client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
@@ -462,6 +464,7 @@ def test_a_changed_job_raises_routing_changed_naming_the_lost_trajectories(fresh
         assert client.reset_stage(0).result(timeout=60).n == 3
 
 
+@pytest.mark.slow
 def test_after_a_pod_restart_the_other_stage_retries_at_the_new_generation(fresh_job):
     with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
@@ -474,6 +477,7 @@ def test_after_a_pod_restart_the_other_stage_retries_at_the_new_generation(fresh
         assert client.routing.generation == new_generation
 
 
+@pytest.mark.slow
 def test_after_a_pod_restart_its_trajectories_raise_routing_changed(fresh_job):
     with StageClient.from_controller(fresh_job.controller_url, token=fresh_job.token) as client:
         if httpx.get(f"{client.routing.stages[0].pods[0].url}/v1/info", timeout=10).json().get("instance") is None:

@@ -121,6 +121,7 @@ def test_a_client_gives_up_on_a_controller_that_never_listens_naming_the_url_and
     assert f"{url}/v1/routing" in str(caught.value) and "ConnectError" in str(caught.value)
 
 
+@pytest.mark.slow
 def test_ctrl_c_inside_step_leaves_the_next_reset_working_with_true_results(slow_pod, default_sigint):
     with closing(HTTPVectorEnv(pod_urls=[slow_pod], timeout_s=30)) as env:
         first, _ = env.reset(options={"state_ids": STATE_IDS})
@@ -142,6 +143,7 @@ def test_ctrl_c_inside_step_leaves_the_next_reset_working_with_true_results(slow
                 np.testing.assert_array_equal(now, then)
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_an_answer_is_taken_in_leaves_the_envs_to_be_reset(slow_pod, monkeypatch):
     # The call was answered, but what the env holds of it is partly the old step's: no step
     # goes on from there; a reset does, with true results.
@@ -165,6 +167,7 @@ def test_ctrl_c_while_an_answer_is_taken_in_leaves_the_envs_to_be_reset(slow_pod
             np.testing.assert_array_equal(now, then)
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_waiting_on_a_stage_call_frees_the_stage_at_once(slow_pod, default_sigint):
     with StageClient.from_pods([slow_pod], timeout_s=30) as client:
         client.reset_trajectories([("tiny/lift", 1), ("tiny/lift", 2)], ["a", "b"])
@@ -199,6 +202,7 @@ while True:
 
 
 @pytest.mark.parametrize("how", ["raise", "ctrl-c"])
+@pytest.mark.slow
 def test_a_script_ended_by_an_exception_or_ctrl_c_mid_rollout_exits_quietly(slow_pod, tmp_path, how):
     script = tmp_path / "rollout.py"
     script.write_text(textwrap.dedent(SCRIPT))
@@ -212,6 +216,7 @@ def test_a_script_ended_by_an_exception_or_ctrl_c_mid_rollout_exits_quietly(slow
         assert noise not in done.stderr, done.stderr
 
 
+@pytest.mark.slow
 def test_a_job_restarts_on_the_same_ports_at_once_after_it_stopped(tmp_path):
     config = job_config(PENDULUM_JOB, replicas=1)
     first = LocalJob(config, log_dir=tmp_path / "first", grace_s=10, token=TOKEN)
@@ -232,6 +237,7 @@ def info_lines(log: str, path: str) -> list[str]:
     return [line for line in log.splitlines() if re.search(r"\bINFO\b", line) and path in line]
 
 
+@pytest.mark.slow
 def test_vecsim_up_logs_its_probes_at_debug_and_the_job_it_sent_at_info(tmp_path):
     config = job_config(PENDULUM_JOB, replicas=1)
     path = tmp_path / "job.yaml"
@@ -254,6 +260,7 @@ def test_vecsim_up_logs_its_probes_at_debug_and_the_job_it_sent_at_info(tmp_path
         assert info_lines(output, probe) == [], output
 
 
+@pytest.mark.slow
 def test_pod_and_controller_access_logs_keep_probes_out_of_info(tmp_path):
     path = assignment_file(tmp_path, "sim-0", [(PENDULUM, 1)], stage_id=0)
     pod = pod_server("sim-0", tmp_path, args=["--assignment", str(path), "--access-log"])

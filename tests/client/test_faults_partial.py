@@ -68,6 +68,7 @@ def rows(batch: StageBatch, keys: Sequence[str]) -> np.ndarray:
     return np.concatenate([batch.obs[index], batch.reward[index, None]], axis=1)
 
 
+@pytest.mark.slow
 def test_a_killed_pod_fails_the_call_for_its_trajectories_alone_and_the_others_go_on(pods):
     _, doomed = pods
     with StageClient.from_pods([p.url for p in pods], timeout_s=10, token=TOKEN) as client:
@@ -93,6 +94,7 @@ def test_a_killed_pod_fails_the_call_for_its_trajectories_alone_and_the_others_g
         assert np.array_equal(rows(after, healthy), rows(reference[2], healthy))
 
 
+@pytest.mark.slow
 def test_a_rollout_loses_only_the_killed_pods_trajectories_and_finishes_the_rest_unchanged(pods):
     _, doomed = pods
     with StageClient.from_pods([p.url for p in pods], timeout_s=10, token=TOKEN) as client:
@@ -114,6 +116,7 @@ def test_a_rollout_loses_only_the_killed_pods_trajectories_and_finishes_the_rest
         assert torch.equal(mine.actions, theirs.actions) and torch.equal(mine.rewards, theirs.rewards)
 
 
+@pytest.mark.slow
 def test_the_vector_env_raises_for_a_killed_pod_and_hands_over_the_other_pods_envs(pods):
     _, doomed = pods
     env = HTTPVectorEnv(pod_urls=[p.url for p in pods], timeout_s=10, token=TOKEN)

@@ -53,6 +53,7 @@ print(json.dumps(info))
 """
 
 
+@pytest.mark.slow
 def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torch(
     tmp_path: Path, start_pods: Callable[..., list[RunningPod]]
 ) -> None:

@@ -72,6 +72,7 @@ def reference(pods: tuple[Server, Server], mode: AutoresetMode, actions: list[fl
         return answers + [env.step(act(env, a)) for a in actions]
 
 
+@pytest.mark.slow
 def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_their_true_rows(pods):
     _, doomed = pods
     ref = reference(pods, AutoresetMode.NEXT_STEP, [FIRST, SECOND, FIRST])
@@ -105,6 +106,7 @@ def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_thei
         assert np.array_equal(reward, np.where(mask, ref[1][1], ref[3][1]))
 
 
+@pytest.mark.slow
 def test_a_step_before_the_failed_envs_are_reset_is_refused_naming_them(pods):
     _, doomed = pods
     with closing(vector_env(pods)) as env:
@@ -117,6 +119,7 @@ def test_a_step_before_the_failed_envs_are_reset_is_refused_naming_them(pods):
             env.step(act(env, FIRST))
 
 
+@pytest.mark.slow
 def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(pods):
     _, doomed = pods
     with closing(vector_env(pods)) as env:
@@ -138,6 +141,7 @@ def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(
 
 
 @pytest.mark.parametrize("pods", [2], indirect=True)
+@pytest.mark.slow
 def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods):
     _, doomed = pods
     ref = reference(pods, AutoresetMode.SAME_STEP, [FIRST, SECOND])
@@ -166,6 +170,7 @@ def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods
 JOB = {"job_id": "vector-faults", "tasks": [PENDULUM], "group_size": 2, "num_stages": 2, "camera": {"names": []}}
 
 
+@pytest.mark.slow
 def test_a_pod_restarted_into_its_slot_takes_its_envs_back_after_a_reset_of_them(tmp_path):
     with local_job(job_config(JOB, replicas=2), tmp_path) as job:
         with closing(HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)) as env:
@@ -186,6 +191,7 @@ def test_a_pod_restarted_into_its_slot_takes_its_envs_back_after_a_reset_of_them
             assert env.step(act(env, FIRST))[4]["_success"].all()
 
 
+@pytest.mark.slow
 def test_a_reset_after_the_jobs_envs_changed_is_refused_naming_the_generation(tmp_path):
     with local_job(job_config(JOB, replicas=2), tmp_path) as job:
         with closing(HTTPVectorEnv(controller_url=job.controller_url, timeout_s=10, token=job.token)) as env:

@@ -76,6 +76,7 @@ def ready_holder(controller_url: str) -> str | None:
     return routed["pod"]
 
 
+@pytest.mark.slow
 def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_reassignment_made(tmp_path):
     job = {**JOB, "group_size": 2, "max_episode_steps": 10}
     requests, keys = [("gym/Pendulum-v1", 0), ("gym/Pendulum-v1", 1)], ["t0", "t1"]

@@ -89,6 +89,7 @@ def expired_count(controller: Server) -> float:
     return float(line.split()[1])
 
 
+@pytest.mark.slow
 def test_a_slot_holder_partitioned_from_the_controller_loses_its_slot_to_the_spare_and_returns_as_a_spare(
     link: HostLink, tmp_path: Path
 ):

@@ -87,6 +87,7 @@ def attached(renderer: BatchRenderer, envs: list) -> Iterator[list[batch_render.
 
 
 @pytest.mark.parametrize("preset", PRESETS)
+@pytest.mark.slow
 def test_a_batch_of_robosuite_envs_equals_robosuites_own_renderer_bit_for_bit(
     lifts: list[RobotTaskEnv], preset: str
 ) -> None:

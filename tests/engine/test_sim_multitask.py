@@ -190,6 +190,7 @@ def test_a_spanning_worker_reports_its_physics_time() -> None:
 TINY_BLOCKS = [("tiny/lift", 1), ("tiny/door", 2)]
 
 
+@pytest.mark.slow
 def test_robot_envs_of_two_tasks_in_one_worker_match_one_env_per_worker() -> None:
     with TaskGroupedVectorEnv(sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=3)) as packed:
         with TaskGroupedVectorEnv(sim_assignment(TINY_BLOCKS, TINY_CAMERA, envs_per_worker=1)) as single:
@@ -263,6 +264,7 @@ worker.close()
 """
 
 
+@pytest.mark.slow
 def test_the_build_warms_the_step_path_and_leaves_every_env_in_state_0() -> None:
     # A fresh interpreter: nothing compiled or loaded before the build. After it, the compiled
     # controller has run in this process (compiled, or loaded from numba's cache), and the env

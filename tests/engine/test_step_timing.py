@@ -46,6 +46,7 @@ def counter(url: str, name: str) -> float:
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.slow
 def test_the_pod_counts_physics_and_render_seconds_of_its_steps(pod_url):
     names = ("vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
     before = {name: counter(pod_url, name) for name in names}

@@ -298,6 +298,7 @@ def test_every_tiny_task_resets_and_steps_within_its_spaces() -> None:
             env.close()
 
 
+@pytest.mark.slow
 def test_every_robosuite_task_resets_exactly_to_its_states_within_its_spaces() -> None:
     for task in suite_tasks("robosuite"):
         env = make_env(task.task_id, CameraConfig(names=()))

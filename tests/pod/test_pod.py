@@ -587,6 +587,7 @@ def test_failed_build_leaves_the_pod_unready_saying_why_until_a_new_assignment(f
 
 
 @pytest.mark.parametrize("camera", [CAMERA, NO_CAMERA], ids=["worker-thread", "event-loop"])
+@pytest.mark.slow
 def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod, camera: CameraConfig) -> None:
     assignment = assignment_for("sim-2", generation=1, camera=camera)
     assert put_assignment(fresh_pod, assignment).status_code == 200

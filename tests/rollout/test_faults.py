@@ -246,6 +246,7 @@ def link() -> Iterator[HostLink]:
         made.delete()
 
 
+@pytest.mark.slow
 def test_a_partitioned_pod_is_named_by_the_clients_error_within_its_timeout_and_other_stages_go_on(
     link, tmp_path
 ):
@@ -281,6 +282,7 @@ def pair(tmp_path_factory) -> Iterator[tuple[Server, Server]]:
         yield slow, other
 
 
+@pytest.mark.slow
 def test_a_pod_stalled_past_the_timeout_fails_its_stage_alone_naming_it(pair):
     slow, other = pair
     with StageClient.from_pods([slow.url, other.url], timeout_s=5, token=TOKEN) as client:
@@ -299,6 +301,7 @@ def test_a_pod_stalled_past_the_timeout_fails_its_stage_alone_naming_it(pair):
         assert client.reset_stage(0).result(timeout=60).n == 2  # the pod serves again
 
 
+@pytest.mark.slow
 def test_a_pod_stalled_within_the_timeout_answers_late_and_loses_nothing(pair):
     slow, other = pair
     with StageClient.from_pods([slow.url, other.url], timeout_s=30, token=TOKEN) as client:

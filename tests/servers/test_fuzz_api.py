@@ -39,6 +39,10 @@ from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.config import CameraConfig
 
+# 200 generated requests an operation against a real pod and controller, and later tests
+# read what the fuzzing left: the module is slow as a whole.
+pytestmark = pytest.mark.slow
+
 # Runtime values, not literals: Hypothesis draws from constants it finds in local source, and a
 # request that names the right pod and generation by luck would change state legitimately.
 TOKEN = secrets.token_urlsafe(24)
