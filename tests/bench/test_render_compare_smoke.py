@@ -24,9 +24,13 @@ from support import ROOT
 
 REPO = ROOT
 
-pytestmark = pytest.mark.skipif(
-    not glob.glob("/usr/share/glvnd/egl_vendor.d/*mesa*.json"), reason="needs the machine's Mesa EGL vendor file"
-)
+# slow: a benchmark script run end to end, with its own pods (20-30 s on 2 cores).
+pytestmark = [
+    pytest.mark.skipif(
+        not glob.glob("/usr/share/glvnd/egl_vendor.d/*mesa*.json"), reason="needs the machine's Mesa EGL vendor file"
+    ),
+    pytest.mark.slow,
+]
 
 
 @pytest.fixture(scope="module")
