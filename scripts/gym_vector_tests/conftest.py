@@ -35,7 +35,7 @@ import gymnasium  # noqa: E402
 import gymnasium.vector  # noqa: E402
 from gymnasium.vector import AutoresetMode  # noqa: E402
 from gymnasium.vector.utils import batch_space  # noqa: E402
-from service_procs import PodSpec, standalone_pods  # noqa: E402
+from support.service_procs import PodSpec, standalone_pods  # noqa: E402
 
 from vecsim.client import HTTPVectorEnv  # noqa: E402
 

@@ -1,5 +1,5 @@
 """The pod engine: what a sim pod runs (the ``pod`` install extra). The trainer's client never
-imports this package (tests/test_layering.py).
+imports this package (tests/docs/test_layering.py).
 
 - ``vector_env``: :class:`TaskGroupedVectorEnv`, a pod's envs stepped and reset by env index;
 - ``checks``: what a call must satisfy before any worker is touched;

@@ -15,7 +15,7 @@ does). Drawing straight into a tile's viewport at an offset is not the same: the
 snaps vertices to sub-pixel positions after the viewport offset is added in floating point, so
 an edge can land on the other side of a pixel centre (seen here: one pixel of 256 of LIBERO's
 wrist camera, tile at x=48). Drawn at the origin, a batched view is bit for bit the default
-path's image (``tests/test_batch_render.py`` checks this against robosuite's and gymnasium's own
+path's image (``tests/engine/test_batch_render.py`` checks this against robosuite's and gymnasium's own
 renderers for every preset). Tile 0 is that drawing area; views go to tiles 1 and up.
 
 The GL backend follows ``MUJOCO_GL`` (``egl`` by default; ``osmesa`` and ``glfw`` too), so the

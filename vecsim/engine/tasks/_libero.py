@@ -241,7 +241,7 @@ class LiberoTaskEnv(RobotTaskEnv):
     the arm's controller and the placements read only position and velocity results, and the
     full ``mj_forward`` after the init state is set computes the rest again) and the settle
     steps take the exact path; on ``library``, robosuite's reset and LIBERO's ``step`` run as they
-    are. Both leave the env bit-identical (``tests/test_fast_step.py``).
+    are. Both leave the env bit-identical (``tests/engine/test_fast_step.py``).
 
     Cameras are drawn from a copy of the sim taken when the observables sample (a hidden
     observable makes it), so images show the scene where LIBERO's camera observables render it.

@@ -1,0 +1,78 @@
+"""The chunks benchmark keeps working here: ``bench/bench_chunks.py --cpu-small`` on a cheap gym
+scene runs as a person would run it (the physics-only processes, a real job of two pinned pods,
+the service alone and the EnvLoop at each K, two stages at K = 8) and prints one ``RESULT {json}``
+line with every figure docs/benchmarks.md's chunks section is built from. It runs from a copy of
+``bench/`` in a temporary directory, so its JSON lands there. No timing is asserted."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from support import ROOT
+
+REPO = ROOT
+
+# A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
+pytestmark = pytest.mark.slow
+
+ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--actions", "8",
+        "--chunks", "1,8", "--physics-seconds", "0.5"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def summary(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    root = tmp_path_factory.mktemp("bench-chunks")
+    shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
+    env.pop("VECSIM_TOKEN", None)
+    done = subprocess.run([sys.executable, str(root / "bench" / "bench_chunks.py"), *ARGS], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=170)  # fmt: skip
+    assert done.returncode == 0, f"bench_chunks.py failed:\n{done.stderr[-3000:]}"
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
+    return json.loads(lines[0].removeprefix("RESULT ")), root
+
+
+@pytest.mark.timeout(180)
+def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
+    result, root = summary
+    assert result["name"] == "bench_chunks_cpu" and set(result["met"]) == {"chunks", "physics_only", "ceiling"}
+    for kind in ("service", "loop"):
+        assert set(result[kind]) == {"K=1", "K=8"}
+        for row in result[kind].values():
+            assert row["env_steps_per_s"]["median"] > 0 and row["fraction_of_physics_only"] > 0
+            assert row["fraction_of_ceiling"] > 0
+        assert result[kind]["K=8"]["over_K=1"]["n"] == 1
+    assert result["physics_only"]["processes"] == 2 and result["physics_only"]["env_steps_per_s"] > 0
+    assert isinstance(result["ratio"], float) and isinstance(result["ratio_of_physics_only"], float)
+    record = json.loads((root / "out" / "bench" / "bench_chunks_cpu.json").read_text())
+    assert set(record["details"]["per_round"]) == {
+        "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8",
+    }  # fmt: skip
+
+
+@pytest.mark.timeout(180)
+def test_chunks_bench_holds_the_node_against_its_ceiling_with_cameras_and_the_pods_physics_against_the_bare(summary):
+    result, _ = summary
+    ceiling = result["ceiling"]
+    assert ceiling["processes"] == 2 and ceiling["camera"]["height"] == 16
+    for k in ("K=1", "K=8"):
+        assert ceiling[k]["env_steps_per_s"] > 0 and ceiling[k]["render_ms_per_env_step"] > 0
+    assert isinstance(result["ratio_of_ceiling"], float)
+    times = result["per_env_step_ms"]
+    assert times["bare_physics_only"] > 0 and times["bare_ceiling/K=8"]["physics_ms_per_env_step"] > 0
+    assert times["pod/loop/K=8"]["physics_ms_per_env_step"] > 0
+
+
+@pytest.mark.timeout(180)
+def test_chunks_bench_measures_pipelining_at_k8(summary):
+    result, _ = summary
+    assert result["pipeline"]["speedup_2_vs_1"]["n"] == 1
+    assert result["pipeline"]["stages=2"]["env_steps_per_s"]["median"] > 0

@@ -1,0 +1,120 @@
+"""Pure parts of ``bench/bench_gpu_scale.py`` that the GPU run depends on and this machine
+cannot show: which CPUs pods get on a machine with hyperthreads, and the slowest-pod figures
+of a stage call.
+
+The bench is a script, not a package: it is imported from ``bench/`` as it imports its helpers.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+from support import ROOT
+
+BENCH = ROOT / "bench"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_gpu_scale
+
+        yield bench_gpu_scale
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def topology(siblings: dict[int, int]) -> dict:
+    """A machine whose CPU n sits on physical core siblings[n]."""
+    per_cpu = {str(cpu): {"package": "0", "core": str(core), "siblings": ""} for cpu, core in siblings.items()}
+    return {"per_cpu": per_cpu}
+
+
+def test_pods_get_one_thread_of_every_physical_core_before_any_hyperthread_sibling(bench):
+    # 8 vCPUs on 4 cores, siblings numbered n and n+4 (the common Linux layout)
+    order = bench.cores_first(topology({n: n % 4 for n in range(8)}))
+    assert order == [0, 1, 2, 3, 4, 5, 6, 7]
+    # siblings adjacent (0,1), (2,3), ...: the first thread of each core comes first
+    order = bench.cores_first(topology({n: n // 2 for n in range(8)}))
+    assert order == [0, 2, 4, 6, 1, 3, 5, 7]
+
+
+def test_the_trainer_gets_the_cpus_the_pods_do_not_and_shares_only_when_there_are_too_few(bench):
+    assert bench.split_cores([0, 2, 4, 6, 1, 3, 5, 7], 4) == (["0", "2", "4", "6"], [1, 3, 5, 7])
+    assert bench.split_cores([0, 1], 2) == (["1", "1"], [0])
+
+
+def test_the_slowest_pod_of_each_call_is_measured_against_the_calls_mean(bench):
+    calls = [
+        ("sim-0", "reset", 0.0, 5.0),  # resets are not step calls
+        ("sim-0", "step", 0.0, 0.100), ("sim-1", "step", 0.0, 0.300),
+        ("sim-0", "step", 1.0, 1.200), ("sim-1", "step", 1.0, 1.100),
+    ]  # fmt: skip
+    counters = dict.fromkeys(bench.POD_COUNTERS, 0.0)
+    per_pod = {
+        "sim-0": {**counters, "vecsim_pod_step_seconds_sum": 0.2, "vecsim_pod_step_seconds_count": 2},
+        "sim-1": {**counters, "vecsim_pod_step_seconds_sum": 0.3, "vecsim_pod_step_seconds_count": 2},
+    }
+    run = bench.Measured(bench.RolloutStats(), counters, per_pod, calls, {"sim-0": 0, "sim-1": 0})
+    figures = bench.slowest_pod([run])
+    assert figures["calls"] == 2
+    assert figures["pod_round_trip_mean_ms"] == pytest.approx(175.0)  # median of the calls' means 200, 150
+    assert figures["pod_round_trip_slowest_ms"] == pytest.approx(250.0)  # median of 300, 200
+    assert figures["wait_for_slowest_ms"] == pytest.approx(75.0)  # median of 100, 50
+    assert figures["slowest_pod_counts"] == {"sim-1": 1, "sim-0": 1}
+    assert figures["pod_step_ms_by_pod"] == {"sim-0": 100.0, "sim-1": 150.0}
+
+
+def test_pods_of_different_stages_are_not_compared_within_one_call(bench):
+    calls = [("sim-0", "step", 0.0, 0.1), ("sim-1", "step", 0.0, 0.5)]
+    counters = dict.fromkeys(bench.POD_COUNTERS, 0.0)
+    run = bench.Measured(bench.RolloutStats(), counters, {}, calls, {"sim-0": 0, "sim-1": 1})
+    figures = bench.slowest_pod([run])
+    assert figures["calls"] == 2 and figures["wait_for_slowest_ms"] == 0
+
+
+def test_memory_above_the_limit_stops_the_run_with_a_memory_error(bench):
+    import time
+
+    with pytest.raises(MemoryError, match="--max-memory-gib"):
+        with bench.MemoryWatch(limit_gib=0.0, every_s=0.05):
+            for _ in range(200):  # the watched run, 10 s at most: the watch trips within its first sample
+                time.sleep(0.05)
+
+
+def test_memory_below_the_limit_lets_the_run_finish_and_keeps_the_peak(bench):
+    with bench.MemoryWatch(limit_gib=1e6, every_s=0.05) as watch:
+        pass
+    assert watch.tripped is None and watch.peak_gib > 0
+
+
+def test_the_slices_view_puts_every_pod_in_both_stages_with_its_envs_alternating(bench):
+    from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
+
+    pods = [
+        RoutedPod(pod=f"sim-{i}", url=f"http://127.0.0.1:{8100 + i}", num_envs=3,
+                  tasks=(TaskBlock(task_id="a", env_start=0, num_envs=2), TaskBlock(task_id="b", env_start=2, num_envs=1)))
+        for i in range(2)
+    ]  # fmt: skip
+    table = RoutingTable(generation=1, job_id="j", ready=True,
+                         stages=tuple(RoutedStage(stage_id=i, pods=(p,)) for i, p in enumerate(pods)))  # fmt: skip
+    sliced = bench.regroup_slices(table, ["sim-0", "sim-1"], 2)
+    assert [[p.pod for p in stage.pods] for stage in sliced.stages] == [["sim-0", "sim-1"]] * 2
+    envs = {(s.stage_id, p.pod): [(b.task_id, b.env_start) for b in p.tasks] for s in sliced.stages for p in s.pods}
+    assert envs[(0, "sim-0")] == [("a", 0), ("b", 2)] and envs[(1, "sim-0")] == [("a", 1)]
+    # The alternation runs on into the next pod: its first env is on stage 1, so stages stay even.
+    assert envs[(1, "sim-1")] == [("a", 0), ("b", 2)] and envs[(0, "sim-1")] == [("a", 1)]
+    assert [stage.num_envs for stage in sliced.stages] == [3, 3]
+    # Request i on stage i % 2: stage 0's a, b, a against stage 1's a, a, b.
+    assert [task for task, _ in bench.requests_for(sliced)] == ["a", "a", "b", "a", "a", "b"]
+
+
+def test_a_chunked_policy_repeats_its_action_k_times(bench):
+    import torch
+
+    policy = bench.Chunked(lambda obs, instructions, task_ids: torch.arange(6.0).view(3, 2), 4)
+    chunks = policy({}, [""] * 3, [""] * 3)
+    assert chunks.shape == (3, 4, 2) and torch.equal(chunks[:, 3], torch.arange(6.0).view(3, 2))
+    assert bench.Chunked(lambda *a: torch.ones(3, 2), 1)({}, [], []).shape == (3, 2)

@@ -1,0 +1,212 @@
+"""The GPU-machine benchmark keeps working here. ``bench/bench_gpu_scale.py --cpu-small`` on a
+cheap gym scene runs each of its two measurements as a person would run them: a real job
+(controller, pinned pods that all serve the same task mix), the service alone and the EnvLoop
+with a vision policy, and prints one ``RESULT {json}`` line with every figure docs/benchmarks.md's
+GPU section is built from.
+
+- ``--only scaling``: env-steps/s against pods, the service alone and the loop, the fraction of
+  linear, the slowest pod's round trip against the mean, the CPU topology and memory.
+- ``--only pipeline``: two pods pinned to one core, 1 stage against 2 stages, with a ViT policy
+  calibrated to the 1-stage simulation call.
+
+It runs from a copy of ``bench/`` in a temporary directory (so that its JSON and plots land
+there, not over the recorded ones), with the repository on ``PYTHONPATH``. No timing is asserted:
+the figures depend on the machine and its load.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from support import ROOT
+
+REPO = ROOT
+GYM = ["--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--horizon", "3", "--rounds", "1"]
+
+
+def run_bench(root: Path, *args: str, timeout: float = 170) -> subprocess.CompletedProcess[str]:
+    if not (root / "bench").exists():
+        shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
+    env.pop("VECSIM_TOKEN", None)
+    return subprocess.run([sys.executable, str(root / "bench" / "bench_gpu_scale.py"), *args], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+
+
+def result_of(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
+    assert done.returncode == 0, f"bench_gpu_scale.py failed:\n{done.stderr[-3000:]}"
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
+    return json.loads(lines[0].removeprefix("RESULT "))
+
+
+@pytest.fixture(scope="module")
+def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    root = tmp_path_factory.mktemp("gpu-bench-scaling")
+    return result_of(run_bench(root, "--cpu-small", "--only", "scaling", *GYM)), root
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    root = tmp_path_factory.mktemp("gpu-bench-pipeline")
+    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0", *GYM)
+    return result_of(run_bench(root, *args)), root
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_scaling_names_its_target_the_machine_and_its_record(scaling):
+    summary, root = scaling
+    assert summary["name"] == "bench_gpu_scale_scaling_cpu" and summary["quick"] is True and summary["dry"] is False
+    assert isinstance(summary["ratio"], float) and isinstance(summary["ratio_loop"], float)
+    assert set(summary["met"]) == {"scaling_service", "scaling_loop", "scaling_loop_stage_per_pod"}
+    assert isinstance(summary["ratio_loop_stage_per_pod"], float)
+    assert {"date", "cores", "load_avg_1m"} <= set(summary["machine"])
+    record = json.loads((root / "out" / "bench" / "bench_gpu_scale_scaling_cpu.json").read_text())
+    assert record["name"] == summary["name"] and set(record["details"]["per_round"]) == {
+        "service/pods=1", "service/pods=2", "loop/pods=1", "loop/pods=2", "loop_per_pod/pods=1", "loop_per_pod/pods=2",
+    }  # fmt: skip
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_scaling_measures_the_service_alone_and_the_loop_at_every_pod_count(scaling):
+    summary, _ = scaling
+    for kind in ("service", "loop", "loop_per_pod"):
+        assert set(summary[kind]) == {"pods=1", "pods=2"}
+        for figures in summary[kind].values():
+            assert figures["env_steps_per_s"]["median"] > 0
+            assert figures["fraction_of_linear"]["n"] == 1
+    assert summary["service"]["pods=2"]["time_split_ms"]["policy_ms"] == 0
+    assert summary["loop"]["pods=2"]["time_split_ms"]["policy_ms"] > 0
+    # EnvLoop calls each pod on its own (no lockstep: issue 27), whether a stage holds one pod or two.
+    assert summary["loop"]["pods=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert summary["loop_per_pod"]["pods=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert summary["policy"]["name"].startswith("ResNet-18")
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_scaling_records_the_slowest_pod_next_to_the_mean(scaling):
+    summary, _ = scaling
+    slowest = summary["service"]["pods=2"]["slowest_pod"]
+    assert slowest["calls"] == 3  # the service rollout's three steps
+    assert slowest["pod_round_trip_slowest_ms"] >= slowest["pod_round_trip_mean_ms"] > 0
+    assert slowest["wait_for_slowest_ms"] >= 0
+    assert set(slowest["pod_step_ms_by_pod"]) == {"sim-0", "sim-1"}
+    assert sum(slowest["slowest_pod_counts"].values()) == 3
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_scaling_records_the_cpu_topology_pins_memory_and_every_pods_task_mix(scaling):
+    summary, root = scaling
+    topology, setup = summary["topology"], summary["setup"]
+    assert topology["cpus"] >= 1 and topology["physical_cores"] >= 1 and topology["threads_per_core"] >= 1
+    assert len(setup["pods_pinned_to"]) == 2 and len(setup["pods_physical_cores"]) == 2
+    assert set(setup["pod_tasks"]) == {"sim-0", "sim-1"}
+    assert all(tasks == ["gym/HalfCheetah-v5 x2"] for tasks in setup["pod_tasks"].values())
+    assert setup["memory_used_gib_at_ready"] > 0 and setup["memory_used_gib_peak"] > 0
+    assert all(pod["processes"] >= 2 for pod in setup["pod_processes"].values())
+    assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_pods.png", "gpu_scale_cpu_split.png"}
+    assert all((root / p).is_file() for p in summary["plots"])
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_stages(pipeline):
+    summary, root = pipeline
+    assert summary["name"] == "bench_gpu_scale_pipeline_cpu" and isinstance(summary["ratio"], float)
+    assert set(summary["met"]) == {"pipelining_slices", "pipelining_pods"}
+    setup = summary["setup"]
+    assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
+    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
+    assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
+    assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1"].items()} == {"slices": 1, "pods": 1}
+    assert summary["ratio"] == summary["ratio_by_layout"]["slices"]
+    # pods: a stage is one pod; slices: every pod holds half its envs on each stage.
+    assert setup["stage_envs_by_layout"] == {"pods": [[2], [2]], "slices": [[1, 1], [1, 1]]}
+    assert summary["loop"]["pods/stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert summary["loop"]["slices/stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
+    assert all((root / p).is_file() for p in summary["plots"])
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_pipeline_calibrates_a_vit_to_the_one_stage_simulation_call(pipeline):
+    summary, _ = pipeline
+    service, policy = summary["service"], summary["policy"]
+    assert set(service) == {"stages=1", "half"}
+    assert policy["target_ms"] == service["stages=1"]["time_split_ms"]["stage_call_ms"] > 0
+    assert policy["name"].startswith("ViT") and 1 <= policy["depth"] <= summary["setup"]["vit_max_depth"]
+    assert policy["capped"] == (policy["depth_wanted"] > summary["setup"]["vit_max_depth"])
+    assert policy["target_batch"] == 4 and set(policy["forward_ms"]) == {"2", "4"}
+    assert policy["chunk"] == 1
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_pipeline_records_the_pods_render_preset_and_render_gpu(pipeline):
+    summary, _ = pipeline
+    setup = summary["setup"]
+    assert setup["render_preset"] == "fast" and setup["render_gpu"] == 0
+    assert "gpu_processes_at_ready" in setup  # nvidia-smi's process table; None without nvidia-smi
+
+
+@pytest.mark.timeout(120)
+def test_physics_scaling_reports_each_process_count_against_linear(tmp_path):
+    shutil.copytree(REPO / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    args = ["--procs", "1,2", "--tasks", "gym/HalfCheetah-v5,gym/Hopper-v5", "--seconds", "0.3", "--rounds", "1"]
+    done = subprocess.run([sys.executable, str(tmp_path / "bench" / "bench_physics_scaling.py"), *args],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=100)  # fmt: skip
+    summary = result_of(done)
+    assert summary["name"] == "bench_physics_scaling" and summary["setup"]["envs_per_process"] == 2
+    assert set(summary["rows"]) == {"1", "2"} and summary["rows"]["1"]["ratio_to_linear"] == 1.0
+    row = summary["rows"]["2"]
+    assert row["per_process_min"] <= row["per_process_mean"] <= row["per_process_max"]
+    assert summary["ratio"] == row["ratio_to_linear"] > 0
+    assert (tmp_path / "out" / "bench" / "bench_physics_scaling.json").is_file()
+
+
+@pytest.mark.timeout(60)
+def test_a_run_without_only_is_refused_naming_the_option(tmp_path):
+    done = run_bench(tmp_path, "--cpu-small", *GYM, timeout=50)
+    assert done.returncode == 2 and "--only" in done.stderr
+
+
+@pytest.mark.timeout(60)
+def test_gpu_mode_fails_at_once_where_torch_sees_no_gpu(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    done = run_bench(tmp_path, "--gpu", "--only", "pipeline", "--chunk", "8", *GYM, timeout=50)
+    assert done.returncode == 2 and "--gpu: torch sees no CUDA device" in done.stderr
+    assert "RESULT" not in done.stdout and "starting" not in done.stderr  # no job was started
+
+
+@pytest.mark.timeout(150)
+def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
+    done = run_bench(tmp_path, "--quick", "--chunk", "4", "--rounds", "1", timeout=140)
+    summary = result_of(done)
+    assert summary["name"] == "bench_gpu_scale_pipeline_quick" and summary["setup"]["chunk"] == 4
+    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
+    assert set(summary["ratio_by_layout"]) == {"slices", "pods"} and summary["target"].endswith("at K=4")
+    # The horizon counts actions: a chunk of K takes K of them per call.
+    assert summary["setup"]["horizon"] % 4 == 0
+    assert (tmp_path / "out" / "bench" / "bench_gpu_scale_pipeline_quick.json").is_file()
+
+
+@pytest.mark.timeout(60)
+def test_an_unknown_stage_layout_is_refused_naming_the_option(tmp_path):
+    done = run_bench(tmp_path, "--quick", "--stage-layout", "slices,rows", timeout=50)
+    assert done.returncode != 0 and "--stage-layout" in done.stderr
