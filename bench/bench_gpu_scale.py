@@ -141,6 +141,7 @@ class Plan:
     render_preset: str = "lean"
     render_gpu: int | None = None  # the EGL device pods render on (None: the default one)
     chunk: int = 1  # actions per env per call (the policy's chunk K)
+    batch_wait_s: float = 0.0  # pipeline: EnvLoop's batch_wait_s (how long it gathers a stage's answers)
     stage_layouts: tuple[str, ...] = ("slices", "pods")  # the 2-stage layouts measured
 
     @property
@@ -774,7 +775,9 @@ class Chunked:
         return actions if self.k == 1 else actions.unsqueeze(1).expand(-1, self.k, -1).contiguous()
 
 
-def loop_rollout(client: StageClient, policy: Callable[..., torch.Tensor], horizon: int, device: str) -> Measured:
+def loop_rollout(
+    client: StageClient, policy: Callable[..., torch.Tensor], horizon: int, device: str, batch_wait_s: float = 0.0
+) -> Measured:
     """Run one EnvLoop rollout (reset, then ``horizon`` steps of every env); return its stats
     with the pods' counters and the client's per-pod requests over it.
 
@@ -782,7 +785,10 @@ def loop_rollout(client: StageClient, policy: Callable[..., torch.Tensor], horiz
         RuntimeError: trajectories were lost (a pod failed).
     """
     with counted(client) as seen:
-        result = EnvLoop(client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60).run(
+        loop = EnvLoop(
+            client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60, batch_wait_s=batch_wait_s
+        )
+        result = loop.run(
             requests_for(client.routing))
     if result.lost:
         raise RuntimeError(f"{len(result.lost)} trajectories lost: {next(iter(result.lost.values())).reason}")
@@ -1131,9 +1137,9 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         policy = Chunked(graphed, k)
         contenders = ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
         for name in contenders:  # warm-up of the loop
-            loop_rollout(clients[name], policy, min(plan.horizon, 2 * k), plan.device)
+            loop_rollout(clients[name], policy, min(plan.horizon, 2 * k), plan.device, plan.batch_wait_s)
         log.info("warm-up done, %.0f s left", deadline.left())
-        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device))
+        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device, plan.batch_wait_s))
                             for name in contenders}, plan.rounds, deadline, reserve_s=20)  # fmt: skip
     finally:
         for client in clients.values():
@@ -1616,6 +1622,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         render_preset=args.render_preset,
         render_gpu=args.render_gpu,
         chunk=chunk,
+        batch_wait_s=args.batch_wait_s,
         stage_layouts=layouts,
     )
 
@@ -1772,6 +1779,9 @@ def main() -> int:
     parser.add_argument("--horizon", type=int, help="steps per trajectory in each EnvLoop rollout")
     parser.add_argument("--service-steps", type=int, help="steps per service-alone rollout")
     parser.add_argument("--rounds", type=int)
+    parser.add_argument("--batch-wait-s", type=float, default=0.0,
+                        help="pipeline: EnvLoop's batch_wait_s, how long the loop waits for more of a stage's "
+                        "answers before the policy runs (default 0: at once)")
     parser.add_argument("--chunk", type=int, default=1,
                         help="pipeline: actions per env per call, the policy's chunk K (default 1; issue 27: 8)")
     parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
