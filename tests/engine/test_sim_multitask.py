@@ -312,8 +312,7 @@ worker.close()
 def test_after_the_build_a_first_step_with_a_turning_arm_compiles_or_loads_nothing() -> None:
     # A fresh interpreter: what the trainer's first step would compile or load from numba's
     # cache (robosuite's quat2mat runs only when the arm turns) the build has done already.
-    tests = Path(__file__).parent
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", FIRST_STEP_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True)
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["kernels"] > 1

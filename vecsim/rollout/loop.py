@@ -429,7 +429,7 @@ class EnvLoop:
         an answer are lost, those with one go on."""
         call, carried = inflight.pop(pod)
         try:
-            return [batch for batch in clock.take(stage, call, pod) if batch.n]
+            return [batch for batch in clock.take(stage, call, pod[1]) if batch.n]
         except (PodUnavailableError, RoutingChangedError) as exc:
             failed.add(pod[1])
             answered = [batch for batch in (exc.answered or ()) if batch is not None and batch.n]
