@@ -352,15 +352,14 @@ class EnvLoop:
         # the 'slices' layout is in a lane of every stage, each with a call of its own.
         stage_pods = {stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
                       for stage in self.client.routing.stages}  # fmt: skip
-        pod_stage = {lane: lane[0] for lanes in stage_pods.values() for lane in lanes}
-        inflight = _InFlight(pod_stage)
+        inflight = _InFlight()
         lost: dict[str, LostTrajectory] = {}
         failed: set[str] = set()  # pods that failed a call: no request is started on them any more
 
         try:
             # Reset every lane at once; then serve whichever stage is next in line, lane by lane.
-            for pod in pod_stage:
-                self._send(pod, [key for key, route in routes.items() if (route.stage_id, route.pod) == pod], {},
+            for lane in (lane for lanes in stage_pods.values() for lane in lanes):
+                self._send(lane, [key for key, route in routes.items() if (route.stage_id, route.pod) == lane], {},
                            inflight, buffers, lost, recorded)  # fmt: skip
             turn = -1  # the stage served last
             while inflight.calls:
@@ -732,10 +731,10 @@ class _Recorder:
 
 
 class _InFlight:
-    """The call in flight on each lane (at most one) and the traj_keys it carries."""
+    """The call in flight on each lane (at most one) and the traj_keys it carries; a lane's stage
+    is its first item."""
 
-    def __init__(self, stage_of: Mapping[Lane, int]) -> None:
-        self.stage_of = stage_of
+    def __init__(self) -> None:
         self.calls: dict[Lane, tuple[PendingCall[tuple[StageBatch, StageBatch]], list[str]]] = {}
 
     def add(self, pod: Lane, call: PendingCall[tuple[StageBatch, StageBatch]], keys: list[str]) -> None:
@@ -770,7 +769,7 @@ class _Clock:
         begin = time.perf_counter()
         try:
             while True:
-                landed = {inflight.stage_of[pod] for pod, (call, _) in inflight.calls.items() if call.done()}
+                landed = {lane[0] for lane, (call, _) in inflight.calls.items() if call.done()}
                 if landed:
                     return min(landed, key=lambda stage: (stage <= after, stage))
                 PendingCall.wait_any([call for call, _ in inflight.calls.values()])
@@ -784,7 +783,7 @@ class _Clock:
         deadline = time.perf_counter() + wait_s
         begin = time.perf_counter()
         while True:
-            mine = [pod for pod in inflight.calls if inflight.stage_of[pod] == stage]
+            mine = [lane for lane in inflight.calls if lane[0] == stage]
             landed = [pod for pod in mine if inflight.calls[pod][0].done()]
             rows = sum(len(inflight.calls[pod][1]) for pod in landed)
             others = [inflight.calls[pod][0] for pod in mine if pod not in landed]
