@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
-from common import write_result
+from common import with_flags, write_result
 
 from vecsim.client import StageClient
 from vecsim.config import Assignment, CameraConfig, TaskBlock
@@ -79,11 +79,7 @@ def settings(args: argparse.Namespace) -> dict[str, Any]:
         mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2}
     else:
         mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3}
-    for key in mode:
-        given = getattr(args, key, None)
-        if given is not None:
-            mode[key] = given
-    return mode
+    return with_flags(mode, args)
 
 
 def main() -> None:

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods
-from common import write_result
+from common import with_flags, write_result
 
 from vecsim.client import StageClient
 from vecsim.config import Assignment, CameraConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
@@ -119,11 +119,7 @@ def settings(args: argparse.Namespace) -> dict[str, Any]:
     else:
         mode = {"task": "tiny/lift", "group_size": 4, "envs_per_worker": 4, "size": 32, "chunk": 8,
                 "horizon": 48, "rounds": 3, "probe_calls": 5}  # fmt: skip
-    for key in mode:
-        given = getattr(args, key, None)
-        if given is not None:
-            mode[key] = given
-    return mode
+    return with_flags(mode, args)
 
 
 def main() -> None:

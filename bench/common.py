@@ -76,6 +76,12 @@ def spread(values: Sequence[float]) -> dict[str, float]:
     }
 
 
+def with_flags(defaults: dict[str, Any], args: Any) -> dict[str, Any]:
+    """Return ``defaults`` with each flag given on the command line (an attribute of ``args`` of
+    the same name that is not None) taking precedence."""
+    return {key: value if getattr(args, key, None) is None else getattr(args, key) for key, value in defaults.items()}
+
+
 def command_line() -> str:
     """Return the command that ran this benchmark, relative to the repository root."""
     script = Path(sys.argv[0]).resolve()
