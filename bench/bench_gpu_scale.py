@@ -112,6 +112,9 @@ NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.jso
                        "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")  # fmt: skip
 GL_LIBRARY = re.compile(r"EGL|GLX|GLdispatch|nvidia|mesa|LLVM|_dri\.so|gallium|gbm|glapi")
 MAX_EPISODE_STEPS = 520
+# A batch wait that outlasts any stage call: EnvLoop then waits for every pod of the stage before
+# the policy runs, the lockstep rollout from before issue 27 (the baseline that issue measured).
+LOCKSTEP_WAIT_S = 300.0
 STAGE_LAYOUTS = ("slices", "pods")  # vecsim.config.StageLayout's values, in --stage-layout's default order
 QUICK_TASKS = ("gym/HalfCheetah-v5",)  # --quick: a cheap scene, so the run fits in about 2 min
 QUICK_ENVS_PER_TASK = 4
@@ -652,8 +655,10 @@ def regroup_slices(table: RoutingTable, pods: Sequence[str], stages: int) -> Rou
     return table.model_copy(update={"stages": stage_list})
 
 
-def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
-    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``.
+def requests_for(table: RoutingTable, waves: int = 1) -> list[tuple[str, int]]:
+    """One request per env of the table, interleaved so that request ``i`` is on stage ``i % S``;
+    with ``waves`` > 1, that many such lists one after another (each wave's state ids moved on by
+    7), for EnvLoop's refill: an env whose trajectory ends takes the next request of its task.
 
     Raises:
         ValueError: the stages differ in size (request i's stage is i % S: they must not).
@@ -666,7 +671,8 @@ def requests_for(table: RoutingTable) -> list[tuple[str, int]]:
          for block in pod.tasks for k in range(block.num_envs)]  # fmt: skip
         for stage in table.stages
     ]
-    return [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]
+    one = [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]
+    return [(task_id, (state_id + 7 * wave) % 50) for wave in range(waves) for task_id, state_id in one]
 
 
 class TimedStageClient(StageClient):
@@ -776,10 +782,16 @@ class Chunked:
 
 
 def loop_rollout(
-    client: StageClient, policy: Callable[..., torch.Tensor], horizon: int, device: str, batch_wait_s: float = 0.0
+    client: StageClient,
+    policy: Callable[..., torch.Tensor],
+    horizon: int,
+    device: str,
+    batch_wait_s: float | str = 0.0,
+    waves: int = 1,
 ) -> Measured:
-    """Run one EnvLoop rollout (reset, then ``horizon`` steps of every env); return its stats
-    with the pods' counters and the client's per-pod requests over it.
+    """Run one EnvLoop rollout (reset, then ``horizon`` steps of every env; with ``waves`` > 1,
+    that many trajectories per env, refilled as envs free up); return its stats with the pods'
+    counters and the client's per-pod requests over it.
 
     Raises:
         RuntimeError: trajectories were lost (a pod failed).
@@ -788,8 +800,7 @@ def loop_rollout(
         loop = EnvLoop(
             client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60, batch_wait_s=batch_wait_s
         )
-        result = loop.run(
-            requests_for(client.routing))
+        result = loop.run(requests_for(client.routing, waves))
     if result.lost:
         raise RuntimeError(f"{len(result.lost)} trajectories lost: {next(iter(result.lost.values())).reason}")
     return Measured(result.stats, **seen)
@@ -964,12 +975,21 @@ def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadl
 
 def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
     """Env-steps/s of one contender's rounds, its time split and the slowest-pod figures."""
-    return {
+    out = {
         "env_steps_per_s": rate_spread([m.env_steps_per_s for m in runs]),
         "time_split_ms": breakdown(runs),
         "slowest_pod": slowest_pod(runs),
         "overlap_fraction": round(statistics.median(m.stats.overlap_fraction for m in runs), 3),
+        "trajectories": int(statistics.median(m.stats.num_trajectories for m in runs)),
     }
+    # With refill, how many trajectories each pod started (resets), in the first round: a pod on a
+    # faster core takes more.
+    started: dict[str, int] = {}
+    for _, pod, _, _, resets, _ in runs[0].stats.pod_calls:
+        started[pod] = started.get(pod, 0) + resets
+    if started:
+        out["trajectories_per_pod"] = {"min": min(started.values()), "max": max(started.values())}
+    return out
 
 
 # -- scaling -------------------------------------------------------------------------------------
@@ -1139,8 +1159,11 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         for name in contenders:  # warm-up of the loop
             loop_rollout(clients[name], policy, min(plan.horizon, 2 * k), plan.device, plan.batch_wait_s)
         log.info("warm-up done, %.0f s left", deadline.left())
-        loops = interleave({name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device, plan.batch_wait_s))
-                            for name in contenders}, plan.rounds, deadline, reserve_s=20)  # fmt: skip
+        runs = {name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device, plan.batch_wait_s))
+                for name in contenders}  # fmt: skip
+        # One stage in lockstep: the whole stage's answers before each policy call.
+        runs["stages=1/lockstep"] = lambda: loop_rollout(one, policy, plan.horizon, plan.device, LOCKSTEP_WAIT_S)
+        loops = interleave(runs, plan.rounds, deadline, reserve_s=20)
     finally:
         for client in clients.values():
             client.close()
@@ -1151,6 +1174,12 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         "loop": {name: summarise(runs) for name, runs in loops.items()},
         "speedup_2_vs_1": {
             layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1"]) for layout in plan.stage_layouts
+        },
+        # Against one stage in lockstep (the rollout issue 27 measured): the no-lockstep loop's one
+        # stage already overlaps its policy with the simulation of pods still in flight.
+        "speedup_2_vs_1_lockstep": {
+            layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1/lockstep"])
+            for layout in plan.stage_layouts
         },
         "stage_envs": {
             layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
@@ -1527,18 +1556,23 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     loop, policy = summary["loop"], summary["policy"]
     fig, (left, right) = plt.subplots(1, 2, figsize=(10.0, 4.0))
     layouts = list(summary["speedup_2_vs_1"])
-    names = ["stages=1", *(f"{layout}/stages=2" for layout in layouts)]
+    lockstep = ["stages=1/lockstep"] if "stages=1/lockstep" in loop else []
+    names = [*lockstep, "stages=1", *(f"{layout}/stages=2" for layout in layouts)]
     rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
-    labels = ["1 stage\n(all pods)", *(f"2 stages\n({layout})" for layout in layouts)]
-    bars = left.bar(labels, rates, color=["tab:blue", "tab:orange", "tab:green"][: len(names)])
+    labels = [*(["1 stage\n(lockstep)"] if lockstep else []), "1 stage\n(all pods)",
+              *(f"2 stages\n({layout})" for layout in layouts)]  # fmt: skip
+    bars = left.bar(labels, rates, color=["tab:gray", "tab:blue", "tab:orange", "tab:green"][-len(names):])
     left.bar_label(bars, fmt="%.1f", fontsize=8)
     left.set_ylabel("env-steps/s")
     ratios = ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in summary["speedup_2_vs_1"].items())
+    if lockstep:
+        over = summary["speedup_2_vs_1_lockstep"]
+        ratios += " (over lockstep: " + ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in over.items()) + ")"
     left.set_title(f"pipelining at K={policy.get('chunk', 1)}: {ratios} (target {PIPELINE_TARGET}x)", fontsize=9)
     x = np.arange(len(names))
     width = 0.27
     sizes = summary["setup"]["stage_envs_by_layout"]
-    alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] + [
+    alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] * (1 + len(lockstep)) + [
         statistics.mean(policy["forward_ms"].get(str(sum(stage)), 0) for stage in sizes[layout]) for layout in layouts
     ]
     for offset, (label, values) in enumerate((
@@ -1732,10 +1766,13 @@ def run_mode(args: argparse.Namespace) -> int:
         setup["stage_envs"] = [plan.envs_per_pod * (plan.pods // 2)] * 2
         setup["stage_envs_by_layout"] = measured.pop("stage_envs")
         summary.update({
-            "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy",
+            "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy; "
+                        "also 1 stage in lockstep (speedup_2_vs_1_lockstep)",
             # The headline: the first layout measured (--stage-layout's order; 'slices' by default).
             "ratio": speedups[plan.stage_layouts[0]],
             "ratio_by_layout": speedups,
+            "ratio_over_lockstep_by_layout": {
+                layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1_lockstep"].items()},
             "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage at K={plan.chunk}",
             "met": {f"pipelining_{layout}": speedup >= PIPELINE_TARGET for layout, speedup in speedups.items()},
         })  # fmt: skip

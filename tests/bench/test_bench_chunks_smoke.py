@@ -23,7 +23,7 @@ REPO = ROOT
 pytestmark = pytest.mark.slow
 
 ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--actions", "8",
-        "--chunks", "1,8", "--physics-seconds", "0.5"]  # fmt: skip
+        "--chunks", "1,8", "--physics-seconds", "0.5", "--waves", "2"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
     assert isinstance(result["ratio"], float) and isinstance(result["ratio_of_physics_only"], float)
     record = json.loads((root / "out" / "bench" / "bench_chunks_cpu.json").read_text())
     assert set(record["details"]["per_round"]) == {
-        "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8",
+        "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8", "loop_slices=2/K=8",
     }  # fmt: skip
 
 
@@ -65,6 +65,9 @@ def test_chunks_bench_holds_the_node_against_its_ceiling_with_cameras_and_the_po
     assert ceiling["processes"] == 2 and ceiling["camera"]["height"] == 16
     for k in ("K=1", "K=8"):
         assert ceiling[k]["env_steps_per_s"] > 0 and ceiling[k]["render_ms_per_env_step"] > 0
+        # ... and again with every env reset after --actions actions, as a rollout of that horizon.
+        assert ceiling[f"{k}/reset_every_8"]["env_steps_per_s"] > 0
+        assert result["loop"][k]["fraction_of_ceiling_with_resets"] > 0
     assert isinstance(result["ratio_of_ceiling"], float)
     times = result["per_env_step_ms"]
     assert times["bare_physics_only"] > 0 and times["bare_ceiling/K=8"]["physics_ms_per_env_step"] > 0
@@ -76,3 +79,16 @@ def test_chunks_bench_measures_pipelining_at_k8(summary):
     result, _ = summary
     assert result["pipeline"]["speedup_2_vs_1"]["n"] == 1
     assert result["pipeline"]["stages=2"]["env_steps_per_s"]["median"] > 0
+    # ... and with the two stages as slices of every pod; the best of the loops is named.
+    assert result["slices"]["speedup_2_vs_1"]["n"] == 1
+    assert result["slices"]["stages=2"]["fraction_of_ceiling"] > 0
+    assert result["best_loop_of_ceiling"]["contender"].startswith("loop/")
+
+
+@pytest.mark.timeout(180)
+def test_chunks_bench_runs_every_loop_rollout_with_its_waves_of_trajectories_per_env(summary):
+    result, _ = summary
+    # --waves 2: two trajectories per env of the 2 pods x 2 envs, refilled as envs free up.
+    assert result["setup"]["waves"] == 2
+    for k in ("K=1", "K=8"):
+        assert result["loop"][k]["trajectories"] == 2 * 4

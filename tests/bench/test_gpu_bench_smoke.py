@@ -127,9 +127,12 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert set(summary["met"]) == {"pipelining_slices", "pipelining_pods"}
     setup = summary["setup"]
     assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
-    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2"}
     assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
     assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1"].items()} == {"slices": 1, "pods": 1}
+    # Also against one stage in lockstep: the whole stage's answers before every policy call.
+    assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
+    assert set(summary["ratio_over_lockstep_by_layout"]) == {"slices", "pods"}
     assert summary["ratio"] == summary["ratio_by_layout"]["slices"]
     # pods: a stage is one pod; slices: every pod holds half its envs on each stage.
     assert setup["stage_envs_by_layout"] == {"pods": [[2], [2]], "slices": [[1, 1], [1, 1]]}
@@ -199,7 +202,7 @@ def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
     done = run_bench(tmp_path, "--quick", "--chunk", "4", "--rounds", "1", timeout=140)
     summary = result_of(done)
     assert summary["name"] == "bench_gpu_scale_pipeline_quick" and summary["setup"]["chunk"] == 4
-    assert set(summary["loop"]) == {"stages=1", "slices/stages=2", "pods/stages=2"}
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2"}
     assert set(summary["ratio_by_layout"]) == {"slices", "pods"} and summary["target"].endswith("at K=4")
     # The horizon counts actions: a chunk of K takes K of them per call.
     assert summary["setup"]["horizon"] % 4 == 0
