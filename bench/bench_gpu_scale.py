@@ -1156,8 +1156,11 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes])
         policy = Chunked(graphed, k)
         contenders = ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
-        for name in contenders:  # warm-up of the loop
-            loop_rollout(clients[name], policy, min(plan.horizon, 2 * k), plan.device, plan.batch_wait_s)
+        # Warm-up: a whole rollout per contender. Without lockstep the loop's policy calls take
+        # batches of many sizes, and each size's CUDA graph is captured when first met (seconds for
+        # this ViT): they must all be captured before the clock starts.
+        for name in contenders:
+            loop_rollout(clients[name], policy, plan.horizon, plan.device, plan.batch_wait_s)
         log.info("warm-up done, %.0f s left", deadline.left())
         runs = {name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device, plan.batch_wait_s))
                 for name in contenders}  # fmt: skip
