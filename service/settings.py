@@ -4,15 +4,15 @@ them (connection limits, logging). Each server's own settings subclass :class:`S
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from vecsim.auth import check_token
+from vecsim.config import HeartbeatConfig
 
 
-class ServerSettings(BaseModel):
-    """The settings both servers read alike, with one default each."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class ServerSettings(HeartbeatConfig):
+    """The settings both servers read alike, with one default each (the heartbeat interval is the
+    job file's: :class:`vecsim.config.HeartbeatConfig`)."""
 
     token: str | None = Field(
         None,
@@ -20,9 +20,6 @@ class ServerSettings(BaseModel):
         description="the job's shared token (VECSIM_TOKEN): required on every request that changes state, "
         "and sent with every request to the other server (a pod's heartbeats, the controller's pushes); "
         "None turns checking off (local development)",
-    )
-    heartbeat_interval_s: float = Field(
-        1.0, gt=0, description="seconds between a pod's heartbeats: the pod sends them so, the controller expects so"
     )
     header_timeout_s: float = Field(
         10.0,

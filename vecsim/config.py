@@ -343,12 +343,24 @@ class PodsConfig(_Model):
         return self.render_gpus[ordinal % len(self.render_gpus)] if self.render_gpus else None
 
 
-class ControllerConfig(_Model):
+class HeartbeatConfig(_Model):
+    """The heartbeat interval, which a pod and its controller must agree on: the one setting every
+    server's settings share with the job file's ``controller`` section."""
+
+    heartbeat_interval_s: float = Field(
+        1.0, gt=0, description="seconds between a pod's heartbeats: the pod sends them so, the controller expects so"
+    )
+
+
+class ControllerConfig(HeartbeatConfig):
+    """The job file's ``controller`` section: where the controller listens and how it keeps time.
+    ``service.controller.settings.ControllerSettings`` extends it, so each field is declared here
+    only; a port below 1024 is the operating system's to allow or refuse."""
+
     host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1024, le=65535)
-    heartbeat_interval_s: float = Field(1.0, gt=0)
-    heartbeat_ttl_s: float = Field(5.0, gt=0)
-    reconcile_interval_s: float = Field(0.5, gt=0)
+    port: int = Field(8000, ge=1, le=65535)
+    heartbeat_ttl_s: float = Field(5.0, gt=0, description="a pod not heard from for this long is dropped")
+    reconcile_interval_s: float = Field(0.5, gt=0, description="seconds between two reconcile passes")
 
 
 class JobConfig(_Model):

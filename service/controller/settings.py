@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from vecsim.config import JobConfig, JobSpec
+from vecsim.config import ControllerConfig, JobConfig, JobSpec
 
 from ..settings import ServerSettings
 
@@ -13,14 +13,11 @@ from ..settings import ServerSettings
 DEFAULT_MAX_BODY_BYTES = 1024 * 1024
 
 
-class ControllerSettings(ServerSettings):
-    """Everything the controller needs before it starts serving (the token and uvicorn's limits:
-    :class:`service.settings.ServerSettings`)."""
-
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
-    heartbeat_ttl_s: float = Field(5.0, gt=0, description="a pod not heard from for this long is dropped")
-    reconcile_interval_s: float = Field(0.5, gt=0)
+class ControllerSettings(ServerSettings, ControllerConfig):
+    """Everything the controller needs before it starts serving: the token and uvicorn's limits
+    (:class:`service.settings.ServerSettings`), the job file's ``controller`` section
+    (:class:`vecsim.config.ControllerConfig`: host, port, heartbeat and reconcile timing), and
+    what only the server has."""
     stall_threshold_s: float = Field(
         1.0,
         gt=0,
