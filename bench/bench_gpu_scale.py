@@ -1570,7 +1570,7 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     ratios = ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in summary["speedup_2_vs_1"].items())
     if lockstep:
         over = summary["speedup_2_vs_1_lockstep"]
-        ratios += " (over lockstep: " + ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in over.items()) + ")"
+        ratios += "\n(over 1 stage in lockstep: " + ", ".join(f"{layout} {r['median']:.2f}x" for layout, r in over.items()) + ")"
     left.set_title(f"pipelining at K={policy.get('chunk', 1)}: {ratios} (target {PIPELINE_TARGET}x)", fontsize=9)
     x = np.arange(len(names))
     width = 0.27
