@@ -15,6 +15,7 @@ never imports ``service``).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import statistics
@@ -43,7 +44,13 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vecsim demo", description=__doc__.split("\n\n")[0])
     p.add_argument("-c", "--config", default="configs/tiny.yaml", help="job config (default configs/tiny.yaml)")
     p.add_argument("--out", default="out/demo", help="where plots, videos and summary.json go (default out/demo)")
-    p.add_argument("--batch", type=int, default=0, help="trajectories in the batch (default: one per env)")
+    p.add_argument("--batch", type=int, default=0, help="trajectories in a sampler batch (default: one per env)")
+    p.add_argument(
+        "--waves",
+        type=int,
+        default=2,
+        help="sampler batches rolled out at once (default 2): an env whose trajectory ends starts a waiting one (refill)",
+    )
     p.add_argument("--horizon", type=int, default=0, help="steps per trajectory at most (default: the job's max)")
     p.add_argument("--videos", type=int, default=2, help="how many trajectories to record (default 2)")
     p.add_argument("--seed", type=int, default=0, help="sampler and policy seed (default 0)")
@@ -127,7 +134,7 @@ def summary_lines(result: RolloutResult, num_stages: int, policy_warmup_s: float
     s = result.stats
     costs = step_costs(s.pod_calls)
     lines = [
-        f"{'trajectories':<28}{s.num_trajectories}",
+        f"{'trajectories':<28}{s.num_trajectories} (envs refill as trajectories end)",
         f"{'pipeline stages':<28}{num_stages}",
         f"{'env-steps':<28}{s.env_steps}",
         f"{'wall time':<28}{s.wall_s:.1f} s",
@@ -158,34 +165,51 @@ def summary_lines(result: RolloutResult, num_stages: int, policy_warmup_s: float
 
 
 def plot_timeline(result: RolloutResult, num_stages: int, path: Path, policy_warmup_s: float | None = None) -> Path:
-    """Draw when the policy ran and when each stage simulated: the picture of pipelining."""
+    """Draw when the policy ran on each stage and when each pod simulated that stage's envs (a row
+    per stage and pod: their calls start and end apart, as there is no lockstep), marking the
+    calls that started refilled trajectories. The picture of pipelining."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(11, 1.2 + 0.9 * num_stages))
-    colors = {"sim": "#4C72B0", "policy": "#DD8452"}
-    for what, stage, begin, end in result.stats.timeline:
-        y = stage + (0.22 if what == "policy" else -0.22)
-        ax.barh(y, end - begin, left=begin, height=0.4, color=colors[what], linewidth=0)
-    ax.set_yticks(range(num_stages), [f"stage {s}" for s in range(num_stages)])
-    ax.set_xlabel("seconds since the rollout began")
+    s = result.stats
+    lanes = sorted({(stage, pod) for stage, pod, *_ in s.pod_calls})
+    rows: list[str] = []
+    where: dict[tuple[str, int, str], int] = {}
+    for stage in range(num_stages):
+        where[("policy", stage, "")] = len(rows)
+        rows.append(f"stage {stage}: policy")
+        for _, pod in (lane for lane in lanes if lane[0] == stage):
+            where[("sim", stage, pod)] = len(rows)
+            rows.append(f"stage {stage}: {pod}")
+    colors = {"policy": "#DD8452", "sim": "#4C72B0", "refill": "#55A868", "reset": "#8C8C8C"}
+    fig, ax = plt.subplots(figsize=(11, 1.4 + 0.38 * len(rows)))
+    for what, stage, begin, end in s.timeline:
+        if what == "policy":
+            ax.barh(where[("policy", stage, "")], end - begin, left=begin, height=0.6, color=colors["policy"], linewidth=0)
+    first: set[tuple[int, str]] = set()
+    for stage, pod, begin, end, resets, steps in s.pod_calls:
+        # A lane's first call resets the first wave; a later call with resets starts refilled trajectories.
+        kind = "sim" if not resets else "reset" if (stage, pod) not in first else "refill"
+        first.add((stage, pod))
+        ax.barh(where[("sim", stage, pod)], end - begin, left=begin, height=0.6, color=colors[kind], linewidth=0)
+    ax.set_yticks(range(len(rows)), rows, fontsize=8)
     ax.invert_yaxis()
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()]
-    ax.legend(handles, ["pods simulating", "policy forward pass"], loc="upper right", ncol=2, fontsize=8)
-    s = result.stats
+    labels = ["policy forward pass", "pod stepping", "pod starting refilled trajectories (and stepping)", "first reset"]
+    ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.25 if len(rows) < 8 else -0.1), ncol=4, fontsize=8)
     worst = step_costs(s.pod_calls)["first_over_median"]
-    first = "" if worst is None else f"; first step {worst:.1f}x the median"
+    first_step = "" if worst is None else f"; first step {worst:.1f}x the median"
     ax.set_title(
-        f"{s.env_steps} env-steps at {s.env_steps_per_s:.0f}/s; "
-        f"{100 * s.overlap_fraction:.0f}% of policy time overlapped simulation{first}",
+        f"{s.num_trajectories} trajectories, {s.env_steps} env-steps at {s.env_steps_per_s:.0f}/s; "
+        f"{100 * s.overlap_fraction:.0f}% of policy time overlapped simulation{first_step}",
         fontsize=10,
     )
-    if policy_warmup_s is not None:
-        ax.set_xlabel(
-            f"seconds since the rollout began (before it, the policy's first forward pass: {policy_warmup_s:.2f} s)"
-        )
+    ax.set_xlabel(
+        "seconds since the rollout began"
+        + ("" if policy_warmup_s is None else f" (before it, the policy's first forward pass: {policy_warmup_s:.2f} s)")
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -194,7 +218,10 @@ def plot_timeline(result: RolloutResult, num_stages: int, path: Path, policy_war
 
 
 def main(argv: list[str]) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.waves < 1 or args.batch < 0:
+        parser.error(f"--waves must be >= 1 and --batch >= 0, got {args.waves} and {args.batch}")
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the rest
 
@@ -218,7 +245,8 @@ def main(argv: list[str]) -> int:
             dataset = TaskInstances.from_tasks(tasks, num_states=10)
             batch_size = args.batch or table.num_envs
             sampler = TaskBalancedSampler.for_job(dataset, job, batch_size=batch_size, seed=args.seed)
-            requests = [dataset[i] for i in next(iter(sampler))]
+            # Each batch holds a multiple of num_stages requests, so request i stays on stage i % S.
+            requests = [dataset[i] for batch in itertools.islice(sampler, args.waves) for i in batch]
             policy = ExampleCNNPolicy(client.observation_space, client.action_space, noise_std=0.3)
             stage_rows = max(stage.num_envs for stage in table.stages) if table.stages else 1
             policy_warmup_s = warm_policy(policy, client, tasks, stage_rows)
@@ -232,7 +260,8 @@ def main(argv: list[str]) -> int:
                 video_dir=out / "videos",
                 log_every_s=5.0,
             )
-            logger.info("rolling out %d trajectories over %d stages", len(requests), job.num_stages)
+            logger.info("rolling out %d trajectories over %d stages and %d envs", len(requests), job.num_stages,
+                        table.num_envs)  # fmt: skip
             result = loop.run(requests)
         finally:
             client.close()

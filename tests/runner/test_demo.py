@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections import Counter
 from pathlib import Path
 
 import psutil
@@ -36,22 +37,25 @@ MARK = "VECSIM_TEST_DEMO_RUN"
 @pytest.mark.timeout(400)
 def test_the_demo_rolls_out_on_a_local_job_writes_its_pictures_and_leaves_nothing_running(tmp_path: Path) -> None:
     out = tmp_path / "demo"
-    done, marker = run_demo(out, "--batch", "6", "--horizon", "4", "--videos", "1", "--ready-timeout", "300")
+    done, marker = run_demo(out, "--horizon", "4", "--videos", "1", "--ready-timeout", "300")
     assert done.returncode == 0, done.stderr[-3000:]
 
     assert "env-steps/s" in done.stdout and "policy time overlapped" in done.stdout
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["stats"]["num_trajectories"] == 6
-    assert summary["stats"]["env_steps"] == 6 * 4
+    # The defaults: a batch of one request per env (tiny: 2 pods x 6 envs), two batches at once,
+    # so each env runs two trajectories, the second refilled when the first ends.
+    assert summary["stats"]["num_trajectories"] == 24
+    assert summary["stats"]["env_steps"] == 24 * 4
     assert summary["lost"] == {}
     routes = summary["routes"]
     assert {r["stage_id"] for r in routes.values()} == {0, 1}
-    assert len({(r["pod"], r["env_index"]) for r in routes.values()}) == 6  # one env per trajectory
+    envs = Counter((r["pod"], r["env_index"]) for r in routes.values())
+    assert len(envs) == 12 and set(envs.values()) == {2}
     assert (out / "timeline.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # The first step against the median, per pod: each pod stepped its trajectories 4 times.
+    # The first step against the median, per pod: each pod stepped its envs 4 times a trajectory.
     costs = summary["step_costs"]
     assert {p["pod"] for p in costs["per_pod"]} == {r["pod"] for r in routes.values()}
-    assert all(p["calls"] == 4 for p in costs["per_pod"])
+    assert all(p["calls"] == 2 * 4 for p in costs["per_pod"])
     assert costs["first_over_median"] == max(p["ratio"] for p in costs["per_pod"])
     assert "first step / median step" in done.stdout
     assert summary["policy_warmup_s"] > 0
@@ -90,9 +94,10 @@ def test_the_demo_says_so_and_exits_non_zero_when_it_loses_trajectories(tmp_path
                 pod.resume()
     stdout, stderr = demo.communicate(timeout=300)
     assert demo.returncode == 1, (stdout[-2000:], stderr[-3000:])
-    assert "FAILED: 4 of 4 trajectories were lost" in stdout
+    # Two batches of 4 (the default --waves 2), all on envs at once: every one of the 8 is lost.
+    assert "FAILED: 8 of 8 trajectories were lost" in stdout
     summary = json.loads((out / "summary.json").read_text())
-    assert len(summary["lost"]) == 4
+    assert len(summary["lost"]) == 8
     assert all("TimeoutError" in lost["reason"] for lost in summary["lost"].values()), summary["lost"]
     assert _processes_marked(marker) == [], "the demo left processes running"
 
