@@ -261,7 +261,7 @@ def main(argv: Sequence[str]) -> int:
             "python": sys.executable,
         },
         "ratios": {
-            label: {**spreads[label], "per_round": ratios[label], "rev": rev["rev"], "commit": rev["commit"]}
+            label: {**spreads[label], "per_round": [round(x, 4) for x in ratios[label]], "rev": rev["rev"], "commit": rev["commit"]}
             for label, rev in zip(LABELS, revisions)
         },
         "b_over_a_per_round": [round(b / a, 4) for a, b in zip(ratios["A"], ratios["B"])],
