@@ -209,7 +209,10 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
 def main(argv: Sequence[str]) -> int:
     args, bench_args = parse_args(argv)
     setup_logging()
-    # SIGTERM ends this script as Ctrl-C does, so the worktrees and the running bench are cleaned up.
+    # SIGINT and SIGTERM end this script as Ctrl-C does, so the worktrees and the running bench are
+    # cleaned up. Set explicitly: a shell starts a background job with SIGINT ignored, which its
+    # children would inherit, and then a bench could not be interrupted into stopping its pods.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     repo = args.repo.resolve()
     try:
