@@ -22,10 +22,13 @@ controller gives every pod the whole mix); the trainer groups pods into its own 
   ``--stage-layout`` (the job setting's two values, side by side in interleaved rounds):
   ``pods``: pods 0..C-1 against C..2C-1 (one stage simulates while the other's observations are
   in the policy); ``slices``: every pod's envs alternate stage 0, stage 1, ... (a stage is a
-  slice of every pod, as the ``slices`` job plan lays them out). The policy is
+  slice of every pod, as the ``slices`` job plan lays them out). Also 1 stage in lockstep
+  (``stages=1/lockstep``: the loop waits for every pod of the stage before the policy runs, the
+  rollout before issue 27), the second baseline of two stages. The policy is
   a ViT-B/16-style encoder per camera (bf16) whose depth is calibrated so that its forward pass
   on the 1-stage batch lasts as long as the 1-stage simulation call (the service alone), captured
-  in a CUDA graph per batch size, so its launches cost the trainer's Python thread little.
+  in a CUDA graph per batch size, so its launches cost the trainer's Python thread little (a
+  whole warm-up rollout per contender captures the sizes the loop meets before the clock).
   ``--chunk K``: the policy acts in chunks of K actions (its one action repeated K times), the
   service's calls step K actions too (K=8 is issue 27's case).
 
