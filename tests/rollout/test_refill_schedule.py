@@ -176,6 +176,23 @@ def test_an_env_whose_trajectory_ended_starts_the_next_waiting_request_at_once(j
         assert trajectory.rewards.tolist() == [t + 1 for t in range(trajectory.length)]
 
 
+def test_waiting_requests_go_to_whichever_pod_frees_an_env_first_so_a_faster_pod_runs_more(jobs):
+    job = jobs([2])  # one stage: pod-0a and pod-0b, one env each
+    fast, slow = job.pod("pod-0a"), job.pod("pod-0b")
+    fast.open()
+    job.start(state_ids=[0] * 6, horizon=1)
+    # While the slow pod still holds its first reset, the fast pod's env runs every waiting request.
+    job.wait_calls("pod-0a", 10)
+    assert fast.calls == [("reset", (0,)), ("step", (0,))] * 5
+    assert slow.calls == [("reset", (0,))] and slow.held() == [("reset", (0,))]
+    slow.open()
+    result = job.result()
+    assert {key: t.route.pod for key, t in result.trajectories.items()} == {
+        "r0": "pod-0a", "r1": "pod-0b", "r2": "pod-0a", "r3": "pod-0a", "r4": "pod-0a", "r5": "pod-0a",
+    }  # fmt: skip
+    assert slow.calls == [("reset", (0,)), ("step", (0,))] and result.lost == {}
+
+
 def test_waiting_requests_keep_their_stage_and_the_result_keeps_request_order(jobs):
     job = jobs([1, 1])
     for pod in job.pods:
