@@ -296,13 +296,20 @@ def test_over_capacity_on_real_pods_names_task_and_stage(client):
         client.reset_trajectories(requests)
 
 
-def test_a_second_call_on_a_waiting_stage_raises_already_pending_call_error(client):
-    client.reset_trajectories([(PENDULUM, 0), (PENDULUM, 1)])
-    pending = client.reset_stage(0)
-    with pytest.raises(AlreadyPendingCallError):
-        client.reset_stage(0)
-    pending.result(timeout=60)
-    client.reset_stage(0).result(timeout=60)
+def test_a_second_call_on_a_waiting_stage_raises_already_pending_call_error():
+    # A scripted pod holds the first call's answer until the test lets it go: the stage is
+    # waiting, whatever the machine's timing.
+    timeline = Timeline()
+    (pod,), table = scripted_job(1, 2, timeline)
+    with StageClient(table, transport=PodRouter([pod]), token=TOKEN, timeout_s=60) as client:
+        client.reset_trajectories([(TASK, 0), (TASK, 1)])
+        pending = client.reset_stage(0)
+        timeline.wait_for(lambda: pod.held(), "the first reset held at the pod")
+        with pytest.raises(AlreadyPendingCallError):
+            client.reset_stage(0)
+        pod.open()
+        pending.result(timeout=60)
+        client.reset_stage(0).result(timeout=60)
 
 
 def test_a_stage_waits_on_its_call_until_the_answer_is_handed_over(client):
