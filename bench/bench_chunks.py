@@ -26,8 +26,11 @@ physics-only rate of the node. Then the same processes build the mix with the po
 render preset and, for each K, apply K actions per env and render every camera once, in one
 batch of the same renderer as a pod's worker (EGL on the GPU node): the ceiling, the node's
 simulation alone (issue 27); it runs again with every env reset after ``--actions`` actions, as a
-rollout of that horizon must (``K=k/reset_every_H``). Every contender is reported as a fraction
-of both ceilings and of physics-only, and
+rollout of that horizon must (``K=k/reset_every_H``). The ceiling runs again after the rounds,
+with the pods gone, and each of its figures is the mean of the two runs, which bracket the
+rounds in time (a shared machine's load drifts over minutes; both ends are in the record, and
+the last round starts only if time for this second run is left). Every contender is reported as
+a fraction of both ceilings and of physics-only, and
 ``per_env_step_ms`` puts the pods' own physics and render time per env-step (their ``/metrics``)
 next to the bare processes'.
 
@@ -39,6 +42,7 @@ Commands::
     source .device/setup.sh && python bench/bench_chunks.py --gpu --copy-to "$OUT"   # the GPU machine
     python bench/bench_chunks.py --gpu --dry       # probe: 1 pod, K = 1 and 4, 4 actions; fails fast
     python bench/bench_chunks.py --cpu-small       # here: 2 pods of 2 tiny tasks, 32x32, K = 1 and 4
+    python bench/bench_chunks.py --gpu --chunks 8 --actions 128 --waves 6 --stage-layout pods  # issue 27's 0.9
     python bench/bench_chunks.py --quick           # smoke: 2 pods of a gym scene, 16x16, K = 1 and 8
 
 Writes out/bench/bench_chunks[_cpu|_dry].json and prints one ``RESULT {json}`` line; ``--copy-to``
@@ -80,6 +84,7 @@ log = logging.getLogger("bench.chunks")
 CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
 PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
 CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
+CEILING_AFTER_S = 90.0  # seconds kept after the rounds for the ceiling's second run (its processes build the envs again)
 PIPELINE_K = 8
 # --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
 QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
@@ -224,6 +229,12 @@ def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, time
     }
 
 
+def ceiling_runs(chunks: Sequence[int], reset_every: int) -> list[tuple[int, int]]:
+    """The ceiling's runs, in order: ``(K, 0)`` for each K, followed by ``(K, reset_every)`` when
+    ``reset_every`` > 0."""
+    return [(k, every) for k in chunks for every in ([0, reset_every] if reset_every else [0])]
+
+
 def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any], preset: str, envs_per_task: int,
                    chunks: list[int], seconds: float, reset_every: int, barrier: Any, results: Any) -> None:  # fmt: skip
     """Pin to ``cpu``; build the task mix as a pod's worker does (``envs_per_task`` envs of each
@@ -271,7 +282,7 @@ def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any
             return steps, stepped - started, time.perf_counter() - stepped
 
         chunk_all(0, 1)  # warm-up: the renderer's first frame, the controller's first step
-        for k, every in [(k, every) for k in chunks for every in ([0, reset_every] if reset_every else [0])]:
+        for k, every in ceiling_runs(chunks, reset_every):
             barrier.wait(timeout=900)
             since_reset[:] = [0] * len(envs)
             turns = steps = 0
@@ -300,7 +311,7 @@ def ceiling(pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: 
     """
     args = lambda i, cpu: (list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task,  # noqa: E731
                            list(chunks), seconds, reset_every)  # fmt: skip
-    runs = [(k, every) for k in chunks for every in ([0, reset_every] if reset_every else [0])]
+    runs = ceiling_runs(chunks, reset_every)
     reports = _pinned(pins, ceiling_worker, args, len(pins) * len(runs), timeout_s)
     out: dict[str, Any] = {"processes": len(pins), "pinned_to": list(pins), "seconds_per_k": seconds,
                            "camera": gs.camera(plan), "render_preset": plan.render_preset}  # fmt: skip
@@ -316,14 +327,40 @@ def ceiling(pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: 
     return out
 
 
-def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline) -> dict[str, Any]:
-    """Every contender (module docstring) in interleaved rounds."""
+def bracket(before: dict[str, Any], after: dict[str, Any] | None) -> dict[str, Any]:
+    """The ceiling from its runs before and after the rounds: per ``K=...`` run, env-steps/s and
+    the physics and render milliseconds per env-step as the mean of the two ends, each end kept
+    (``before``, ``after``) with ``after_over_before``. Without ``after`` (no time was left), the
+    run before the rounds alone (``bracketed`` false)."""
+    out = {**before, "bracketed": after is not None}
+    if after is None:
+        return out
+    for key, first in before.items():
+        if not key.startswith("K="):
+            continue
+        last = after[key]
+        out[key] = {
+            **{name: round((first[name] + last[name]) / 2, 3 if name.endswith("_ms_per_env_step") else 1)
+               for name in ("env_steps_per_s", "physics_ms_per_env_step", "render_ms_per_env_step")},
+            "after_over_before": round(last["env_steps_per_s"] / first["env_steps_per_s"], 3) if first["env_steps_per_s"] else None,
+            "before": first,
+            "after": last,
+        }  # fmt: skip
+    return out
+
+
+def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline,
+            reserve_s: float = 10.0) -> dict[str, Any]:  # fmt: skip
+    """Every contender (module docstring) in interleaved rounds; a round starts only while it and
+    ``reserve_s`` more fit before the deadline."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     one = gs.TimedStageClient(gs.regroup(table, names, 1), token=job.token, timeout_s=300)
-    two = gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300) if plan.pods > 1 else None
+    two = (gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300)
+           if plan.pods > 1 and "pods" in plan.stage_layouts else None)  # fmt: skip
     # Two stages as slices of every pod: each pod has the other stage's call queued while the
     # policy works on one, so it does not idle between its calls.
-    sliced = gs.TimedStageClient(gs.regroup_slices(table, names, 2), token=job.token, timeout_s=300)
+    sliced = (gs.TimedStageClient(gs.regroup_slices(table, names, 2), token=job.token, timeout_s=300)
+              if "slices" in plan.stage_layouts else None)  # fmt: skip
     try:
         space, action = one.observation_space, one.action_space
         policy = gs.VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
@@ -345,7 +382,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         gs.loop_rollout(one, chunked[settings.chunks[-1]], warm, plan.device)
         if two is not None and PIPELINE_K in chunked:
             gs.loop_rollout(two, chunked[PIPELINE_K], warm, plan.device)
-        if PIPELINE_K in chunked:
+        if sliced is not None and PIPELINE_K in chunked:
             gs.loop_rollout(sliced, chunked[PIPELINE_K], warm, plan.device)
         log.info("warm-up done, %.0f s left", deadline.left())
         contenders: dict[str, Callable[[], gs.Measured]] = {}
@@ -356,15 +393,14 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         if two is not None and PIPELINE_K in chunked:
             contenders[f"loop_stages=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
                 two, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
-        if PIPELINE_K in chunked:
+        if sliced is not None and PIPELINE_K in chunked:
             contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
                 sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
-        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=10)
+        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=reserve_s)
     finally:
-        one.close()
-        sliced.close()
-        if two is not None:
-            two.close()
+        for client in (one, two, sliced):
+            if client is not None:
+                client.close()
     rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
     result: dict[str, Any] = {"policy": policy_info}
     for kind in ("service", "loop"):
@@ -427,6 +463,7 @@ def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
         max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
         render_preset=args.render_preset,
+        stage_layouts=gs.parse_stage_layouts(args.stage_layout),
     )
     physics_seconds = args.physics_seconds or (1.0 if dry else 10.0 if gpu else 2.0)
     return plan, Settings(chunks=chunks, actions=actions, physics_seconds=physics_seconds, waves=args.waves)
@@ -452,9 +489,9 @@ def run(args: argparse.Namespace) -> int:
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
     log.info("ceiling: %d processes, cameras %s once per K, %g s per K", plan.pods, gs.camera(plan), settings.physics_seconds)
-    top = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0),
-                  settings.actions)
-    log.info("ceiling: %s", {k: v["env_steps_per_s"] for k, v in top.items() if k.startswith("K=")})
+    before = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0),
+                     settings.actions)
+    log.info("ceiling: %s", {k: v["env_steps_per_s"] for k, v in before.items() if k.startswith("K=")})
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
@@ -465,7 +502,19 @@ def run(args: argparse.Namespace) -> int:
         table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
         log.info("%d pods ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
-        measured = measure(plan, settings, job, table, deadline)
+        measured = measure(plan, settings, job, table, deadline, reserve_s=CEILING_AFTER_S)
+
+    # The ceiling again, the rounds over and the pods gone: on a shared machine the neighbours'
+    # load drifts over minutes, so the ceiling brackets the rounds in time instead of preceding them.
+    after = None
+    if deadline.left() >= CEILING_AFTER_S:
+        log.info("ceiling again, after the rounds")
+        after = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0),
+                        settings.actions)
+        log.info("ceiling after the rounds: %s", {k: v["env_steps_per_s"] for k, v in after.items() if k.startswith("K=")})
+    else:
+        log.warning("%.0f s left: the ceiling is not measured again after the rounds", deadline.left())
+    top = bracket(before, after)
 
     node = physics["env_steps_per_s"]
     two_stage_rows = [(f"K={PIPELINE_K}", measured[kind]["stages=2"]) for kind in ("pipeline", "slices") if kind in measured]
@@ -578,6 +627,9 @@ def main() -> int:
     parser.add_argument("--size", type=int, help="camera height and width (default 256; --cpu-small 32)")
     parser.add_argument("--rounds", type=int, help="interleaved rounds (default 2; --cpu-small 1)")
     parser.add_argument("--physics-seconds", type=float, help="length of the physics-only run (default 10)")
+    parser.add_argument("--stage-layout", default=",".join(gs.STAGE_LAYOUTS),
+                        help="the 2-stage layouts measured at K = 8 beside 1 stage, comma-separated "
+                        "(slices, pods; default both)")
     parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"))
     parser.add_argument("--max-memory-gib", type=float, default=100.0,
                         help="stop when memory in use passes this while the pods build")

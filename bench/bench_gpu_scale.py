@@ -1637,9 +1637,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     chunk = args.chunk
     if chunk < 1:
         raise SystemExit(f"--chunk must be at least 1, got {chunk}")
-    layouts = tuple(dict.fromkeys(x for x in args.stage_layout.split(",") if x))
-    if not layouts or set(layouts) - set(STAGE_LAYOUTS):
-        raise SystemExit(f"--stage-layout: a comma-separated list of {list(STAGE_LAYOUTS)}, got {args.stage_layout!r}")
+    layouts = parse_stage_layouts(args.stage_layout)
     # The horizon counts actions: by default as many calls at K as at K=1.
     horizon = 2 * chunk if dry else args.horizon or (30 if gpu else 6 if quick else 3) * chunk
     return Plan(
@@ -1665,6 +1663,18 @@ def make_plan(args: argparse.Namespace) -> Plan:
         batch_wait_s=args.batch_wait_s,
         stage_layouts=layouts,
     )
+
+
+def parse_stage_layouts(text: str) -> tuple[str, ...]:
+    """``--stage-layout``'s comma-separated layouts, in order, each once.
+
+    Raises:
+        SystemExit: none given, or one that is not in ``STAGE_LAYOUTS``.
+    """
+    layouts = tuple(dict.fromkeys(x for x in text.split(",") if x))
+    if not layouts or set(layouts) - set(STAGE_LAYOUTS):
+        raise SystemExit(f"--stage-layout: a comma-separated list of {list(STAGE_LAYOUTS)}, got {text!r}")
+    return layouts
 
 
 def physical_core_of(topology: dict[str, Any], cpu: str) -> str:

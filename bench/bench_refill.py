@@ -16,11 +16,14 @@ takes about the same time for any batch). Ideal ratio: (longest / mean horizon) 
 for 20-100%, less the drain of the refill run's tail, where the envs' idle time costs: cores of
 their own, or a per-call cost (policy, HTTP). Where the pods' cores are shared by all their envs
 and the policy is free (a loaded small box), a call of fewer live envs is just faster and refill
-gains little. Target (issue 27): refill >= 1.3x batch-at-once.
+gains little; nor where the trainer is the bound (``trainer_cpu_per_wall_s`` near 1: one
+process handling every pod's answer), which ``--chunk K`` (K actions per env and policy call)
+relieves K-fold for the same actions. Target (issue 27): refill >= 1.3x batch-at-once.
 
     python bench/bench_refill.py --quick     # smoke: a gym scene at 8x8, 2 pods of 2 envs
     python bench/bench_refill.py             # dev box: tiny/lift 32x32, 2 pods of 4 envs
     python bench/bench_refill.py --gpu       # GPU node: libero_10/0 128x128, 12 pods of 1 env pinned one per core
+    python bench/bench_refill.py --gpu --chunk 8   # the same, 8 actions per env and call
 
 Prints ``RESULT {json}`` and writes out/bench/bench_refill.json.
 """
@@ -51,17 +54,21 @@ SHORTEST = 0.2  # the shortest episode, as a fraction of the horizon
 
 
 class ScriptedPolicy:
-    """Zero actions of the job's action shape, each call taking ``call_s`` (a sleep: a GPU
-    forward pass, whose time hardly depends on the batch, without taking the pods' cores)."""
+    """Zero actions of the job's action shape, ``chunk`` of them per env and call (one: ``[n, A]``;
+    more: ``[n, K, A]``), each call taking ``call_s`` (a sleep: a GPU forward pass, whose time
+    hardly depends on the batch, without taking the pods' cores)."""
 
-    def __init__(self, action_dim: int, call_s: float) -> None:
+    def __init__(self, action_dim: int, call_s: float, chunk: int = 1) -> None:
         self.action_dim = action_dim
         self.call_s = call_s
+        self.chunk = chunk
 
     def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
         if self.call_s > 0:
             time.sleep(self.call_s)
-        return torch.zeros((len(task_ids), self.action_dim))
+        if self.chunk == 1:
+            return torch.zeros((len(task_ids), self.action_dim))
+        return torch.zeros((len(task_ids), self.chunk, self.action_dim))
 
 
 def mixed_horizons(n: int, horizon: int, seed: int) -> list[int]:
@@ -74,11 +81,14 @@ def mixed_horizons(n: int, horizon: int, seed: int) -> list[int]:
 def settings(args: argparse.Namespace) -> dict[str, Any]:
     """The mode's sizes, with the flags given on the command line taking precedence."""
     if args.quick:
-        mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2}
+        mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2,
+                "chunk": 1}
     elif args.gpu:
-        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2}
+        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2,
+                "chunk": 1}
     else:
-        mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3}
+        mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3,
+                "chunk": 1}
     return with_flags(mode, args)
 
 
@@ -94,6 +104,8 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, help="the longest episode, in actions")
     parser.add_argument("--waves", type=int, help="trajectories per env: N = waves x envs")
     parser.add_argument("--rounds", type=int, help="interleaved rounds")
+    parser.add_argument("--chunk", type=int, help="actions per env and policy call (K; default 1): fewer calls, "
+                        "so less of the trainer's per-call work, for the same actions")
     parser.add_argument("--policy-ms", type=float, default=0.0, help="how long each policy call takes (a sleep)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
@@ -101,6 +113,8 @@ def main() -> None:
     setup_logging()
     os.environ.setdefault("MUJOCO_GL", "egl")
     mode = settings(args)
+    if mode["chunk"] < 1:
+        parser.error(f"--chunk must be at least 1, got {mode['chunk']}")
     load_before = wait_for_quiet(timeout_s=args.wait_quiet_s)
     task, pods, per_pod = mode["task"], mode["pods"], mode["envs_per_pod"]
     camera = CameraConfig(height=mode["size"], width=mode["size"])
@@ -123,25 +137,35 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         running = stack.enter_context(standalone_pods(assignments, cores=pins, ready_timeout_s=READY_TIMEOUT_S))
         client = stack.enter_context(StageClient.from_pods([pod.url for pod in running], timeout_s=120))
-        policy = ScriptedPolicy(int(np.prod(client.action_space.shape)), args.policy_ms / 1000)
+        policy = ScriptedPolicy(int(np.prod(client.action_space.shape)), args.policy_ms / 1000, mode["chunk"])
         loop = EnvLoop(client, policy, horizon=mode["horizon"], keep_obs=())
 
+        # The trainer's CPU seconds per wall second, all its threads: near 1 (or above), the
+        # trainer and not the pods bounds the rollout, and refill can gain little.
+        busy: dict[str, list[float]] = {"refill": [], "batch": []}
+
         def refill() -> float:
+            cpu = time.process_time()
             stats = loop.run(requests, horizons=horizons).stats
+            busy["refill"].append((time.process_time() - cpu) / stats.wall_s)
             runs["refill"].append(stats)
             return stats.env_steps / stats.wall_s
 
         def batch() -> float:
-            started, steps = time.perf_counter(), 0
+            started, cpu, steps = time.perf_counter(), time.process_time(), 0
             for begin in range(0, n, envs):
                 stats = loop.run(requests[begin : begin + envs], horizons=horizons[begin : begin + envs]).stats
                 runs["batch"].append(stats)
                 steps += stats.env_steps
-            return steps / (time.perf_counter() - started)
+            wall = time.perf_counter() - started
+            busy["batch"].append((time.process_time() - cpu) / wall)
+            return steps / wall
 
         refill(), batch()  # warm-up: connections, first renders
         for stats in runs.values():
             stats.clear()
+        for seconds in busy.values():
+            seconds.clear()
         figures = interleaved({"refill": refill, "batch": batch}, mode["rounds"])
     ratio = paired_ratio(figures["refill"], figures["batch"])
     expected_steps = sum(horizons)
@@ -162,7 +186,7 @@ def main() -> None:
             **mode,
             "envs": envs,
             "trajectories": n,
-            "policy": f"scripted zeros, {args.policy_ms:g} ms a call",
+            "policy": f"scripted zeros, {mode['chunk']} action(s) per env, {args.policy_ms:g} ms a call",
             "pinned": pins is not None,
             "horizons_min_mean_max": [min(horizons), round(statistics.mean(horizons), 1), max(horizons)],
             "ideal_ratio": round(sum(max(w) for w in waves) * envs / expected_steps, 3),
@@ -171,6 +195,7 @@ def main() -> None:
         "env_steps_per_s": {name: rate_spread(values) for name, values in figures.items()},
         "ratio_refill_vs_batch": ratio,
         "env_steps_median": steps,
+        "trainer_cpu_per_wall_s": {name: rate_spread(values) for name, values in busy.items()},
     }
     details = {
         "per_round": figures,

@@ -69,6 +69,10 @@ def test_chunks_bench_holds_the_node_against_its_ceiling_with_cameras_and_the_po
         assert ceiling[f"{k}/reset_every_8"]["env_steps_per_s"] > 0
         assert result["loop"][k]["fraction_of_ceiling_with_resets"] > 0
     assert isinstance(result["ratio_of_ceiling"], float)
+    # The ceiling ran before the rounds and again after them; its figures are the two ends' mean.
+    assert ceiling["bracketed"] is True
+    ends = ceiling["K=8"]["before"]["env_steps_per_s"], ceiling["K=8"]["after"]["env_steps_per_s"]
+    assert ceiling["K=8"]["env_steps_per_s"] == pytest.approx(sum(ends) / 2, abs=0.1)
     times = result["per_env_step_ms"]
     assert times["bare_physics_only"] > 0 and times["bare_ceiling/K=8"]["physics_ms_per_env_step"] > 0
     assert times["pod/loop/K=8"]["physics_ms_per_env_step"] > 0

@@ -118,3 +118,34 @@ def test_a_chunked_policy_repeats_its_action_k_times(bench):
     chunks = policy({}, [""] * 3, [""] * 3)
     assert chunks.shape == (3, 4, 2) and torch.equal(chunks[:, 3], torch.arange(6.0).view(3, 2))
     assert bench.Chunked(lambda *a: torch.ones(3, 2), 1)({}, [], []).shape == (3, 2)
+
+
+def test_stage_layouts_come_in_order_each_once_and_an_unknown_one_is_named(bench):
+    assert bench.parse_stage_layouts("pods,slices,pods") == ("pods", "slices")
+    assert bench.parse_stage_layouts("slices") == ("slices",)
+    with pytest.raises(SystemExit, match="'pods,rows'"):
+        bench.parse_stage_layouts("pods,rows")
+    with pytest.raises(SystemExit, match="comma-separated"):
+        bench.parse_stage_layouts(",")
+
+
+def test_the_ceiling_before_and_after_the_rounds_is_their_mean_with_both_ends_kept():
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_chunks
+    finally:
+        sys.path.remove(str(BENCH))
+
+    def run(rate: float, physics: float) -> dict:
+        return {"env_steps_per_s": rate, "physics_ms_per_env_step": physics, "render_ms_per_env_step": 0.4}
+
+    before = {"processes": 12, "K=8": run(1800.0, 6.2), "K=8/reset_every_128": run(1780.0, 6.3)}
+    after = {"processes": 12, "K=8": run(1600.0, 7.0), "K=8/reset_every_128": run(1580.0, 7.1)}
+    top = bench_chunks.bracket(before, after)
+    assert top["bracketed"] is True and top["processes"] == 12
+    assert top["K=8"]["env_steps_per_s"] == 1700.0 and top["K=8"]["physics_ms_per_env_step"] == 6.6
+    assert top["K=8"]["after_over_before"] == 0.889
+    assert top["K=8/reset_every_128"]["before"] == before["K=8/reset_every_128"]
+    assert top["K=8/reset_every_128"]["after"] == after["K=8/reset_every_128"]
+    # No time left for the second run: the first alone, and the record says so.
+    assert bench_chunks.bracket(before, None) == {**before, "bracketed": False}

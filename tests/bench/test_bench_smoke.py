@@ -125,3 +125,6 @@ def test_refill_benchmark_reports_refill_against_batch_at_once_over_the_same_ste
     assert result["env_steps_median"] == {"refill": steps, "batch": steps}
     low, _mean, high = result["setup"]["horizons_min_mean_max"]
     assert low < high == result["setup"]["horizon"]
+    # The trainer's CPU seconds per wall second says whether it, not the pods, bounds the rollout.
+    assert set(result["trainer_cpu_per_wall_s"]) == {"refill", "batch"}
+    assert result["trainer_cpu_per_wall_s"]["refill"]["median"] > 0
