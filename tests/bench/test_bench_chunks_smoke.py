@@ -7,17 +7,11 @@ line with every figure docs/benchmarks.md's chunks section is built from. It run
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-from support import ROOT
-
-REPO = ROOT
+from support.bench_scripts import bench_result
 
 # A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
 pytestmark = pytest.mark.slow
@@ -29,15 +23,7 @@ ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", 
 @pytest.fixture(scope="module")
 def summary(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("bench-chunks")
-    shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
-    env.pop("VECSIM_TOKEN", None)
-    done = subprocess.run([sys.executable, str(root / "bench" / "bench_chunks.py"), *ARGS], cwd=root, env=env,
-                          capture_output=True, text=True, timeout=170)  # fmt: skip
-    assert done.returncode == 0, f"bench_chunks.py failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    return json.loads(lines[0].removeprefix("RESULT ")), root
+    return bench_result(root, "bench_chunks.py", *ARGS, timeout=170), root
 
 
 @pytest.mark.timeout(180)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +14,7 @@ from typing import Any
 
 import pytest
 from support import ROOT
+from support.bench_scripts import bench_result
 
 # Two runs of a benchmark with its own pods, and two checkouts: ~30 s on 2 cores.
 pytestmark = pytest.mark.slow
@@ -33,18 +33,9 @@ Run = tuple[dict[str, Any], dict[str, Any], list[str]]
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     root = tmp_path_factory.mktemp("bench-revisions")
-    shutil.copytree(ROOT / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(ROOT)}
-    env.pop("VECSIM_TOKEN", None)
-    done = subprocess.run(
-        [sys.executable, str(root / "bench" / "bench_revisions.py"), "--bench", "bench_scaling.py", "--quick",
-         "--revisions", "HEAD,HEAD", "--repo", str(ROOT), "--timeout-s", "120"],
-        cwd=root, env=env, capture_output=True, text=True, timeout=170,
-    )  # fmt: skip
-    assert done.returncode == 0, f"bench_revisions.py failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    result = json.loads(lines[0].removeprefix("RESULT "))
+    result = bench_result(root, "bench_revisions.py", "--bench", "bench_scaling.py", "--quick",
+                          "--revisions", "HEAD,HEAD", "--repo", str(ROOT), "--timeout-s", "120",
+                          timeout=170)  # fmt: skip
     record = json.loads((root / "out" / "bench" / "bench_revisions_bench_scaling.json").read_text())
     return result, record, revision_worktrees()
 

@@ -6,33 +6,19 @@ prints one ``RESULT {json}`` line with the figures docs/trainers.md quotes. No t
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from support import ROOT
+from support.bench_scripts import bench_result
 
 pytest.importorskip("rlinf")
-
-REPO = ROOT
 
 pytestmark = pytest.mark.libero
 
 
 @pytest.mark.timeout(600)
 def test_rlinf_bench_reports_both_envs_side_by_side(tmp_path: Path) -> None:
-    shutil.copytree(REPO / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
-    env.pop("VECSIM_TOKEN", None)
-    done = subprocess.run([sys.executable, str(tmp_path / "bench" / "bench_rlinf.py"), "--smoke"], cwd=tmp_path,
-                          env=env, capture_output=True, text=True, timeout=580)  # fmt: skip
-    assert done.returncode == 0, f"bench_rlinf.py failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    result = json.loads(lines[0].removeprefix("RESULT "))
+    result = bench_result(tmp_path, "bench_rlinf.py", "--smoke", timeout=580)
     assert result["name"] == "bench_rlinf_smoke" and result["k"] == 8
     (row,) = result["results"]
     assert row["slots"] == 2 and row["vecsim_over_rlinf"]["n"] == 1

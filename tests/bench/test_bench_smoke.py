@@ -9,17 +9,11 @@ temporary directory, so that its JSON lands there and not over the recorded resu
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-from support import ROOT
-
-BENCH = ROOT / "bench"
+from support.bench_scripts import bench_env, bench_result
 
 # A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
 pytestmark = pytest.mark.slow
@@ -28,19 +22,9 @@ COMMON_FIELDS = {"name", "command", "machine", "baseline", "ratio", "target", "m
 
 
 def run_quick(script: str, tmp_path: Path) -> tuple[dict[str, Any], Path]:
-    """Run ``bench/<script> --quick`` from a copy of bench/; return its RESULT and its JSON file."""
-    copy = tmp_path / "bench"
-    shutil.copytree(BENCH, copy, ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    env.pop("VECSIM_TOKEN", None)
-    done = subprocess.run(
-        [sys.executable, str(copy / script), "--quick"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=280,
-    )  # fmt: skip
-    assert done.returncode == 0, f"{script} failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"{script} printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    result = json.loads(lines[0].removeprefix("RESULT "))
+    """Run ``bench/<script> --quick`` from a copy of bench/ (with the caller's ``PYTHONPATH``);
+    return its RESULT and its JSON file."""
+    result = bench_result(tmp_path, script, "--quick", timeout=280, env=bench_env(repo_on_path=False))
     return result, tmp_path / "out" / "bench" / f"{result['name']}.json"
 
 

@@ -17,34 +17,19 @@ the figures depend on the machine and its load.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-from support import ROOT
+from support.bench_scripts import bench_env, bench_result, result_of, run_bench_script
 
-REPO = ROOT
 GYM = ["--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--horizon", "3", "--rounds", "1"]
 
 
 def run_bench(root: Path, *args: str, timeout: float = 170) -> subprocess.CompletedProcess[str]:
-    if not (root / "bench").exists():
-        shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(REPO)}
-    env.pop("VECSIM_TOKEN", None)
-    return subprocess.run([sys.executable, str(root / "bench" / "bench_gpu_scale.py"), *args], cwd=root, env=env,
-                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
-
-
-def result_of(done: subprocess.CompletedProcess[str]) -> dict[str, Any]:
-    assert done.returncode == 0, f"bench_gpu_scale.py failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    return json.loads(lines[0].removeprefix("RESULT "))
+    """``bench_gpu_scale.py args`` from a copy of bench/ in ``root``; its return code unchecked."""
+    return run_bench_script(root, "bench_gpu_scale.py", *args, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -166,12 +151,10 @@ def test_pipeline_records_the_pods_render_preset_and_render_gpu(pipeline):
 
 @pytest.mark.timeout(120)
 def test_physics_scaling_reports_each_process_count_against_linear(tmp_path):
-    shutil.copytree(REPO / "bench", tmp_path / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    # This process's environment as it is, but for the repository on PYTHONPATH.
+    env = bench_env(default_mujoco_gl=None, drop=())
     args = ["--procs", "1,2", "--tasks", "gym/HalfCheetah-v5,gym/Hopper-v5", "--seconds", "0.3", "--rounds", "1"]
-    done = subprocess.run([sys.executable, str(tmp_path / "bench" / "bench_physics_scaling.py"), *args],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=100)  # fmt: skip
-    summary = result_of(done)
+    summary = bench_result(tmp_path, "bench_physics_scaling.py", *args, timeout=100, env=env)
     assert summary["name"] == "bench_physics_scaling" and summary["setup"]["envs_per_process"] == 2
     assert set(summary["rows"]) == {"1", "2"} and summary["rows"]["1"]["ratio_to_linear"] == 1.0
     row = summary["rows"]["2"]

@@ -11,18 +11,11 @@ temporary directory. No timing is asserted.
 from __future__ import annotations
 
 import glob
-import json
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-from support import ROOT
-
-REPO = ROOT
+from support.bench_scripts import bench_env, bench_result
 
 # slow: a benchmark script run end to end, with its own pods (20-30 s on 2 cores).
 pytestmark = [
@@ -36,19 +29,13 @@ pytestmark = [
 @pytest.fixture(scope="module")
 def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("render-compare")
-    shutil.copytree(REPO / "bench", root / "bench", ignore=shutil.ignore_patterns("__pycache__"))
-    env = {**os.environ, "MUJOCO_GL": "egl", "PYTHONPATH": str(REPO)}
-    for name in ("VECSIM_TOKEN", "VECSIM_MESA_EGL_VENDOR", "VECSIM_MESA_LIBRARY_PATH", "VECSIM_MESA_DRIVERS"):
-        env.pop(name, None)
-    done = subprocess.run(
-        [sys.executable, str(root / "bench" / "bench_gpu_scale.py"), "--render-compare", "--tasks",
-         "gym/HalfCheetah-v5", "--size", "16", "--envs-per-task", "2", "--horizon", "3", "--rounds", "1"],
-        cwd=root, env=env, capture_output=True, text=True, timeout=170,
-    )  # fmt: skip
-    assert done.returncode == 0, f"bench_gpu_scale.py --render-compare failed:\n{done.stderr[-3000:]}"
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    assert len(lines) == 1, f"printed {len(lines)} RESULT lines:\n{done.stdout[-2000:]}"
-    return json.loads(lines[0].removeprefix("RESULT ")), root
+    # EGL whatever the caller's shell says, and none of the caller's Mesa choices.
+    env = bench_env(drop=("VECSIM_TOKEN", "VECSIM_MESA_EGL_VENDOR", "VECSIM_MESA_LIBRARY_PATH", "VECSIM_MESA_DRIVERS"),
+                    extra={"MUJOCO_GL": "egl"})  # fmt: skip
+    summary = bench_result(root, "bench_gpu_scale.py", "--render-compare", "--tasks", "gym/HalfCheetah-v5",
+                           "--size", "16", "--envs-per-task", "2", "--horizon", "3", "--rounds", "1",
+                           timeout=170, env=env)  # fmt: skip
+    return summary, root
 
 
 @pytest.mark.timeout(180)

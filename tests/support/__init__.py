@@ -1,4 +1,4 @@
-"""Helpers the tests share: processes on loopback, scripted pods, test envs, manifests.
+"""Helpers the tests share: processes on loopback, scripted pods, test envs, manifests, bench scripts.
 
 ``tests/`` is on ``sys.path`` (pyproject's pytest ``pythonpath``), so a test anywhere under it
 imports these as ``support.<module>``; a subprocess gets ``tests/`` on its ``PYTHONPATH`` from
