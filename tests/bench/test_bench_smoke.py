@@ -21,10 +21,10 @@ pytestmark = pytest.mark.slow
 COMMON_FIELDS = {"name", "command", "machine", "baseline", "ratio", "target", "met", "quick"}
 
 
-def run_quick(script: str, tmp_path: Path) -> tuple[dict[str, Any], Path]:
-    """Run ``bench/<script> --quick`` from a copy of bench/ (with the caller's ``PYTHONPATH``);
-    return its RESULT and its JSON file."""
-    result = bench_result(tmp_path, script, "--quick", timeout=280, env=bench_env(repo_on_path=False))
+def run_quick(script: str, tmp_path: Path, *args: str) -> tuple[dict[str, Any], Path]:
+    """Run ``bench/<script> --quick [args]`` from a copy of bench/ (with the caller's
+    ``PYTHONPATH``); return its RESULT and its JSON file."""
+    result = bench_result(tmp_path, script, "--quick", *args, timeout=280, env=bench_env(repo_on_path=False))
     return result, tmp_path / "out" / "bench" / f"{result['name']}.json"
 
 
@@ -101,8 +101,10 @@ def test_profile_call_reports_every_layer_of_one_step(tmp_path: Path) -> None:
 
 @pytest.mark.timeout(300)
 def test_refill_benchmark_reports_refill_against_batch_at_once_over_the_same_steps(tmp_path: Path) -> None:
-    result, written = run_quick("bench_refill.py", tmp_path)
+    # In chunks of 4 actions per env and policy call, cut to each trajectory's own horizon.
+    result, written = run_quick("bench_refill.py", tmp_path, "--chunk", "4")
     assert_common(result, "bench_refill", written)
+    assert result["setup"]["chunk"] == 4
     assert set(result["env_steps_per_s"]) == {"refill", "batch"}
     assert result["ratio_refill_vs_batch"]["n"] == result["setup"]["rounds"]
     steps = result["setup"]["env_steps_per_run"]
