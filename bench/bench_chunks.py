@@ -22,17 +22,17 @@ applying ``--actions`` actions per env (so every K does the same physics):
 
 Before the job starts, ``--pods`` processes pinned to the pods' cores step the same task mix
 without cameras, HTTP or pods (``bench_physics_scaling.worker``) for ``--physics-seconds``: the
-physics-only rate of the node. Then the same processes build the mix with the pods' cameras and
-render preset and, for each K, apply K actions per env and render every camera once, in one
-batch of the same renderer as a pod's worker (EGL on the GPU node): the ceiling, the node's
-simulation alone (issue 27); it runs again with every env reset after ``--actions`` actions, as a
-rollout of that horizon must (``K=k/reset_every_H``). The ceiling runs again after the rounds,
-with the pods gone, and each of its figures is the mean of the two runs, which bracket the
-rounds in time (a shared machine's load drifts over minutes; both ends are in the record, and
-the last round starts only if time for this second run is left). Every contender is reported as
-a fraction of both ceilings and of physics-only, and
-``per_env_step_ms`` puts the pods' own physics and render time per env-step (their ``/metrics``)
-next to the bare processes'.
+physics-only rate of the node. Then as many processes on the same cores build the mix with the
+pods' cameras and render preset and stay up beside the job (``CeilingProcesses``): in every
+round, while the pods idle, they apply K actions per env and render every camera once, in one
+batch of the same renderer as a pod's worker (EGL on the GPU node), for ``--physics-seconds`` per
+K: the ceiling, the node's simulation alone (issue 27); and again with every env reset after
+``--actions`` actions, as a rollout of that horizon must (``K=k/reset_every_H``). Every contender
+is reported as a fraction of both ceilings, paired by round (on a shared machine the bare
+processes' own rate drifts by up to 30% in minutes), and of physics-only; ``per_env_step_ms``
+puts the pods' own physics and render time per env-step (their ``/metrics``) next to the bare
+processes'. The ceiling's processes hold about as much memory as the pods' workers (LIBERO-10 on
+12 cores: ~40 GiB each), which ``--max-memory-gib`` counts.
 
 Targets: ``loop/K=8`` >= 1.5x ``loop/K=1`` (paired by round), the node at K = 8 >= 0.8 of the
 physics-only rate (the chunks issue), and ``loop/K=8`` >= 0.9 of the ceiling at K = 8 (issue 27).
@@ -42,7 +42,7 @@ Commands::
     source .device/setup.sh && python bench/bench_chunks.py --gpu --copy-to "$OUT"   # the GPU machine
     python bench/bench_chunks.py --gpu --dry       # probe: 1 pod, K = 1 and 4, 4 actions; fails fast
     python bench/bench_chunks.py --cpu-small       # here: 2 pods of 2 tiny tasks, 32x32, K = 1 and 4
-    python bench/bench_chunks.py --gpu --chunks 8 --actions 128 --waves 6 --stage-layout pods  # issue 27's 0.9
+    python bench/bench_chunks.py --gpu --chunks 8 --actions 64 --waves 10 --physics-seconds 5   # issue 27's 0.9
     python bench/bench_chunks.py --quick           # smoke: 2 pods of a gym scene, 16x16, K = 1 and 8
 
 Writes out/bench/bench_chunks[_cpu|_dry].json and prints one ``RESULT {json}`` line; ``--copy-to``
@@ -84,7 +84,6 @@ log = logging.getLogger("bench.chunks")
 CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
 PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
 CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
-CEILING_AFTER_S = 90.0  # seconds kept after the rounds for the ceiling's second run (its processes build the envs again)
 PIPELINE_K = 8
 # --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
 QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
@@ -162,6 +161,41 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
     return gs.Measured(stats, **seen)
 
 
+def _collect(procs: Sequence[Any], results: Any, kind_wanted: str, count: int, timeout_s: float) -> list[Any]:
+    """Return the payloads of ``count`` ``(kind_wanted, index, payload)`` messages from the pinned
+    processes ``procs`` on ``results``, in arrival order.
+
+    Raises:
+        RuntimeError: a process sent ``("error", index, traceback)``, exited, or fewer than
+            ``count`` messages came within ``timeout_s``.
+    """
+    end = time.monotonic() + timeout_s
+    payloads: list[Any] = []
+    while len(payloads) < count:
+        try:
+            kind, index, payload = results.get(timeout=min(max(end - time.monotonic(), 0.1), 5.0))
+        except queue.Empty:
+            dead = [i for i, proc in enumerate(procs) if proc.exitcode not in (None, 0)]
+            if dead:  # a process that died before it could report: fail now, not at the timeout
+                raise RuntimeError(f"pinned processes {dead} exited without a {kind_wanted!r} message") from None
+            if time.monotonic() < end:
+                continue
+            raise RuntimeError(f"{len(payloads)} of {count} {kind_wanted!r} messages came from the pinned processes "
+                               f"in {timeout_s:.0f} s")  # fmt: skip
+        if kind == "error":
+            raise RuntimeError(f"pinned process {index} failed:\n{payload}")
+        if kind == kind_wanted:
+            payloads.append(payload)
+    return payloads
+
+
+def _stop(procs: Sequence[Any]) -> None:
+    for proc in procs:
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.kill()
+
+
 def _pinned(pins: Sequence[str], target: Callable[..., None], args: Callable[[int, int], tuple[Any, ...]],
             reports: int, timeout_s: float) -> list[Any]:
     """Run ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
@@ -172,37 +206,15 @@ def _pinned(pins: Sequence[str], target: Callable[..., None], args: Callable[[in
         RuntimeError: a process failed (its traceback) or did not report within ``timeout_s``.
     """
     context = multiprocessing.get_context("spawn")
-    count = len(pins)
-    barrier, results = context.Barrier(count), context.Queue()
-    procs = []
-    for i, pin in enumerate(pins):
-        cpu = int(pin.split(",")[0])
-        procs.append(context.Process(target=target, args=(i, cpu, *args(i, cpu), barrier, results), daemon=True))
+    barrier, results = context.Barrier(len(pins)), context.Queue()
+    procs = [context.Process(target=target, args=(i, int(pin.split(",")[0]), *args(i, int(pin.split(",")[0])), barrier, results),
+                             daemon=True) for i, pin in enumerate(pins)]  # fmt: skip
     for proc in procs:
         proc.start()
-    end = time.monotonic() + timeout_s
-    payloads: list[Any] = []
     try:
-        while len(payloads) < reports:
-            try:
-                kind, index, payload = results.get(timeout=min(max(end - time.monotonic(), 0.1), 5.0))
-            except queue.Empty:
-                dead = [i for i, proc in enumerate(procs) if proc.exitcode not in (None, 0)]
-                if dead:  # a process that died before it could report: fail now, not at the timeout
-                    raise RuntimeError(f"pinned processes {dead} exited without a rate") from None
-                if time.monotonic() < end:
-                    continue
-                raise RuntimeError(f"{len(payloads)} of {reports} rates came from the pinned processes in {timeout_s:.0f} s")
-            if kind == "error":
-                raise RuntimeError(f"pinned process {index} failed:\n{payload}")
-            if kind == "rate":
-                payloads.append(payload)
+        return _collect(procs, results, "rate", reports, timeout_s)
     finally:
-        for proc in procs:
-            proc.join(timeout=10)
-            if proc.is_alive():
-                proc.kill()
-    return payloads
+        _stop(procs)
 
 
 def _spread(rates: Sequence[float]) -> dict[str, float]:
@@ -236,15 +248,16 @@ def ceiling_runs(chunks: Sequence[int], reset_every: int) -> list[tuple[int, int
 
 
 def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any], preset: str, envs_per_task: int,
-                   chunks: list[int], seconds: float, reset_every: int, barrier: Any, results: Any) -> None:  # fmt: skip
+                   commands: Any, barrier: Any, results: Any) -> None:  # fmt: skip
     """Pin to ``cpu``; build the task mix as a pod's worker does (``envs_per_task`` envs of each
-    task, the job's cameras and render preset); then for each K, in step with the other
-    processes: apply K actions to every env (resetting one that ended), and render every env's
-    cameras once, in one batch of the process's renderer, as the pod's worker does after a
-    chunk (``vecsim.engine.worker.Worker._draw``). With ``reset_every`` > 0, each K runs a second
-    time resetting every env (to its next state id) after that many actions, as a rollout of that
-    horizon must. Reports ``("rate", index, (K, reset_every or 0, env-steps/s, physics seconds,
-    render seconds, env-steps))``; the resets' time counts as physics."""
+    task, the job's cameras and render preset), say ``("ready", index, None)``, then carry out
+    each ``(K, reset_every, seconds)`` from ``commands`` (None: exit), in step with the other
+    processes: for ``seconds``, apply K actions to every env (resetting one that ended), and
+    render every env's cameras once, in one batch of the process's renderer, as the pod's worker
+    does after a chunk (``vecsim.engine.worker.Worker._draw``); with ``reset_every`` > 0, resetting
+    every env (to its next state id) after that many actions too, as a rollout of that horizon
+    must. Reports ``("rate", index, (K, reset_every, env-steps/s, physics seconds, render seconds,
+    env-steps))``; the resets' time counts as physics."""
     logging.basicConfig(level=logging.WARNING)
     try:
         os.sched_setaffinity(0, {cpu})
@@ -282,7 +295,9 @@ def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any
             return steps, stepped - started, time.perf_counter() - stepped
 
         chunk_all(0, 1)  # warm-up: the renderer's first frame, the controller's first step
-        for k, every in ceiling_runs(chunks, reset_every):
+        results.put(("ready", index, None))
+        while (command := commands.get()) is not None:
+            k, every, seconds = command
             barrier.wait(timeout=900)
             since_reset[:] = [0] * len(envs)
             turns = steps = 0
@@ -298,61 +313,117 @@ def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any
         barrier.abort()
 
 
-def ceiling(pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: float, timeout_s: float,
-            reset_every: int = 0) -> dict[str, Any]:  # fmt: skip
-    """The node's simulation alone (issue 27's ceiling): the processes and task mix of
-    :func:`physics_only`, with the pods' cameras rendered once per K actions
-    (:func:`ceiling_worker`), no HTTP or pods; per K, env-steps/s summed over the processes and
-    the physics and render milliseconds per env-step. With ``reset_every``, also per K as
-    ``K=k/reset_every_H``: the same with every env reset after H actions.
+class CeilingProcesses:
+    """The node's simulation alone (issue 27's ceiling): one process per pod core (``pins``), with
+    the task mix of :func:`physics_only` and the pods' cameras rendered once per K actions
+    (:func:`ceiling_worker`), no HTTP or pods. Built once and kept up beside the job, so that the
+    ceiling is a contender of every round, run while the pods idle: on a shared machine the
+    bare processes' own rate drifts by up to 30% over minutes (H200 node, 2026-11-28), so a ceiling
+    measured before or after the rounds is no baseline for them.
 
-    Raises:
-        RuntimeError: a process failed (its traceback) or did not answer within ``timeout_s``.
+    :meth:`measure` runs each K for ``seconds`` and, with ``reset_every``, again as
+    ``K=k/reset_every_H`` with every env reset after H actions; per run, env-steps/s summed over
+    the processes and the physics and render milliseconds per env-step.
     """
-    args = lambda i, cpu: (list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task,  # noqa: E731
-                           list(chunks), seconds, reset_every)  # fmt: skip
-    runs = ceiling_runs(chunks, reset_every)
-    reports = _pinned(pins, ceiling_worker, args, len(pins) * len(runs), timeout_s)
-    out: dict[str, Any] = {"processes": len(pins), "pinned_to": list(pins), "seconds_per_k": seconds,
-                           "camera": gs.camera(plan), "render_preset": plan.render_preset}  # fmt: skip
-    for k, every in runs:
-        mine = [r[2:] for r in reports if r[:2] == (k, every)]
-        steps = max(sum(r[3] for r in mine), 1)
-        out[f"K={k}" + (f"/reset_every_{every}" if every else "")] = {
-            "env_steps_per_s": round(sum(r[0] for r in mine), 1),
-            "per_process": _spread([r[0] for r in mine]),
-            "physics_ms_per_env_step": round(1000 * sum(r[1] for r in mine) / steps, 3),
-            "render_ms_per_env_step": round(1000 * sum(r[2] for r in mine) / steps, 3),
+
+    def __init__(self, pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: float, reset_every: int,
+                 timeout_s: float) -> None:  # fmt: skip
+        self.pins, self.plan, self.seconds, self.timeout_s = list(pins), plan, seconds, timeout_s
+        self.runs = ceiling_runs(chunks, reset_every)
+        self._procs: list[Any] = []
+        self._commands: list[Any] = []
+
+    def __enter__(self) -> CeilingProcesses:
+        context = multiprocessing.get_context("spawn")
+        self._results, barrier = context.Queue(), context.Barrier(len(self.pins))
+        plan = self.plan
+        for i, pin in enumerate(self.pins):
+            commands = context.Queue()
+            self._commands.append(commands)
+            args = (i, int(pin.split(",")[0]), list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task,
+                    commands, barrier, self._results)  # fmt: skip
+            self._procs.append(context.Process(target=ceiling_worker, args=args, daemon=True))
+        for proc in self._procs:
+            proc.start()
+        try:
+            _collect(self._procs, self._results, "ready", len(self._procs), self.timeout_s)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for commands in self._commands:
+            commands.put(None)
+        _stop(self._procs)
+
+    def measure(self) -> dict[str, Any]:
+        """One run of every K (module docstring): its figures by ``K=k`` and ``K=k/reset_every_H``.
+
+        Raises:
+            RuntimeError: a process failed (its traceback) or did not report within the timeout.
+        """
+        for k, every in self.runs:
+            for commands in self._commands:
+                commands.put((k, every, self.seconds))
+        reports = _collect(self._procs, self._results, "rate", len(self._procs) * len(self.runs),
+                           self.timeout_s + len(self.runs) * self.seconds)  # fmt: skip
+        out: dict[str, Any] = {}
+        for k, every in self.runs:
+            mine = [r[2:] for r in reports if r[:2] == (k, every)]
+            steps = max(sum(r[3] for r in mine), 1)
+            out[ceiling_key(k, every)] = {
+                "env_steps_per_s": round(sum(r[0] for r in mine), 1),
+                "per_process": _spread([r[0] for r in mine]),
+                "physics_ms_per_env_step": round(1000 * sum(r[1] for r in mine) / steps, 3),
+                "render_ms_per_env_step": round(1000 * sum(r[2] for r in mine) / steps, 3),
+            }
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        return {"processes": len(self.pins), "pinned_to": self.pins, "seconds_per_k": self.seconds,
+                "camera": gs.camera(self.plan), "render_preset": self.plan.render_preset}  # fmt: skip
+
+
+def ceiling_key(k: int, every: int) -> str:
+    """A ceiling run's name: ``K=k``, or ``K=k/reset_every_H``."""
+    return f"K={k}" + (f"/reset_every_{every}" if every else "")
+
+
+@dataclasses.dataclass(frozen=True)
+class CeilingRound:
+    """The ceiling's figures of one round (:meth:`CeilingProcesses.measure`); its rate is that of
+    run ``at`` (a ``ceiling_key``), so that it sits in the rounds beside the rollouts."""
+
+    figures: dict[str, Any]
+    at: str
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.figures[self.at]["env_steps_per_s"]
+
+
+def ceiling_over_rounds(rounds: Sequence[CeilingRound], described: dict[str, Any]) -> dict[str, Any]:
+    """The ceiling's record: ``described``, and per run the medians over ``rounds`` of its
+    env-steps/s and milliseconds per env-step, its per-round rates and each round's spread
+    over the processes."""
+    out = dict(described)
+    for key in rounds[0].figures:
+        figures = [r.figures[key] for r in rounds]
+        out[key] = {
+            "env_steps_per_s": round(statistics.median(f["env_steps_per_s"] for f in figures), 1),
+            "physics_ms_per_env_step": round(statistics.median(f["physics_ms_per_env_step"] for f in figures), 3),
+            "render_ms_per_env_step": round(statistics.median(f["render_ms_per_env_step"] for f in figures), 3),
+            "per_round": [f["env_steps_per_s"] for f in figures],
+            "per_process_by_round": [f["per_process"] for f in figures],
         }
     return out
 
 
-def bracket(before: dict[str, Any], after: dict[str, Any] | None) -> dict[str, Any]:
-    """The ceiling from its runs before and after the rounds: per ``K=...`` run, env-steps/s and
-    the physics and render milliseconds per env-step as the mean of the two ends, each end kept
-    (``before``, ``after``) with ``after_over_before``. Without ``after`` (no time was left), the
-    run before the rounds alone (``bracketed`` false)."""
-    out = {**before, "bracketed": after is not None}
-    if after is None:
-        return out
-    for key, first in before.items():
-        if not key.startswith("K="):
-            continue
-        last = after[key]
-        out[key] = {
-            **{name: round((first[name] + last[name]) / 2, 3 if name.endswith("_ms_per_env_step") else 1)
-               for name in ("env_steps_per_s", "physics_ms_per_env_step", "render_ms_per_env_step")},
-            "after_over_before": round(last["env_steps_per_s"] / first["env_steps_per_s"], 3) if first["env_steps_per_s"] else None,
-            "before": first,
-            "after": last,
-        }  # fmt: skip
-    return out
-
-
 def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline,
-            reserve_s: float = 10.0) -> dict[str, Any]:  # fmt: skip
-    """Every contender (module docstring) in interleaved rounds; a round starts only while it and
-    ``reserve_s`` more fit before the deadline."""
+            top: CeilingProcesses) -> dict[str, Any]:  # fmt: skip
+    """Every contender (module docstring) and the ceiling (``top``, run while the pods idle) in
+    interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     one = gs.TimedStageClient(gs.regroup(table, names, 1), token=job.token, timeout_s=300)
     two = (gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300)
@@ -385,7 +456,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         if sliced is not None and PIPELINE_K in chunked:
             gs.loop_rollout(sliced, chunked[PIPELINE_K], warm, plan.device)
         log.info("warm-up done, %.0f s left", deadline.left())
-        contenders: dict[str, Callable[[], gs.Measured]] = {}
+        contenders: dict[str, Callable[[], Any]] = {}  # each round's gs.Measured; the ceiling's CeilingRound
         for k in settings.chunks:
             contenders[f"service/K={k}"] = lambda k=k: service_chunks(one, settings.actions, k, 300)
             contenders[f"loop/K={k}"] = lambda k=k: gs.loop_rollout(
@@ -396,13 +467,18 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         if sliced is not None and PIPELINE_K in chunked:
             contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
                 sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
-        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=reserve_s)
+        at = ceiling_key(PIPELINE_K if PIPELINE_K in settings.chunks else settings.chunks[-1], 0)
+        contenders["ceiling"] = lambda: CeilingRound(top.measure(), at)
+        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=10)
     finally:
         for client in (one, two, sliced):
             if client is not None:
                 client.close()
+    ceilings: list[CeilingRound] = runs.pop("ceiling")
     rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
-    result: dict[str, Any] = {"policy": policy_info}
+    for key in ceilings[0].figures:
+        rates[f"ceiling/{key}"] = [c.figures[key]["env_steps_per_s"] for c in ceilings]
+    result: dict[str, Any] = {"policy": policy_info, "ceiling": ceiling_over_rounds(ceilings, top.describe())}
     for kind in ("service", "loop"):
         section = {}
         for k in settings.chunks:
@@ -488,45 +564,40 @@ def run(args: argparse.Namespace) -> int:
     log.info("physics only: %d processes on %s, %.0f s", plan.pods, pod_pins, settings.physics_seconds)
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
-    log.info("ceiling: %d processes, cameras %s once per K, %g s per K", plan.pods, gs.camera(plan), settings.physics_seconds)
-    before = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0),
-                     settings.actions)
-    log.info("ceiling: %s", {k: v["env_steps_per_s"] for k, v in before.items() if k.startswith("K=")})
+    log.info("ceiling: %d processes, cameras %s once per K, %g s per K, in every round",
+             plan.pods, gs.camera(plan), settings.physics_seconds)  # fmt: skip
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
     config = gs.job_config(plan, pins, "chunks", plan.pods)
     started = time.monotonic()
-    with gs.running_job(config, args.copy_to) as job, gs.MemoryWatch(plan.max_memory_gib) as memory:
+    with (
+        gs.MemoryWatch(plan.max_memory_gib) as memory,
+        CeilingProcesses(pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions,
+                         min(deadline.left(), 300.0)) as top,
+        gs.running_job(config, args.copy_to) as job,
+    ):  # fmt: skip
         table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
-        log.info("%d pods ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
-        measured = measure(plan, settings, job, table, deadline, reserve_s=CEILING_AFTER_S)
-
-    # The ceiling again, the rounds over and the pods gone: on a shared machine the neighbours'
-    # load drifts over minutes, so the ceiling brackets the rounds in time instead of preceding them.
-    after = None
-    if deadline.left() >= CEILING_AFTER_S:
-        log.info("ceiling again, after the rounds")
-        after = ceiling(pod_pins, plan, settings.chunks, settings.physics_seconds, min(deadline.left(), 300.0),
-                        settings.actions)
-        log.info("ceiling after the rounds: %s", {k: v["env_steps_per_s"] for k, v in after.items() if k.startswith("K=")})
-    else:
-        log.warning("%.0f s left: the ceiling is not measured again after the rounds", deadline.left())
-    top = bracket(before, after)
+        log.info("%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
+        measured = measure(plan, settings, job, table, deadline, top)
 
     node = physics["env_steps_per_s"]
-    two_stage_rows = [(f"K={PIPELINE_K}", measured[kind]["stages=2"]) for kind in ("pipeline", "slices") if kind in measured]
-    for kind in ("service", "loop", "two_stages"):
-        for at_k, row in (two_stage_rows if kind == "two_stages" else measured[kind].items()):
-            row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
-            limit = top[at_k]["env_steps_per_s"]
-            row["fraction_of_ceiling"] = round(row["env_steps_per_s"]["median"] / limit, 3) if limit else None
-            # The ceiling with a reset every --actions actions, as a rollout of that horizon has.
-            with_resets = top[f"{at_k}/reset_every_{settings.actions}"]["env_steps_per_s"]
-            row["fraction_of_ceiling_with_resets"] = (
-                round(row["env_steps_per_s"]["median"] / with_resets, 3) if with_resets else None)
+    top = measured.pop("ceiling")
+    per_round = measured["per_round"]
+    rows = [(f"{kind}/{at_k}", at_k, row) for kind in ("service", "loop") for at_k, row in measured[kind].items()]
+    rows += [(name, f"K={PIPELINE_K}", measured[kind]["stages=2"])
+             for kind, name in (("pipeline", f"loop_stages=2/K={PIPELINE_K}"), ("slices", f"loop_slices=2/K={PIPELINE_K}"))
+             if kind in measured]  # fmt: skip
+    for name, at_k, row in rows:
+        row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
+        # Paired by round: each round's rate over the ceiling of the same round; the second, the
+        # ceiling with a reset every --actions actions, as a rollout of that horizon has.
+        for field, key in (("fraction_of_ceiling", at_k), ("fraction_of_ceiling_with_resets", ceiling_key(int(at_k[2:]), settings.actions))):
+            paired = paired_ratio(per_round[name], per_round[f"ceiling/{key}"])
+            row[field] = paired["median"]
+            row[f"{field}_by_round"] = paired
     at = f"K={PIPELINE_K}" if PIPELINE_K in settings.chunks else f"K={settings.chunks[-1]}"
     # The best EnvLoop at K=8, whichever stage layout it used: the user picks the layout.
     loops = {"loop/1 stage": measured["loop"].get(at, {}), "loop/2 stages (pods)": measured.get("pipeline", {}).get("stages=2", {}),

@@ -129,23 +129,36 @@ def test_stage_layouts_come_in_order_each_once_and_an_unknown_one_is_named(bench
         bench.parse_stage_layouts(",")
 
 
-def test_the_ceiling_before_and_after_the_rounds_is_their_mean_with_both_ends_kept():
+def _plan(bench, tasks: tuple[str, ...]):
+    return bench.Plan(mode="scaling", tasks=tasks, size=8, envs_per_task=1, pods=1, pod_counts=(1,), pipeline_cores=1,
+                      horizon=4, service_steps=4, rounds=1, device="cpu", dtype="float32", vit_width=0, vit_max_depth=0,
+                      max_memory_gib=100.0, deadline_s=60.0)  # fmt: skip
+
+
+@pytest.mark.timeout(120)
+def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rounds(bench):
     sys.path.insert(0, str(BENCH))
     try:
         import bench_chunks
     finally:
         sys.path.remove(str(BENCH))
+    with bench_chunks.CeilingProcesses(["0"], _plan(bench, ("gym/HalfCheetah-v5",)), [1, 4], 0.2, 3, 60.0) as top:
+        first, second = top.measure(), top.measure()
+        assert all(proc.is_alive() for proc in top._procs)
+    for figures in (first, second):
+        assert set(figures) == {"K=1", "K=1/reset_every_3", "K=4", "K=4/reset_every_3"}
+        assert all(run["env_steps_per_s"] > 0 for run in figures.values())
+    assert not any(proc.is_alive() for proc in top._procs)
 
-    def run(rate: float, physics: float) -> dict:
-        return {"env_steps_per_s": rate, "physics_ms_per_env_step": physics, "render_ms_per_env_step": 0.4}
 
-    before = {"processes": 12, "K=8": run(1800.0, 6.2), "K=8/reset_every_128": run(1780.0, 6.3)}
-    after = {"processes": 12, "K=8": run(1600.0, 7.0), "K=8/reset_every_128": run(1580.0, 7.1)}
-    top = bench_chunks.bracket(before, after)
-    assert top["bracketed"] is True and top["processes"] == 12
-    assert top["K=8"]["env_steps_per_s"] == 1700.0 and top["K=8"]["physics_ms_per_env_step"] == 6.6
-    assert top["K=8"]["after_over_before"] == 0.889
-    assert top["K=8/reset_every_128"]["before"] == before["K=8/reset_every_128"]
-    assert top["K=8/reset_every_128"]["after"] == after["K=8/reset_every_128"]
-    # No time left for the second run: the first alone, and the record says so.
-    assert bench_chunks.bracket(before, None) == {**before, "bracketed": False}
+@pytest.mark.timeout(120)
+def test_a_ceiling_process_that_cannot_build_its_envs_fails_the_run_naming_its_error(bench):
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_chunks
+    finally:
+        sys.path.remove(str(BENCH))
+    top = bench_chunks.CeilingProcesses(["0"], _plan(bench, ("gym/NoSuchEnv-v0",)), [1], 0.2, 0, 60.0)
+    with pytest.raises(RuntimeError, match="pinned process 0 failed"):
+        top.__enter__()
+    assert not any(proc.is_alive() for proc in top._procs)
