@@ -1,6 +1,7 @@
-"""Pure parts of ``bench/bench_gpu_scale.py`` that the GPU run depends on and this machine
-cannot show: which CPUs pods get on a machine with hyperthreads, and the slowest-pod figures
-of a stage call.
+"""Parts of the GPU benches that their runs depend on, checked here: from
+``bench/bench_gpu_scale.py``, which CPUs pods get on a machine with hyperthreads, the
+slowest-pod figures of a stage call and ``--stage-layout``; from ``bench/bench_chunks.py``, the
+ceiling's pinned processes, which stay up between rounds and fail a run naming their error.
 
 The bench is a script, not a package: it is imported from ``bench/`` as it imports its helpers.
 """
@@ -22,6 +23,17 @@ def bench():
         import bench_gpu_scale
 
         yield bench_gpu_scale
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+@pytest.fixture(scope="module")
+def chunks(bench):
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_chunks
+
+        yield bench_chunks
     finally:
         sys.path.remove(str(BENCH))
 
@@ -136,13 +148,8 @@ def _plan(bench, tasks: tuple[str, ...]):
 
 
 @pytest.mark.timeout(120)
-def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rounds(bench):
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_chunks
-    finally:
-        sys.path.remove(str(BENCH))
-    with bench_chunks.CeilingProcesses(["0"], _plan(bench, ("gym/HalfCheetah-v5",)), [1, 4], 0.2, 3, 60.0) as top:
+def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rounds(bench, chunks):
+    with chunks.CeilingProcesses(["0"], _plan(bench, ("gym/HalfCheetah-v5",)), [1, 4], 0.2, 3, 60.0) as top:
         first, second = top.measure(), top.measure()
         assert all(proc.is_alive() for proc in top._procs)
     for figures in (first, second):
@@ -152,13 +159,8 @@ def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rou
 
 
 @pytest.mark.timeout(120)
-def test_a_ceiling_process_that_cannot_build_its_envs_fails_the_run_naming_its_error(bench):
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_chunks
-    finally:
-        sys.path.remove(str(BENCH))
-    top = bench_chunks.CeilingProcesses(["0"], _plan(bench, ("gym/NoSuchEnv-v0",)), [1], 0.2, 0, 60.0)
+def test_a_ceiling_process_that_cannot_build_its_envs_fails_the_run_naming_its_error(bench, chunks):
+    top = chunks.CeilingProcesses(["0"], _plan(bench, ("gym/NoSuchEnv-v0",)), [1], 0.2, 0, 60.0)
     with pytest.raises(RuntimeError, match="pinned process 0 failed"):
         top.__enter__()
     assert not any(proc.is_alive() for proc in top._procs)
