@@ -98,6 +98,11 @@ class Settings:
     physics_seconds: float
     waves: int = 1  # trajectories per env in every EnvLoop rollout (refill)
 
+    @property
+    def headline_k(self) -> int:
+        """The K of the targets' figures: ``PIPELINE_K`` where it is measured, else the largest."""
+        return PIPELINE_K if PIPELINE_K in self.chunks else self.chunks[-1]
+
 
 class ChunkedPolicy:
     """A policy of one action per call acting in chunks of ``k``: one forward pass per chunk,
@@ -196,21 +201,32 @@ def _stop(procs: Sequence[Any]) -> None:
             proc.kill()
 
 
+def _spawn(pins: Sequence[str], target: Callable[..., None],
+           args: Callable[[int, int], tuple[Any, ...]]) -> tuple[list[Any], Any, Any]:  # fmt: skip
+    """Start ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
+    pod core (``pins``), all sharing one barrier; return the processes, their ``results`` queue and
+    the barrier, which the caller keeps while they run (a spawned child unpickles it after
+    ``start`` has dropped its own reference)."""
+    context = multiprocessing.get_context("spawn")
+    barrier, results = context.Barrier(len(pins)), context.Queue()
+    procs = []
+    for i, pin in enumerate(pins):
+        cpu = int(pin.split(",")[0])
+        procs.append(context.Process(target=target, args=(i, cpu, *args(i, cpu), barrier, results), daemon=True))
+    for proc in procs:
+        proc.start()
+    return procs, results, barrier
+
+
 def _pinned(pins: Sequence[str], target: Callable[..., None], args: Callable[[int, int], tuple[Any, ...]],
             reports: int, timeout_s: float) -> list[Any]:
-    """Run ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
-    pod core (``pins``), all at once; return the ``reports`` payloads of its ``("rate", index,
-    payload)`` messages, in arrival order.
+    """Run ``target`` in one process per pod core (:func:`_spawn`), all at once; return the
+    ``reports`` payloads of its ``("rate", index, payload)`` messages, in arrival order.
 
     Raises:
         RuntimeError: a process failed (its traceback) or did not report within ``timeout_s``.
     """
-    context = multiprocessing.get_context("spawn")
-    barrier, results = context.Barrier(len(pins)), context.Queue()
-    procs = [context.Process(target=target, args=(i, int(pin.split(",")[0]), *args(i, int(pin.split(",")[0])), barrier, results),
-                             daemon=True) for i, pin in enumerate(pins)]  # fmt: skip
-    for proc in procs:
-        proc.start()
+    procs, results, _barrier = _spawn(pins, target, args)
     try:
         return _collect(procs, results, "rate", reports, timeout_s)
     finally:
@@ -334,17 +350,10 @@ class CeilingProcesses:
         self._commands: list[Any] = []
 
     def __enter__(self) -> CeilingProcesses:
-        context = multiprocessing.get_context("spawn")
-        self._results, barrier = context.Queue(), context.Barrier(len(self.pins))
         plan = self.plan
-        for i, pin in enumerate(self.pins):
-            commands = context.Queue()
-            self._commands.append(commands)
-            args = (i, int(pin.split(",")[0]), list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task,
-                    commands, barrier, self._results)  # fmt: skip
-            self._procs.append(context.Process(target=ceiling_worker, args=args, daemon=True))
-        for proc in self._procs:
-            proc.start()
+        self._commands = [multiprocessing.get_context("spawn").Queue() for _ in self.pins]
+        self._procs, self._results, self._barrier = _spawn(self.pins, ceiling_worker, lambda i, cpu: (
+            list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task, self._commands[i]))
         try:
             _collect(self._procs, self._results, "ready", len(self._procs), self.timeout_s)
         except BaseException:
@@ -421,9 +430,9 @@ def ceiling_over_rounds(rounds: Sequence[CeilingRound], described: dict[str, Any
 
 
 def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline,
-            top: CeilingProcesses) -> dict[str, Any]:  # fmt: skip
-    """Every contender (module docstring) and the ceiling (``top``, run while the pods idle) in
-    interleaved rounds."""
+            bare: CeilingProcesses) -> dict[str, Any]:  # fmt: skip
+    """Every contender (module docstring) and the ceiling (``bare``'s processes, run while the pods
+    idle) in interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     one = gs.TimedStageClient(gs.regroup(table, names, 1), token=job.token, timeout_s=300)
     two = (gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300)
@@ -467,8 +476,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         if sliced is not None and PIPELINE_K in chunked:
             contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
                 sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
-        at = ceiling_key(PIPELINE_K if PIPELINE_K in settings.chunks else settings.chunks[-1], 0)
-        contenders["ceiling"] = lambda: CeilingRound(top.measure(), at)
+        contenders["ceiling"] = lambda: CeilingRound(bare.measure(), ceiling_key(settings.headline_k, 0))
         runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=10)
     finally:
         for client in (one, two, sliced):
@@ -478,7 +486,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
     rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
     for key in ceilings[0].figures:
         rates[f"ceiling/{key}"] = [c.figures[key]["env_steps_per_s"] for c in ceilings]
-    result: dict[str, Any] = {"policy": policy_info, "ceiling": ceiling_over_rounds(ceilings, top.describe())}
+    result: dict[str, Any] = {"policy": policy_info, "ceiling": ceiling_over_rounds(ceilings, bare.describe())}
     for kind in ("service", "loop"):
         section = {}
         for k in settings.chunks:
@@ -575,30 +583,31 @@ def run(args: argparse.Namespace) -> int:
     with (
         gs.MemoryWatch(plan.max_memory_gib) as memory,
         CeilingProcesses(pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions,
-                         min(deadline.left(), 300.0)) as top,
+                         min(deadline.left(), 300.0)) as bare,
         gs.running_job(config, args.copy_to) as job,
     ):  # fmt: skip
         table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
         log.info("%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
-        measured = measure(plan, settings, job, table, deadline, top)
+        measured = measure(plan, settings, job, table, deadline, bare)
 
     node = physics["env_steps_per_s"]
     top = measured.pop("ceiling")
     per_round = measured["per_round"]
-    rows = [(f"{kind}/{at_k}", at_k, row) for kind in ("service", "loop") for at_k, row in measured[kind].items()]
-    rows += [(name, f"K={PIPELINE_K}", measured[kind]["stages=2"])
+    rows = [(f"{kind}/K={k}", k, measured[kind][f"K={k}"]) for kind in ("service", "loop") for k in settings.chunks]
+    rows += [(name, PIPELINE_K, measured[kind]["stages=2"])
              for kind, name in (("pipeline", f"loop_stages=2/K={PIPELINE_K}"), ("slices", f"loop_slices=2/K={PIPELINE_K}"))
              if kind in measured]  # fmt: skip
-    for name, at_k, row in rows:
+    for name, k, row in rows:
         row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
         # Paired by round: each round's rate over the ceiling of the same round; the second, the
         # ceiling with a reset every --actions actions, as a rollout of that horizon has.
-        for field, key in (("fraction_of_ceiling", at_k), ("fraction_of_ceiling_with_resets", ceiling_key(int(at_k[2:]), settings.actions))):
+        for field, key in (("fraction_of_ceiling", ceiling_key(k, 0)),
+                           ("fraction_of_ceiling_with_resets", ceiling_key(k, settings.actions))):  # fmt: skip
             paired = paired_ratio(per_round[name], per_round[f"ceiling/{key}"])
             row[field] = paired["median"]
             row[f"{field}_by_round"] = paired
-    at = f"K={PIPELINE_K}" if PIPELINE_K in settings.chunks else f"K={settings.chunks[-1]}"
+    at = f"K={settings.headline_k}"
     # The best EnvLoop at K=8, whichever stage layout it used: the user picks the layout.
     loops = {"loop/1 stage": measured["loop"].get(at, {}), "loop/2 stages (pods)": measured.get("pipeline", {}).get("stages=2", {}),
              "loop/2 stages (slices)": measured.get("slices", {}).get("stages=2", {})}  # fmt: skip

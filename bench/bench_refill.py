@@ -81,15 +81,12 @@ def mixed_horizons(n: int, horizon: int, seed: int) -> list[int]:
 def settings(args: argparse.Namespace) -> dict[str, Any]:
     """The mode's sizes, with the flags given on the command line taking precedence."""
     if args.quick:
-        mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2,
-                "chunk": 1}
+        mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2}
     elif args.gpu:
-        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2,
-                "chunk": 1}
+        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2}
     else:
-        mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3,
-                "chunk": 1}
-    return with_flags(mode, args)
+        mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3}
+    return with_flags({**mode, "chunk": 1}, args)  # one action a call in every mode unless --chunk says
 
 
 def main() -> None:
