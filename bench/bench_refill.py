@@ -20,6 +20,14 @@ gains little; nor where the trainer is the bound (``trainer_cpu_per_wall_s`` nea
 process handling every pod's answer), which ``--chunk K`` (K actions per env and policy call)
 relieves K-fold for the same actions. Target (issue 27): refill >= 1.3x batch-at-once.
 
+Where a pod's call goes (``call_split_ms``, per contender, medians over rounds): ``in_flight``, a
+call's time from the client's send to its answer (median over calls); ``turnaround``, from one
+answer of a pod to its next call (the pod idle while the trainer decodes, runs the policy and
+encodes); and the pods' own means per call from their ``/metrics``: ``pod_step`` (the route's
+simulate wall time), ``physics`` and ``render`` (worker seconds, summed over the pod's workers:
+with one env a pod, within ``pod_step``). ``in_flight`` less ``pod_step``
+is HTTP and serving.
+
     python bench/bench_refill.py --quick     # smoke: a gym scene at 8x8, 2 pods of 2 envs
     python bench/bench_refill.py             # dev box: tiny/lift 32x32, 2 pods of 4 envs
     python bench/bench_refill.py --gpu       # GPU node: libero_10/0 128x128, 12 pods of 1 env pinned one per core
@@ -38,6 +46,7 @@ import statistics
 import time
 from typing import Any
 
+import bench_gpu_scale as gs
 import numpy as np
 import torch
 from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
@@ -76,6 +85,27 @@ def mixed_horizons(n: int, horizon: int, seed: int) -> list[int]:
     fractions = np.linspace(SHORTEST, 1.0, n)
     np.random.default_rng(seed).shuffle(fractions)
     return [max(1, round(horizon * f)) for f in fractions]
+
+
+def call_split(stats: list[RolloutStats], pods: dict[str, float]) -> dict[str, float]:
+    """Where one contender's pod calls went, in ms (see the module's doc): the client's view from
+    ``stats`` (the runs of one measurement) and the pods' counters ``pods`` over the same runs."""
+    in_flight, turnaround = [], []
+    for run in stats:
+        last_end: dict[str, float] = {}
+        for _stage, pod, begin, end, _resets, _steps in sorted(run.pod_calls, key=lambda call: call[2]):
+            in_flight.append(end - begin)
+            if pod in last_end:
+                turnaround.append(begin - last_end[pod])
+            last_end[pod] = end
+    calls = max(pods["vecsim_pod_step_seconds_count"], 1.0)
+    return {
+        "in_flight": round(1000 * statistics.median(in_flight), 2) if in_flight else 0.0,
+        "turnaround": round(1000 * statistics.median(turnaround), 2) if turnaround else 0.0,
+        "pod_step": round(1000 * pods["vecsim_pod_step_seconds_sum"] / calls, 2),
+        "physics": round(1000 * pods["vecsim_pod_physics_seconds_total"] / calls, 2),
+        "render": round(1000 * pods["vecsim_pod_render_seconds_total"] / calls, 2),
+    }
 
 
 def settings(args: argparse.Namespace) -> dict[str, Any]:
@@ -140,28 +170,35 @@ def main() -> None:
         # The trainer's CPU seconds per wall second, all its threads: near 1 (or above), the
         # trainer and not the pods bounds the rollout, and refill can gain little.
         busy: dict[str, list[float]] = {"refill": [], "batch": []}
+        splits: dict[str, list[dict[str, float]]] = {"refill": [], "batch": []}
 
         def refill() -> float:
             cpu = time.process_time()
-            stats = loop.run(requests, horizons=horizons).stats
+            with gs.counted(client) as counters:
+                stats = loop.run(requests, horizons=horizons).stats
             busy["refill"].append((time.process_time() - cpu) / stats.wall_s)
+            splits["refill"].append(call_split([stats], counters["pods"]))
             runs["refill"].append(stats)
             return stats.env_steps / stats.wall_s
 
         def batch() -> float:
             started, cpu, steps = time.perf_counter(), time.process_time(), 0
-            for begin in range(0, n, envs):
-                stats = loop.run(requests[begin : begin + envs], horizons=horizons[begin : begin + envs]).stats
-                runs["batch"].append(stats)
-                steps += stats.env_steps
+            waves = []
+            with gs.counted(client) as counters:
+                for begin in range(0, n, envs):
+                    stats = loop.run(requests[begin : begin + envs], horizons=horizons[begin : begin + envs]).stats
+                    waves.append(stats)
+                    steps += stats.env_steps
             wall = time.perf_counter() - started
             busy["batch"].append((time.process_time() - cpu) / wall)
+            splits["batch"].append(call_split(waves, counters["pods"]))
+            runs["batch"].extend(waves)
             return steps / wall
 
         refill(), batch()  # warm-up: connections, first renders
         for stats in runs.values():
             stats.clear()
-        for seconds in busy.values():
+        for seconds in (*busy.values(), *splits.values()):
             seconds.clear()
         figures = interleaved({"refill": refill, "batch": batch}, mode["rounds"])
     ratio = paired_ratio(figures["refill"], figures["batch"])
@@ -193,11 +230,19 @@ def main() -> None:
         "ratio_refill_vs_batch": ratio,
         "env_steps_median": steps,
         "trainer_cpu_per_wall_s": {name: rate_spread(values) for name, values in busy.items()},
+        "call_split_ms": {
+            name: {key: round(statistics.median(split[key] for split in rounds), 2) for key in rounds[0]}
+            for name, rounds in splits.items()
+        },
     }
     details = {
         "per_round": figures,
         "horizons": horizons,
-        "stats": {name: [{k: v for k, v in s.__dict__.items() if k != "timeline"} for s in stats] for name, stats in runs.items()},
+        "call_split_ms_by_round": splits,
+        "stats": {
+            name: [{k: v for k, v in s.__dict__.items() if k not in ("timeline", "pod_calls")} for s in stats]
+            for name, stats in runs.items()
+        },
     }
     write_result("bench_refill", summary, details)
 

@@ -114,3 +114,8 @@ def test_refill_benchmark_reports_refill_against_batch_at_once_over_the_same_ste
     # The trainer's CPU seconds per wall second says whether it, not the pods, bounds the rollout.
     assert set(result["trainer_cpu_per_wall_s"]) == {"refill", "batch"}
     assert result["trainer_cpu_per_wall_s"]["refill"]["median"] > 0
+    # Where a pod's call goes: the client's view against the pods' own /metrics.
+    for name in ("refill", "batch"):
+        split = result["call_split_ms"][name]
+        assert split["in_flight"] > 0 and split["pod_step"] > 0
+        assert split["physics"] > 0 and split["turnaround"] > 0
