@@ -445,7 +445,9 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         space, action = one.observation_space, one.action_space
         policy = gs.VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
         sizes = [one.routing.num_envs, *([s.num_envs for s in two.routing.stages] if two else [])]
-        graphed = gs.GraphedPolicy(policy, space, plan.device, sizes)
+        # Every multiple of a pod's envs, other batch sizes padded: none is captured in a round.
+        graphed = gs.GraphedPolicy(policy, space, plan.device, gs.pod_multiples(plan.envs_per_pod, max(sizes), sizes),
+                                   pad=True)  # fmt: skip
         chunked = {k: ChunkedPolicy(graphed, action, k) for k in settings.chunks}
         policy_info = {
             "name": "ResNet-18 per camera + proprio MLP + MLP head, one forward pass per chunk",
@@ -486,7 +488,7 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
     rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
     for key in ceilings[0].figures:
         rates[f"ceiling/{key}"] = [c.figures[key]["env_steps_per_s"] for c in ceilings]
-    result: dict[str, Any] = {"policy": policy_info, "ceiling": ceiling_over_rounds(ceilings, bare.describe())}
+    result: dict[str, Any] = {"policy": {**policy_info, "graphs": graphed.describe()}, "ceiling": ceiling_over_rounds(ceilings, bare.describe())}
     for kind in ("service", "loop"):
         section = {}
         for k in settings.chunks:

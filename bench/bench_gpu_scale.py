@@ -325,16 +325,33 @@ class GraphedPolicy:
     """A policy replayed from one CUDA graph per batch size (static input buffers), so a forward
     pass costs the calling Python thread a few copies and one replay instead of every kernel
     launch; eager where there is no CUDA. Call it as the policy: ``(obs, instructions, task_ids)``.
-    A batch size not captured up front is captured when first seen (logged)."""
 
-    def __init__(self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int]) -> None:
+    With ``pad``, a batch of a size not captured runs in the graph of the smallest captured size
+    above it, its rows first (the rest of the static input is left as it was; each row's output
+    depends on that row alone, the policy being in eval mode), and ``padded_calls`` and
+    ``padded_rows`` count what that cost. Otherwise, or above the largest captured size, a new
+    size is captured when first seen (logged): seconds for a deep ViT, which without lockstep,
+    where the loop's batches take many sizes, would fall inside the timed rounds."""
+
+    def __init__(self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int],
+                 pad: bool = False) -> None:  # fmt: skip
         self.policy = policy
         self.space = space
         self.device = device
+        self.pad = pad
         self.graphed = device.startswith("cuda")
         self.graphs: dict[int, tuple[torch.cuda.CUDAGraph, dict[str, Any], torch.Tensor]] = {}
+        self.padded_calls = 0
+        self.padded_rows = 0
         for batch in sorted(set(batch_sizes)):
             self.capture(batch)
+
+    def graph_size(self, batch: int) -> int:
+        """The captured size a batch of ``batch`` runs in: itself, or with ``pad`` the smallest
+        captured size above it; ``batch`` itself (to be captured) where there is none."""
+        if batch in self.graphs or not self.pad:
+            return batch
+        return min((size for size in self.graphs if size > batch), default=batch)
 
     def capture(self, batch: int) -> None:
         """Capture the forward pass on ``batch`` observations (a no-op without CUDA)."""
@@ -359,15 +376,31 @@ class GraphedPolicy:
         if not self.graphed:
             return self.policy(obs, instructions, task_ids)
         batch = len(task_ids)
-        if batch not in self.graphs:
-            log.info("capturing the policy's CUDA graph for a batch of %d (not captured up front)", batch)
-            self.capture(batch)
-        graph, static, out = self.graphs[batch]
+        size = self.graph_size(batch)
+        if size not in self.graphs:
+            log.info("capturing the policy's CUDA graph for a batch of %d (not captured up front)", size)
+            self.capture(size)
+        if size != batch:
+            self.padded_calls += 1
+            self.padded_rows += size - batch
+        graph, static, out = self.graphs[size]
         for camera, image in obs["images"].items():
-            static["images"][camera].copy_(image, non_blocking=True)
-        static["proprio"].copy_(obs["proprio"], non_blocking=True)
+            static["images"][camera][:batch].copy_(image, non_blocking=True)
+        static["proprio"][:batch].copy_(obs["proprio"], non_blocking=True)
         graph.replay()
-        return out.clone()
+        return out[:batch].clone()
+
+    def describe(self) -> dict[str, Any]:
+        """The captured sizes and, with ``pad``, what padding cost."""
+        return {"graph_sizes": sorted(self.graphs), "pad": self.pad, "padded_calls": self.padded_calls,
+                "padded_rows": self.padded_rows}  # fmt: skip
+
+
+def pod_multiples(per_pod: int, largest: int, extra: Sequence[int] = ()) -> list[int]:
+    """Batch sizes to capture for a loop that hands the policy whole pods' answers: every multiple
+    of ``per_pod`` up to ``largest``, ``largest`` itself and ``extra``."""
+    step = max(per_pod, 1)
+    return sorted({*range(step, largest + 1, step), largest, *extra})
 
 
 def parameters_m(policy: nn.Module) -> float:
@@ -1064,11 +1097,12 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
 
 
 def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int, target_ms: float,
-                  batch_sizes: Sequence[int]) -> tuple[GraphedPolicy, dict[str, Any]]:  # fmt: skip
+                  batch_sizes: Sequence[int], pad_sizes: Sequence[int] = ()) -> tuple[GraphedPolicy, dict[str, Any]]:  # fmt: skip
     """Return a ViT policy, graphed for ``batch_sizes``, whose forward pass on ``batch``
     observations lasts about ``target_ms``, and what the calibration found. The depth is
     extrapolated from two shallow ViTs, then corrected once by the time the first pick takes;
-    never above ``plan.vit_max_depth``."""
+    never above ``plan.vit_max_depth``. With ``pad_sizes``, the picked policy is then also
+    captured for those sizes and pads a batch of any other size to the next captured one."""
 
     def build(depth: int, sizes: Sequence[int]) -> GraphedPolicy:
         policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, vit_width=plan.vit_width,
@@ -1120,6 +1154,12 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
         "picks_depth_ms": picks,
         "forward_ms": achieved,
     }
+    if pad_sizes:
+        started = time.perf_counter()
+        graphed.pad = True
+        for size in pad_sizes:
+            graphed.capture(size)
+        info["pad_capture_s"] = round(time.perf_counter() - started, 1)
     if plan.device.startswith("cuda"):
         info["gpu_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 1)
     log.info("calibrated policy: %s", info)
@@ -1156,12 +1196,14 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         batch = one.routing.num_envs
         stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages})
         space, action = one.observation_space, one.action_space
-        graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes])
+        # Without lockstep the loop's policy calls take batches of many sizes, mostly whole pods'
+        # answers; a size met first inside a timed round would be captured there (seconds for this
+        # ViT). So every multiple of a pod's envs is captured up front and other sizes padded.
+        graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes],
+                                             pod_multiples(plan.envs_per_pod, batch))  # fmt: skip
         policy = Chunked(graphed, k)
         contenders = ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
-        # Warm-up: a whole rollout per contender. Without lockstep the loop's policy calls take
-        # batches of many sizes, and each size's CUDA graph is captured when first met (seconds for
-        # this ViT): they must all be captured before the clock starts.
+        # Warm-up: a whole rollout per contender (connections, the pods' first renders).
         for name in contenders:
             loop_rollout(clients[name], policy, plan.horizon, plan.device, plan.batch_wait_s)
         log.info("warm-up done, %.0f s left", deadline.left())
@@ -1175,7 +1217,7 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
             client.close()
     rates = {name: [m.env_steps_per_s for m in runs] for name, runs in loops.items()}
     return {
-        "policy": {**policy_info, "chunk": plan.chunk},
+        "policy": {**policy_info, "chunk": plan.chunk, "graphs": graphed.describe()},
         "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
         "loop": {name: summarise(runs) for name, runs in loops.items()},
         "speedup_2_vs_1": {

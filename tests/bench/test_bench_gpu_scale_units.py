@@ -1,6 +1,7 @@
 """Parts of the GPU benches that their runs depend on, checked here: from
 ``bench/bench_gpu_scale.py``, which CPUs pods get on a machine with hyperthreads, the
-slowest-pod figures of a stage call and ``--stage-layout``; from ``bench/bench_chunks.py``, the
+slowest-pod figures of a stage call, ``--stage-layout`` and the CUDA-graph sizes a loop's
+batches run in; from ``bench/bench_chunks.py``, the
 ceiling's pinned processes, which stay up between rounds and fail a run naming their error.
 
 The bench is a script, not a package: it is imported from ``bench/`` as it imports its helpers.
@@ -51,6 +52,20 @@ def test_pods_get_one_thread_of_every_physical_core_before_any_hyperthread_sibli
     # siblings adjacent (0,1), (2,3), ...: the first thread of each core comes first
     order = bench.cores_first(topology({n: n // 2 for n in range(8)}))
     assert order == [0, 2, 4, 6, 1, 3, 5, 7]
+
+
+def test_the_policy_is_graphed_for_every_multiple_of_a_pods_envs_and_pads_other_batches(bench):
+    assert bench.pod_multiples(5, 40) == [5, 10, 15, 20, 25, 30, 35, 40]
+    assert bench.pod_multiples(10, 25, extra=[12]) == [10, 12, 20, 25]
+    # Padding picks the smallest captured size above a batch; with nothing above, or without
+    # padding, the batch's own size (captured when first met).
+    graphs = dict.fromkeys([5, 10, 40])
+    padded = bench.GraphedPolicy(None, None, "cpu", [], pad=True)
+    padded.graphs = graphs
+    assert [padded.graph_size(n) for n in (1, 5, 6, 11, 40, 41)] == [5, 5, 10, 40, 40, 41]
+    plain = bench.GraphedPolicy(None, None, "cpu", [])
+    plain.graphs = graphs
+    assert [plain.graph_size(n) for n in (1, 6, 41)] == [1, 6, 41]
 
 
 def test_the_trainer_gets_the_cpus_the_pods_do_not_and_shares_only_when_there_are_too_few(bench):
