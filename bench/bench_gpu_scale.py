@@ -898,7 +898,8 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float, chunk: in
 def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
     """Milliseconds per loop step (one policy call + one stage call), median over rollouts:
     policy, the client's stage call, the pods' step wall time, physics and render worker
-    seconds per pod, and serving = the call beyond the pod's wall time."""
+    seconds per pod, and serving = the call beyond the pod's wall time; also the env-steps per
+    policy call (its rows times K)."""
     rows = []
     for m in measured:
         stats, pods = m.stats, m.pods
@@ -927,6 +928,8 @@ def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
             "render_ms_per_env_step": 1000 * pods["vecsim_pod_render_seconds_total"] / env_steps,
             "envs_per_pod_call": pods["vecsim_pod_env_steps_total"] / max(calls, 1),
             "pods_per_call": pods_per_call,
+            # The policy's batch: K actions per row, so rows per call = this / K.
+            "env_steps_per_policy_call": stats.env_steps / max(len(policy_calls), 1),
         })  # fmt: skip
     return {key: round(statistics.median(r[key] for r in rows), 2) for key in rows[0]}
 

@@ -123,6 +123,8 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert setup["stage_envs_by_layout"] == {"pods": [[2], [2]], "slices": [[1, 1], [1, 1]]}
     assert summary["loop"]["pods/stages=2"]["time_split_ms"]["pods_per_call"] == 1
     assert summary["loop"]["slices/stages=2"]["time_split_ms"]["pods_per_call"] == 1
+    # In lockstep every policy call takes the whole stage: its 4 envs, K actions each.
+    assert summary["loop"]["stages=1/lockstep"]["time_split_ms"]["env_steps_per_policy_call"] == 4 * setup["chunk"]
     assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
     assert all((root / p).is_file() for p in summary["plots"])
 
