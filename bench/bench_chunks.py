@@ -488,7 +488,10 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
     rates = {name: [m.env_steps_per_s for m in measured] for name, measured in runs.items()}
     for key in ceilings[0].figures:
         rates[f"ceiling/{key}"] = [c.figures[key]["env_steps_per_s"] for c in ceilings]
-    result: dict[str, Any] = {"policy": {**policy_info, "graphs": graphed.describe()}, "ceiling": ceiling_over_rounds(ceilings, bare.describe())}
+    result: dict[str, Any] = {
+        "policy": {**policy_info, "graphs": graphed.describe()},
+        "ceiling": ceiling_over_rounds(ceilings, bare.describe()),
+    }
     for kind in ("service", "loop"):
         section = {}
         for k in settings.chunks:
