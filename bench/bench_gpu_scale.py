@@ -1012,6 +1012,18 @@ def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadl
     return out
 
 
+def thread_share(runs: Sequence[Measured]) -> dict[str, float]:
+    """Where the trainer's thread spent a rollout's wall time, as fractions, medians over the
+    rollouts: in policy calls (the inputs' preparation and the forward pass), waiting
+    for a pod's answer, and on the rest of the loop (taking answers, buffering, sending actions)."""
+    shares = []
+    for m in runs:
+        wall = max(m.stats.wall_s, 1e-9)
+        policy, wait = m.stats.policy_s / wall, m.stats.wait_s / wall
+        shares.append({"policy": policy, "wait": wait, "loop": max(1.0 - policy - wait, 0.0)})
+    return {key: round(statistics.median(s[key] for s in shares), 3) for key in ("policy", "wait", "loop")}
+
+
 def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
     """Env-steps/s of one contender's rounds, its time split and the slowest-pod figures."""
     out = {
@@ -1019,6 +1031,7 @@ def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
         "time_split_ms": breakdown(runs),
         "slowest_pod": slowest_pod(runs),
         "overlap_fraction": round(statistics.median(m.stats.overlap_fraction for m in runs), 3),
+        "thread_share": thread_share(runs),
         "trajectories": int(statistics.median(m.stats.num_trajectories for m in runs)),
     }
     # With refill, how many trajectories each pod started (resets), in the first round: a pod on a
@@ -1169,6 +1182,9 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
     return graphed, info
 
 
+WARMUP_HORIZON = 32  # pipeline: actions per trajectory in each contender's warm-up rollout
+
+
 def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
     """2C pods on C cores (pods i and i+C share core i): the service alone in one stage and one
     half alone (the target of the calibration), then the EnvLoop with the calibrated graphed ViT
@@ -1206,9 +1222,10 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
                                              pod_multiples(plan.envs_per_pod, batch))  # fmt: skip
         policy = Chunked(graphed, k)
         contenders = ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
-        # Warm-up: a whole rollout per contender (connections, the pods' first renders).
+        # Warm-up: a short rollout per contender (connections, the pods' first renders); the
+        # policy's batch sizes are all captured already.
         for name in contenders:
-            loop_rollout(clients[name], policy, plan.horizon, plan.device, plan.batch_wait_s)
+            loop_rollout(clients[name], policy, min(plan.horizon, WARMUP_HORIZON), plan.device, plan.batch_wait_s)
         log.info("warm-up done, %.0f s left", deadline.left())
         runs = {name: (lambda c=clients[name]: loop_rollout(c, policy, plan.horizon, plan.device, plan.batch_wait_s))
                 for name in contenders}  # fmt: skip

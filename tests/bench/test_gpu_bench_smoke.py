@@ -125,6 +125,11 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert summary["loop"]["slices/stages=2"]["time_split_ms"]["pods_per_call"] == 1
     # In lockstep every policy call takes the whole stage: its 4 envs, K actions each.
     assert summary["loop"]["stages=1/lockstep"]["time_split_ms"]["env_steps_per_policy_call"] == 4 * setup["chunk"]
+    # The trainer's thread: policy, waiting for pods and the rest of the loop make up its wall time.
+    for run in summary["loop"].values():
+        share = run["thread_share"]
+        assert set(share) == {"policy", "wait", "loop"} and share["policy"] > 0
+        assert 0.99 <= sum(share.values()) <= 1.01
     assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
     assert all((root / p).is_file() for p in summary["plots"])
 
