@@ -27,8 +27,8 @@ controller gives every pod the whole mix); the trainer groups pods into its own 
   rollout before issue 27), the second baseline of two stages. The policy is
   a ViT-B/16-style encoder per camera (bf16) whose depth is calibrated so that its forward pass
   on the 1-stage batch lasts as long as the 1-stage simulation call (the service alone), captured
-  in a CUDA graph per batch size, so its launches cost the trainer's Python thread little (a
-  whole warm-up rollout per contender captures the sizes the loop meets before the clock).
+  in a CUDA graph per batch size, so its launches cost the trainer's Python thread little (every
+  multiple of a pod's envs is captured before the clock, and other sizes are padded to one).
   ``--chunk K``: the policy acts in chunks of K actions (its one action repeated K times), the
   service's calls step K actions too (K=8 is issue 27's case).
 
