@@ -41,7 +41,8 @@ def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], P
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("gpu-bench-pipeline")
-    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0", *GYM)
+    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0",
+            "--compare-batch-wait-s", "0.01", *GYM)  # fmt: skip
     return result_of(run_bench(root, *args)), root
 
 
@@ -112,8 +113,14 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert set(summary["met"]) == {"pipelining_slices", "pipelining_pods"}
     setup = summary["setup"]
     assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
-    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2"}
+    # Each 2-stage layout also ran waiting 10 ms for more of a stage's pods (--compare-batch-wait-s).
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2",
+                                    "slices/stages=2/batch_wait", "pods/stages=2/batch_wait"}  # fmt: skip
     assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
+    waiting = summary["batch_wait"]
+    assert waiting["batch_wait_s"] == 0.01 and summary["setup"]["compare_batch_wait_s"] == 0.01
+    assert {layout: r["n"] for layout, r in waiting["speedup_over_same_layout"].items()} == {"slices": 1, "pods": 1}
+    assert {layout: r["n"] for layout, r in waiting["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
     assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1"].items()} == {"slices": 1, "pods": 1}
     # Also against one stage in lockstep: the whole stage's answers before every policy call.
     assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
@@ -197,6 +204,13 @@ def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
     # The horizon counts actions: a chunk of K takes K of them per call.
     assert summary["setup"]["horizon"] % 4 == 0
     assert (tmp_path / "out" / "bench" / "bench_gpu_scale_pipeline_quick.json").is_file()
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("flag, value", [("--batch-wait-s", "-1"), ("--compare-batch-wait-s", "nan")])
+def test_a_batch_wait_that_is_not_a_duration_is_refused_naming_the_option(tmp_path, flag, value):
+    done = run_bench(tmp_path, "--quick", flag, value, timeout=50)
+    assert done.returncode == 2 and flag in done.stderr and "RESULT" not in done.stdout
 
 
 @pytest.mark.timeout(60)
