@@ -43,8 +43,9 @@ Commands::
     # issue 27's case: two stages against one at K=8, both layouts side by side
     source .device/setup.sh && python bench/bench_gpu_scale.py --gpu --only pipeline --chunk 8 --copy-to "$OUT"
     python bench/bench_gpu_scale.py --quick --chunk 8   # here, under ~2 min: a cheap gym scene, tiny ViT
-    # the same, each layout also waiting 30 ms for more of a stage's pods before the policy runs
-    python bench/bench_gpu_scale.py --gpu --only pipeline --chunk 8 --render-gpu 1 --compare-batch-wait-s 0.03
+    # the same, each layout also waiting 30 ms for more of a stage's pods before the policy runs,
+    # and waiting for all of them (two stages, each in lockstep)
+    python bench/bench_gpu_scale.py --gpu --only pipeline --chunk 8 --render-gpu 1 --compare-batch-wait-s 0.03,300
 
 Each writes out/bench/bench_gpu_scale_<scaling|pipeline>[_cpu|_dry|_quick].json and its plots under
 docs/img/, and prints one ``RESULT {json}`` line; ``--copy-to`` also copies them into a folder,
@@ -150,8 +151,8 @@ class Plan:
     render_gpu: int | None = None  # the EGL device pods render on (None: the default one)
     chunk: int = 1  # actions per env per call (the policy's chunk K)
     batch_wait_s: float = 0.0  # pipeline: EnvLoop's batch_wait_s (how long it gathers a stage's answers)
-    # pipeline: also each 2-stage layout with this batch_wait_s, side by side (None: not measured)
-    compare_batch_wait_s: float | None = None
+    # pipeline: also each 2-stage layout with each of these batch_wait_s, side by side
+    compare_batch_wait_s: tuple[float, ...] = ()
     stage_layouts: tuple[str, ...] = ("slices", "pods")  # the 2-stage layouts measured
 
     @property
@@ -1187,7 +1188,9 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
 
 
 WARMUP_HORIZON = 32  # pipeline: actions per trajectory in each contender's warm-up rollout
-WAITING = "batch_wait"  # pipeline: the suffix of a 2-stage contender run with --compare-batch-wait-s
+def waiting(layout: str, wait_s: float) -> str:
+    """The name of a 2-stage contender run with a ``--compare-batch-wait-s`` value."""
+    return f"{layout}/stages=2/batch_wait={wait_s:g}s"
 
 
 def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
@@ -1195,8 +1198,8 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
     half alone (the target of the calibration), then the EnvLoop with the calibrated graphed ViT
     in 1 stage (all pods) against 2 stages in each of ``plan.stage_layouts`` (``pods``: pods
     0..C-1, C..2C-1; ``slices``: every pod's envs alternating stages), interleaved rounds. Every
-    call steps ``plan.chunk`` actions per env. With ``plan.compare_batch_wait_s``, each 2-stage
-    layout also runs waiting that long for more of a stage's pods (``<layout>/stages=2/batch_wait``)."""
+    call steps ``plan.chunk`` actions per env. For each of ``plan.compare_batch_wait_s``, each
+    2-stage layout also runs waiting that long for more of a stage's pods (:func:`waiting`)."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     half = plan.pods // 2
     two_stages = {"pods": regroup(table, names, 2), "slices": regroup_slices(table, names, 2)}
@@ -1227,13 +1230,12 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes],
                                              pod_multiples(plan.envs_per_pod, batch))  # fmt: skip
         policy = Chunked(graphed, k)
-        # Each contender: (its client, its batch_wait_s); with compare_batch_wait_s, each 2-stage
-        # layout again, waiting that long for more of a stage's pods before the policy runs.
+        # Each contender: (its client, its batch_wait_s); for each compare_batch_wait_s, each
+        # 2-stage layout again, waiting that long for more of a stage's pods before the policy runs.
         contenders = {name: (name, plan.batch_wait_s)
                       for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]}  # fmt: skip
-        if plan.compare_batch_wait_s is not None:
-            contenders.update({f"{layout}/stages=2/{WAITING}": (f"{layout}/stages=2", plan.compare_batch_wait_s)
-                               for layout in plan.stage_layouts})  # fmt: skip
+        contenders.update({waiting(layout, wait): (f"{layout}/stages=2", wait)
+                           for wait in plan.compare_batch_wait_s for layout in plan.stage_layouts})  # fmt: skip
         # Warm-up: a short rollout per contender (connections, the pods' first renders); the
         # policy's batch sizes are all captured already.
         for client_name, wait in contenders.values():
@@ -1248,20 +1250,16 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         for client in clients.values():
             client.close()
     rates = {name: [m.env_steps_per_s for m in runs] for name, runs in loops.items()}
-    compared = {}
-    if plan.compare_batch_wait_s is not None:
-        compared = {"batch_wait": {
-            "batch_wait_s": plan.compare_batch_wait_s,
-            # Over the same layout at --batch-wait-s (default 0: no wait).
-            "speedup_over_same_layout": {
-                layout: paired_ratio(rates[f"{layout}/stages=2/{WAITING}"], rates[f"{layout}/stages=2"])
-                for layout in plan.stage_layouts},
-            "speedup_2_vs_1_lockstep": {
-                layout: paired_ratio(rates[f"{layout}/stages=2/{WAITING}"], rates["stages=1/lockstep"])
-                for layout in plan.stage_layouts},
-        }}  # fmt: skip
+    compared = [{
+        "batch_wait_s": wait,
+        # Over the same layout at --batch-wait-s (default 0: no wait).
+        "speedup_over_same_layout": {
+            layout: paired_ratio(rates[waiting(layout, wait)], rates[f"{layout}/stages=2"]) for layout in plan.stage_layouts},
+        "speedup_2_vs_1_lockstep": {
+            layout: paired_ratio(rates[waiting(layout, wait)], rates["stages=1/lockstep"]) for layout in plan.stage_layouts},
+    } for wait in plan.compare_batch_wait_s]  # fmt: skip
     return {
-        **compared,
+        **({"batch_wait": compared} if compared else {}),
         "policy": {**policy_info, "chunk": plan.chunk, "graphs": graphed.describe()},
         "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
         "loop": {name: summarise(runs) for name, runs in loops.items()},
@@ -1647,19 +1645,22 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     """1 against 2 stages (env-steps/s) and the per-call times behind them; return the PNG path."""
     plt = _pyplot()
     loop, policy = summary["loop"], summary["policy"]
-    fig, (left, right) = plt.subplots(1, 2, figsize=(13.0 if "batch_wait" in summary else 10.0, 4.0))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10.0 + 1.5 * len(summary.get("batch_wait", [])), 4.0))
     layouts = list(summary["speedup_2_vs_1"])
     lockstep = ["stages=1/lockstep"] if "stages=1/lockstep" in loop else []
-    waiting = summary.get("batch_wait")  # each layout again with --compare-batch-wait-s
+    waits = [entry["batch_wait_s"] for entry in summary.get("batch_wait", [])]  # --compare-batch-wait-s
     names = [*lockstep, "stages=1", *(f"{layout}/stages=2" for layout in layouts)]
     labels = [*(["1 stage\n(lockstep)"] if lockstep else []), "1 stage\n(all pods)",
               *(f"2 stages\n({layout})" for layout in layouts)]  # fmt: skip
-    if waiting:
-        names += [f"{layout}/stages=2/{WAITING}" for layout in layouts]
-        labels += [f"2 stages\n({layout},\nwait {1000 * waiting['batch_wait_s']:g} ms)" for layout in layouts]
+    for wait in waits:
+        names += [waiting(layout, wait) for layout in layouts]
+        labels += [f"2 stages\n({layout},\nwait {wait:g} s)" for layout in layouts]
     rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
-    colours = ["tab:gray", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"]
-    bars = left.bar(labels, rates, color=colours[-len(names):] if len(names) <= len(colours) else None)
+    base = len(names) - len(waits) * len(layouts)
+    extra = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
+    colours = ["tab:gray", "tab:blue", "tab:orange", "tab:green"][-base:] + [
+        extra[i % len(extra)] for i in range(len(names) - base)]  # fmt: skip
+    bars = left.bar(labels, rates, color=colours)
     left.bar_label(bars, fmt="%.1f", fontsize=8)
     left.tick_params(axis="x", labelsize=7 if len(names) > 4 else 10)
     left.set_ylabel("env-steps/s")
@@ -1673,7 +1674,7 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     sizes = summary["setup"]["stage_envs_by_layout"]
     alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] * (1 + len(lockstep)) + [
         statistics.mean(policy["forward_ms"].get(str(sum(stage)), 0) for stage in sizes[layout])
-        for layout in layouts * (2 if waiting else 1)
+        for layout in layouts * (1 + len(waits))
     ]
     for offset, (label, values) in enumerate((
         ("stage call (loop)", [loop[name]["time_split_ms"]["stage_call_ms"] for name in names]),
@@ -1681,7 +1682,7 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
         ("policy alone" + (" (CUDA graph)" if policy["cuda_graphs"] else " (eager)"), alone),
     )):  # fmt: skip
         right.bar(x + (offset - 1) * width, values, width, label=label)
-    right.set_xticks(x, labels if waiting else [label.replace("\n", " ") for label in labels], fontsize=7)
+    right.set_xticks(x, labels if waits else [label.replace("\n", " ") for label in labels], fontsize=7)
     right.set_ylabel("ms")
     right.set_title(f"{policy['name'].split(' + ')[0]}", fontsize=8)
     right.legend(fontsize=7)
@@ -1930,10 +1931,11 @@ def main() -> int:
     parser.add_argument("--batch-wait-s", type=float, default=0.0,
                         help="pipeline: EnvLoop's batch_wait_s, how long the loop waits for more of a stage's "
                         "answers before the policy runs (default 0: at once)")
-    parser.add_argument("--compare-batch-wait-s", type=float,
-                        help="pipeline: also run each 2-stage layout with this batch_wait_s, side by side in the "
-                        "same rounds (contenders '<layout>/stages=2/batch_wait'): fuller policy batches against "
-                        "the time the loop waits for them")
+    parser.add_argument("--compare-batch-wait-s", default="",
+                        help="pipeline: also run each 2-stage layout with each of these batch_wait_s (seconds, "
+                        "comma-separated), side by side in the same rounds (contenders "
+                        "'<layout>/stages=2/batch_wait=<W>s'): fuller policy batches against the time the loop "
+                        "waits for them; a wait longer than a stage call is each stage in lockstep")
     parser.add_argument("--chunk", type=int, default=1,
                         help="pipeline: actions per env per call, the policy's chunk K (default 1; issue 27: 8)")
     parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
@@ -1968,10 +1970,14 @@ def main() -> int:
         args.only = "pipeline"
     if args.only is None:
         parser.error("--only scaling or --only pipeline: each measurement is its own run")
-    for flag, wait in (("--batch-wait-s", args.batch_wait_s), ("--compare-batch-wait-s", args.compare_batch_wait_s)):
-        if wait is not None and not (math.isfinite(wait) and wait >= 0):
+    try:
+        args.compare_batch_wait_s = tuple(float(w) for w in args.compare_batch_wait_s.split(",") if w.strip())
+    except ValueError:
+        parser.error(f"--compare-batch-wait-s takes seconds, comma-separated: got {args.compare_batch_wait_s!r}")
+    for flag, wait in (("--batch-wait-s", args.batch_wait_s), *(("--compare-batch-wait-s", w) for w in args.compare_batch_wait_s)):
+        if not (math.isfinite(wait) and wait >= 0):
             parser.error(f"{flag} must be a finite number of seconds >= 0, got {wait}")
-    if args.compare_batch_wait_s is not None and args.only != "pipeline":
+    if args.compare_batch_wait_s and args.only != "pipeline":
         parser.error("--compare-batch-wait-s is a pipeline contender: say --only pipeline")
     return run_mode(args)
 

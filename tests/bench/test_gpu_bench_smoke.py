@@ -42,7 +42,7 @@ def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], P
 def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("gpu-bench-pipeline")
     args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0",
-            "--compare-batch-wait-s", "0.01", *GYM)  # fmt: skip
+            "--compare-batch-wait-s", "0.01,300", *GYM)  # fmt: skip
     return result_of(run_bench(root, *args)), root
 
 
@@ -113,14 +113,19 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert set(summary["met"]) == {"pipelining_slices", "pipelining_pods"}
     setup = summary["setup"]
     assert setup["pods"] == 2 and len(set(setup["pods_pinned_to"])) == 1
-    # Each 2-stage layout also ran waiting 10 ms for more of a stage's pods (--compare-batch-wait-s).
-    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2",
-                                    "slices/stages=2/batch_wait", "pods/stages=2/batch_wait"}  # fmt: skip
+    # Each 2-stage layout also ran waiting 10 ms for more of a stage's pods, and waiting for all of
+    # them (--compare-batch-wait-s 0.01,300).
+    waits = [f"{layout}/stages=2/batch_wait={wait}" for wait in ("0.01s", "300s") for layout in ("slices", "pods")]
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "pods/stages=2", *waits}
     assert all(run["env_steps_per_s"]["median"] > 0 for run in summary["loop"].values())
-    waiting = summary["batch_wait"]
-    assert waiting["batch_wait_s"] == 0.01 and summary["setup"]["compare_batch_wait_s"] == 0.01
-    assert {layout: r["n"] for layout, r in waiting["speedup_over_same_layout"].items()} == {"slices": 1, "pods": 1}
-    assert {layout: r["n"] for layout, r in waiting["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
+    assert [entry["batch_wait_s"] for entry in summary["batch_wait"]] == [0.01, 300]
+    assert summary["setup"]["compare_batch_wait_s"] == [0.01, 300]
+    for entry in summary["batch_wait"]:
+        assert {layout: r["n"] for layout, r in entry["speedup_over_same_layout"].items()} == {"slices": 1, "pods": 1}
+        assert {layout: r["n"] for layout, r in entry["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
+    # Waiting for every pod of the stage: each policy call takes the whole stage, an env of each pod.
+    waited = summary["loop"]["slices/stages=2/batch_wait=300s"]["time_split_ms"]
+    assert waited["env_steps_per_policy_call"] == 2 * setup["chunk"]
     assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1"].items()} == {"slices": 1, "pods": 1}
     # Also against one stage in lockstep: the whole stage's answers before every policy call.
     assert {layout: r["n"] for layout, r in summary["speedup_2_vs_1_lockstep"].items()} == {"slices": 1, "pods": 1}
@@ -207,7 +212,8 @@ def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("flag, value", [("--batch-wait-s", "-1"), ("--compare-batch-wait-s", "nan")])
+@pytest.mark.parametrize("flag, value", [("--batch-wait-s", "-1"), ("--compare-batch-wait-s", "0.03,nan"),
+                                         ("--compare-batch-wait-s", "30ms")])  # fmt: skip
 def test_a_batch_wait_that_is_not_a_duration_is_refused_naming_the_option(tmp_path, flag, value):
     done = run_bench(tmp_path, "--quick", flag, value, timeout=50)
     assert done.returncode == 2 and flag in done.stderr and "RESULT" not in done.stdout
