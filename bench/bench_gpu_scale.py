@@ -90,7 +90,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +107,7 @@ from torch import nn
 from vecsim.client import StageClient, fetch_routing
 from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 from vecsim.rollout import EnvLoop, RolloutStats
+from vecsim.rollout.intervals import intersection, merge
 
 log = logging.getLogger("bench.gpu_scale")
 
@@ -1017,6 +1018,25 @@ def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadl
     return out
 
 
+def core_overlap(runs: Sequence[Measured], core_of: Mapping[str, int]) -> float:
+    """The share of the pods' time in flight (the client's step and reset calls, summed over the
+    pods) during which another pod pinned to the same core had a call in flight too, median over
+    the rollouts: 0 when the pods of a core take turns, 1 when they always simulate together."""
+    shares = []
+    for m in runs:
+        by_pod: dict[str, list[tuple[float, float]]] = {}
+        for pod, _, begin, end in m.pod_calls:
+            by_pod.setdefault(pod, []).append((begin, end))
+        flights = {pod: merge(intervals) for pod, intervals in by_pod.items()}
+        busy = together = 0.0
+        for pod, own in flights.items():
+            others = merge(i for p, f in flights.items() if p != pod and core_of.get(p) == core_of.get(pod) for i in f)
+            busy += sum(end - begin for begin, end in own)
+            together += intersection(own, others)
+        shares.append(together / busy if busy > 0 else 0.0)
+    return round(statistics.median(shares), 3) if shares else 0.0
+
+
 def thread_share(runs: Sequence[Measured]) -> dict[str, float]:
     """Where the trainer's thread spent a rollout's wall time, as fractions, medians over the
     rollouts: in policy calls (the inputs' preparation and the forward pass), waiting
@@ -1262,7 +1282,9 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         **({"batch_wait": compared} if compared else {}),
         "policy": {**policy_info, "chunk": plan.chunk, "graphs": graphed.describe()},
         "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
-        "loop": {name: summarise(runs) for name, runs in loops.items()},
+        # Pods i and i+C share core i: how often they simulate at once.
+        "loop": {name: {**summarise(runs), "core_overlap": core_overlap(runs, {p: i % half for i, p in enumerate(names)})}
+                 for name, runs in loops.items()},  # fmt: skip
         "speedup_2_vs_1": {
             layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1"]) for layout in plan.stage_layouts
         },

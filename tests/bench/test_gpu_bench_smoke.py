@@ -137,6 +137,9 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     assert summary["loop"]["slices/stages=2"]["time_split_ms"]["pods_per_call"] == 1
     # In lockstep every policy call takes the whole stage: its 4 envs, K actions each.
     assert summary["loop"]["stages=1/lockstep"]["time_split_ms"]["env_steps_per_policy_call"] == 4 * setup["chunk"]
+    # Both pods share one core: in one stage in lockstep they are always called together.
+    assert all(0.0 <= run["core_overlap"] <= 1.0 for run in summary["loop"].values())
+    assert summary["loop"]["stages=1/lockstep"]["core_overlap"] > 0.5
     # The trainer's thread: policy, waiting for pods and the rest of the loop make up its wall time.
     for run in summary["loop"].values():
         share = run["thread_share"]

@@ -1,6 +1,7 @@
 """Training-side rollouts: :class:`EnvLoop`, the pipelined rollout of a policy over a job's
 stages (:mod:`vecsim.rollout.loop`), and :class:`TaskBalancedSampler`, which draws its
-trajectory requests (:mod:`vecsim.rollout.sampler`).
+trajectory requests (:mod:`vecsim.rollout.sampler`); :mod:`vecsim.rollout.intervals` holds the
+interval arithmetic of the rollout's timing.
 
     from vecsim.rollout import EnvLoop, TaskBalancedSampler
 """

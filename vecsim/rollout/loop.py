@@ -60,6 +60,7 @@ from vecsim.client import (
 from vecsim.client.routing import check_request
 from vecsim.config import RoutingTable
 from vecsim.plan import stage_of
+from vecsim.rollout.intervals import covered, intersection, merge
 
 logger = logging.getLogger(__name__)
 
@@ -833,9 +834,9 @@ class _Clock:
     def stats(self, trajectories: Mapping[str, Trajectory]) -> RolloutStats:
         wall = time.perf_counter() - self.started
         steps = sum(t.length for t in trajectories.values())
-        policy = _measure(self.policy)
-        simulation = _merge(self.simulation)
-        overlap = _intersection(_merge(self.policy), simulation)
+        policy = covered(self.policy)
+        simulation = merge(self.simulation)
+        overlap = intersection(merge(self.policy), simulation)
         per_task: dict[str, list[bool]] = {}
         for trajectory in trajectories.values():
             per_task.setdefault(trajectory.route.task_id, []).append(trajectory.success)
@@ -845,7 +846,7 @@ class _Clock:
             wall_s=wall,
             env_steps_per_s=steps / wall if wall > 0 else 0.0,
             policy_s=policy,
-            simulation_s=_measure(simulation),
+            simulation_s=covered(simulation),
             wait_s=self.wait_s,
             overlap_s=overlap,
             overlap_fraction=overlap / policy if policy > 0 else 0.0,
@@ -867,32 +868,6 @@ class _Interval:
         end = time.perf_counter()
         self.into.append((self.begin, end))
         self.also(self.begin, end)
-
-
-def _merge(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    merged: list[tuple[float, float]] = []
-    for begin, end in sorted(intervals):
-        if merged and begin <= merged[-1][1]:
-            merged[-1] = (merged[-1][0], max(merged[-1][1], end))
-        else:
-            merged.append((begin, end))
-    return merged
-
-
-def _measure(intervals: list[tuple[float, float]]) -> float:
-    return sum(end - begin for begin, end in _merge(intervals))
-
-
-def _intersection(a: list[tuple[float, float]], b: list[tuple[float, float]]) -> float:
-    """Total length of the overlap of two sorted, disjoint interval lists."""
-    total, i, j = 0.0, 0, 0
-    while i < len(a) and j < len(b):
-        total += max(0.0, min(a[i][1], b[j][1]) - max(a[i][0], b[j][0]))
-        if a[i][1] < b[j][1]:
-            i += 1
-        else:
-            j += 1
-    return total
 
 
 def write_video(path: str | Path, frames: Sequence[np.ndarray], fps: int = 10) -> Path:
