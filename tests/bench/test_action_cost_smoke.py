@@ -12,6 +12,7 @@ from support.bench_scripts import result_of, run_bench_script
 
 @pytest.mark.timeout(240)
 @pytest.mark.slow
+@pytest.mark.libero
 def test_quick_run_times_each_stream_on_every_task_and_names_its_baseline(tmp_path):
     done = run_bench_script(tmp_path, "bench_action_cost.py", "--quick", "--actions", "4", timeout=230)
     summary = result_of(done)
