@@ -28,9 +28,8 @@ import psutil
 import pytest
 import yaml
 from support import ROOT
-from support.service_procs import log_tail, wait_until
+from support.service_procs import free_port, log_tail, wait_until
 
-from service.runner.ports import free_port
 from vecsim import wire
 
 log = logging.getLogger(__name__)
