@@ -107,7 +107,7 @@ from torch import nn
 from vecsim.client import StageClient, fetch_routing
 from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 from vecsim.rollout import EnvLoop, RolloutStats
-from vecsim.rollout.intervals import intersection, merge
+from vecsim.rollout.intervals import covered, intersection, merge
 
 log = logging.getLogger("bench.gpu_scale")
 
@@ -1031,7 +1031,7 @@ def core_overlap(runs: Sequence[Measured], core_of: Mapping[str, int]) -> float:
         busy = together = 0.0
         for pod, own in flights.items():
             others = merge(i for p, f in flights.items() if p != pod and core_of.get(p) == core_of.get(pod) for i in f)
-            busy += sum(end - begin for begin, end in own)
+            busy += covered(own)
             together += intersection(own, others)
         shares.append(together / busy if busy > 0 else 0.0)
     return round(statistics.median(shares), 3) if shares else 0.0
@@ -1208,6 +1208,8 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
 
 
 WARMUP_HORIZON = 32  # pipeline: actions per trajectory in each contender's warm-up rollout
+
+
 def waiting(layout: str, wait_s: float) -> str:
     """The name of a 2-stage contender run with a ``--compare-batch-wait-s`` value."""
     return f"{layout}/stages=2/batch_wait={wait_s:g}s"
@@ -1999,6 +2001,8 @@ def main() -> int:
     for flag, wait in (("--batch-wait-s", args.batch_wait_s), *(("--compare-batch-wait-s", w) for w in args.compare_batch_wait_s)):
         if not (math.isfinite(wait) and wait >= 0):
             parser.error(f"{flag} must be a finite number of seconds >= 0, got {wait}")
+    if len(set(args.compare_batch_wait_s)) < len(args.compare_batch_wait_s):
+        parser.error(f"--compare-batch-wait-s names a wait twice: {args.compare_batch_wait_s}")
     if args.compare_batch_wait_s and args.only != "pipeline":
         parser.error("--compare-batch-wait-s is a pipeline contender: say --only pipeline")
     return run_mode(args)

@@ -216,7 +216,7 @@ def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("flag, value", [("--batch-wait-s", "-1"), ("--compare-batch-wait-s", "0.03,nan"),
-                                         ("--compare-batch-wait-s", "30ms")])  # fmt: skip
+                                         ("--compare-batch-wait-s", "30ms"), ("--compare-batch-wait-s", "0.03,0.030")])  # fmt: skip
 def test_a_batch_wait_that_is_not_a_duration_is_refused_naming_the_option(tmp_path, flag, value):
     done = run_bench(tmp_path, "--quick", flag, value, timeout=50)
     assert done.returncode == 2 and flag in done.stderr and "RESULT" not in done.stdout
