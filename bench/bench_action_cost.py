@@ -34,6 +34,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import bench_chunks as chunks
+import bench_gpu_scale as gs
 import numpy as np
 from _perf_common import interleaved, paired_ratio, rate_spread, setup_logging
 from common import write_result
@@ -41,30 +43,25 @@ from common import write_result
 log = logging.getLogger("bench.action_cost")
 
 LIBERO_10 = [f"libero_10/{i}" for i in range(10)]
-RANDOM_TABLE = 64  # actions per env in the random stream's table, as in bench_chunks.ceiling_worker
-STREAMS = ("random", "sine", "policy")  # the ceiling's, the service's, the loop's
 
 
 def random_stream(space: Any, seed: int) -> Callable[[int], np.ndarray]:
-    """The ceiling's actions: uniform within +-0.3, a table of 64 drawn once, cycled."""
-    table = np.random.default_rng(seed).uniform(-0.3, 0.3, (RANDOM_TABLE, *space.shape)).astype(np.float32)
+    """The ceiling's actions (:func:`bench_chunks.random_actions`), cycled."""
+    table = chunks.random_actions(np.random.default_rng(seed), space.shape)
     return lambda step: table[step % len(table)]
 
 
 def sine_stream(space: Any) -> Callable[[int], np.ndarray]:
-    """The service's actions: ``bench_gpu_scale.scripted_actions``, half of each dimension's range."""
-    low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
-    center, scale = (low + high) / 2, (high - low) / 2
-    dims = np.arange(len(low))
-    return lambda step: (center + 0.5 * scale * np.sin(0.35 * step + 0.9 * dims)).astype(np.float32)
+    """The service's actions: :func:`bench_gpu_scale.scripted_actions`, half of each dimension's range."""
+    return lambda step: gs.scripted_actions(space, step, 1)[0]
 
 
-def policy_stream(space: Any, k: int = 8) -> Callable[[int], np.ndarray]:
-    """The loop's actions from a near-constant policy: zero, with ``ChunkedPolicy``'s sine of 2%
-    of each dimension's width around it within each chunk of ``k``."""
+def policy_stream(space: Any, k: int = chunks.PIPELINE_K) -> Callable[[int], np.ndarray]:
+    """The loop's actions from a near-constant policy: zero, with :func:`bench_chunks.chunk_offsets`
+    around it within each chunk of ``k``, within the bounds."""
     low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
-    dims = np.arange(len(low))
-    return lambda step: np.clip(0.02 * (high - low) * np.sin(0.35 * (step % k) + 0.9 * dims), low, high).astype(np.float32)
+    offsets = chunks.chunk_offsets(space, k).numpy()
+    return lambda step: np.clip(offsets[step % k], low, high)
 
 
 def measure(envs: list[Any], streams: dict[str, list[Callable[[int], np.ndarray]]], actions: int, rounds: int

@@ -86,6 +86,7 @@ PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same
 CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
 PIPELINE_K = 8
 # --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
+RANDOM_ACTIONS = 64  # the ceiling's processes: uniform random actions per env, a table of this many, cycled
 QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
 
 
@@ -114,15 +115,28 @@ class ChunkedPolicy:
         low = torch.as_tensor(np.asarray(action_space.low, np.float32))
         high = torch.as_tensor(np.asarray(action_space.high, np.float32))
         self.low, self.high = low, high
-        steps, dims = torch.arange(k, dtype=torch.float32)[:, None], torch.arange(low.numel(), dtype=torch.float32)
-        width = torch.where(torch.isfinite(high - low), high - low, torch.ones_like(low))
-        self.offsets = 0.02 * width * torch.sin(0.35 * steps + 0.9 * dims)  # [k, action_dim]
+        self.offsets = chunk_offsets(action_space, k)  # [k, action_dim]
 
     def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
         action = self.policy(obs, instructions, task_ids).float()  # [n, action_dim]
         device = action.device
         chunk = action[:, None, :] + self.offsets.to(device)
         return torch.maximum(torch.minimum(chunk, self.high.to(device)), self.low.to(device))
+
+
+def chunk_offsets(action_space: spaces.Box, k: int) -> torch.Tensor:
+    """``[k, action_dim]``: what :class:`ChunkedPolicy` adds to a policy's action at each place of
+    a chunk of ``k``, a small sine of 2% of each dimension's width."""
+    low = torch.as_tensor(np.asarray(action_space.low, np.float32))
+    high = torch.as_tensor(np.asarray(action_space.high, np.float32))
+    steps, dims = torch.arange(k, dtype=torch.float32)[:, None], torch.arange(low.numel(), dtype=torch.float32)
+    width = torch.where(torch.isfinite(high - low), high - low, torch.ones_like(low))
+    return 0.02 * width * torch.sin(0.35 * steps + 0.9 * dims)
+
+
+def random_actions(rng: np.random.Generator, shape: Sequence[int]) -> np.ndarray:
+    """The ceiling's actions for one env: ``RANDOM_ACTIONS`` of ``shape``, uniform within +-0.3."""
+    return rng.uniform(-0.3, 0.3, (RANDOM_ACTIONS, *shape)).astype(np.float32)
 
 
 def scripted_chunk(space: spaces.Box, first: int, k: int, n: int) -> np.ndarray:
@@ -288,7 +302,7 @@ def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any
         renderer = envs[0].renderer
         views = [env.camera_views[c] for c in range(len(envs[0].image_names)) for env in envs]
         rng = np.random.default_rng(index)
-        actions = [rng.uniform(-0.3, 0.3, (64, *env.action_space.shape)).astype(np.float32) for env in envs]
+        actions = [random_actions(rng, env.action_space.shape) for env in envs]
 
         since_reset = [0] * len(envs)
         resets = [0] * len(envs)
