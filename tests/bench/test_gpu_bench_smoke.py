@@ -226,3 +226,29 @@ def test_a_batch_wait_that_is_not_a_duration_is_refused_naming_the_option(tmp_pa
 def test_an_unknown_stage_layout_is_refused_naming_the_option(tmp_path):
     done = run_bench(tmp_path, "--quick", "--stage-layout", "slices,rows", timeout=50)
     assert done.returncode != 0 and "--stage-layout" in done.stderr
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_pipeline_with_a_pod_a_core_splits_each_pod_between_the_stages(tmp_path):
+    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--pods-per-core", "1",
+            "--pipeline-cores", "2", "--stage-layout", "slices", "--compare-batch-wait-s", "300", *GYM)  # fmt: skip
+    summary = result_of(run_bench(tmp_path, *args))
+    setup = summary["setup"]
+    assert setup["pods"] == 2 and setup["pipeline_cores"] == 2 and setup["pods_per_core"] == 1
+    # Each pod's two envs: one on each stage.
+    assert setup["stage_envs_by_layout"] == {"slices": [[1, 1], [1, 1]]}
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "slices/stages=2/batch_wait=300s"}
+    # No two pods share a core, so none ever simulates beside another of its core.
+    assert all(run["core_overlap"] == 0.0 for run in summary["loop"].values())
+    # Waiting for the whole stage: each policy call takes an env of each pod, K actions each.
+    waited = summary["loop"]["slices/stages=2/batch_wait=300s"]["time_split_ms"]
+    assert waited["env_steps_per_policy_call"] == 2 * setup["chunk"]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("extra", [("--pods-per-core", "3"), ("--pods-per-core", "0"),
+                                   ("--pods-per-core", "1", "--pipeline-cores", "1")])  # fmt: skip
+def test_a_pods_per_core_the_pipeline_cannot_lay_out_is_refused_naming_the_option(tmp_path, extra):
+    done = run_bench(tmp_path, "--quick", *extra, timeout=50)
+    assert done.returncode != 0 and "--pods-per-core" in done.stderr and "RESULT" not in done.stdout
