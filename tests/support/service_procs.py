@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import ipaddress
 import os
-import random
 import secrets
 import signal
 import socket
@@ -35,8 +34,7 @@ import numpy as np
 import uvicorn
 
 from service.runner.job import LocalJob
-from service.runner import ports
-from service.runner.ports import free_port_block
+from service.runner.ports import free_port, free_port_block
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig, JobConfig, RenderPreset, TaskBlock
 
@@ -87,36 +85,6 @@ def clean_env(**extra: str) -> dict[str, str]:
     env["PYTHONUNBUFFERED"] = "1"
     env.update(extra)
     return env
-
-
-# Test servers' ports are picked from here up to the kernel's ephemeral range.
-TEST_PORTS_FROM = 10000
-
-
-def _ephemeral_ports_from() -> int:
-    """The first port of the kernel's ephemeral range (32768 where it cannot be read)."""
-    try:
-        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return 32768
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A port for a test's server on ``host`` that nothing listens on now, picked at random below
-    the kernel's ephemeral range. The kernel hands the ephemeral ports to client sockets and to
-    port-0 binds: a job's runner (``service.runner.ports``), every pod a test's job starts. A port
-    the kernel picked was free only when asked, and on a busy machine one of those could take it
-    before this test's server binds it (a pod then answered a controller's probes, and the test
-    met a 404). Below that range only another test's own pick can collide, and at random among
-    thousands of ports it hardly does."""
-    low, high = TEST_PORTS_FROM, _ephemeral_ports_from()
-    if high - low >= 1000:
-        pick = random.SystemRandom()
-        for _ in range(100):
-            port = pick.randrange(low, high)
-            if ports.port_free(host, port):
-                return port
-    return ports.free_port(host)
 
 
 # The program a Server runs by default: the ``vecsim`` command.
