@@ -789,6 +789,9 @@ class Measured:
     per_pod: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
     pod_calls: list[tuple[str, str, float, float]] = dataclasses.field(default_factory=list)
     stage_of_pod: dict[str, int] = dataclasses.field(default_factory=dict)
+    # The rollout's clock origin (``time.perf_counter()`` as ``EnvLoop.run`` was entered), by which
+    # ``pod_calls`` line up with the stats' times; None where the run was not a loop.
+    started: float | None = None
 
     @property
     def env_steps_per_s(self) -> float:
@@ -848,10 +851,11 @@ def loop_rollout(
         loop = EnvLoop(
             client, policy, horizon=horizon, device=device, keep_obs=(), log_every_s=60, batch_wait_s=batch_wait_s
         )
+        started = time.perf_counter()  # EnvLoop.run takes its own a few microseconds later
         result = loop.run(requests_for(client.routing, waves))
     if result.lost:
         raise RuntimeError(f"{len(result.lost)} trajectories lost: {next(iter(result.lost.values())).reason}")
-    return Measured(result.stats, **seen)
+    return Measured(result.stats, **seen, started=started)
 
 
 def scripted_actions(space: spaces.Box, step: int, n: int) -> np.ndarray:
@@ -1043,6 +1047,67 @@ def core_overlap(runs: Sequence[Measured], core_of: Mapping[str, int]) -> float:
     return round(statistics.median(shares), 3) if shares else 0.0
 
 
+def handoff(runs: Sequence[Measured]) -> dict[str, float | None]:
+    """The trainer's side of a stage's turn, ms, medians over the rollouts' step calls (each a
+    lane's call: its ``submitted_at`` to ``finished_at``, the client's whole call):
+
+    - ``send``: from the end of the policy call that made a step call's actions to the call
+      being submitted (the loop handing it to the client);
+    - ``last_answer_to_policy``: from the last answer a policy call takes being in (its call
+      finished) to that policy call starting;
+    - ``last_answer_to_policy_idle``: the part of that spent outside any other stage's policy
+      call: what waking, taking the answers and starting the policy cost, not the GPU being busy;
+    - ``send_spread``: from the first to the last step call a policy call's actions went out in;
+    - ``call_beyond_request``: a step call's time beyond its HTTP request to the pod (the
+      client's work before and after it, and its wait to be run on the client's loop).
+    """
+    sends: list[float] = []
+    handoffs: list[float] = []
+    idles: list[float] = []
+    spreads: list[float] = []
+    beyond: list[float] = []
+    for m in runs:
+        requests: dict[str, list[tuple[float, float]]] = {}
+        if m.started is not None:
+            for pod, op, begin, end in m.pod_calls:
+                if op == "step":
+                    requests.setdefault(pod, []).append((begin - m.started, end - m.started))
+        policies: dict[int, list[tuple[float, float]]] = {}
+        for what, stage, begin, end in m.stats.timeline:
+            if what == "policy":
+                policies.setdefault(stage, []).append((begin, end))
+        for calls in policies.values():
+            calls.sort()
+        last_in: dict[tuple[int, int], float] = {}  # (stage, policy call) -> its last answer's end
+        sent: dict[tuple[int, float], list[float]] = {}  # (stage, the policy call's end) -> submit times
+        for stage, pod, submitted, finished, _resets, steps in m.stats.pod_calls:
+            inside = [e - b for b, e in requests.get(pod, ()) if submitted <= b and e <= finished]
+            if steps and len(inside) == 1:
+                beyond.append(finished - submitted - inside[0])
+            own = policies.get(stage, [])
+            if not steps or not own:
+                continue
+            made = [end for _, end in own if end <= submitted]
+            if made:
+                sends.append(submitted - made[-1])
+                sent.setdefault((stage, made[-1]), []).append(submitted)
+            taker = next((j for j, (begin, _) in enumerate(own) if begin >= finished), None)
+            if taker is not None:
+                last_in[(stage, taker)] = max(last_in.get((stage, taker), finished), finished)
+        spreads.extend(max(times) - min(times) for times in sent.values())
+        others = {stage: merge(call for s, calls in policies.items() if s != stage for call in calls) for stage in policies}
+        for (stage, j), landed in last_in.items():
+            begin = policies[stage][j][0]
+            handoffs.append(begin - landed)
+            idles.append(begin - landed - intersection([(landed, begin)], others[stage]))
+
+    def ms(values: list[float]) -> float | None:
+        return round(1000 * statistics.median(values), 2) if values else None
+
+    return {"send": ms(sends), "send_spread": ms(spreads), "call_beyond_request": ms(beyond),
+            "last_answer_to_policy": ms(handoffs), "last_answer_to_policy_idle": ms(idles)}  # fmt: skip
+
+
 def thread_share(runs: Sequence[Measured]) -> dict[str, float]:
     """Where the trainer's thread spent a rollout's wall time, as fractions, medians over the
     rollouts: in policy calls (the inputs' preparation and the forward pass), waiting
@@ -1063,6 +1128,7 @@ def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
         "slowest_pod": slowest_pod(runs),
         "overlap_fraction": round(statistics.median(m.stats.overlap_fraction for m in runs), 3),
         "thread_share": thread_share(runs),
+        "handoff_ms": handoff(runs),
         "trajectories": int(statistics.median(m.stats.num_trajectories for m in runs)),
     }
     # With refill, how many trajectories each pod started (resets), in the first round: a pod on a

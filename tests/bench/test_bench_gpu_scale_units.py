@@ -94,6 +94,23 @@ def test_the_slowest_pod_of_each_call_is_measured_against_the_calls_mean(bench):
     assert figures["pod_step_ms_by_pod"] == {"sim-0": 100.0, "sim-1": 150.0}
 
 
+def test_the_handoff_splits_a_stages_turn_around_its_pods_requests(bench):
+    # Stage 0's policy at 0-1 s sends two step calls (at 1.1 and 1.3 s; their HTTP requests take
+    # 1.3 and 1.4 s inside them), which are in at 2.5 and 2.8 s; its next policy call starts at
+    # 3.0 s. Stage 1's policy runs 1-2 s and 2.9-2.95 s, so 0.05 s of the 0.2 s handoff the GPU
+    # was busy with the other stage.
+    timeline = [("policy", 0, 0.0, 1.0), ("policy", 1, 1.0, 2.0), ("policy", 1, 2.9, 2.95), ("policy", 0, 3.0, 4.0)]
+    pod_calls = [(0, "sim-0", 1.1, 2.5, 0, 5), (0, "sim-1", 1.3, 2.8, 0, 5), (0, "sim-1", 0.0, 0.5, 5, 0)]
+    requests = [("sim-0", "step", 101.15, 102.45), ("sim-1", "step", 101.35, 102.75), ("sim-1", "reset", 100.0, 100.4)]
+    counters = dict.fromkeys(bench.POD_COUNTERS, 0.0)
+    stats = bench.RolloutStats(timeline=timeline, pod_calls=pod_calls)
+    split = bench.handoff([bench.Measured(stats, counters, {}, requests, {}, started=100.0)])
+    assert split == pytest.approx({"send": 200.0, "send_spread": 200.0, "call_beyond_request": 100.0,
+                                   "last_answer_to_policy": 200.0, "last_answer_to_policy_idle": 150.0})  # fmt: skip
+    # Without the loop's clock origin the requests cannot be lined up: that figure is left out.
+    assert bench.handoff([bench.Measured(stats, counters, {}, requests, {})])["call_beyond_request"] is None
+
+
 def test_pods_of_different_stages_are_not_compared_within_one_call(bench):
     calls = [("sim-0", "step", 0.0, 0.1), ("sim-1", "step", 0.0, 0.5)]
     counters = dict.fromkeys(bench.POD_COUNTERS, 0.0)

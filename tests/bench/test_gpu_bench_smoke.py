@@ -145,6 +145,13 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
         share = run["thread_share"]
         assert set(share) == {"policy", "wait", "loop"} and share["policy"] > 0
         assert 0.99 <= sum(share.values()) <= 1.01
+    # The trainer's side of each stage's turn (sending, the client's own part of a call, taking
+    # the last answer to the policy): every figure measured.
+    for run in summary["loop"].values():
+        split = run["handoff_ms"]
+        assert set(split) == {"send", "send_spread", "call_beyond_request", "last_answer_to_policy",
+                              "last_answer_to_policy_idle"}  # fmt: skip
+        assert all(value is not None and value >= 0 for value in split.values()), split
     assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
     assert all((root / p).is_file() for p in summary["plots"])
 
