@@ -1081,11 +1081,13 @@ def handoff(runs: Sequence[Measured]) -> dict[str, float | None]:
         last_in: dict[tuple[int, int], float] = {}  # (stage, policy call) -> its last answer's end
         sent: dict[tuple[int, float], list[float]] = {}  # (stage, the policy call's end) -> submit times
         for stage, pod, submitted, finished, _resets, steps in m.stats.pod_calls:
+            if not steps:
+                continue
             inside = [e - b for b, e in requests.get(pod, ()) if submitted <= b and e <= finished]
-            if steps and len(inside) == 1:
+            if len(inside) == 1:
                 beyond.append(finished - submitted - inside[0])
             own = policies.get(stage, [])
-            if not steps or not own:
+            if not own:
                 continue
             made = [end for _, end in own if end <= submitted]
             if made:

@@ -39,7 +39,7 @@ def port_free(host: str, port: int) -> bool:
 def _bindable(host: str, port: int, *, reuse_addr: bool) -> bool:
     """Whether ``port`` on ``host`` can be bound now; without ``reuse_addr`` a connection still in
     TIME_WAIT there makes it not."""
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+    with _socket_for(host) as sock:
         if reuse_addr:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -90,6 +90,11 @@ def free_port_block(n: int, host: str = "127.0.0.1", *, avoid: Container[int] = 
 
 
 def _kernels_pick(host: str) -> int:
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+    with _socket_for(host) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])
+
+
+def _socket_for(host: str) -> socket.socket:
+    """A TCP socket of ``host``'s address family (an IPv6 address has colons)."""
+    return socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
