@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 
 import gymnasium
 import mujoco
 import numpy as np
 import pytest
+from support import ROOT
 
 from vecsim.engine import batch_render, render
 from vecsim.engine.batch_render import BatchRenderer, same_render_assets, shared_renderer
@@ -303,6 +307,42 @@ def test_an_unknown_preset_is_refused_naming_it() -> None:
 def test_the_gl_context_names_its_renderer() -> None:
     info = batch_render.gl_info()
     assert info["backend"] in ("egl", "osmesa", "glfw") and info["renderer"]
+
+
+def test_an_unknown_render_priority_is_refused_naming_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(batch_render.RENDER_PRIORITY_ENV, "urgent")
+    with pytest.raises(ValueError, match="VECSIM_RENDER_PRIORITY='urgent'"):
+        batch_render.render_priority()
+    monkeypatch.setenv(batch_render.RENDER_PRIORITY_ENV, " Low ")
+    assert batch_render.render_priority() == "low"
+    monkeypatch.delenv(batch_render.RENDER_PRIORITY_ENV)
+    assert batch_render.render_priority() == "medium"
+
+
+# A fresh process: the GL context is made once a process, at the priority asked for then.
+PRIORITY_PROBE = """
+import logging, sys
+logging.basicConfig(level=logging.WARNING, stream=sys.stdout, format="%(message)s")
+from mujoco import egl
+from mujoco.egl import egl_ext as EGL
+from vecsim.engine import batch_render
+info = batch_render.gl_info()
+offered = b"EGL_IMG_context_priority" in (EGL.eglQueryString(egl.EGL_DISPLAY, EGL.EGL_EXTENSIONS) or b"").split()
+print("RESULT", info.get("priority"), offered)
+"""
+
+
+@pytest.mark.skipif(os.environ.get("MUJOCO_GL", "egl").lower() != "egl", reason="render priorities are EGL's")
+def test_a_low_render_priority_is_granted_or_reported_as_medium_with_a_warning() -> None:
+    env = {**os.environ, "MUJOCO_GL": "egl", batch_render.RENDER_PRIORITY_ENV: "low",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", PRIORITY_PROBE], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    granted, offered = done.stdout.split("RESULT ", 1)[1].split()
+    if offered == "True":  # NVIDIA's EGL: the level asked for (a driver may grant another, and says so)
+        assert granted == "low" or "granted" in done.stdout, done.stdout
+    else:  # Mesa's llvmpipe offers no priorities: the default, and a warning naming the level asked for
+        assert granted == "medium" and "no EGL_IMG_context_priority" in done.stdout and "not low" in done.stdout
 
 
 @pytest.mark.libero

@@ -21,12 +21,19 @@ renderers for every preset). Tile 0 is that drawing area; views go to tiles 1 an
 The GL backend follows ``MUJOCO_GL`` (``egl`` by default; ``osmesa`` and ``glfw`` too), so the
 same code renders on a GPU node and through Mesa on a laptop. Nothing here is thread-safe: a
 process renders from one thread.
+
+With EGL, ``VECSIM_RENDER_PRIORITY`` (``low``, ``medium``, ``high``; set for a job's pods from
+``pods.render_priority``) asks for the GL context at that GPU scheduling priority through
+``EGL_IMG_context_priority``. A pod that renders on the GPU a trainer's policy runs on can so
+yield the GPU to it. The level is a hint: ``gl_info`` says which level the driver granted, and
+a driver without the extension renders at its default (medium), with a warning.
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import ctypes
 import hashlib
 import logging
 import math
@@ -64,6 +71,13 @@ _RENDER_ASSET_PREFIXES = ("tex_", "mesh_", "hfield_", "skin_", "mat_", "flex_")
 _RENDER_ASSET_FIELDS = ("geom_type", "geom_size", "geom_dataid", "geom_matid")
 _VISUAL_STRUCTS = ("global_", "quality", "headlight", "map", "scale", "rgba")
 _SMALL_ARRAY_BYTES = 1 << 16
+
+#: The environment variable naming the GL context's scheduling priority (see the module's text).
+RENDER_PRIORITY_ENV = "VECSIM_RENDER_PRIORITY"
+# EGL_IMG_context_priority's attribute and its levels (Khronos EGL extension #10).
+_EGL_CONTEXT_PRIORITY_LEVEL_IMG = 0x3100
+_EGL_PRIORITY_LEVELS = {"high": 0x3101, "medium": 0x3102, "low": 0x3103}
+_EGL_PRIORITY_NAMES = {value: name for name, value in _EGL_PRIORITY_LEVELS.items()}
 
 
 @dataclass(eq=False)
@@ -168,6 +182,7 @@ class _GL:
     context: Any = None
     backend: str | None = None
     api: Any = None
+    priority: str | None = None
 
     @classmethod
     def _free_at_exit(cls) -> None:
@@ -182,15 +197,20 @@ class _GL:
     def current(cls) -> Any:
         if cls.context is None:
             backend = os.environ.setdefault("MUJOCO_GL", "egl").lower()
+            priority = render_priority()
             if backend == "egl":
-                from mujoco.egl import GLContext
-            elif backend == "osmesa":
-                from mujoco.osmesa import GLContext  # type: ignore[no-redef]
-            elif backend == "glfw":
-                from mujoco.glfw import GLContext  # type: ignore[no-redef]
+                cls.context, cls.priority = _egl_context(priority)
+            elif backend in ("osmesa", "glfw"):
+                if priority != "medium":
+                    log.warning("%s=%s applies to EGL only; MUJOCO_GL=%s renders at its default priority",
+                                RENDER_PRIORITY_ENV, priority, backend)  # fmt: skip
+                if backend == "osmesa":
+                    from mujoco.osmesa import GLContext
+                else:
+                    from mujoco.glfw import GLContext  # type: ignore[no-redef]
+                cls.context, cls.priority = GLContext(64, 64), None
             else:
                 raise RuntimeError(f"MUJOCO_GL={backend!r}: vecsim renders with egl, osmesa or glfw")
-            cls.context = GLContext(64, 64)
             cls.backend = backend
             from OpenGL import GL
 
@@ -201,8 +221,59 @@ class _GL:
         return cls.context
 
 
+def render_priority() -> str:
+    """Return the GL context priority ``VECSIM_RENDER_PRIORITY`` asks for (``medium`` when unset).
+
+    Raises:
+        ValueError: a value other than ``low``, ``medium`` or ``high``.
+    """
+    value = os.environ.get(RENDER_PRIORITY_ENV, "").strip().lower() or "medium"
+    if value not in _EGL_PRIORITY_LEVELS:
+        raise ValueError(f"{RENDER_PRIORITY_ENV}={value!r}: expected one of {sorted(_EGL_PRIORITY_LEVELS)}")
+    return value
+
+
+def _egl_context(priority: str) -> tuple[Any, str]:
+    """Return an EGL context (MuJoCo's, on the device ``MUJOCO_EGL_DEVICE_ID`` names) made at
+    ``priority`` where the display offers ``EGL_IMG_context_priority``, and the level the driver
+    granted (``medium``, the default, where it offers no choice)."""
+    from mujoco import egl
+    from mujoco.egl import egl_ext as EGL
+
+    # MuJoCo's context picks the device, initialises the display and chooses the framebuffer
+    # configuration; only its context attributes (none) are not ours to set.
+    context = egl.GLContext(64, 64)
+    if priority == "medium":
+        return context, "medium"
+    display = egl.EGL_DISPLAY
+    extensions = (EGL.eglQueryString(display, EGL.EGL_EXTENSIONS) or b"").split()
+    if b"EGL_IMG_context_priority" not in extensions:
+        log.warning("this EGL offers no EGL_IMG_context_priority: rendering at medium priority, not %s", priority)
+        return context, "medium"
+    configs = (EGL.EGLConfig * 1)()
+    found = ctypes.c_long()
+    EGL.eglChooseConfig(display, egl.EGL_ATTRIBUTES, configs, 1, found)
+    attributes = (ctypes.c_int32 * 3)(_EGL_CONTEXT_PRIORITY_LEVEL_IMG, _EGL_PRIORITY_LEVELS[priority], EGL.EGL_NONE)
+    EGL.eglBindAPI(EGL.EGL_OPENGL_API)
+    handle = EGL.eglCreateContext(display, configs[0], EGL.EGL_NO_CONTEXT, attributes) if found.value else None
+    if not handle:
+        log.warning("EGL made no context at %s priority (error 0x%x): rendering at medium", priority, EGL.eglGetError())
+        return context, "medium"
+    # Swap the prioritised context in for the default one; GLContext's make_current and free
+    # act on ``_context``.
+    EGL.eglDestroyContext(display, context._context)
+    context._context = handle
+    granted = ctypes.c_int32(0)
+    EGL.eglQueryContext(display, handle, _EGL_CONTEXT_PRIORITY_LEVEL_IMG, ctypes.byref(granted))
+    level = _EGL_PRIORITY_NAMES.get(granted.value, f"0x{granted.value:x}")
+    if level != priority:
+        log.warning("asked EGL for a %s-priority GL context; the driver granted %s", priority, level)
+    return context, level
+
+
 def gl_info() -> dict[str, str]:
-    """Return the GL backend, vendor, renderer and version strings of this process's GL context."""
+    """Return the GL backend, vendor, renderer and version strings of this process's GL context,
+    and with EGL the context's granted priority."""
     _GL.current()
     GL = _GL.api
 
@@ -215,6 +286,8 @@ def gl_info() -> dict[str, str]:
         "vendor": text(GL.GL_VENDOR),
         "renderer": text(GL.GL_RENDERER),
         "version": text(GL.GL_VERSION),
+        # The scheduling priority the driver granted the context (EGL only; see the module's text).
+        **({"priority": _GL.priority} if _GL.priority else {}),
     }
 
 
