@@ -161,6 +161,7 @@ class Plan:
     compare_batch_wait_s: tuple[float, ...] = ()
     stage_layouts: tuple[str, ...] = ("slices", "pods")  # the 2-stage layouts measured
     pods_per_core: int = 2  # pipeline: pods pinned to each of the pipeline_cores cores
+    compare_stages: tuple[int, ...] = ()  # pipeline: also 'slices' in each of these stage counts (>= 3)
 
     @property
     def envs_per_pod(self) -> int:
@@ -1284,9 +1285,9 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
 WARMUP_HORIZON = 32  # pipeline: actions per trajectory in each contender's warm-up rollout
 
 
-def waiting(layout: str, wait_s: float) -> str:
-    """The name of a 2-stage contender run with a ``--compare-batch-wait-s`` value."""
-    return f"{layout}/stages=2/batch_wait={wait_s:g}s"
+def waiting(layout: str, wait_s: float, stages: int = 2) -> str:
+    """The name of a contender of ``stages`` stages run with a ``--compare-batch-wait-s`` value."""
+    return f"{layout}/stages={stages}/batch_wait={wait_s:g}s"
 
 
 def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadline) -> dict[str, Any]:
@@ -1296,11 +1297,14 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
     against 2 stages in each of ``plan.stage_layouts`` (``pods``: the first half of the pods
     against the second; ``slices``: every pod's envs alternating stages), interleaved rounds.
     Every call steps ``plan.chunk`` actions per env. For each of ``plan.compare_batch_wait_s``,
-    each 2-stage layout also runs waiting that long for more of a stage's pods (:func:`waiting`)."""
+    each 2-stage layout also runs waiting that long for more of a stage's pods (:func:`waiting`).
+    For each of ``plan.compare_stages``, ``slices`` also runs in that many stages, at
+    ``plan.batch_wait_s`` and each compared wait: a third stage's slack against the slowest pod."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     half = plan.pods // 2
     core_of = {pod: i % plan.pipeline_cores for i, pod in enumerate(names)}
     two_stages = {"pods": regroup(table, names, 2), "slices": regroup_slices(table, names, 2)}
+    more_stages = {n: regroup_slices(table, names, n) for n in plan.compare_stages}
     clients: dict[str, TimedStageClient] = {}
 
     def client_of(routing: RoutingTable) -> TimedStageClient:
@@ -1310,6 +1314,8 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         clients["stages=1"] = client_of(regroup(table, names, 1))
         for layout in plan.stage_layouts:
             clients[f"{layout}/stages=2"] = client_of(two_stages[layout])
+        for n, routing in more_stages.items():
+            clients[f"slices/stages={n}"] = client_of(routing)
         clients["half"] = client_of(regroup(table, names[:half], 1))
         one = clients["stages=1"]
         k = plan.chunk
@@ -1320,12 +1326,14 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
                              plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))  # fmt: skip
         target_ms = breakdown(service["service/stages=1"])["stage_call_ms"]
         batch = one.routing.num_envs
-        stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages})
+        stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages}
+                             | {stage.num_envs for routing in more_stages.values() for stage in routing.stages})
         space, action = one.observation_space, one.action_space
         # Without lockstep the loop's policy calls take batches of many sizes, mostly whole lanes'
         # answers (a lane: one stage's envs on one pod); a size met first inside a timed round would
         # be captured there (seconds for this ViT). So every multiple of a lane's envs is captured
-        # up front and other sizes padded.
+        # up front and other sizes padded. More stages' lanes are not (a pod's envs split three
+        # ways leave lanes of one env); their whole stages are, and part stages are padded.
         lane = math.gcd(*(p.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages
                           for p in stage.pods), plan.envs_per_pod)  # fmt: skip
         graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes],
@@ -1337,6 +1345,10 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
                       for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]}  # fmt: skip
         contenders.update({waiting(layout, wait): (f"{layout}/stages=2", wait)
                            for wait in plan.compare_batch_wait_s for layout in plan.stage_layouts})  # fmt: skip
+        for n in plan.compare_stages:
+            contenders[f"slices/stages={n}"] = (f"slices/stages={n}", plan.batch_wait_s)
+            contenders.update({waiting("slices", wait, n): (f"slices/stages={n}", wait)
+                               for wait in plan.compare_batch_wait_s})  # fmt: skip
         # Warm-up: a short rollout per contender (connections, the pods' first renders); the
         # policy's batch sizes are all captured already.
         for client_name, wait in contenders.values():
@@ -1374,9 +1386,16 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
             layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1/lockstep"])
             for layout in plan.stage_layouts
         },
+        # Every contender over 1 stage in lockstep, more stages' included.
+        "speedup_over_lockstep": {
+            name: paired_ratio(values, rates["stages=1/lockstep"])
+            for name, values in rates.items() if name != "stages=1/lockstep"
+        },
         "stage_envs": {
-            layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
-            for layout in plan.stage_layouts
+            **{layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
+               for layout in plan.stage_layouts},
+            **{f"slices/stages={n}": [[p.num_envs for p in stage.pods] for stage in routing.stages]
+               for n, routing in more_stages.items()},
         },
         "per_round": {name: [round(m.env_steps_per_s, 2) for m in runs] for name, runs in {**service, **loops}.items()},
     }
@@ -1757,8 +1776,12 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     for wait in waits:
         names += [waiting(layout, wait) for layout in layouts]
         labels += [f"2 stages\n({layout},\nwait {wait:g} s)" for layout in layouts]
-    rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
     base = len(names) - len(waits) * len(layouts)
+    more = summary["setup"].get("compare_stages", [])  # --compare-stages: slices in n stages
+    for n in more:
+        names += [f"slices/stages={n}", *(waiting("slices", wait, n) for wait in waits)]
+        labels += [f"{n} stages\n(slices)", *(f"{n} stages\n(slices,\nwait {wait:g} s)" for wait in waits)]
+    rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
     extra = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     colours = ["tab:gray", "tab:blue", "tab:orange", "tab:green"][-base:] + [
         extra[i % len(extra)] for i in range(len(names) - base)]  # fmt: skip
@@ -1776,7 +1799,8 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     sizes = summary["setup"]["stage_envs_by_layout"]
     alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] * (1 + len(lockstep)) + [
         statistics.mean(policy["forward_ms"].get(str(sum(stage)), 0) for stage in sizes[layout])
-        for layout in layouts * (1 + len(waits))
+        for layout in [*layouts * (1 + len(waits)),
+                       *(f"slices/stages={n}" for n in more for _ in range(1 + len(waits)))]  # fmt: skip
     ]
     for offset, (label, values) in enumerate((
         ("stage call (loop)", [loop[name]["time_split_ms"]["stage_call_ms"] for name in names]),
@@ -1840,6 +1864,12 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if chunk < 1:
         raise SystemExit(f"--chunk must be at least 1, got {chunk}")
     layouts = parse_stage_layouts(args.stage_layout)
+    envs = pods * len(tasks[:per_pod]) * (args.envs_per_task or (QUICK_ENVS_PER_TASK if quick else 1))
+    for n in getattr(args, "compare_stages", ()):
+        # The loop gives request i to stage i % n: the stages must be of one size.
+        if envs % n:
+            raise SystemExit(f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
+                             "(change --tasks-per-pod, --envs-per-task or the pods)")  # fmt: skip
     # The horizon counts actions: by default as many calls at K as at K=1.
     horizon = 2 * chunk if dry else args.horizon or (30 if gpu else 6 if quick else 3) * chunk
     return Plan(
@@ -1866,6 +1896,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         compare_batch_wait_s=args.compare_batch_wait_s,
         stage_layouts=layouts,
         pods_per_core=args.pods_per_core,
+        compare_stages=args.compare_stages,
     )
 
 
@@ -2049,6 +2080,9 @@ def main() -> int:
     parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
                         help="pipeline: the 2-stage layouts to measure against 1 stage, comma-separated "
                         "(slices, pods; default both, side by side)")
+    parser.add_argument("--compare-stages", default="",
+                        help="pipeline: also run 'slices' in each of these stage counts (3 or more, comma-separated), "
+                        "at --batch-wait-s and each --compare-batch-wait-s (contenders 'slices/stages=<N>[...]')")
     parser.add_argument("--pods-per-core", type=int, default=2,
                         help="pipeline: pods pinned to each core (2: one of each 'pods' stage a core; 1: one pod a "
                              "core, its envs split between the stages in 'slices')")
@@ -2092,6 +2126,16 @@ def main() -> int:
         parser.error(f"--compare-batch-wait-s names a wait twice: {args.compare_batch_wait_s}")
     if args.compare_batch_wait_s and args.only != "pipeline":
         parser.error("--compare-batch-wait-s is a pipeline contender: say --only pipeline")
+    try:
+        args.compare_stages = tuple(dict.fromkeys(int(n) for n in args.compare_stages.split(",") if n.strip()))
+    except ValueError:
+        parser.error(f"--compare-stages takes stage counts, comma-separated: got {args.compare_stages!r}")
+    if any(n < 3 for n in args.compare_stages):
+        parser.error(f"--compare-stages: stage counts of 3 or more (1 and 2 are always measured), "
+                     f"got {args.compare_stages}")
+    if args.compare_stages and (args.only != "pipeline" or "slices" not in args.stage_layout.split(",")):
+        parser.error("--compare-stages runs the 'slices' layout in more stages: "
+                     "say --only pipeline with slices in --stage-layout")
     return run_mode(args)
 
 

@@ -253,6 +253,35 @@ def test_pipeline_with_a_pod_a_core_splits_each_pod_between_the_stages(tmp_path)
     assert waited["env_steps_per_policy_call"] == 2 * setup["chunk"]
 
 
+@pytest.mark.timeout(180)
+@pytest.mark.slow
+def test_pipeline_also_runs_slices_in_three_stages_each_stage_a_third_of_every_pod(tmp_path):
+    gym = [*GYM[:2], "--envs-per-task", "3", *GYM[4:]]
+    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--pods-per-core", "1",
+            "--pipeline-cores", "2", "--stage-layout", "slices", "--batch-wait-s", "300", "--compare-stages", "3",
+            *gym)  # fmt: skip
+    summary = result_of(run_bench(tmp_path, *args))
+    setup = summary["setup"]
+    assert setup["compare_stages"] == [3]
+    # Six envs, the k-th on stage k % 3: two a stage, one of each pod.
+    assert setup["stage_envs_by_layout"]["slices/stages=3"] == [[1, 1], [1, 1], [1, 1]]
+    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "slices/stages=3"}
+    assert set(summary["speedup_over_lockstep"]) == {"stages=1", "slices/stages=2", "slices/stages=3"}
+    # Waiting for the whole stage: a policy call takes a stage's two envs, K actions each.
+    waited = summary["loop"]["slices/stages=3"]["time_split_ms"]
+    assert waited["env_steps_per_policy_call"] == 2 * setup["chunk"]
+    assert summary["loop"]["slices/stages=3"]["trajectories"] == 6
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("extra", [("--compare-stages", "2"), ("--compare-stages", "3,x"),
+                                   ("--compare-stages", "3", "--stage-layout", "pods"), ("--compare-stages", "5")])  # fmt: skip
+def test_more_stages_the_pipeline_cannot_run_are_refused_naming_the_option(tmp_path, extra):
+    done = run_bench(tmp_path, "--quick", *extra, timeout=50)
+    # 5: the quick job's envs do not split into five equal stages.
+    assert done.returncode in (1, 2) and "--compare-stages" in done.stderr and "RESULT" not in done.stdout
+
+
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("extra", [("--pods-per-core", "3"), ("--pods-per-core", "0"),
                                    ("--pods-per-core", "1", "--pipeline-cores", "1")])  # fmt: skip
