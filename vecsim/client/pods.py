@@ -125,18 +125,27 @@ class EventLoopThread:
                 self.cancel(future)
             raise
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
         """Stop the loop and join its thread; safe to call twice, and a no-op where the thread
-        can no longer run (at interpreter exit, daemon threads are stopped where they stand)."""
+        can no longer run (at interpreter exit, daemon threads are stopped where they stand).
+
+        A loop that does not stop within ``timeout`` seconds (its thread held up in a callback) is
+        left to its daemon thread, with a warning, rather than waited for: closing must not hang
+        a trainer's exit, Ctrl-C's included. Closing again once that thread has ended closes it.
+        """
         if self.loop.is_closed():
             return
         if threading.current_thread() is self.thread:
             self.loop.stop()  # the loop cannot be closed from inside; its thread ends
             return
-        if not self.running:
+        if sys.is_finalizing():
             return
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join()
+        if self.thread.is_alive():
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(timeout)
+            if self.thread.is_alive():
+                logger.warning("the client's event loop did not stop within %s s; leaving it to its daemon thread", timeout)
+                return
         self.loop.close()
 
 
