@@ -1864,15 +1864,9 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if chunk < 1:
         raise SystemExit(f"--chunk must be at least 1, got {chunk}")
     layouts = parse_stage_layouts(args.stage_layout)
-    envs = pods * len(tasks[:per_pod]) * (args.envs_per_task or (QUICK_ENVS_PER_TASK if quick else 1))
-    for n in getattr(args, "compare_stages", ()):
-        # The loop gives request i to stage i % n: the stages must be of one size.
-        if envs % n:
-            raise SystemExit(f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
-                             "(change --tasks-per-pod, --envs-per-task or the pods)")  # fmt: skip
     # The horizon counts actions: by default as many calls at K as at K=1.
     horizon = 2 * chunk if dry else args.horizon or (30 if gpu else 6 if quick else 3) * chunk
-    return Plan(
+    plan = Plan(
         mode=args.only,
         tasks=tasks[:per_pod],
         size=args.size or (256 if gpu else 16 if quick else 64),
@@ -1898,6 +1892,13 @@ def make_plan(args: argparse.Namespace) -> Plan:
         pods_per_core=args.pods_per_core,
         compare_stages=args.compare_stages,
     )
+    envs = plan.pods * plan.envs_per_pod
+    for n in plan.compare_stages:
+        # The loop gives request i to stage i % n: the stages must be of one size.
+        if envs % n:
+            raise SystemExit(f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
+                             "(change --tasks-per-pod, --envs-per-task or the pods)")  # fmt: skip
+    return plan
 
 
 def parse_stage_layouts(text: str) -> tuple[str, ...]:

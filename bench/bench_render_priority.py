@@ -4,8 +4,8 @@ On one GPU, the pods' camera renders (EGL contexts, one a pod process) share the
 trainer's policy (a CUDA context). In the slow-policy pipeline runs (docs/benchmarks.md,
 "Stage layouts and refill") a 40-row ViT call took 425 ms in the loop against 363 ms alone, and
 that alone caps two stages at about 1.7x one. This measures that contention without pods or
-HTTP, and what ``pods.render_priority`` (``VECSIM_RENDER_PRIORITY``, EGL_IMG_context_priority)
-does to it:
+HTTP, and what the renders' GL context priority (``VECSIM_RENDER_PRIORITY``,
+EGL_IMG_context_priority) does to it:
 
 - the policy: the pipeline bench's ViT (``--vit-depth`` blocks 768 wide, two 256x256 cameras)
   replayed from a CUDA graph on ``--batch`` rows, call after call, timed with a sync each call;
@@ -45,12 +45,11 @@ from common import spread, write_result
 from gymnasium import spaces
 
 from vecsim.config import CameraConfig
-from vecsim.engine.batch_render import RENDER_PRIORITY_ENV, BatchRenderer, gl_info
+from vecsim.engine.batch_render import RENDER_PRIORITIES, RENDER_PRIORITY_ENV, BatchRenderer, gl_info
 
 log = logging.getLogger("bench.render_priority")
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
-PRIORITIES = ("low", "medium", "high")
 
 
 def renderer_main(index: int, core: int | None, priority: str, task: str, size: int, views: int,
@@ -263,9 +262,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--copy-to", type=Path, default=None, help="also copy the record here (the device's $OUT)")
     args = parser.parse_args(argv)
     args.priorities = tuple(p.strip().lower() for p in args.priorities.split(",") if p.strip())
-    unknown = [p for p in args.priorities if p not in PRIORITIES]
+    unknown = [p for p in args.priorities if p not in RENDER_PRIORITIES]
     if unknown or not args.priorities:
-        parser.error(f"--priorities: expected some of {', '.join(PRIORITIES)}, got {unknown or 'none'}")
+        parser.error(f"--priorities: expected some of {', '.join(RENDER_PRIORITIES)}, got {unknown or 'none'}")
     if args.renderers < 1 or args.views < 1 or args.batch < 1 or args.rounds < 1:
         parser.error("--renderers, --views, --batch and --rounds must be at least 1")
     if args.quick:

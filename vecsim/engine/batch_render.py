@@ -22,11 +22,12 @@ The GL backend follows ``MUJOCO_GL`` (``egl`` by default; ``osmesa`` and ``glfw`
 same code renders on a GPU node and through Mesa on a laptop. Nothing here is thread-safe: a
 process renders from one thread.
 
-With EGL, ``VECSIM_RENDER_PRIORITY`` (``low``, ``medium``, ``high``; set for a job's pods from
-``pods.render_priority``) asks for the GL context at that GPU scheduling priority through
-``EGL_IMG_context_priority``. A pod that renders on the GPU a trainer's policy runs on can so
-yield the GPU to it. The level is a hint: ``gl_info`` says which level the driver granted, and
-a driver without the extension renders at its default (medium), with a warning.
+With EGL, ``VECSIM_RENDER_PRIORITY`` (``low``, ``medium``, ``high``) in a pod's environment asks
+for the GL context at that GPU scheduling priority through ``EGL_IMG_context_priority``, so
+that a pod rendering on the GPU a trainer's policy runs on might yield it. The level is a hint:
+``gl_info`` says which level the driver granted, and a driver without the extension renders at
+its default (medium), with a warning. On an H200 (NVIDIA 580) every level was granted and none
+changed the policy's speed beside the renders (docs/benchmarks.md, "Stage layouts and refill").
 """
 
 from __future__ import annotations
@@ -77,6 +78,8 @@ RENDER_PRIORITY_ENV = "VECSIM_RENDER_PRIORITY"
 # EGL_IMG_context_priority's attribute and its levels (Khronos EGL extension #10).
 _EGL_CONTEXT_PRIORITY_LEVEL_IMG = 0x3100
 _EGL_PRIORITY_LEVELS = {"high": 0x3101, "medium": 0x3102, "low": 0x3103}
+#: The levels ``VECSIM_RENDER_PRIORITY`` takes.
+RENDER_PRIORITIES = tuple(sorted(_EGL_PRIORITY_LEVELS))
 _EGL_PRIORITY_NAMES = {value: name for name, value in _EGL_PRIORITY_LEVELS.items()}
 
 
@@ -229,7 +232,7 @@ def render_priority() -> str:
     """
     value = os.environ.get(RENDER_PRIORITY_ENV, "").strip().lower() or "medium"
     if value not in _EGL_PRIORITY_LEVELS:
-        raise ValueError(f"{RENDER_PRIORITY_ENV}={value!r}: expected one of {sorted(_EGL_PRIORITY_LEVELS)}")
+        raise ValueError(f"{RENDER_PRIORITY_ENV}={value!r}: expected one of {list(RENDER_PRIORITIES)}")
     return value
 
 
