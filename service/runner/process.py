@@ -1,13 +1,15 @@
 """One supervised process, the way a kubelet runs a container.
 
 The process runs in a process group of its own (so a terminal's Ctrl-C reaches only the runner,
-and a stop reaches everything the process started, e.g. its env workers). A thread watches it:
+and a stop reaches everything the process started, e.g. its env workers), and on Linux the kernel
+kills it when the runner dies, even by SIGKILL (:mod:`vecsim.engine.lifetime`). A thread watches it:
 it runs the startup probe, then readiness and liveness probes (``service.probes``); when the
 process exits or a startup/liveness probe fails, it restarts it after an exponential backoff.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import signal
@@ -21,6 +23,7 @@ from pathlib import Path
 import httpx
 
 from service.probes import TERMINATION_GRACE_S, Probe, Probes
+from vecsim.engine.lifetime import exit_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +186,8 @@ class ManagedProcess:
                     stdout=out,
                     stderr=subprocess.STDOUT,
                     start_new_session=True,
+                    # Forked by the watcher thread, which lives until the process is stopped.
+                    preexec_fn=functools.partial(exit_with_parent, os.getpid()),
                 )
             self.started = self.ready = self.probes is None
             log.info("%s started (pid %d)", self.name, self._proc.pid)

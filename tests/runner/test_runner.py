@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -311,4 +313,58 @@ def test_ctrl_c_to_vecsim_up_leaves_no_process_behind(tmp_path):
         for process in [*started, psutil.Process(runner.pid) if runner.poll() is None else None]:
             if process is not None and process.is_running():
                 process.kill()
+        runner.wait(timeout=30)
+
+
+def processes_marked(mark: str) -> list[psutil.Process]:
+    """Every process of this user whose environment carries ``VECSIM_TEST_MARK=mark``."""
+    found = []
+    for process in psutil.process_iter():
+        with contextlib.suppress(psutil.Error):
+            if process.environ().get("VECSIM_TEST_MARK") == mark:
+                found.append(process)
+    return found
+
+
+def port_held(port: int) -> bool:
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
+@pytest.mark.slow
+def test_a_sigkilled_runner_leaves_no_process_and_no_port_behind(tmp_path):
+    # SIGKILL lets the runner stop nothing itself: its children go because the kernel kills them
+    # with it, the pods' workers because their parent goes with the pod.
+    config = tiny_config(suite=None, tasks=("gym/Pendulum-v1",), camera=CameraConfig(names=()))
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
+    mark = secrets.token_hex(8)
+    runner = subprocess.Popen(
+        [PYTHON, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "VECSIM_TEST_MARK": mark},
+        start_new_session=True,
+    )
+    ports = [config.controller.port, *(config.pods.base_port + i for i in range(config.pods.replicas))]
+    try:
+        # Mid-rollout: the pods have started their env workers (more processes than the runner,
+        # the controller and the two pods).
+        wait_until(lambda: len(processes_marked(mark)) > 4, "the pods' env workers", timeout_s=240, every=0.2)
+        assert any(port_held(port) for port in ports)
+        runner.kill()
+        runner.wait(timeout=10)
+        wait_until(lambda: not processes_marked(mark), "every process the runner started to end", timeout_s=10)
+        assert [port for port in ports if port_held(port)] == []
+    finally:
+        for process in processes_marked(mark):
+            with contextlib.suppress(psutil.Error):
+                process.kill()
+        if runner.poll() is None:
+            runner.kill()
         runner.wait(timeout=30)

@@ -14,6 +14,7 @@ what it started in a ``finally``. Every wait is bounded.
 from __future__ import annotations
 
 import contextlib
+import functools
 import ipaddress
 import os
 import secrets
@@ -37,6 +38,7 @@ from service.runner.job import LocalJob
 from service.runner.ports import free_port, free_port_block
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig, JobConfig, RenderPreset, TaskBlock
+from vecsim.engine.lifetime import exit_with_parent
 
 START_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 240.0
@@ -121,9 +123,18 @@ class Server:
     def start(self) -> None:
         """Start the process (again, after :meth:`stop`: the same command, port and log)."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # Its own process group, so stop() reaches its workers too; and on Linux it dies with the
+        # test process, however that ends. The kernel ties it to the thread that forks it, so only
+        # a process started from the main thread (which lives as long as the test run) is tied.
+        tie = threading.current_thread() is threading.main_thread()
         with self.log_path.open("ab") as log:
             self.proc = subprocess.Popen(
-                self.argv, env=self.env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+                self.argv,
+                env=self.env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                preexec_fn=functools.partial(exit_with_parent, os.getpid()) if tie else None,
             )
 
     @property

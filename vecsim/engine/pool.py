@@ -27,6 +27,7 @@ from gymnasium.vector.utils import create_shared_memory, read_from_shared_memory
 
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment
 from vecsim.engine import protocol
+from vecsim.engine.lifetime import exit_with_parent
 from vecsim.engine.worker import WorkerSpec, results_space, worker_process
 
 log = logging.getLogger("vecsim.engine.pool")
@@ -58,9 +59,9 @@ class WorkerPool:
         for index, spec in enumerate(specs):
             parent, child = ctx.Pipe()
             process = ctx.Process(
-                target=worker_process,
+                target=_worker_main,
                 name=f"vecsim-worker-{index}",
-                args=(index, spec, child, shared, len(specs)),
+                args=(os.getpid(), index, spec, child, shared, len(specs)),
                 daemon=True,
             )
             process.start()
@@ -140,6 +141,16 @@ class WorkerPool:
             pipe.close()
         for process in self.processes:
             process.join()
+
+
+def _worker_main(pod_pid: int, *args: Any) -> None:
+    """A worker process: ends with its parent, then serves orders (:func:`worker_process`).
+
+    Its parent is the forkserver (which exits with the pod) or, in the other start methods, the
+    pod's sim thread, which lives as long as the pool; either way a SIGKILLed pod leaves no
+    worker behind."""
+    exit_with_parent(pod_pid)
+    worker_process(*args)
 
 
 def available_cores() -> int:
