@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, Metric
@@ -21,6 +21,9 @@ class Gauges:
     generation: int
     unfilled_slots: int
     job_ready: bool
+    # Stage id -> slots of that stage whose pod is registered and ready (in the ``slices``
+    # layout every slot serves every stage).
+    stage_ready_pods: dict[int, int] = field(default_factory=dict)
 
 
 class _StateCollector(Collector):
@@ -42,6 +45,14 @@ class _StateCollector(Collector):
         yield GaugeMetricFamily(
             "vecsim_controller_job_ready", "1 when every slot's pod runs the plan and is ready.", value=int(g.job_ready)
         )
+        stages = GaugeMetricFamily(
+            "vecsim_controller_stage_ready_pods",
+            "Pods of the plan serving a stage that are registered and ready, by stage.",
+            labels=["stage"],
+        )
+        for stage, count in sorted(g.stage_ready_pods.items()):
+            stages.add_metric([str(stage)], count)
+        yield stages
 
 
 class ControllerMetrics:

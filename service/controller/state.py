@@ -403,4 +403,16 @@ class ControllerState:
             generation=self.plan.generation if self.plan is not None else 0,
             unfilled_slots=len(self.plan.unfilled) if self.plan is not None else 0,
             job_ready=self.ready,
+            stage_ready_pods=self._stage_ready_pods(),
         )
+
+    def _stage_ready_pods(self) -> dict[int, int]:
+        if self.plan is None:
+            return {}
+        counts = dict.fromkeys(range(self.plan.job.num_stages), 0)
+        for slot in self.plan.slots:
+            entry = self.pods.get(slot.pod) if slot.pod is not None else None
+            if entry is not None and entry.ready:
+                for stage in counts if slot.stage_id is None else (slot.stage_id,):
+                    counts[stage] += 1
+        return counts

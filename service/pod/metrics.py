@@ -1,8 +1,13 @@
 """The pod's Prometheus metrics, in a registry of their own so that several apps can live in one
-process (tests, the local runner) without clashing in the global registry."""
+process (tests, the local runner) without clashing in the global registry. docs/kubernetes.md
+lists them."""
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterable
+
+import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from ..metrics import refused_requests
@@ -45,3 +50,57 @@ class PodMetrics:
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
         self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
         self.refused = refused_requests(self.registry, "pod")
+        # Waiting work, both ways: envs waiting for a trajectory, calls waiting for the sim thread.
+        self._num_envs = 0
+        self._in_episode: set[int] = set()
+        self.idle_envs = Gauge(
+            "vecsim_pod_idle_envs",
+            "Envs with no episode in progress: not reset since they were built, or ended (terminated "
+            "or truncated) since their last reset.",
+            registry=self.registry,
+        )
+        self.idle_envs.set_function(lambda: self._num_envs - len(self._in_episode))
+        self.queued_calls = Gauge(
+            "vecsim_pod_queued_calls",
+            "Calls (reset, step, builds) waiting for the pod's simulation thread, not yet started.",
+            registry=self.registry,
+        )
+
+    def serving(self, num_envs: int) -> None:
+        """The pod serves ``num_envs`` newly built envs, none of them in an episode."""
+        self._num_envs = num_envs
+        self._in_episode = set()
+        self.envs.set(num_envs)
+        self.ready.set(1)
+
+    def episodes_started(self, env_indices: Iterable[int]) -> None:
+        """``env_indices`` were reset: each is in an episode."""
+        self._in_episode = self._in_episode | {int(i) for i in env_indices}
+
+    def episodes_ended(self, env_indices: np.ndarray, terminated: np.ndarray, truncated: np.ndarray) -> None:
+        """A step of ``env_indices`` answered these flags (``[n]``, or ``[n, K]`` for a chunk): the
+        envs with any flag set are out of their episode."""
+        n = len(env_indices)
+        ended = np.asarray(terminated, bool).reshape(n, -1).any(1) | np.asarray(truncated, bool).reshape(n, -1).any(1)
+        self._in_episode = self._in_episode - {int(i) for i in np.asarray(env_indices)[ended]}
+
+    def queued(self) -> QueuedCall:
+        """A call now counted in :attr:`queued_calls`, until its :meth:`QueuedCall.started`."""
+        return QueuedCall(self.queued_calls)
+
+
+class QueuedCall:
+    """One call counted in a gauge of queued calls. :meth:`started` uncounts it, once: called when
+    it starts, and again from a ``finally`` for a call cancelled before it ran."""
+
+    def __init__(self, gauge: Gauge) -> None:
+        self._gauge = gauge
+        self._counted = True
+        self._lock = threading.Lock()
+        gauge.inc()
+
+    def started(self) -> None:
+        with self._lock:
+            if self._counted:
+                self._counted = False
+                self._gauge.dec()

@@ -122,7 +122,16 @@ class PodState:
         Raises:
             Whatever ``fn`` raises.
         """
-        return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
+        call = self.metrics.queued()
+
+        def started() -> T:
+            call.started()
+            return fn(*args)
+
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._executor, started)
+        finally:
+            call.started()  # a call cancelled before it ran
 
     def serving_env(self, generation: int) -> TaskGroupedVectorEnv:
         """The env that serves a data-plane request made for ``generation``.
@@ -254,8 +263,7 @@ class PodState:
                 self.instance = uuid.uuid4().hex
                 self.phase = "ready"
                 self.detail = f"serving generation {self.generation}"
-                self.metrics.envs.set(env.num_envs)
-                self.metrics.ready.set(1)
+                self.metrics.serving(env.num_envs)
                 log.info("pod %s: ready, %d envs, generation %s", self.settings.name, env.num_envs, self.generation)
                 return
             # The assignment changed while building: this env is already out of date.

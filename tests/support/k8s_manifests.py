@@ -1,10 +1,12 @@
 """The repository's Kubernetes manifests as the k8s tests read them: each target's objects as
-``kubectl kustomize`` renders them."""
+``kubectl kustomize`` renders them, and an overlay with opt-in components added the way
+docs/kubernetes.md tells an operator to (a ``components:`` entry in the overlay)."""
 
 from __future__ import annotations
 
 import functools
 import shutil
+import tempfile
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +23,9 @@ TARGETS = {
     "gpu-cluster": K8S / "overlays" / "gpu-cluster",
     "dev-cpu": K8S / "overlays" / "dev-cpu",
 }
+# The JobSet overlay (a trainer, the controller and the sims as one JobSet): no StatefulSet.
+JOBSET = K8S / "overlays" / "jobset"
+COMPONENTS = K8S / "components"
 # Which job config each target starts the controller with.
 JOB_CONFIGS = {
     "base": ROOT / "configs" / "libero_10.yaml",
@@ -53,3 +58,17 @@ def build(target: str) -> tuple[dict[str, Any], ...]:
     for config in set(JOB_CONFIGS.values()):
         assert config.exists(), f"{config.relative_to(ROOT)} is missing: the job ConfigMap is generated from it"
     return kustomize(TARGETS[target])
+
+
+@functools.cache
+def build_with_components(overlay: str, components: tuple[str, ...]) -> tuple[dict[str, Any], ...]:
+    """The objects ``k8s/overlays/<overlay>`` renders with ``components`` (names under
+    ``k8s/components``) added to its kustomization, in a copy of the repository's k8s/ and configs/."""
+    with tempfile.TemporaryDirectory(prefix="vecsim-k8s-") as tmp:
+        shutil.copytree(K8S, Path(tmp) / "k8s")
+        shutil.copytree(ROOT / "configs", Path(tmp) / "configs")
+        kustomization = Path(tmp) / "k8s" / "overlays" / overlay / "kustomization.yaml"
+        document = yaml.safe_load(kustomization.read_text())
+        document["components"] = [*document.get("components", []), *(f"../../components/{c}" for c in components)]
+        kustomization.write_text(yaml.safe_dump(document))
+        return kustomize(kustomization.parent)

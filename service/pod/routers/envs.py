@@ -145,6 +145,7 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
 
     response = await _simulate(state, env, work)
     state.metrics.env_resets.inc(len(req.env_indices))
+    state.metrics.episodes_started(req.env_indices)
     return response
 
 
@@ -196,7 +197,7 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
 
     resetting = bool(req.reset_env_indices.size or req.reset_state_ids.size)
 
-    def work() -> tuple[Response, float, CallTiming, int]:
+    def work() -> tuple[Response, float, CallTiming, int, tuple[np.ndarray, np.ndarray]]:
         start = time.perf_counter()
         reset: tuple[Any, dict[str, Any]] | None = None
         if resetting:
@@ -233,11 +234,13 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
             answer["reset"] = reset_answer(req.reset_env_indices, *reset)
         # Read on this thread, before another call can replace it.
         timing = env.last_timing
-        return encode_answer(answer, as_json), elapsed, timing, applied
+        return encode_answer(answer, as_json), elapsed, timing, applied, (answer["terminated"], answer["truncated"])
 
-    response, elapsed, timing, applied = await _simulate(state, env, work)
+    response, elapsed, timing, applied, ended = await _simulate(state, env, work)
     if resetting:
         state.metrics.env_resets.inc(len(req.reset_env_indices))
+        state.metrics.episodes_started(req.reset_env_indices)
+    state.metrics.episodes_ended(req.env_indices, *ended)
     state.metrics.env_steps.inc(applied)
     state.metrics.env_renders.inc(timing.renders)
     state.metrics.step_seconds.observe(elapsed)
