@@ -108,7 +108,8 @@ def core_objects(objects: tuple[dict[str, Any], ...]) -> list[dict[str, Any]]:
     core = [o for o in objects if (o["apiVersion"], o["kind"]) not in PUBLISHED_TYPES]
     for jobset in of_kind(objects, "JobSet"):
         for job in jobset["spec"]["replicatedJobs"]:
-            meta = {"name": f"{jobset['metadata']['name']}-{job['name']}-0", "namespace": jobset["metadata"]["namespace"]}
+            name, namespace = f"{jobset['metadata']['name']}-{job['name']}-0", jobset["metadata"]["namespace"]
+            meta = {"name": name, "namespace": namespace}
             core.append({"apiVersion": "batch/v1", "kind": "Job", "metadata": meta, "spec": job["template"]["spec"]})
     return core
 
@@ -216,7 +217,8 @@ def test_jobset_sims_are_named_and_addressed_by_their_index() -> None:
     host = f"{jobset['metadata']['name']}-sim-0-3.{subdomain}.{namespace}.svc.cluster.local"
     assert settings.url == f"http://{host}:8100"
     (service,) = [s for s in of_kind(objects, "Service") if s["metadata"]["name"] == "controller"]
-    assert settings.controller_url == f"http://controller.{namespace}.svc.cluster.local:{service['spec']['ports'][0]['port']}"
+    port = service["spec"]["ports"][0]["port"]
+    assert settings.controller_url == f"http://controller.{namespace}.svc.cluster.local:{port}"
 
 
 def expand_env(env: list[dict[str, Any]], downward: dict[str, str]) -> dict[str, str]:
@@ -262,7 +264,8 @@ def test_jobset_pods_follow_the_probes_and_lockdown_of_the_base() -> None:
         spec = pod_template(jobset, name)["spec"]
         (c,) = spec["containers"]
         assert spec["securityContext"]["runAsNonRoot"] is True and spec["automountServiceAccountToken"] is False
-        assert c["securityContext"]["readOnlyRootFilesystem"] is True and c["securityContext"]["capabilities"]["drop"] == ["ALL"]
+        locked = c["securityContext"]
+        assert locked["readOnlyRootFilesystem"] is True and locked["capabilities"]["drop"] == ["ALL"], name
         token = next(v for v in c["env"] if v["name"] == "VECSIM_TOKEN")["valueFrom"]["secretKeyRef"]
         assert (token["name"], token["key"], token["optional"]) == ("vecsim-token", "token", True), name
 

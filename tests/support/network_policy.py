@@ -64,7 +64,8 @@ class Cluster:
         self.policies = [o for o in objects if o["kind"] == "NetworkPolicy"]
         for policy in self.policies:
             if policy["metadata"].get("namespace") not in self.namespaces:
-                raise ValueError(f"NetworkPolicy {policy['metadata']['name']}: namespace not among {sorted(self.namespaces)}")
+                name = policy["metadata"]["name"]
+                raise ValueError(f"NetworkPolicy {name}: its namespace is not among {sorted(self.namespaces)}")
 
     def allows(self, src: Pod, dst: Pod, port: int, protocol: str = "TCP") -> bool:
         """Whether ``src`` may open a connection to ``port``/``protocol`` of ``dst``."""

@@ -23,7 +23,9 @@ PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 # Resolved once in the parent: a preexec_fn runs between fork and exec, where loading a library
 # could block on a lock another thread of the parent held at fork time.
-_prctl = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).prctl if sys.platform == "linux" else None
+_prctl = (
+    ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).prctl if sys.platform == "linux" else None
+)
 
 
 def exit_with_parent(parent_pid: int, sig: int = signal.SIGKILL) -> None:
