@@ -81,6 +81,8 @@ class PodMetrics:
         """A step of ``env_indices`` answered these flags (``[n]``, or ``[n, K]`` for a chunk): the
         envs with any flag set are out of their episode."""
         n = len(env_indices)
+        if n == 0:
+            return
         ended = np.asarray(terminated, bool).reshape(n, -1).any(1) | np.asarray(truncated, bool).reshape(n, -1).any(1)
         self._in_episode = self._in_episode - {int(i) for i in np.asarray(env_indices)[ended]}
 
