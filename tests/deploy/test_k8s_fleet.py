@@ -21,7 +21,7 @@ import yaml
 from cloudcoil.models.keda import v1alpha1 as keda_v1alpha1
 from cloudcoil.models.prometheus_operator import v1 as monitoring_v1
 from kubeflow_trainer_api.models.jobset_v1alpha2_job_set import JobsetV1alpha2JobSet
-from support.k8s_manifests import JOBSET, K8S, ROOT, TARGETS, build, build_with_components, kustomize
+from support.k8s_manifests import JOBSET, ROOT, TARGETS, build, build_with_components, kustomize
 
 from vecsim.config import load_job_config
 
@@ -118,6 +118,7 @@ RENDERINGS = {
     "jobset": jobset_objects,
     "gpu-cluster+monitoring+autoscaling": monitored_objects,
     "dev-cpu+monitoring": lambda: build_with_components("dev-cpu", ("monitoring",)),
+    "jobset+monitoring": lambda: build_with_components("jobset", ("monitoring",)),
 }
 
 
@@ -321,7 +322,8 @@ def test_scaled_object_scales_the_sim_statefulset_between_the_job_and_its_spares
     assert f'namespace="{sts["metadata"]["namespace"]}"' in trigger["metadata"]["query"]
 
 
-def test_components_are_opt_in() -> None:
+def test_monitoring_and_autoscaling_are_opt_in() -> None:
+    # Without the Prometheus Operator's or KEDA's CRDs installed, every overlay still applies.
     for target in TARGETS:
         assert not [o for o in build(target) if (o["apiVersion"], o["kind"]) in PUBLISHED_TYPES], target
-    assert (K8S / "components" / "monitoring" / "kustomization.yaml").exists()
+    assert [o["kind"] for o in jobset_objects() if (o["apiVersion"], o["kind"]) in PUBLISHED_TYPES] == ["JobSet"]
