@@ -2,7 +2,7 @@
 
 The process runs in a process group of its own (so a terminal's Ctrl-C reaches only the runner,
 and a stop reaches everything the process started, e.g. its env workers), and on Linux the kernel
-kills it when the runner dies, even by SIGKILL (:mod:`vecsim.engine.lifetime`). A thread watches it:
+kills it when the runner dies, even by SIGKILL (:mod:`vecsim.lifetime`). A thread watches it:
 it runs the startup probe, then readiness and liveness probes (``service.probes``); when the
 process exits or a startup/liveness probe fails, it restarts it after an exponential backoff.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 import httpx
 
 from service.probes import TERMINATION_GRACE_S, Probe, Probes
-from vecsim.engine.lifetime import exit_with_parent
+from vecsim.lifetime import exit_with_parent
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from service.runner.job import LocalJob
 from service.runner.ports import free_port, free_port_block
 from vecsim import wire
 from vecsim.config import Assignment, CameraConfig, JobConfig, RenderPreset, TaskBlock
-from vecsim.engine.lifetime import exit_with_parent
+from vecsim.lifetime import exit_with_parent
 
 START_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 240.0

@@ -27,8 +27,8 @@ from gymnasium.vector.utils import create_shared_memory, read_from_shared_memory
 
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment
 from vecsim.engine import protocol
-from vecsim.engine.lifetime import exit_with_parent
 from vecsim.engine.worker import WorkerSpec, results_space, worker_process
+from vecsim.lifetime import exit_with_parent
 
 log = logging.getLogger("vecsim.engine.pool")
 
@@ -49,6 +49,9 @@ class WorkerPool:
 
     def __init__(self, specs: Sequence[WorkerSpec], context: str) -> None:
         ctx = multiprocessing.get_context(context)
+        if context == "forkserver":
+            # Takes effect when the pod's forkserver starts (before its first worker), not after.
+            ctx.set_forkserver_preload(["__main__", "vecsim.forkserver_tie"])
         space = results_space(specs[0])
         shared = create_shared_memory(space, n=len(specs), ctx=ctx)
         # Held for the pool's life: a worker process attaches to it after start() returns.
@@ -146,9 +149,9 @@ class WorkerPool:
 def _worker_main(pod_pid: int, *args: Any) -> None:
     """A worker process: ends with its parent, then serves orders (:func:`worker_process`).
 
-    Its parent is the forkserver (which exits with the pod) or, in the other start methods, the
-    pod's sim thread, which lives as long as the pool; either way a SIGKILLed pod leaves no
-    worker behind."""
+    Its parent is the forkserver (tied to the pod: :mod:`vecsim.forkserver_tie`) or, in
+    the other start methods, the pod's sim thread, which lives as long as the pool; either way
+    a SIGKILLed pod leaves no worker behind, even one stuck in a step."""
     exit_with_parent(pod_pid)
     worker_process(*args)
 
