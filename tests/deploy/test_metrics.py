@@ -88,18 +88,21 @@ def driven_job() -> Iterator[tuple[LocalJob, dict[str, dict[str, set[str]]]]]:
         yield running, scraped
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("server", ["pod", "controller"])
 def test_every_documented_metric_is_exported_and_every_exported_one_documented(driven_job, server: str) -> None:
     _, scraped = driven_job
     assert documented(server) == set(scraped[server])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("server", ["pod", "controller"])
 def test_every_metric_has_samples_once_the_job_ran(driven_job, server: str) -> None:
     _, scraped = driven_job
     assert [name for name, samples in scraped[server].items() if not samples] == []
 
 
+@pytest.mark.slow
 def test_alert_rules_read_only_exported_metrics(driven_job) -> None:
     _, scraped = driven_job
     samples = set().union(*(names for server in scraped.values() for names in server.values()))
@@ -117,6 +120,7 @@ def test_the_parser_finds_names_inside_functions_aggregations_and_ranges() -> No
     assert selector_names(expr) == {"a_bucket", "b", "c"}
 
 
+@pytest.mark.slow
 def test_idle_envs_count_envs_without_an_episode(driven_job) -> None:
     running, _ = driven_job
     routing = running.wait_ready(timeout=60)
