@@ -31,11 +31,21 @@ import httpx
 from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
 
-__all__ = ["MAX_HEAD_BYTES", "HttptoolsTransport"]
+__all__ = ["MAX_CHUNKS", "MAX_FRAMING_BYTES", "MAX_HEAD_BYTES", "HttptoolsTransport"]
 
 # An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
 # and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
 MAX_HEAD_BYTES = 64 << 10
+# After the head, what is not body (chunk extensions, trailers) may take this much beside the
+# size lines' own bytes: httptools rebuilds a trailer's value on every read, so a trailer or an
+# extension left unbounded costs memory and loop time without end. Pods send neither.
+MAX_FRAMING_BYTES = 64 << 10
+# What one chunk's size line and CRLFs may take of the framing: 16 hex digits and two CRLFs.
+_CHUNK_LINE_BYTES = 20
+# Chunks of one answer: each costs a few parser callbacks and a piece kept, whatever its size,
+# so a body sent a byte per chunk would cost tens of times its size. Pods send no chunks; a proxy
+# that re-chunks sends buffers of KiBs, which this allows up to a 64 MiB answer in 4 KiB chunks.
+MAX_CHUNKS = 1 << 14
 # Idle connections kept per origin; more are closed as they come back. The client bounds its
 # requests in flight itself, so this only trims what a burst leaves behind.
 MAX_IDLE_PER_ORIGIN = 64
@@ -77,6 +87,8 @@ class _Connection(asyncio.Protocol):
         self._informational = False
         self.received = 0  # bytes of the current exchange's answer, head included
         self._head_bytes = 0
+        self.body_received = 0  # of them, bytes of body
+        self.chunks = 0  # chunks of the current answer begun
         self.exchanges = 0  # requests sent on this connection
 
     # asyncio.Protocol
@@ -85,8 +97,9 @@ class _Connection(asyncio.Protocol):
         self.transport = transport  # type: ignore[assignment]
 
     def data_received(self, data: bytes) -> None:
-        if not self._active or self._parser is None:
-            # Bytes nobody asked for (after an answer ended): the connection cannot be trusted.
+        if not self._active or self._parser is None or self.error is not None:
+            # Bytes nobody asked for (after an answer ended, or after it failed): the connection
+            # cannot be trusted.
             self.close()
             return
         self.received += len(data)
@@ -94,11 +107,26 @@ class _Connection(asyncio.Protocol):
             self._parser.feed_data(data)
         except httptools.HttpParserError as exc:
             cause = exc.__context__ if isinstance(exc, httptools.HttpParserCallbackError) else None
-            self._fail(httpx.RemoteProtocolError(f"malformed answer: {cause or exc}"))
+            if self.done:
+                self.keep_alive = False  # junk after a whole answer: the answer stands, the connection goes
+            elif isinstance(cause, httpx.RemoteProtocolError):
+                self._fail(cause)  # a cap of a callback's own
+            else:
+                self._fail(httpx.RemoteProtocolError(f"malformed answer: {cause or exc}"))
             self.close()
             return
-        if not self.headers_done and self.received > MAX_HEAD_BYTES:  # a head still growing
+        # Reading stops at a cap: what one read brings past it is all that is parsed beyond it.
+        framing = self.received - self.body_received
+        if not self.headers_done and framing > MAX_HEAD_BYTES:  # a head still growing
             self._fail(httpx.RemoteProtocolError(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes"))
+            self.close()
+        elif framing > MAX_HEAD_BYTES + MAX_FRAMING_BYTES + _CHUNK_LINE_BYTES * self.chunks and not self.done:
+            self._fail(
+                httpx.RemoteProtocolError(
+                    f"the answer's chunk extensions and trailers are larger than {MAX_FRAMING_BYTES} bytes "
+                    f"({framing} bytes of head and framing read)"
+                )
+            )
             self.close()
 
     def eof_received(self) -> bool | None:
@@ -156,7 +184,15 @@ class _Connection(asyncio.Protocol):
             self.keep_alive = False
         self._wake()
 
+    def on_chunk_header(self) -> None:
+        self.chunks += 1
+        if self.chunks > MAX_CHUNKS and not self.done:
+            raise httpx.RemoteProtocolError(
+                f"the answer has more than {MAX_CHUNKS} chunks ({self.body_received} bytes of body in them)"
+            )
+
     def on_body(self, body: bytes) -> None:
+        self.body_received += len(body)
         if self.done:
             return
         self._pieces.append(body)
@@ -200,7 +236,7 @@ class _Connection(asyncio.Protocol):
         self.headers_done = self.done = self.keep_alive = self._informational = False
         self.error = None
         self._pieces, self._buffered = [], 0
-        self.received = self._head_bytes = 0
+        self.received = self._head_bytes = self.body_received = self.chunks = 0
         self.exchanges += 1
         assert self.transport is not None
         self.transport.write(data)
