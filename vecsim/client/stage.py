@@ -66,7 +66,7 @@ from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import as_transport, get_answer, make_async_client
+from vecsim.transport import as_transport, get_answer
 
 logger = logging.getLogger(__name__)
 
@@ -155,7 +155,6 @@ class StageClient:
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
         self._transport = as_transport(transport)
-        self._http: httpx.AsyncClient | None = None  # over the transport: the routing re-reads only
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}
         self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
@@ -166,7 +165,7 @@ class StageClient:
         self._closed = False
         self._loop = EventLoopThread()
         self._refresher = RoutingRefresher(
-            self._book, self._info, self.controller_url, self.timeout_s, self._http_client, self._pod_info, self._sync_pods
+            self._book, self._info, self.controller_url, self.timeout_s, self._transport, self._pod_info, self._sync_pods
         )
         _open_clients.add(self)
         self._sync_pods()
@@ -715,10 +714,7 @@ class StageClient:
         self._loop.close()
 
     async def _aclose(self) -> None:
-        if self._http is not None:
-            await self._http.aclose()  # and the transport under it
-        else:
-            await self._transport.aclose()
+        await self._transport.aclose()
 
     def __enter__(self) -> StageClient:
         return self
@@ -740,13 +736,6 @@ class StageClient:
         self._book.check_on_stage(keys, stage_id)
 
     # -- what runs on the loop ------------------------------------------------------------------
-
-    def _http_client(self) -> httpx.AsyncClient:
-        """An ``httpx.AsyncClient`` over the client's transport, for the controller's routing
-        re-reads (made on the client's loop); pods are reached through the transport itself."""
-        if self._http is None:
-            self._http = make_async_client(self._transport)
-        return self._http
 
     def _sync_pods(self) -> None:
         """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
