@@ -24,9 +24,11 @@ import httpx
 import numpy as np
 import pytest
 from support.controller_in_process import JOB
-from support.service_procs import AppThread, socket_server, wait_until
+from support.service_procs import AppThread, loopback_socket, socket_server, wait_until
 
 from service.controller import ControllerSettings, create_app
+from service.pod.app import create_app as create_pod_app
+from service.pod.settings import PodSettings
 from vecsim.client import PodRequestError
 from vecsim.client.pods import PodConnection
 from vecsim.transport import (
@@ -298,3 +300,25 @@ def test_a_pod_answering_pushes_with_endless_framing_never_stalls_the_controller
     assert failed and all(read_count(kind, message) <= BOUNDS[kind] for message in failed)
     assert not [r for r in caplog.records if "did not run for" in r.getMessage()]
     assert listed == ["sim-0", "sim-1"]
+
+
+# ------------------------------------------------------------------------- the pod's side
+
+
+@pytest.mark.parametrize("kind", ["endless-trailers", "many-tiny-chunks"])
+def test_a_controller_answering_a_pod_with_endless_framing_costs_the_pod_its_cap(
+    kind: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A pod registers with a controller whose every answer is hostile: each registration fails
+    at the cap (the pod's agent logs it and retries), and the controller sees the pod hang up."""
+    caplog.set_level(logging.WARNING, logger="service.pod.agent")
+    with hostile_peer(kind) as peer:
+        sock = loopback_socket()
+        port = sock.getsockname()[1]
+        settings = PodSettings(name="sim-9", port=port, controller_url=peer.url, max_envs=1, gpu=False)
+        settings = settings.model_copy(update={"heartbeat_interval_s": 0.05, "max_backoff_s": 0.1})
+        with AppThread(create_pod_app(settings), sock, access_log=False, lifespan="on"):
+            wait_until(lambda: len(peer.sent) >= 3, "three registrations answered", 60)
+    assert all(peer.hung_up[:3]) and max(peer.sent[:3]) < OFFER
+    failed = [r.getMessage() for r in caplog.records if "unreachable or refusing" in r.getMessage()]
+    assert failed and all(read_count(kind, message) <= BOUNDS[kind] for message in failed)
