@@ -36,6 +36,7 @@ from vecsim.transport import (
     MAX_FRAMING_BYTES,
     MAX_HEAD_BYTES,
     HttptoolsTransport,
+    get_answer,
     make_async_client,
     make_transport,
     read_answer,
@@ -173,6 +174,23 @@ def test_a_hostile_answer_costs_what_was_read_up_to_its_cap(kind: str, lean: boo
     # Bounded memory: the caps' worth and a read buffer, not the megabytes offered (one endless
     # trailer cost 240 MB here before its cap).
     assert peak < 4 * READ_BYTES + 2 * (MAX_HEAD_BYTES + MAX_FRAMING_BYTES) + 64 * MAX_CHUNKS
+
+
+@pytest.mark.parametrize("in_a_loop", [False, True], ids=["blocking", "inside-a-running-loop"])
+def test_the_control_planes_blocking_get_is_capped_alike(in_a_loop: bool) -> None:
+    """``get_answer`` (the routing table before a client runs, a pod's ``/v1/info``) takes the
+    transport's path, from a blocking caller or from inside a running event loop."""
+
+    async def inside(url: str) -> None:
+        get_answer(url, timeout_s=30)
+
+    with hostile_peer("one-endless-trailer") as peer, pytest.raises(httpx.RemoteProtocolError) as caught:
+        if in_a_loop:
+            asyncio.run(inside(f"{peer.url}/v1/routing"))
+        else:
+            get_answer(f"{peer.url}/v1/routing", timeout_s=30)
+    assert f"GET {peer.url}/v1/routing" in str(caught.value)
+    assert read_count("one-endless-trailer", caught.value) <= BOUNDS["one-endless-trailer"]
 
 
 def test_a_chunked_answer_with_extensions_and_trailers_under_the_caps_arrives_whole() -> None:
