@@ -712,3 +712,22 @@ def test_failures_leave_the_transport_as_httpx_own_types(refusing_port: int, lea
     for expected, reply in replies.items():
         with raw_server(reply) as url:
             assert met(f"{url}/") is expected
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_connection_not_accepted_in_time_is_a_connect_timeout(kind: str) -> None:
+    """A listener whose backlog is full drops further SYNs: the connect times out, and says so
+    as httpx's ``ConnectTimeout`` (a ``TimeoutError`` is an ``OSError``: the map must not take
+    it for a refused connection)."""
+    with contextlib.ExitStack() as stack:
+        listener = stack.enter_context(socket.socket())
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)
+        port = listener.getsockname()[1]
+        for _ in range(8):  # fill the backlog; these are never accepted
+            filler = stack.enter_context(socket.socket())
+            filler.setblocking(False)
+            with contextlib.suppress(BlockingIOError):
+                filler.connect(("127.0.0.1", port))
+        with pytest.raises(httpx.ConnectTimeout):
+            run_with(kind, lambda c: c.get(f"http://127.0.0.1:{port}/"), timeout=httpx.Timeout(10, connect=0.3))

@@ -81,6 +81,7 @@ _PUBLIC: dict[type[httpx.TransportError], type[httpx.TransportError]] = {
 _WRAPPED: tuple[tuple[type[BaseException], type[httpx.TransportError]], ...] = (
     (httptools.HttpParserError, BrokenAnswer),
     (zlib.error, UndecodableAnswer),
+    (TimeoutError, ReadTimedOut),  # an OSError too; a connect's own is named where it happens
     (OSError, ConnectFailed),
 )
 

@@ -377,14 +377,14 @@ class HttptoolsTransport(Transport):
             self._ssl = ssl.create_default_context()
         tls = self._ssl if scheme == "https" else None
         loop = asyncio.get_running_loop()
-        try:
-            with mapped(f"cannot connect to {host}:{port}"):
+        with mapped(f"cannot connect to {host}:{port}"):
+            try:
                 async with asyncio.timeout(connect_s):
                     _, connection = await loop.create_connection(
                         lambda: _Connection(origin), host, port, ssl=tls, server_hostname=host if tls else None
                     )
-        except TimeoutError:
-            raise ConnectTimedOut(f"no connection to {host}:{port} within {connect_s} s") from None
+            except TimeoutError:  # before the table's OSError: a TimeoutError is one
+                raise ConnectTimedOut(f"no connection within {connect_s} s") from None
         self._busy.add(connection)
         return connection
 
