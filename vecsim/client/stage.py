@@ -60,7 +60,7 @@ from vecsim.client.calls import (
 )
 from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodConnection
+from vecsim.client.pods import EventLoopThread, PodConnection, refusal
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
@@ -213,7 +213,8 @@ class StageClient:
         """Return a client over standalone pods (no controller), reading each pod's ``/v1/info``.
 
         Raises:
-            PodUnavailableError: a pod did not answer.
+            PodUnavailableError: a pod did not answer, or answered 503.
+            PodRequestError: a pod refused, or its answer is not JSON.
             ValueError: the pods do not make a routing table (names the problem).
         """
 
@@ -223,7 +224,7 @@ class StageClient:
             except httpx.HTTPError as exc:
                 raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
             if response.status_code != 200:
-                raise PodRequestError(url, response.status_code, response.text[:500])
+                raise refusal(url, response.status_code, response.content, [])
             try:
                 return url.rstrip("/"), response.json()
             except ValueError as exc:
