@@ -29,6 +29,7 @@ __all__ = [
     "UndecodableAnswer",
     "UnsendableRequest",
     "UnsupportedURL",
+    "failure_of",
     "mapped",
 ]
 
