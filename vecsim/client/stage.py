@@ -117,8 +117,8 @@ class StageClient:
     ``timeout_s`` bounds every HTTP request as a whole, answer included: a pod that does not
     answer within it raises :class:`PodUnavailableError`. ``transport`` is how bytes reach the
     pods (and the controller, for those re-reads): a :class:`vecsim.transport.Transport`, or
-    any ``httpx.AsyncBaseTransport`` (``httpx.ASGITransport(app)`` runs a pod in-process),
-    which the client wraps as :func:`vecsim.transport.as_transport` does; left out,
+    an in-process httpx transport (``httpx.ASGITransport(app)`` runs a pod in-process), which
+    the client wraps as :func:`vecsim.transport.as_transport` does; left out,
     ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
     caps one pod's answer; left out, each pod's cap follows from the job's observation space
     and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
