@@ -53,6 +53,12 @@ HOSTILE = {
     "8-MB-chunk-extension": HEAD_OK + CHUNKED + b"2;ext=" + b"e" * (8 << 20),
     "a-million-one-byte-chunks": HEAD_OK + CHUNKED + b"1\r\nx\r\n" * 1_000_000,
 }
+# The cap each answer of endless framing meets, as the error's reason names it.
+CAPPED = {
+    "8-MB-of-trailers": "chunk extensions and trailers are larger than",
+    "8-MB-chunk-extension": "chunk extensions and trailers are larger than",
+    "a-million-one-byte-chunks": "the answer has more than",
+}
 
 
 class HostileProxy:
@@ -157,6 +163,7 @@ def test_a_hostile_answer_fails_the_call_for_its_pods_trajectories_alone(pods, p
             client.step_stage(0, actions(KEYS, 0.5)).result(timeout=60)
         assert caught.value.pods == ["sim-1"] and sorted(caught.value.traj_keys) == sorted(on_sim_1)
         assert caught.value.answered.traj_keys == on_sim_0
+        assert CAPPED.get(hostile, "") in caught.value.reason
         # The client is whole: the next call on the stage goes out at once and is answered.
         proxy.reply = None
         after = client.step_stage(0, actions(on_sim_0, 0.5)).result(timeout=60)
