@@ -210,6 +210,26 @@ def test_a_chunked_answer_with_extensions_and_trailers_under_the_caps_arrives_wh
         assert asyncio.run(main(f"{url}/")) == (200, b"".join(pieces))
 
 
+@pytest.mark.parametrize("chunks", [MAX_CHUNKS, MAX_CHUNKS + 1])
+def test_an_answer_of_max_chunks_arrives_and_one_more_is_refused(chunks: int) -> None:
+    reply = CHUNKED_HEAD + b"1\r\nx\r\n" * chunks + b"0\r\n\r\n"
+
+    def answer(conn: socket.socket, _number: int) -> None:
+        conn.recv(65536)
+        conn.sendall(reply)
+
+    async def main(url: str) -> tuple[int, bytes]:
+        async with make_transport() as transport:
+            return await transport.fetch("GET", url, (), b"", 64 << 20)
+
+    with socket_server(answer) as url:
+        if chunks <= MAX_CHUNKS:
+            assert asyncio.run(main(f"{url}/")) == (200, b"x" * chunks)
+        else:
+            with pytest.raises(httpx.RemoteProtocolError, match=f"more than {MAX_CHUNKS} chunks"):
+                asyncio.run(main(f"{url}/"))
+
+
 @pytest.mark.parametrize("lean", [True, False], ids=["fetch", "httpx-client"])
 def test_junk_after_a_whole_answer_leaves_the_answer_and_drops_the_connection(lean: bool) -> None:
     """Bytes after an answer, in the same read, are no answer to the next request: that one goes

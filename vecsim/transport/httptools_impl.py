@@ -190,15 +190,15 @@ class _Connection(asyncio.Protocol):
 
     def on_chunk_header(self) -> None:
         self.chunks += 1
-        if self.chunks > MAX_CHUNKS and not self.done:
+
+    def on_body(self, body: bytes) -> None:
+        if self.done:
+            return
+        if self.chunks > MAX_CHUNKS:  # counted at its body: the last chunk, of none, ends the answer
             raise BrokenAnswer(
                 f"the answer has more than {MAX_CHUNKS} chunks ({self.body_received} bytes of body in them)"
             )
-
-    def on_body(self, body: bytes) -> None:
         self.body_received += len(body)
-        if self.done:
-            return
         self._pieces.append(body)
         self._buffered += len(body)
         if self._buffered > _HIGH_WATER and not self._paused and self.transport is not None:
