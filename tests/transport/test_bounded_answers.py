@@ -115,7 +115,10 @@ def hostile_peer(kind: str) -> Iterator[Peer]:
         head, _, body = request.partition(b"\r\n\r\n")
         length = re.search(rb"(?i)\r\ncontent-length: *(\d+)", head)
         while length is not None and len(body) < int(length.group(1)):
-            body += conn.recv(65536)
+            more = conn.recv(65536)
+            if not more:
+                break
+            body += more
         sent, hung_up = 0, False
         try:
             for piece in PEERS[kind]():
@@ -123,10 +126,11 @@ def hostile_peer(kind: str) -> Iterator[Peer]:
                 sent += len(piece)
                 if sent >= OFFER:
                     break
-        except OSError:
-            hung_up = True
-        peer.sent.append(sent)
-        peer.hung_up.append(hung_up)
+        except (BrokenPipeError, ConnectionResetError):
+            hung_up = True  # not a reader that merely stopped reading: that is a timeout here
+        finally:
+            peer.sent.append(sent)
+            peer.hung_up.append(hung_up)
 
     with socket_server(answer) as url:
         peer.url = url
