@@ -42,8 +42,8 @@ def get_answer(
         the response: its status and decoded body (no headers: the control plane reads none).
 
     Raises:
-        vecsim.transport.errors.ReadTimedOut: no whole answer within ``timeout_s``.
-        httpx.HTTPError: what the transport met (``vecsim.transport.errors``), the URL named.
+        httpx.ReadTimeout: no whole answer within ``timeout_s``.
+        httpx.HTTPError: what the transport met (mapped by ``vecsim.transport.errors``), the URL named.
     """
     request = httpx.Request("GET", url)
     fetch = _get(url, timeout_s, max_bytes, tuple((headers or {}).items()))
