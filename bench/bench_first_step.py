@@ -38,7 +38,7 @@ from vecsim.client import StageClient
 from vecsim.config import load_job_config
 from vecsim.rollout import ExampleCNNPolicy
 from vecsim.rollout.sampler import TaskBalancedSampler, TaskInstances
-from vecsim.transport.answers import get_answer
+from vecsim.transport import get_answer
 
 COUNTERS = {
     "step": "vecsim_pod_step_seconds_sum",

@@ -11,16 +11,22 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
+from typing import Any
 
 import httpx
 
 from service.contract import Heartbeat
 from vecsim.auth import bearer_headers
 from vecsim.config import PodCapacity, PodRegistration
+from vecsim.transport import make_async_client, send_capped
 
 from .settings import PodSettings
 
 log = logging.getLogger(__name__)
+
+# The controller answers a registration or heartbeat with a line of JSON; anything much larger
+# is not its answer, and is not read past this.
+_MAX_ANSWER_BYTES = 1 << 20
 
 
 class ControllerRefusedError(Exception):
@@ -52,7 +58,8 @@ class ControllerAgent:
         """Register and heartbeat until cancelled; never raises anything but cancellation."""
         failures = 0
         headers = bearer_headers(self.settings.token)
-        async with httpx.AsyncClient(base_url=self.base_url, timeout=5.0, headers=headers) as client:
+        # vecsim's transport: the controller's answers are read under its caps, as pods' are.
+        async with make_async_client(base_url=self.base_url, timeout=5.0, headers=headers) as client:
             while True:
                 try:
                     await self.beat(client)
@@ -77,12 +84,12 @@ class ControllerAgent:
             await self._register(client)
         heartbeat = self.report()
         path = f"/v1/pods/{self.settings.name}/heartbeat"
-        response = await client.post(path, json=heartbeat.model_dump(mode="json"))
+        response = await _post(client, path, heartbeat.model_dump(mode="json"))
         if response.status_code == 404:
             log.info("pod %s: controller forgot this pod; registering again", self.settings.name)
             self.registered = False
             await self._register(client)
-            response = await client.post(path, json=self.report().model_dump(mode="json"))
+            response = await _post(client, path, self.report().model_dump(mode="json"))
         _raise_for_status(response, "heartbeat")
 
     async def _register(self, client: httpx.AsyncClient) -> None:
@@ -91,10 +98,16 @@ class ControllerAgent:
             url=self.settings.url,
             capacity=PodCapacity(max_envs=self.settings.max_envs, gpu=self.settings.has_gpu),
         )
-        response = await client.post("/v1/pods", json=registration.model_dump(mode="json"))
+        response = await _post(client, "/v1/pods", registration.model_dump(mode="json"))
         _raise_for_status(response, "registration")
         self.registered = True
         log.info("pod %s: registered with controller %s as %s", self.settings.name, self.base_url, self.settings.url)
+
+
+async def _post(client: httpx.AsyncClient, path: str, body: dict[str, Any]) -> httpx.Response:
+    """POST ``body`` as JSON; the answer read whole under :data:`_MAX_ANSWER_BYTES`, within 10 s."""
+    async with asyncio.timeout(10.0):
+        return await send_capped(client, client.build_request("POST", path, json=body), _MAX_ANSWER_BYTES)
 
 
 def _raise_for_status(response: httpx.Response, what: str) -> None:

@@ -2,8 +2,9 @@
 answers read under a cap from hostile servers (raw sockets that send what no pod would).
 
 The servers are real uvicorn servers on real sockets, each in a thread of the test process, on a
-port the kernel picked. Every transport kind must give the same answers and raise the same httpx
-exceptions, so most tests run once per kind (``httpx`` being the reference).
+port the kernel picked. vecsim's transport must give the answers and raise the httpx exceptions
+that httpx's own connections do, so most tests run once per kind: ``httptools`` (vecsim's) and
+``httpx`` (``httpx.AsyncHTTPTransport``, the reference, no longer one of vecsim's kinds).
 """
 
 from __future__ import annotations
@@ -45,6 +46,17 @@ from vecsim.transport import (
 
 KINDS = ["httptools", "httpx"]
 T = TypeVar("T")
+
+
+def transport_of(kind: str) -> Transport:
+    """vecsim's transport (``httptools``), httptools' connections reached through httpx's
+    interface (``httptools/httpx``, as ``HttpxTransport`` wraps an httpx transport), or the
+    reference: httpx's own connections, their answers read through the same ``AnswerReader``."""
+    if kind == "httpx":
+        return HttpxTransport(httpx.AsyncHTTPTransport(trust_env=False))
+    if kind == "httptools/httpx":
+        return HttpxTransport(HttptoolsTransport())
+    return make_transport(kind)  # type: ignore[arg-type]
 
 
 def pattern(n: int) -> bytes:
@@ -124,7 +136,7 @@ def run_with(kind: str, use: Callable[[httpx.AsyncClient], Awaitable[T]], **clie
     """Run ``use(client)`` on a fresh event loop with a client of ``kind``, closing both after."""
 
     async def main() -> T:
-        async with make_async_client(make_transport(kind), **client_kwargs) as client:
+        async with make_async_client(transport_of(kind), **client_kwargs) as client:
             return await use(client)
 
     return asyncio.run(main())
@@ -343,11 +355,7 @@ def test_an_answer_that_stalls_between_reads_raises_read_timeout(server: str, ki
 
 def read_with(kind: str, url: str, max_bytes: int) -> bytes:
     """GET ``url`` as the client asks a pod (``Transport.fetch`` of a transport of ``kind``, the
-    answer read under ``max_bytes``; ``httptools/httpx``: httptools' connections reached through
-    httpx's interface, as ``HttpxTransport`` wraps any httpx transport); return the body of a 200."""
-
-    def transport_of(kind: str) -> Transport:
-        return HttpxTransport(HttptoolsTransport()) if kind == "httptools/httpx" else make_transport(kind)  # type: ignore[arg-type]
+    answer read under ``max_bytes``, see :func:`transport_of`); return the body of a 200."""
 
     async def main() -> bytes:
         async with transport_of(kind) as transport:
@@ -653,9 +661,12 @@ def test_an_https_pod_is_reached_over_tls_with_its_certificate_checked(tls_serve
 # ------------------------------------------------------------------------------ the seam
 
 
-def test_every_kind_is_a_transport_with_fetch() -> None:
-    for kind in KINDS:
-        assert isinstance(make_transport(kind), Transport)  # type: ignore[arg-type]
+def test_the_one_kind_is_httptools_and_httpx_own_connections_are_refused_naming_why() -> None:
+    assert isinstance(make_transport(), HttptoolsTransport) and DEFAULT_KIND == "httptools"
+    with pytest.raises(ValueError, match="kind: 'httpx' is not one of"):
+        make_transport("httpx")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="AsyncHTTPTransport reaches pods without vecsim's bounds"):
+        as_transport(httpx.AsyncHTTPTransport())
 
 
 def test_a_plain_httpx_transport_is_wrapped_and_a_transport_kept_as_it_is() -> None:
@@ -678,3 +689,45 @@ def test_an_in_process_pod_is_fetched_through_the_same_interface() -> None:
             return await transport.fetch("GET", "http://pod/bytes/70000", (), b"", 1 << 20)
 
     assert asyncio.run(main()) == (200, pattern(70_000))
+
+
+@pytest.mark.parametrize("lean", [True, False], ids=["fetch", "httpx-client"])
+def test_failures_leave_the_transport_as_httpx_own_types(refusing_port: int, lean: bool) -> None:
+    """One table maps the transport's failures: what a caller meets is httpx's exception itself
+    (or ``AnswerTooLargeError``), whatever the transport named it inside."""
+    replies = {
+        httpx.RemoteProtocolError: b"NOT HTTP AT ALL\r\n\r\n",
+        httpx.DecodingError: b"HTTP/1.1 200 OK\r\nContent-Encoding: gzip\r\nContent-Length: 8\r\n\r\nnot gzip",
+        AnswerTooLargeError: b"HTTP/1.1 200 OK\r\nContent-Length: 100000000000\r\n\r\n",
+    }
+
+    def met(url: str) -> type[BaseException]:
+        try:
+            read_with("httptools" if lean else "httptools/httpx", url, 1 << 20)
+        except httpx.HTTPError as exc:
+            return type(exc)
+        raise AssertionError("no failure")
+
+    assert met(f"http://127.0.0.1:{refusing_port}/") is httpx.ConnectError
+    for expected, reply in replies.items():
+        with raw_server(reply) as url:
+            assert met(f"{url}/") is expected
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_connection_not_accepted_in_time_is_a_connect_timeout(kind: str) -> None:
+    """A listener whose backlog is full drops further SYNs: the connect times out, and says so
+    as httpx's ``ConnectTimeout`` (a ``TimeoutError`` is an ``OSError``: the map must not take
+    it for a refused connection)."""
+    with contextlib.ExitStack() as stack:
+        listener = stack.enter_context(socket.socket())
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)
+        port = listener.getsockname()[1]
+        for _ in range(8):  # fill the backlog; these are never accepted
+            filler = stack.enter_context(socket.socket())
+            filler.setblocking(False)
+            with contextlib.suppress(BlockingIOError):
+                filler.connect(("127.0.0.1", port))
+        with pytest.raises(httpx.ConnectTimeout):
+            run_with(kind, lambda c: c.get(f"http://127.0.0.1:{port}/"), timeout=httpx.Timeout(10, connect=0.3))

@@ -160,6 +160,18 @@ def _detail(status: int, content: bytes) -> str:
     return str(body)[:500]
 
 
+def refusal(pod: str, status: int, content: bytes, held: list[str], generation: int | None = None) -> Exception:
+    """The client's error for a pod's answer other than 200, decided here alone: a 409 to a
+    request that carried ``generation`` is a :class:`StaleGenerationError`, a 503 (envs not
+    built, the pod restarting) a :class:`PodUnavailableError` naming ``held``, and any other a
+    :class:`PodRequestError` naming the status and the answer's detail."""
+    if status == 409 and generation is not None:
+        return StaleGenerationError(pod, generation, _detail(status, content))
+    if status == 503:
+        return PodUnavailableError({pod: held}, f"503: {_detail(status, content)}")
+    return PodRequestError(pod, status, _detail(status, content))
+
+
 # Headers every request to a pod carries besides its own: the Content-Encodings read_answer decodes.
 _BASE_HEADERS = {"Accept-Encoding": "gzip, deflate", "User-Agent": f"vecsim/{vecsim.__version__}"}
 
@@ -238,7 +250,7 @@ class PodConnection:
         """
         status, content = await self._request("GET", "/v1/info", [], self._info_headers)
         if status != 200:
-            raise PodRequestError(self.name, status, _detail(status, content))
+            raise refusal(self.name, status, content, [])
         try:
             info = json.loads(content)
         except ValueError as exc:
@@ -261,10 +273,8 @@ class PodConnection:
         except (TypeError, ValueError) as exc:  # the caller's values, before anything is sent
             raise ValueError(f"/v1/{op}: the values are not JSON ({exc}); attributes take JSON values only") from None
         status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, text)
-        if status == 503:
-            raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
         if status != 200:
-            raise PodRequestError(self.name, status, _detail(status, content))
+            raise refusal(self.name, status, content, held)
         try:
             answer = json.loads(content)
         except ValueError as exc:
@@ -290,12 +300,8 @@ class PodConnection:
         status, content = await self._request(
             "POST", f"/v1/{op}", held, self._wire_headers, wire.encode(body), extra_answer_bytes
         )
-        if status == 409:
-            raise StaleGenerationError(self.name, body.get("generation"), _detail(status, content))
-        if status == 503:
-            raise PodUnavailableError({self.name: held}, f"503: {_detail(status, content)}")
         if status != 200:
-            raise PodRequestError(self.name, status, _detail(status, content))
+            raise refusal(self.name, status, content, held, body.get("generation"))
         # A broken answer is this pod's failure alone, like no answer: its envs' state is unknown.
         try:
             answer = wire.decode(content)

@@ -20,7 +20,7 @@ from vecsim.client.pods import EventLoopThread
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import stage_by_id
 from vecsim.config import RoutingTable
-from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, get_answer, send_capped
+from vecsim.transport import MAX_CONTROL_ANSWER_BYTES, Transport, get_answer
 
 # The client's one logger name: what it says about routing is found where users look for it.
 logger = logging.getLogger("vecsim.client.stage")
@@ -28,16 +28,16 @@ logger = logging.getLogger("vecsim.client.stage")
 __all__ = ["RoutingRefresher", "controller_routing", "fetch_routing"]
 
 
-def _read_routing(response: httpx.Response, url: str) -> RoutingTable:
+def _read_routing(status: int, content: bytes, url: str) -> RoutingTable:
     """The routing table in a controller's answer to ``GET /v1/routing``.
 
     Raises:
         PodRequestError: a refusal or an answer that is not a routing table.
     """
-    if response.status_code != 200:
-        raise PodRequestError("controller", response.status_code, response.text[:500])
+    if status != 200:
+        raise PodRequestError("controller", status, content[:500].decode("utf-8", "replace"))
     try:
-        return RoutingTable.model_validate(response.json())
+        return RoutingTable.model_validate_json(content)
     except ValueError as exc:
         raise PodRequestError("controller", None, f"invalid routing table from {url}: {exc}") from None
 
@@ -88,7 +88,7 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
             if (response.status_code >= 500 or response.status_code == 404) and wait_ready_s > 0:
                 seen = f"HTTP {response.status_code}: {response.text[:200]}"
             else:
-                table = _read_routing(response, url)
+                table = _read_routing(response.status_code, response.content, url)
                 if table.ready or wait_ready_s <= 0:
                     return table
                 seen = f"a routing table not ready yet (generation {table.generation}, {len(table.stages)} stage(s))"
@@ -106,8 +106,8 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         pause = min(pause * 2, _WAIT_MAX_S)
 
 
-async def controller_routing(http: httpx.AsyncClient, controller_url: str, timeout_s: float) -> RoutingTable:
-    """The controller's routing table now, read on the running loop through ``http`` (the
+async def controller_routing(transport: Transport, controller_url: str, timeout_s: float) -> RoutingTable:
+    """The controller's routing table now, read on the running loop through ``transport`` (the
     client's own, which its pods are reached through too).
 
     Raises:
@@ -117,18 +117,17 @@ async def controller_routing(http: httpx.AsyncClient, controller_url: str, timeo
     url = f"{controller_url}/v1/routing"
     try:
         async with asyncio.timeout(timeout_s):
-            response = await send_capped(http, http.build_request("GET", url), MAX_CONTROL_ANSWER_BYTES)
+            status, content = await transport.fetch("GET", url, (), b"", MAX_CONTROL_ANSWER_BYTES)
     except (TimeoutError, httpx.HTTPError) as exc:
         raise PodUnavailableError({"controller": []}, f"GET {url}: {type(exc).__name__}: {exc}") from None
-    return _read_routing(response, url)
+    return _read_routing(status, content, url)
 
 
 class RoutingRefresher:
     """Keeps a route book's table current from a controller (``controller_url`` None: no
     controller, the table in use stays and a 409 is a :class:`StaleGenerationError`).
 
-    ``http()`` is the client's one ``httpx.AsyncClient`` (made on its loop, closed with it), which
-    the table is read through; ``pod_info(pod)`` reads a pod's ``/v1/info`` on the client's loop;
+    ``transport`` is the client's, which the table is read through; ``pod_info(pod)`` reads a pod's ``/v1/info`` on the client's loop;
     ``on_table()`` runs after the book took a new table (the client makes its pod connections
     follow it).
     """
@@ -139,14 +138,14 @@ class RoutingRefresher:
         info: JobInfo,
         controller_url: str | None,
         timeout_s: float,
-        http: Callable[[], httpx.AsyncClient],
+        transport: Transport,
         pod_info: Callable[[str], Awaitable[dict[str, Any]]],
         on_table: Callable[[], None],
     ) -> None:
         self.book, self.info = book, info
         self.controller_url = controller_url
         self.timeout_s = timeout_s
-        self._http = http
+        self._transport = transport
         self._pod_info = pod_info
         self._on_table = on_table
         self._lock: asyncio.Lock | None = None  # made on the loop, at the first 409
@@ -184,7 +183,7 @@ class RoutingRefresher:
 
     async def _routing(self, timeout_s: float) -> RoutingTable:
         assert self.controller_url is not None
-        return await controller_routing(self._http(), self.controller_url, timeout_s)
+        return await controller_routing(self._transport, self.controller_url, timeout_s)
 
     async def after_stale(self, pod: str, generation: int, detail: str, keys: list[str]) -> None:
         """After ``pod`` answered 409 at ``generation``: re-read the table once per generation.

@@ -60,13 +60,13 @@ from vecsim.client.calls import (
 )
 from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodConnection
+from vecsim.client.pods import EventLoopThread, PodConnection, refusal
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import as_transport, get_answer, make_async_client
+from vecsim.transport import as_transport, get_answer
 
 logger = logging.getLogger(__name__)
 
@@ -117,8 +117,8 @@ class StageClient:
     ``timeout_s`` bounds every HTTP request as a whole, answer included: a pod that does not
     answer within it raises :class:`PodUnavailableError`. ``transport`` is how bytes reach the
     pods (and the controller, for those re-reads): a :class:`vecsim.transport.Transport`, or
-    any ``httpx.AsyncBaseTransport`` (``httpx.ASGITransport(app)`` runs a pod in-process),
-    which the client wraps as :func:`vecsim.transport.as_transport` does; left out,
+    an in-process httpx transport (``httpx.ASGITransport(app)`` runs a pod in-process), which
+    the client wraps as :func:`vecsim.transport.as_transport` does; left out,
     ``vecsim.transport.make_transport()``. The client closes it. ``max_answer_bytes``
     caps one pod's answer; left out, each pod's cap follows from the job's observation space
     and the pod's env count (twice what its envs can produce, plus a MiB). ``token`` is the
@@ -155,7 +155,6 @@ class StageClient:
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
         self._transport = as_transport(transport)
-        self._http: httpx.AsyncClient | None = None  # over the transport: the routing re-reads only
         self._token = token if token is not None else token_from_env()
         self._pods: dict[str, PodConnection] = {}
         self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
@@ -166,7 +165,7 @@ class StageClient:
         self._closed = False
         self._loop = EventLoopThread()
         self._refresher = RoutingRefresher(
-            self._book, self._info, self.controller_url, self.timeout_s, self._http_client, self._pod_info, self._sync_pods
+            self._book, self._info, self.controller_url, self.timeout_s, self._transport, self._pod_info, self._sync_pods
         )
         _open_clients.add(self)
         self._sync_pods()
@@ -214,7 +213,8 @@ class StageClient:
         """Return a client over standalone pods (no controller), reading each pod's ``/v1/info``.
 
         Raises:
-            PodUnavailableError: a pod did not answer.
+            PodUnavailableError: a pod did not answer, or answered 503.
+            PodRequestError: a pod refused, or its answer is not JSON.
             ValueError: the pods do not make a routing table (names the problem).
         """
 
@@ -224,7 +224,7 @@ class StageClient:
             except httpx.HTTPError as exc:
                 raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
             if response.status_code != 200:
-                raise PodRequestError(url, response.status_code, response.text[:500])
+                raise refusal(url, response.status_code, response.content, [])
             try:
                 return url.rstrip("/"), response.json()
             except ValueError as exc:
@@ -715,10 +715,7 @@ class StageClient:
         self._loop.close()
 
     async def _aclose(self) -> None:
-        if self._http is not None:
-            await self._http.aclose()  # and the transport under it
-        else:
-            await self._transport.aclose()
+        await self._transport.aclose()
 
     def __enter__(self) -> StageClient:
         return self
@@ -740,13 +737,6 @@ class StageClient:
         self._book.check_on_stage(keys, stage_id)
 
     # -- what runs on the loop ------------------------------------------------------------------
-
-    def _http_client(self) -> httpx.AsyncClient:
-        """An ``httpx.AsyncClient`` over the client's transport, for the controller's routing
-        re-reads (made on the client's loop); pods are reached through the transport itself."""
-        if self._http is None:
-            self._http = make_async_client(self._transport)
-        return self._http
 
     def _sync_pods(self) -> None:
         """Make one connection per pod of the table (a pod whose URL changed gets a new one), each

@@ -1,26 +1,26 @@
 """Reading an answer's body under a size cap, whatever carried it: the checks of its headers,
 its pieces counted as they arrive, a gzip or deflate Content-Encoding decoded once, a bounded
 piece at a time (:class:`AnswerReader`, sans I/O: the callers feed it the pieces they receive),
-and the control plane's readers over httpx (:func:`read_answer`, :func:`send_capped`,
-:func:`get_answer`: the controller's routing table and pushes, a pod's ``/v1/info``).
+and the readers of a streamed httpx response (:func:`read_answer`, :func:`send_capped`: the
+controller's pushes to pods).
 """
 
 from __future__ import annotations
 
 import asyncio
-import time
 import zlib
 from collections.abc import Iterator
 from typing import Any
 
 import httpx
 
+from .errors import AnswerTooLargeError, UndecodableAnswer, mapped
+
 __all__ = [
     "DEFAULT_MAX_ANSWER_BYTES",
     "MAX_CONTROL_ANSWER_BYTES",
     "AnswerReader",
     "AnswerTooLargeError",
-    "get_answer",
     "read_answer",
     "send_capped",
 ]
@@ -35,10 +35,6 @@ MAX_CONTROL_ANSWER_BYTES = 16 << 20
 _DECODE_STEP = 1 << 20
 
 
-class AnswerTooLargeError(httpx.DecodingError):
-    """An answer (announced or received, encoded or decoded) is larger than the cap."""
-
-
 def _decoder(encoding: str, url: str, request: httpx.Request | None) -> Any:
     """A zlib decompressor for a Content-Encoding, or None for identity."""
     if encoding in ("", "identity"):
@@ -47,7 +43,7 @@ def _decoder(encoding: str, url: str, request: httpx.Request | None) -> Any:
         return zlib.decompressobj(zlib.MAX_WBITS | 16)
     if encoding == "deflate":
         return zlib.decompressobj(zlib.MAX_WBITS)
-    raise httpx.DecodingError(f"{url}: unsupported Content-Encoding {encoding!r}", request=request)
+    raise UndecodableAnswer(f"{url}: unsupported Content-Encoding {encoding!r}", request=request)
 
 
 def _values(headers: list[tuple[str, str]], name: str) -> list[str]:
@@ -77,7 +73,7 @@ class AnswerReader:
         declared = [value.strip() for value in _values(headers, "content-length")]
         if declared:
             if len(set(declared)) != 1 or not declared[0].isdigit():
-                raise httpx.DecodingError(f"{url}: bad Content-Length {declared[:4]!r:.100}", request=request)
+                raise UndecodableAnswer(f"{url}: bad Content-Length {declared[:4]!r:.100}", request=request)
             if int(declared[0]) > max_bytes:
                 raise AnswerTooLargeError(
                     f"{url}: Content-Length {declared[0][:40]} exceeds the cap of {max_bytes} bytes", request=request
@@ -85,7 +81,7 @@ class AnswerReader:
         encodings = [e.strip().lower() for e in _values(headers, "content-encoding")]
         encodings = [e for e in encodings if e not in ("", "identity")]
         if len(encodings) > 1:
-            raise httpx.DecodingError(f"{url}: stacked Content-Encodings {encodings!r:.100}", request=request)
+            raise UndecodableAnswer(f"{url}: stacked Content-Encodings {encodings!r:.100}", request=request)
         self._encoding = encodings[0] if encodings else ""
         self._decoder = _decoder(self._encoding, url, request)
         self._pieces: list[bytes] = []
@@ -107,26 +103,22 @@ class AnswerReader:
         if self._decoder is None:
             self._pieces.append(piece)
             return
-        try:
-            while piece:
+        while piece:
+            with mapped(f"{self._url}: corrupt {self._encoding} body", self._request):
                 out = self._decoder.decompress(piece, min(_DECODE_STEP, self._max - self._size + 1))
-                self._size += len(out)
-                if self._size > self._max:
-                    raise self._too_large("decoded answer")
-                self._pieces.append(out)
-                piece = self._decoder.unconsumed_tail
-                if piece:
-                    yield
-        except zlib.error as exc:
-            raise httpx.DecodingError(
-                f"{self._url}: corrupt {self._encoding} body: {exc}", request=self._request
-            ) from None
+            self._size += len(out)
+            if self._size > self._max:
+                raise self._too_large("decoded answer")
+            self._pieces.append(out)
+            piece = self._decoder.unconsumed_tail
+            if piece:
+                yield
 
     def finish(self) -> bytes:
         """The whole decoded body, once the raw body has ended."""
         if self._decoder is not None:
             if not self._decoder.eof:
-                raise httpx.DecodingError(f"{self._url}: truncated {self._encoding} body", request=self._request)
+                raise UndecodableAnswer(f"{self._url}: truncated {self._encoding} body", request=self._request)
             rest = self._decoder.flush()
             if self._size + len(rest) > self._max:
                 raise self._too_large("decoded answer")
@@ -151,11 +143,12 @@ async def read_answer(response: httpx.Response, max_bytes: int) -> bytes:
         httpx.HTTPError: what the transport met while receiving.
     """
     try:
-        reader = AnswerReader.of(response, max_bytes)
-        async for piece in response.aiter_raw():
-            for _ in reader.feed(piece):
-                await asyncio.sleep(0)
-        return reader.finish()
+        with mapped(request=response.request):
+            reader = AnswerReader.of(response, max_bytes)
+            async for piece in response.aiter_raw():
+                for _ in reader.feed(piece):
+                    await asyncio.sleep(0)
+            return reader.finish()
     finally:
         await response.aclose()
 
@@ -165,9 +158,9 @@ _TRAVEL_HEADERS = frozenset({"content-encoding", "content-length", "transfer-enc
 
 
 async def send_capped(http: httpx.AsyncClient, request: httpx.Request, max_bytes: int) -> httpx.Response:
-    """Send ``request`` through ``http`` and read the answer whole under the cap ``max_bytes``, as
-    :func:`read_answer` does: how the client reads the controller's answer and the controller a
-    pod's (the client reaches pods through a transport's ``fetch``). Callers bound the whole exchange with ``asyncio.timeout``.
+    """Send ``request`` through ``http`` (an ``httpx.AsyncClient`` on a transport) and read the
+    answer whole under the cap ``max_bytes``, as :func:`read_answer` does: how the controller reads
+    a pod's answer to a push. Callers bound the whole exchange with ``asyncio.timeout``.
 
     Returns:
         the response, its body read and decoded (no Content-Encoding left to decode).
@@ -185,34 +178,3 @@ def _with_body(response: httpx.Response, content: bytes) -> httpx.Response:
     how it travelled (encoding, length, chunking)."""
     headers = [(k, v) for k, v in response.headers.multi_items() if k.lower() not in _TRAVEL_HEADERS]
     return httpx.Response(response.status_code, headers=headers, content=content, request=response.request)
-
-
-def get_answer(
-    url: str, *, timeout_s: float, max_bytes: int = MAX_CONTROL_ANSWER_BYTES, headers: dict[str, str] | None = None
-) -> httpx.Response:
-    """``GET url`` from a blocking caller (the controller's routing table, a pod's ``/v1/info``),
-    read whole under the cap ``max_bytes`` like :func:`send_capped`, within ``timeout_s`` in all.
-
-    Returns:
-        the response, its body read and decoded (no Content-Encoding left to decode).
-
-    Raises:
-        AnswerTooLargeError, httpx.DecodingError: as :func:`read_answer`.
-        httpx.TimeoutException: no whole answer within ``timeout_s``.
-        httpx.HTTPError: what the transport met.
-    """
-    deadline = time.monotonic() + timeout_s
-    with httpx.Client(timeout=timeout_s, trust_env=False) as http:
-        request = http.build_request("GET", url, headers=headers)
-        response = http.send(request, stream=True)
-        try:
-            reader = AnswerReader.of(response, max_bytes)
-            for piece in response.iter_raw():
-                for _ in reader.feed(piece):
-                    pass
-                if time.monotonic() > deadline:
-                    raise httpx.ReadTimeout(f"{url}: no whole answer within {timeout_s} s", request=request)
-            content = reader.finish()
-        finally:
-            response.close()
-    return _with_body(response, content)

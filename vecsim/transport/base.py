@@ -18,10 +18,10 @@ KEEPALIVE_S = 4.0
 class Transport(httpx.AsyncBaseTransport, abc.ABC):
     """How the client reaches pods: :meth:`fetch` for every call to a pod, ``aclose`` at the end,
     and httpx's ``handle_async_request`` so that an ``httpx.AsyncClient`` can sit on the same
-    connections for the control plane (the controller's routing table).
+    connections (the controller's pushes to pods).
 
-    Every implementation raises httpx's exceptions (``ConnectError``, ``ReadTimeout``,
-    ``RemoteProtocolError``, ...) and reads answers through
+    Every implementation raises httpx's exceptions (those of ``vecsim.transport.errors``:
+    ``ConnectFailed``, ``BrokenAnswer``, ...) and reads answers through
     :class:`~vecsim.transport.answers.AnswerReader`, so callers handle one set of failures.
     """
 

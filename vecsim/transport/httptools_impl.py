@@ -10,9 +10,13 @@ the request (a request line, the caller's headers, a Content-Length, its body, i
 keeps idle connections per origin for reuse, and decides when an answer has ended where llhttp
 cannot say so itself (a body that runs until the connection closes; the answer to a HEAD).
 Header names and values that could split the request (CR, LF, NUL) are refused before a byte
-is sent. Failures are httpx's exceptions: ``ConnectError``/``ConnectTimeout``,
-``RemoteProtocolError`` (a malformed answer, a connection that ends inside one), ``ReadTimeout``,
-``LocalProtocolError`` (a request that cannot be written), ``UnsupportedProtocol``.
+is sent. Every part of an answer is capped: the head (:data:`MAX_HEAD_BYTES`), chunk extensions
+and trailers (:data:`MAX_FRAMING_BYTES`), the chunks (:data:`MAX_CHUNKS`) and the body (the
+caller's ``max_bytes``); reading stops at a cap, so a hostile answer costs what was read up to it.
+Failures leave as httpx's exceptions (``vecsim.transport.errors`` maps them): ``ConnectError``/
+``ConnectTimeout``, ``RemoteProtocolError`` (a malformed answer, a cap passed, a connection that
+ends inside one), ``ReadTimeout``, ``LocalProtocolError`` (a request that cannot be written),
+``UnsupportedProtocol``.
 
 Connections belong to the event loop that made them; one transport serves one loop, as the
 client uses it.
@@ -30,12 +34,23 @@ import httpx
 
 from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
+from .errors import BrokenAnswer, ConnectTimedOut, ReadTimedOut, UnsendableRequest, UnsupportedURL, failure_of, mapped
 
-__all__ = ["MAX_HEAD_BYTES", "HttptoolsTransport"]
+__all__ = ["MAX_CHUNKS", "MAX_FRAMING_BYTES", "MAX_HEAD_BYTES", "HttptoolsTransport"]
 
 # An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
 # and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
 MAX_HEAD_BYTES = 64 << 10
+# After the head, what is not body (chunk extensions, trailers) may take this much beside the
+# size lines' own bytes: httptools rebuilds a trailer's value on every read, so a trailer or an
+# extension left unbounded costs memory and loop time without end. Pods send neither.
+MAX_FRAMING_BYTES = 64 << 10
+# What one chunk's size line and CRLFs may take of the framing: 16 hex digits and two CRLFs.
+_CHUNK_LINE_BYTES = 20
+# Chunks of one answer: each costs a few parser callbacks and a piece kept, whatever its size,
+# so a body sent a byte per chunk would cost tens of times its size. Pods send no chunks; a proxy
+# that re-chunks sends buffers of KiBs, which this allows up to a 64 MiB answer in 4 KiB chunks.
+MAX_CHUNKS = 1 << 14
 # Idle connections kept per origin; more are closed as they come back. The client bounds its
 # requests in flight itself, so this only trims what a burst leaves behind.
 MAX_IDLE_PER_ORIGIN = 64
@@ -77,6 +92,8 @@ class _Connection(asyncio.Protocol):
         self._informational = False
         self.received = 0  # bytes of the current exchange's answer, head included
         self._head_bytes = 0
+        self.body_received = 0  # of them, bytes of body
+        self.chunks = 0  # chunks of the current answer begun
         self.exchanges = 0  # requests sent on this connection
 
     # asyncio.Protocol
@@ -85,20 +102,35 @@ class _Connection(asyncio.Protocol):
         self.transport = transport  # type: ignore[assignment]
 
     def data_received(self, data: bytes) -> None:
-        if not self._active or self._parser is None:
-            # Bytes nobody asked for (after an answer ended): the connection cannot be trusted.
+        if not self._active or self._parser is None or self.error is not None:
+            # Bytes nobody asked for (after an answer ended, or after it failed): the connection
+            # cannot be trusted.
             self.close()
             return
         self.received += len(data)
         try:
             self._parser.feed_data(data)
         except httptools.HttpParserError as exc:
-            cause = exc.__context__ if isinstance(exc, httptools.HttpParserCallbackError) else None
-            self._fail(httpx.RemoteProtocolError(f"malformed answer: {cause or exc}"))
+            if self.done:
+                self.keep_alive = False  # junk after a whole answer: the answer stands, the connection goes
+            elif isinstance(exc.__context__, BrokenAnswer):
+                self._fail(exc.__context__)  # a cap of a callback's own
+            else:
+                self._fail(BrokenAnswer(f"malformed answer: {failure_of(exc.__context__ or exc)}"))
             self.close()
             return
-        if not self.headers_done and self.received > MAX_HEAD_BYTES:  # a head still growing
-            self._fail(httpx.RemoteProtocolError(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes"))
+        # Reading stops at a cap: what one read brings past it is all that is parsed beyond it.
+        framing = self.received - self.body_received
+        if not self.headers_done and framing > MAX_HEAD_BYTES:  # a head still growing
+            self._fail(BrokenAnswer(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes"))
+            self.close()
+        elif framing > MAX_HEAD_BYTES + MAX_FRAMING_BYTES + _CHUNK_LINE_BYTES * self.chunks and not self.done:
+            self._fail(
+                BrokenAnswer(
+                    f"the answer's chunk extensions and trailers are larger than {MAX_FRAMING_BYTES} bytes "
+                    f"({framing} bytes of head and framing read)"
+                )
+            )
             self.close()
 
     def eof_received(self) -> bool | None:
@@ -112,7 +144,7 @@ class _Connection(asyncio.Protocol):
                 self.done = True
             else:
                 where = "before the answer's head" if not self.headers_done else "inside the answer's body"
-                self.error = httpx.RemoteProtocolError(f"the server closed the connection {where}")
+                self.error = BrokenAnswer(f"the server closed the connection {where}")
         self._wake()
 
     def pause_writing(self) -> None:  # a request body larger than the socket's buffer: written all the same
@@ -135,7 +167,7 @@ class _Connection(asyncio.Protocol):
             self.headers.append((name, value))
             self._head_bytes += len(name) + len(value) + 4
             if self._head_bytes > MAX_HEAD_BYTES:  # a head that arrived whole in one read
-                raise httpx.RemoteProtocolError(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes")
+                raise BrokenAnswer(f"the answer's head is larger than {MAX_HEAD_BYTES} bytes")
 
     def on_headers_complete(self) -> None:
         assert self._parser is not None
@@ -144,7 +176,7 @@ class _Connection(asyncio.Protocol):
         status = self._parser.get_status_code()
         if 100 <= status < 200:
             if status == 101:
-                raise httpx.RemoteProtocolError("the server switched protocols (101), which this client does not speak")
+                raise BrokenAnswer("the server switched protocols (101), which this client does not speak")
             self._informational = True  # a 100 Continue or 103: the real answer follows
             return
         self.status = status
@@ -156,9 +188,17 @@ class _Connection(asyncio.Protocol):
             self.keep_alive = False
         self._wake()
 
+    def on_chunk_header(self) -> None:
+        self.chunks += 1
+
     def on_body(self, body: bytes) -> None:
         if self.done:
             return
+        if self.chunks > MAX_CHUNKS:  # counted at its body: the last chunk, of none, ends the answer
+            raise BrokenAnswer(
+                f"the answer has more than {MAX_CHUNKS} chunks ({self.body_received} bytes of body in them)"
+            )
+        self.body_received += len(body)
         self._pieces.append(body)
         self._buffered += len(body)
         if self._buffered > _HIGH_WATER and not self._paused and self.transport is not None:
@@ -191,7 +231,7 @@ class _Connection(asyncio.Protocol):
         """Send one request (head and body in ``data``) and wait for its answer's head.
 
         Raises:
-            httpx.ReadTimeout, httpx.RemoteProtocolError: as :meth:`wait`.
+            ReadTimedOut, BrokenAnswer: as :meth:`wait`.
         """
         self._parser = httptools.HttpResponseParser(self)
         self._active = True
@@ -200,14 +240,14 @@ class _Connection(asyncio.Protocol):
         self.headers_done = self.done = self.keep_alive = self._informational = False
         self.error = None
         self._pieces, self._buffered = [], 0
-        self.received = self._head_bytes = 0
+        self.received = self._head_bytes = self.body_received = self.chunks = 0
         self.exchanges += 1
         assert self.transport is not None
         self.transport.write(data)
         while not self.headers_done:
             await self.wait(read_s)
             if self.done and not self.headers_done:
-                raise httpx.RemoteProtocolError("the answer ended without a head")
+                raise BrokenAnswer("the answer ended without a head")
 
     def take(self) -> list[bytes]:
         """The body's pieces that arrived since the last take (reading resumes if it paused)."""
@@ -221,12 +261,12 @@ class _Connection(asyncio.Protocol):
         """Wait for the answer to move on (its head, a piece of body, its end, a failure).
 
         Raises:
-            httpx.ReadTimeout: nothing arrived within ``timeout_s``.
-            httpx.RemoteProtocolError: the answer is malformed or the connection ended inside it.
+            ReadTimedOut: nothing arrived within ``timeout_s``.
+            BrokenAnswer: the answer is malformed, past a cap, or the connection ended inside it.
         """
         if self.error is None and not self._pieces and not self.done:
             if self.closed:
-                raise httpx.RemoteProtocolError("the connection is closed")
+                raise BrokenAnswer("the connection is closed")
             self._waiter = asyncio.get_running_loop().create_future()
             try:
                 if timeout_s is None:
@@ -236,7 +276,7 @@ class _Connection(asyncio.Protocol):
                         async with asyncio.timeout(timeout_s):
                             await self._waiter
                     except TimeoutError:
-                        raise httpx.ReadTimeout(f"no byte of the answer for {timeout_s} s") from None
+                        raise ReadTimedOut(f"no byte of the answer for {timeout_s} s") from None
             finally:
                 self._waiter = None
         if self.error is not None:
@@ -279,10 +319,11 @@ class _Body(httpx.AsyncByteStream):
         connection = self._connection
         while True:
             try:
-                await connection.wait(self._read_s)
-            except httpx.TransportError as exc:
+                with mapped(f"{self._request.method} {self._request.url}", self._request):
+                    await connection.wait(self._read_s)
+            except httpx.TransportError:
                 self._release()
-                raise type(exc)(f"{self._request.method} {self._request.url}: {exc}", request=self._request) from None
+                raise
             for piece in connection.take():
                 yield piece
             if connection.done:
@@ -336,15 +377,14 @@ class HttptoolsTransport(Transport):
             self._ssl = ssl.create_default_context()
         tls = self._ssl if scheme == "https" else None
         loop = asyncio.get_running_loop()
-        try:
-            async with asyncio.timeout(connect_s):
-                _, connection = await loop.create_connection(
-                    lambda: _Connection(origin), host, port, ssl=tls, server_hostname=host if tls else None
-                )
-        except TimeoutError:
-            raise httpx.ConnectTimeout(f"no connection to {host}:{port} within {connect_s} s") from None
-        except OSError as exc:
-            raise httpx.ConnectError(f"cannot connect to {host}:{port}: {exc}") from None
+        with mapped(f"cannot connect to {host}:{port}"):
+            try:
+                async with asyncio.timeout(connect_s):
+                    _, connection = await loop.create_connection(
+                        lambda: _Connection(origin), host, port, ssl=tls, server_hostname=host if tls else None
+                    )
+            except TimeoutError:  # before the table's OSError: a TimeoutError is one
+                raise ConnectTimedOut(f"no connection within {connect_s} s") from None
         self._busy.add(connection)
         return connection
 
@@ -398,9 +438,9 @@ class HttptoolsTransport(Transport):
     @staticmethod
     def _origin(url: httpx.URL) -> tuple[str, str, int]:
         if url.scheme not in ("http", "https"):
-            raise httpx.UnsupportedProtocol(f"{url}: only http and https URLs are supported")
+            raise UnsupportedURL(f"{url}: only http and https URLs are supported")
         if not url.host:
-            raise httpx.UnsupportedProtocol(f"{url}: no host")
+            raise UnsupportedURL(f"{url}: no host")
         return url.scheme, url.host, url.port or (443 if url.scheme == "https" else 80)
 
     @staticmethod
@@ -410,7 +450,7 @@ class HttptoolsTransport(Transport):
         has_host = False
         for name, value in headers:
             if _bad_header_text(name) or _bad_header_text(value) or b":" in name or not name:
-                raise httpx.LocalProtocolError(f"header {name[:40]!r}: {value[:40]!r} cannot be sent")
+                raise UnsendableRequest(f"header {name[:40]!r}: {value[:40]!r} cannot be sent")
             lower = name.lower()
             if lower in (b"content-length", b"transfer-encoding"):
                 continue  # the body is sent whole, with its own length
@@ -434,16 +474,13 @@ class HttptoolsTransport(Transport):
         """
         timeouts = request.extensions.get("timeout", {})
         body = await request.aread()
-        where = f"{request.method} {request.url}"
-        try:
+        with mapped(f"{request.method} {request.url}", request):
             origin = self._origin(request.url)
             send_length = bool(body) or request.method in ("POST", "PUT", "PATCH")
             head = self._head(request.method, request.url, request.headers.raw, len(body) if send_length else None)
             connection = await self._send(
                 origin, head + body, request.method == "HEAD", timeouts.get("connect"), timeouts.get("read")
             )
-        except httpx.TransportError as exc:
-            raise type(exc)(f"{where}: {exc}", request=request) from None
         return httpx.Response(
             connection.status,
             headers=connection.headers,
@@ -475,25 +512,26 @@ class HttptoolsTransport(Transport):
             the answer's status code and its decoded body.
 
         Raises:
-            vecsim.answers.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
+            vecsim.transport.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
             httpx.ConnectError, httpx.RemoteProtocolError, httpx.LocalProtocolError,
             httpx.UnsupportedProtocol: as the module's text says.
         """
-        origin, head = self._cached_head(method, url, headers)
-        data = b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body)
-        connection = await self._send(origin, data, method == "HEAD", None, None)
-        try:
-            reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
-            while True:
-                for piece in connection.take():
-                    for _ in reader.feed(piece):
-                        await asyncio.sleep(0)
-                if connection.done:
-                    break
-                await connection.wait(None)
-            return connection.status, reader.finish()
-        finally:
-            self.release(connection)
+        with mapped():
+            origin, head = self._cached_head(method, url, headers)
+            data = b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body)
+            connection = await self._send(origin, data, method == "HEAD", None, None)
+            try:
+                reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
+                while True:
+                    for piece in connection.take():
+                        for _ in reader.feed(piece):
+                            await asyncio.sleep(0)
+                    if connection.done:
+                        break
+                    await connection.wait(None)
+                return connection.status, reader.finish()
+            finally:
+                self.release(connection)
 
     async def aclose(self) -> None:
         """Close every connection, idle or in use."""

@@ -1,8 +1,12 @@
-"""A :class:`~vecsim.transport.Transport` over any httpx transport: ``httpx.AsyncHTTPTransport``
-(httpx's own connections) or ``httpx.ASGITransport(app)`` (a pod served in-process, as tests and
-notebooks do). The request is handed straight to the wrapped transport, with no
-``httpx.AsyncClient`` around it: a pod's calls use none of what a client adds (redirects, auth,
-cookies, hooks), and it costs client CPU on every call.
+"""A :class:`~vecsim.transport.Transport` over an httpx transport that serves an app in-process:
+``httpx.ASGITransport(app)``, a pod served in the test's own process (tests, notebooks). The
+request is handed straight to the wrapped transport, with no ``httpx.AsyncClient`` around it: a
+pod's calls use none of what a client adds (redirects, auth, cookies, hooks), and it costs client
+CPU on every call.
+
+Sockets are :class:`~vecsim.transport.HttptoolsTransport`'s: httpx's own connections
+(``httpx.AsyncHTTPTransport``) reuse a connection with junk left on it, read an early 413 as a
+failed write, and bound neither the chunks of an answer nor its cost (docs/api.md, "Transport").
 """
 
 from __future__ import annotations
@@ -10,19 +14,16 @@ from __future__ import annotations
 import httpx
 
 from .answers import read_answer
-from .base import KEEPALIVE_S, Transport
+from .base import Transport
 
 __all__ = ["HttpxTransport"]
 
 
 class HttpxTransport(Transport):
-    """:meth:`fetch` through ``transport`` (default: ``httpx.AsyncHTTPTransport`` with
-    environment proxies ignored, idle connections kept ``keepalive_s``); closing this closes it."""
+    """:meth:`fetch` through ``transport`` (an in-process one: ``httpx.ASGITransport(app)``);
+    closing this closes it."""
 
-    def __init__(self, transport: httpx.AsyncBaseTransport | None = None, *, keepalive_s: float = KEEPALIVE_S) -> None:
-        if transport is None:
-            limits = httpx.Limits(max_connections=None, max_keepalive_connections=None, keepalive_expiry=keepalive_s)
-            transport = httpx.AsyncHTTPTransport(limits=limits, trust_env=False)
+    def __init__(self, transport: httpx.AsyncBaseTransport) -> None:
         self.wrapped = transport
 
     async def handle_async_request(self, request: httpx.Request) -> httpx.Response:
