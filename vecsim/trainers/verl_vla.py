@@ -291,7 +291,7 @@ class VecsimLiberoEnv:
             gids = np.array([self._eval_state(i, cursor[i]) for i in ids], dtype=np.int64)
         else:
             gids = np.array([self._draw_state(i) for i in ids], dtype=np.int64)
-        obs, info = self.vla.reset(env_ids=self.job_env_ids[ids], global_state_ids=gids)
+        obs, _info = self.vla.reset(env_ids=self.job_env_ids[ids], global_state_ids=gids)
         if reset_eval:
             self._eval_cursor[:] = 0
         self.reset_state_ids[ids] = gids
