@@ -8,7 +8,8 @@ LeRobot's own ``create_libero_envs`` (a ``SyncVectorEnv`` of its ``LiberoEnv``).
 fixtures LeRobot's seeds move (libero_goal/7: cabinet, stove, rack; libero_10/8: stove, with an
 open/close sampler, so each reset's draws also depend on how often the env was loaded), 2 envs,
 2 episodes each (env ``i``'s resets seeded ``start_seed + i`` and ``start_seed + 2 + i``), 64x64
-cameras, 8-step episodes. The job's ``libero`` block is docs/trainers.md's, as pasted. Per-episode
+cameras, 8-step episodes. The job's ``libero`` block and the lines that build the env and run the
+eval on vecsim are docs/trainers.md's, as pasted. Per-episode
 success, return and length (the frames its video writer wrote) are equal, and so is every
 observation the policy was handed: images bit for bit, the state within float32 rounding.
 
@@ -30,7 +31,6 @@ from support.service_procs import assignment, standalone_pods
 
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.engine.tasks._libero import ensure_config
-from vecsim.trainers.lerobot import LeRobotVectorEnv
 
 pytestmark = pytest.mark.libero
 
@@ -58,13 +58,18 @@ ACTIONS = np.random.default_rng(26).uniform(-1.0, 1.0, (EPISODE, 7)).astype(np.f
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "trainers.md"
 
 
-def documented_job() -> dict:
-    """The job config of docs/trainers.md's LeRobot section, as written there."""
+def _documented(language: str) -> str:
+    """The first ``language`` block of docs/trainers.md's LeRobot section, as written there."""
     section = DOCS.read_text().split("## LeRobot", 1)[1]
-    return yaml.safe_load(re.findall(r"```yaml\n(.*?)```", section, re.DOTALL)[0])
+    return re.findall(rf"```{language}\n(.*?)```", section, re.DOTALL)[0]
 
 
-START_SEED = documented_job()["libero"]["fixture_seed"]  # eval_policy's start_seed, as the docs pair them
+def documented_job() -> dict:
+    """The job config of docs/trainers.md's LeRobot section."""
+    return yaml.safe_load(_documented("yaml"))
+
+
+START_SEED = documented_job()["libero"]["fixture_seed"]  # the documented eval's start_seed
 
 
 @PreTrainedConfig.register_subclass("vecsim_scripted")
@@ -127,32 +132,28 @@ class ScriptedPolicy(PreTrainedPolicy):
         raise NotImplementedError("evaluation only")
 
 
-def _evaluate(env, suite: str, videos: Path) -> tuple[dict, ScriptedPolicy]:
-    """LeRobot's eval_policy over ``env`` with LeRobot's LIBERO processors; one video."""
+def _processors(suite: str) -> tuple[ScriptedPolicy, dict]:
+    """The policy and the four processors eval_policy takes, with LeRobot's LIBERO env processors."""
     policy = ScriptedPolicy()
     env_pre, env_post = make_env_pre_post_processors(LiberoEnvConfig(task=suite), policy.config)
     # The policy's own processors are identities, built as lerobot.policies.factory builds them.
     pre = PolicyProcessorPipeline(steps=[])
     post = PolicyProcessorPipeline(steps=[], to_transition=policy_action_to_transition, to_output=transition_to_policy_action)
-    info = lerobot_eval.eval_policy(
-        env, policy, env_pre, env_post, pre, post,
-        n_episodes=N_ENVS * EPISODES_PER_ENV, max_episodes_rendered=1, videos_dir=videos, start_seed=START_SEED,
-    )  # fmt: skip
-    return info, policy
+    return policy, {"env_preprocessor": env_pre, "env_postprocessor": env_post, "preprocessor": pre, "postprocessor": post}
 
 
 def _vecsim_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
-    job = documented_job()
+    """docs/trainers.md's LeRobot lines, as pasted, on a pod serving the documented job."""
     spec = assignment(
         "sim-0", [(f"{suite}/{index}", N_ENVS)], job_id="lerobot", camera=CameraConfig(height=SIZE, width=SIZE),
-        render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(**job["libero"]),
+        render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(**documented_job()["libero"]),
     )  # fmt: skip
+    policy, processors = _processors(suite)
     with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as pods:
-        env = LeRobotVectorEnv(pod_urls=[pods[0].url], timeout_s=300)
-        try:
-            return _evaluate(env, suite, tmp_path_factory.mktemp("vecsim-videos"))
-        finally:
-            env.close()
+        names = {"pod_urls": [pods[0].url], "policy": policy, **processors, "n_episodes": N_ENVS * EPISODES_PER_ENV,
+                 "videos_dir": tmp_path_factory.mktemp("vecsim-videos")}  # fmt: skip
+        exec(compile(_documented("python"), str(DOCS), "exec"), names)
+    return names["info"], policy
 
 
 def _lerobot_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
@@ -161,10 +162,15 @@ def _lerobot_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, Script
         gym_kwargs={"task_ids": [index], "obs_type": "pixels_agent_pos", "observation_width": SIZE, "observation_height": SIZE},
     )  # fmt: skip
     env = envs[suite][index]
+    policy, processors = _processors(suite)
     try:
-        return _evaluate(env, suite, tmp_path_factory.mktemp("lerobot-videos"))
+        info = lerobot_eval.eval_policy(
+            env, policy, **processors, n_episodes=N_ENVS * EPISODES_PER_ENV, max_episodes_rendered=1,
+            videos_dir=tmp_path_factory.mktemp("lerobot-videos"), start_seed=START_SEED,
+        )  # fmt: skip
     finally:
         env.close()
+    return info, policy
 
 
 @pytest.fixture(scope="module", params=TASKS, ids=[f"{suite}/{index}" for suite, index in TASKS])
@@ -178,8 +184,9 @@ def _frames(info: dict) -> int:
     return iio.imread(info["video_paths"][0], index=None).shape[0]
 
 
-def test_the_documented_job_places_fixtures_as_lerobot_does():
+def test_the_documented_eval_starts_at_the_jobs_fixture_seed():
     assert documented_job()["libero"]["fixture_rule"] == "lerobot"
+    assert f"start_seed={START_SEED})" in _documented("python")
 
 
 def test_eval_policy_gives_lerobots_per_episode_success_and_return(runs):
