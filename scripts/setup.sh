@@ -82,6 +82,9 @@ case ",$extras," in
       echo "[setup] installing rlinf (no deps) and what its env modules import" >&2
       "$venv/bin/python" -m pip install -q --no-deps "rlinf==0.3.0" "gym==0.26.2" "ray==2.60.0"
       "$venv/bin/python" -m pip install -q "omegaconf==2.4.0" "protobuf" "click" "jsonschema" "msgpack"
+      # verl-vla builds its typed env config with hydra's instantiate (tests/trainers/verl_vla_code.py):
+      # hydra-core 1.3.8 declares omegaconf<2.4, so it goes in bare beside the omegaconf above.
+      "$venv/bin/python" -m pip install -q --no-deps "hydra-core==1.3.8" "antlr4-python3-runtime==4.9.3"
       rm -f "$venv"/.vecsim-rlinf-*
       touch "$rlinf_stamp"
     fi

@@ -4,9 +4,14 @@ The judge is the installed ``lerobot`` release (0.4.4, the one that installs bes
 its ``eval_policy`` (``lerobot/scripts/lerobot_eval.py``) runs a scripted policy with LeRobot's
 LIBERO env processors (``make_env_pre_post_processors``: ``LiberoProcessorStep`` flips the images
 and builds ``observation.state``), once over :class:`LeRobotVectorEnv` on a real pod and once over
-LeRobot's own ``create_libero_envs`` (a ``SyncVectorEnv`` of its ``LiberoEnv``). Per-episode
+LeRobot's own ``create_libero_envs`` (a ``SyncVectorEnv`` of its ``LiberoEnv``). Two tasks whose
+fixtures LeRobot's seeds move (libero_goal/7: cabinet, stove, rack; libero_10/8: stove, with an
+open/close sampler, so each reset's draws also depend on how often the env was loaded), 2 envs,
+2 episodes each (env ``i``'s resets seeded ``start_seed + i`` and ``start_seed + 2 + i``), 64x64
+cameras, 8-step episodes. The job's ``libero`` block and the lines that build the env and run the
+eval on vecsim are docs/trainers.md's, as pasted. Per-episode
 success, return and length (the frames its video writer wrote) are equal, and so is every
-observation the policy was handed. One task, one env, 64x64 cameras, 12-step episodes.
+observation the policy was handed: images bit for bit, the state within float32 rounding.
 
 LeRobot's modules import torchvision, which does not load beside this CPU torch; the eval loop
 never uses it (``torchvision_absent``).
@@ -15,16 +20,17 @@ never uses it (``torchvision_absent``).
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
+import yaml
 from support.service_procs import assignment, standalone_pods
 
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.engine.tasks._libero import ensure_config
-from vecsim.trainers.lerobot import LeRobotVectorEnv
 
 pytestmark = pytest.mark.libero
 
@@ -43,12 +49,27 @@ from lerobot.policies.pretrained import PreTrainedPolicy  # noqa: E402
 from lerobot.processor import PolicyProcessorPipeline  # noqa: E402
 from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action  # noqa: E402
 
-SUITE, TASK_INDEX = "libero_spatial", 0
-TASK = f"{SUITE}/{TASK_INDEX}"
+TASKS = [("libero_goal", 7), ("libero_10", 8)]
+N_ENVS, EPISODES_PER_ENV = 2, 2
 SIZE = 64
-EPISODE = 12
+EPISODE = 8
 # Deterministic actions, one per step; LeRobot's actions are float32 in [-1, 1].
 ACTIONS = np.random.default_rng(26).uniform(-1.0, 1.0, (EPISODE, 7)).astype(np.float32)
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "trainers.md"
+
+
+def _documented(language: str) -> str:
+    """The first ``language`` block of docs/trainers.md's LeRobot section, as written there."""
+    section = DOCS.read_text().split("## LeRobot", 1)[1]
+    return re.findall(rf"```{language}\n(.*?)```", section, re.DOTALL)[0]
+
+
+def documented_job() -> dict:
+    """The job config of docs/trainers.md's LeRobot section."""
+    return yaml.safe_load(_documented("yaml"))
+
+
+START_SEED = documented_job()["libero"]["fixture_seed"]  # the documented eval's start_seed
 
 
 @PreTrainedConfig.register_subclass("vecsim_scripted")
@@ -111,74 +132,84 @@ class ScriptedPolicy(PreTrainedPolicy):
         raise NotImplementedError("evaluation only")
 
 
-def _evaluate(env, videos: Path) -> tuple[dict, ScriptedPolicy]:
-    """LeRobot's eval_policy over ``env`` with LeRobot's LIBERO processors; one video."""
+def _processors(suite: str) -> tuple[ScriptedPolicy, dict]:
+    """The policy and the four processors eval_policy takes, with LeRobot's LIBERO env processors."""
     policy = ScriptedPolicy()
-    env_pre, env_post = make_env_pre_post_processors(LiberoEnvConfig(task=SUITE), policy.config)
+    env_pre, env_post = make_env_pre_post_processors(LiberoEnvConfig(task=suite), policy.config)
     # The policy's own processors are identities, built as lerobot.policies.factory builds them.
     pre = PolicyProcessorPipeline(steps=[])
     post = PolicyProcessorPipeline(steps=[], to_transition=policy_action_to_transition, to_output=transition_to_policy_action)
-    info = lerobot_eval.eval_policy(
-        env, policy, env_pre, env_post, pre, post,
-        n_episodes=env.num_envs, max_episodes_rendered=1, videos_dir=videos, start_seed=0,
-    )  # fmt: skip
-    return info, policy
+    return policy, {"env_preprocessor": env_pre, "env_postprocessor": env_post, "preprocessor": pre, "postprocessor": post}
 
 
-@pytest.fixture(scope="module")
-def vecsim_run(tmp_path_factory):
+def _vecsim_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
+    """docs/trainers.md's LeRobot lines, as pasted, on a pod serving the documented job."""
     spec = assignment(
-        "sim-0", [(TASK, 1)], job_id="lerobot", camera=CameraConfig(height=SIZE, width=SIZE),
-        render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(image_orientation="raw"),
+        "sim-0", [(f"{suite}/{index}", N_ENVS)], job_id="lerobot", camera=CameraConfig(height=SIZE, width=SIZE),
+        render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(**documented_job()["libero"]),
     )  # fmt: skip
-    videos = tmp_path_factory.mktemp("vecsim-videos")
+    policy, processors = _processors(suite)
     with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as pods:
-        env = LeRobotVectorEnv(pod_urls=[pods[0].url], timeout_s=120)
-        try:
-            info, policy = _evaluate(env, videos)
-        finally:
-            env.close()
-    return info, policy
+        names = {"pod_urls": [pods[0].url], "policy": policy, **processors, "n_episodes": N_ENVS * EPISODES_PER_ENV,
+                 "videos_dir": tmp_path_factory.mktemp("vecsim-videos")}  # fmt: skip
+        exec(compile(_documented("python"), str(DOCS), "exec"), names)
+    return names["info"], policy
 
 
-@pytest.fixture(scope="module")
-def lerobot_run(tmp_path_factory):
+def _lerobot_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
     envs = create_libero_envs(
-        task=SUITE, n_envs=1, env_cls=SyncVectorEnv, episode_length=EPISODE,
-        gym_kwargs={"task_ids": [TASK_INDEX], "obs_type": "pixels_agent_pos", "observation_width": SIZE, "observation_height": SIZE},
+        task=suite, n_envs=N_ENVS, env_cls=SyncVectorEnv, episode_length=EPISODE,
+        gym_kwargs={"task_ids": [index], "obs_type": "pixels_agent_pos", "observation_width": SIZE, "observation_height": SIZE},
     )  # fmt: skip
-    env = envs[SUITE][TASK_INDEX]
+    env = envs[suite][index]
+    policy, processors = _processors(suite)
     try:
-        info, policy = _evaluate(env, tmp_path_factory.mktemp("lerobot-videos"))
+        info = lerobot_eval.eval_policy(
+            env, policy, **processors, n_episodes=N_ENVS * EPISODES_PER_ENV, max_episodes_rendered=1,
+            videos_dir=tmp_path_factory.mktemp("lerobot-videos"), start_seed=START_SEED,
+        )  # fmt: skip
     finally:
         env.close()
     return info, policy
+
+
+@pytest.fixture(scope="module", params=TASKS, ids=[f"{suite}/{index}" for suite, index in TASKS])
+def runs(request, tmp_path_factory):
+    """(vecsim's run, LeRobot's run) of one task: each an eval_policy info and the policy."""
+    suite, index = request.param
+    return _vecsim_run(suite, index, tmp_path_factory), _lerobot_run(suite, index, tmp_path_factory)
 
 
 def _frames(info: dict) -> int:
     return iio.imread(info["video_paths"][0], index=None).shape[0]
 
 
-def test_eval_policy_gives_lerobots_per_episode_success_and_return(vecsim_run, lerobot_run):
-    ours, theirs = vecsim_run[0]["per_episode"], lerobot_run[0]["per_episode"]
-    assert len(ours) == len(theirs) == 1
+def test_the_documented_eval_starts_at_the_jobs_fixture_seed():
+    assert documented_job()["libero"]["fixture_rule"] == "lerobot"
+    assert f"start_seed={START_SEED})" in _documented("python")
+
+
+def test_eval_policy_gives_lerobots_per_episode_success_and_return(runs):
+    ours, theirs = runs[0][0]["per_episode"], runs[1][0]["per_episode"]
+    assert len(ours) == len(theirs) == N_ENVS * EPISODES_PER_ENV
     for mine, own in zip(ours, theirs):
         assert mine["success"] == own["success"]
-        assert mine["sum_reward"] == pytest.approx(own["sum_reward"])
-        assert mine["max_reward"] == pytest.approx(own["max_reward"])
+        assert mine["sum_reward"] == own["sum_reward"]
+        assert mine["max_reward"] == own["max_reward"]
 
 
-def test_eval_policy_writes_a_video_as_long_as_lerobots(vecsim_run, lerobot_run):
+def test_eval_policy_writes_a_video_as_long_as_lerobots(runs):
     # eval_policy writes frames up to the episode's end: the video's length is the episode's.
-    assert _frames(vecsim_run[0]) == _frames(lerobot_run[0]) > 0
+    assert _frames(runs[0][0]) == _frames(runs[1][0]) > 0
 
 
-def test_the_policy_is_handed_lerobots_observations(vecsim_run, lerobot_run):
-    ours, theirs = vecsim_run[1].seen, lerobot_run[1].seen
-    assert len(ours) == len(theirs) == EPISODE
+def test_the_policy_is_handed_lerobots_observations_for_every_env_and_episode(runs):
+    ours, theirs = runs[0][1].seen, runs[1][1].seen
+    assert len(ours) == len(theirs) == EPISODES_PER_ENV * EPISODE
     for t, (mine, own) in enumerate(zip(ours, theirs)):
         assert mine.keys() == own.keys(), t
         assert mine["task"] == own["task"], t
-        np.testing.assert_allclose(mine["observation.state"], own["observation.state"], atol=1e-6, err_msg=f"step {t}")
+        assert mine["observation.images.image"].shape[0] == N_ENVS
         for key in ("observation.images.image", "observation.images.image2"):
             assert torch.equal(mine[key], own[key]), (t, key)
+        np.testing.assert_allclose(mine["observation.state"], own["observation.state"], atol=1e-6, err_msg=f"step {t}")

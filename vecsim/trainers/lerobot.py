@@ -10,7 +10,8 @@ LeRobot's LIBERO observation layout (``envs/libero.py``, ``obs_type="pixels_agen
 
 Example::
 
-    env = LeRobotVectorEnv(pod_urls=["http://127.0.0.1:8000"])   # a job with libero.image_orientation: raw
+    # a job with libero: {image_orientation: raw, fixture_rule: lerobot, fixture_seed: 0, fixture_stride: 2}
+    env = LeRobotVectorEnv(pod_urls=["http://127.0.0.1:8000"])
     info = eval_policy(env, policy, env_pre, env_post, pre, post, n_episodes=env.num_envs, start_seed=0)
 """
 
@@ -85,7 +86,8 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
       ``eef.mat``, ``gripper.qvel`` and ``joints.vel`` are not served.
     - Resets: env ``i``'s resets take initial states ``i, i + n, i + 2n, ...`` (``n`` envs),
       LeRobot's ``init_state_id`` sequence, unless ``options["state_ids"]`` names them; reset
-      options LeRobot passes are ignored.
+      options LeRobot passes are ignored. LeRobot's seeds place LIBERO's fixtures: the job's
+      ``libero.fixture_rule: lerobot`` places them as LeRobot's env does (docs/trainers.md).
     - ``info["is_success"]`` beside ``success``; an env that ends a step has
       ``info["final_info"]["is_success"]`` (NEXT_STEP and SAME_STEP).
     - ``envs[i]`` has ``task`` (the vecsim task id), ``task_description`` (the instruction),

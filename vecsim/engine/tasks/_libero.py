@@ -390,10 +390,12 @@ def _replayed_hard_reset(task: TaskSpec, inner: Any, fresh: tuple[np.ndarray, np
     raise RuntimeError(f"{task.task_id}: LIBERO could not place the objects")
 
 
-def fixtures_path(task: TaskSpec, seed: int) -> Path:
-    """Return where the published loop's fixtures of ``task`` under ``env.seed(seed)`` are cached."""
+def fixtures_path(task: TaskSpec, seed: int, rule: str = "published", stride: int = 1) -> Path:
+    """Return where the fixtures of ``task`` under ``rule`` (``published``: the published loop's
+    after ``env.seed(seed)``; ``lerobot``: LeRobot's, ``stride`` envs per task) are cached."""
     suite, index = task.task_id.split("/", 1)
-    return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / f"{index}-seed{seed}.npz"
+    name = f"{index}-seed{seed}.npz" if rule == "published" else f"{index}-{rule}-seed{seed}-stride{stride}.npz"
+    return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / name
 
 
 def load_fixtures(path: Path, count: int, nbody: int) -> list[EpisodeFixtures] | None:
@@ -439,17 +441,21 @@ def _save_fixtures(path: Path, fixtures: list[EpisodeFixtures]) -> None:
     write_whole(path, save)
 
 
-def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[EpisodeFixtures]:
+def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str, stride: int = 1) -> list[EpisodeFixtures]:
     """Reset a freshly built LIBERO env as the published loop's first episode does and return,
-    per state id ``k``, what episode ``k``'s reset leaves besides the init state.
+    per state id ``k``, what the reset that sets init state ``k`` leaves besides the init state.
 
     ``inner`` must be a LIBERO env just built (``hard_reset`` on) and not reset since. Under
     ``rule`` ``published``, entry ``k`` is episode ``k`` of the published evaluation loop
     (``env.seed(seed)`` once, then one ``env.reset()`` per episode; the loop's steps draw nothing
     from the generator): the first from the env's own hard reset, the others replayed
-    (:func:`_replayed_hard_reset`) and cached on disk (:func:`fixtures_path`; one process
-    computes, others wait and read). Under ``first_reset``, every entry is the first reset's.
-    Leaves the env with the first reset's placement.
+    (:func:`_replayed_hard_reset`). Under ``lerobot``, entry ``k`` is the reset of LeRobot's
+    ``LiberoEnv`` that sets init state ``k`` in its ``eval_policy`` from ``start_seed = seed``
+    with ``stride`` envs per task (lerobot 0.4.4, envs/libero.py: the env is built, reset once,
+    then ``env.seed(seed + k); env.reset()``, its ``k // stride + 1``-th eval reset), replayed.
+    Both are cached on disk (:func:`fixtures_path`; one process computes, others wait and
+    read). Under ``first_reset``, every entry is the first reset's. Leaves the env with the
+    first reset's placement.
     """
     per_load = len(inner.object_property_initializers)  # what the constructor's _load_model appended
     with seeded_global_rngs(seed), stdout_to_log():
@@ -460,7 +466,7 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
         first = EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
         if rule == "first_reset":
             return [first] * task.num_states
-        path = fixtures_path(task, seed)
+        path = fixtures_path(task, seed, rule, stride)
         fixtures = load_fixtures(path, task.num_states, model.nbody)
         if fixtures is not None:
             return fixtures
@@ -470,10 +476,13 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
             if fixtures is not None:
                 return fixtures
             started = time.perf_counter()
-            fixtures = [first]
             kept = len(inner.object_property_initializers)
             try:
-                for _ in range(1, task.num_states):
+                fixtures = [first] if rule == "published" else []
+                for k in range(len(fixtures), task.num_states):
+                    if rule == "lerobot":
+                        fixtures.append(_lerobot_reset(task, inner, fresh, per_load, kept, seed + k, k // stride))
+                        continue
                     with _reset_entries(inner) as entries:
                         _replayed_hard_reset(task, inner, fresh, per_load)
                     fixtures.append(EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2]))
@@ -486,6 +495,21 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> list[E
                 task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
             )  # fmt: skip
             return fixtures
+
+
+def _lerobot_reset(
+    task: TaskSpec, inner: Any, fresh: tuple[np.ndarray, np.ndarray], per_load: int, kept: int, seed: int, before: int
+) -> EpisodeFixtures:
+    """Replay LeRobot's ``LiberoEnv.reset`` under ``env.seed(seed)`` after ``before`` earlier eval
+    resets: its model was loaded ``before + 2`` times already (built, reset in its constructor,
+    then once per eval reset), each load appending the open/close samplers again."""
+    initializers = inner.object_property_initializers
+    del initializers[kept:]
+    initializers.extend(initializers[:per_load] * before)
+    with seeded_global_rngs(seed), _reset_entries(inner) as entries:
+        _replayed_hard_reset(task, inner, fresh, per_load)
+    model = inner.sim.model._model
+    return EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
 
 
 def make_libero_env(
@@ -527,7 +551,7 @@ def make_libero_env(
             raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
     inner = wrapper.env
     try:
-        fixtures = episode_fixtures(task, inner, protocol.fixture_seed, protocol.fixture_rule)
+        fixtures = episode_fixtures(task, inner, protocol.fixture_seed, protocol.fixture_rule, protocol.fixture_stride)
         inner.hard_reset = False
         render_presets.apply_to_robosuite(inner.sim, render)
         states = init_states(task)
