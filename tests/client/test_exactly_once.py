@@ -142,34 +142,46 @@ def steps_of(pod_url: str) -> float:
     return metric(pod_url, "vecsim_pod_env_steps_total")
 
 
-def rollout(client: StageClient, lose_at: int | None, proxy: LosingProxy) -> list[np.ndarray]:
-    """Reset both trajectories, step them 5 times; the answer to step ``lose_at`` is lost once."""
+def rollout(client: StageClient, proxy: LosingProxy, lose: str | None = None, chunk: int | None = None) -> list[np.ndarray]:
+    """Reset both trajectories, step them 5 times (one action, or chunks of ``chunk``); the
+    answer to the reset (``lose="reset"``) or to step 2 (``"step"``) is lost once."""
     client.reset_trajectories(REQUESTS, KEYS)
-    client.reset_stage(0).result(timeout=30)
-    rows = []
+    if lose == "reset":
+        proxy.arm()
+    first = client.reset_stage(0).result(timeout=30)
+    rows = [first.obs.copy()]
     for i in range(5):
-        if i == lose_at:
+        if lose == "step" and i == 2:
             proxy.arm()
-        action = np.array([0.4 * (i - 2)], np.float32)
+        action = np.full((chunk, 1) if chunk else (1,), 0.4 * (i - 2), np.float32)
         batch = client.step_stage(0, {key: action for key in KEYS}).result(timeout=30)
-        rows.append(np.concatenate([batch.obs, batch.reward[:, None]], axis=1))
+        rows += [batch.obs, batch.reward]
     return rows
 
 
-def test_a_step_whose_answer_was_lost_after_the_pod_applied_it_is_applied_once(pod) -> None:
+def counts(pod_url: str) -> np.ndarray:
+    names = ["vecsim_pod_env_steps_total", "vecsim_pod_env_resets_total", "vecsim_pod_idempotency_key_repeats_total"]
+    return np.array([metric(pod_url, name) for name in names])
+
+
+@pytest.mark.parametrize(
+    ("lose", "chunk"), [("step", None), ("step", 3), ("reset", None)], ids=["step", "chunk-step", "reset"]
+)
+def test_a_call_whose_answer_was_lost_after_the_pod_applied_it_is_applied_once(pod, lose: str, chunk: int | None) -> None:
     pod_url, proxy_url, proxy = pod
     with StageClient.from_pods([proxy_url], timeout_s=30) as client:
-        reference = rollout(client, None, proxy)
-        before, repeats = steps_of(pod_url), metric(pod_url, "vecsim_pod_idempotency_key_repeats_total")
-        forwarded = len(proxy.forwarded)
-        got = rollout(client, 2, proxy)
+        reference = rollout(client, proxy, chunk=chunk)
+        before, forwarded = counts(pod_url), len(proxy.forwarded)
+        got = rollout(client, proxy, lose, chunk)
     assert proxy.lost == 1
-    # The lost step went to the pod twice (the same bytes, the same key), and was applied once.
-    steps = [r for r in proxy.forwarded[forwarded:] if r.startswith(b"POST /v1/step")]
-    assert len(steps) == 6 and steps[2] == steps[3]
-    assert IDEMPOTENCY_KEY.encode() in steps[2]
-    assert steps_of(pod_url) - before == 5 * len(KEYS)
-    assert metric(pod_url, "vecsim_pod_idempotency_key_repeats_total") - repeats == 1
+    proxy.lost = 0
+    # The lost call went to the pod twice (the same bytes, the same key), and was applied once.
+    sent = proxy.forwarded[forwarded:]
+    repeated = [i for i in range(len(sent) - 1) if sent[i] == sent[i + 1]]
+    assert len(repeated) == 1 and sent[repeated[0]].startswith(f"POST /v1/{lose}".encode())
+    assert IDEMPOTENCY_KEY.encode() in sent[repeated[0]]
+    steps, resets, repeats = counts(pod_url) - before
+    assert (steps, resets, repeats) == (5 * (chunk or 1) * len(KEYS), len(KEYS), 1)
     for mine, theirs in zip(got, reference, strict=True):
         assert np.array_equal(mine, theirs)
 
@@ -177,7 +189,7 @@ def test_a_step_whose_answer_was_lost_after_the_pod_applied_it_is_applied_once(p
 def test_a_pod_holds_at_most_one_answer_per_env(pod) -> None:
     pod_url, proxy_url, proxy = pod
     with StageClient.from_pods([proxy_url], timeout_s=30) as client:
-        rollout(client, None, proxy)
+        rollout(client, proxy)
     assert 1 <= metric(pod_url, "vecsim_pod_idempotency_key_answers") <= len(KEYS)
 
 
