@@ -142,7 +142,9 @@ def steps_of(pod_url: str) -> float:
     return metric(pod_url, "vecsim_pod_env_steps_total")
 
 
-def rollout(client: StageClient, proxy: LosingProxy, lose: str | None = None, chunk: int | None = None) -> list[np.ndarray]:
+def rollout(
+    client: StageClient, proxy: LosingProxy, lose: str | None = None, chunk: int | None = None
+) -> list[np.ndarray]:
     """Reset both trajectories, step them 5 times (one action, or chunks of ``chunk``); the
     answer to the reset (``lose="reset"``) or to step 2 (``"step"``) is lost once."""
     client.reset_trajectories(REQUESTS, KEYS)
@@ -167,7 +169,7 @@ def counts(pod_url: str) -> np.ndarray:
 @pytest.mark.parametrize(
     ("lose", "chunk"), [("step", None), ("step", 3), ("reset", None)], ids=["step", "chunk-step", "reset"]
 )
-def test_a_call_whose_answer_was_lost_after_the_pod_applied_it_is_applied_once(pod, lose: str, chunk: int | None) -> None:
+def test_a_call_whose_answer_was_lost_after_the_pod_applied_it_is_applied_once(pod, lose: str, chunk: int | None):
     pod_url, proxy_url, proxy = pod
     with StageClient.from_pods([proxy_url], timeout_s=30) as client:
         reference = rollout(client, proxy, chunk=chunk)

@@ -123,18 +123,19 @@ def ready_table(controller_url: str) -> RoutingTable | None:
 def test_a_pod_and_the_controller_killed_together_heal_before_the_adopt_grace_would_end(tmp_path):
     grace = ControllerSettings.model_fields["adopt_grace_s"].default
     two_stages = {**JOB, "job_id": "heal", "group_size": 2, "num_stages": 2}
-    with LocalJob(job_config(two_stages, replicas=2), log_dir=tmp_path, grace_s=10, backoff=Backoff(initial_s=0.2)) as job:
+    config = job_config(two_stages, replicas=2)
+    with LocalJob(config, log_dir=tmp_path, grace_s=10, backoff=Backoff(initial_s=0.2)) as job:
         job.wait_ready(timeout=180)
         before = ready_table(job.controller_url)
         for name in ("controller", "sim-0"):
             os.killpg(job.processes[name].pid, signal.SIGKILL)
+
+        def healed() -> RoutingTable | None:
+            table = ready_table(job.controller_url)
+            return table if table is not None and table.generation > before.generation else None
+
         # Only a plan made before the grace ends can be ready within it (sim-0 runs nothing now).
-        after = wait_until(
-            lambda: (table := ready_table(job.controller_url)) is not None and table.generation > before.generation and table,
-            "the job ready again at a new generation",
-            timeout_s=grace - 5,
-            every=0.1,
-        )
+        after = wait_until(healed, "the job ready again at a new generation", timeout_s=grace - 5, every=0.1)
         restarts = {name: job.processes[name].restarts for name in ("controller", "sim-0", "sim-1")}
         log = (tmp_path / "controller.log").read_text()
     assert restarts == {"controller": 1, "sim-0": 1, "sim-1": 0}

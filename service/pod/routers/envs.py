@@ -196,9 +196,10 @@ async def step(
     return await _once(state, request, req, apply)
 
 
-async def _once(
-    state: PodState, request: Request, req: ResetRequest | StepRequest, apply: Callable[[], Awaitable[tuple[Response, np.ndarray]]]
-) -> Response:
+Apply = Callable[[], Awaitable[tuple[Response, np.ndarray]]]
+
+
+async def _once(state: PodState, request: Request, req: ResetRequest | StepRequest, apply: Apply) -> Response:
     """Apply a keyed request once (:class:`~service.pod.idempotency.AnswerMemory`); count repeats."""
     answers = state.answers
     response, repeat = await answers.once(request, req, apply)
