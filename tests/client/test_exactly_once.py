@@ -23,6 +23,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from support.service_procs import PodSpec, loopback_socket, standalone_pods, step_body
 
 from vecsim import wire
+from vecsim.config import CameraConfig
 from vecsim.client import StageClient
 from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY, HttptoolsTransport, MayHaveBeenAppliedError
 
@@ -261,3 +262,30 @@ def test_a_key_whose_envs_moved_on_is_refused_not_applied_again(pod) -> None:
     late = httpx.post(f"{pod_url}/v1/step", content=body, headers=old)
     assert late.status_code == 422 and "no longer held" in late.json()["detail"]
     assert steps_of(pod_url) == before
+
+
+def test_a_repeat_arriving_while_the_first_is_applied_waits_for_its_answer() -> None:
+    """A re-send that reaches the pod while the first request is still being stepped (the proxy
+    lost the connection, not the pod) gets the first's answer; the chunk is applied once. A
+    camera scene (tiny/lift, 256x256; a chunk of 64 actions) is stepped on the pod's worker
+    thread, so the pod reads the repeat meanwhile."""
+    slow = PodSpec("sim-0", 0, [("tiny/lift", 2)], camera=CameraConfig(height=256, width=256), render=None)
+    with standalone_pods([slow]) as [pod]:
+        generation = httpx.get(f"{pod.url}/v1/info").json()["generation"]
+        chunk = np.zeros((2, 64, 7), np.float32)
+        body = wire.encode(step_body(generation, [0, 1], chunk))
+        headers = {**dict(WIRE), IDEMPOTENCY_KEY: "in-flight-0005"}
+        before = counts(pod.url)
+
+        async def twice() -> list[httpx.Response]:
+            async with httpx.AsyncClient(timeout=120) as client:
+                first = asyncio.create_task(client.post(f"{pod.url}/v1/step", content=body, headers=headers))
+                await asyncio.sleep(0.2)
+                assert not first.done(), "the first was answered before the repeat went out"
+                repeat = await client.post(f"{pod.url}/v1/step", content=body, headers=headers)
+                return [await first, repeat]
+
+        first, repeat = asyncio.run(twice())
+        assert first.status_code == repeat.status_code == 200 and first.content == repeat.content
+        steps, _, repeats = counts(pod.url) - before
+    assert (steps, repeats) == (2 * 64, 1)
