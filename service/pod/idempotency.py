@@ -4,8 +4,8 @@ A state-changing request (``POST /v1/reset``, ``POST /v1/step``) may carry the h
 ``Idempotency-Key`` (the IETF httpapi draft's name): one id per logical call, the same on every
 re-send of it. The pod answers a repeated key with the answer it gave, changing nothing; a
 repeat while the first is still being applied waits for it; a repeat with another body (its
-generation aside) is refused (422 naming the header). Only applied calls (200) are remembered: a refusal changed
-nothing, so its repeat is judged again.
+generation aside) is refused (422 naming the header). Only applied calls (200) are remembered:
+a refusal changed nothing, so its repeat is judged again.
 
 The memory is bounded per env: each env holds the answer of its last keyed call, so a pod keeps
 at most one answer per env. A client sends an env's next call only after the last one answered,
@@ -27,10 +27,10 @@ from fastapi import Request, Response
 from pydantic import BaseModel
 
 from vecsim.engine import InvalidRequestError
+from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY
 
-__all__ = ["HEADER", "IDEMPOTENCY_KEY_DOC", "AnswerMemory"]
+__all__ = ["IDEMPOTENCY_KEY_DOC", "AnswerMemory"]
 
-HEADER = "Idempotency-Key"
 # A key is an opaque token the client makes (vecsim's: 32 hex digits); bounded, printable ASCII.
 _MAX_KEY_CHARS = 255
 # Superseded keys remembered per env, so that a repeat arriving this late is still refused.
@@ -38,7 +38,7 @@ _SUPERSEDED_PER_ENV = 8
 _MIN_SUPERSEDED = 256
 # The header as a route parameter (FastAPI's ``Header``): documented in the OpenAPI schema.
 IDEMPOTENCY_KEY_DOC = {
-    "alias": HEADER,
+    "alias": IDEMPOTENCY_KEY,
     "description": "one id per logical call, the same on every re-send: a repeat is answered what the first "
     "was answered, and changes nothing (another body under the same key: 422)",
 }
@@ -84,12 +84,12 @@ class AnswerMemory:
                 answer is no longer held (422, naming the header).
             Whatever ``apply`` raises (a repeat waiting on it raises the same).
         """
-        key = request.headers.get(HEADER)
+        key = request.headers.get(IDEMPOTENCY_KEY)
         if key is None:
             response, _ = await apply()
             return response, False
         if not 0 < len(key) <= _MAX_KEY_CHARS or not key.isascii() or not key.isprintable():
-            raise InvalidRequestError(f"{HEADER}: must be 1 to {_MAX_KEY_CHARS} printable ASCII characters")
+            raise InvalidRequestError(f"{IDEMPOTENCY_KEY}: must be 1 to {_MAX_KEY_CHARS} printable ASCII characters")
         digest = _digest(request, req)
         held = self._answers.get(key)
         if held is not None:
@@ -98,7 +98,7 @@ class AnswerMemory:
         if key in self._superseded:
             self._check_same(key, self._superseded[key], digest)
             raise InvalidRequestError(
-                f"{HEADER}: {key!r} was applied, and its envs have had later calls since; its answer is no longer held"
+                f"{IDEMPOTENCY_KEY}: {key!r} was applied, and its envs have had later calls since; its answer is no longer held"
             )
         running = self._in_flight.get(key)
         if running is not None:
@@ -123,7 +123,7 @@ class AnswerMemory:
     def _check_same(key: str, held: bytes, digest: bytes) -> None:
         if held != digest:
             raise InvalidRequestError(
-                f"{HEADER}: {key!r} was used for another request; a repeat must be the same request byte for byte"
+                f"{IDEMPOTENCY_KEY}: {key!r} was used for another request; a repeat must be the same request byte for byte"
             )
 
     def _remember(self, key: str, digest: bytes, response: Response, env_ids: np.ndarray) -> None:
