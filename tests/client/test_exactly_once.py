@@ -25,6 +25,7 @@ from support.service_procs import PodSpec, loopback_socket, standalone_pods, ste
 from vecsim import wire
 from vecsim.config import CameraConfig
 from vecsim.client import StageClient
+from vecsim.transport import HttpxTransport, Transport
 from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY, HttptoolsTransport, MayHaveBeenAppliedError
 
 PENDULUM = "gym/Pendulum-v1"
@@ -196,9 +197,11 @@ def test_a_pod_holds_at_most_one_answer_per_env(pod) -> None:
     assert 1 <= metric(pod_url, "vecsim_pod_idempotency_key_answers") <= len(KEYS)
 
 
-async def _step_after_a_read(proxy_url: str, proxy: LosingProxy, headers: tuple[tuple[str, str], ...]) -> None:
+async def _step_after_a_read(
+    proxy_url: str, proxy: LosingProxy, headers: tuple[tuple[str, str], ...], transport: Transport | None = None
+) -> None:
     """Read /v1/info (so the connection is a kept-alive one), then POST a step whose answer is lost."""
-    async with HttptoolsTransport() as transport:
+    async with transport or HttptoolsTransport() as transport:
         status, content = await transport.fetch("GET", f"{proxy_url}/v1/info", (), b"", 1 << 20)
         generation = httpx.Response(status, content=content).json()["generation"]
         body = wire.encode(step_body(generation, [0, 1], np.zeros((2, 1), np.float32)))
@@ -211,6 +214,16 @@ def test_a_step_without_an_idempotency_key_whose_answer_was_lost_is_not_sent_aga
     before, forwarded = steps_of(pod_url), len(proxy.forwarded)
     with pytest.raises(MayHaveBeenAppliedError, match=f"may have been applied.*no {IDEMPOTENCY_KEY} header"):
         asyncio.run(_step_after_a_read(proxy_url, proxy, WIRE))
+    assert [r.split(b" ")[1] for r in proxy.forwarded[forwarded:]] == [b"/v1/info", b"/v1/step"]
+    assert steps_of(pod_url) - before == 2
+
+
+def test_the_httpx_transport_never_sends_a_written_request_again(pod) -> None:
+    pod_url, proxy_url, proxy = pod
+    before, forwarded = steps_of(pod_url), len(proxy.forwarded)
+    keyed = (*WIRE, (IDEMPOTENCY_KEY, "httpx-0006"))
+    with pytest.raises(httpx.RemoteProtocolError):
+        asyncio.run(_step_after_a_read(proxy_url, proxy, keyed, HttpxTransport()))
     assert [r.split(b" ")[1] for r in proxy.forwarded[forwarded:]] == [b"/v1/info", b"/v1/step"]
     assert steps_of(pod_url) - before == 2
 
