@@ -33,7 +33,8 @@ class ControllerSettings(ServerSettings, ControllerConfig):
         30.0,
         ge=0,
         description="after a start, how long to wait for pods to report what they run before planning "
-        "anew; pods retry an unreachable controller with a backoff of up to 10 s, so this spans a few of "
+        "anew (sooner once every pod has reported and every unclaimed slot can go to a restarted pod); pods "
+        "retry an unreachable controller with a backoff of up to 2 s, so this spans many of "
         "their retries and a restarted controller hears every pod before it plans",
     )
     job: JobSpec | None = None

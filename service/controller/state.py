@@ -237,14 +237,20 @@ class ControllerState:
 
     def _may_plan_first(self, job: JobSpec, adopted: Plan | None) -> bool:
         # A fresh controller waits for pods to say what they run, so that it adopts their layout
-        # instead of reshuffling it: it plans at once only when every slot was adopted, or when
-        # enough pods have reported and none runs anything to adopt; else after the grace period.
+        # instead of reshuffling it. It plans at once when every slot was adopted, or when every
+        # registered pod has reported, enough of them for the job, and each slot left unfilled
+        # can go to a pod that reports no assignment at all: a restarted process, whose envs are
+        # gone (a live spare reports its empty assignment, and does not count). Else it waits
+        # for the grace period, for a slot holder that has not reported yet.
         if adopted is not None and not adopted.unfilled:
             return True
         if self.clock() - self.started_at >= self.settings.adopt_grace_s:
             return True
         heard = [e for e in self.pods.values() if e.heard]
-        return adopted is None and len(heard) == len(self.pods) and len(heard) >= job.pods_needed
+        if len(heard) < len(self.pods) or len(heard) < job.pods_needed:
+            return False
+        fresh = [e for e in heard if e.reported is None]
+        return adopted is None or len(fresh) >= len(adopted.unfilled)
 
     def replan(self) -> Plan | None:
         """Brings the plan up to date with the job and the live pods. Returns it (``None``: not yet)."""

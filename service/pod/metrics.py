@@ -47,6 +47,16 @@ class PodMetrics:
             "request, plus one per recorded frame.",
             registry=self.registry,
         )
+        self.idempotency_key_repeats = Counter(
+            "vecsim_pod_idempotency_key_repeats",
+            "Resets and steps answered from memory: a repeated Idempotency-Key, nothing applied again.",
+            registry=self.registry,
+        )
+        self.idempotency_key_answers = Gauge(
+            "vecsim_pod_idempotency_key_answers",
+            "Answers held for repeats of an Idempotency-Key (at most one per env).",
+            registry=self.registry,
+        )
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
         self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
         self.refused = refused_requests(self.registry, "pod")

@@ -66,7 +66,9 @@ class PodSettings(ServerSettings):
     controller_url: str | None = None
     max_envs: int = Field(64, ge=0)
     gpu: bool | None = None
-    max_backoff_s: float = Field(10.0, gt=0)
+    # The longest wait between two tries at an unreachable controller: a restarted controller
+    # hears every pod within it, and plans (heals the job) once it has.
+    max_backoff_s: float = Field(2.0, gt=0)
     max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1)
     # A worker that answers no reset or step within this long counts as crashed (503, rebuild).
     step_timeout_s: float = Field(120.0, gt=0)

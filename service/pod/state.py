@@ -24,6 +24,7 @@ from vecsim.engine.tasks import TaskSetupError, UnknownTaskError, get_task
 
 from ..models import Problem, Readiness
 from .errors import NotReadyError, StaleGenerationError
+from .idempotency import AnswerMemory
 from .metrics import PodMetrics
 from .settings import PodSettings
 
@@ -86,6 +87,8 @@ class PodState:
         self.instance: str | None = None
         # Whether data-plane calls run on the event loop (cheap scenes); set with each build.
         self.inline = False
+        # The answers of keyed resets and steps (exactly once); one per build of the envs.
+        self.answers = AnswerMemory(0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{settings.name}-sim")
         self._build_task: asyncio.Task[None] | None = None
         self._building_for: Assignment | None = None
@@ -261,6 +264,7 @@ class PodState:
                 self.env = env
                 self.inline = steps_on_event_loop(target)
                 self.instance = uuid.uuid4().hex
+                self.answers = AnswerMemory(env.num_envs)
                 self.phase = "ready"
                 self.detail = f"serving generation {self.generation}"
                 self.metrics.serving(env.num_envs)

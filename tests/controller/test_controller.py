@@ -451,6 +451,49 @@ async def test_a_fresh_controller_plans_at_once_when_enough_pods_report_nothing(
         assert c.state.plan is not None and c.state.plan.generation == 1
 
 
+async def first_plans_reports(*names: str) -> dict[str, Assignment]:
+    """What each of ``names`` runs under a controller that planned JOB for them (the last one a spare)."""
+    async with controller() as first:
+        for name in names:
+            await first.register(name)
+            await first.heartbeat(name)
+        await first.api.put("/v1/job", json=JOB)
+        await first.reconcile()
+        return first.state.desired().assignments
+
+
+async def test_a_fresh_controller_plans_at_once_when_the_unclaimed_slots_pod_restarted():
+    reports = await first_plans_reports("sim-0", "sim-1")
+    async with controller(adopt_grace_s=60.0) as c:
+        await c.api.put("/v1/job", json=JOB)
+        await c.register("sim-1")
+        await c.heartbeat("sim-1", reports["sim-1"], ready=True)
+        await c.register("sim-0")  # restarted with the controller: it runs nothing
+        await c.reconcile()
+        assert c.state.plan is None  # sim-0 has not said what it runs yet
+        await c.heartbeat("sim-0")
+        await c.reconcile()
+        assert c.state.plan is not None and c.state.plan.pods == {"sim-0": (0, 0), "sim-1": (1, 0)}
+        assert c.state.plan.generation > reports["sim-1"].generation
+
+
+async def test_a_fresh_controller_waits_for_a_slot_holder_rather_than_give_its_slot_to_a_live_spare():
+    reports = await first_plans_reports("sim-0", "sim-1", "sim-2")
+    assert not reports["sim-2"].tasks  # the spare
+    async with controller(adopt_grace_s=60.0) as c:
+        await c.api.put("/v1/job", json=JOB)
+        for name in ("sim-1", "sim-2"):
+            await c.register(name)
+            await c.heartbeat(name, reports[name], ready=True)
+        await c.reconcile()
+        assert c.state.plan is None and (await c.api.get("/v1/routing")).status_code == 503
+        await c.register("sim-0")
+        await c.heartbeat("sim-0", reports["sim-0"], ready=True)
+        await c.reconcile()
+        assert c.state.plan.pods == {"sim-0": (0, 0), "sim-1": (1, 0)}
+        assert c.state.plan.generation == reports["sim-0"].generation
+
+
 async def test_a_pod_reporting_a_newer_generation_lifts_the_plan_above_it():
     async with controller() as c:
         await c.register("sim-0")

@@ -6,17 +6,24 @@
   when it gives up says what it waited for.
 - A long-lived client places its next batch on the routing table of a reassignment that finished
   before the batch: the slot of a killed pod went to the spare, and nothing of the batch is lost.
+- A pod and the controller killed together: the restarted controller plans as soon as every pod
+  has reported (the restarted pod takes its slot back), long before its adopt grace would end.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 
 import httpx
 import pytest
 import torch
-from support.service_procs import controller_server, pod_server, raw_server, running, wait_until
+from support.service_procs import controller_server, job_config, pod_server, raw_server, running, wait_until
+
+from service.controller import ControllerSettings
+from service.runner import Backoff, LocalJob
+from vecsim.config import RoutingTable
 
 from vecsim.client import StageClient
 from vecsim.rollout import EnvLoop
@@ -102,3 +109,37 @@ def test_a_long_lived_client_places_its_next_batch_on_the_routing_a_finished_rea
     for key in keys:
         mine, theirs = after.trajectories[key], before.trajectories[key]
         assert torch.equal(mine.observations, theirs.observations)
+
+
+def ready_table(controller_url: str) -> RoutingTable | None:
+    try:
+        table = RoutingTable.model_validate(httpx.get(f"{controller_url}/v1/routing", timeout=2).json())
+    except (httpx.HTTPError, ValueError):
+        return None
+    return table if table.ready else None
+
+
+@pytest.mark.slow
+def test_a_pod_and_the_controller_killed_together_heal_before_the_adopt_grace_would_end(tmp_path):
+    grace = ControllerSettings.model_fields["adopt_grace_s"].default
+    two_stages = {**JOB, "job_id": "heal", "group_size": 2, "num_stages": 2}
+    config = job_config(two_stages, replicas=2)
+    with LocalJob(config, log_dir=tmp_path, grace_s=10, backoff=Backoff(initial_s=0.2)) as job:
+        job.wait_ready(timeout=180)
+        before = ready_table(job.controller_url)
+        for name in ("controller", "sim-0"):
+            os.killpg(job.processes[name].pid, signal.SIGKILL)
+
+        def healed() -> RoutingTable | None:
+            table = ready_table(job.controller_url)
+            return table if table is not None and table.generation > before.generation else None
+
+        # Only a plan made before the grace ends can be ready within it (sim-0 runs nothing now).
+        after = wait_until(healed, "the job ready again at a new generation", timeout_s=grace - 5, every=0.1)
+        restarts = {name: job.processes[name].restarts for name in ("controller", "sim-0", "sim-1")}
+        log = (tmp_path / "controller.log").read_text()
+    assert restarts == {"controller": 1, "sim-0": 1, "sim-1": 0}
+    assert [(s.stage_id, p.pod, p.url) for s in after.stages for p in s.pods] == [
+        (s.stage_id, p.pod, p.url) for s in before.stages for p in s.pods
+    ]
+    assert "adopted 1 slots" in log

@@ -259,6 +259,10 @@ def test_a_chunk_of_the_wrong_shape_is_refused_naming_it_and_changes_no_env(ours
             ours.chunk_step(np.zeros((NUM_ENVS + 1, K, 7)))
         with pytest.raises(ValueError, match="chunk_actions"):
             ours.chunk_step(np.full((NUM_ENVS, K, 7), np.nan))
+        with pytest.raises(ValueError, match=r"chunk_actions: a chunk holds at least 1 action"):
+            ours.chunk_step(np.zeros((NUM_ENVS, 0, 7)))
+        with pytest.raises(ValueError, match="^actions must be"):
+            ours.step(np.zeros((NUM_ENVS, 6)))
         assert ours.elapsed_steps.tolist() == [0, 0]
 
     assert not differences(expected, first_chunk_obs(ours, bad), "obs")
@@ -274,6 +278,12 @@ def test_unknown_env_indices_and_reset_ids_are_refused_naming_them_and_change_no
             ours.reset(env_idx=[0], reset_state_ids=np.array([500]))  # libero_spatial has 10 x 50
         with pytest.raises(ValueError, match="libero_spatial/1"):
             ours.reset(env_idx=[0], reset_state_ids=np.array([50]))  # task 1: not served by the job
+        with pytest.raises(ValueError, match="env_idx must be integers"):
+            ours.reset(env_idx=[0.5], reset_state_ids=np.array([0]))
+        with pytest.raises(ValueError, match="reset_state_ids must be integers"):
+            ours.reset(env_idx=[0], reset_state_ids=np.array([1.7]))
+        with pytest.raises(ValueError, match=r"reset_state_ids for 2 envs \(env_idx\)"):
+            ours.reset(env_idx=[0, 1], reset_state_ids=np.array([0]))
 
     assert not differences(expected, first_chunk_obs(ours, bad), "obs")
 
@@ -339,3 +349,80 @@ def test_slots_keep_their_env_while_their_task_stays_and_spread_over_pods() -> N
     assert again[0] == first[0] and again[2].task_id == "s/0" and again[2] not in (first[0], first[1])
     with pytest.raises(ValueError, match="task 's/1'"):
         place_slots(envs, {}, {0: "s/1", 1: "s/1", 2: "s/1"}, 0)
+
+
+# -- a pod restart mid-rollout: RLinf's EnvWorker rolls on ---------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rlinf_job(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A local job (controller + one pod, the runner restarting what dies) serving the same two
+    envs as ``pod_url``'s pod."""
+    from service.runner import Backoff, LocalJob
+    from support.service_procs import job_config
+
+    job = {
+        "job_id": "rlinf-faults", "tasks": [TASK], "group_size": NUM_ENVS, "num_stages": 1, "pods_per_stage": 1,
+        "camera": {"names": ["agentview", "robot0_eye_in_hand"], "height": SIZE, "width": SIZE},
+        "max_episode_steps": None, "envs_per_worker": 0,
+        "libero": {"settle_steps": 15, "fixture_seed": FIXTURE_SEED, "fixture_rule": "first_reset"},
+    }  # fmt: skip
+    local = LocalJob(job_config(job, replicas=1), log_dir=tmp_path_factory.mktemp("rlinf-job"), grace_s=10,
+                     backoff=Backoff(initial_s=0.2))  # fmt: skip
+    with local:
+        local.wait_ready(timeout=600)
+        yield local
+
+
+def job_rlinf_config(job: Any, auto_reset: bool) -> Any:
+    cfg = rlinf_config(auto_reset, None)
+    cfg.env.train.vecsim = {"controller_url": job.controller_url, "timeout_s": 30, "heal_wait_s": 600}
+    return cfg
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_rlinf_env_worker_rolls_out_across_a_pod_restart_and_flags_the_lost_episodes(rlinf_job, monkeypatch) -> None:
+    import os
+    import signal
+
+    import torch
+
+    monkeypatch.setenv("VECSIM_TOKEN", rlinf_job.token)
+    cfg = job_rlinf_config(rlinf_job, auto_reset=True)
+    chunks = scripted_chunks(4)
+    env = vecsim_env(cfg)
+    try:
+        worker = env_worker(cfg, env)
+        worker._init_env()
+        worker.bootstrap_step()
+        first, _ = worker.env_interact_step(chunks[0].clone(), 0)
+        assert "lost" not in first.env_infos
+        pod = rlinf_job.processes["sim-0"]
+        os.killpg(pod.pid, signal.SIGKILL)  # the runner starts it again; the controller gives it its slot
+        # The chunk meets the dead pod: both slots' episodes end truncated and lost, and the
+        # auto-reset inside it waits until the pod serves again.
+        struck, _ = worker.env_interact_step(chunks[1].clone(), 0)
+        assert pod.restarts == 1
+        assert struck.truncations[:, -1].all() and not struck.terminations.any()
+        assert struck.env_infos["lost"].tolist() == [True, True]
+        assert struck.env_infos["final_info"]["lost"].tolist() == [True, True]
+        assert torch.equal(struck.rewards, torch.zeros_like(struck.rewards))
+        reset_ids = env.reset_state_ids.copy()
+        after = [worker.env_interact_step(chunk.clone(), 0)[0] for chunk in chunks[2:]]
+        assert not any("lost" in output.env_infos for output in after)
+    finally:
+        env.close()
+    # The episodes after the lost ones are what a fresh env gives for the same reset ids and chunks.
+    reference = vecsim_env(job_rlinf_config(rlinf_job, auto_reset=False))
+    try:
+        reference.is_start = False
+        reference.reset(reset_state_ids=reset_ids)
+        expected = [reference.chunk_step(chunk.clone()) for chunk in chunks[2:]]
+    finally:
+        reference.close()
+    for i, (output, (obs_list, rewards, _, truncations, _)) in enumerate(zip(after, expected)):
+        problems = differences(obs_list[-1], output.obs, f"chunk {i + 2} obs") + differences(
+            rewards, output.rewards, f"chunk {i + 2} rewards"
+        )
+        assert not problems, "\n".join(problems[:20])

@@ -17,6 +17,7 @@ import json
 import logging
 import sys
 import threading
+import uuid
 from collections.abc import Coroutine
 from typing import Any, TypeVar
 
@@ -28,6 +29,7 @@ from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
 from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, Transport
+from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY
 
 logger = logging.getLogger(__name__)
 
@@ -147,6 +149,11 @@ class EventLoopThread:
                 logger.warning("the client's event loop did not stop within %s s; leaving it to its daemon thread", timeout)
                 return
         self.loop.close()
+
+
+def new_idempotency_key() -> str:
+    """A new ``Idempotency-Key``: one per logical reset or step call to one pod."""
+    return uuid.uuid4().hex
 
 
 def _detail(status: int, content: bytes) -> str:
@@ -284,12 +291,19 @@ class PodConnection:
         return answer
 
     async def call(
-        self, op: str, body: dict[str, Any], held: list[str], extra_answer_bytes: int = 0
+        self,
+        op: str,
+        body: dict[str, Any],
+        held: list[str],
+        extra_answer_bytes: int = 0,
+        idempotency_key: str | None = None,
     ) -> dict[str, Any]:
         """POST ``body`` to ``/v1/<op>`` in wire format and return the decoded answer.
 
         ``held`` names the traj_keys this call carries, for the error if the pod is unavailable;
-        ``extra_answer_bytes`` raises the answer's cap for this call (see ``_request``).
+        ``extra_answer_bytes`` raises the answer's cap for this call (see ``_request``). The
+        request carries ``idempotency_key`` (a new one when None) as its ``Idempotency-Key``:
+        the pod applies it at most once, and answers a re-send of it from memory.
 
         Raises:
             PodUnavailableError: no usable answer: none within the timeout, a 503 (envs not
@@ -297,9 +311,8 @@ class PodConnection:
             StaleGenerationError: 409, the pod holds another generation than the request carried.
             PodRequestError: any other refusal (the request was at fault).
         """
-        status, content = await self._request(
-            "POST", f"/v1/{op}", held, self._wire_headers, wire.encode(body), extra_answer_bytes
-        )
+        headers = (*self._wire_headers, (IDEMPOTENCY_KEY, idempotency_key or new_idempotency_key()))
+        status, content = await self._request("POST", f"/v1/{op}", held, headers, wire.encode(body), extra_answer_bytes)
         if status != 200:
             raise refusal(self.name, status, content, held, body.get("generation"))
         # A broken answer is this pod's failure alone, like no answer: its envs' state is unknown.

@@ -60,7 +60,7 @@ from vecsim.client.calls import (
 )
 from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodConnection, refusal
+from vecsim.client.pods import EventLoopThread, PodConnection, new_idempotency_key, refusal
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
@@ -786,12 +786,13 @@ class StageClient:
         The one seam where a call meets one pod (``bench/bench_gpu_scale.py`` times it per pod).
         """
         generation = self._book.generation
+        key = new_idempotency_key()  # one call: the same key after a 409, the pod answers it once
         try:
-            return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes)
+            return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes, key)
         except StaleGenerationError as stale:
             await self._refresher.after_stale(pod, generation, stale.detail, keys)
         try:
             body = {**body, "generation": self._book.generation}
-            return await self._pods[pod].call(op, body, keys, extra_answer_bytes)
+            return await self._pods[pod].call(op, body, keys, extra_answer_bytes, key)
         except StaleGenerationError as stale:
             raise StaleGenerationError(pod, self._book.generation, stale.detail) from None

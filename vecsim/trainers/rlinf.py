@@ -29,6 +29,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
+import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -37,6 +38,7 @@ import numpy as np
 from gymnasium.error import ClosedEnvironmentError
 
 from vecsim.client.conventions import camera_key_map, suite_of, suite_task_index
+from vecsim.client.errors import PodUnavailableError, RoutingChangedError
 from vecsim.client.routing import RoutedEnv, TrajRoute, routed_envs
 from vecsim.client.stage import StageBatch, StageClient
 
@@ -52,6 +54,9 @@ LIBERO_SUITE_TASKS = {"libero_spatial": 10, "libero_object": 10, "libero_goal": 
 ACTION_DIM = 7
 # Client-side settle actions go out at most this many a call (well under the pods' max_chunk).
 SETTLE_CHUNK = 16
+# A reset that meets a restarting pod tries again after this long, doubling up to the max.
+_HEAL_BACKOFF_S = 0.2
+_HEAL_BACKOFF_MAX_S = 2.0
 
 
 def _opt(cfg: Any, key: str, default: Any = None) -> Any:
@@ -137,6 +142,11 @@ class VecsimLiberoEnv:
     after each reset, RLinf's own (arm still, gripper -1 if ``reset_gripper_open`` else 0), the
     job's ``settle_steps`` then 0. ``obs_list`` holds the chunk's last observation in its last
     entry and ``None`` before it (the pods render once a chunk).
+
+    A pod that fails a chunk (killed, restarted, partitioned) ends its slots' episodes alone:
+    truncated at every action of the chunk, ``infos["lost"]`` (bool ``[num_envs]``, present in
+    such a chunk only) marking them, also after an auto-reset. Their next reset waits for the job to heal (the pod back in
+    its slot at a new generation), up to ``vecsim.heal_wait_s`` (default 600 s), and goes on there.
     """
 
     def __init__(self, cfg: Any, num_envs: int, seed_offset: int, total_num_processes: int, worker_info: Any) -> None:
@@ -172,6 +182,9 @@ class VecsimLiberoEnv:
         if self._settle_steps is not None and (not isinstance(self._settle_steps, int) or self._settle_steps < 0):
             raise ValueError(f"vecsim.settle_steps must be a non-negative int or unset, got {self._settle_steps!r}")
         self._camera_keys = camera_key_map(_opt(vcfg, "camera_keys", "rlinf"))
+        self._heal_wait_s = _opt(vcfg, "heal_wait_s", 600.0)
+        if isinstance(self._heal_wait_s, bool) or not isinstance(self._heal_wait_s, (int, float)) or self._heal_wait_s < 0:
+            raise ValueError(f"vecsim.heal_wait_s must be a number of seconds >= 0, got {self._heal_wait_s!r}")
         self._closed = False
 
         self._client = _connect(vcfg)
@@ -200,6 +213,8 @@ class VecsimLiberoEnv:
         self.video_cfg = _opt(cfg, "video_cfg")
         self.current_raw_obs = None  # RLinf's name; here {key: array[num_envs, ...]} once reset
         self._held: dict[int, RoutedEnv] = {}
+        # Slots whose episode a pod's failure ended; stepped no more until their next reset.
+        self._lost = np.zeros(self.num_envs, dtype=bool)
 
     # -- the job ----------------------------------------------------------------------------------
 
@@ -439,22 +454,27 @@ class VecsimLiberoEnv:
                 f"are of tasks {[f'{self.suite}/{t}' for t in missing]}, which the job does not serve"
             )
         requests = {int(slot): self._job_tasks[int(t)] for slot, t in zip(env_idx, tasks)}
-        placed = place_slots(self._stage_envs, self._held, requests, self.stage_id)
-        held = {**self._held, **placed}
-        self._check_open()
-        live = self._client.routes
         row_of = {int(slot): int(row) for slot, row in zip(env_idx, rows)}
-        routes = {}
-        for slot, env in sorted(held.items()):
-            key = self._keys[slot]
-            state_id = row_of[slot] if slot in row_of else live[key].state_id
-            routes[key] = TrajRoute(env.pod, env.env_index, env.task_id, self.stage_id, state_id)
-        self._client.set_routes(routes)
-        self._held = held
         keys = [self._keys[int(slot)] for slot in env_idx]
-        batch = self._client.reset_stage(self.stage_id, keys).result()
-        if self._settle_steps:
-            batch = self._settle(keys)
+        deadline = time.monotonic() + self._heal_wait_s
+        wait = _HEAL_BACKOFF_S
+        while True:
+            self._follow_routing()
+            self._place(requests, row_of)
+            try:
+                batch = self._client.reset_stage(self.stage_id, keys).result()
+                if self._settle_steps:
+                    batch = self._settle(keys)
+                break
+            except (PodUnavailableError, RoutingChangedError) as exc:
+                # A pod of the stage restarted (or is restarting): its envs come back at a new
+                # generation, and these resets go there once it serves again.
+                if time.monotonic() + wait > deadline:
+                    raise
+                logger.warning("reset of slots %s waits for the job to heal: %s", sorted(row_of), exc)
+                time.sleep(wait)
+                wait = min(2 * wait, _HEAL_BACKOFF_MAX_S)
+        self._lost[env_idx] = False
         _raise_errors(batch)
         self._store_obs(env_idx, batch.obs)
         self.task_ids[env_idx] = tasks
@@ -463,6 +483,29 @@ class VecsimLiberoEnv:
         for slot, task in zip(env_idx, tasks):
             descriptions[int(slot)] = self._instruction(task)
         self.task_descriptions = descriptions
+
+    def _place(self, requests: Mapping[int, str], row_of: Mapping[int, int]) -> None:
+        """Route each requesting slot to an env of its task (``place_slots``), every other slot
+        to the env it holds, in the client."""
+        placed = place_slots(self._stage_envs, self._held, requests, self.stage_id)
+        held = {**self._held, **placed}
+        self._check_open()
+        live = self._client.routes
+        routes = {}
+        for slot, env in sorted(held.items()):
+            key = self._keys[slot]
+            state_id = row_of.get(slot, live[key].state_id if key in live else int(self.trial_ids[slot]))
+            routes[key] = TrajRoute(env.pod, env.env_index, env.task_id, self.stage_id, state_id)
+        self._client.set_routes(routes)
+        self._held = held
+
+    def _follow_routing(self) -> None:
+        """Take the stage's envs from the client's routing table (re-read after a 409); slots
+        whose env is no longer the job's let it go."""
+        envs = [e for e in routed_envs(self._client.routing) if e.stage_id == self.stage_id]
+        if envs != self._stage_envs:
+            self._stage_envs = envs
+            self._held = {slot: env for slot, env in self._held.items() if env in envs}
 
     def _settle(self, keys: list[str]) -> StageBatch:
         action = np.zeros(ACTION_DIM)
@@ -514,28 +557,56 @@ class VecsimLiberoEnv:
         want = "[num_envs, K, 7]" if ndim == 3 else "[num_envs, 7]"
         if actions.ndim != ndim or actions.shape[0] != self.num_envs or actions.shape[-1] != ACTION_DIM:
             raise ValueError(f"{name} must be {want} with num_envs={self.num_envs}, got shape {actions.shape}")
+        if ndim == 3 and actions.shape[1] < 1:
+            raise ValueError(f"{name}: a chunk holds at least 1 action (K >= 1), got shape {actions.shape}")
         if actions.dtype.kind not in "fiu" or not np.isfinite(actions).all():
             raise ValueError(f"{name} must be finite numbers, got dtype {actions.dtype}")
         if self.current_raw_obs is None:
             raise ValueError("reset() the env before stepping it")
         return actions.reshape(self.num_envs, -1, ACTION_DIM)
 
-    def _step_chunk(self, chunk: np.ndarray) -> tuple[list, list, list, list, list]:
-        """Step every slot through ``chunk`` in one call a pod; RLinf's ``step`` bookkeeping per action."""
-        self._check_open()
-        batch = self._client.step_stage(self.stage_id, {key: chunk[i] for i, key in enumerate(self._keys)}).result()
+    def _send_chunk(self, chunk: np.ndarray) -> np.ndarray:
+        """Step every live slot through ``chunk`` in one call a pod; keep their observations and
+        return their per-action success ``[num_envs, K]``. A pod that fails the call (killed,
+        restarted: ``PodUnavailableError``, ``RoutingChangedError``) loses its slots' episodes
+        alone: they are marked in ``self._lost`` and stepped no more until their next reset; the
+        other slots' rows stand."""
+        success = np.zeros(chunk.shape[:2], dtype=bool)
+        live = [i for i in range(self.num_envs) if not self._lost[i]]
+        if not live:
+            return success
+        try:
+            batch = self._client.step_stage(self.stage_id, {self._keys[i]: chunk[i] for i in live}).result()
+        except (PodUnavailableError, RoutingChangedError) as exc:
+            struck = set(exc.traj_keys)
+            logger.warning("slots %s lost their episodes: %s", sorted(self._keys.index(k) for k in struck), exc)
+            self._lost[[self._keys.index(key) for key in struck]] = True
+            batch = exc.answered
+            if batch is None:
+                return success
         _raise_errors(batch)
-        success = np.asarray(batch.success, dtype=bool).reshape(self.num_envs, -1)
-        self._store_obs(range(self.num_envs), batch.obs)
+        rows = [self._keys.index(key) for key in batch.traj_keys]
+        if rows:
+            success[rows] = np.asarray(batch.success, dtype=bool).reshape(len(rows), chunk.shape[1])
+            self._store_obs(rows, batch.obs)
+        return success
+
+    def _step_chunk(self, chunk: np.ndarray) -> tuple[list, list, list, list, list]:
+        """Step every slot through ``chunk`` in one call a pod; RLinf's ``step`` bookkeeping per
+        action. A lost slot's episode ends truncated, ``infos["lost"]`` marking it."""
+        self._check_open()
+        success = self._send_chunk(chunk)
         obs_list, rewards, terms, truncs, infos_list = [], [], [], [], []
         for k in range(chunk.shape[1]):
             # libero_env.py:723-736, the env's `done` being the pod's success of that action
             self._elapsed_steps += 1
             terminations = success[:, k].copy()
-            truncations = self.elapsed_steps >= self.cfg.max_episode_steps
+            truncations = (self.elapsed_steps >= self.cfg.max_episode_steps) | self._lost
             step_reward = self._calc_step_reward(terminations)
             # RLinf's vector env tags every env's step info with its index (envs/venv/venv.py:808)
             infos = self._record_metrics(step_reward, terminations, {"env_id": list(range(self.num_envs))})
+            if self._lost.any():  # only then: a fault-free chunk's infos are RLinf's own, key for key
+                infos["lost"] = _to_tensor(self._lost.copy())
             if self.ignore_terminations:
                 infos["episode"]["success_at_end"] = _to_tensor(terminations)
                 terminations[:] = False
@@ -615,6 +686,7 @@ class VecsimLiberoEnv:
             obs, infos = self.reset(env_idx=to_reset, reset_state_ids=self.reset_state_ids[to_reset])
         else:
             obs, infos = last_obs, {}
+        _keep_lost(infos, final_info)
         infos["final_observation"] = final_obs
         infos["final_info"] = final_info
         infos["_final_info"] = np.asarray(dones, dtype=bool) & count_mask
@@ -650,6 +722,7 @@ class VecsimLiberoEnv:
             obs, infos = self.reset(env_idx=env_idx, reset_state_ids=self.reset_state_ids[env_idx])
         else:
             obs, infos = self.reset(env_idx=env_idx, reset_state_ids=None)
+        _keep_lost(infos, final_info)
         infos["final_observation"] = final_obs
         infos["final_info"] = final_info
         infos["_final_info"] = np.asarray(dones, dtype=bool)
@@ -688,6 +761,12 @@ def _round_robin(ids: np.ndarray, n_procs: int) -> np.ndarray:
     for i, state_id in enumerate(ids):
         out[i % n_procs, i // n_procs] = state_id
     return out
+
+
+def _keep_lost(infos: dict, final_info: dict) -> None:
+    """After an auto-reset: the chunk's ``lost`` flags stay in the infos RLinf's worker reads."""
+    if "lost" in final_info:
+        infos["lost"] = final_info["lost"]
 
 
 def _raise_errors(batch: StageBatch) -> None:

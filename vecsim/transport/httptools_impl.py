@@ -36,7 +36,7 @@ from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
 from .errors import BrokenAnswer, ConnectTimedOut, ReadTimedOut, UnsendableRequest, UnsupportedURL, failure_of, mapped
 
-__all__ = ["MAX_CHUNKS", "MAX_FRAMING_BYTES", "MAX_HEAD_BYTES", "HttptoolsTransport"]
+__all__ = ["IDEMPOTENCY_KEY", "MAX_CHUNKS", "MAX_FRAMING_BYTES", "MAX_HEAD_BYTES", "HttptoolsTransport", "MayHaveBeenAppliedError"]
 
 # An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
 # and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
@@ -59,12 +59,29 @@ MAX_IDLE_PER_ORIGIN = 64
 _HIGH_WATER = 4 << 20
 # Request heads kept encoded, by method, URL and headers: a client sends a few kinds to a few pods.
 _CACHED_HEADS = 1024
+# The header that makes a request safe to send again (the IETF httpapi draft's name): the server
+# answers a repeated key from memory. Idempotent methods (RFC 9110, 9.2.2) are safe without it.
+IDEMPOTENCY_KEY = "Idempotency-Key"
+_KEY_LOWER = IDEMPOTENCY_KEY.lower()
+_IDEMPOTENT_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "PUT", "DELETE"})
 # Statuses whose answer has no body whatever its headers say (RFC 9110).
 _NO_BODY = frozenset({204, 304})
 
 
 def _bad_header_text(text: bytes) -> bool:
     return b"\r" in text or b"\n" in text or b"\0" in text
+
+
+def _header_value(value: str) -> bytes:
+    raw = value.encode("latin-1")
+    if _bad_header_text(raw):
+        raise httpx.LocalProtocolError(f"header value {raw[:40]!r} cannot be sent")
+    return raw
+
+
+class MayHaveBeenAppliedError(httpx.RemoteProtocolError):
+    """A reused connection ended before any byte of the answer to a request that is not safe to
+    send again (see :meth:`HttptoolsTransport._send`): the server may have applied it."""
 
 
 class _Connection(asyncio.Protocol):
@@ -95,6 +112,7 @@ class _Connection(asyncio.Protocol):
         self.body_received = 0  # of them, bytes of body
         self.chunks = 0  # chunks of the current answer begun
         self.exchanges = 0  # requests sent on this connection
+        self.written = False  # whether the current exchange's request was handed to the socket
 
     # asyncio.Protocol
 
@@ -241,8 +259,12 @@ class _Connection(asyncio.Protocol):
         self.error = None
         self._pieces, self._buffered = [], 0
         self.received = self._head_bytes = self.body_received = self.chunks = 0
+        self.written = False
         self.exchanges += 1
         assert self.transport is not None
+        if self.closed:  # closed under us before a byte went out: provably not sent
+            raise BrokenAnswer("the connection closed before the request was written")
+        self.written = True
         self.transport.write(data)
         while not self.headers_done:
             await self.wait(read_s)
@@ -399,29 +421,45 @@ class HttptoolsTransport(Transport):
             connection.close()
 
     async def _send(
-        self, origin: tuple[str, str, int], data: bytes, head_only: bool, connect_s: float | None, read_s: float | None
+        self,
+        origin: tuple[str, str, int],
+        data: bytes,
+        head_only: bool,
+        connect_s: float | None,
+        read_s: float | None,
+        resendable: bool,
     ) -> _Connection:
         """Send one request on a connection to ``origin`` and wait for its answer's head; return
         the connection, which the caller releases once the answer is read.
 
-        A reused connection that ends before the first byte of its answer is the race of a
-        server closing it idle as the request went out (a pod whose keep-alive is below
-        :data:`KEEPALIVE_S`): the server read nothing of the request, which is sent once more
-        on a new connection. A server that died meanwhile refuses that one, and a new
+        A reused connection that ends before the first byte of its answer is most often the race
+        of a server closing it idle as the request went out (a pod whose keep-alive is below
+        :data:`KEEPALIVE_S`); but the server may also have read the request, applied it and then
+        lost the connection. So the request is sent once more, on a new connection, only when
+        that is safe: it was provably not written (the connection had closed before), or it is
+        ``resendable`` (an idempotent method, or a request carrying an ``Idempotency-Key``: the
+        server answers its repeat from memory). Else :class:`MayHaveBeenAppliedError`. A new
         connection that ends so is an error at once.
 
         Raises:
+            MayHaveBeenAppliedError: as said.
             as :meth:`_connection` and :meth:`_Connection.send`.
         """
         connection = await self._connection(origin, connect_s)
         try:
             await connection.send(data, head_only, read_s)
             return connection
-        except httpx.RemoteProtocolError:
+        except httpx.RemoteProtocolError as exc:
             closed_idle = connection.exchanges > 1 and connection.received == 0 and connection.closed
+            written = connection.written
             self.release(connection)
             if not closed_idle:
                 raise
+            if written and not resendable:
+                raise MayHaveBeenAppliedError(
+                    f"{exc}, and the request may have been applied: it is not sent again "
+                    f"(not an idempotent method, no {IDEMPOTENCY_KEY} header)"
+                ) from None
         except BaseException:
             self.release(connection)
             raise
@@ -478,8 +516,9 @@ class HttptoolsTransport(Transport):
             origin = self._origin(request.url)
             send_length = bool(body) or request.method in ("POST", "PUT", "PATCH")
             head = self._head(request.method, request.url, request.headers.raw, len(body) if send_length else None)
+            resendable = request.method in _IDEMPOTENT_METHODS or IDEMPOTENCY_KEY in request.headers
             connection = await self._send(
-                origin, head + body, request.method == "HEAD", timeouts.get("connect"), timeouts.get("read")
+                origin, head + body, request.method == "HEAD", timeouts.get("connect"), timeouts.get("read"), resendable
             )
         return httpx.Response(
             connection.status,
@@ -517,9 +556,14 @@ class HttptoolsTransport(Transport):
             httpx.UnsupportedProtocol: as the module's text says.
         """
         with mapped():
+            # A key is new on every call: it goes after the head made once per kind of request.
+            key = [value for name, value in headers if name.lower() == _KEY_LOWER]
+            if key:
+                headers = tuple((name, value) for name, value in headers if name.lower() != _KEY_LOWER)
             origin, head = self._cached_head(method, url, headers)
-            data = b"%sContent-Length: %d\r\n\r\n%s" % (head, len(body), body)
-            connection = await self._send(origin, data, method == "HEAD", None, None)
+            keyed = b"".join(b"%s: %s\r\n" % (IDEMPOTENCY_KEY.encode(), _header_value(v)) for v in key)
+            data = b"%s%sContent-Length: %d\r\n\r\n%s" % (head, keyed, len(body), body)
+            connection = await self._send(origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS)
             try:
                 reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
                 while True:

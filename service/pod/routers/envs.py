@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import io
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from PIL import Image
 
 from vecsim import wire
@@ -29,6 +29,7 @@ from ..models import (
     StepRequest,
     StepResponse,
 )
+from ..idempotency import IDEMPOTENCY_KEY_DOC
 from ..state import PodState
 
 router = APIRouter(tags=["envs"])
@@ -130,23 +131,29 @@ async def _simulate(state: PodState, env: TaskGroupedVectorEnv, work: Callable[[
     openapi_extra=_body_doc(ResetRequest),
     summary="Reset envs to fixed initial states",
 )
-async def reset(request: Request, state: PodState = Depends(get_state)) -> Response:
+async def reset(
+    request: Request, state: PodState = Depends(get_state), _key: str | None = Header(None, **IDEMPOTENCY_KEY_DOC)
+) -> Response:
     """Put ``env_indices[i]`` in fixed initial state ``state_ids[i]`` of its task, or (``seeds``
     instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``; answers their
     observations, success, the envs' own info (``env_info``) and the envs that raised
     (``errors``). Other envs do not change; no env ids is a no-op answering empty arrays."""
     req = parse_body(request, await request.body(), ResetRequest)
-    env = state.serving_env(req.generation)
-    as_json = wants_json(request)
 
-    def work() -> Response:
-        obs, info = env.reset_envs(req.env_indices, req.state_ids, seeds=req.seeds, options=req.options)
-        return encode_answer(reset_answer(req.env_indices, obs, info), as_json)
+    async def apply() -> tuple[Response, np.ndarray]:
+        env = state.serving_env(req.generation)
+        as_json = wants_json(request)
 
-    response = await _simulate(state, env, work)
-    state.metrics.env_resets.inc(len(req.env_indices))
-    state.metrics.episodes_started(req.env_indices)
-    return response
+        def work() -> Response:
+            obs, info = env.reset_envs(req.env_indices, req.state_ids, seeds=req.seeds, options=req.options)
+            return encode_answer(reset_answer(req.env_indices, obs, info), as_json)
+
+        response = await _simulate(state, env, work)
+        state.metrics.env_resets.inc(len(req.env_indices))
+        state.metrics.episodes_started(req.env_indices)
+        return response, req.env_indices
+
+    return await _once(state, request, req, apply)
 
 
 @router.post(
@@ -169,7 +176,9 @@ async def reset(request: Request, state: PodState = Depends(get_state)) -> Respo
     openapi_extra=_body_doc(StepRequest),
     summary="Step some envs one action or one chunk of actions each",
 )
-async def step(request: Request, state: PodState = Depends(get_state)) -> Response:
+async def step(
+    request: Request, state: PodState = Depends(get_state), _key: str | None = Header(None, **IDEMPOTENCY_KEY_DOC)
+) -> Response:
     """Apply ``actions[i]`` to ``env_indices[i]``; answers their observations, rewards, termination
     and truncation flags and success. A chunk (``actions`` ``[n, K, action dim]``) is applied in
     order, each env stopping at its first termination or truncation (``step_past_end``: applying
@@ -181,6 +190,27 @@ async def step(request: Request, state: PodState = Depends(get_state)) -> Respon
     same call, their ``/v1/reset`` answer under ``reset``: a rollout's refill, whose resets so run
     beside the steps of the pod's other envs."""
     req = parse_body(request, await request.body(), StepRequest)
+
+    async def apply() -> tuple[Response, np.ndarray]:
+        return await _step(state, request, req), np.concatenate([req.env_indices, req.reset_env_indices])
+
+    return await _once(state, request, req, apply)
+
+
+Apply = Callable[[], Awaitable[tuple[Response, np.ndarray]]]
+
+
+async def _once(state: PodState, request: Request, req: ResetRequest | StepRequest, apply: Apply) -> Response:
+    """Apply a keyed request once (:class:`~service.pod.idempotency.AnswerMemory`); count repeats."""
+    answers = state.answers
+    response, repeat = await answers.once(request, req, apply)
+    if repeat:
+        state.metrics.idempotency_key_repeats.inc()
+    state.metrics.idempotency_key_answers.set(len(answers))
+    return response
+
+
+async def _step(state: PodState, request: Request, req: StepRequest) -> Response:
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
     is_chunk = req.actions.ndim == len(env.single_action_space.shape or ()) + 2

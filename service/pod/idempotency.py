@@ -1,0 +1,167 @@
+"""Exactly-once resets and steps: the answers a pod remembers by the request's ``Idempotency-Key``.
+
+A state-changing request (``POST /v1/reset``, ``POST /v1/step``) may carry the header
+``Idempotency-Key`` (the IETF httpapi draft's name): one id per logical call, the same on every
+re-send of it. The pod answers a repeated key with the answer it gave, changing nothing; a
+repeat while the first is still being applied waits for it; a repeat with another body (its
+generation aside) is refused (422 naming the header). Only applied calls (200) are remembered:
+a refusal changed nothing, so its repeat is judged again.
+
+The memory is bounded per env: each env holds the answer of its last keyed call, so a pod keeps
+at most one answer per env. A client sends an env's next call only after the last one answered,
+so a re-send always finds its answer. Keys whose answers were superseded are kept (a bounded
+number per env) so that a late repeat is refused, never applied again. A rebuild of the envs
+starts an empty memory: their state is gone, and so are the answers about it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import Request, Response
+from pydantic import BaseModel
+
+from vecsim.engine import InvalidRequestError
+from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY
+
+__all__ = ["IDEMPOTENCY_KEY_DOC", "AnswerMemory"]
+
+# A key is an opaque token the client makes (vecsim's: 32 hex digits); bounded, printable ASCII.
+_MAX_KEY_CHARS = 255
+# Superseded keys remembered per env, so that a repeat arriving this late is still refused.
+_SUPERSEDED_PER_ENV = 8
+_MIN_SUPERSEDED = 256
+# The header as a route parameter (FastAPI's ``Header``): documented in the OpenAPI schema.
+IDEMPOTENCY_KEY_DOC = {
+    "alias": IDEMPOTENCY_KEY,
+    "description": "one id per logical call, the same on every re-send: a repeat is answered what the first "
+    "was answered, and changes nothing (another body under the same key: 422)",
+}
+
+
+@dataclass
+class _Answer:
+    digest: bytes
+    body: bytes
+    media_type: str | None
+    envs: int  # envs whose last keyed call this is; the answer is dropped at 0
+
+
+class AnswerMemory:
+    """The answers of one build of a pod's envs, by ``Idempotency-Key``; see the module's text."""
+
+    def __init__(self, num_envs: int) -> None:
+        self._answers: dict[str, _Answer] = {}
+        self._last_key: dict[int, str] = {}  # env index -> the key of its last keyed call
+        self._superseded: OrderedDict[str, bytes] = OrderedDict()
+        self._max_superseded = max(_MIN_SUPERSEDED, _SUPERSEDED_PER_ENV * num_envs)
+        self._in_flight: dict[str, tuple[bytes, asyncio.Future[Response]]] = {}
+
+    def __len__(self) -> int:
+        """The answers held now (at most one per env)."""
+        return len(self._answers)
+
+    async def once(
+        self, request: Request, req: BaseModel, apply: Callable[[], Awaitable[tuple[Response, np.ndarray]]]
+    ) -> tuple[Response, bool]:
+        """Answer ``request`` (its body parsed: ``req``) exactly once per key: run ``apply`` (which
+        returns the answer and the env ids it changed) the first time, the remembered answer after.
+
+        A repeat is the same request but for its ``generation``: after a 409 the client sends the
+        call again at the new generation, and when only the generation moved on (same envs), the
+        answer of the first still stands.
+
+        Returns:
+            the answer, and whether it is a repeat's (nothing applied).
+
+        Raises:
+            InvalidRequestError: the key is malformed, or was used with another body, or its
+                answer is no longer held (422, naming the header).
+            Whatever ``apply`` raises (a repeat waiting on it raises the same).
+        """
+        key = request.headers.get(IDEMPOTENCY_KEY)
+        if key is None:
+            response, _ = await apply()
+            return response, False
+        if not 0 < len(key) <= _MAX_KEY_CHARS or not key.isascii() or not key.isprintable():
+            raise InvalidRequestError(f"{IDEMPOTENCY_KEY}: must be 1 to {_MAX_KEY_CHARS} printable ASCII characters")
+        digest = _digest(request, req)
+        held = self._answers.get(key)
+        if held is not None:
+            self._check_same(key, held.digest, digest)
+            return Response(held.body, media_type=held.media_type), True
+        if key in self._superseded:
+            self._check_same(key, self._superseded[key], digest)
+            raise InvalidRequestError(
+                f"{IDEMPOTENCY_KEY}: {key!r} was applied, and its envs have had later calls since; its answer is no longer held"
+            )
+        running = self._in_flight.get(key)
+        if running is not None:
+            self._check_same(key, running[0], digest)
+            response = await asyncio.shield(running[1])
+            return Response(response.body, media_type=response.media_type), True
+        future: asyncio.Future[Response] = asyncio.get_running_loop().create_future()
+        self._in_flight[key] = (digest, future)
+        try:
+            response, env_ids = await apply()
+        except BaseException as exc:
+            future.set_exception(exc)
+            future.exception()  # retrieved: no "never retrieved" warning when no repeat waits
+            raise
+        finally:
+            del self._in_flight[key]
+        self._remember(key, digest, response, env_ids)
+        future.set_result(response)
+        return response, False
+
+    @staticmethod
+    def _check_same(key: str, held: bytes, digest: bytes) -> None:
+        if held != digest:
+            raise InvalidRequestError(
+                f"{IDEMPOTENCY_KEY}: {key!r} was used for another request; a repeat must be the same request byte for byte"
+            )
+
+    def _remember(self, key: str, digest: bytes, response: Response, env_ids: np.ndarray) -> None:
+        envs = [int(e) for e in np.asarray(env_ids).ravel()]
+        if not envs:
+            return  # a no-op changed nothing: its repeat may run again
+        self._answers[key] = _Answer(digest, bytes(response.body), response.media_type, len(envs))
+        for env in envs:
+            before = self._last_key.get(env)
+            self._last_key[env] = key
+            if before is not None and before != key:
+                self._release(before)
+
+    def _release(self, key: str) -> None:
+        answer = self._answers[key]
+        answer.envs -= 1
+        if answer.envs:
+            return
+        del self._answers[key]
+        self._superseded[key] = answer.digest
+        while len(self._superseded) > self._max_superseded:
+            self._superseded.popitem(last=False)
+
+
+def _digest(request: Request, req: BaseModel) -> bytes:
+    """What makes two requests the same: path, Accept (it picks the answer's encoding), and every
+    field of the body but its generation."""
+    parts = [request.url.path.encode(), request.headers.get("accept", "").encode()]
+    for name in type(req).model_fields:
+        if name == "generation":
+            continue
+        value = getattr(req, name)
+        if isinstance(value, np.ndarray):
+            parts += [name.encode(), value.dtype.str.encode(), repr(value.shape).encode(), value.tobytes()]
+        else:
+            parts += [name.encode(), repr(value).encode()]
+    h = hashlib.blake2b(digest_size=16)
+    for part in parts:
+        h.update(len(part).to_bytes(8, "little"))
+        h.update(part)
+    return h.digest()
