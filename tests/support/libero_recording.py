@@ -19,7 +19,7 @@ from vecsim.engine.tasks import get_task
 from vecsim.engine.tasks._libero import SETTLE_ACTION, ensure_config, init_states, libero_benchmark
 
 # MjData fields the kernels take, as MuJoCo Warp names them.
-FIELDS = ("qpos", "qvel", "qM", "qfrc_bias", "site_xpos", "site_xmat", "xanchor", "xaxis", "xpos", "xquat", "ctrl")
+FIELDS = ("qpos", "qvel", "M", "qM", "qfrc_bias", "site_xpos", "site_xmat", "xanchor", "xaxis", "xpos", "xquat", "ctrl")
 
 
 @dataclasses.dataclass

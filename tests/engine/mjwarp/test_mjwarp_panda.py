@@ -14,11 +14,13 @@ about 1 N m. Goals and observables pass through no inverse: 1e-6 (1e-5 for angle
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
 
-from vecsim.engine.mjwarp.controller import PandaController, PandaIndex
+from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
 from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
 from vecsim.engine.tasks._libero import quat_to_axis_angle
 from vecsim.engine.tasks._robot import PROPRIO_KEYS
@@ -63,7 +65,9 @@ def recorded():
             for action in ACTIONS:
                 env.step(action.tolist())
                 observed.append((snapshot(inner.sim.data._data), inner._get_observations(force_update=True)))
-        yield PandaIndex.from_robosuite(inner), start, substeps, (ObservableIndex.from_robosuite(inner), observed)
+        index = PandaIndex.from_robosuite(inner)
+        legacy = mass_index(inner.sim.model._model, index.arm_dofs, "qM")
+        yield index, start, substeps, (ObservableIndex.from_robosuite(inner), observed, legacy)
 
 
 def _stack(frames: list[dict[str, np.ndarray]], name: str, dtype=None) -> wp.array:
@@ -73,7 +77,7 @@ def _stack(frames: list[dict[str, np.ndarray]], name: str, dtype=None) -> wp.arr
 
 def _data(frames: list[dict[str, np.ndarray]]) -> dict[str, wp.array]:
     """The recorded fields as a MuJoCo Warp ``Data`` holds them: one world per frame."""
-    arrays = {name: _stack(frames, name) for name in ("qpos", "qvel", "qM", "qfrc_bias", "ctrl")}
+    arrays = {name: _stack(frames, name) for name in ("qpos", "qvel", "M", "qM", "qfrc_bias", "ctrl")}
     for name in ("site_xpos", "xanchor", "xaxis", "xpos"):
         arrays[name] = _stack(frames, name, wp.vec3)
     arrays["site_xmat"] = _stack(frames, "site_xmat", wp.mat33)
@@ -92,21 +96,25 @@ def _controller(index: PandaIndex, start: dict[str, np.ndarray], nworld: int) ->
     return ctl
 
 
-def _apply(ctl: PandaController, actions: np.ndarray, data: dict[str, wp.array]) -> None:
+def _apply(ctl: PandaController, actions: np.ndarray, data: dict[str, wp.array], mass: str = "M") -> None:
     ctl.apply(
         wp.array(actions.astype(np.float32), device=CPU),
-        data["qpos"], data["qvel"], data["qM"], data["qfrc_bias"], data["site_xpos"], data["site_xmat"],
+        data["qpos"], data["qvel"], data[mass], data["qfrc_bias"], data["site_xpos"], data["site_xmat"],
         data["xanchor"], data["xaxis"], data["ctrl"],
     )  # fmt: skip
 
 
-def test_arm_torques_match_robosuite_at_every_recorded_substep(recorded):
-    index, start, substeps, _ = recorded
+@pytest.mark.parametrize("mass", ["M", "qM"])
+def test_arm_torques_match_robosuite_at_every_recorded_substep(recorded, mass):
+    """From MuJoCo's CSR mass matrix (MuJoCo Warp 4's) and from its legacy sparse one."""
+    index, start, substeps, (_, _, legacy) = recorded
+    if mass == "qM":
+        index = dataclasses.replace(index, mass_index=legacy)
     data = _data([s.data for s in substeps])
     ctl = _controller(index, start, len(substeps))
     ctl.goal_pos.assign(np.stack([s.goal_pos for s in substeps]).astype(np.float32))
     ctl.goal_ori.assign(np.stack([s.goal_ori for s in substeps]).astype(np.float32))
-    _apply(ctl, np.stack([s.action for s in substeps]), data)
+    _apply(ctl, np.stack([s.action for s in substeps]), data, mass)
     expected = np.stack([s.data["ctrl"][index.arm_actuators] for s in substeps])
     got = data["ctrl"].numpy()[:, index.arm_actuators]
     assert np.abs(expected).max() > 1.0  # the torques compared are not all near zero
@@ -131,8 +139,24 @@ def test_goals_gripper_and_ctrl_follow_robosuite_through_the_actions(recorded):
         np.testing.assert_allclose(ctl.goal_pos.numpy()[0], sub.goal_pos, atol=POSE_ATOL, err_msg=f"substep {number}")
         np.testing.assert_allclose(ctl.goal_ori.numpy()[0], sub.goal_ori, atol=POSE_ATOL, err_msg=f"substep {number}")
         np.testing.assert_allclose(ctl.gripper_command.numpy()[0], sub.gripper_command, atol=POSE_ATOL)
-        np.testing.assert_allclose(data["ctrl"].numpy()[0], sub.data["ctrl"], atol=TORQUE_ATOL, err_msg=f"substep {number}")
+        np.testing.assert_allclose(
+            data["ctrl"].numpy()[0], sub.data["ctrl"], atol=TORQUE_ATOL, err_msg=f"substep {number}"
+        )
     assert kept == 1
+
+
+def test_a_world_with_nan_state_leaves_the_other_worlds_torques_unchanged(recorded):
+    index, start, substeps, _ = recorded
+    frames = [s.data for s in substeps[:4]]
+    actions = np.stack([s.action for s in substeps[:4]])
+    clean, broken = _data(frames), _data(frames)
+    qvel = broken["qvel"].numpy()
+    qvel[1] = np.nan
+    broken["qvel"].assign(qvel)
+    for data in (clean, broken):
+        _apply(_controller(index, start, len(frames)), actions, data)
+    assert np.isnan(broken["ctrl"].numpy()[1, index.arm_actuators]).any()
+    np.testing.assert_array_equal(broken["ctrl"].numpy()[[0, 2, 3]], clean["ctrl"].numpy()[[0, 2, 3]])
 
 
 def test_reset_sets_only_the_masked_worlds(recorded):
@@ -152,14 +176,17 @@ def test_reset_sets_only_the_masked_worlds(recorded):
 
 
 def test_state_and_proprio_match_robosuites_observables(recorded):
-    _, _, _, (index, observed) = recorded
+    _, _, _, (index, observed, _) = recorded
     frames = [frame for frame, _ in observed]
     data = _data(frames)
     obs = PandaObservables(index, len(frames), CPU)
     obs.compute(data["qpos"], data["site_xpos"], data["xquat"])
     raws = [raw for _, raw in observed]
     state = np.stack(
-        [np.concatenate([r["robot0_eef_pos"], quat_to_axis_angle(r["robot0_eef_quat"]), r["robot0_gripper_qpos"]]) for r in raws]
+        [
+            np.concatenate([r["robot0_eef_pos"], quat_to_axis_angle(r["robot0_eef_quat"]), r["robot0_gripper_qpos"]])
+            for r in raws
+        ]
     )
     proprio = np.stack([np.concatenate([r[key] for key in PROPRIO_KEYS]) for r in raws])
     # The Panda's gripper points down: w is near 0 and changes sign, where a folding

@@ -38,6 +38,8 @@ CPU = "cpu"
 TASKS = ("libero_10/0", "libero_10/2", "libero_10/4")
 # Physics steps of 2 ms between recorded frames while an object settles, and how many frames.
 STEPS_PER_FRAME, FRAMES = 25, 8
+# The method of LIBERO's articulated object classes behind each joint predicate.
+LIBERO_METHODS = {"open": "is_open", "close": "is_close", "turnon": "turn_on", "turnoff": "turn_off"}
 
 
 def _frame(env) -> dict:
@@ -136,7 +138,8 @@ def _evaluate(table: GoalTable, frames: list[dict], live: int | None = None) -> 
     goal = GoalEvaluator(table, len(frames), CPU)
     goal.evaluate(
         stack("qpos", wp.float32), stack("xpos", wp.vec3), stack("site_xpos", wp.vec3), stack("site_xmat", wp.mat33),
-        wp.array([len(geoms) if live is None else live], dtype=wp.int32, device=CPU), wp.array(geoms, dtype=wp.vec2i, device=CPU),
+        wp.array([len(geoms) if live is None else live], dtype=wp.int32, device=CPU),
+        wp.array(geoms, dtype=wp.vec2i, device=CPU),
         wp.array(worlds, dtype=wp.int32, device=CPU),
     )  # fmt: skip
     return goal
@@ -204,12 +207,14 @@ def test_joint_thresholds_follow_libero_objects(category):
             joint_count=np.ones(1, np.int32), any_joint=np.array([predicate in ("open", "turnon")], np.int32),
             compare=np.array([compare], np.int32), threshold=np.array([threshold], np.float32),
         )  # fmt: skip
-        method = getattr(obj, {"open": "is_open", "close": "is_close", "turnon": "turn_on", "turnoff": "turn_off"}[predicate])
+        method = getattr(obj, LIBERO_METHODS[predicate])
         expected = np.array([bool(method(v)) for v in values], dtype=np.int32)
         goal = GoalEvaluator(table, len(values), CPU)
         goal.evaluate(
-            wp.array(values[:, None].astype(np.float32), device=CPU), wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU),
-            wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU), wp.zeros((len(values), 1), dtype=wp.mat33, device=CPU),
+            wp.array(values[:, None].astype(np.float32), device=CPU),
+            wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU),
+            wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU),
+            wp.zeros((len(values), 1), dtype=wp.mat33, device=CPU),
             wp.zeros(1, dtype=wp.int32, device=CPU), wp.zeros(0, dtype=wp.vec2i, device=CPU),
             wp.zeros(0, dtype=wp.int32, device=CPU),
         )  # fmt: skip

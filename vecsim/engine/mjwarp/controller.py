@@ -12,14 +12,15 @@ substeps. This module is that math, written from robosuite's equations, for many
   site_xpos, site_xmat)`` (first substep of an env action) and ``apply(action, ..., ctrl)``
   (every substep: arm torques and gripper command into ``ctrl``).
 
-Inputs are MuJoCo Warp ``Data`` fields with a leading world dimension, float32, as a forward
-pass at the current state leaves them (``qM`` viewed 2-D per world: ``d.qM.reshape((nworld,
--1))``). The math runs in float64 inside each kernel. Example::
+Inputs are MuJoCo Warp ``Data`` fields with a leading world dimension, float32, as the position
+and velocity stages at the current state leave them (``step1``: kinematics, ``M``, ``qfrc_bias``);
+the mass matrix is viewed 2-D per world (``d.M`` or ``d.qM`` reshaped to ``(nworld, -1)``, with
+``PandaIndex.mass_index`` built for that layout). The math runs in float64 inside each kernel::
 
     ctl = PandaController(PandaIndex.from_robosuite(env), nworld, device)
     ctl.reset(mask, initial_joint, goal_pos, goal_ori)
     ctl.set_goal(action, d.site_xpos, d.site_xmat)
-    ctl.apply(action, d.qpos, d.qvel, qM, d.qfrc_bias, d.site_xpos, d.site_xmat,
+    ctl.apply(action, d.qpos, d.qvel, mass, d.qfrc_bias, d.site_xpos, d.site_xmat,
               d.xanchor, d.xaxis, d.ctrl)
 """
 
@@ -62,8 +63,8 @@ class OscPoseConfig:
 class PandaIndex:
     """Where one Panda arm and gripper sit in a compiled model (ids, not names).
 
-    ``mass_index`` is ``[7, 7]``: the flat index in one world's ``qM`` of each entry of the arm's
-    mass matrix (MuJoCo's sparse ``qM`` or a dense ``[nv_pad, nv_pad]`` one: :func:`mass_index`).
+    ``mass_index`` is ``[7, 7]``: the flat index in one world's mass matrix of each entry of the
+    arm's (:func:`mass_index`; MuJoCo Warp 4's CSR ``M`` unless built for another layout).
     """
 
     eef_site: int
@@ -79,12 +80,9 @@ class PandaIndex:
     gripper_ctrl_high: np.ndarray
 
     @classmethod
-    def from_robosuite(cls, env: Any, dense_stride: int | None = None) -> PandaIndex:
-        """Read the index from a robosuite (LIBERO) env's first robot and its compiled model.
-
-        ``dense_stride`` is the row stride of a dense ``qM`` (MuJoCo Warp's ``nv_pad``); ``None``
-        indexes MuJoCo's sparse ``qM`` (what MuJoCo Warp holds when ``mj_isSparse``).
-        """
+    def from_robosuite(cls, env: Any, field: str = "M") -> PandaIndex:
+        """Read the index from a robosuite (LIBERO) env's first robot and its compiled model,
+        with ``mass_index`` into ``field`` (:func:`mass_index`)."""
         robot = env.robots[0]
         ctl = robot.controller
         model = env.sim.model._model
@@ -98,7 +96,7 @@ class PandaIndex:
             arm_dofs=dofs,
             arm_actuators=arm_act,
             gripper_actuators=gripper,
-            mass_index=mass_index(model, dofs, dense_stride),
+            mass_index=mass_index(model, dofs, field),
             torque_low=model.actuator_ctrlrange[arm_act, 0].copy(),
             torque_high=model.actuator_ctrlrange[arm_act, 1].copy(),
             gripper_ctrl_low=model.actuator_ctrlrange[gripper, 0].copy(),
@@ -106,28 +104,38 @@ class PandaIndex:
         )
 
 
-def mass_index(model: Any, dofs: np.ndarray, dense_stride: int | None = None) -> np.ndarray:
-    """Return the ``[len(dofs)]^2`` flat indexes of the dofs' mass-matrix block in one world's ``qM``.
+def mass_index(model: Any, dofs: np.ndarray, field: str = "M", dense_stride: int | None = None) -> np.ndarray:
+    """Return the ``[len(dofs)]^2`` flat indexes of the dofs' mass-matrix block in one world's
+    ``field``: ``"M"``, MuJoCo's CSR lower triangle (``M_rowadr``, ``M_colind``, what MuJoCo Warp
+    4 holds); ``"qM"``, MuJoCo's legacy sparse layout (``dof_Madr`` walking ``dof_parentid``), or
+    with ``dense_stride``, a dense ``qM`` of that row stride.
 
-    Sparse ``qM`` (MuJoCo's layout): row ``i`` starts at ``dof_Madr[i]`` with the diagonal and
-    walks up ``dof_parentid``; an entry off that chain is structurally zero, which an arm's
-    chain never has.
+    Raises:
+        ValueError: two dofs whose entry is structurally zero (not on one kinematic chain).
     """
     n = len(dofs)
     index = np.empty((n, n), dtype=np.int32)
     for a, i in enumerate(dofs):
         for b, j in enumerate(dofs):
+            row, col = (int(i), int(j)) if i >= j else (int(j), int(i))
             if dense_stride is not None:
                 index[a, b] = i * dense_stride + j
-                continue
-            row, col = (i, j) if i >= j else (j, i)
-            adr, k = model.dof_Madr[row], row
-            while k != col:
-                k = model.dof_parentid[k]
-                adr += 1
-                if k < 0:
-                    raise ValueError(f"dofs {i} and {j} are not on one kinematic chain")
-            index[a, b] = adr
+            elif field == "M":
+                start = model.M_rowadr[row]
+                where = np.flatnonzero(model.M_colind[start : start + model.M_rownnz[row]] == col)
+                if where.size != 1:
+                    raise ValueError(f"dofs {row} and {col} are not on one kinematic chain")
+                index[a, b] = start + where[0]
+            elif field == "qM":
+                adr, k = model.dof_Madr[row], row
+                while k != col:
+                    k = model.dof_parentid[k]
+                    adr += 1
+                    if k < 0:
+                        raise ValueError(f"dofs {row} and {col} are not on one kinematic chain")
+                index[a, b] = adr
+            else:
+                raise ValueError(f"field must be 'M' or 'qM', not {field!r}")
     return index
 
 
@@ -221,7 +229,7 @@ def osc_goal_from_action(
 def osc_pose_torques(
     qpos: wp.array2d(dtype=wp.float32),
     qvel: wp.array2d(dtype=wp.float32),
-    qM: wp.array2d(dtype=wp.float32),
+    mass: wp.array2d(dtype=wp.float32),
     qfrc_bias: wp.array2d(dtype=wp.float32),
     site_xpos: wp.array2d(dtype=wp.vec3),
     site_xmat: wp.array2d(dtype=wp.mat33),
@@ -252,7 +260,7 @@ def osc_pose_torques(
     jac = mat67d()
     qd = vec7d()
     q = vec7d()
-    mass = mat77d()
+    arm_mass = mat77d()
     for k in range(ARM_DOF):
         jnt = arm_joints[k]
         axis = wp.vec3d(xaxis[w, jnt])
@@ -263,7 +271,7 @@ def osc_pose_torques(
         qd[k] = wp.float64(qvel[w, arm_dofs[k]])
         q[k] = wp.float64(qpos[w, arm_qpos[k]])
         for c in range(ARM_DOF):
-            mass[k, c] = wp.float64(qM[w, mass_idx[k, c]])
+            arm_mass[k, c] = wp.float64(mass[w, mass_idx[k, c]])
     vel = jac * qd
     kp64 = wp.float64(kp)
     kd64 = wp.float64(kd)
@@ -271,7 +279,7 @@ def osc_pose_torques(
     torque = kp64 * orientation_error(wp.mat33d(goal_ori[w]), rot) - kd64 * wp.vec3d(vel[3], vel[4], vel[5])
 
     # x = M^-1 J^T, column by column; lambda^-1 = J x.
-    low = cholesky7(mass)
+    low = cholesky7(arm_mass)
     minv_jt = mat67d()  # stored transposed: row r is M^-1 times row r of J
     for r in range(6):
         row = vec7d()
@@ -305,7 +313,7 @@ def osc_pose_torques(
     pull = vec7d()
     for k in range(ARM_DOF):
         pull[k] = wp.float64(nullspace_kp) * (wp.float64(initial_joint[w, k]) - q[k]) - kv * qd[k]
-    tau0 = mass * pull
+    tau0 = arm_mass * pull
     y = vec7d()
     for r in range(6):
         s = wp.float64(0.0)
@@ -317,8 +325,9 @@ def osc_pose_torques(
     tau += tau0 - wp.transpose(jac) * z6
 
     for k in range(ARM_DOF):
-        total = tau[k] + wp.float64(qfrc_bias[w, arm_dofs[k]])
-        ctrl[w, arm_actuators[k]] = wp.clamp(wp.float32(total), torque_low[k], torque_high[k])
+        total = wp.float32(tau[k] + wp.float64(qfrc_bias[w, arm_dofs[k]]))
+        # np.clip keeps a NaN (a broken world stays visibly broken); wp.clamp would not.
+        ctrl[w, arm_actuators[k]] = wp.where(wp.isnan(total), total, wp.clamp(total, torque_low[k], torque_high[k]))
 
 
 @wp.kernel
@@ -428,7 +437,7 @@ class PandaController:
         action: wp.array,
         qpos: wp.array,
         qvel: wp.array,
-        qM: wp.array,
+        mass: wp.array,
         qfrc_bias: wp.array,
         site_xpos: wp.array,
         site_xmat: wp.array,
@@ -441,7 +450,7 @@ class PandaController:
         kd = 2.0 * np.sqrt(cfg.kp) * cfg.damping_ratio
         wp.launch(
             osc_pose_torques, dim=self.nworld, device=self.device,
-            inputs=[qpos, qvel, qM, qfrc_bias, site_xpos, site_xmat, xanchor, xaxis, self.index.eef_site,
+            inputs=[qpos, qvel, mass, qfrc_bias, site_xpos, site_xmat, xanchor, xaxis, self.index.eef_site,
                     self._arm_joints, self._arm_qpos, self._arm_dofs, self._arm_actuators, self._mass_index,
                     cfg.kp, float(kd), cfg.nullspace_kp, self._torque_low, self._torque_high,
                     self.goal_pos, self.goal_ori, self.initial_joint],

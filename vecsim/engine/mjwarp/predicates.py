@@ -174,11 +174,14 @@ def supported_tasks(suite: str) -> list[int]:
     bench = libero_benchmark(suite)  # first: it points LIBERO at vecsim's config
     from libero.libero.envs.bddl_utils import robosuite_parse_problem
 
-    return [i for i in range(bench.n_tasks) if _goal_supported(robosuite_parse_problem(bench.get_task_bddl_file_path(i)))]
+    problems = (robosuite_parse_problem(bench.get_task_bddl_file_path(i)) for i in range(bench.n_tasks))
+    return [i for i, problem in enumerate(problems) if _goal_supported(problem)]
 
 
 def _goal_supported(problem: dict[str, Any]) -> bool:
-    category = {name: cat for group in ("objects", "fixtures") for cat, names in problem[group].items() for name in names}
+    category = {
+        name: cat for group in ("objects", "fixtures") for cat, names in problem[group].items() for name in names
+    }
     regions = problem["regions"]
     for predicate, *args in problem["goal_state"]:
         if predicate in ("in", "on") and len(args) == 2:
@@ -341,4 +344,6 @@ class GoalEvaluator:
             goal_atoms, dim=(self.nworld, self.natoms), device=self.device,
             inputs=[qpos, xpos, site_xpos, site_xmat, self.touching, *self._arrays], outputs=[self.holds],
         )  # fmt: skip
-        wp.launch(goal_success, dim=self.nworld, device=self.device, inputs=[self.holds, self.natoms], outputs=[self.success])
+        wp.launch(
+            goal_success, dim=self.nworld, device=self.device, inputs=[self.holds, self.natoms], outputs=[self.success]
+        )
