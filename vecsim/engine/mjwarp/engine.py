@@ -461,6 +461,8 @@ class MjwarpEngine:
         data = batch.data
         world_action = np.zeros((nworld, actions.shape[2]), dtype=np.float32)
         row_of_world = {int(w): int(r) for w, r in zip(worlds, rows)}
+        world_rows = np.full(nworld, -1, dtype=np.int64)
+        world_rows[worlds] = rows
         for k in range(actions.shape[1]):
             if not running.any():
                 break
@@ -473,33 +475,33 @@ class MjwarpEngine:
             state, proprio = batch.observables.state.numpy(), batch.observables.proprio.numpy()
             won = batch.goal.success.numpy().astype(bool)
             frozen = ~running
-            ended: list[int] = []
-            for world in np.flatnonzero(running):
+            # Every running world's outcome of this action, as arrays over worlds.
+            finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
+            failed = running & (((overflow & _OVERFLOW_BITS) != 0) | ~finite)
+            for world in np.flatnonzero(failed):
                 row = row_of_world[int(world)]
                 env = int(ids[row])
-                bad = _overflow_reason(int(overflow[world]))
-                if bad is None and not (np.isfinite(qpos[world]).all() and np.isfinite(qvel[world]).all()):
-                    bad = "the state is no longer finite"
-                if bad is not None:
-                    message = f"env {env}: MuJoCo Warp {bad} at action {k}; reset it"
-                    self._broken[env] = message
-                    errors.append(EnvError(row, "SimStateError", message))
-                    running[world] = False
-                    frozen[world] = True
-                    continue
-                num_steps[row] += 1
-                self._steps[env] += 1
-                success[row, k] = won[world]
-                reward[row, k] = float(won[world])
-                terminated[row, k] = won[world]
-                truncated[row, k] = self._steps[env] >= batch.max_steps
-                self._obs["state"][env] = state[world]
-                self._obs["proprio"][env] = proprio[world]
-                self._last_success[env] = won[world]
-                if (terminated[row, k] or truncated[row, k]) and not step_past_end:
-                    # It stops here: from the next action on, it is put back to this state.
-                    running[world] = False
-                    ended.append(int(world))
+                reason = _overflow_reason(int(overflow[world])) or "the state is no longer finite"
+                message = f"env {env}: MuJoCo Warp {reason} at action {k}; reset it"
+                self._broken[env] = message
+                errors.append(EnvError(row, "SimStateError", message))
+            running &= ~failed
+            frozen |= failed
+            stepped = np.flatnonzero(running)
+            rows_now = world_rows[stepped]
+            envs_now = ids[rows_now]
+            num_steps[rows_now] += 1
+            self._steps[envs_now] += 1
+            success[rows_now, k] = won[stepped]
+            reward[rows_now, k] = won[stepped]
+            terminated[rows_now, k] = won[stepped]
+            truncated[rows_now, k] = self._steps[envs_now] >= batch.max_steps
+            self._obs["state"][envs_now] = state[stepped]
+            self._obs["proprio"][envs_now] = proprio[stepped]
+            self._last_success[envs_now] = won[stepped]
+            ended = [] if step_past_end else stepped[terminated[rows_now, k] | truncated[rows_now, k]].tolist()
+            # Those stop here: from the next action on, they are put back to this state.
+            running[ended] = False
             if ended:
                 now = self._snapshot(batch)
                 for key, values in now.items():
@@ -594,6 +596,9 @@ _OVERFLOWS = {1 << 0: "ran out of constraint rows (njmax)", 1 << 1: "ran out of 
               1 << 2: "overflowed its broadphase", 1 << 3: "ran out of contacts (nconmax)",
               1 << 4: "overflowed its collision buffers (CCD)", 1 << 7: "overflowed its island buffers",
               1 << 8: "overflowed its EPA buffers"}  # fmt: skip
+
+
+_OVERFLOW_BITS = sum(_OVERFLOWS)
 
 
 def _overflow_reason(bits: int) -> str | None:
