@@ -2,7 +2,7 @@
 
 A real LIBERO env (libero_10/0, state 0) settles and then takes ``ACTIONS``; every substep's
 ``MjData`` is recorded with what robosuite's ``OSC_POSE`` and gripper controllers wrote, and every
-step's observables as robosuite samples them. The kernels get the same fields, cast to float32 as
+step's observation as LIBERO returns it. The kernels get the same fields, cast to float32 as
 MuJoCo Warp holds them. A closed-loop run then drives the same env with the kernels' torques.
 
 Tolerances: the kernels compute in float64 from float32 inputs, so the gap is the inputs'
@@ -21,7 +21,7 @@ import pytest
 import warp as wp
 
 from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
-from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
+from vecsim.engine.mjwarp.observables import LIBERO_SAMPLE_SUBSTEP, ObservableIndex, PandaObservables
 from vecsim.engine.tasks._libero import quat_to_axis_angle
 from vecsim.engine.tasks._robot import PROPRIO_KEYS
 
@@ -58,7 +58,7 @@ class Recorded:
     obs_index: ObservableIndex
     start: dict[str, np.ndarray]
     substeps: list
-    observed: list
+    returned: list  # what env.step returned: robosuite's observables as LIBERO samples them
 
 
 @pytest.fixture(scope="module")
@@ -74,14 +74,15 @@ def recorded():
             "goal_ori": np.array(robot.controller.goal_ori),
             "gripper": np.array(robot.gripper.current_action),
         }
-        observed = []
+        returned = []
         with recording(env) as substeps:
             for action in ACTIONS:
-                env.step(action.tolist())
-                observed.append((snapshot(inner.sim.data._data), inner._get_observations(force_update=True)))
+                raw, _, _, _ = env.step(action.tolist())
+                returned.append(raw)
         index = PandaIndex.from_robosuite(inner)
         legacy = mass_index(inner.sim.model._model, index.arm_dofs, "qM")
-        yield Recorded(env, index, legacy, ObservableIndex.from_robosuite(inner), start, substeps, observed)
+        obs_index = ObservableIndex.from_robosuite(inner)
+        yield Recorded(env, index, legacy, obs_index, start, substeps, returned)
 
 
 def _stack(frames: list[dict[str, np.ndarray]], name: str, dtype=None) -> wp.array:
@@ -189,13 +190,21 @@ def test_reset_sets_only_the_masked_worlds(recorded):
     np.testing.assert_allclose(ctl.initial_joint.numpy()[[0, 2]], np.tile(start["initial_joint"], (2, 1)), atol=1e-6)
 
 
-def test_state_and_proprio_match_robosuites_observables(recorded):
-    index, observed = recorded.obs_index, recorded.observed
-    frames = [frame for frame, _ in observed]
+def test_state_and_proprio_match_what_libero_returns(recorded):
+    """``env.step``'s observation, rebuilt from MuJoCo Warp's view of the data right after the
+    physics step of substep ``LIBERO_SAMPLE_SUBSTEP``: that substep's kinematics (recorded at
+    its forward) and the joints after its integration (recorded at the next substep)."""
+    per_action = len(recorded.substeps) // len(ACTIONS)
+    frames = []
+    for number in range(len(ACTIONS)):
+        subs = recorded.substeps[number * per_action : (number + 1) * per_action]
+        frame = dict(subs[LIBERO_SAMPLE_SUBSTEP].data)
+        frame["qpos"] = subs[LIBERO_SAMPLE_SUBSTEP + 1].data["qpos"]
+        frames.append(frame)
     data = _data(frames)
-    obs = PandaObservables(index, len(frames), CPU)
+    obs = PandaObservables(recorded.obs_index, len(frames), CPU)
     obs.compute(data["qpos"], data["site_xpos"], data["xquat"])
-    raws = [raw for _, raw in observed]
+    raws = recorded.returned
     state = np.stack(
         [
             np.concatenate([r["robot0_eef_pos"], quat_to_axis_angle(r["robot0_eef_quat"]), r["robot0_gripper_qpos"]])
@@ -203,12 +212,11 @@ def test_state_and_proprio_match_robosuites_observables(recorded):
         ]
     )
     proprio = np.stack([np.concatenate([r[key] for key in PROPRIO_KEYS]) for r in raws])
-    # The Panda's gripper points down: w is near 0 and changes sign, where a folding
-    # conversion would disagree (docs/libero.md).
-    assert np.ptp(proprio[:, 20]) > 0
+    # The Panda's gripper points down: w is near 0 and changes sign, where a conversion that
+    # folds q and -q together would disagree (docs/libero.md).
+    assert (proprio[:, 20] < 0).any() and (proprio[:, 20] > 0).any()
     np.testing.assert_allclose(obs.state.numpy(), state, rtol=0, atol=ANGLE_ATOL)
-    np.testing.assert_allclose(obs.proprio.numpy(), proprio, rtol=0, atol=ANGLE_ATOL)
-
+    np.testing.assert_allclose(obs.proprio.numpy(), proprio, rtol=0, atol=POSE_ATOL)
 
 def _eef_trajectory(recorded: Recorded, actions: np.ndarray, kernels: bool) -> np.ndarray:
     """The grip site after each action from the recording's start, robosuite's torques replaced

@@ -9,7 +9,10 @@ What vecsim's CPU engine returns (``vecsim.engine.tasks._libero``, docs/libero.m
 
 The end-effector position is the grip site's; its quaternion is the hand body's (robosuite's
 ``eef_pos`` and ``eef_quat``). Inputs are MuJoCo Warp ``Data`` fields (``xquat`` in MuJoCo's
-``(w, x, y, z)`` order, as MuJoCo Warp keeps it). Example::
+``(w, x, y, z)`` order, as MuJoCo Warp keeps it). LIBERO samples them right after the physics
+step of substep :data:`LIBERO_SAMPLE_SUBSTEP` (0-based, of 25), not at the end of the action:
+there, ``Data`` holds that substep's kinematics and the joints after its integration, which is
+what robosuite's observables read. Example::
 
     obs = PandaObservables(ObservableIndex.from_robosuite(env), nworld, device)
     obs.compute(d.qpos, d.site_xpos, d.xquat)   # fills obs.state and obs.proprio
@@ -24,6 +27,9 @@ import numpy as np
 import warp as wp
 
 STATE_DIM = 8
+# After LIBERO's reset and set_init_state each force a sample, robosuite's observable clock
+# (20 Hz over 500 Hz physics) samples after this substep's physics step of every action.
+LIBERO_SAMPLE_SUBSTEP = 23
 PROPRIO_DIM = 7 + 7 + 3 + 4 + 2
 ARM_DOF = 7
 
