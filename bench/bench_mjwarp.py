@@ -112,14 +112,14 @@ def reference(args: argparse.Namespace) -> None:
             states[k, t + 1] = obs["state"]
             success[k, t] = bool(info["success"])
     env.close()
-    record: dict[str, Any] = {"task": args.task, "machine": platform.node(), "cores": os.cpu_count()}
+    record: dict[str, Any] = {"task": args.task, "machine": args.machine, "cores": os.cpu_count()}
     if args.cpu_envs:
-        engine = engine_kind("cpu").build(assignment(args.task, args.cpu_envs, args.size, "cpu"))
+        engine = engine_kind("cpu").build(assignment(args.task, args.cpu_envs, args.cpu_size, "cpu"))
         try:
             record["cpu_engine"] = time_chunks(engine, args.cpu_envs, args.chunk, args.calls, time.monotonic() + 600)
         finally:
             engine.close()
-        record["cpu_engine"].update(envs=args.cpu_envs, size=args.size, chunk=args.chunk)
+        record["cpu_engine"].update(envs=args.cpu_envs, size=args.cpu_size, chunk=args.chunk)
     np.savez_compressed(
         args.out, actions=actions, states=states, success=success, record=json.dumps(record),
         **{f"image.{name}": pixels for name, pixels in images.items()},
@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> None:
     from vecsim.engine.base import engine_kind
 
     deadline = time.monotonic() + args.budget_s
-    record: dict[str, Any] = {"task": args.task, "chunk": args.chunk, "machine": platform.node(), "runs": [], "complete": False}
+    record: dict[str, Any] = {"task": args.task, "chunk": args.chunk, "machine": args.machine, "runs": [], "complete": False}
     ref = np.load(args.reference) if args.reference else None
     if ref is not None:
         record["cpu_reference"] = json.loads(str(ref["record"]))
@@ -234,6 +234,7 @@ def main() -> None:
     ref.add_argument("--chunk", type=int, default=8)
     ref.add_argument("--calls", type=int, default=10)
     ref.add_argument("--cpu-envs", type=int, default=0, help="time the CPU engine with this many envs (0: skip)")
+    ref.add_argument("--cpu-size", type=int, default=256, help="the cameras' size when timing the CPU engine")
     ref.add_argument("--out", type=Path, default=Path("out/bench/mjwarp_reference.npz"))
     go = sub.add_parser("run", help="the mjwarp engine's rates, scaling, memory and fidelity")
     go.add_argument("--task", default="libero_10/0")
@@ -247,6 +248,11 @@ def main() -> None:
     go.add_argument("--reference", type=Path, default=None)
     go.add_argument("--cpu-rate", type=float, default=None, help="a CPU-pod rate measured elsewhere, printed beside only")
     go.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp.json"))
+    for command in (ref, go):
+        command.add_argument(
+            "--machine", default=platform.node(),
+            help="names the machine; a ratio to the CPU engine is given only when both steps name the same one",
+        )  # fmt: skip
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     (reference if args.command == "reference" else run)(args)

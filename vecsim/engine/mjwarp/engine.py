@@ -54,8 +54,9 @@ log = logging.getLogger(__name__)
 # task 0; MuJoCo Warp's defaults overflowed there, these did not.
 NCONMAX = int(os.environ.get("VECSIM_MJWARP_NCONMAX", "96"))
 NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
-# What the pod renders: the geom groups robosuite draws (visual and collision meshes apart).
-GEOM_GROUPS = [0, 1, 2]
+# The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
+# render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
+GEOM_GROUPS = [1, 2]
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
 _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
@@ -155,6 +156,8 @@ class _Batch:
     max_steps: int
     # The action of every world for the action being applied (zeros where a world does not step).
     action: Any
+    # One camera's pixels of every world, uint8 [nworld, H, W, 3] (None without cameras).
+    pixels: Any = None
     # One action's substeps as a CUDA graph, captured at the first action (None on a CPU device).
     graph: Any = None
 
@@ -246,7 +249,10 @@ class MjwarpEngine:
         limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
         log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
         action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
-        return _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action)
+        pixels = None
+        if render is not None:
+            pixels = wp.zeros((nworld, camera.height, camera.width, 3), dtype=wp.uint8, device=controller.device)
+        return _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action, pixels)
 
     # The PodEngine calls.
 
@@ -516,20 +522,26 @@ class MjwarpEngine:
             return 0.0, 0
         import mujoco_warp as mjw
 
+        from vecsim.engine.mjwarp import frames
+
         started = time.perf_counter()
         renders = 0
+        camera = self.assignment.camera
         orientation = self.assignment.libero.image_orientation
         for batch, rows, worlds in self._split(ids):
             rc = batch.render
             mjw.refit_bvh(batch.model, batch.data, rc)
             mjw.render(batch.model, batch.data, rc)
-            packed = rc.rgb_data.numpy()
-            adr = rc.rgb_adr.numpy()
-            height, width = self.assignment.camera.height, self.assignment.camera.width
-            for index, name in enumerate(self.assignment.camera.names):
-                pixels = packed[worlds, adr[index] : adr[index] + height * width].view(np.uint8)
-                pixels = pixels.reshape(len(worlds), height, width, 4)[..., 2::-1]
-                self._obs["images"][name][worlds + batch.block.env_start] = _orient(pixels, orientation)
+            first = rc.rgb_adr.numpy()
+            start, count = batch.block.env_start, batch.block.num_envs
+            for index, name in enumerate(camera.names):
+                frames.unpack(rc.rgb_data, first[index], camera.height, camera.width, orientation, batch.pixels)
+                host = batch.pixels.numpy()
+                if worlds.size == count:
+                    self._obs["images"][name][start : start + count] = host
+                else:
+                    # Only the named worlds: the others were put back, their pixels are stale.
+                    self._obs["images"][name][worlds + start] = host[worlds]
             renders += len(worlds)
         return time.perf_counter() - started, renders
 
@@ -579,15 +591,6 @@ def _apply_action(batch: _Batch) -> None:
         batch.graph = capture.graph
         return
     wp.capture_launch(batch.graph)
-
-
-def _orient(upright: np.ndarray, orientation: str) -> np.ndarray:
-    """MuJoCo Warp's images (row 0 at the top) laid out as the job asks (docs/libero.md)."""
-    if orientation == "upright":
-        return upright
-    if orientation == "raw":
-        return upright[:, ::-1]
-    return upright[:, :, ::-1]
 
 
 # Overflows that make a world's trajectory wrong (MuJoCo Warp's OverflowType bits); an iteration
