@@ -6,7 +6,7 @@ command moves by ``0.01 * sign(a)`` per physics substep. An env action sets the 
 the state at its first substep; torques are recomputed from the current state at each of the 25
 substeps. This module is that math, written from robosuite's equations, for many worlds at once:
 
-- :class:`PandaIndex`: where the arm lives in one model (site, joints, dofs, actuators, ``qM``);
+- :class:`PandaIndex`: where the arm lives in one model (site, joints, dofs, actuators, mass matrix);
 - :class:`PandaController`: per-world goal, nullspace target and gripper command, and the calls
   ``reset(mask, initial_joint, goal_pos, goal_ori)`` (where ``mask`` is 1), ``set_goal(action,
   site_xpos, site_xmat)`` (first substep of an env action) and ``apply(action, ..., ctrl)``
@@ -82,15 +82,31 @@ class PandaIndex:
     @classmethod
     def from_robosuite(cls, env: Any, field: str = "M") -> PandaIndex:
         """Read the index from a robosuite (LIBERO) env's first robot and its compiled model,
-        with ``mass_index`` into ``field`` (:func:`mass_index`)."""
+        with ``mass_index`` into ``field`` (:func:`mass_index`).
+
+        Raises:
+            ValueError: the arm is not 7 hinges that are the grip site's only moving ancestors
+                (the kernel's Jacobian and end-effector velocity assume a fixed base).
+        """
+        import mujoco
+
         robot = env.robots[0]
         ctl = robot.controller
         model = env.sim.model._model
         dofs = np.asarray(ctl.qvel_index, dtype=np.int32)
+        site = int(model.site(ctl.eef_name).id)
+        ancestors, body = [], int(model.site_bodyid[site])
+        while body > 0:
+            start = int(model.body_dofadr[body])
+            ancestors += range(start, start + int(model.body_dofnum[body]))
+            body = int(model.body_parentid[body])
+        hinges = model.jnt_type[model.dof_jntid[dofs]] == mujoco.mjtJoint.mjJNT_HINGE
+        if len(dofs) != ARM_DOF or sorted(ancestors) != sorted(dofs.tolist()) or not hinges.all():
+            raise ValueError(f"{ctl.eef_name}: the arm's dofs {dofs.tolist()} are not the site's {ARM_DOF} hinges")
         gripper = np.array([model.actuator(name).id for name in robot.gripper.actuators], dtype=np.int32)
         arm_act = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.int32)
         return cls(
-            eef_site=int(model.site(ctl.eef_name).id),
+            eef_site=site,
             arm_joints=np.asarray(model.dof_jntid[dofs], dtype=np.int32),
             arm_qpos=np.asarray(ctl.qpos_index, dtype=np.int32),
             arm_dofs=dofs,
