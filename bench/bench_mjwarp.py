@@ -10,6 +10,11 @@ core, chunks of ``--chunk``, the same cameras), the baseline of the ratio::
 
     python bench/bench_mjwarp.py reference --task libero_10/0 --out out/bench/mjwarp_reference.npz
 
+``pod`` times one real pod (``vecsim pod`` on loopback) on either engine through ``/v1/step``,
+the whole serving path included::
+
+    python bench/bench_mjwarp.py pod --engine mjwarp --envs 1024 --size 256 --out out/bench/pod_mjwarp.json
+
 ``run`` (the ``mjwarp`` extra, a GPU) builds the ``mjwarp`` engine (``vecsim.engine.base.engine_kind``)
 for each camera setting and worlds-per-task count, resets every env and times chunk steps of
 ``--chunk`` actions: env-steps/s, the physics and render seconds of each call, GPU memory per
@@ -222,6 +227,62 @@ def run_spec(text: str) -> tuple[int, int]:
     return int(size), int(worlds)
 
 
+def through_pod(args: argparse.Namespace) -> None:
+    """One real pod (``vecsim pod``, uvicorn, HTTP on loopback) on ``--engine``: reset every env,
+    then time ``--calls`` chunk steps of random actions through ``/v1/step`` (wire format)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    import httpx
+
+    from vecsim import wire
+
+    spec = assignment(args.task, args.envs, args.size, args.engine)
+    record: dict[str, Any] = {"engine": args.engine, "envs": args.envs, "size": args.size, "chunk": args.chunk, "machine": args.machine}
+    url = f"http://127.0.0.1:{args.port}"
+    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as handle:
+        handle.write(spec.model_dump_json())
+    env = {**os.environ, "VECSIM_MAX_ENVS": str(args.envs), "VECSIM_BUILD_TIMEOUT_S": "900"}
+    command = [sys.executable, "-m", "service.cli", "pod", "--assignment", handle.name, "--port", str(args.port)]
+    pod = subprocess.Popen(command, env=env)
+    try:
+        started = time.monotonic()
+        with httpx.Client(timeout=300) as client:
+            while True:
+                try:
+                    if client.get(f"{url}/readyz").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass  # not listening yet
+                if pod.poll() is not None or time.monotonic() - started > args.ready_timeout_s:
+                    raise RuntimeError(f"pod not ready after {time.monotonic() - started:.0f} s")
+                time.sleep(1.0)
+            record["ready_s"] = time.monotonic() - started
+            ids = np.arange(args.envs)
+
+            def call(op: str, body: dict[str, Any]) -> dict[str, Any]:
+                answer = client.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers)
+                answer.raise_for_status()
+                return wire.decode(answer.content)
+
+            call("reset", {"generation": 0, "env_indices": ids, "state_ids": ids % 50})
+            rng = np.random.default_rng(0)
+            steps, begun = 0, time.perf_counter()
+            for _ in range(args.calls):
+                actions = rng.uniform(-0.3, 0.3, (args.envs, args.chunk, 7)).astype(np.float32)
+                answer = call("step", {"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
+                steps += int(np.asarray(answer["num_steps"]).sum())
+            elapsed = time.perf_counter() - begun
+        record.update(calls=args.calls, env_steps=steps, seconds=elapsed, env_steps_per_s=steps / elapsed)
+    finally:
+        pod.terminate()
+        pod.wait(timeout=60)
+    write(record, args.out)
+    print("RESULT", json.dumps(record))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -248,14 +309,25 @@ def main() -> None:
     go.add_argument("--reference", type=Path, default=None)
     go.add_argument("--cpu-rate", type=float, default=None, help="a CPU-pod rate measured elsewhere, printed beside only")
     go.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp.json"))
-    for command in (ref, go):
+    pod = sub.add_parser("pod", help="one real pod on an engine, timed through HTTP")
+    pod.add_argument("--engine", choices=["cpu", "mjwarp"], required=True)
+    pod.add_argument("--task", default="libero_10/0")
+    pod.add_argument("--envs", type=int, default=1024)
+    pod.add_argument("--size", type=int, default=256)
+    pod.add_argument("--chunk", type=int, default=8)
+    pod.add_argument("--calls", type=int, default=10)
+    pod.add_argument("--port", type=int, default=8100)
+    pod.add_argument("--ready-timeout-s", type=float, default=500.0)
+    pod.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp_pod.json"))
+    for command in (ref, go, pod):
         command.add_argument(
             "--machine", default=platform.node(),
             help="names the machine; a ratio to the CPU engine is given only when both steps name the same one",
         )  # fmt: skip
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    (reference if args.command == "reference" else run)(args)
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    {"reference": reference, "run": run, "pod": through_pod}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -136,13 +136,16 @@ class EngineKind:
     registry's errors) naming the field at fault. ``build(assignment, timeout_s=,
     build_timeout_s=, max_chunk=)``: the built :class:`PodEngine`, every env in state 0.
     ``steps_on_event_loop(assignment)``: whether calls are cheap enough to run on the pod's event
-    loop rather than its worker thread.
+    loop rather than its worker thread. ``task_info(assignment, task_id)``: the task's instruction
+    and its number of fixed initial states, as ``/v1/info`` answers them (raises what ``spaces``
+    raises for a task it cannot serve).
     """
 
     name: str
     spaces: Callable[[Assignment], tuple[gymnasium.Space, gymnasium.Space]]
     build: Callable[..., PodEngine]
     steps_on_event_loop: Callable[[Assignment], bool]
+    task_info: Callable[[Assignment, str], tuple[str, int]]
 
 
 def engine_kind(name: str) -> EngineKind:

@@ -38,4 +38,12 @@ def steps_on_event_loop(assignment: Assignment) -> bool:
     return not assignment.camera.names and all(get_task(b.task_id).suite == "gym" for b in assignment.tasks)
 
 
-KIND = EngineKind(name="cpu", spaces=assignment_spaces, build=build, steps_on_event_loop=steps_on_event_loop)
+def task_info(assignment: Assignment, task_id: str) -> tuple[str, int]:
+    """The task's instruction and number of fixed initial states, from the task registry."""
+    spec = get_task(task_id)
+    return spec.instruction, spec.num_states
+
+
+KIND = EngineKind(
+    name="cpu", spaces=assignment_spaces, build=build, steps_on_event_loop=steps_on_event_loop, task_info=task_info
+)

@@ -15,7 +15,7 @@ import pytest
 
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.engine.mjwarp.scene import export_scene, load_scene, load_tables, model_differences
-from vecsim.engine.tasks import make_env
+from vecsim.engine.tasks import get_task, make_env
 
 pytestmark = [pytest.mark.libero, pytest.mark.slow]
 
@@ -48,12 +48,15 @@ def test_the_exported_model_is_the_one_libero_steps_field_by_field(scene, libero
     assert model_differences(env.inner.sim.model._model, exported_model(scene, STATE)) == {}
 
 
-def test_mj_save_last_xml_alone_gets_the_masses_wrong(scene, libero, tmp_path):
-    """The trap the export works around: without the runtime inertias, masses are re-derived."""
-    reference = env_model = libero[0].inner.sim.model._model
-    mujoco.mj_saveLastXML(str(tmp_path / "raw.xml"), env_model)
+def test_mj_save_last_xml_alone_gets_the_masses_wrong(libero, tmp_path):
+    """The trap the export works around: the saved MJCF, reloaded, re-derives object masses.
+    ``mj_saveLastXML`` writes the last XML this process compiled, so LIBERO's is compiled again
+    first."""
+    inner = libero[0].inner
+    mujoco.MjModel.from_xml_string(inner.model.get_xml())
+    mujoco.mj_saveLastXML(str(tmp_path / "raw.xml"), inner.sim.model._model)
     raw = mujoco.MjModel.from_xml_path(str(tmp_path / "raw.xml"))
-    assert "body_mass" in model_differences(reference, raw)
+    assert "body_mass" in model_differences(inner.sim.model._model, raw)
 
 
 def test_a_recorded_reset_is_where_libero_s_reset_ends(scene, libero):
@@ -92,6 +95,7 @@ def test_the_manifest_names_what_the_engine_needs(scene):
     manifest = scene.manifest
     robot = manifest["robot"]
     assert manifest["task_id"] == TASK and manifest["num_states"] == 50 == len(scene.states["qpos"])
+    assert manifest["instruction"] == get_task(TASK).instruction
     assert robot["substeps"] == 25 and {"agentview", "robot0_eye_in_hand"} <= set(robot["cameras"])
     model = mujoco.MjModel.from_xml_path(str(scene.xml))
     tables = load_tables(scene)

@@ -123,23 +123,6 @@ def spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasium.Space]:
     return libero_observation_space(assignment.camera), robot_action_space()
 
 
-def csr_mass_index(mjm: Any, dofs: np.ndarray) -> np.ndarray:
-    """The ``[len(dofs)]^2`` flat indexes of the dofs' mass-matrix block in one world's ``M``
-    (MuJoCo's CSR lower triangle, ``M_rowadr``/``M_colind``), which MuJoCo Warp holds."""
-    n = len(dofs)
-    index = np.empty((n, n), dtype=np.int32)
-    for a, i in enumerate(dofs):
-        for b, j in enumerate(dofs):
-            row, col = (i, j) if j <= i else (j, i)
-            start = mjm.M_rowadr[row]
-            columns = mjm.M_colind[start : start + mjm.M_rownnz[row]]
-            where = np.flatnonzero(columns == col)
-            if where.size != 1:
-                raise ValueError(f"dof {col} is not in row {row} of M")
-            index[a, b] = start + int(where[0])
-    return index
-
-
 @dataclass
 class _Batch:
     """One task block's worlds and what runs over them."""
@@ -222,7 +205,7 @@ class MjwarpEngine:
         import mujoco_warp as mjw
         import warp as wp
 
-        from vecsim.engine.mjwarp.controller import PandaController, PandaIndex
+        from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
         from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
         from vecsim.engine.mjwarp.predicates import GoalEvaluator, GoalTable
 
@@ -235,7 +218,8 @@ class MjwarpEngine:
         model = mjw.put_model(mjm)
         data = mjw.make_data(mjm, nworld=nworld, nconmax=NCONMAX, njmax=NJMAX)
         panda = dict(tables["panda"])
-        panda["mass_index"] = csr_mass_index(mjm, panda["arm_dofs"])
+        # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
+        panda["mass_index"] = mass_index(mjm, panda["arm_dofs"])
         controller = PandaController(PandaIndex(**panda), nworld)
         observables = PandaObservables(ObservableIndex(**tables["obs"]), nworld)
         goal = GoalEvaluator(GoalTable(atoms=tuple(scene.manifest["goal"]["atoms"]), **tables["goal"]), nworld)
@@ -622,4 +606,13 @@ def build(
     return MjwarpEngine(assignment, timeout_s=timeout_s, build_timeout_s=build_timeout_s, max_chunk=max_chunk)
 
 
-KIND = EngineKind(name="mjwarp", spaces=spaces, build=build, steps_on_event_loop=lambda assignment: False)
+def task_info(assignment: Assignment, task_id: str) -> tuple[str, int]:
+    """The task's instruction and number of init states, from its exported scene (no LIBERO)."""
+    block = next(b for b in assignment.tasks if b.task_id == task_id)
+    manifest = check_scene(assignment, block).manifest
+    return manifest["instruction"], int(manifest["num_states"])
+
+
+KIND = EngineKind(
+    name="mjwarp", spaces=spaces, build=build, steps_on_event_loop=lambda assignment: False, task_info=task_info
+)

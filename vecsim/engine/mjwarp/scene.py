@@ -54,7 +54,7 @@ from vecsim.config import LiberoProtocol
 log = logging.getLogger(__name__)
 
 # Bumped whenever what a scene folder holds changes, so a stale cache is never read.
-SCENE_FORMAT = 1
+SCENE_FORMAT = 2
 ROOT_ENV = "VECSIM_MJWARP_SCENES"
 # Model fields allowed to differ after the round trip through MJCF, and by how much: MJCF holds
 # six significant digits, so values read back carry relative errors near 1e-6; fields derived
@@ -148,6 +148,8 @@ def write_model(model: Any, out: Path) -> None:
     import mujoco
 
     raw = out / "raw.xml"
+    # mj_saveLastXML writes the XML this process compiled last: the caller builds the env just
+    # before, and the field-by-field check after the export catches any other model.
     mujoco.mj_saveLastXML(str(raw), model)
     tree = ET.parse(raw)
     raw.unlink()
@@ -322,6 +324,7 @@ def export_scene(task_id: str, protocol: LiberoProtocol | None = None, root: Pat
             manifest = {
                 "format": SCENE_FORMAT,
                 "task_id": task.task_id,
+                "instruction": task.instruction,
                 "num_states": task.num_states,
                 "max_episode_steps": task.max_episode_steps,
                 "protocol": protocol.model_dump(),
