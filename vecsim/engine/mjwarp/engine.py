@@ -33,7 +33,6 @@ import os
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -147,7 +146,9 @@ class _Batch:
 
 class MjwarpEngine:
     """The envs of one assignment as MuJoCo Warp worlds, addressed by env index (a
-    :class:`~vecsim.engine.base.PodEngine`). Thread-safe: calls are serialised.
+    :class:`~vecsim.engine.base.PodEngine`). Thread-safe: calls are serialised. ``timeout_s``
+    and ``build_timeout_s`` are taken for the pod's sake and not used: there is no worker
+    process to wait for.
 
     Raises:
         InvalidRequestError: what :func:`spaces` refuses.
