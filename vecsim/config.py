@@ -31,6 +31,14 @@ FixtureRule = Literal["published", "first_reset", "lerobot"]
 # layout: while the policy works on one stage, every pod simulates another); ``pods``: each pod
 # holds one stage's envs (the seed's layout, for sim nodes apart from the trainer's).
 StageLayout = Literal["slices", "pods"]
+# What simulates a job's envs on its pods (vecsim.engine.base.ENGINES, docs/mjwarp.md): ``cpu``,
+# the worker processes on the pod's cores (LIBERO's bit-exact reference); ``mjwarp``, MuJoCo Warp
+# worlds on the pod's GPU.
+EngineName = Literal["cpu", "mjwarp"]
+ENGINE_DOC = (
+    "what simulates the envs on the job's pods: 'cpu' (worker processes, LIBERO's reference) or "
+    "'mjwarp' (MuJoCo Warp on one GPU per pod, scenes exported from the CPU engine: docs/mjwarp.md)"
+)
 STAGE_LAYOUT_DOC = (
     "how stages sit on pods: 'slices' (every pod holds envs of every stage; pods_per_stage counts "
     "all the job's pods) or 'pods' (each pod holds one stage; pods_per_stage pods per stage)"
@@ -136,6 +144,7 @@ class EnvSettings(_Model):
     """How envs are built and served, set once in the job and carried to every pod in its
     assignment: the fields :class:`JobSpec` and :class:`Assignment` share."""
 
+    engine: EngineName = Field("cpu", description=ENGINE_DOC)
     camera: CameraConfig = CameraConfig()
     render: RenderPreset | None = Field(None, description=RENDER_DOC)
     seed: int = 0

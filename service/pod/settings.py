@@ -14,7 +14,7 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from vecsim.config import POD_NAME_PATTERN, Assignment
-from vecsim.engine import DEFAULT_MAX_CHUNK
+from vecsim.engine.base import DEFAULT_MAX_CHUNK
 
 from ..settings import ServerSettings
 

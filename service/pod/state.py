@@ -19,8 +19,9 @@ from typing import Literal, TypeVar
 from prometheus_client import CollectorRegistry
 
 from vecsim.config import Assignment
-from vecsim.engine import InvalidRequestError, TaskGroupedVectorEnv, assignment_spaces
-from vecsim.engine.tasks import TaskSetupError, UnknownTaskError, get_task
+from vecsim.engine import InvalidRequestError
+from vecsim.engine.base import PodEngine, engine_kind
+from vecsim.engine.tasks import TaskSetupError, UnknownTaskError
 
 from ..models import Problem, Readiness
 from .errors import NotReadyError, StaleGenerationError
@@ -35,9 +36,9 @@ Phase = Literal["unassigned", "building", "ready", "failed"]
 
 
 def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
-    """Check that this pod can run ``assignment``: it is for this pod, fits ``max_envs``, and its
-    tasks exist and share their spaces. Cheap: builds no env (a gym task's env is made to read
-    its spaces).
+    """Check that this pod can run ``assignment``: it is for this pod, fits ``max_envs``, its
+    engine is installed here, and its tasks exist for that engine and share their spaces. Cheap:
+    builds no env (a gym task's env is made to read its spaces).
 
     Raises:
         InvalidRequestError: the message names the field at fault (422).
@@ -50,7 +51,15 @@ def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
             f"{settings.max_envs} (VECSIM_MAX_ENVS)"
         )
     try:
-        assignment_spaces(assignment)
+        kind = engine_kind(assignment.engine)
+    except ImportError as exc:
+        raise InvalidRequestError(
+            f"engine: pod {settings.name} cannot run engine {assignment.engine!r}: {exc}"
+        ) from None
+    try:
+        kind.spaces(assignment)
+    except InvalidRequestError:
+        raise
     except (UnknownTaskError, TaskSetupError, ValueError) as exc:
         message = str(exc)
         raise InvalidRequestError(message if message.startswith("tasks:") else f"tasks: {message}") from None
@@ -58,18 +67,9 @@ def check_assignment(settings: PodSettings, assignment: Assignment) -> None:
 
 def steps_on_event_loop(assignment: Assignment) -> bool:
     """Whether the pod resets and steps ``assignment``'s envs on its event loop rather than on
-    its worker thread: when every scene is cheap (a ``gym/*`` task, no camera), as
-    ``vecsim.engine.resolve_envs_per_worker`` calls them.
-
-    A call of cheap scenes takes the workers a millisecond or two, and the hand-over to the worker
-    thread and back about 0.2 ms of it; blocking the loop
-    for that long delays a health check no more than a busy loop would. Robot scenes and cameras
-    take tens to hundreds of milliseconds a call, so they stay on the worker thread. A worker
-    that hangs holds the loop with it, up to the pod's step timeout: health checks and heartbeats
-    wait too, and the controller may give the slot to a spare. Returns the decision; raises
-    nothing (tasks were checked when the assignment was taken).
-    """
-    return not assignment.camera.names and all(get_task(b.task_id).suite == "gym" for b in assignment.tasks)
+    its worker thread, as its engine decides (``EngineKind.steps_on_event_loop``: the CPU engine's
+    cheap scenes). Raises nothing (the assignment was checked when it was taken)."""
+    return engine_kind(assignment.engine).steps_on_event_loop(assignment)
 
 
 class PodState:
@@ -79,7 +79,7 @@ class PodState:
         self.settings = settings
         self.metrics = metrics
         self.assignment: Assignment | None = None
-        self.env: TaskGroupedVectorEnv | None = None
+        self.env: PodEngine | None = None
         self.phase: Phase = "unassigned"
         self.detail = "no assignment yet"
         # Names one build of the envs: new whenever they are built anew, kept when only the
@@ -94,7 +94,7 @@ class PodState:
         self._building_for: Assignment | None = None
         # Every env the worker has built and not yet closed, touched only on the worker thread,
         # so that shutdown closes an env whose build outlived the coroutine that waited for it.
-        self._live_envs: list[TaskGroupedVectorEnv] = []
+        self._live_envs: list[PodEngine] = []
 
     @property
     def generation(self) -> int | None:
@@ -136,7 +136,7 @@ class PodState:
         finally:
             call.started()  # a call cancelled before it ran
 
-    def serving_env(self, generation: int) -> TaskGroupedVectorEnv:
+    def serving_env(self, generation: int) -> PodEngine:
         """The env that serves a data-plane request made for ``generation``.
 
         Returns:
@@ -155,7 +155,7 @@ class PodState:
             )
         return self.current_env()
 
-    def current_env(self) -> TaskGroupedVectorEnv:
+    def current_env(self) -> PodEngine:
         """The env now serving, whatever the generation.
 
         Returns:
@@ -198,7 +198,7 @@ class PodState:
         self._start_build()
         return True
 
-    def rebuild_after_crash(self, env: TaskGroupedVectorEnv, reason: str) -> None:
+    def rebuild_after_crash(self, env: PodEngine, reason: str) -> None:
         """Mark the pod not ready and rebuild its envs, unless ``env`` was already replaced."""
         if env is not self.env:
             return
@@ -273,11 +273,12 @@ class PodState:
             # The assignment changed while building: this env is already out of date.
             await self.run(self._close_env, env)
 
-    def _build_env(self, assignment: Assignment) -> TaskGroupedVectorEnv:
-        """Worker thread: close what the worker holds, then build the envs. Building resets every
-        env to state 0, which renders each camera, so a built env has proven that a render works."""
+    def _build_env(self, assignment: Assignment) -> PodEngine:
+        """Worker thread: close what the worker holds, then build the envs on the assignment's
+        engine. Building resets every env to state 0, which renders each camera, so a built env
+        has proven that a render works."""
         self._close_all()
-        env = TaskGroupedVectorEnv(
+        env = engine_kind(assignment.engine).build(
             assignment,
             timeout_s=self.settings.step_timeout_s,
             build_timeout_s=self.settings.build_timeout_s,
@@ -286,7 +287,7 @@ class PodState:
         self._live_envs.append(env)
         return env
 
-    def _close_env(self, env: TaskGroupedVectorEnv) -> None:
+    def _close_env(self, env: PodEngine) -> None:
         """Worker thread: close one env, logging (not raising) a failure to close."""
         if env in self._live_envs:
             self._live_envs.remove(env)

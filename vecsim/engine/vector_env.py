@@ -32,7 +32,6 @@ import multiprocessing.connection
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
 from typing import Any
 
 import gymnasium
@@ -42,12 +41,13 @@ from gymnasium.vector.utils import create_empty_array
 from vecsim import trees
 from vecsim.config import Assignment
 from vecsim.engine import checks
+from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult
 from vecsim.engine.checks import assignment_spaces
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError, SimCrashedError
 from vecsim.engine.pool import WorkerFailure, WorkerPool, resolve_envs_per_worker
 from vecsim.engine.protocol import Order, Reply
 from vecsim.engine.tasks import get_task
-from vecsim.engine.worker import DEFAULT_MAX_CHUNK, REWARD, SUCCESS, TERMINATED, TRUNCATED, WorkerSpec
+from vecsim.engine.worker import REWARD, SUCCESS, TERMINATED, TRUNCATED, WorkerSpec
 
 log = logging.getLogger("vecsim.engine.vector_env")
 
@@ -61,42 +61,6 @@ def _gather(tree: Any, workers: np.ndarray, local_indices: np.ndarray) -> Any:
     if isinstance(tree, tuple):
         return tuple(_gather(sub, workers, local_indices) for sub in tree)
     return tree[workers, local_indices]
-
-
-@dataclass(frozen=True)
-class CallTiming:
-    """Worker seconds of one reset or step call, summed over the pod's workers: ``physics_s``
-    in the scenes' resets and steps, ``render_s`` rendering their cameras; and ``renders``, how
-    many env renders (all of one env's cameras drawn once) the call made."""
-
-    physics_s: float = 0.0
-    render_s: float = 0.0
-    renders: int = 0
-
-
-@dataclass(frozen=True)
-class ChunkResult:
-    """What one chunk step answers, over the named envs in the given order (n envs, chunk K).
-
-    ``reward`` float64, ``terminated``, ``truncated``, ``success`` bool, all ``[n, K]``: entry
-    ``[i, k]`` belongs to env i's action k, zero/false from the action after env i stopped on.
-    ``num_steps`` int32 ``[n]``: actions applied (K unless the env terminated or truncated first).
-    ``obs``: the observation after each env's last applied action, batched ``[n, ...]``.
-    ``frames``: ``{camera: uint8[m, K, H, W, 3]}`` for the m recorded envs, in the order asked,
-    the frame after each applied action (zeros after the env stopped); empty when none is recorded.
-    ``env_info``: per row, the env's own info after its last applied action (``{}`` where it has
-    none beyond vecsim's keys). ``errors``: the envs that raised (:class:`EnvError`), in row order.
-    """
-
-    obs: dict[str, Any]
-    reward: np.ndarray
-    terminated: np.ndarray
-    truncated: np.ndarray
-    success: np.ndarray
-    num_steps: np.ndarray
-    frames: dict[str, np.ndarray]
-    env_info: list[dict[str, Any]] = dataclasses.field(default_factory=list)
-    errors: list[EnvError] = dataclasses.field(default_factory=list)
 
 
 class TaskGroupedVectorEnv:

@@ -39,6 +39,7 @@ from gymnasium.vector.utils import batch_space, read_from_shared_memory
 from vecsim import wire
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
 from vecsim.engine import protocol
+from vecsim.engine.base import DEFAULT_MAX_CHUNK
 from vecsim.engine.errors import SimBuildError
 from vecsim.engine.protocol import Order, Reply
 from vecsim.engine.tasks import TaskEnv, episode_limit, make_env
@@ -48,8 +49,6 @@ log = logging.getLogger("vecsim.engine.worker")
 
 # Columns of a worker's per-env, per-action result rows.
 REWARD, TERMINATED, TRUNCATED, SUCCESS = 0, 1, 2, 3
-# The longest chunk a pod takes by default: the chunk axis of a worker's shared result rows.
-DEFAULT_MAX_CHUNK = 64
 
 
 def _describe(task_ids: Sequence[str], env_indices: Sequence[int]) -> str:

@@ -8,12 +8,13 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+import gymnasium
 import numpy as np
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from PIL import Image
 
 from vecsim import wire
-from vecsim.engine import CallTiming, EnvError, InvalidRequestError, SimCrashedError, TaskGroupedVectorEnv, UnknownEnvError
+from vecsim.engine import CallTiming, EnvError, InvalidRequestError, PodEngine, SimCrashedError, UnknownEnvError
 from vecsim.info import batch_infos
 from vecsim.spaces import tuples_as_dicts
 
@@ -86,7 +87,7 @@ def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]]
 
 def step_answer(ids: np.ndarray, result: tuple[Any, Any, Any, Any, dict[str, Any]]) -> dict[str, Any]:
     """``/v1/step``'s answer to one action per env, before it is encoded: built from what
-    ``TaskGroupedVectorEnv.step_envs(ids, ...)`` returned (``result``)."""
+    ``PodEngine.step_envs(ids, ...)`` returned (``result``)."""
     obs, reward, terminated, truncated, info = result
     answer = {
         "env_indices": ids.astype(np.int32),
@@ -101,7 +102,7 @@ def step_answer(ids: np.ndarray, result: tuple[Any, Any, Any, Any, dict[str, Any
 
 def reset_answer(ids: np.ndarray, obs: Any, info: dict[str, Any]) -> dict[str, Any]:
     """``/v1/reset``'s answer (and a step's ``reset``), before it is encoded: built from what
-    ``TaskGroupedVectorEnv.reset_envs(ids, ...)`` returned."""
+    ``PodEngine.reset_envs(ids, ...)`` returned."""
     answer = {
         "env_indices": ids.astype(np.int32),
         "obs": tuples_as_dicts(obs),
@@ -110,7 +111,7 @@ def reset_answer(ids: np.ndarray, obs: Any, info: dict[str, Any]) -> dict[str, A
     return _own(answer, ids, info["env_info"], info["errors"])
 
 
-async def _simulate(state: PodState, env: TaskGroupedVectorEnv, work: Callable[[], T]) -> T:
+async def _simulate(state: PodState, env: PodEngine, work: Callable[[], T]) -> T:
     """Run ``work`` on the worker thread, or right here for cheap scenes (``state.inline``),
     turning the simulation's errors into HTTP errors."""
     try:
@@ -294,7 +295,8 @@ async def frame(
     its last reset or step; nothing is stepped or reset."""
     env = state.current_env()
     if camera is None:
-        images = env._images_space()
+        space = env.single_observation_space
+        images = space.spaces.get("images") if isinstance(space, gymnasium.spaces.Dict) else None
         if images is None or not images.spaces:
             raise InvalidRequestError(f"camera: pod {state.settings.name} renders no cameras")
         camera = next(iter(images.spaces))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
+from vecsim.engine.base import engine_kind
 from vecsim.spaces import space_to_json
-from vecsim.engine.tasks import get_task
 
 from ..deps import get_state
 from ..models import InfoResponse, TaskInfo
@@ -22,12 +22,13 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
     env = state.env
     tasks = []
     for block in [] if assignment is None else assignment.tasks:
-        spec = get_task(block.task_id)
+        # The engine's own account: an mjwarp pod reads its exported scenes, not LIBERO.
+        instruction, num_states = engine_kind(assignment.engine).task_info(assignment, block.task_id)
         tasks.append(
             TaskInfo(
                 task_id=block.task_id,
-                instruction=spec.instruction,
-                num_states=spec.num_states,
+                instruction=instruction,
+                num_states=num_states,
                 env_start=block.env_start,
                 num_envs=block.num_envs,
                 stage_id=block.stage_id,

@@ -1,0 +1,619 @@
+"""The ``mjwarp`` engine: a pod's LIBERO envs as MuJoCo Warp worlds on one GPU.
+
+Each task block of an assignment is one batch of worlds (one MuJoCo Warp model, ``nworld`` =
+the block's envs), built from the task's exported scene (:mod:`vecsim.engine.mjwarp.scene`).
+Per env action, 25 physics substeps run as robosuite runs them: ``step1`` (positions and
+velocities), then the batched OSC_POSE and gripper controller writes ``ctrl`` (its goal taken at
+the first substep), then ``step2`` (actuation, constraints, integration). After each action the
+success predicates, the 8-float state and proprio are computed on the GPU; cameras are drawn
+once per chunk, after the last action, by MuJoCo Warp's ray tracer.
+
+What a call guarantees, as on the CPU engine:
+
+- arguments are checked before anything moves (a refused call changes nothing);
+- a reset to ``(task, k)`` starts every world exactly where a CPU pod's reset to ``k`` ended,
+  settle steps included (the state was recorded at export), and answers that reset's own
+  observation;
+- only the named envs move: MuJoCo Warp steps every world of a batch, so the state of each
+  world that is not stepping (not named, or ended earlier in the chunk) is put back after each
+  action;
+- a world whose contact or constraint buffers overflowed (``nconmax``, ``njmax``) or whose state
+  is no longer finite is that env's error, never a NaN observation; it must be reset.
+
+Not supported (refused when the assignment is taken): tasks whose goal has no batched predicate
+yet, fixtures that move from one init state to the next, render presets other than ``full``,
+``reset`` with seeds, and attribute calls (``get_attr``/``call``/``set_attr``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium.vector.utils import create_empty_array
+
+from vecsim.config import Assignment, TaskBlock
+from vecsim.engine import checks
+from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
+from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
+from vecsim.engine.mjwarp.scene import Scene, load_scene, load_tables, scene_dir
+from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
+from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
+
+log = logging.getLogger(__name__)
+
+# Contact and constraint rows per world. CPU MuJoCo holds about 99 constraint rows on LIBERO-10
+# task 0; MuJoCo Warp's defaults overflowed there, these did not.
+NCONMAX = int(os.environ.get("VECSIM_MJWARP_NCONMAX", "96"))
+NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
+# The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
+# render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
+GEOM_GROUPS = [1, 2]
+# State arrays that make up a world between actions: what is put back where a world does not step.
+_DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
+_CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
+
+
+def _missing_packages() -> list[str]:
+    return [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
+
+
+def _suite(task_id: str) -> str:
+    return task_id.partition("/")[0]
+
+
+def check_scene(assignment: Assignment, block: TaskBlock) -> Scene:
+    """The exported scene of ``block``'s task, checked against what this engine serves.
+
+    Raises:
+        InvalidRequestError: the field at fault named.
+    """
+    task_id = block.task_id
+    if _suite(task_id) not in LIBERO_SUITES:
+        raise InvalidRequestError(f"tasks: {task_id!r} is not a LIBERO task; the mjwarp engine serves LIBERO tasks only")
+    path = scene_dir(task_id, assignment.libero)
+    try:
+        scene = load_scene(path)
+    except (FileNotFoundError, ValueError) as exc:
+        raise InvalidRequestError(f"tasks: {task_id}: {exc}") from None
+    goal = scene.manifest["goal"]
+    if goal["atoms"] is None:
+        raise InvalidRequestError(f"tasks: {task_id}: the mjwarp engine has no batched success predicate for it: {goal['unsupported']}")
+    if scene.manifest["fixtures_vary"]:
+        raise InvalidRequestError(
+            f"tasks: {task_id}: its fixtures move from one init state to the next, and the mjwarp engine holds "
+            "one model per task; serve it on the cpu engine, or with libero.fixture_rule 'first_reset'"
+        )
+    missing = [name for name in assignment.camera.names if name not in scene.manifest["robot"]["cameras"]]
+    if missing:
+        raise InvalidRequestError(f"camera: {task_id} has no camera {missing[0]!r}")
+    return scene
+
+
+def spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasium.Space]:
+    """Check that the mjwarp engine can run ``assignment``; return its spaces (the CPU engine's
+    for the same LIBERO tasks and cameras).
+
+    Raises:
+        InvalidRequestError: the field at fault named: ``engine`` (the extra is not installed),
+            ``tasks``, ``camera``, ``render``, ``make_kwargs``.
+    """
+    if assignment.tasks:
+        missing = _missing_packages()
+        if missing:
+            raise InvalidRequestError(
+                f"engine: the mjwarp engine needs the mjwarp extra (pip install 'vecsim[mjwarp]'); missing {missing}"
+            )
+    if assignment.render not in (None, "full"):
+        raise InvalidRequestError(f"render: the mjwarp engine draws with MuJoCo Warp's ray tracer only; {assignment.render!r} is a CPU preset")
+    if assignment.make_kwargs:
+        raise InvalidRequestError("make_kwargs: the mjwarp engine serves LIBERO tasks, which take none")
+    for block in assignment.tasks:
+        check_scene(assignment, block)
+    if not assignment.tasks:
+        return gymnasium.spaces.Dict({}), gymnasium.spaces.Box(-1.0, 1.0, (0,), np.float32)
+    return libero_observation_space(assignment.camera), robot_action_space()
+
+
+@dataclass
+class _Batch:
+    """One task block's worlds and what runs over them."""
+
+    block: TaskBlock
+    scene: Scene
+    mjm: Any
+    model: Any
+    data: Any
+    controller: Any
+    observables: Any
+    goal: Any
+    render: Any
+    max_steps: int
+    # The action of every world for the action being applied (zeros where a world does not step).
+    action: Any
+    # One camera's pixels of every world, uint8 [nworld, H, W, 3] (None without cameras).
+    pixels: Any = None
+    # One action's substeps as a CUDA graph, captured at the first action (None on a CPU device).
+    graph: Any = None
+
+
+class MjwarpEngine:
+    """The envs of one assignment as MuJoCo Warp worlds, addressed by env index (a
+    :class:`~vecsim.engine.base.PodEngine`). Thread-safe: calls are serialised. ``timeout_s``
+    and ``build_timeout_s`` are taken for the pod's sake and not used: there is no worker
+    process to wait for.
+
+    Raises:
+        InvalidRequestError: what :func:`spaces` refuses.
+        SimBuildError: a scene failed to load or MuJoCo Warp failed to build.
+    """
+
+    def __init__(
+        self,
+        assignment: Assignment,
+        *,
+        timeout_s: float | None = None,
+        build_timeout_s: float | None = None,
+        max_chunk: int = DEFAULT_MAX_CHUNK,
+    ) -> None:
+        if max_chunk < 1:
+            raise ValueError(f"max_chunk: must be at least 1, got {max_chunk}")
+        self.assignment = assignment
+        self.max_chunk = max_chunk
+        self.single_observation_space, self.single_action_space = spaces(assignment)
+        self.num_envs = assignment.num_envs
+        self.task_ids: list[str] = [b.task_id for b in assignment.tasks for _ in range(b.num_envs)]
+        self.last_timing = CallTiming()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._num_states = np.zeros(self.num_envs, dtype=np.int64)
+        # The envs' last observation and success, answered for envs a call does not move.
+        self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
+        self._steps = np.zeros(self.num_envs, dtype=np.int64)
+        self._last_success = np.zeros(self.num_envs, dtype=bool)
+        self._broken: dict[int, str] = {}
+        self._batches: list[_Batch] = []
+        if not assignment.tasks:
+            return
+        started = time.monotonic()
+        try:
+            for block in assignment.tasks:
+                if block.num_envs:
+                    self._batches.append(self._build(block))
+                    self._num_states[block.env_start : block.env_start + block.num_envs] = self._batches[-1].scene.num_states
+            log.info("mjwarp: compiling the step, controller, predicates and renderer kernels (first run: minutes)")
+            self.reset_envs(np.arange(self.num_envs), np.zeros(self.num_envs, dtype=np.int64))
+            actions = np.zeros((self.num_envs, 1, *self.single_action_space.shape), dtype=np.float32)
+            actions[..., -1] = -1.0
+            self.chunk_step_envs(np.arange(self.num_envs), actions)
+            self.reset_envs(np.arange(self.num_envs), np.zeros(self.num_envs, dtype=np.int64))
+        except InvalidRequestError:
+            raise
+        except Exception as exc:
+            raise SimBuildError(f"mjwarp: building {self.num_envs} worlds failed: {type(exc).__name__}: {exc}") from exc
+        log.info("mjwarp: %d worlds in %d batches ready in %.1f s (kernels compiled, one chunk run)",
+                 self.num_envs, len(self._batches), time.monotonic() - started)
+
+    def _build(self, block: TaskBlock) -> _Batch:
+        import mujoco
+        import mujoco_warp as mjw
+        import warp as wp
+
+        from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
+        from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
+        from vecsim.engine.mjwarp.predicates import GoalEvaluator, GoalTable
+
+        scene = check_scene(self.assignment, block)
+        tables = load_tables(scene)
+        mjm = mujoco.MjModel.from_xml_path(str(scene.xml))
+        states = scene.states
+        mjm.body_pos[:], mjm.body_quat[:] = states["body_pos"][0], states["body_quat"][0]
+        nworld = block.num_envs
+        model = mjw.put_model(mjm)
+        data = mjw.make_data(mjm, nworld=nworld, nconmax=NCONMAX, njmax=NJMAX)
+        panda = dict(tables["panda"])
+        # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
+        panda["mass_index"] = mass_index(mjm, panda["arm_dofs"])
+        controller = PandaController(PandaIndex(**panda), nworld)
+        observables = PandaObservables(ObservableIndex(**tables["obs"]), nworld)
+        goal = GoalEvaluator(GoalTable(atoms=tuple(scene.manifest["goal"]["atoms"]), **tables["goal"]), nworld)
+        render = None
+        camera = self.assignment.camera
+        if camera.names:
+            render = mjw.create_render_context(
+                mjm, nworld=nworld, cam_res=(camera.width, camera.height), render_rgb=True, render_depth=False,
+                cam_active=list(camera.names), enabled_geom_groups=GEOM_GROUPS,
+            )  # fmt: skip
+        limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
+        log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
+        action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
+        pixels = None
+        if render is not None:
+            pixels = wp.zeros((nworld, camera.height, camera.width, 3), dtype=wp.uint8, device=controller.device)
+        return _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action, pixels)
+
+    # The PodEngine calls.
+
+    def reset_envs(
+        self, env_indices: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset the named envs to LIBERO's init states (after their settle steps); no other env
+        changes. ``seeds`` (the envs' own reset) is refused: a LIBERO env starts from its init
+        states only."""
+        ids = checks.env_indices(env_indices, self.num_envs)
+        if seeds is not None or state_ids is None:
+            raise InvalidRequestError("seeds: the mjwarp engine resets LIBERO envs to state_ids only")
+        states = checks.state_ids(state_ids, ids, self._num_states, self.task_ids)
+        if options:
+            raise InvalidRequestError("options: go with seeds (the envs' own reset), not with state_ids")
+        with self._lock:
+            self._check_open()
+            started = time.perf_counter()
+            for batch, rows, worlds in self._split(ids):
+                self._reset_worlds(batch, worlds, states[rows])
+            physics = time.perf_counter() - started
+            render_s, renders = self._render(ids)
+            self.last_timing = CallTiming(physics_s=physics, render_s=render_s, renders=renders)
+            obs = self._gather(ids)
+            success = self._last_success[ids].copy()
+        info = {"success": success, "task_id": [self.task_ids[e] for e in ids], "env_info": [{} for _ in ids], "errors": []}
+        return obs, info
+
+    def step_envs(self, env_indices: Any, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
+        """Step the named envs one action each (a chunk of one)."""
+        ids = checks.env_indices(env_indices, self.num_envs)
+        result = self.chunk_step_envs(ids, checks.actions(actions, ids, self.single_action_space))
+        info = {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors}
+        return result.obs, result.reward[:, 0], result.terminated[:, 0], result.truncated[:, 0], info
+
+    def chunk_step_envs(
+        self, env_indices: Any, actions: Any, record_env_indices: Any = (), step_past_end: bool = False
+    ) -> ChunkResult:
+        """Apply ``chunk`` (``[n, K, 7]``) to the named envs in order, each stopping at its first
+        termination or truncation unless ``step_past_end``; cameras drawn once, after the chunk."""
+        ids = checks.env_indices(env_indices, self.num_envs)
+        chunk = checks.chunk(actions, ids, self.single_action_space, self.max_chunk).astype(np.float32)
+        if checks.record(record_env_indices, ids).size:
+            raise InvalidRequestError("record_env_indices: the mjwarp engine does not record per-action frames yet")
+        n, k = chunk.shape[:2]
+        reward = np.zeros((n, k), dtype=np.float64)
+        terminated = np.zeros((n, k), dtype=bool)
+        truncated = np.zeros((n, k), dtype=bool)
+        success = np.zeros((n, k), dtype=bool)
+        num_steps = np.zeros(n, dtype=np.int32)
+        errors: list[EnvError] = []
+        if n == 0 or k == 0:
+            return ChunkResult(self._gather(ids), reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], [])
+        with self._lock:
+            self._check_open()
+            started = time.perf_counter()
+            for batch, rows, worlds in self._split(ids):
+                broken = [r for r, e in zip(rows, ids[rows]) if int(e) in self._broken]
+                for r in broken:
+                    errors.append(EnvError(int(r), "SimStateError", self._broken[int(ids[r])]))
+                live = np.array([r for r in rows if r not in broken], dtype=np.int64)
+                if live.size:
+                    self._step_batch(batch, ids, live, chunk, reward, terminated, truncated, success, num_steps, step_past_end, errors)
+            physics = time.perf_counter() - started
+            moved = ids[num_steps > 0]
+            render_s, renders = self._render(moved)
+            self.last_timing = CallTiming(physics_s=physics, render_s=render_s, renders=renders)
+            obs = self._gather(ids)
+        errors.sort(key=lambda e: e.row)
+        return ChunkResult(obs, reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], errors)
+
+    def reset_and_step_envs(
+        self,
+        reset_env_indices: Any,
+        state_ids: Any,
+        env_indices: Any,
+        actions: Any,
+        *,
+        chunked: bool = True,
+        record_env_indices: Any = (),
+        step_past_end: bool = False,
+    ) -> tuple[tuple[Any, dict[str, Any]], ChunkResult]:
+        """Reset some envs and step others in one call (a refill): the resets first."""
+        reset_ids = checks.env_indices(reset_env_indices, self.num_envs, "reset_env_indices")
+        step_ids = checks.env_indices(env_indices, self.num_envs)
+        if np.intersect1d(reset_ids, step_ids).size:
+            raise InvalidRequestError("reset_env_indices: an env is both reset and stepped")
+        if chunked:
+            chunk = checks.chunk(actions, step_ids, self.single_action_space, self.max_chunk)
+        else:
+            chunk = checks.actions(actions, step_ids, self.single_action_space)
+        checks.record(record_env_indices, step_ids)
+        # Checked before the resets, so a refused call changes nothing.
+        reset_states = checks.state_ids(state_ids, reset_ids, self._num_states, self.task_ids, "reset_state_ids")
+        reset = self.reset_envs(reset_ids, reset_states)
+        return reset, self.chunk_step_envs(step_ids, chunk, record_env_indices, step_past_end)
+
+    def frame(self, env_index: int, camera: str) -> np.ndarray:
+        """A copy of the uint8 HxWx3 image ``camera`` of env ``env_index`` saw last."""
+        ids = checks.env_indices(np.array([env_index]), self.num_envs)
+        if camera not in self.assignment.camera.names:
+            raise InvalidRequestError(f"camera: no camera {camera!r}; cameras: {list(self.assignment.camera.names)}")
+        with self._lock:
+            return np.array(self._obs["images"][camera][ids[0]])
+
+    def env_attr(self, env_indices: Any, op: str, name: Any, payload: Any = None) -> tuple[list[Any], list[EnvError]]:
+        """Refused: a MuJoCo Warp world has no Python env object to read or call."""
+        ids = checks.env_indices(env_indices, self.num_envs)
+        if ids.size == 0:
+            return [], []
+        raise InvalidRequestError(f"name: the mjwarp engine has no env attributes to {op} ({name!r})")
+
+    def close(self) -> None:
+        """Free the worlds. Idempotent."""
+        with self._lock:
+            self._closed = True
+            self._batches = []
+
+    def __enter__(self) -> MjwarpEngine:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # Internals.
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise InvalidRequestError("engine: the mjwarp engine is closed")
+
+    def _split(self, ids: np.ndarray) -> list[tuple[_Batch, np.ndarray, np.ndarray]]:
+        """The call's rows per batch: ``(batch, rows of ids, world indices)``."""
+        out = []
+        for batch in self._batches:
+            start, count = batch.block.env_start, batch.block.num_envs
+            rows = np.flatnonzero((ids >= start) & (ids < start + count))
+            if rows.size:
+                out.append((batch, rows, ids[rows] - start))
+        return out
+
+    def _reset_worlds(self, batch: _Batch, worlds: np.ndarray, states: np.ndarray) -> None:
+        import mujoco_warp as mjw
+        import warp as wp
+
+        recorded = batch.scene.states
+        data = batch.data
+        for name in _DATA_STATE:
+            values = getattr(data, name).numpy()
+            values[worlds] = recorded[name][states]
+            getattr(data, name).assign(values)
+        mask = np.zeros(batch.block.num_envs, dtype=np.int32)
+        mask[worlds] = 1
+        full = np.zeros((batch.block.num_envs, 7), dtype=np.float32)
+        full[worlds] = recorded["initial_joint"][states]
+        goal_pos = np.zeros((batch.block.num_envs, 3), dtype=np.float32)
+        goal_pos[worlds] = recorded["goal_pos"][states]
+        goal_ori = np.zeros((batch.block.num_envs, 3, 3), dtype=np.float32)
+        goal_ori[worlds] = recorded["goal_ori"][states]
+        device = batch.controller.device
+        batch.controller.reset(
+            wp.array(mask, dtype=wp.int32, device=device), wp.array(full, dtype=wp.float32, device=device),
+            wp.array(goal_pos, dtype=wp.vec3, device=device), wp.array(goal_ori, dtype=wp.mat33, device=device),
+        )  # fmt: skip
+        command = batch.controller.gripper_command.numpy()
+        command[worlds] = recorded["gripper_action"][states]
+        batch.controller.gripper_command.assign(command)
+        data.overflow.zero_()
+        # Derived quantities at the restored state, for the camera; the observation is the one
+        # the CPU pod answered for this reset.
+        mjw.forward(batch.model, data)
+        envs = worlds + batch.block.env_start
+        self._obs["state"][envs] = recorded["obs_state"][states]
+        self._obs["proprio"][envs] = recorded["obs_proprio"][states]
+        self._last_success[envs] = recorded["success"][states]
+        self._steps[envs] = 0
+        for env in envs:
+            self._broken.pop(int(env), None)
+
+    def _snapshot(self, batch: _Batch) -> dict[str, np.ndarray]:
+        arrays = {name: getattr(batch.data, name).numpy() for name in _DATA_STATE}
+        arrays.update({f"controller.{n}": getattr(batch.controller, n).numpy() for n in _CONTROLLER_STATE})
+        return arrays
+
+    def _put_back(self, batch: _Batch, saved: dict[str, np.ndarray], frozen: np.ndarray) -> None:
+        """Give the ``frozen`` worlds (bool per world) their ``saved`` state again."""
+        for key, before in saved.items():
+            owner, name = (batch.controller, key.split(".", 1)[1]) if key.startswith("controller.") else (batch.data, key)
+            array = getattr(owner, name)
+            now = array.numpy()
+            now[frozen] = before[frozen]
+            array.assign(now)
+
+    def _step_batch(
+        self,
+        batch: _Batch,
+        ids: np.ndarray,
+        rows: np.ndarray,
+        actions: np.ndarray,
+        reward: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        success: np.ndarray,
+        num_steps: np.ndarray,
+        step_past_end: bool,
+        errors: list[EnvError],
+    ) -> None:
+        nworld = batch.block.num_envs
+        worlds = ids[rows] - batch.block.env_start
+        running = np.zeros(nworld, dtype=bool)
+        running[worlds] = True
+        saved = self._snapshot(batch)
+        data = batch.data
+        world_action = np.zeros((nworld, actions.shape[2]), dtype=np.float32)
+        row_of_world = {int(w): int(r) for w, r in zip(worlds, rows)}
+        world_rows = np.full(nworld, -1, dtype=np.int64)
+        world_rows[worlds] = rows
+        for k in range(actions.shape[1]):
+            if not running.any():
+                break
+            world_action[:] = 0.0
+            world_action[worlds] = actions[rows, k]
+            batch.action.assign(world_action)
+            _apply_action(batch)
+            overflow = data.overflow.numpy()
+            qpos, qvel = data.qpos.numpy(), data.qvel.numpy()
+            state, proprio = batch.observables.state.numpy(), batch.observables.proprio.numpy()
+            won = batch.goal.success.numpy().astype(bool)
+            frozen = ~running
+            # Every running world's outcome of this action, as arrays over worlds.
+            finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
+            failed = running & (((overflow & _OVERFLOW_BITS) != 0) | ~finite)
+            for world in np.flatnonzero(failed):
+                row = row_of_world[int(world)]
+                env = int(ids[row])
+                reason = _overflow_reason(int(overflow[world])) or "the state is no longer finite"
+                message = f"env {env}: MuJoCo Warp {reason} at action {k}; reset it"
+                self._broken[env] = message
+                errors.append(EnvError(row, "SimStateError", message))
+            running &= ~failed
+            frozen |= failed
+            stepped = np.flatnonzero(running)
+            rows_now = world_rows[stepped]
+            envs_now = ids[rows_now]
+            num_steps[rows_now] += 1
+            self._steps[envs_now] += 1
+            success[rows_now, k] = won[stepped]
+            reward[rows_now, k] = won[stepped]
+            terminated[rows_now, k] = won[stepped]
+            truncated[rows_now, k] = self._steps[envs_now] >= batch.max_steps
+            self._obs["state"][envs_now] = state[stepped]
+            self._obs["proprio"][envs_now] = proprio[stepped]
+            self._last_success[envs_now] = won[stepped]
+            ended = [] if step_past_end else stepped[terminated[rows_now, k] | truncated[rows_now, k]].tolist()
+            # Those stop here: from the next action on, they are put back to this state.
+            running[ended] = False
+            if ended:
+                now = self._snapshot(batch)
+                for key, values in now.items():
+                    saved[key][ended] = values[ended]
+            if frozen.any():
+                self._put_back(batch, saved, frozen)
+
+    def _render(self, ids: np.ndarray) -> tuple[float, int]:
+        """Draw every camera of the batches holding ``ids`` (MuJoCo Warp draws every world of a
+        batch); copy the named envs' images. Returns seconds and env renders."""
+        if not self.assignment.camera.names or ids.size == 0:
+            return 0.0, 0
+        import mujoco_warp as mjw
+
+        from vecsim.engine.mjwarp import frames
+
+        started = time.perf_counter()
+        renders = 0
+        camera = self.assignment.camera
+        orientation = self.assignment.libero.image_orientation
+        for batch, rows, worlds in self._split(ids):
+            rc = batch.render
+            mjw.refit_bvh(batch.model, batch.data, rc)
+            mjw.render(batch.model, batch.data, rc)
+            first = rc.rgb_adr.numpy()
+            start, count = batch.block.env_start, batch.block.num_envs
+            for index, name in enumerate(camera.names):
+                frames.unpack(rc.rgb_data, first[index], camera.height, camera.width, orientation, batch.pixels)
+                host = batch.pixels.numpy()
+                if worlds.size == count:
+                    self._obs["images"][name][start : start + count] = host
+                else:
+                    # Only the named worlds: the others were put back, their pixels are stale.
+                    self._obs["images"][name][worlds + start] = host[worlds]
+            renders += len(worlds)
+        return time.perf_counter() - started, renders
+
+    def _gather(self, ids: np.ndarray) -> dict[str, Any]:
+        def pick(tree: Any) -> Any:
+            if isinstance(tree, dict):
+                return {key: pick(sub) for key, sub in tree.items()}
+            return tree[ids]
+
+        return pick(self._obs)
+
+
+def _action_substeps(batch: _Batch) -> None:
+    """One env action in every world of ``batch``: its physics substeps as robosuite runs them
+    (controller between ``step1`` and ``step2``), then the observables and the goal."""
+    import mujoco_warp as mjw
+
+    data, model, controller, action = batch.data, batch.model, batch.controller, batch.action
+    data.overflow.zero_()
+    for substep in range(int(batch.scene.manifest["robot"]["substeps"])):
+        mjw.step1(model, data)
+        if substep == 0:
+            controller.set_goal(action, data.site_xpos, data.site_xmat)
+        controller.apply(action, data.qpos, data.qvel, data.M, data.qfrc_bias, data.site_xpos,
+                         data.site_xmat, data.xanchor, data.xaxis, data.ctrl)  # fmt: skip
+        mjw.step2(model, data)
+    batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
+    batch.goal.evaluate(data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon,
+                        data.contact.geom, data.contact.worldid)  # fmt: skip
+
+
+def _apply_action(batch: _Batch) -> None:
+    """Run :func:`_action_substeps` on ``batch``: on a GPU as one CUDA graph, captured the first
+    time (a few hundred kernel launches an action otherwise cost more than the kernels)."""
+    import warp as wp
+
+    device = batch.controller.device
+    if not device.is_cuda:
+        _action_substeps(batch)
+        return
+    if batch.graph is None:
+        # The first action runs as it is, which compiles and loads every kernel it launches;
+        # a capture records launches without running them.
+        _action_substeps(batch)
+        with wp.ScopedCapture(device=device) as capture:
+            _action_substeps(batch)
+        batch.graph = capture.graph
+        return
+    wp.capture_launch(batch.graph)
+
+
+# Overflows that make a world's trajectory wrong (MuJoCo Warp's OverflowType bits); an iteration
+# limit reached is not one of them.
+_OVERFLOWS = {1 << 0: "ran out of constraint rows (njmax)", 1 << 1: "ran out of constraint nonzeros",
+              1 << 2: "overflowed its broadphase", 1 << 3: "ran out of contacts (nconmax)",
+              1 << 4: "overflowed its collision buffers (CCD)", 1 << 7: "overflowed its island buffers",
+              1 << 8: "overflowed its EPA buffers"}  # fmt: skip
+
+
+_OVERFLOW_BITS = sum(_OVERFLOWS)
+
+
+def _overflow_reason(bits: int) -> str | None:
+    for bit, reason in _OVERFLOWS.items():
+        if bits & bit:
+            return reason
+    return None
+
+
+def build(
+    assignment: Assignment,
+    *,
+    timeout_s: float | None = None,
+    build_timeout_s: float | None = None,
+    max_chunk: int = DEFAULT_MAX_CHUNK,
+) -> MjwarpEngine:
+    """The assignment's worlds, every env in state 0, kernels compiled and one chunk run."""
+    return MjwarpEngine(assignment, timeout_s=timeout_s, build_timeout_s=build_timeout_s, max_chunk=max_chunk)
+
+
+def task_info(assignment: Assignment, task_id: str) -> tuple[str, int]:
+    """The task's instruction and number of init states, from its exported scene (no LIBERO)."""
+    block = next(b for b in assignment.tasks if b.task_id == task_id)
+    manifest = check_scene(assignment, block).manifest
+    return manifest["instruction"], int(manifest["num_states"])
+
+
+KIND = EngineKind(
+    name="mjwarp", spaces=spaces, build=build, steps_on_event_loop=lambda assignment: False, task_info=task_info
+)

@@ -1,0 +1,46 @@
+"""MuJoCo Warp's rendered pixels as the pod's camera images, laid out on the GPU.
+
+MuJoCo Warp's ray tracer leaves each world's pixels packed (one ``uint32`` ``0xAABBGGRR``-like
+word per pixel, row 0 at the top) in its render context. :func:`unpack` writes one camera's
+pixels of every world as ``uint8 [nworld, H, W, 3]`` RGB in the layout the job asks for
+(``image_orientation``: ``upright``, ``raw`` rows reversed, ``rotate180`` columns reversed), so
+that one contiguous copy brings them to the host.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+FLIPS = {"upright": (0, 0), "raw": (1, 0), "rotate180": (0, 1)}
+
+
+@wp.kernel
+def _unpack_rgb(
+    packed: wp.array2d(dtype=wp.uint32),
+    first: int,
+    height: int,
+    width: int,
+    flip_rows: int,
+    flip_cols: int,
+    out: wp.array4d(dtype=wp.uint8),
+):
+    world, pixel = wp.tid()
+    x = pixel % width
+    y = pixel // width
+    if flip_rows != 0:
+        y = height - 1 - y
+    if flip_cols != 0:
+        x = width - 1 - x
+    word = packed[world, first + pixel]
+    out[world, y, x, 0] = wp.uint8((word >> wp.uint32(16)) & wp.uint32(0xFF))
+    out[world, y, x, 1] = wp.uint8((word >> wp.uint32(8)) & wp.uint32(0xFF))
+    out[world, y, x, 2] = wp.uint8(word & wp.uint32(0xFF))
+
+
+def unpack(packed: wp.array, first: int, height: int, width: int, orientation: str, out: wp.array) -> None:
+    """Write the camera whose pixels start at ``first`` in ``packed`` into ``out``."""
+    flip_rows, flip_cols = FLIPS[orientation]
+    wp.launch(
+        _unpack_rgb, dim=(packed.shape[0], height * width), device=packed.device,
+        inputs=[packed, int(first), height, width, flip_rows, flip_cols], outputs=[out],
+    )  # fmt: skip
