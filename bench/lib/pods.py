@@ -21,7 +21,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from common import spread
+from .records import spread
 
 import service
 from service.runner.ports import free_port, free_port_block
