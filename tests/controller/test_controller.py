@@ -252,15 +252,6 @@ async def test_a_job_whose_tasks_have_different_spaces_is_refused_naming_them():
         assert "'gym/MountainCarContinuous-v0' has other observation/action spaces than 'gym/Pendulum-v1'" in response.text
 
 
-async def test_a_job_with_a_task_a_pod_cannot_serve_is_refused_naming_it():
-    async with controller() as c:
-        # CartPole is served as itself without cameras (a Discrete action space travels), but a
-        # camera job serves Box spaces only.
-        camera = {"names": ["render"], "height": 8, "width": 8}
-        response = await c.api.put("/v1/job", json={**JOB, "tasks": ["gym/CartPole-v1"], "camera": camera})
-        assert response.status_code == 422 and "gym/CartPole-v1" in response.json()["detail"]
-
-
 async def test_a_job_with_an_unknown_suite_is_refused_naming_the_suite():
     async with controller() as c:
         response = await c.api.put("/v1/job", json={"suite": "no_such_suite"})
