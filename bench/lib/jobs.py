@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import logging
 import math
 import shutil
 import tempfile
@@ -22,7 +21,6 @@ from .pods import free_port, free_port_block
 
 from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
-log = logging.getLogger("bench.jobs")
 ROBOT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 MAX_EPISODE_STEPS = 520
 STAGE_LAYOUTS = ("slices", "pods")  # vecsim.config.StageLayout's values, in --stage-layout's default order

@@ -9,7 +9,6 @@ import contextlib
 import ctypes.util
 import glob
 import json
-import logging
 import os
 import re
 import subprocess
@@ -22,7 +21,6 @@ from typing import Any
 import psutil
 
 
-log = logging.getLogger("bench.machine")
 MESA_VENDOR_GLOBS = ("/usr/share/glvnd/egl_vendor.d/*mesa*.json", "/etc/glvnd/egl_vendor.d/*mesa*.json")
 NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json",
                        "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")  # fmt: skip

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import logging
 import statistics
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,6 @@ from .records import img_dir
 
 from .stats import PIPELINE_TARGET, waiting
 
-log = logging.getLogger("bench.plots")
 
 
 def _pyplot() -> Any:

@@ -176,7 +176,7 @@ def paired_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> di
 
 
 def rate_spread(values: Sequence[float]) -> dict[str, float]:
-    """Return ``common.spread`` of per-round figures (median, min, max, n), rounded for the record."""
+    """Return ``records.spread`` of per-round figures (median, min, max, n), rounded for the record."""
     return {key: round(value, 2) for key, value in spread(values).items()}
 
 

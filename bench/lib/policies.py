@@ -1,5 +1,6 @@
 """The trainer's side of a GPU bench: vision policies (a ResNet-18 and a ViT-style encoder per
-camera, bf16), their CUDA graphs per batch size, and open-loop scripted policies.
+camera, bf16), their CUDA graphs per batch size, open-loop scripted policies, a policy acting in
+chunks of K (:class:`ChunkedPolicy`) and tables of random actions.
 """
 
 from __future__ import annotations

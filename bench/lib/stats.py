@@ -4,7 +4,6 @@ cores, the hand-off between stages, and the per-contender summary.
 
 from __future__ import annotations
 
-import logging
 import statistics
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -14,7 +13,6 @@ from .pods import rate_spread
 from vecsim.rollout.intervals import covered, intersection, merge
 from .measure import Measured
 
-log = logging.getLogger("bench.stats")
 PIPELINE_TARGET = 1.8  # 2 stages over 1 stage (the performance issue's target)
 SCALING_TARGET = 0.8  # of linear
 
