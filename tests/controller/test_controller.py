@@ -38,11 +38,6 @@ JOB = {
 }
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 def assignment(pod: str, generation: int = 1, stage_id: int = 0, tasks: tuple[str, ...] = ("a",)) -> Assignment:
     blocks = tuple(TaskBlock(task_id=t, env_start=2 * i, num_envs=2) for i, t in enumerate(tasks))
     return Assignment(generation=generation, job_id="t", pod=pod, stage_id=stage_id, tasks=blocks)

@@ -12,7 +12,6 @@ put it in front of verl-vla's own ``BaseEnv``.
 from __future__ import annotations
 
 import copy
-import re
 from collections.abc import Iterator
 from types import SimpleNamespace
 from typing import Any
@@ -22,6 +21,7 @@ import pytest
 import torch
 from gymnasium.error import ClosedEnvironmentError
 from support.service_procs import PodSpec, RunningPod, standalone_pods
+from support.wire_http import metric
 
 from vecsim.config import CameraConfig
 from vecsim.trainers.verl_vla import VecsimLiberoEnv
@@ -306,20 +306,12 @@ class _Node(SimpleNamespace):
         return getattr(self, name, default)
 
 
-def _metric(url: str, name: str) -> float:
-    import httpx
-
-    match = re.search(rf"^{name}(?:_total)? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.MULTILINE)
-    assert match, f"no metric {name} on {url}/metrics"
-    return float(match.group(1))
-
-
 def step_requests(pods) -> list[float]:
-    return [_metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
+    return [metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
 
 
 def resets(pods) -> list[float]:
-    return [_metric(p.url, "vecsim_pod_env_resets") for p in pods]
+    return [metric(p.url, "vecsim_pod_env_resets") for p in pods]
 
 
 def chunks(n: int, seed: int = 0) -> list[torch.Tensor]:
