@@ -4,8 +4,8 @@
 scenes. The scenes are the same; the states are not: the ceiling's processes apply uniform
 random actions within +-0.3 (a table of 64 per env, as :func:`bench_chunks.ceiling_worker`
 does), the service alone a slow sine over half of each dimension's range
-(:func:`bench_gpu_scale.scripted_actions`), and the loop a policy's action with a small sine
-around it (``bench_chunks.ChunkedPolicy``; an untrained policy's action is near constant, here
+(:func:`lib.measure.scripted_actions`), and the loop a policy's action with a small sine
+around it (``lib.policies.ChunkedPolicy``; an untrained policy's action is near constant, here
 zero). If a step's physics depends on where the actions take the arm, a contender can pass the
 ceiling in a round; this bench measures that apart.
 
@@ -34,11 +34,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import bench_chunks as chunks
-import bench_gpu_scale as gs
 import numpy as np
-from _perf_common import interleaved, paired_ratio, rate_spread, setup_logging
-from common import write_result
+from lib.measure import scripted_actions
+from lib.policies import PIPELINE_K, chunk_offsets, random_actions
+from lib.pods import interleaved, paired_ratio, rate_spread, setup_logging
+from lib.records import write_result
 
 log = logging.getLogger("bench.action_cost")
 
@@ -46,21 +46,21 @@ LIBERO_10 = [f"libero_10/{i}" for i in range(10)]
 
 
 def random_stream(space: Any, seed: int) -> Callable[[int], np.ndarray]:
-    """The ceiling's actions (:func:`bench_chunks.random_actions`), cycled."""
-    table = chunks.random_actions(np.random.default_rng(seed), space.shape)
+    """The ceiling's actions (:func:`lib.policies.random_actions`), cycled."""
+    table = random_actions(np.random.default_rng(seed), space.shape)
     return lambda step: table[step % len(table)]
 
 
 def sine_stream(space: Any) -> Callable[[int], np.ndarray]:
-    """The service's actions: :func:`bench_gpu_scale.scripted_actions`, half of each dimension's range."""
-    return lambda step: gs.scripted_actions(space, step, 1)[0]
+    """The service's actions: :func:`lib.measure.scripted_actions`, half of each dimension's range."""
+    return lambda step: scripted_actions(space, step, 1)[0]
 
 
-def policy_stream(space: Any, k: int = chunks.PIPELINE_K) -> Callable[[int], np.ndarray]:
+def policy_stream(space: Any, k: int = PIPELINE_K) -> Callable[[int], np.ndarray]:
     """The loop's actions from a near-constant policy: zero, with :func:`bench_chunks.chunk_offsets`
     around it within each chunk of ``k``, within the bounds."""
     low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
-    offsets = chunks.chunk_offsets(space, k).numpy()
+    offsets = chunk_offsets(space, k).numpy()
     return lambda step: np.clip(offsets[step % k], low, high)
 
 
@@ -153,7 +153,7 @@ def main() -> int:
         "quick": args.quick,
         "setup": {"tasks": tasks, "actions": actions, "rounds": rounds, "cpu": args.cpu, "streams": {
             "random": "uniform within +-0.3, a table of 64 per env (bench_chunks' ceiling)",
-            "sine": "bench_gpu_scale.scripted_actions: half of each dimension's range (the service alone)",
+            "sine": "lib.measure.scripted_actions: half of each dimension's range (the service alone)",
             "policy": "zero plus ChunkedPolicy's 2% sine within chunks of 8 (the loop, an untrained policy)",
         }},
     }

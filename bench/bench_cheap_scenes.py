@@ -36,9 +36,8 @@ import logging
 from typing import Any
 
 import gymnasium
-import numpy as np
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
-from common import write_result
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
+from lib.records import write_result
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
 from vecsim.client import HTTPVectorEnv

@@ -21,7 +21,7 @@ applying ``--actions`` actions per env (so every K does the same physics):
   its envs on each stage): a pod has one stage's call queued while the policy works on the other's.
 
 Before the job starts, ``--pods`` processes pinned to the pods' cores step the same task mix
-without cameras, HTTP or pods (``bench_physics_scaling.worker``) for ``--physics-seconds``: the
+without cameras, HTTP or pods (``lib.physics.physics_worker``) for ``--physics-seconds``: the
 physics-only rate of the node. Then as many processes on the same cores build the mix with the
 pods' cameras and render preset and stay up beside the job (``CeilingProcesses``): in every
 round, while the pods idle, they apply K actions per env and render every camera once, in one
@@ -68,12 +68,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import bench_gpu_scale as gs
 import numpy as np
 import torch
-from _perf_common import paired_ratio, setup_logging
-from bench_physics_scaling import worker as physics_worker
-from common import write_result
+from lib.jobs import Plan, STAGE_LAYOUTS, camera, job_config, parse_stage_layouts, regroup, regroup_slices, requests_for, running_job, wait_for_job
+from lib.machine import MemoryWatch, cores_first, cpu_topology, gl_probe, gpu_name, split_cores
+from lib.measure import Deadline, Measured, TimedStageClient, counted, interleave, loop_rollout, scripted_actions
+from lib.policies import PIPELINE_K, ChunkedPolicy, random_actions, GraphedPolicy, VisionPolicy, forward_ms, parameters_m, pod_multiples
+from lib.stats import summarise
+from lib.pods import paired_ratio, setup_logging
+from lib.physics import physics_worker
+from lib.records import write_result
 from gymnasium import spaces
 
 from vecsim.client import StageClient
@@ -84,15 +88,13 @@ log = logging.getLogger("bench.chunks")
 CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
 PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
 CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
-PIPELINE_K = 8
 # --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
-RANDOM_ACTIONS = 64  # the ceiling's processes: uniform random actions per env, a table of this many, cycled
 QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
 
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """What the run measures beyond the job itself (``gs.Plan``)."""
+    """What the run measures beyond the job itself (``Plan``)."""
 
     chunks: tuple[int, ...]
     actions: int
@@ -105,46 +107,12 @@ class Settings:
         return PIPELINE_K if PIPELINE_K in self.chunks else self.chunks[-1]
 
 
-class ChunkedPolicy:
-    """A policy of one action per call acting in chunks of ``k``: one forward pass per chunk,
-    its action followed by ``k - 1`` more along a small sine around it, within the bounds."""
-
-    def __init__(self, policy: Callable[..., torch.Tensor], action_space: spaces.Box, k: int) -> None:
-        self.policy = policy
-        self.k = k
-        low = torch.as_tensor(np.asarray(action_space.low, np.float32))
-        high = torch.as_tensor(np.asarray(action_space.high, np.float32))
-        self.low, self.high = low, high
-        self.offsets = chunk_offsets(action_space, k)  # [k, action_dim]
-
-    def __call__(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
-        action = self.policy(obs, instructions, task_ids).float()  # [n, action_dim]
-        device = action.device
-        chunk = action[:, None, :] + self.offsets.to(device)
-        return torch.maximum(torch.minimum(chunk, self.high.to(device)), self.low.to(device))
-
-
-def chunk_offsets(action_space: spaces.Box, k: int) -> torch.Tensor:
-    """``[k, action_dim]``: what :class:`ChunkedPolicy` adds to a policy's action at each place of
-    a chunk of ``k``, a small sine of 2% of each dimension's width."""
-    low = torch.as_tensor(np.asarray(action_space.low, np.float32))
-    high = torch.as_tensor(np.asarray(action_space.high, np.float32))
-    steps, dims = torch.arange(k, dtype=torch.float32)[:, None], torch.arange(low.numel(), dtype=torch.float32)
-    width = torch.where(torch.isfinite(high - low), high - low, torch.ones_like(low))
-    return 0.02 * width * torch.sin(0.35 * steps + 0.9 * dims)
-
-
-def random_actions(rng: np.random.Generator, shape: Sequence[int]) -> np.ndarray:
-    """The ceiling's actions for one env: ``RANDOM_ACTIONS`` of ``shape``, uniform within +-0.3."""
-    return rng.uniform(-0.3, 0.3, (RANDOM_ACTIONS, *shape)).astype(np.float32)
-
-
 def scripted_chunk(space: spaces.Box, first: int, k: int, n: int) -> np.ndarray:
     """``[n, k, action_dim]``: bench_gpu_scale's open-loop actions of steps ``first .. first+k-1``."""
-    return np.stack([gs.scripted_actions(space, first + j, n) for j in range(k)], axis=1)
+    return np.stack([scripted_actions(space, first + j, n) for j in range(k)], axis=1)
 
 
-def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) -> gs.Measured:
+def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) -> Measured:
     """The service alone at chunks of ``k``: reset every env, then calls of a chunk per env
     (every stage's call sent at once, then all awaited) until each env applied ``actions``
     actions or ended. Env-steps/s = actions applied over the step calls' time.
@@ -152,12 +120,12 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
     Raises:
         TimeoutError: a call took longer than ``timeout_s``.
     """
-    routes = client.reset_trajectories(gs.requests_for(client.routing))
+    routes = client.reset_trajectories(requests_for(client.routing))
     stages = [s for s in range(client.num_stages) if client.stage_traj_keys(s)]
     space = client.action_space
     timeline: list[tuple[str, int, float, float]] = []
     applied = 0
-    with gs.counted(client) as seen:
+    with counted(client) as seen:
         started = time.perf_counter()
         for stage, batch in zip(stages, [c.result(timeout_s) for c in [client.reset_stage(s) for s in stages]]):
             timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
@@ -177,7 +145,7 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
     stats = RolloutStats(num_trajectories=len(routes), env_steps=applied, wall_s=finished - started,
                          env_steps_per_s=applied / max(finished - stepping, 1e-9), simulation_s=finished - started,
                          timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
-    return gs.Measured(stats, **seen)
+    return Measured(stats, **seen)
 
 
 def _collect(procs: Sequence[Any], results: Any, kind_wanted: str, count: int, timeout_s: float) -> list[Any]:
@@ -356,7 +324,7 @@ class CeilingProcesses:
     the processes and the physics and render milliseconds per env-step.
     """
 
-    def __init__(self, pins: Sequence[str], plan: gs.Plan, chunks: Sequence[int], seconds: float, reset_every: int,
+    def __init__(self, pins: Sequence[str], plan: Plan, chunks: Sequence[int], seconds: float, reset_every: int,
                  timeout_s: float) -> None:  # fmt: skip
         self.pins, self.plan, self.seconds, self.timeout_s = list(pins), plan, seconds, timeout_s
         self.runs = ceiling_runs(chunks, reset_every)
@@ -367,7 +335,7 @@ class CeilingProcesses:
         plan = self.plan
         self._commands = [multiprocessing.get_context("spawn").Queue() for _ in self.pins]
         self._procs, self._results, self._barrier = _spawn(self.pins, ceiling_worker, lambda i, cpu: (
-            list(plan.tasks), gs.camera(plan), plan.render_preset, plan.envs_per_task, self._commands[i]))
+            list(plan.tasks), camera(plan), plan.render_preset, plan.envs_per_task, self._commands[i]))
         try:
             _collect(self._procs, self._results, "ready", len(self._procs), self.timeout_s)
         except BaseException:
@@ -405,7 +373,7 @@ class CeilingProcesses:
 
     def describe(self) -> dict[str, Any]:
         return {"processes": len(self.pins), "pinned_to": self.pins, "seconds_per_k": self.seconds,
-                "camera": gs.camera(self.plan), "render_preset": self.plan.render_preset}  # fmt: skip
+                "camera": camera(self.plan), "render_preset": self.plan.render_preset}  # fmt: skip
 
 
 def ceiling_key(k: int, every: int) -> str:
@@ -443,57 +411,57 @@ def ceiling_over_rounds(rounds: Sequence[CeilingRound], described: dict[str, Any
     return out
 
 
-def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: gs.Deadline,
+def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Deadline,
             bare: CeilingProcesses) -> dict[str, Any]:  # fmt: skip
     """Every contender (module docstring) and the ceiling (``bare``'s processes, run while the pods
     idle) in interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
-    one = gs.TimedStageClient(gs.regroup(table, names, 1), token=job.token, timeout_s=300)
-    two = (gs.TimedStageClient(gs.regroup(table, names, 2), token=job.token, timeout_s=300)
+    one = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300)
+    two = (TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
            if plan.pods > 1 and "pods" in plan.stage_layouts else None)  # fmt: skip
     # Two stages as slices of every pod: each pod has the other stage's call queued while the
     # policy works on one, so it does not idle between its calls.
-    sliced = (gs.TimedStageClient(gs.regroup_slices(table, names, 2), token=job.token, timeout_s=300)
+    sliced = (TimedStageClient(regroup_slices(table, names, 2), token=job.token, timeout_s=300)
               if "slices" in plan.stage_layouts else None)  # fmt: skip
     try:
         space, action = one.observation_space, one.action_space
-        policy = gs.VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
+        policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
         sizes = [one.routing.num_envs, *([s.num_envs for s in two.routing.stages] if two else [])]
         # Every multiple of a pod's envs, other batch sizes padded: none is captured in a round.
-        graphed = gs.GraphedPolicy(policy, space, plan.device, gs.pod_multiples(plan.envs_per_pod, max(sizes), sizes),
+        graphed = GraphedPolicy(policy, space, plan.device, pod_multiples(plan.envs_per_pod, max(sizes), sizes),
                                    pad=True)  # fmt: skip
         chunked = {k: ChunkedPolicy(graphed, action, k) for k in settings.chunks}
         policy_info = {
             "name": "ResNet-18 per camera + proprio MLP + MLP head, one forward pass per chunk",
-            "parameters_m": gs.parameters_m(policy),
+            "parameters_m": parameters_m(policy),
             "dtype": plan.dtype,
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
-            "forward_ms": {str(b): round(gs.forward_ms(graphed, space, b, 5, plan.device), 2)
+            "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
                            for b in sorted(set(sizes))},  # fmt: skip
         }
         log.info("policy: %s", policy_info)
         warm = min(settings.chunks[-1], settings.actions)
         service_chunks(one, warm, settings.chunks[-1], 300)  # warm-up: connections, caches, kernels
-        gs.loop_rollout(one, chunked[settings.chunks[-1]], warm, plan.device)
+        loop_rollout(one, chunked[settings.chunks[-1]], warm, plan.device)
         if two is not None and PIPELINE_K in chunked:
-            gs.loop_rollout(two, chunked[PIPELINE_K], warm, plan.device)
+            loop_rollout(two, chunked[PIPELINE_K], warm, plan.device)
         if sliced is not None and PIPELINE_K in chunked:
-            gs.loop_rollout(sliced, chunked[PIPELINE_K], warm, plan.device)
+            loop_rollout(sliced, chunked[PIPELINE_K], warm, plan.device)
         log.info("warm-up done, %.0f s left", deadline.left())
-        contenders: dict[str, Callable[[], Any]] = {}  # each round's gs.Measured; the ceiling's CeilingRound
+        contenders: dict[str, Callable[[], Any]] = {}  # each round's Measured; the ceiling's CeilingRound
         for k in settings.chunks:
             contenders[f"service/K={k}"] = lambda k=k: service_chunks(one, settings.actions, k, 300)
-            contenders[f"loop/K={k}"] = lambda k=k: gs.loop_rollout(
+            contenders[f"loop/K={k}"] = lambda k=k: loop_rollout(
                 one, chunked[k], settings.actions, plan.device, waves=settings.waves)
         if two is not None and PIPELINE_K in chunked:
-            contenders[f"loop_stages=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
+            contenders[f"loop_stages=2/K={PIPELINE_K}"] = lambda: loop_rollout(
                 two, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
         if sliced is not None and PIPELINE_K in chunked:
-            contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: gs.loop_rollout(
+            contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: loop_rollout(
                 sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
         contenders["ceiling"] = lambda: CeilingRound(bare.measure(), ceiling_key(settings.headline_k, 0))
-        runs = gs.interleave(contenders, plan.rounds, deadline, reserve_s=10)
+        runs = interleave(contenders, plan.rounds, deadline, reserve_s=10)
     finally:
         for client in (one, two, sliced):
             if client is not None:
@@ -511,27 +479,27 @@ def measure(plan: gs.Plan, settings: Settings, job: Any, table: Any, deadline: g
         for k in settings.chunks:
             name = f"{kind}/K={k}"
             section[f"K={k}"] = {
-                **gs.summarise(runs[name]),
+                **summarise(runs[name]),
                 "over_K=1": paired_ratio(rates[name], rates[f"{kind}/K=1"]) if 1 in settings.chunks else None,
             }
         result[kind] = section
     pipelined = f"loop_stages=2/K={PIPELINE_K}"
     if pipelined in runs:
         result["pipeline"] = {
-            "stages=2": gs.summarise(runs[pipelined]),
+            "stages=2": summarise(runs[pipelined]),
             "speedup_2_vs_1": paired_ratio(rates[pipelined], rates[f"loop/K={PIPELINE_K}"]),
         }
     sliced_name = f"loop_slices=2/K={PIPELINE_K}"
     if sliced_name in runs:
         result["slices"] = {
-            "stages=2": gs.summarise(runs[sliced_name]),
+            "stages=2": summarise(runs[sliced_name]),
             "speedup_2_vs_1": paired_ratio(rates[sliced_name], rates[f"loop/K={PIPELINE_K}"]),
         }
     result["per_round"] = {name: [round(x, 2) for x in values] for name, values in rates.items()}
     return result
 
 
-def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
+def make_plan(args: argparse.Namespace) -> tuple[Plan, Settings]:
     """``--gpu`` (LIBERO-10, 256x256, 12 pods) or ``--cpu-small`` defaults; ``--dry`` shrinks."""
     from vecsim.engine.tasks import suite_tasks
 
@@ -548,7 +516,7 @@ def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
     actions = args.actions or (4 if dry else 32 if gpu else 8)
     cuda = torch.cuda.is_available()
     pods = 1 if dry else args.pods or (12 if gpu else 2)
-    plan = gs.Plan(
+    plan = Plan(
         mode="scaling",
         tasks=tasks,
         size=args.size or (256 if gpu else 32),
@@ -566,46 +534,46 @@ def make_plan(args: argparse.Namespace) -> tuple[gs.Plan, Settings]:
         max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
         render_preset=args.render_preset,
-        stage_layouts=gs.parse_stage_layouts(args.stage_layout),
+        stage_layouts=parse_stage_layouts(args.stage_layout),
     )
     physics_seconds = args.physics_seconds or (1.0 if dry else 10.0 if gpu else 2.0)
     return plan, Settings(chunks=chunks, actions=actions, physics_seconds=physics_seconds, waves=args.waves)
 
 
 def run(args: argparse.Namespace) -> int:
-    deadline = gs.Deadline(args.deadline)
+    deadline = Deadline(args.deadline)
     plan, settings = make_plan(args)
     tag = "_dry" if args.dry else "" if args.gpu else "_cpu"
-    gl = gs.gl_probe()
-    log.info("GL: %s; GPU: %s; torch %s on %s", gl, gs.gpu_name(), torch.__version__, plan.device)
+    gl = gl_probe()
+    log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu_name(), torch.__version__, plan.device)
     if args.gpu and "NVIDIA" not in gl.get("renderer", "").upper():
         log.error("GL_RENDERER is %r, not NVIDIA's: not measuring", gl.get("renderer", gl))
         return 2
     if args.gpu and plan.device != "cuda":
         log.error("torch sees no CUDA device: not measuring")
         return 2
-    topology = gs.cpu_topology()
-    pins, trainer = gs.split_cores(gs.cores_first(topology), plan.pods)
+    topology = cpu_topology()
+    pins, trainer = split_cores(cores_first(topology), plan.pods)
     pod_pins = [pins[i % len(pins)] for i in range(plan.pods)]
 
     log.info("physics only: %d processes on %s, %.0f s", plan.pods, pod_pins, settings.physics_seconds)
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
     log.info("ceiling: %d processes, cameras %s once per K, %g s per K, in every round",
-             plan.pods, gs.camera(plan), settings.physics_seconds)  # fmt: skip
+             plan.pods, camera(plan), settings.physics_seconds)  # fmt: skip
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
-    config = gs.job_config(plan, pins, "chunks", plan.pods)
+    config = job_config(plan, pins, "chunks", plan.pods)
     started = time.monotonic()
     with (
-        gs.MemoryWatch(plan.max_memory_gib) as memory,
+        MemoryWatch(plan.max_memory_gib) as memory,
         CeilingProcesses(pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions,
                          min(deadline.left(), 300.0)) as bare,
-        gs.running_job(config, args.copy_to) as job,
+        running_job(config, args.copy_to) as job,
     ):  # fmt: skip
-        table = gs.wait_for_job(job, max(60.0, min(600.0, deadline.left())))
+        table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
         log.info("%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
         measured = measure(plan, settings, job, table, deadline, bare)
@@ -663,7 +631,7 @@ def run(args: argparse.Namespace) -> int:
         "setup": {
             **dataclasses.asdict(plan),
             **dataclasses.asdict(settings),
-            "camera": gs.camera(plan),
+            "camera": camera(plan),
             "envs_per_pod": plan.envs_per_pod,
             "pods_pinned_to": pod_pins,
             "trainer_cores": trainer,
@@ -726,7 +694,7 @@ def main() -> int:
     parser.add_argument("--size", type=int, help="camera height and width (default 256; --cpu-small 32)")
     parser.add_argument("--rounds", type=int, help="interleaved rounds (default 2; --cpu-small 1)")
     parser.add_argument("--physics-seconds", type=float, help="length of the physics-only run (default 10)")
-    parser.add_argument("--stage-layout", default=",".join(gs.STAGE_LAYOUTS),
+    parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
                         help="the 2-stage layouts measured at K = 8 beside 1 stage, comma-separated "
                         "(slices, pods; default both)")
     parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"))

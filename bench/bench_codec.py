@@ -24,7 +24,7 @@ from typing import Any
 import msgpack
 import msgpack_numpy
 import numpy as np
-from common import spread, write_result
+from lib.records import spread, write_result
 
 from vecsim import wire
 

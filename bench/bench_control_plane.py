@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from _perf_common import (
+from lib.pods import (
     controller_server,
     free_port,
     running,
@@ -55,7 +55,7 @@ from _perf_common import (
     wait_for_quiet,
 )
 from aiohttp import web
-from common import write_result
+from lib.records import write_result
 
 from vecsim.auth import bearer_headers
 from vecsim.engine.tasks import suite_tasks

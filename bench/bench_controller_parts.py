@@ -25,7 +25,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from common import write_result
+from lib.records import write_result
 
 log = logging.getLogger("bench_controller_parts")
 

@@ -23,7 +23,7 @@ import signal
 import time
 
 import httpx
-from common import spread, write_result
+from lib.records import spread, write_result
 
 from service.controller import ControllerSettings
 from service.runner import Backoff, LocalJob

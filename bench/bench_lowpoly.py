@@ -27,7 +27,8 @@ from typing import Any
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
-from common import img_dir, write_result
+from lib.images import quality
+from lib.records import img_dir, write_result
 
 from vecsim.engine import mesh_lod
 from vecsim.engine.batch_render import BatchRenderer, CameraView
@@ -52,16 +53,6 @@ def render_rate(renderer: BatchRenderer, views: list[CameraView], seconds: float
         frames += len(views)
     spent = time.perf_counter() - started if wall else time.process_time() - cpu
     return frames / spent
-
-
-def quality(reference: np.ndarray, images: np.ndarray) -> dict[str, list[float]]:
-    """Return per image the PSNR (dB; None when equal) and mean absolute difference to ``reference``."""
-    error = images.astype(np.float64) - reference.astype(np.float64)
-    mse = (error**2).mean(axis=(1, 2, 3))
-    return {
-        "psnr_db": [round(float(10 * np.log10(255.0**2 / m)), 2) if m > 0 else None for m in mse],
-        "mean_abs_diff": [round(float(v), 3) for v in np.abs(error).mean(axis=(1, 2, 3))],
-    }
 
 
 def measure(task: str, size: int, cells: list[float], seconds: float, wall: bool) -> tuple[dict[str, Any], dict]:

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
-from common import img_dir, write_result
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
+from lib.records import img_dir, write_result
 from gymnasium import spaces
 from torch import nn
 

@@ -46,11 +46,11 @@ import statistics
 import time
 from typing import Any
 
-import bench_gpu_scale as gs
 import numpy as np
 import torch
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
-from common import with_flags, write_result
+from lib.measure import counted
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
+from lib.records import with_flags, write_result
 
 from vecsim.client import StageClient
 from vecsim.config import Assignment, CameraConfig, TaskBlock
@@ -174,7 +174,7 @@ def main() -> None:
 
         # The pods' counters are read around each contender, outside its clocks.
         def refill() -> float:
-            with gs.counted(client) as counters:
+            with counted(client) as counters:
                 cpu = time.process_time()
                 stats = loop.run(requests, horizons=horizons).stats
                 cpu = time.process_time() - cpu
@@ -185,7 +185,7 @@ def main() -> None:
 
         def batch() -> float:
             waves = []
-            with gs.counted(client) as counters:
+            with counted(client) as counters:
                 started, cpu, steps = time.perf_counter(), time.process_time(), 0
                 for begin in range(0, n, envs):
                     stats = loop.run(requests[begin : begin + envs], horizons=horizons[begin : begin + envs]).stats

@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from common import img_dir, out_dir, write_result
+from lib.records import img_dir, write_result
 
 log = logging.getLogger("bench_render")
 

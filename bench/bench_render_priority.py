@@ -41,7 +41,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 import torch
-from common import spread, write_result
+from lib.records import spread, write_result
 from gymnasium import spaces
 
 from vecsim.config import CameraConfig
@@ -159,7 +159,7 @@ class RenderSet:
 
 def build_policy(args: argparse.Namespace, device: str) -> Any:
     """The pipeline bench's ViT policy, graphed for ``args.batch`` rows on CUDA."""
-    from bench_gpu_scale import GraphedPolicy, VisionPolicy, dummy_obs
+    from lib.policies import GraphedPolicy, VisionPolicy, dummy_obs
 
     box = spaces.Box(0, 255, (args.size, args.size, 3), np.uint8)
     space = spaces.Dict({"images": spaces.Dict({c: box for c in CAMERAS}),

@@ -34,8 +34,8 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from _perf_common import log, setup_logging, wait_for_quiet
-from common import REPO_ROOT, RESULT_PREFIX, write_result
+from lib.pods import log, setup_logging, wait_for_quiet
+from lib.records import REPO_ROOT, RESULT_PREFIX, write_result
 
 LABELS = ("A", "B")
 MAX_ROUNDS = 20

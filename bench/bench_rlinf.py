@@ -47,9 +47,9 @@ for _threads in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_threads, "1")
 
 import numpy as np  # noqa: E402 - after the thread settings, which BLAS reads as it loads
-from _perf_common import paired_ratio, rate_spread, setup_logging
-from bench_gpu_scale import cores_first, cpu_topology, gl_probe, split_cores
-from common import write_result
+from lib.pods import paired_ratio, rate_spread, setup_logging
+from lib.machine import cores_first, cpu_topology, gl_probe, split_cores
+from lib.records import write_result
 
 from vecsim.config import Assignment, TaskBlock
 

@@ -48,7 +48,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from common import spread, write_result
+from lib.records import spread, write_result
 
 log = logging.getLogger("bench_robot_step")
 

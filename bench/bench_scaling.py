@@ -25,8 +25,8 @@ import logging
 import os
 from typing import Any
 
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
-from common import img_dir, write_result
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
+from lib.records import img_dir, write_result
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock

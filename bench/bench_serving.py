@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 import psutil
-from _perf_common import (
+from lib.pods import (
     READY_TIMEOUT_S,
     PeakRSS,
     interleaved,
@@ -55,7 +55,7 @@ from _perf_common import (
     stepper,
     wait_for_quiet,
 )
-from common import write_result
+from lib.records import write_result
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from vecsim.client import HTTPVectorEnv

@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods
-from common import with_flags, write_result
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods
+from lib.records import with_flags, write_result
 
 from vecsim.client import StageClient
 from vecsim.config import Assignment, CameraConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock

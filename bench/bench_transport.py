@@ -44,7 +44,7 @@ import aiohttp
 import httpx
 import numpy as np
 import psutil
-from common import img_dir, machine_info, out_dir, spread, write_result
+from lib.records import img_dir, machine_info, out_dir, spread, write_result
 
 from vecsim.transport import DEFAULT_KIND, HttpxTransport, make_transport
 

@@ -24,8 +24,8 @@ import time
 from typing import Any
 
 import numpy as np
-from _perf_common import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods
-from common import write_result
+from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods
+from lib.records import write_result
 
 from vecsim.config import Assignment, CameraConfig, TaskBlock
 from vecsim.trainers.verl_vla import VecsimLiberoEnv

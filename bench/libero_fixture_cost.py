@@ -21,7 +21,7 @@ import time
 from typing import Any
 
 import mujoco
-from common import write_result
+from lib.records import write_result
 
 from vecsim.engine.tasks import get_task
 from vecsim.engine.tasks import (

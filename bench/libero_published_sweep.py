@@ -32,8 +32,8 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from common import write_result
-from libero_parity_sweep import CAMERAS, NO_OP, SETTLE_STEPS, _libero_frame, differences, exact, vecsim_frame, worst
+from lib.records import write_result
+from lib.parity import CAMERAS, NO_OP, SETTLE_STEPS, differences, exact, libero_frame, vecsim_frame, worst
 
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.engine.tasks import get_task, make_env
@@ -79,9 +79,9 @@ def libero_loop(task_id: str, episodes: list[int], size: int, seed: int, actions
             for _ in range(SETTLE_STEPS):
                 raw, _, _, _ = env.step(NO_OP)
             if k in episodes:
-                kept = [_libero_frame(env, raw)]
+                kept = [libero_frame(env, raw)]
                 for action in actions:
-                    kept.append(_libero_frame(env, env.step(action.tolist())[0]))
+                    kept.append(libero_frame(env, env.step(action.tolist())[0]))
                 frames[k] = kept
         timings["reset_mean_s"] = timings["resets_s"] / (max(episodes) + 1)
         return frames, {key: round(value, 3) for key, value in timings.items()}

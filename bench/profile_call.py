@@ -291,7 +291,7 @@ def serve_bare(port: int) -> int:
 @contextlib.contextmanager
 def bare_process(workdir: Path) -> Iterator[Any]:
     """The bare server (:func:`serve_bare`) in its own process; stopped on exit."""
-    from _perf_common import READY_TIMEOUT_S, Server, clean_env, free_port, running
+    from lib.pods import READY_TIMEOUT_S, Server, clean_env, free_port, running
 
     port = free_port()
     argv = ["--serve-bare", str(port), *sys.argv[1:]]
@@ -320,7 +320,7 @@ def _assignment(pod: str) -> Any:
 def pod_process(mode: str, workdir: Path) -> Iterator[Any]:
     """One pod of ``_assignment`` started through ``--serve-pod`` (a ``Server`` whose record
     goes beside its log, as ``<name>.out``: :func:`collect`); stopped on exit."""
-    from _perf_common import READY_TIMEOUT_S, Server, clean_env, free_port, running
+    from lib.pods import READY_TIMEOUT_S, Server, clean_env, free_port, running
 
     name = f"sim-{mode}"
     path = workdir / f"{name}.json"
@@ -444,8 +444,8 @@ def scale(rows: list[dict[str, Any]], calls: int) -> list[dict[str, Any]]:
 
 def main() -> None:
     import httpx
-    from _perf_common import setup_logging
-    from common import write_result
+    from lib.pods import setup_logging
+    from lib.records import write_result
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
     from service.pod.bodies import encode_answer

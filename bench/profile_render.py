@@ -44,8 +44,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco
 import numpy as np
 import psutil
-from bench_lowpoly import quality
-from common import write_result
+from lib.images import quality
+from lib.records import write_result
 
 from vecsim.engine import mesh_lod
 from vecsim.engine.batch_render import BatchRenderer, CameraView, gl_info

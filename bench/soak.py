@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 import psutil
-from common import RESULT_PREFIX, command_line, machine_info, write_result
+from lib.records import RESULT_PREFIX, command_line, machine_info, write_result
 
 from service.runner import LocalJob
 from service.runner.ports import free_port, free_port_block

@@ -115,6 +115,9 @@ if [ "$(cd / && "$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Pat
   "$venv/bin/python" -m pip install -q --no-deps -e "$here"
 fi
 
+# The venv's `vecsim` command names the checkout it runs, and says so when that checkout is gone.
+"$venv/bin/python" -m service.launcher "$venv/bin/vecsim"
+
 # LIBERO looks for assets in its own package folder first; point that at the assets packages.
 "$venv/bin/python" - <<'PY'
 import importlib.util, os, pathlib

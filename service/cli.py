@@ -44,8 +44,15 @@ COMMANDS: dict[str, tuple[Callable[[list[str]], int], str]] = {
 }
 
 
+def _version() -> str:
+    from service.launcher import checkout
+    from vecsim import __version__
+
+    return f"vecsim {__version__} from {checkout()}"
+
+
 def _usage() -> str:
-    lines = ["usage: vecsim <command> [options]", "", "commands:"]
+    lines = [_version(), "usage: vecsim <command> [options]", "", "commands:"]
     lines += [f"  {name:<12}{help_}" for name, (_, help_) in COMMANDS.items()]
     lines.append("\n'vecsim <command> --help' for a command's options.")
     return "\n".join(lines)
@@ -56,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return 0 if argv else 2
+    if argv[0] == "--version":
+        print(_version())
+        return 0
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
         print(f"vecsim: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)

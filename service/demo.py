@@ -1,7 +1,8 @@
 """``vecsim demo``: start a local job, run one pipelined rollout on it, show what happened.
 
-Top to bottom: load a job config, start the controller and the pods (the local runner), wait
-until every pod is ready (its warm-up done), draw a task-balanced batch of trajectory requests,
+Top to bottom: load a job config (default: the tiny job shipped inside the package), start the
+controller and the pods (the local runner), wait until every pod is ready (its warm-up done,
+its progress logged as it goes), draw a task-balanced batch of trajectory requests,
 warm the policy up (its first forward pass, the trainer's own cost, timed and reported apart),
 roll a small CNN policy out over the stages with :class:`vecsim.rollout.EnvLoop`, then print a
 summary (with the first step's cost against the median step's) and write a timeline plot,
@@ -18,11 +19,16 @@ import argparse
 import itertools
 import json
 import logging
+import contextlib
+import importlib.resources
 import statistics
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
+
+import httpx
 
 import numpy as np
 import torch
@@ -38,11 +44,17 @@ from vecsim.engine.tasks import episode_limit, get_task
 from vecsim.trees import map_leaves
 
 logger = logging.getLogger("service.demo")
+# The default job, shipped inside the package (a copy of configs/tiny.yaml), so that the demo
+# runs from any directory.
+DEFAULT_CONFIG = importlib.resources.files("service") / "configs" / "tiny.yaml"
+WARMUP_EVERY_S = 5.0  # how often the warm-up's progress is checked (a line when it changed)
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vecsim demo", description=__doc__.split("\n\n")[0])
-    p.add_argument("-c", "--config", default="configs/tiny.yaml", help="job config (default configs/tiny.yaml)")
+    p.add_argument(
+        "-c", "--config", default=None, help="job config (default: the tiny job shipped with vecsim, configs/tiny.yaml)"
+    )
     p.add_argument("--out", default="out/demo", help="where plots, videos and summary.json go (default out/demo)")
     p.add_argument("--batch", type=int, default=0, help="trajectories in a sampler batch (default: one per env)")
     p.add_argument(
@@ -63,6 +75,47 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--log-level", default="info", help="logging level (default info)")
     return p
+
+
+def warmup_line(local: LocalJob) -> str:
+    """Each pod's readiness in a few words: ``sim-0 building 6 envs for generation 1; sim-1 ready``."""
+    parts = []
+    for name in local.processes:
+        if name == "controller":
+            continue
+        try:
+            answer = httpx.get(f"{local.pod_url(name)}/readyz", timeout=2.0)
+            said = "ready" if answer.status_code == 200 else str(answer.json().get("detail", answer.status_code))
+        except (httpx.HTTPError, ValueError):
+            said = "starting"
+        parts.append(f"{name} {said}")
+    return "; ".join(parts)
+
+
+@contextlib.contextmanager
+def showing_warmup(local: LocalJob, every_s: float = WARMUP_EVERY_S) -> Iterator[None]:
+    """While the body runs (the wait for the pods), log each pod's progress every ``every_s``
+    when it changed, so that a warm-up of minutes is not silent."""
+    stop = threading.Event()
+    started = time.perf_counter()
+
+    def watch() -> None:
+        last = ""
+        while True:
+            line = warmup_line(local)
+            if line != last:
+                logger.info("warming up, %.0f s: %s", time.perf_counter() - started, line)
+                last = line
+            if stop.wait(every_s):
+                return
+
+    thread = threading.Thread(target=watch, name="demo-warmup", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def with_free_ports(config: JobConfig) -> JobConfig:
@@ -225,7 +278,7 @@ def main(argv: list[str]) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the rest
 
-    config = with_free_ports(load_job_config(args.config))
+    config = with_free_ports(load_job_config(args.config or DEFAULT_CONFIG))
     job = config.job
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -234,7 +287,8 @@ def main(argv: list[str]) -> int:
     with LocalJob(config, log_dir=out / "logs") as local:
         started = time.perf_counter()
         logger.info("starting %d pods and the controller (logs in %s)", config.pods.replicas, out / "logs")
-        table = local.wait_ready(timeout=args.ready_timeout)
+        with showing_warmup(local):
+            table = local.wait_ready(timeout=args.ready_timeout)
         logger.info("job %r ready in %.0f s: generation %d", job.job_id, time.perf_counter() - started, table.generation)
         for line in format_status(local.status()).splitlines():
             logger.info("%s", line)
@@ -269,7 +323,7 @@ def main(argv: list[str]) -> int:
     lines = summary_lines(result, job.num_stages, policy_warmup_s)
     timeline = plot_timeline(result, job.num_stages, out / "timeline.png", policy_warmup_s)
     summary = {
-        "config": args.config,
+        "config": str(args.config or DEFAULT_CONFIG),
         "stats": {k: v for k, v in vars(result.stats).items() if k != "timeline"},
         "step_costs": step_costs(result.stats.pod_calls),
         "policy_warmup_s": policy_warmup_s,

@@ -62,6 +62,7 @@ class PodEntry:
     acked: Assignment | None = None
     acked_at: float | None = None
     push_failures: int = 0
+    push_error: str = ""  # why the last push failed ("" after one that succeeded)
     retry_at: float = 0.0
 
     @property
@@ -327,10 +328,11 @@ class ControllerState:
             return
         if ok:
             entry.acked, entry.acked_at = action.assignment, self.clock()
-            entry.push_failures, entry.retry_at = 0, 0.0
+            entry.push_failures, entry.push_error, entry.retry_at = 0, "", 0.0
             log.info("pod %s accepted generation %d", action.pod, action.assignment.generation)
             return
         entry.push_failures += 1
+        entry.push_error = detail
         delay = min(self.settings.push_backoff_max_s, 0.25 * 2 ** (entry.push_failures - 1))
         entry.retry_at = self.clock() + delay
         log.warning(
@@ -361,7 +363,10 @@ class ControllerState:
             want = assignments[slot.pod]
             if entry.reported != want:
                 have = "nothing" if entry.reported is None else f"generation {entry.reported.generation}"
-                problems.append(f"pod {slot.pod} runs {have}, the plan is generation {want.generation}")
+                # A pod's refusal (an assignment it cannot build) is how a job's task that no pod
+                # can serve shows: the controller makes no env to find out before.
+                refused = f" (its last push failed: {entry.push_error})" if entry.push_error else ""
+                problems.append(f"pod {slot.pod} runs {have}, the plan is generation {want.generation}{refused}")
             elif not entry.ready:
                 problems.append(f"pod {slot.pod} is not ready (building its envs)")
         return problems

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
 from collections.abc import Iterator
 from typing import Any
 
@@ -21,7 +20,8 @@ import pytest
 import torch
 from gymnasium.vector import AutoresetMode
 from PIL import Image
-from support.service_procs import PodSpec, RunningPod, standalone_pods
+from support.service_procs import PodSpec, RunningPod, post_wire, standalone_pods
+from support.wire_http import metric
 
 from vecsim import wire
 from vecsim.client import HTTPVectorEnv, StageClient, VLAEnv
@@ -51,14 +51,6 @@ def pod(pods) -> str:
     return pods[0].url
 
 
-def _post(url: str, op: str, body: dict[str, Any], as_json: bool = False) -> httpx.Response:
-    if as_json:
-        headers = {"Content-Type": "application/json", "Accept": "application/json"}
-        return httpx.post(f"{url}/v1/{op}", content=json.dumps(wire.to_jsonable(body)), headers=headers, timeout=60)
-    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
-    return httpx.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers, timeout=60)
-
-
 def _answer(response: httpx.Response) -> dict[str, Any]:
     assert response.status_code == 200, response.text
     if response.headers["content-type"].startswith("application/json"):
@@ -68,23 +60,16 @@ def _answer(response: httpx.Response) -> dict[str, Any]:
 
 def _reset(url: str, env_indices: list[int], state_ids: list[int]) -> dict[str, Any]:
     body = {"generation": 0, "env_indices": np.array(env_indices), "state_ids": np.array(state_ids)}
-    return _answer(_post(url, "reset", body))
+    return _answer(post_wire(url, "reset", body, None))
 
 
 def _step(url: str, env_indices: list[int], actions: np.ndarray, **extra: Any) -> dict[str, Any]:
     body = {"generation": 0, "env_indices": np.array(env_indices), "actions": np.asarray(actions, np.float32), **extra}
-    return _answer(_post(url, "step", body))
+    return _answer(post_wire(url, "step", body, None))
 
 
 def _chunk(n: int, k: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-1.0, 1.0, (n, k, ACTION_DIM)).astype(np.float32)
-
-
-def _metric(url: str, name: str) -> float:
-    text = httpx.get(f"{url}/metrics", timeout=10).text
-    match = re.search(rf"^{name}(?:_total)? (\S+)$", text, re.MULTILINE)
-    assert match, f"no metric {name} in /metrics"
-    return float(match.group(1))
 
 
 def _singles(url: str, env: int, actions: np.ndarray) -> tuple[list[dict[str, Any]], list[float], list[bool]]:
@@ -133,18 +118,18 @@ def test_an_env_stops_at_its_truncation_inside_a_chunk_and_reports_its_steps(pod
 
 def test_a_chunk_renders_each_env_once_and_counts_every_applied_action(pod):
     _reset(pod, [0, 1, 2], [1, 2, 3])
-    renders, steps = _metric(pod, "vecsim_pod_env_renders"), _metric(pod, "vecsim_pod_env_steps")
+    renders, steps = metric(pod, "vecsim_pod_env_renders"), metric(pod, "vecsim_pod_env_steps")
     _step(pod, [0, 1, 2], _chunk(3, 4))
-    assert _metric(pod, "vecsim_pod_env_renders") - renders == 3
-    assert _metric(pod, "vecsim_pod_env_steps") - steps == 12
+    assert metric(pod, "vecsim_pod_env_renders") - renders == 3
+    assert metric(pod, "vecsim_pod_env_steps") - steps == 12
 
 
 def test_recorded_envs_answer_every_actions_frame_and_only_they_render_more(pod):
     chunk = _chunk(2, 4, seed=2)
     _reset(pod, [0, 1, 2], [4, 4, 4])
-    renders = _metric(pod, "vecsim_pod_env_renders")
+    renders = metric(pod, "vecsim_pod_env_renders")
     answer = _step(pod, [0, 1], chunk, record_env_indices=np.array([1]))
-    assert _metric(pod, "vecsim_pod_env_renders") - renders == 2 + 3
+    assert metric(pod, "vecsim_pod_env_renders") - renders == 2 + 3
     frames = answer["frames"][IMAGE]
     assert frames.shape == (1, 4, CAMERA.height, CAMERA.width, 3)
     singles, _, _ = _singles(pod, 2, chunk[1])
@@ -165,10 +150,10 @@ def test_one_action_per_env_is_answered_as_before_chunks(pod):
 
 
 def test_a_chunk_without_envs_is_a_no_op_answering_empty_per_action_arrays(pod):
-    steps = _metric(pod, "vecsim_pod_env_steps")
+    steps = metric(pod, "vecsim_pod_env_steps")
     answer = _step(pod, [], np.zeros((0, 4, ACTION_DIM)))
     assert answer["reward"].shape == (0, 4) and answer["num_steps"].shape == (0,)
-    assert _metric(pod, "vecsim_pod_env_steps") == steps
+    assert metric(pod, "vecsim_pod_env_steps") == steps
 
 
 def test_a_chunk_of_no_actions_moves_nothing_and_answers_the_current_observation(pod):
@@ -193,7 +178,7 @@ def test_a_bad_chunk_is_refused_naming_what_is_wrong_and_changes_no_env(pod, bad
     sent = bad(chunk)
     actions = np.asarray(chunk if sent is None else sent, np.float32)
     body = {"generation": 0, "env_indices": np.array([0, 1]), "actions": actions}
-    response = _post(pod, "step", body)
+    response = post_wire(pod, "step", body, None)
     assert response.status_code == 422
     for word in named:
         assert word in response.json()["detail"]
@@ -206,7 +191,8 @@ def test_json_and_wire_answer_a_chunk_alike(pod):
     _reset(pod, [0, 1], [9, 9])
     via_wire = _step(pod, [0], chunk)
     body = {"generation": 0, "env_indices": np.array([1]), "actions": chunk}
-    via_json = _answer(_post(pod, "step", body, as_json=True))
+    as_json = {"Content-Type": "application/json", "Accept": "application/json"}
+    via_json = _answer(httpx.post(f"{pod}/v1/step", content=json.dumps(wire.to_jsonable(body)), headers=as_json, timeout=60))
     assert via_json["reward"] == via_wire["reward"].tolist()
     assert via_json["num_steps"] == via_wire["num_steps"].tolist()
     assert via_json["obs"]["proprio"] == via_wire["obs"]["proprio"].tolist()

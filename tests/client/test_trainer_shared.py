@@ -8,11 +8,11 @@ import re
 from collections.abc import Iterator
 from contextlib import closing
 
-import httpx
 import numpy as np
 import pytest
 from gymnasium.error import ResetNeeded
-from support.service_procs import PodSpec, RunningPod, standalone_pods
+from support.service_procs import PodSpec, RunningPod, post_wire, standalone_pods
+from support.wire_http import metric
 
 from vecsim import wire
 from vecsim.client import HTTPVectorEnv, StageClient, VLAEnv
@@ -96,29 +96,18 @@ def pods(tmp_path_factory) -> Iterator[list[RunningPod]]:
         yield running
 
 
-def _metric(url: str, name: str) -> float:
-    match = re.search(rf"^{name}(?:_total)? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.MULTILINE)
-    assert match, f"no metric {name} on {url}/metrics"
-    return float(match.group(1))
-
-
 def _step_requests(pods: list[RunningPod]) -> list[float]:
     """Each pod's count of step requests (its step-time histogram's count)."""
-    return [_metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
+    return [metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
 
 
 def _chunk(n: int, k: int = K, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-1.0, 1.0, (n, k, ACTION_DIM)).astype(np.float32)
 
 
-def _post(url: str, op: str, body: dict) -> httpx.Response:
-    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
-    return httpx.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers, timeout=60)
-
-
 def _reset(url: str, envs: list[int]) -> dict:
     body = {"generation": 0, "env_indices": np.array(envs, dtype=np.int64), "state_ids": np.zeros(len(envs), dtype=np.int64)}
-    answer = _post(url, "reset", body)
+    answer = post_wire(url, "reset", body, None)
     assert answer.status_code == 200, answer.text
     return wire.decode(answer.content)
 
@@ -127,9 +116,9 @@ def test_a_pod_steps_an_env_past_its_end_when_asked(pods):
     url = pods[0].url
     _reset(url, [0, 1])
     body = {"generation": 0, "env_indices": np.array([0, 1], dtype=np.int64), "actions": _chunk(2)}
-    stopped = wire.decode(_post(url, "step", body).content)
+    stopped = wire.decode(post_wire(url, "step", body, None).content)
     _reset(url, [0, 1])
-    past = wire.decode(_post(url, "step", {**body, "step_past_end": True}).content)
+    past = wire.decode(post_wire(url, "step", {**body, "step_past_end": True}, None).content)
     assert stopped["num_steps"].tolist() == [EPISODE, EPISODE]
     assert past["num_steps"].tolist() == [K, K]
     # Up to the end both are one trajectory; after it the episode limit keeps counting and the
@@ -144,11 +133,11 @@ def test_a_pod_refuses_step_past_end_for_one_action_steps_and_changes_nothing(po
     url = pods[0].url
     before = _reset(url, [0])
     body = {"generation": 0, "env_indices": np.array([0], dtype=np.int64), "actions": _chunk(1)[:, 0], "step_past_end": True}
-    answer = _post(url, "step", body)
+    answer = post_wire(url, "step", body, None)
     assert answer.status_code == 422 and "step_past_end" in answer.text
-    after = wire.decode(_post(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}).content)
+    after = wire.decode(post_wire(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None).content)
     reference = _reset(url, [0])
-    again = wire.decode(_post(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}).content)
+    again = wire.decode(post_wire(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None).content)
     assert np.array_equal(after["obs"]["proprio"], again["obs"]["proprio"])  # the refused call moved nothing
     assert np.array_equal(before["obs"]["proprio"], reference["obs"]["proprio"])
 

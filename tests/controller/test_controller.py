@@ -38,11 +38,6 @@ JOB = {
 }
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 def assignment(pod: str, generation: int = 1, stage_id: int = 0, tasks: tuple[str, ...] = ("a",)) -> Assignment:
     blocks = tuple(TaskBlock(task_id=t, env_start=2 * i, num_envs=2) for i, t in enumerate(tasks))
     return Assignment(generation=generation, job_id="t", pod=pod, stage_id=stage_id, tasks=blocks)
@@ -250,15 +245,6 @@ async def test_a_job_whose_tasks_have_different_spaces_is_refused_naming_them():
         response = await c.api.put("/v1/job", json={**JOB, "tasks": ["gym/Pendulum-v1", "gym/MountainCarContinuous-v0"]})
         assert response.status_code == 422
         assert "'gym/MountainCarContinuous-v0' has other observation/action spaces than 'gym/Pendulum-v1'" in response.text
-
-
-async def test_a_job_with_a_task_a_pod_cannot_serve_is_refused_naming_it():
-    async with controller() as c:
-        # CartPole is served as itself without cameras (a Discrete action space travels), but a
-        # camera job serves Box spaces only.
-        camera = {"names": ["render"], "height": 8, "width": 8}
-        response = await c.api.put("/v1/job", json={**JOB, "tasks": ["gym/CartPole-v1"], "camera": camera})
-        assert response.status_code == 422 and "gym/CartPole-v1" in response.json()["detail"]
 
 
 async def test_a_job_with_an_unknown_suite_is_refused_naming_the_suite():

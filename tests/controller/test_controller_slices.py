@@ -9,11 +9,6 @@ from support.controller_in_process import JOB, TTL_S, controller
 pytestmark = pytest.mark.anyio
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 SLICES = {**JOB, "stage_layout": "slices", "pods_per_stage": 2}
 
 

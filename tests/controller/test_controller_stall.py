@@ -29,11 +29,6 @@ PODS = ("sim-0", "sim-1", "sim-2")
 PASSES = "vecsim_controller_reconcile_seconds_count"  # one per reconcile pass
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 @asynccontextmanager
 async def ticking_controller() -> AsyncIterator[Controller]:
     """A controller running ``JOB`` on three pods, every pod just heard, its loop ticking."""

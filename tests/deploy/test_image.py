@@ -29,14 +29,15 @@ import pytest
 import yaml
 from support import ROOT
 from support.service_procs import free_port, log_tail, wait_until
+from support.wire_http import wire_answer
 
-from vecsim import wire
 
 log = logging.getLogger(__name__)
 
 CACHE = Path(os.environ.get("VECSIM_IMAGE_CACHE", Path.home() / ".cache" / "vecsim" / "image"))
 VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
 TAG = f"vecsim:{VERSION}"
+IMAGE_TOKEN = "image-test-token"  # the token the image tests start the pod and controller with
 # The store scripts/build_image.sh builds into (it writes the storage config on its first run).
 BUILDAH = ("env", f"CONTAINERS_STORAGE_CONF={CACHE / 'storage.conf'}", "buildah")
 BUILD_TIMEOUT_S = 1800
@@ -175,7 +176,7 @@ def _standalone(port: int) -> tuple[str, ...]:
 def pod(container, image, tmp_path_factory) -> Iterator[tuple[str, InContainer]]:
     port = free_port()
     base = tmp_path_factory.mktemp("pod")
-    env = {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), "VECSIM_TOKEN": "image-test-token"}
+    env = {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
     url = f"http://127.0.0.1:{port}"
     with running(container, _pod_argv(image, *_standalone(port)), env, _writable_volumes(base, image), base / "pod.log") as proc:
         wait_until(lambda: _ready(url, proc), f"the pod in the image to be ready\n{proc.log_text()}", READY_TIMEOUT_S, 1.0)
@@ -187,13 +188,6 @@ def _ready(url: str, proc: InContainer) -> bool:
     with contextlib.suppress(httpx.HTTPError):
         return httpx.get(f"{url}/readyz", timeout=5).status_code == 200
     return False
-
-
-def _post(url: str, op: str, body: dict[str, Any]) -> dict[str, Any]:
-    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE, "Authorization": "Bearer image-test-token"}
-    response = httpx.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers, timeout=120)
-    assert response.status_code == 200, response.text
-    return wire.decode(response.content)
 
 
 def _run_once(container: str, argv: Sequence[str], env: Mapping[str, str] = {}, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -246,18 +240,18 @@ def test_pod_resets_steps_and_takes_a_chunk_of_a_robosuite_task_rendered_by_mesa
     assert [task["task_id"] for task in info["tasks"]] == [TASK] and info["num_envs"] == ENVS
     generation = info["generation"]
     indices = np.arange(ENVS)
-    reset = _post(url, "reset", {"generation": generation, "env_indices": indices, "state_ids": np.zeros(ENVS, np.int64)})
+    reset = wire_answer(url, "reset", {"generation": generation, "env_indices": indices, "state_ids": np.zeros(ENVS, np.int64)}, IMAGE_TOKEN, timeout=120)
     images = reset["obs"]["images"]
     assert images, reset["obs"].keys()
     for camera, frames in images.items():
         assert frames.shape[0] == ENVS and frames.dtype == np.uint8
         assert frames.std() > 0, f"camera {camera} rendered a blank frame"
     action_dim = info["action_space"]["shape"][-1]
-    step = _post(url, "step", {"generation": generation, "env_indices": indices, "actions": np.zeros((ENVS, action_dim), np.float32)})
+    step = wire_answer(url, "step", {"generation": generation, "env_indices": indices, "actions": np.zeros((ENVS, action_dim), np.float32)}, IMAGE_TOKEN, timeout=120)
     assert step["reward"].shape == (ENVS,)
     assert not step.get("errors"), step.get("errors")
     chunk = np.random.default_rng(0).uniform(-1, 1, (ENVS, 3, action_dim)).astype(np.float32)
-    answer = _post(url, "step", {"generation": generation, "env_indices": indices, "actions": chunk})
+    answer = wire_answer(url, "step", {"generation": generation, "env_indices": indices, "actions": chunk}, IMAGE_TOKEN, timeout=120)
     assert answer["reward"].shape == (ENVS, 3)
     assert answer["num_steps"].tolist() == [3] * ENVS
     assert not answer.get("errors"), answer.get("errors")
@@ -279,7 +273,7 @@ def test_images_healthcheck_command_succeeds_against_the_pod(pod, image, contain
 def test_controller_command_starts_and_passes_the_healthcheck(container, image, tmp_path):
     port = free_port()
     argv = [*image["Entrypoint"], "controller", "--config", "/app/configs/tiny.yaml", "--host", "127.0.0.1", "--port", str(port)]
-    env = {"VECSIM_PORT": str(port), "VECSIM_TOKEN": "image-test-token"}
+    env = {"VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
     with running(container, argv, env, _writable_volumes(tmp_path, image), tmp_path / "controller.log") as proc:
         def healthy() -> bool:
             assert proc.proc.poll() is None, f"the controller exited:\n{proc.log_text()}"

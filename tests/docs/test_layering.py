@@ -6,7 +6,9 @@
 - the library (``vecsim``) never imports ``service``;
 - the pod and the controller never import each other (what they exchange lives in
   ``service.contract`` and ``service.http``);
-- bench/ uses vecsim's and service's public names only: no private module, no private name.
+- bench/ uses vecsim's and service's public names only: no private module, no private name;
+- each ``bench/*.py`` script is one benchmark: it imports what it shares from ``bench/lib``, never
+  from another script.
 """
 
 from __future__ import annotations
@@ -94,6 +96,17 @@ def test_bench_imports_no_private_module_or_name_of_vecsim_or_service():
         if hits:
             private[str(path.relative_to(ROOT))] = hits
     assert private == {}
+
+
+def test_no_bench_script_imports_another_script():
+    scripts = {path.stem for path in (ROOT / "bench").glob("*.py")}
+    assert scripts, "no bench scripts found"
+    crossing = {
+        str(path.relative_to(ROOT)): hits
+        for path in python_files("bench")
+        if (hits := sorted(m for m in imported_modules(path) if m.split(".")[0] in scripts))
+    }
+    assert crossing == {}
 
 
 def module_name(path: Path) -> str:

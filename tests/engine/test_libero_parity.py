@@ -32,13 +32,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
 import mujoco
 import numpy as np
 import pytest
 from support.service_procs import assignment, standalone_pods
+from support.wire_http import wire_answer
 
-from vecsim import wire
 from vecsim.config import CameraConfig, LiberoProtocol
 from vecsim.engine.tasks import PROPRIO_KEYS, get_task, make_env
 from vecsim.engine.tasks._libero import SETTLE_ACTION, ensure_config, init_states, libero_benchmark, quat_to_axis_angle
@@ -147,17 +146,6 @@ def served(
         yield pods[0].url, libero
 
 
-def _post(url: str, op: str, body: dict) -> dict:
-    response = httpx.post(
-        f"{url}/v1/{op}",
-        content=wire.encode({"generation": 0, **body}),
-        headers={"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE},
-        timeout=300,
-    )
-    assert response.status_code == 200, response.text
-    return wire.decode(response.content)
-
-
 def _differences(theirs: Frame, ours: dict, step: bool) -> list[str]:
     """Name every quantity of ``ours`` (a pod's answer for one env) that differs from ``theirs``."""
     obs = ours["obs"]
@@ -187,10 +175,10 @@ def _check_pod(url: str, cases: tuple[tuple[str, int], ...], libero: dict, size:
     for task, state_id in cases:
         frames = libero[(task, state_id)]
         env_indices = np.array([env_of[task]], np.int64)
-        answer = _post(url, "reset", {"env_indices": env_indices, "state_ids": np.array([state_id], np.int64)})
+        answer = wire_answer(url, "reset", {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)}, timeout=300)
         failures += [f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)]
         for step, action in enumerate(ACTIONS, start=1):
-            answer = _post(url, "step", {"env_indices": env_indices, "actions": action[None]})
+            answer = wire_answer(url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300)
             failures += [
                 f"{task} state {state_id} {size}px step {step}: {what}"
                 for what in _differences(frames[step], answer, True)
@@ -279,8 +267,8 @@ def _published_pod(name: str, tasks: list[str]):
 
 def _pod_episode(url: str, env_index: int, state_id: int, steps: int) -> list[dict]:
     env_indices = np.array([env_index], np.int64)
-    answers = [_post(url, "reset", {"env_indices": env_indices, "state_ids": np.array([state_id], np.int64)})]
-    answers += [_post(url, "step", {"env_indices": env_indices, "actions": action[None]}) for action in ACTIONS[:steps]]
+    answers = [wire_answer(url, "reset", {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)}, timeout=300)]
+    answers += [wire_answer(url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300) for action in ACTIONS[:steps]]
     return answers
 
 

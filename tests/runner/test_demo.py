@@ -25,7 +25,7 @@ def run_demo(out: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], s
     env.pop("VECSIM_TOKEN", None)
     done = subprocess.run(
         [sys.executable, "-m", "service.cli", "demo", "--out", str(out), *args],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=380,
+        cwd=out.parent, env=env, capture_output=True, text=True, timeout=380,
     )  # fmt: skip
     return done, marker
 
@@ -39,6 +39,8 @@ def test_the_demo_rolls_out_on_a_local_job_writes_its_pictures_and_leaves_nothin
     out = tmp_path / "demo"
     done, marker = run_demo(out, "--horizon", "4", "--videos", "1", "--ready-timeout", "300")
     assert done.returncode == 0, done.stderr[-3000:]
+    # Run outside the checkout: the default job ships inside the package. The warm-up shows.
+    assert "warming up" in done.stderr and "sim-0" in done.stderr
 
     assert "env-steps/s" in done.stdout and "policy time overlapped" in done.stdout
     summary = json.loads((out / "summary.json").read_text())
@@ -113,6 +115,13 @@ def _marked(marker: str) -> list[psutil.Process]:
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             continue
     return found
+
+
+def test_the_packaged_default_job_is_configs_tiny():
+    from service.demo import DEFAULT_CONFIG
+    from vecsim.config import load_job_config
+
+    assert load_job_config(DEFAULT_CONFIG) == load_job_config(ROOT / "configs" / "tiny.yaml")
 
 
 def _processes_marked(marker: str) -> list[str]:

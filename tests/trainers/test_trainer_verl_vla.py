@@ -23,6 +23,7 @@ import yaml
 from gymnasium.error import ClosedEnvironmentError
 from hydra.errors import InstantiationException
 from support.service_procs import PodSpec, RunningPod, assignment, standalone_pods
+from support.wire_http import metric
 
 import vecsim.trainers.verl_vla as adapter
 from vecsim.config import CameraConfig, LiberoProtocol
@@ -110,20 +111,12 @@ def env(pods) -> Iterator[Any]:
     made.close()
 
 
-def _metric(url: str, name: str) -> float:
-    import httpx
-
-    match = re.search(rf"^{name}(?:_total)? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.MULTILINE)
-    assert match, f"no metric {name} on {url}/metrics"
-    return float(match.group(1))
-
-
 def step_requests(pods) -> list[float]:
-    return [_metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
+    return [metric(p.url, "vecsim_pod_step_seconds_count") for p in pods]
 
 
 def resets(pods) -> list[float]:
-    return [_metric(p.url, "vecsim_pod_env_resets") for p in pods]
+    return [metric(p.url, "vecsim_pod_env_resets") for p in pods]
 
 
 def chunks(n: int, seed: int = 0, k: int = K) -> list[torch.Tensor]:

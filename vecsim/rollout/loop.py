@@ -29,23 +29,21 @@ the rollout: its trajectories are reported lost by traj_key (:attr:`RolloutResul
 their route, to resample), no waiting request starts on it, and every other trajectory runs on.
 """
 
+
 from __future__ import annotations
 
 import logging
 import math
 import re
 import time
-import zlib
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from gymnasium import spaces
-from torch import nn
 
 from vecsim import trees
 from vecsim.client import (
@@ -61,175 +59,18 @@ from vecsim.client.routing import check_request
 from vecsim.config import RoutingTable
 from vecsim.plan import stage_of
 from vecsim.rollout.intervals import covered, intersection, merge
+from vecsim.rollout.results import LostTrajectory, RolloutResult, RolloutStats, Trajectory
+from vecsim.rollout.video import Recorder, write_video
+
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "EnvLoop",
-    "ExampleCNNPolicy",
-    "LostTrajectory",
-    "RolloutResult",
-    "RolloutStats",
-    "Trajectory",
-    "write_video",
-]
+__all__ = ["EnvLoop", "Policy"]
 
 # policy(observations, instructions, task_ids) -> actions [n, action_dim] or chunks [n, K, action_dim]
 Policy = Callable[[dict[str, Any], list[str], list[str]], torch.Tensor]
 # (stage_id, pod): one stage's envs on one pod, what one call of the loop steps.
 Lane = tuple[int, str]
-
-
-# -- the example policy --------------------------------------------------------------------------
-
-
-def _hash_bucket(text: str, buckets: int) -> int:
-    # crc32, not hash(): Python salts str hashes per process.
-    return zlib.crc32(text.encode()) % buckets
-
-
-class ExampleCNNPolicy(nn.Module):
-    """A small CNN policy over vecsim's observation: camera images, proprio, instruction, task id.
-
-    Each camera goes through one shared conv encoder; proprio through a linear layer; the
-    instruction as a hashed bag of words and the task id as a hashed embedding. A tanh head maps
-    to the action space's bounds. With ``noise_std > 0`` Gaussian noise explores around it.
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        hidden: int = 64,
-        noise_std: float = 0.0,
-        buckets: int = 1024,
-        seed: int = 0,
-    ) -> None:
-        super().__init__()
-        torch.manual_seed(seed)
-        image_space = observation_space.spaces.get("images")
-        self.cameras = list(image_space.spaces) if image_space is not None else []
-        self.encoder = nn.Sequential(
-            nn.Conv2d(3, 16, kernel_size=5, stride=2, padding=2),
-            nn.ReLU(),
-            nn.Conv2d(16, 32, kernel_size=3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.AdaptiveAvgPool2d(1),
-            nn.Flatten(),
-        )
-        proprio_dim = int(np.prod(observation_space["proprio"].shape))
-        self.proprio = nn.Linear(proprio_dim, hidden)
-        self.buckets = buckets
-        self.words = nn.EmbeddingBag(buckets, 16, mode="mean")
-        self.tasks = nn.Embedding(buckets, 16)
-        action_dim = int(np.prod(action_space.shape))
-        self.head = nn.Sequential(
-            nn.Linear(32 * len(self.cameras) + hidden + 32, hidden), nn.ReLU(), nn.Linear(hidden, action_dim)
-        )
-        low, high = np.asarray(action_space.low, np.float32), np.asarray(action_space.high, np.float32)
-        bounded = np.isfinite(low) & np.isfinite(high)
-        self.register_buffer("center", torch.from_numpy(np.where(bounded, (low + high) / 2, 0.0).astype(np.float32)))
-        self.register_buffer("scale", torch.from_numpy(np.where(bounded, (high - low) / 2, 1.0).astype(np.float32)))
-        self.noise_std = float(noise_std)
-
-    def forward(self, obs: dict[str, Any], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
-        """Return actions ``[n, action_dim]`` for a batch of observations (tensors on the module's device)."""
-        device = self.center.device
-        features = []
-        for camera in self.cameras:
-            image = obs["images"][camera].to(device=device, dtype=torch.float32) / 255.0
-            features.append(self.encoder(image.permute(0, 3, 1, 2)))
-        features.append(torch.relu(self.proprio(obs["proprio"].to(device=device, dtype=torch.float32))))
-        words = [[_hash_bucket(w, self.buckets) for w in text.lower().split()] or [0] for text in instructions]
-        flat = torch.tensor([b for ws in words for b in ws], device=device, dtype=torch.long)
-        offsets = torch.tensor(np.cumsum([0] + [len(ws) for ws in words[:-1]]), device=device, dtype=torch.long)
-        features.append(self.words(flat, offsets))
-        features.append(self.tasks(torch.tensor([_hash_bucket(t, self.buckets) for t in task_ids], device=device)))
-        mean = torch.tanh(self.head(torch.cat(features, dim=1)))
-        if self.noise_std > 0:
-            mean = (mean + self.noise_std * torch.randn_like(mean)).clamp(-1.0, 1.0)
-        return self.center + self.scale * mean
-
-
-# -- results -------------------------------------------------------------------------------------
-
-
-@dataclass
-class Trajectory:
-    """One finished trajectory of T actions, taken over C policy calls.
-
-    ``observations`` holds the kept keys of the observation (``images`` and/or ``proprio``),
-    each ``[C+1, ...]``: what the policy saw at each call, and the last one; ``actions``
-    ``[T, A]``; ``rewards`` ``[T]``; ``dones`` ``[T]`` (True at the last step); ``num_steps``
-    ``[C]``: the actions applied after each observation (all ones, and C = T, for a policy of
-    one action per call). ``success``: the task was solved at some step.
-    """
-
-    traj_key: str
-    route: TrajRoute
-    observations: dict[str, Any]
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    dones: torch.Tensor
-    terminated: bool
-    truncated: bool
-    success: bool
-    num_steps: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.int32))
-
-    @property
-    def length(self) -> int:
-        return int(self.actions.shape[0])
-
-
-@dataclass
-class RolloutStats:
-    """How a rollout spent its time.
-
-    ``policy_s``: time in the policy (including moving observations to tensors);
-    ``simulation_s``: time with at least one stage call in flight; ``wait_s``: time the loop
-    blocked waiting for observations; ``overlap_fraction``: share of ``policy_s`` during which
-    some stage was simulating (1.0 = the policy never ran alone).
-    """
-
-    num_trajectories: int = 0
-    env_steps: int = 0
-    wall_s: float = 0.0
-    env_steps_per_s: float = 0.0
-    policy_s: float = 0.0
-    simulation_s: float = 0.0
-    wait_s: float = 0.0
-    overlap_s: float = 0.0
-    overlap_fraction: float = 0.0
-    success_per_task: dict[str, float] = field(default_factory=dict)
-    # (what, stage_id, begin_s, end_s) from the rollout's start; what is "policy" or "sim".
-    timeline: list[tuple[str, int, float, float]] = field(default_factory=list)
-    # One per pod call, in the order they landed: (stage_id, pod, begin_s, end_s, resets, steps),
-    # the call's time in flight from the rollout's start and how many trajectories it reset and
-    # stepped (a first step's cost against later ones: service/demo.py's step_costs).
-    pod_calls: list[tuple[int, str, float, float, int, int]] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class LostTrajectory:
-    """A trajectory whose env went away mid-episode: its pod died, did not answer within the
-    client's timeout, or rebuilt its envs. ``route`` names what to resample (its task and state
-    id); ``steps`` is how many actions it had taken; ``reason`` is the client's error."""
-
-    traj_key: str
-    route: TrajRoute
-    steps: int
-    reason: str
-
-
-@dataclass
-class RolloutResult:
-    """Finished trajectories keyed by traj_key (in request order), the lost ones (neither
-    finished nor failed the rollout: resample them), stats, and the videos written."""
-
-    trajectories: dict[str, Trajectory]
-    stats: RolloutStats
-    videos: dict[str, Path] = field(default_factory=dict)
-    lost: dict[str, LostTrajectory] = field(default_factory=dict)
 
 
 # -- the loop ------------------------------------------------------------------------------------
@@ -347,8 +188,8 @@ class EnvLoop:
         instructions = self.client.instructions
         buffers = {key: _Buffer(key, route, self.keep_obs, cap_of[key]) for key, route in routes.items()}
         recorded = self._recorded_keys(keys)
-        recorder = _Recorder(recorded, self._video_camera())
-        clock = _Clock(started, self.log_every_s)
+        recorder = Recorder(recorded, self._video_camera())
+        clock = Clock(started, self.log_every_s)
         # A lane is one stage's envs on one pod, (stage, pod): the unit a call goes to. A pod of
         # the 'slices' layout is in a lane of every stage, each with a call of its own.
         stage_pods = {stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
@@ -420,7 +261,7 @@ class EnvLoop:
         pod: Lane,
         stage: int,
         inflight: _InFlight,
-        clock: _Clock,
+        clock: Clock,
         buffers: Mapping[str, _Buffer],
         lost: dict[str, LostTrajectory],
         failed: set[str],
@@ -561,7 +402,7 @@ class EnvLoop:
             raise ValueError(f"record names traj_keys not in this batch: {unknown}")
         return list(self.record)
 
-    def _write_videos(self, recorder: _Recorder) -> dict[str, Path]:
+    def _write_videos(self, recorder: Recorder) -> dict[str, Path]:
         videos: dict[str, Path] = {}
         if self.video_dir is None:
             return videos
@@ -712,25 +553,6 @@ class _Buffer:
         )
 
 
-class _Recorder:
-    """Frames of one camera for the trajectories chosen for video."""
-
-    def __init__(self, keys: list[str], camera: str | None) -> None:
-        self.frames: dict[str, list[np.ndarray]] = {key: [] for key in keys}
-        self.camera = camera
-
-    def add(self, key: str, batch: StageBatch, row: int) -> None:
-        """Take the frames of a reset or step answer: a chunk's recorded frames, one per applied
-        action, or else the observation's."""
-        if key not in self.frames:
-            return
-        chunk = batch.frames.get(key)
-        if chunk is not None:
-            self.frames[key].extend(np.array(frame) for frame in chunk[self.camera][: int(batch.num_steps[row])])
-        else:
-            self.frames[key].append(np.array(batch.obs["images"][self.camera][row]))
-
-
 class _InFlight:
     """The call in flight on each lane (at most one) and the traj_keys it carries; a lane's stage
     is its first item."""
@@ -751,7 +573,7 @@ class _InFlight:
         self.calls.clear()
 
 
-class _Clock:
+class Clock:
     """Timing of one rollout: policy intervals, stage-call intervals, waits, progress logs."""
 
     def __init__(self, started: float, log_every_s: float) -> None:
@@ -812,8 +634,8 @@ class _Clock:
         self.simulation.append((batch.submitted_at, batch.finished_at))
         self.timeline.append(("sim", stage, batch.submitted_at - self.started, batch.finished_at - self.started))
 
-    def in_policy(self, stage: int) -> _Interval:
-        return _Interval(self.policy, lambda begin, end: self.timeline.append(
+    def in_policy(self, stage: int) -> Interval:
+        return Interval(self.policy, lambda begin, end: self.timeline.append(
             ("policy", stage, begin - self.started, end - self.started)))
 
     def maybe_log(self, buffers: Mapping[str, _Buffer]) -> None:
@@ -856,7 +678,7 @@ class _Clock:
         )
 
 
-class _Interval:
+class Interval:
     def __init__(self, into: list[tuple[float, float]], also: Callable[[float, float], None]) -> None:
         self.into = into
         self.also = also
@@ -868,35 +690,3 @@ class _Interval:
         end = time.perf_counter()
         self.into.append((self.begin, end))
         self.also(self.begin, end)
-
-
-def write_video(path: str | Path, frames: Sequence[np.ndarray], fps: int = 10) -> Path:
-    """Write uint8 ``HxWx3`` frames to ``path``: ``.gif`` with Pillow, anything else with ffmpeg.
-
-    Returns the path written.
-
-    Raises:
-        ValueError: no frames, or frames that are not uint8 ``HxWx3`` of one size.
-    """
-    path = Path(path)
-    if not frames:
-        raise ValueError(f"{path}: no frames to write")
-    shapes = {np.shape(f) for f in frames}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 3 or next(iter(shapes))[2] != 3:
-        raise ValueError(f"{path}: frames must be HxWx3 of one size, got shapes {sorted(shapes)}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".gif":
-        from PIL import Image
-
-        images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
-        images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
-        return path
-    import imageio.v2 as imageio
-
-    height, width, _ = next(iter(shapes))
-    # yuv420p needs even sides: pad by one edge pixel rather than let ffmpeg rescale.
-    pad = ((0, height % 2), (0, width % 2), (0, 0))
-    with imageio.get_writer(path, fps=fps, codec="libx264", macro_block_size=1, pixelformat="yuv420p") as writer:
-        for frame in frames:
-            writer.append_data(np.pad(np.asarray(frame, dtype=np.uint8), pad, mode="edge"))
-    return path

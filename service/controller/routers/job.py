@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
@@ -26,13 +25,12 @@ router = APIRouter(prefix="/v1/job", tags=["job"])
     summary="Set the desired job",
 )
 async def put_job(job: JobSpec, state: ControllerState = Depends(get_state)) -> JobSpec | JSONResponse:
-    """Validates the job against the task registry and the registered pods, then plans it.
+    """Validates the job against the task catalogue and the registered pods, then plans it.
 
     The same job again changes nothing; another job keeps the pods in their slots and moves the
     generation on.
     """
-    # Reading a gym task's spaces makes an env: keep that off the event loop.
-    tasks, problems = await asyncio.to_thread(check_job, job, state.records())
+    tasks, problems = check_job(job, state.records())
     if problems:
         detail = f"job {job.job_id!r} rejected: " + "; ".join(problems)
         return refusal(state.metrics.refused, 422, "job_rejected", detail, problems=problems)

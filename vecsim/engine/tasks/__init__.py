@@ -25,6 +25,7 @@ from typing import Any
 import gymnasium
 
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
+from vecsim.suites import normalize_task_id
 from vecsim.engine.tasks._base import (
     TaskEnv,
     TaskSetupError,
@@ -102,13 +103,6 @@ POD_MAX_EPISODE_STEPS = 300
 def list_suites() -> list[str]:
     """Return the names of the suites (gymnasium ids are tasks of no suite listing)."""
     return [*LIBERO_SUITES, *_ROBOSUITE_SUITES]
-
-
-def normalize_task_id(task_id: str) -> str:
-    """Return ``task_id`` with a ``gym:`` prefix written as ``gym/``; anything else unchanged."""
-    if task_id.startswith("gym:"):
-        return "gym/" + task_id[len("gym:") :]
-    return task_id
 
 
 def _unknown(what: str) -> UnknownTaskError:

@@ -21,7 +21,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from common import spread
+from .records import spread
 
 import service
 from service.runner.ports import free_port, free_port_block
@@ -176,7 +176,7 @@ def paired_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> di
 
 
 def rate_spread(values: Sequence[float]) -> dict[str, float]:
-    """Return ``common.spread`` of per-round figures (median, min, max, n), rounded for the record."""
+    """Return ``records.spread`` of per-round figures (median, min, max, n), rounded for the record."""
     return {key: round(value, 2) for key, value in spread(values).items()}
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 RESULT_PREFIX = "RESULT "
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def out_dir() -> Path:

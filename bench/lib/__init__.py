@@ -1,0 +1,15 @@
+"""What the benchmarks under ``bench/`` share; each ``bench/*.py`` script is one benchmark and imports
+from here, never from another script.
+
+- :mod:`lib.records`: where records and plots go, spreads, the ``RESULT`` line.
+- :mod:`lib.pods`: interleaved rounds, paired ratios, pods and jobs on loopback ports.
+- :mod:`lib.machine`: GL/EGL probes, the GPU, CPU topology and pinning, memory.
+- :mod:`lib.jobs`: what a GPU bench builds (``Plan``), its job config, start-up, regrouping stages.
+- :mod:`lib.policies`: vision policies, their CUDA graphs, scripted and chunked policies.
+- :mod:`lib.measure`: timed stage calls, pod counters, rollouts, interleaved contenders.
+- :mod:`lib.stats`: figures from measured rollouts.
+- :mod:`lib.plots`: the GPU benches' plots.
+
+A script runs with ``bench/`` on ``sys.path`` (Python puts a script's folder there), so it
+imports ``from lib.jobs import Plan``.
+"""
