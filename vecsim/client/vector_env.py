@@ -103,8 +103,9 @@ class HTTPVectorEnv(VectorEnv):
 
     Observations are the pods' in the job's observation space: a served gymnasium env's own
     (Box, Discrete, Dict, Tuple, ...), the robot suites' ``{"images": {...}, "proprio": ...}``.
-    ``info`` after reset and step holds the envs' own keys (gym tasks) and ``success`` and
-    ``task_id``, all with gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
+    ``info`` after reset and step holds a gym task's own keys and nothing else (``state_id``
+    after a reset to fixed states), a robot task's ``success`` and ``task_id``, all with
+    gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
     gymnasium's rule: env ``i`` gets ``seed + i`` (int), ``seed[i]`` (list) or None. A gym task
     resets as the env's own ``reset(seed=..., options=...)`` (every option but ``reset_mask`` and
     ``state_ids`` goes to the envs; autoresets are ``reset()`` with no seed, as locally); a robot
@@ -783,8 +784,9 @@ class HTTPVectorEnv(VectorEnv):
             info["_state_id"][envs] = True
 
     def _add_rows_info(self, info: dict[str, Any], batch: StageBatch, rows: np.ndarray, envs: np.ndarray) -> None:
-        """Put ``success`` and ``task_id`` of batch rows ``rows`` at env indices ``envs``, with masks."""
-        if len(envs) == 0:
+        """Put ``success`` and ``task_id`` of batch rows ``rows`` at env indices ``envs``, with
+        masks (robot tasks: a gym env's info is its own)."""
+        if len(envs) == 0 or self._native:
             return
         if "success" not in info:
             info["success"], info["_success"] = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=bool)
@@ -805,12 +807,19 @@ class HTTPVectorEnv(VectorEnv):
     def get_attr(self, name: str) -> tuple[Any, ...]:
         """Return attribute ``name`` of every env, as JSON values (a gym env's through its wrappers).
 
+        ``np_random_seed`` of a robot task is :attr:`np_random_seed`'s: the seeds its state ids
+        are drawn with. A spec (gymnasium's ``EnvSpec``, a task's ``TaskSpec``) comes as a dict
+        of its fields.
+
         Raises:
             ClosedEnvironmentError, AlreadyPendingCallError: as gymnasium's vector envs.
             PodRequestError: the pods refused the name (private, or one vecsim keeps).
             the env's own exception (builtin types by name), or ``ValueError`` for an attribute
             that JSON cannot hold.
         """
+        if name == "np_random_seed" and not self._native:
+            self._assert_open()
+            return self.np_random_seed
         return tuple(self._attr("get_attr", name, None))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:

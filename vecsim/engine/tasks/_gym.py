@@ -3,8 +3,9 @@ the pod imports first (gymnasium's own ``"module:EnvId"`` form, for a user's pac
 
 Without cameras a gym task is the env itself: ``gymnasium.make(id, **make_kwargs)`` with the
 env's own observation and action spaces (any kind :mod:`vecsim.spaces` describes; actions of an
-array space: Box, Discrete, MultiDiscrete, MultiBinary), its own ``info`` (vecsim's ``success``
-and ``task_id`` beside it) and its own seeding: ``reset(seed=s, options=o)`` is the env's. With
+array space: Box, Discrete, MultiDiscrete, MultiBinary), its own ``info`` (nothing added) and its
+own seeding: ``reset(seed=s, options=o)`` is the env's, and a pod leaves a new env as
+``gymnasium.make`` built it (never reset, its generators as its factory left them). With
 cameras, a gym task takes vecsim's robot layout: ``proprio`` is the env's observation, flattened,
 as float32, and ``images`` holds one ``render`` frame of the configured size (MuJoCo envs only,
 upright): the picture gymnasium's ``env.render()`` gives, drawn by vecsim's batch renderer from
@@ -34,7 +35,7 @@ from vecsim.engine.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_
 GYM_NUM_STATES = 50
 GYM_DEFAULT_MAX_EPISODE_STEPS = 1000
 RENDER_CAMERA = "render"
-# The info keys vecsim itself gives every task env; an env's own keys of those names are vecsim's.
+# The info keys vecsim itself gives every robot task env (a native gym env's info is its own).
 VECSIM_INFO_KEYS = ("success", "task_id", "state_id")
 
 
@@ -237,8 +238,8 @@ class GymTaskEnv(TaskEnv):
         own ``reset(seed=seed, options=options)``.
 
         Returns:
-            ``(observation, info)``; info holds ``success`` and ``task_id`` (and ``state_id`` after
-            a reset to a fixed state), native envs' info the env's own keys besides.
+            ``(observation, info)``: native, the env's own info, nothing added; else ``success``,
+            ``task_id`` and ``state_id``.
 
         Raises:
             ValueError: a ``state_id`` that is not an int in range.
@@ -249,27 +250,22 @@ class GymTaskEnv(TaskEnv):
         rest = dict(options or {})
         state_id = rest.pop("state_id", None)
         if state_id is not None:
-            state_id = self._state_id({"state_id": state_id})
-            seed = derive_seed(self.task.task_id, state_id)
+            seed = derive_seed(self.task.task_id, self._state_id({"state_id": state_id}))
         raw, info = self.inner.reset(seed=seed, options=rest or None)
         self._elapsed = 0
-        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
-        if state_id is not None:
-            info["state_id"] = state_id
         return raw, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         """Advance one step: native envs exactly as the env's own ``step``.
 
         Returns:
-            ``(observation, reward, terminated, truncated, info)``, info with ``success`` and
-            ``task_id`` (besides the env's own keys, native).
+            ``(observation, reward, terminated, truncated, info)``: native, the env's own info,
+            nothing added; else ``success`` and ``task_id``.
         """
         if not self.native:
             return super().step(action)
         raw, reward, terminated, truncated, info = self.inner.step(action)
         self._elapsed += 1
-        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
         return raw, float(reward), bool(terminated), bool(truncated), info
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
