@@ -7,9 +7,9 @@ the test modules import it; ``SyncVectorEnv`` stays gymnasium's, the reference.
 
 The stand-in does what ``AsyncVectorEnv`` does with the test's env factories, on a pod instead
 of in worker processes: it writes each factory (cloudpickled, as ``AsyncVectorEnv`` sends it to
-its worker) to a file that ``gymtests_shim`` registers, in the pod, as the id
-``gymtests_shim:F<n>x<i>-v0`` with no wrapper of gymnasium's around it; it starts a standalone
-pod with one task per factory (env ``i`` is factory ``i``'s env; the first one's spaces are the
+its worker) to a file that ``gymtests_shim`` gives the pod as the callable
+``gymtests_shim:F<n>x<i>`` (vecsim's ``gym/<module>:<callable>`` task form, which serves the env
+the callable returns, as it is); it starts a standalone pod with one task per factory (env ``i`` is factory ``i``'s env; the first one's spaces are the
 job's, as ``AsyncVectorEnv`` takes its dummy env's) and returns ``HTTPVectorEnv(pod_urls=[pod])``
 with the test's autoreset mode. No space, seed or reset is injected. A custom ``worker`` or an
 ``observation_mode`` other than ``"same"`` keeps gymnasium's class (reported, not counted). The
@@ -78,7 +78,7 @@ def _served_async(
     tasks = []
     for i, fn in enumerate(env_fns):
         (FACTORIES / f"F{token}x{i}.pkl").write_bytes(cloudpickle.dumps(fn))
-        tasks.append((f"gym/gymtests_shim:F{token}x{i}-v0", 1))
+        tasks.append((f"gym/gymtests_shim:F{token}x{i}", 1))
     spec = PodSpec(f"gymtests-{token}", 0, tasks, max_episode_steps=None, envs_per_worker=len(tasks))
     stack = contextlib.ExitStack()
     try:

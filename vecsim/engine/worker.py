@@ -405,8 +405,8 @@ class Worker:
 
         ``get``: the attribute; ``call``: the attribute called with ``payload`` ``(args, kwargs)``
         if callable, else the attribute; ``set``: ``payload`` replaces a JSON-valued attribute
-        (an array one keeps its dtype and shape). A gym task's attributes are its gymnasium env's
-        (through its wrappers).
+        (an array one keeps its dtype and shape). A gym task's attributes are those of the env its
+        id or factory returned (through that env's wrappers, none of vecsim's).
         """
         out: list[tuple[int, bool, Any]] = []
         for local, env_index in enumerate(self.worker.env_indices):
@@ -414,7 +414,7 @@ class Worker:
                 continue
             op, name, payload = requests[env_index]
             env = self._envs[local]
-            target = env.inner if isinstance(env, GymTaskEnv) else env
+            target = env.served if isinstance(env, GymTaskEnv) else env
             try:
                 out.append((env_index, True, _attr_op(target, op, name, payload)))
             except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller
