@@ -91,7 +91,7 @@ def without_rng(d: Any) -> Any:
     that are equal describe alike, however far each has been sampled."""
     if isinstance(d, Mapping):
         return {key: without_rng(value) for key, value in d.items() if key != "rng"}
-    if isinstance(d, list):
+    if isinstance(d, (list, tuple)):
         return [without_rng(item) for item in d]
     return d
 
