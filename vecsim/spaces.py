@@ -33,7 +33,10 @@ from gymnasium import spaces
 
 from vecsim.wire import WireError, from_jsonable, to_jsonable
 
-__all__ = ["check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts", "without_rng"]
+__all__ = [
+    "check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
+    "without_rng",
+]  # fmt: skip
 
 _FIELDS = {
     "Box": {"type", "dtype", "shape", "low", "high"},
@@ -45,6 +48,7 @@ _FIELDS = {
 }
 _SUPPORTED = "Box, Discrete, MultiBinary, MultiDiscrete, Dict, Tuple"
 _ARRAY_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+_COMPOSITE = (spaces.Dict, spaces.Tuple)
 # The dtypes the wire carries (vecsim.wire).
 _WIRE_KINDS = frozenset("biuf")
 
@@ -279,18 +283,28 @@ def check_travels(space: spaces.Space, where: str = "space") -> spaces.Space:
 
 
 def check_action_space(space: spaces.Space, where: str = "action space") -> spaces.Space:
-    """Return ``space`` if vecsim can take actions of it: one array per env (Box, Discrete,
-    MultiDiscrete, MultiBinary).
+    """Return ``space`` if vecsim can take actions of it: an array space (Box, Discrete,
+    MultiDiscrete, MultiBinary), or a Dict or Tuple of them (nested), which travels flattened
+    (:func:`wire_action_space`).
 
     Raises:
-        ValueError: a Dict, Tuple or other space, named with ``where``.
+        ValueError: any other space, named by its path under ``where``.
     """
-    if type(space) not in _ARRAY_SPACES:
-        raise ValueError(
-            f"{where}: {type(space).__name__} actions are not served; vecsim takes one array per env "
-            "(Box, Discrete, MultiDiscrete, MultiBinary)"
-        )
+    leaves = _leaf_spaces(space, where) if type(space) in _COMPOSITE else [(where, space)]
+    for path, leaf in leaves:
+        if type(leaf) not in _ARRAY_SPACES:
+            raise ValueError(
+                f"{path}: {type(leaf).__name__} actions are not served; vecsim takes arrays (Box, "
+                "Discrete, MultiDiscrete, MultiBinary) and Dict or Tuple spaces of them"
+            )
     return check_travels(space, where)
+
+
+def wire_action_space(space: spaces.Space) -> spaces.Space:
+    """The array space an action of ``space`` travels in: ``space`` itself, or for a Dict or
+    Tuple action space gymnasium's ``flatten_space`` of it (each action ``flatten``-ed by the
+    client, ``unflatten``-ed before the env takes it: exact, one-hot for Discrete parts)."""
+    return spaces.flatten_space(space) if type(space) in _COMPOSITE else space
 
 
 def _leaf_spaces(space: spaces.Space, where: str) -> list[tuple[str, spaces.Space]]:

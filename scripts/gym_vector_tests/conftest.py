@@ -14,7 +14,8 @@ job's, as ``AsyncVectorEnv`` takes its dummy env's) and returns ``HTTPVectorEnv(
 with the test's autoreset mode. No space, seed or reset is injected. A custom ``worker`` or an
 ``observation_mode`` other than ``"same"`` keeps gymnasium's class (reported, not counted). The
 summary counts the tests that reached HTTPVectorEnv by outcome and names each failure and each
-refusal by cause. ``VECSIM_REPO`` names the vecsim checkout under test.
+refusal by cause: not applicable is only a refusal naming a space the wire cannot carry; any
+other failure to serve the envs is a failure. ``VECSIM_REPO`` names the vecsim checkout under test.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import contextlib
 import itertools
 import os
 import re
+import signal
 import sys
 import tempfile
 from pathlib import Path
@@ -48,6 +50,7 @@ from support.service_procs import PodSpec, standalone_pods  # noqa: E402
 from vecsim.client import HTTPVectorEnv  # noqa: E402
 
 _AsyncVectorEnv = gymnasium.vector.AsyncVectorEnv
+signal.signal(signal.SIGTERM, signal.default_int_handler)  # run.sh's timeout: pytest stops its pods
 _count = itertools.count()
 _pods: list[contextlib.ExitStack] = []  # the current test's pods, stopped after it
 
@@ -85,20 +88,26 @@ def _served_async(
         pod = stack.enter_context(standalone_pods([spec]))[0]
     except Exception as exc:
         stack.close()
-        _refused[test] = _pod_refusal(exc)
+        cause = _pod_refusal(exc)
+        if cause is not None:
+            _refused[test] = cause
         raise
     _pods.append(stack)
     return HTTPVectorEnv(pod_urls=[pod.url], autoreset_mode=autoreset_mode, timeout_s=30)
 
 
-def _pod_refusal(exc: Exception) -> str:
-    """The line of the pod's log or error that says why it refused the envs."""
-    text = str(exc)
-    for pattern in (r"[^\n]*(?:is not supported|cannot travel|are not served)[^\n]*", r"[^\n]*Error: [^\n]*"):
-        found = re.search(pattern, text)
-        if found:
-            return found.group(0).strip()[:200]
-    return text.strip().splitlines()[-1][:200] if text.strip() else type(exc).__name__
+# A refusal naming a space (or dtype) the wire cannot carry: the only cause counted not applicable.
+_CANNOT_TRAVEL = re.compile(r"[^\n]*(?:is not supported \(|cannot travel on the wire)[^\n]*")
+
+
+def _pod_refusal(exc: Exception) -> str | None:
+    """The line of the pod's error saying which space the wire cannot carry; None for any other
+    failure to start (a failure of the test)."""
+    found = _CANNOT_TRAVEL.search(str(exc))
+    if found is None:
+        return None
+    cause = re.sub(r"gym/gymtests_shim:F\d+x\d+: ", "", found.group(0).strip())
+    return re.sub(r"^.*?tasks: ", "", cause)[:200]
 
 
 gymnasium.vector.AsyncVectorEnv = _served_async

@@ -27,6 +27,7 @@ from vecsim.engine.tasks import make_env
 CARTPOLE = "gym/CartPole-v1"
 SEEDED = "gym/support.gym_served_envs:seeded_cartpole"
 PROBE = "gym/support.gym_served_envs:probe"
+COMPOSED = "gym/support.gym_served_envs:composed"
 NUM_ENVS = 4
 
 
@@ -39,6 +40,7 @@ def pods(tmp_path_factory):
         # vecsim's own TimeLimit (the job's limit) sits around the probe; attributes never see it.
         PodSpec("probe", 0, [(PROBE, 2)], max_episode_steps=50),
         PodSpec("robot", 0, [("tiny/lift", 2)], max_episode_steps=20),
+        PodSpec("composed", 0, [(COMPOSED, 2)], max_episode_steps=None),
     ]
     with standalone_pods(specs, tmp_path_factory.mktemp("pods")) as running:
         yield {spec.name: pod.url for spec, pod in zip(specs, running)}
@@ -118,6 +120,21 @@ def test_bool_box_actions_reach_the_env_as_bools(vector):
     got, want = remote.step(actions), sync.step(actions)
     assert np.array_equal(got[0], want[0])
     assert list(got[4]["action_dtype"]) == list(want[4]["action_dtype"]) == ["|b1", "|b1"]
+    sync.close()
+
+
+def test_dict_and_tuple_actions_reach_the_env_as_its_own_space_gives_them(vector):
+    remote = vector("composed")
+    sync = SyncVectorEnv([gym_served_envs.composed] * 2)
+    assert remote.single_action_space == sync.single_action_space and remote.action_space == sync.action_space
+    remote.reset(seed=0)
+    sync.reset(seed=0)
+    sync.action_space.seed(1)
+    for _ in range(5):
+        actions = sync.action_space.sample()
+        got, want = remote.step(actions), sync.step(actions)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        assert np.array_equal(got[4]["pick"], want[4]["pick"])
     sync.close()
 
 

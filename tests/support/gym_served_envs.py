@@ -42,3 +42,33 @@ class ProbeEnv(gymnasium.Env):
 def probe() -> gymnasium.Env:
     """A factory returning the probe env itself, no wrapper around it."""
     return ProbeEnv()
+
+
+class ComposedActionEnv(gymnasium.Env):
+    """A Dict action space holding a Box, a Discrete and a Tuple; each step answers its action
+    flattened (``float64``) and checks that the action is in the space, as the env gets it."""
+
+    def __init__(self) -> None:
+        self.action_space = spaces.Dict(
+            {
+                "move": spaces.Box(-1.0, 1.0, (2,), np.float32),
+                "pick": spaces.Discrete(3, start=1),
+                "flags": spaces.Tuple((spaces.MultiBinary(2), spaces.MultiDiscrete([2, 4]))),
+            }
+        )
+        self.observation_space = spaces.Box(-1.0, 1.0, (spaces.flatdim(self.action_space),), np.float64)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return np.zeros(self.observation_space.shape), {}
+
+    def step(self, action):
+        if action not in self.action_space:
+            raise ValueError(f"{action} is not in the action space")
+        obs = spaces.flatten(self.action_space, action).astype(np.float64)
+        return obs, float(action["pick"]), False, False, {"pick": int(action["pick"])}
+
+
+def composed() -> gymnasium.Env:
+    """A factory of the Dict-action env."""
+    return ComposedActionEnv()

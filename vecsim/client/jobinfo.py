@@ -13,7 +13,7 @@ from gymnasium.vector.utils import create_empty_array
 
 from vecsim import trees
 from vecsim.client.errors import PodRequestError, PodUnavailableError
-from vecsim.spaces import space_from_json, without_rng
+from vecsim.spaces import space_from_json, wire_action_space, without_rng
 from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES
 
 __all__ = ["JobInfo"]
@@ -41,6 +41,12 @@ class JobInfo:
 
     @property
     def action_space(self) -> Space | None:
+        """The action space as the pods take it: a Dict or Tuple one flattened."""
+        return wire_action_space(self.spaces[1]) if self.spaces else None
+
+    @property
+    def served_action_space(self) -> Space | None:
+        """The envs' own action space."""
         return self.spaces[1] if self.spaces else None
 
     def adopt(self, infos: Mapping[str, Mapping[str, Any]]) -> None:

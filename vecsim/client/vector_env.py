@@ -28,6 +28,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
+from vecsim.client.actions import wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
@@ -103,9 +104,8 @@ class HTTPVectorEnv(VectorEnv):
 
     Observations are the pods' in the job's observation space: a served gymnasium env's own
     (Box, Discrete, Dict, Tuple, ...), the robot suites' ``{"images": {...}, "proprio": ...}``.
-    ``info`` after reset and step holds a gym task's own keys and nothing else (``state_id``
-    after a reset to fixed states), a robot task's ``success`` and ``task_id``, all with
-    gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
+    ``info`` holds a gym task's own keys only (and ``state_id`` after fixed-state resets), a
+    robot task's ``success`` and ``task_id``, with gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
     gymnasium's rule: env ``i`` gets ``seed + i`` (int), ``seed[i]`` (list) or None. A gym task
     resets as the env's own ``reset(seed=..., options=...)`` (every option but ``reset_mask`` and
     ``state_ids`` goes to the envs; autoresets are ``reset()`` with no seed, as locally); a robot
@@ -215,7 +215,7 @@ class HTTPVectorEnv(VectorEnv):
             self.routed_envs = self.routed_envs[: int(num_envs)]
         self.num_envs = len(self.routed_envs)
         self.single_observation_space = self.client.observation_space
-        self.single_action_space = self.client.action_space
+        self.single_action_space = self.client.served_action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
@@ -541,13 +541,7 @@ class HTTPVectorEnv(VectorEnv):
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
             TypeError: a scalar in place of a batch of actions.
         """
-        actions = np.asarray(actions, dtype=self.single_action_space.dtype)
-        expected = (self.num_envs, *self.single_action_space.shape)
-        if actions.ndim == 0:  # as gymnasium's vector envs, which cannot iterate over it
-            raise TypeError(f"actions must be a batch of {self.num_envs} actions, got the scalar {actions!r}")
-        if actions.shape != expected:
-            raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
-        self._send_step(actions, chunk=None)
+        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs), chunk=None)
 
     def _send_step(self, actions: np.ndarray, chunk: int | None, envs: np.ndarray | None = None) -> None:
         """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env."""
@@ -784,8 +778,7 @@ class HTTPVectorEnv(VectorEnv):
             info["_state_id"][envs] = True
 
     def _add_rows_info(self, info: dict[str, Any], batch: StageBatch, rows: np.ndarray, envs: np.ndarray) -> None:
-        """Put ``success`` and ``task_id`` of batch rows ``rows`` at env indices ``envs``, with
-        masks (robot tasks: a gym env's info is its own)."""
+        """Put a robot task's ``success`` and ``task_id`` of rows ``rows`` at envs ``envs``, masked."""
         if len(envs) == 0 or self._native:
             return
         if "success" not in info:
@@ -807,9 +800,7 @@ class HTTPVectorEnv(VectorEnv):
     def get_attr(self, name: str) -> tuple[Any, ...]:
         """Return attribute ``name`` of every env, as JSON values (a gym env's through its wrappers).
 
-        ``np_random_seed`` of a robot task is :attr:`np_random_seed`'s: the seeds its state ids
-        are drawn with. A spec (gymnasium's ``EnvSpec``, a task's ``TaskSpec``) comes as a dict
-        of its fields.
+        A robot task's ``np_random_seed`` is :attr:`np_random_seed`'s; a spec comes as a dict.
 
         Raises:
             ClosedEnvironmentError, AlreadyPendingCallError: as gymnasium's vector envs.

@@ -5,7 +5,7 @@ given to gymnasium's vector envs), called with the job's kwargs for the task.
 
 Without cameras a gym task is the env itself: ``gymnasium.make(id, **make_kwargs)`` with the
 env's own observation and action spaces (any kind :mod:`vecsim.spaces` describes; actions of an
-array space: Box, Discrete, MultiDiscrete, MultiBinary), its own ``info`` (nothing added) and its
+array space, or a Dict or Tuple of them, which travel flattened), its own ``info`` (nothing added) and its
 own seeding: ``reset(seed=s, options=o)`` is the env's, and a pod leaves a new env as
 ``gymnasium.make`` built it (never reset, its generators as its factory left them). With
 cameras, a gym task takes vecsim's robot layout: ``proprio`` is the env's observation, flattened,
@@ -32,7 +32,7 @@ import numpy as np
 from vecsim.engine import render as render_presets
 from vecsim.engine.batch_render import BatchRenderer, CameraView, shared_renderer
 from vecsim.config import CameraConfig
-from vecsim.spaces import check_action_space, check_travels
+from vecsim.spaces import check_action_space, check_travels, wire_action_space
 from vecsim.engine.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_seed, ensure_gl_backend
 
 GYM_NUM_STATES = 50
@@ -254,6 +254,9 @@ class GymTaskEnv(TaskEnv):
         self.renderer: BatchRenderer | None = None
         try:
             self.observation_space, self.action_space = _spaces(task, self.inner, camera)
+            # A Dict or Tuple action space travels flattened; the env takes its actions unflattened.
+            self._composite_actions = None if self.action_space is wire_action_space(self.action_space) else self.action_space
+            self.action_space = wire_action_space(self.action_space)
             if camera.names:
                 self.camera_views = [gymnasium_camera(self.inner)]
                 self.renderer = shared_renderer(camera.height, camera.width, render)
@@ -304,6 +307,8 @@ class GymTaskEnv(TaskEnv):
         """
         if not self.native:
             return super().step(action)
+        if self._composite_actions is not None:
+            action = gymnasium.spaces.unflatten(self._composite_actions, action)
         raw, reward, terminated, truncated, info = self.inner.step(action)
         self._elapsed += 1
         return raw, float(reward), bool(terminated), bool(truncated), info
