@@ -14,8 +14,9 @@ job's, as ``AsyncVectorEnv`` takes its dummy env's) and returns ``HTTPVectorEnv(
 with the test's autoreset mode. No space, seed or reset is injected. A custom ``worker`` or an
 ``observation_mode`` other than ``"same"`` keeps gymnasium's class (reported, not counted). The
 summary counts the tests that reached HTTPVectorEnv by outcome and names each failure and each
-refusal by cause: not applicable is only a refusal naming a space the wire cannot carry; any
-other failure to serve the envs is a failure. ``VECSIM_REPO`` names the vecsim checkout under test.
+refusal by cause: not applicable is only a refusal naming a space the wire cannot carry, and
+"cannot run here" only envs that need a package this machine lacks (gymnasium's own classes
+fail alike); any other failure to serve the envs is a failure. ``VECSIM_REPO`` names the vecsim checkout under test.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ _pods: list[contextlib.ExitStack] = []  # the current test's pods, stopped after
 
 _reached: set[str] = set()  # test ids that got an HTTPVectorEnv
 _refused: dict[str, str] = {}  # test id -> why the pod refused its envs
+_unbuildable: dict[str, str] = {}  # test id -> the package its envs need that is not installed here
 _kept: dict[str, str] = {}  # test id -> why gymnasium's own AsyncVectorEnv ran it
 _outcomes: dict[str, tuple[str, str]] = {}  # test id -> (outcome, last line of its failure)
 
@@ -91,6 +93,9 @@ def _served_async(
         cause = _pod_refusal(exc)
         if cause is not None:
             _refused[test] = cause
+        missing = re.search(r"DependencyNotInstalled: [^\n]*", str(exc))
+        if missing:
+            _unbuildable[test] = missing.group(0)[:200]
         raise
     _pods.append(stack)
     return HTTPVectorEnv(pod_urls=[pod.url], autoreset_mode=autoreset_mode, timeout_s=30)
@@ -141,10 +146,11 @@ def pytest_terminal_summary(terminalreporter):
     write = terminalreporter.write_line
     reached = {nodeid: _outcomes.get(nodeid, ("?", "")) for nodeid in _reached}
     refused = {nodeid: _refused[nodeid] for nodeid in reached if nodeid in _refused}
-    counts = {"passed": 0, "failed": 0, "not applicable": len(refused)}
+    unbuildable = {nodeid: _unbuildable[nodeid] for nodeid in reached if nodeid in _unbuildable}
+    counts = {"passed": 0, "failed": 0, "not applicable": len(refused), "cannot run here": len(unbuildable)}
     failed: dict[str, str] = {}
     for nodeid, (outcome, message) in reached.items():
-        if nodeid in refused:
+        if nodeid in refused or nodeid in unbuildable:
             continue
         counts[outcome] = counts.get(outcome, 0) + 1
         if outcome == "failed":
@@ -152,6 +158,10 @@ def pytest_terminal_summary(terminalreporter):
     write(f"tests that reached HTTPVectorEnv: {len(reached)} {counts}")
     for cause, nodeids in _group(refused).items():
         write(f"  NOT APPLICABLE ({len(nodeids)}): the pod refused: {cause}")
+        for nodeid in nodeids:
+            write(f"    {nodeid}")
+    for cause, nodeids in _group(unbuildable).items():
+        write(f"  CANNOT RUN HERE ({len(nodeids)}): the envs need what is not installed: {cause}")
         for nodeid in nodeids:
             write(f"    {nodeid}")
     for nodeid, message in sorted(failed.items()):

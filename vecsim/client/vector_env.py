@@ -28,7 +28,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
-from vecsim.client.actions import wire_actions
+from vecsim.client.gym_values import env_observation, wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
@@ -687,7 +687,7 @@ class HTTPVectorEnv(VectorEnv):
             final_obs = np.full(self.num_envs, None, dtype=object)
             rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
             for i in reset:
-                final_obs[i] = trees.row(step_batch.obs, rows_of[self._keys[i]])
+                final_obs[i] = env_observation(self.single_observation_space, trees.row(step_batch.obs, rows_of[self._keys[i]]))
             final_info: dict[str, Any] = {}
             ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
             ended_mask = np.zeros(step_batch.n, dtype=bool)

@@ -1,11 +1,16 @@
-"""A batch of actions as the pods take it: one array row per env.
+"""Values between gymnasium's forms and the wire's: actions out, an env's own observation back.
 
-An array action space (Box, Discrete, MultiDiscrete, MultiBinary) keeps the batch as it is, in
+:func:`wire_actions`: a batch of actions as the pods take it, one array row per env. An array
+action space (Box, Discrete, MultiDiscrete, MultiBinary) keeps the batch as it is, in
 the space's dtype. A Dict or Tuple action space's batch (gymnasium's batched form: a dict or
 tuple of arrays with a leading env axis) becomes one flat row per env, gymnasium's ``flatten``
 of that env's action (:func:`vecsim.spaces.wire_action_space`); the pod unflattens it.
 
     rows = wire_actions(single_action_space, action_space, actions, num_envs)
+
+:func:`env_observation`: one env's observation (a row of a batch) as an env hands it, for
+``final_obs``: a Discrete value as a Python int, as gymnasium's own envs (FrozenLake, Taxi, ...)
+return it.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from gymnasium.vector.utils import iterate
 
 from vecsim.spaces import wire_action_space
 
-__all__ = ["wire_actions"]
+__all__ = ["env_observation", "wire_actions"]
 
 
 def wire_actions(single: spaces.Space, batched: spaces.Space, actions: Any, num_envs: int) -> np.ndarray:
@@ -43,3 +48,12 @@ def wire_actions(single: spaces.Space, batched: spaces.Space, actions: Any, num_
     if rows.shape != expected:
         raise ValueError(f"actions must have shape {list(expected)}, got {list(rows.shape)}")
     return rows
+
+
+def env_observation(space: spaces.Space, value: Any) -> Any:
+    """``value`` (one env's observation of ``space``, arrays) with each Discrete part an int."""
+    if isinstance(space, spaces.Dict):
+        return {key: env_observation(space[key], item) for key, item in value.items()}
+    if isinstance(space, spaces.Tuple):
+        return tuple(env_observation(sub, item) for sub, item in zip(space.spaces, value))
+    return int(value) if isinstance(space, spaces.Discrete) else value
