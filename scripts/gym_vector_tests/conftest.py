@@ -21,10 +21,12 @@ fail alike); any other failure to serve the envs is a failure. ``VECSIM_REPO`` n
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import itertools
 import os
 import re
+import shutil
 import signal
 import sys
 import tempfile
@@ -37,6 +39,7 @@ HERE = Path(__file__).resolve().parent
 REPO = Path(os.environ["VECSIM_REPO"]).resolve()
 sys.path[:0] = [str(REPO), str(REPO / "tests")]
 FACTORIES = Path(tempfile.mkdtemp(prefix="gymtests-factories-"))
+atexit.register(shutil.rmtree, FACTORIES, True)
 os.environ["GYMTESTS_FACTORIES"] = str(FACTORIES)
 # The pods import gymtests_shim and, through the factories, the test modules (tests.vector...).
 os.environ["PYTHONPATH"] = os.pathsep.join(
@@ -59,7 +62,7 @@ _reached: set[str] = set()  # test ids that got an HTTPVectorEnv
 _refused: dict[str, str] = {}  # test id -> why the pod refused its envs
 _unbuildable: dict[str, str] = {}  # test id -> the package its envs need that is not installed here
 _kept: dict[str, str] = {}  # test id -> why gymnasium's own AsyncVectorEnv ran it
-_outcomes: dict[str, tuple[str, str]] = {}  # test id -> (outcome, last line of its failure)
+_outcomes: dict[str, tuple[str, str]] = {}  # test id -> (outcome, first error line of its failure)
 
 
 def _test_id() -> str:
