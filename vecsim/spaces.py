@@ -13,7 +13,9 @@ Supported: ``Box``, ``Discrete``, ``MultiBinary``, ``MultiDiscrete`` and (nested
 A Box bound is one number when every element is equal (an image Box stays small), else a
 nested list. Infinities use the spellings of :func:`vecsim.wire.to_jsonable` (``"Infinity"``,
 ``"-Infinity"``), so the result passes ``json.dumps(..., allow_nan=False)``. Dict keys keep
-their order. Seeds and RNG state are not carried.
+their order. A space that was seeded (its generator made, gymnasium's PCG64) carries its
+generator's state as ``"rng"`` (integers as decimal strings, as JSON readers cap them at 64
+bits), so the space rebuilt samples as the original would next; :func:`without_rng` leaves it out.
 
 On the wire (:mod:`vecsim.wire`, nested dicts of arrays) a value of a ``Tuple`` space travels as
 a dict keyed ``"0"``, ``"1"``, ...: :func:`tuples_as_dicts` writes it, the reader puts it back
@@ -31,7 +33,10 @@ from gymnasium import spaces
 
 from vecsim.wire import WireError, from_jsonable, to_jsonable
 
-__all__ = ["check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts"]
+__all__ = [
+    "check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
+    "without_rng",
+]  # fmt: skip
 
 _FIELDS = {
     "Box": {"type", "dtype", "shape", "low", "high"},
@@ -43,6 +48,7 @@ _FIELDS = {
 }
 _SUPPORTED = "Box, Discrete, MultiBinary, MultiDiscrete, Dict, Tuple"
 _ARRAY_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+_COMPOSITE = (spaces.Dict, spaces.Tuple)
 # The dtypes the wire carries (vecsim.wire).
 _WIRE_KINDS = frozenset("biuf")
 
@@ -55,6 +61,46 @@ def _bound(values: np.ndarray) -> Any:
 
 
 def _to_json(space: spaces.Space, where: str) -> dict[str, Any]:
+    out = _describe(space, where)
+    generator = space._np_random  # None until the space is seeded or sampled
+    if generator is not None and isinstance(generator.bit_generator, np.random.PCG64):
+        state = generator.bit_generator.state
+        out["rng"] = {
+            "state": str(state["state"]["state"]),
+            "inc": str(state["state"]["inc"]),
+            "has_uint32": int(state["has_uint32"]),
+            "uinteger": str(state["uinteger"]),
+        }
+    return out
+
+
+def _rng(d: Any, where: str) -> np.random.Generator:
+    """The generator a ``"rng"`` field describes."""
+    try:
+        state = {
+            "bit_generator": "PCG64",
+            "state": {"state": int(d["state"]), "inc": int(d["inc"])},
+            "has_uint32": int(d["has_uint32"]),
+            "uinteger": int(d["uinteger"]),
+        }
+        bit_generator = np.random.PCG64()
+        bit_generator.state = state
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{where}.rng: not a PCG64 state: {exc}") from None
+    return np.random.Generator(bit_generator)
+
+
+def without_rng(d: Any) -> Any:
+    """A space description (:func:`space_to_json`) without its generators' states: two spaces
+    that are equal describe alike, however far each has been sampled."""
+    if isinstance(d, Mapping):
+        return {key: without_rng(value) for key, value in d.items() if key != "rng"}
+    if isinstance(d, (list, tuple)):
+        return [without_rng(item) for item in d]
+    return d
+
+
+def _describe(space: spaces.Space, where: str) -> dict[str, Any]:
     # Exact types: a subclass may carry state that these fields would silently drop.
     kind = type(space)
     if kind is spaces.Box:
@@ -131,7 +177,7 @@ def _require(d: Any, where: str) -> str:
     if kind not in _FIELDS:
         raise ValueError(f"{where}.type: {kind!r:.50} is not one of {sorted(_FIELDS)}")
     missing = _FIELDS[kind] - set(d)
-    extra = set(d) - _FIELDS[kind]
+    extra = set(d) - _FIELDS[kind] - {"rng"}
     if missing or extra:
         raise ValueError(
             f"{where}: a {kind} needs exactly the fields {sorted(_FIELDS[kind])}; "
@@ -162,6 +208,13 @@ def _bounds(d: Mapping[str, Any], where: str, dtype: np.dtype) -> tuple[np.ndarr
 
 
 def _from_json(d: Any, where: str) -> spaces.Space:
+    space = _build(d, where)
+    if "rng" in d:
+        space._np_random = _rng(d["rng"], where)
+    return space
+
+
+def _build(d: Any, where: str) -> spaces.Space:
     kind = _require(d, where)
     if kind == "Box":
         dtype = _dtype(d["dtype"], where, "biuf")
@@ -205,7 +258,8 @@ def space_from_json(d: Mapping[str, Any]) -> spaces.Space:
     """Build the space that :func:`space_to_json` described.
 
     Returns:
-        a gymnasium space equal to the one that was described.
+        a gymnasium space equal to the one that was described, its generators (where described)
+        in the states described.
 
     Raises:
         ValueError: ``d`` is not a valid description; the message names the field (for
@@ -229,18 +283,28 @@ def check_travels(space: spaces.Space, where: str = "space") -> spaces.Space:
 
 
 def check_action_space(space: spaces.Space, where: str = "action space") -> spaces.Space:
-    """Return ``space`` if vecsim can take actions of it: one array per env (Box, Discrete,
-    MultiDiscrete, MultiBinary).
+    """Return ``space`` if vecsim can take actions of it: an array space (Box, Discrete,
+    MultiDiscrete, MultiBinary), or a Dict or Tuple of them (nested), which travels flattened
+    (:func:`wire_action_space`).
 
     Raises:
-        ValueError: a Dict, Tuple or other space, named with ``where``.
+        ValueError: any other space, named by its path under ``where``.
     """
-    if type(space) not in _ARRAY_SPACES:
-        raise ValueError(
-            f"{where}: {type(space).__name__} actions are not served; vecsim takes one array per env "
-            "(Box, Discrete, MultiDiscrete, MultiBinary)"
-        )
+    leaves = _leaf_spaces(space, where) if type(space) in _COMPOSITE else [(where, space)]
+    for path, leaf in leaves:
+        if type(leaf) not in _ARRAY_SPACES:
+            raise ValueError(
+                f"{path}: {type(leaf).__name__} actions are not served; vecsim takes arrays (Box, "
+                "Discrete, MultiDiscrete, MultiBinary) and Dict or Tuple spaces of them"
+            )
     return check_travels(space, where)
+
+
+def wire_action_space(space: spaces.Space) -> spaces.Space:
+    """The array space an action of ``space`` travels in: ``space`` itself, or for a Dict or
+    Tuple action space gymnasium's ``flatten_space`` of it (each action ``flatten``-ed by the
+    client, ``unflatten``-ed before the env takes it: exact, one-hot for Discrete parts)."""
+    return spaces.flatten_space(space) if type(space) in _COMPOSITE else space
 
 
 def _leaf_spaces(space: spaces.Space, where: str) -> list[tuple[str, spaces.Space]]:

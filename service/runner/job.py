@@ -32,7 +32,6 @@ from service.controller.jobs import check_job
 from service.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 from vecsim.auth import TOKEN_ENV, bearer_headers, check_token
 from vecsim.config import JobConfig, PodCapacity, PodRecord, RoutingTable, parse_cpu_list
-from service.probes import CONTROLLER, POD, TERMINATION_GRACE_S
 
 from .ports import port_free
 from .process import Backoff, ManagedProcess

@@ -4,8 +4,8 @@ Real pods over loopback serve gymnasium MuJoCo ids, CartPole (a Discrete action 
 tests' own custom env (``support.gym_custom_env:Custom-v0``: Dict/Tuple/Discrete/0-d observations, a
 (2, 1) float64 action, rich info). Each HTTPVectorEnv is compared step by step with gymnasium's
 ``SyncVectorEnv`` of ``gymnasium.make(id)`` under the same seeds and actions: observations,
-rewards, terminations, truncations and info (besides vecsim's ``success``/``task_id``) are
-identical in all three autoreset modes. gymnasium's own vector wrappers run on it unchanged.
+rewards, terminations, truncations and info (the env's own, nothing added) are identical in all
+three autoreset modes. gymnasium's own vector wrappers run on it unchanged.
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ EPISODE = 8
 TASKS = {"HalfCheetah-v5": EPISODE, "Hopper-v5": EPISODE, "InvertedPendulum-v5": EPISODE, "CartPole-v1": EPISODE, CUSTOM: None}
 NUM_ENVS = 3
 STEPS = 20
-VECSIM_KEYS = {"success", "_success", "task_id", "_task_id"}
 
 
 @pytest.fixture(scope="module")
@@ -91,14 +90,6 @@ def assert_same(served, local, path: str = "") -> None:
         assert np.array_equal(a, b), f"{path}: {a} != {b}"
 
 
-def own_info(info: dict) -> dict:
-    """The info without vecsim's own keys (final_info's too)."""
-    out = {k: v for k, v in info.items() if k not in VECSIM_KEYS}
-    if "final_info" in out:
-        out["final_info"] = own_info(out["final_info"])
-    return out
-
-
 @pytest.mark.parametrize("mode", list(AutoresetMode), ids=lambda m: m.name.lower())
 @pytest.mark.parametrize("gym_id", list(TASKS))
 def test_served_env_steps_exactly_like_local_gymnasium(served, gym_id, mode):
@@ -109,7 +100,7 @@ def test_served_env_steps_exactly_like_local_gymnasium(served, gym_id, mode):
     obs, info = remote.reset(seed=11)
     expected = local.reset(seed=11)
     assert_same(obs, expected[0], "reset obs")
-    assert_same(own_info(info), expected[1], "reset info")
+    assert_same(info, expected[1], "reset info")
     local.action_space.seed(5)
     ended = np.zeros(NUM_ENVS, dtype=bool)
     for t in range(STEPS):
@@ -117,12 +108,12 @@ def test_served_env_steps_exactly_like_local_gymnasium(served, gym_id, mode):
             obs, info = remote.reset(options={"reset_mask": ended.copy()})
             expected = local.reset(options={"reset_mask": ended.copy()})
             assert_same(obs, expected[0], f"step {t} masked reset obs")
-            assert_same(own_info(info), expected[1], f"step {t} masked reset info")
+            assert_same(info, expected[1], f"step {t} masked reset info")
         actions = local.action_space.sample()
         got, want = remote.step(actions), local.step(actions)
         for name, a, b in zip(("obs", "reward", "terminated", "truncated"), got[:4], want[:4]):
             assert_same(a, b, f"step {t} {name}")
-        assert_same(own_info(got[4]), want[4], f"step {t} info")
+        assert_same(got[4], want[4], f"step {t} info")
         ended = want[2] | want[3]
     local.close()
 
@@ -144,7 +135,7 @@ def test_reset_options_reach_the_env(served):
     obs, info = remote.reset(seed=1, options={"offset": 100.0})
     expected = local.reset(seed=1, options={"offset": 100.0})
     assert_same(obs, expected[0])
-    assert_same(own_info(info), expected[1])
+    assert_same(info, expected[1])
     assert (obs["level"] > 90).all() and (info["offset"] == 100.0).all()
 
 
@@ -265,7 +256,7 @@ def test_gymnasium_vector_wrappers_work_unchanged(served):
         for a, b in zip(got[:4], want[:4]):
             assert_same(a, b, f"step {t}")
         # episode["t"] is wall time; the episode's return and length must agree.
-        episode = {k: v for k, v in own_info(got[4]).get("episode", {}).items() if k not in ("t", "_t")}
+        episode = {k: v for k, v in got[4].get("episode", {}).items() if k not in ("t", "_t")}
         assert_same(episode, {k: v for k, v in want[4].get("episode", {}).items() if k not in ("t", "_t")}, f"step {t}")
     local.close()
 

@@ -89,7 +89,8 @@ def test_a_killed_pod_fails_the_step_for_its_envs_alone_and_the_others_hold_thei
         obs, reward, terminated, truncated, info = error.result
         assert np.array_equal(obs[healthy], ref[2][0][healthy])
         assert np.array_equal(reward[healthy], ref[2][1][healthy])
-        assert info["_success"].tolist() == [i in healthy for i in range(env.num_envs)]
+        # Pendulum's reward is never 0: only the answered envs' rows hold one (info is Pendulum's: empty).
+        assert (reward != 0).tolist() == [i in healthy for i in range(env.num_envs)] and info == {}
 
         # The buffer holds the healthy envs' new rows: the next reset of the failed ones returns them.
         restart(doomed)
@@ -137,7 +138,7 @@ def test_resetting_the_failed_envs_while_their_pod_is_down_fails_for_them_alone(
             env.step(act(env, FIRST))
         restart(doomed)
         env.reset(options={"reset_mask": mask})
-        assert env.step(act(env, FIRST))[4]["_success"].all()
+        assert (env.step(act(env, FIRST))[1] != 0).all()
 
 
 @pytest.mark.parametrize("pods", [2], indirect=True)
@@ -164,7 +165,7 @@ def test_same_step_autoresets_the_answered_envs_that_end_in_the_failed_call(pods
         restart(doomed)
         env.reset(options={"reset_mask": ~truncated})
         _, _, terminated, truncated, info = env.step(act(env, FIRST))
-        assert info["_success"].all() and not (terminated | truncated).any()
+        assert not (terminated | truncated).any()
 
 
 JOB = {"job_id": "vector-faults", "tasks": [PENDULUM], "group_size": 2, "num_stages": 2, "camera": {"names": []}}
@@ -183,12 +184,12 @@ def test_a_pod_restarted_into_its_slot_takes_its_envs_back_after_a_reset_of_them
                 env.step(act(env, FIRST))
             assert caught.value.failed_envs == failed
             assert sorted(caught.value.traj_keys) == [f"env{i}" for i in failed]
-            assert caught.value.result[4]["_success"].tolist() == [i in healthy for i in range(env.num_envs)]
+            assert (caught.value.result[1] != 0).tolist() == [i in healthy for i in range(env.num_envs)]
 
             mask = np.isin(np.arange(env.num_envs), failed)
             env.reset(options={"reset_mask": mask, "state_ids": STATE_IDS})
             assert sorted(env.routes) == list(range(env.num_envs))
-            assert env.step(act(env, FIRST))[4]["_success"].all()
+            assert (env.step(act(env, FIRST))[1] != 0).all()
 
 
 @pytest.mark.slow

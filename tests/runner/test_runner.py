@@ -22,7 +22,6 @@ from service.probes import Probe, Probes
 from service.runner import Backoff, JobRejectedError, LocalJob, ManagedProcess, PodStatus, format_status
 from service.runner.main import main as up_main
 from vecsim.config import CameraConfig, ControllerConfig, JobConfig, JobSpec, PodsConfig, RoutingTable
-from service.probes import Probe, Probes
 
 PYTHON = sys.executable
 

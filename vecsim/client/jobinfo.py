@@ -13,7 +13,7 @@ from gymnasium.vector.utils import create_empty_array
 
 from vecsim import trees
 from vecsim.client.errors import PodRequestError, PodUnavailableError
-from vecsim.spaces import space_from_json
+from vecsim.spaces import space_from_json, wire_action_space, without_rng
 from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES
 
 __all__ = ["JobInfo"]
@@ -41,6 +41,12 @@ class JobInfo:
 
     @property
     def action_space(self) -> Space | None:
+        """The action space as the pods take it: a Dict or Tuple one flattened."""
+        return wire_action_space(self.spaces[1]) if self.spaces else None
+
+    @property
+    def served_action_space(self) -> Space | None:
+        """The envs' own action space."""
         return self.spaces[1] if self.spaces else None
 
     def adopt(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
@@ -64,7 +70,9 @@ class JobInfo:
                 raise PodUnavailableError({pod: []}, "envs not built yet (no spaces in /v1/info)")
             if spaces_json is None:
                 spaces_json = here
-            elif here != spaces_json:
+            elif without_rng(here) != without_rng(spaces_json):
+                # Generators aside: the first pod's seeded spaces are taken, as gymnasium's vector
+                # envs take their first env's.
                 raise PodRequestError(pod, None, f"its spaces differ from pod {first}'s; one job, one space")
         if spaces_json is not None:
             self.spaces = (space_from_json(spaces_json[0]), space_from_json(spaces_json[1]))

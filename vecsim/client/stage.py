@@ -279,9 +279,15 @@ class StageClient:
 
     @property
     def action_space(self) -> Space | None:
-        """One env's action space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
+        """One env's action space as the pods take it (a Dict or Tuple one flattened), read from
+        the pods' ``/v1/info`` (None if no pod has envs); :attr:`served_action_space`: the envs' own."""
         self._load_info()
         return self._info.action_space
+
+    @property
+    def served_action_space(self) -> Space | None:
+        self._load_info()
+        return self._info.served_action_space
 
     @property
     def instructions(self) -> dict[str, str]:

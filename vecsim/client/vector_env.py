@@ -28,6 +28,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
+from vecsim.client.gym_values import env_observation, wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
@@ -103,8 +104,8 @@ class HTTPVectorEnv(VectorEnv):
 
     Observations are the pods' in the job's observation space: a served gymnasium env's own
     (Box, Discrete, Dict, Tuple, ...), the robot suites' ``{"images": {...}, "proprio": ...}``.
-    ``info`` after reset and step holds the envs' own keys (gym tasks) and ``success`` and
-    ``task_id``, all with gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
+    ``info`` holds a gym task's own keys only (and ``state_id`` after fixed-state resets), a
+    robot task's ``success`` and ``task_id``, with gymnasium's ``_key`` masks. ``reset(seed=, options=)`` follows
     gymnasium's rule: env ``i`` gets ``seed + i`` (int), ``seed[i]`` (list) or None. A gym task
     resets as the env's own ``reset(seed=..., options=...)`` (every option but ``reset_mask`` and
     ``state_ids`` goes to the envs; autoresets are ``reset()`` with no seed, as locally); a robot
@@ -214,7 +215,7 @@ class HTTPVectorEnv(VectorEnv):
             self.routed_envs = self.routed_envs[: int(num_envs)]
         self.num_envs = len(self.routed_envs)
         self.single_observation_space = self.client.observation_space
-        self.single_action_space = self.client.action_space
+        self.single_action_space = self.client.served_action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
@@ -540,13 +541,7 @@ class HTTPVectorEnv(VectorEnv):
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
             TypeError: a scalar in place of a batch of actions.
         """
-        actions = np.asarray(actions, dtype=self.single_action_space.dtype)
-        expected = (self.num_envs, *self.single_action_space.shape)
-        if actions.ndim == 0:  # as gymnasium's vector envs, which cannot iterate over it
-            raise TypeError(f"actions must be a batch of {self.num_envs} actions, got the scalar {actions!r}")
-        if actions.shape != expected:
-            raise ValueError(f"actions must have shape {list(expected)}, got {list(actions.shape)}")
-        self._send_step(actions, chunk=None)
+        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs), chunk=None)
 
     def _send_step(self, actions: np.ndarray, chunk: int | None, envs: np.ndarray | None = None) -> None:
         """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env."""
@@ -692,7 +687,7 @@ class HTTPVectorEnv(VectorEnv):
             final_obs = np.full(self.num_envs, None, dtype=object)
             rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
             for i in reset:
-                final_obs[i] = trees.row(step_batch.obs, rows_of[self._keys[i]])
+                final_obs[i] = env_observation(self.single_observation_space, trees.row(step_batch.obs, rows_of[self._keys[i]]))
             final_info: dict[str, Any] = {}
             ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
             ended_mask = np.zeros(step_batch.n, dtype=bool)
@@ -783,8 +778,8 @@ class HTTPVectorEnv(VectorEnv):
             info["_state_id"][envs] = True
 
     def _add_rows_info(self, info: dict[str, Any], batch: StageBatch, rows: np.ndarray, envs: np.ndarray) -> None:
-        """Put ``success`` and ``task_id`` of batch rows ``rows`` at env indices ``envs``, with masks."""
-        if len(envs) == 0:
+        """Put a robot task's ``success`` and ``task_id`` of rows ``rows`` at envs ``envs``, masked."""
+        if len(envs) == 0 or self._native:
             return
         if "success" not in info:
             info["success"], info["_success"] = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=bool)
@@ -805,12 +800,17 @@ class HTTPVectorEnv(VectorEnv):
     def get_attr(self, name: str) -> tuple[Any, ...]:
         """Return attribute ``name`` of every env, as JSON values (a gym env's through its wrappers).
 
+        A robot task's ``np_random_seed`` is :attr:`np_random_seed`'s; a spec comes as a dict.
+
         Raises:
             ClosedEnvironmentError, AlreadyPendingCallError: as gymnasium's vector envs.
             PodRequestError: the pods refused the name (private, or one vecsim keeps).
             the env's own exception (builtin types by name), or ``ValueError`` for an attribute
             that JSON cannot hold.
         """
+        if name == "np_random_seed" and not self._native:
+            self._assert_open()
+            return self.np_random_seed
         return tuple(self._attr("get_attr", name, None))
 
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:

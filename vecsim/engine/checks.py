@@ -117,7 +117,7 @@ def seeds(values: Any, ids: np.ndarray) -> np.ndarray:
 
 def actions(values: Any, ids: np.ndarray, space: gymnasium.Space) -> np.ndarray:
     """Return ``values`` (one action of ``space`` per env, ``[n, *action shape]``) as a chunk of one per env."""
-    numbers = _numbers(values)
+    numbers = _numbers(values, space)
     if ids.size == 0 and numbers.size == 0:
         return np.zeros((0, 1, *space.shape), dtype=space.dtype)
     expected = (ids.size, *space.shape)
@@ -133,7 +133,7 @@ def chunk(values: Any, ids: np.ndarray, space: gymnasium.Space, max_chunk: int) 
             f"actions: chunks of actions are for Box action spaces; this pod's is {type(space).__name__}: "
             "send one action per env"
         )
-    numbers = _numbers(values)
+    numbers = _numbers(values, space)
     if ids.size == 0 and numbers.size == 0 and numbers.ndim != 2 + len(space.shape):
         return np.zeros((0, 0, *space.shape), dtype=space.dtype)
     if numbers.ndim != 2 + len(space.shape) or numbers.shape[0] != ids.size or numbers.shape[2:] != space.shape:
@@ -176,12 +176,14 @@ def attr_request(op: str, name: Any, payload: Any, ids: np.ndarray) -> None:
         raise InvalidRequestError(f"values: expected one value per env id ({ids.size})")
 
 
-def _numbers(values: Any) -> np.ndarray:
+def _numbers(values: Any, space: gymnasium.Space) -> np.ndarray:
+    """``values`` as an array of numbers (bools too, for a space of bools)."""
     try:
         numbers = np.asarray(values)
     except ValueError as exc:
         raise InvalidRequestError(f"actions: not a rectangular array: {exc}") from None
-    if numbers.size and numbers.dtype.kind not in "fiu":
+    kinds = "bfiu" if np.dtype(space.dtype).kind == "b" else "fiu"
+    if numbers.size and numbers.dtype.kind not in kinds:
         raise InvalidRequestError(f"actions: expected numbers, got dtype {numbers.dtype}")
     return numbers
 

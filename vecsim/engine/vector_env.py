@@ -48,6 +48,7 @@ from vecsim.engine.pool import WorkerFailure, WorkerPool, resolve_envs_per_worke
 from vecsim.engine.protocol import Order, Reply
 from vecsim.engine.tasks import get_task
 from vecsim.engine.worker import REWARD, SUCCESS, TERMINATED, TRUNCATED, WorkerSpec
+from vecsim.spaces import wire_action_space
 
 log = logging.getLogger("vecsim.engine.vector_env")
 
@@ -99,7 +100,9 @@ class TaskGroupedVectorEnv:
             raise ValueError(f"max_chunk: must be at least 1, got {max_chunk}")
         self.assignment = assignment
         self.max_chunk = max_chunk
-        self.single_observation_space, self.single_action_space = assignment_spaces(assignment)
+        self.single_observation_space, self.served_action_space = assignment_spaces(assignment)
+        # What /v1/info serves is the envs' own action space; a Dict or Tuple one travels flattened.
+        self.single_action_space = wire_action_space(self.served_action_space)
         self.num_envs = assignment.num_envs
         self.task_ids: list[str] = []
         self._num_states = np.zeros(self.num_envs, dtype=np.int64)

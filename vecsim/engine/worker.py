@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import dataclasses
 import glob
 import json
 import logging
@@ -139,15 +140,38 @@ def _write_obs(out: Any, local: int, value: Any) -> None:
         out[local] = value
 
 
-def _own_info(info: dict[str, Any]) -> dict[str, Any]:
-    """An env's info without vecsim's own keys (those travel as flags)."""
+def _own_info(env: TaskEnv, info: dict[str, Any]) -> dict[str, Any]:
+    """An env's own info: a native gym env's whole, a robot task's without vecsim's keys (those
+    travel as flags)."""
+    if getattr(env, "native", False):
+        return info
     return {key: value for key, value in info.items() if key not in VECSIM_INFO_KEYS}
 
 
-def _jsonable(value: Any, what: str) -> Any:
-    """``value`` as plain JSON data, or ValueError saying it cannot travel."""
+def _success(info: dict[str, Any]) -> bool:
+    """The success flag of an env's info: a robot task's, or a gym env's own ``success`` key if
+    it gives one that reads as a bool (anything else: False)."""
     try:
-        data = wire.to_jsonable(value)
+        return bool(info.get("success", False))
+    except (TypeError, ValueError):  # an array of several values, say
+        return False
+
+
+def _view(value: Any) -> Any:
+    """A JSON-safe view of a spec: gymnasium's ``EnvSpec`` as its own ``to_json``, a dataclass
+    (a task's ``TaskSpec``) as its fields; any other value as it is."""
+    if isinstance(value, gymnasium.envs.registration.EnvSpec):
+        return json.loads(value.to_json())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    return value
+
+
+def _jsonable(value: Any, what: str) -> Any:
+    """``value`` (a spec: its view, :func:`_view`) as plain JSON data, or ValueError saying it
+    cannot travel."""
+    try:
+        data = wire.to_jsonable(_view(value))
         json.dumps(data, allow_nan=False)
     except (wire.WireError, TypeError, ValueError) as exc:
         raise ValueError(f"{what} is a {type(value).__name__}, not JSON-serialisable: {exc}") from None
@@ -210,8 +234,9 @@ class Worker:
         self._errors: list[tuple[int, str, str]] = []
 
     def build(self) -> dict[str, float]:
-        """Make this worker's envs, reset each to state 0, warm the step path and render them, so
-        that the first step a trainer sends costs what later ones do.
+        """Make this worker's envs, reset each to state 0 (a native gym env is left unreset, as
+        its factory made it), warm the step path and render them, so that the first step a
+        trainer sends costs what later ones do.
 
         Returns:
             how long each part took, in seconds (``make``, ``reset``, ``warm``, ``render``), and
@@ -246,8 +271,11 @@ class Worker:
             for env in self._envs:
                 env.defer_images = True
             lap("make")
-            for local in range(len(self._envs)):
-                self._reset_env(local, 0)
+            for local, env in enumerate(self._envs):
+                # A native gym env stays as its factory left it (its seeds, its generators), as
+                # gymnasium's vector envs take it; the first reset is the trainer's.
+                if not getattr(env, "native", False):
+                    self._reset_env(local, 0)
             lap("reset")
             local = self._warm_step_path()
             lap("warm")
@@ -298,11 +326,11 @@ class Worker:
             observation, info = env.reset(options={"state_id": state_id})
         _write_obs(self._out["obs"], local, observation)
         self._out["flags"][local] = 0.0
-        self._out["flags"][local, 0, SUCCESS] = info["success"]
+        self._out["flags"][local, 0, SUCCESS] = _success(info)
         self._keep_info(local, info)
 
     def _keep_info(self, local: int, info: dict[str, Any]) -> None:
-        own = _own_info(info)
+        own = _own_info(self._envs[local], info)
         if own:
             self._infos.append((local, own))
 
@@ -321,7 +349,7 @@ class Worker:
         info: dict[str, Any] = {}
         for k, action in enumerate(chunk):
             observation, reward, terminated, truncated, info = env.step(action)
-            rows[k] = (reward, terminated, truncated, info["success"])
+            rows[k] = (reward, terminated, truncated, _success(info))
             if (terminated or truncated) and not past_end:
                 break
             if record and k + 1 < len(chunk) and env.renderer is not None:
@@ -376,8 +404,8 @@ class Worker:
 
         ``get``: the attribute; ``call``: the attribute called with ``payload`` ``(args, kwargs)``
         if callable, else the attribute; ``set``: ``payload`` replaces a JSON-valued attribute
-        (an array one keeps its dtype and shape). A gym task's attributes are its gymnasium env's
-        (through its wrappers).
+        (an array one keeps its dtype and shape). A gym task's attributes are those of the env its
+        id or factory returned (through that env's wrappers, none of vecsim's).
         """
         out: list[tuple[int, bool, Any]] = []
         for local, env_index in enumerate(self.worker.env_indices):
@@ -385,7 +413,7 @@ class Worker:
                 continue
             op, name, payload = requests[env_index]
             env = self._envs[local]
-            target = env.inner if isinstance(env, GymTaskEnv) else env
+            target = env.served if isinstance(env, GymTaskEnv) else env
             try:
                 out.append((env_index, True, _attr_op(target, op, name, payload)))
             except Exception as exc:  # noqa: BLE001 - the env's own exception goes back to its caller

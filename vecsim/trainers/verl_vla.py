@@ -35,7 +35,7 @@ from typing import Any, List, Optional
 
 import numpy as np
 
-from vecsim.client.conventions import StateNumbering, env_indices, suite_of, suite_task_index
+from vecsim.client.conventions import env_indices, suite_of, suite_task_index
 from vecsim.client.vla_env import VLAEnv
 
 __all__ = [

@@ -1,10 +1,13 @@
 """Any gymnasium env, as task ``gym/<id>``: a registered id, or ``gym/<module>:<id>``, whose module
-the pod imports first (gymnasium's own ``"module:EnvId"`` form, for a user's package).
+the pod imports first (gymnasium's own ``"module:EnvId"`` form, for a user's package), or
+``gym/<module>:<callable>``, a function of that module that returns the env (as an env factory
+given to gymnasium's vector envs), called with the job's kwargs for the task.
 
 Without cameras a gym task is the env itself: ``gymnasium.make(id, **make_kwargs)`` with the
 env's own observation and action spaces (any kind :mod:`vecsim.spaces` describes; actions of an
-array space: Box, Discrete, MultiDiscrete, MultiBinary), its own ``info`` (vecsim's ``success``
-and ``task_id`` beside it) and its own seeding: ``reset(seed=s, options=o)`` is the env's. With
+array space, or a Dict or Tuple of them, which travel flattened), its own ``info`` (nothing added) and its
+own seeding: ``reset(seed=s, options=o)`` is the env's, and a pod leaves a new env as
+``gymnasium.make`` built it (never reset, its generators as its factory left them). With
 cameras, a gym task takes vecsim's robot layout: ``proprio`` is the env's observation, flattened,
 as float32, and ``images`` holds one ``render`` frame of the configured size (MuJoCo envs only,
 upright): the picture gymnasium's ``env.render()`` gives, drawn by vecsim's batch renderer from
@@ -18,7 +21,8 @@ available (``reset(options={"state_id": k})``).
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+import sys
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gymnasium
@@ -28,13 +32,13 @@ import numpy as np
 from vecsim.engine import render as render_presets
 from vecsim.engine.batch_render import BatchRenderer, CameraView, shared_renderer
 from vecsim.config import CameraConfig
-from vecsim.spaces import check_action_space, check_travels
+from vecsim.spaces import check_action_space, check_travels, wire_action_space
 from vecsim.engine.tasks._base import TaskEnv, TaskSetupError, TaskSpec, derive_seed, ensure_gl_backend
 
 GYM_NUM_STATES = 50
 GYM_DEFAULT_MAX_EPISODE_STEPS = 1000
 RENDER_CAMERA = "render"
-# The info keys vecsim itself gives every task env; an env's own keys of those names are vecsim's.
+# The info keys vecsim itself gives every robot task env (a native gym env's info is its own).
 VECSIM_INFO_KEYS = ("success", "task_id", "state_id")
 
 
@@ -63,6 +67,21 @@ def import_env_module(env_id: str) -> str:
     return name
 
 
+def env_factory(env_id: str) -> Callable[..., gymnasium.Env] | None:
+    """Return the callable that ``<module>:<name>`` names, where ``name`` is no registered id
+    but a callable of the module; None otherwise.
+
+    Raises:
+        TaskSetupError: the module cannot be imported.
+    """
+    name = import_env_module(env_id)
+    module, sep, _ = env_id.rpartition(":")
+    if not sep or name in gymnasium.registry:
+        return None
+    made = getattr(sys.modules[module], name, None)
+    return made if callable(made) and not isinstance(made, type(sys)) else None
+
+
 def gym_spec(task_id: str) -> TaskSpec | None:
     """Return the TaskSpec of ``gym/<id>`` (or ``gym/<module>:<id>``), or None when gymnasium has no such id.
 
@@ -73,14 +92,18 @@ def gym_spec(task_id: str) -> TaskSpec | None:
     try:
         spec = gymnasium.spec(name)
     except gymnasium.error.Error:
-        return None
+        if env_factory(gym_id(task_id)) is None:
+            return None
+        scene, limit = gym_id(task_id), None
+    else:
+        scene, limit = spec.id, spec.max_episode_steps
     return TaskSpec(
         task_id=task_id,
         suite="gym",
         instruction="",
-        scene=spec.id,
+        scene=scene,
         num_states=GYM_NUM_STATES,
-        max_episode_steps=spec.max_episode_steps or GYM_DEFAULT_MAX_EPISODE_STEPS,
+        max_episode_steps=limit or GYM_DEFAULT_MAX_EPISODE_STEPS,
     )
 
 
@@ -90,17 +113,31 @@ def _check_box(task: TaskSpec, what: str, space: gymnasium.Space) -> gymnasium.s
     return space
 
 
-def _make(task: TaskSpec, make_kwargs: Mapping[str, Any] | None, **extra: Any) -> gymnasium.Env:
-    """``gymnasium.make`` of the task's id with the job's kwargs for it (``extra`` wins).
+def _make(task: TaskSpec, make_kwargs: Mapping[str, Any] | None, **extra: Any) -> tuple[gymnasium.Env, gymnasium.Env]:
+    """Make the task's env with the job's kwargs for it (``extra`` wins): ``gymnasium.make`` of
+    its id, or its factory called (a ``max_episode_steps`` becoming vecsim's ``TimeLimit``).
+
+    Returns:
+        ``(env, served)``: the env to step, and the env the id or factory returned, whose
+        attributes ``get_attr``/``call``/``set_attr`` reach (``env`` less vecsim's wrapper).
 
     Raises:
-        ValueError: gymnasium refused the kwargs (the message names the task).
+        ValueError: the kwargs were refused, or a factory returned no gymnasium env (the
+            message names the task).
     """
     kwargs = {**dict(make_kwargs or {}), **extra}
+    factory = env_factory(gym_id(task.task_id))
     try:
-        return gymnasium.make(import_env_module(gym_id(task.task_id)), disable_env_checker=True, **kwargs)
+        if factory is None:
+            env = gymnasium.make(import_env_module(gym_id(task.task_id)), disable_env_checker=True, **kwargs)
+            return env, env
+        limit = kwargs.pop("max_episode_steps", None)
+        served = factory(**kwargs)
     except TypeError as exc:
-        raise ValueError(f"{task.task_id}: gymnasium.make refused the kwargs {sorted(kwargs)}: {exc}") from exc
+        raise ValueError(f"{task.task_id}: making the env refused the kwargs {sorted(kwargs)}: {exc}") from exc
+    if not isinstance(served, gymnasium.Env):
+        raise ValueError(f"{task.task_id}: the factory returned a {type(served).__name__}, not a gymnasium.Env")
+    return (served if limit is None else gymnasium.wrappers.TimeLimit(served, limit)), served
 
 
 def gym_spaces(
@@ -111,7 +148,7 @@ def gym_spaces(
     Raises:
         ValueError: a space that cannot be served (named), or kwargs gymnasium refused.
     """
-    env = _make(task, make_kwargs)
+    env, _ = _make(task, make_kwargs)
     try:
         return _spaces(task, env, camera)
     finally:
@@ -176,7 +213,8 @@ def gymnasium_camera(env: gymnasium.Env) -> CameraView:
 class GymTaskEnv(TaskEnv):
     """A gymnasium env behind vecsim's task contract (see the module docstring).
 
-    Without cameras (:attr:`native`) it is the env itself: ``reset(seed=, options=)`` and ``step``
+    :attr:`served` is the env the id or factory returned (:attr:`inner` less vecsim's own
+    wrapper). Without cameras (:attr:`native`) it is the env itself: ``reset(seed=, options=)`` and ``step``
     are the env's, its ``info`` keeps the env's keys, and truncation is the env's own
     (``max_episode_steps``, None: the id's own limit, if any). ``reset(options={"state_id": k})``
     puts it in fixed initial state ``k`` (the env's other options go on to its reset).
@@ -202,7 +240,7 @@ class GymTaskEnv(TaskEnv):
             ensure_gl_backend()
             extra.update(render_mode="rgb_array", width=camera.width, height=camera.height)
         try:
-            self.inner = _make(task, make_kwargs, **extra)
+            self.inner, self.served = _make(task, make_kwargs, **extra)
         except ValueError as exc:
             if not camera.names:
                 raise
@@ -216,6 +254,9 @@ class GymTaskEnv(TaskEnv):
         self.renderer: BatchRenderer | None = None
         try:
             self.observation_space, self.action_space = _spaces(task, self.inner, camera)
+            # A Dict or Tuple action space travels flattened; the env takes its actions unflattened.
+            self._composite_actions = None if self.action_space is wire_action_space(self.action_space) else self.action_space
+            self.action_space = wire_action_space(self.action_space)
             if camera.names:
                 self.camera_views = [gymnasium_camera(self.inner)]
                 self.renderer = shared_renderer(camera.height, camera.width, render)
@@ -237,8 +278,8 @@ class GymTaskEnv(TaskEnv):
         own ``reset(seed=seed, options=options)``.
 
         Returns:
-            ``(observation, info)``; info holds ``success`` and ``task_id`` (and ``state_id`` after
-            a reset to a fixed state), native envs' info the env's own keys besides.
+            ``(observation, info)``: native, the env's own info, nothing added; else ``success``,
+            ``task_id`` and ``state_id``.
 
         Raises:
             ValueError: a ``state_id`` that is not an int in range.
@@ -249,27 +290,27 @@ class GymTaskEnv(TaskEnv):
         rest = dict(options or {})
         state_id = rest.pop("state_id", None)
         if state_id is not None:
-            state_id = self._state_id({"state_id": state_id})
-            seed = derive_seed(self.task.task_id, state_id)
+            seed = derive_seed(self.task.task_id, self._state_id({"state_id": state_id}))
         raw, info = self.inner.reset(seed=seed, options=rest or None)
         self._elapsed = 0
-        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
-        if state_id is not None:
-            info["state_id"] = state_id
+        # This env's generator is its gymnasium env's, as gymnasium's check_env expects of it.
+        base = self.inner.unwrapped
+        self._np_random, self._np_random_seed = base._np_random, base._np_random_seed
         return raw, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         """Advance one step: native envs exactly as the env's own ``step``.
 
         Returns:
-            ``(observation, reward, terminated, truncated, info)``, info with ``success`` and
-            ``task_id`` (besides the env's own keys, native).
+            ``(observation, reward, terminated, truncated, info)``: native, the env's own info,
+            nothing added; else ``success`` and ``task_id``.
         """
         if not self.native:
             return super().step(action)
+        if self._composite_actions is not None:
+            action = gymnasium.spaces.unflatten(self._composite_actions, action)
         raw, reward, terminated, truncated, info = self.inner.step(action)
         self._elapsed += 1
-        info = {**info, "success": bool(info.get("success", False)), "task_id": self.task.task_id}
         return raw, float(reward), bool(terminated), bool(truncated), info
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
