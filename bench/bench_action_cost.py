@@ -65,7 +65,7 @@ def policy_stream(space: Any, k: int = PIPELINE_K) -> Callable[[int], np.ndarray
 
 
 def measure(envs: list[Any], streams: dict[str, list[Callable[[int], np.ndarray]]], actions: int, rounds: int
-            ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[float]]:  # fmt: skip
+            ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[float]]:
     """Per stream and round: physics ms per env-step over all envs; also per task (ms per step,
     per stream, over the rounds) and the reset seconds of every round."""
     per_task: dict[str, list[float]] = {name: [0.0] * len(envs) for name in streams}
@@ -148,7 +148,7 @@ def main() -> int:
         "ratio_spread": ratios,
         "physics_ms_per_env_step": ms,
         "per_task_ms_per_env_step": {task: {name: round(per_task[name][i], 3) for name in streams}
-                                     for i, task in enumerate(tasks)},  # fmt: skip
+                                     for i, task in enumerate(tasks)},
         "reset_s_per_env": round(statistics.median(resets) / len(envs), 4),
         "quick": args.quick,
         "setup": {"tasks": tasks, "actions": actions, "rounds": rounds, "cpu": args.cpu, "streams": {

@@ -59,7 +59,7 @@ def _assignment(name: str, blocks: list[tuple[str, int]], camera: CameraConfig, 
     return Assignment(
         generation=0, job_id="bench", pod=name, stage_id=0, tasks=tuple(tasks), camera=camera,
         render="lean", envs_per_worker=per_worker, max_episode_steps=cap,
-    )  # fmt: skip
+    )
 
 
 def measure(

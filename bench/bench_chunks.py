@@ -134,7 +134,7 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
         for first in range(0, actions, k):
             size = min(k, actions - first)
             calls = {s: client.step_stage(s, dict(zip(keys, scripted_chunk(space, first, size, len(keys)))))
-                     for s, keys in live.items() if keys}  # fmt: skip
+                     for s, keys in live.items() if keys}
             for stage, call in calls.items():
                 batch = call.result(timeout_s)
                 timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
@@ -144,7 +144,7 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
         finished = time.perf_counter()
     stats = RolloutStats(num_trajectories=len(routes), env_steps=applied, wall_s=finished - started,
                          env_steps_per_s=applied / max(finished - stepping, 1e-9), simulation_s=finished - started,
-                         timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
+                         timeline=sorted(timeline, key=lambda item: item[2]))
     return Measured(stats, **seen)
 
 
@@ -168,7 +168,7 @@ def _collect(procs: Sequence[Any], results: Any, kind_wanted: str, count: int, t
             if time.monotonic() < end:
                 continue
             raise RuntimeError(f"{len(payloads)} of {count} {kind_wanted!r} messages came from the pinned processes "
-                               f"in {timeout_s:.0f} s")  # fmt: skip
+                               f"in {timeout_s:.0f} s")
         if kind == "error":
             raise RuntimeError(f"pinned process {index} failed:\n{payload}")
         if kind == kind_wanted:
@@ -184,7 +184,7 @@ def _stop(procs: Sequence[Any]) -> None:
 
 
 def _spawn(pins: Sequence[str], target: Callable[..., None],
-           args: Callable[[int, int], tuple[Any, ...]]) -> tuple[list[Any], Any, Any]:  # fmt: skip
+           args: Callable[[int, int], tuple[Any, ...]]) -> tuple[list[Any], Any, Any]:
     """Start ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
     pod core (``pins``), all sharing one barrier; return the processes, their ``results`` queue and
     the barrier, which the caller keeps while they run (a spawned child unpickles it after
@@ -246,7 +246,7 @@ def ceiling_runs(chunks: Sequence[int], reset_every: int) -> list[tuple[int, int
 
 
 def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any], preset: str, envs_per_task: int,
-                   commands: Any, barrier: Any, results: Any) -> None:  # fmt: skip
+                   commands: Any, barrier: Any, results: Any) -> None:
     """Pin to ``cpu``; build the task mix as a pod's worker does (``envs_per_task`` envs of each
     task, the job's cameras and render preset), say ``("ready", index, None)``, then carry out
     each ``(K, reset_every, seconds)`` from ``commands`` (None: exit), in step with the other
@@ -325,7 +325,7 @@ class CeilingProcesses:
     """
 
     def __init__(self, pins: Sequence[str], plan: Plan, chunks: Sequence[int], seconds: float, reset_every: int,
-                 timeout_s: float) -> None:  # fmt: skip
+                 timeout_s: float) -> None:
         self.pins, self.plan, self.seconds, self.timeout_s = list(pins), plan, seconds, timeout_s
         self.runs = ceiling_runs(chunks, reset_every)
         self._procs: list[Any] = []
@@ -358,7 +358,7 @@ class CeilingProcesses:
             for commands in self._commands:
                 commands.put((k, every, self.seconds))
         reports = _collect(self._procs, self._results, "rate", len(self._procs) * len(self.runs),
-                           self.timeout_s + len(self.runs) * self.seconds)  # fmt: skip
+                           self.timeout_s + len(self.runs) * self.seconds)
         out: dict[str, Any] = {}
         for k, every in self.runs:
             mine = [r[2:] for r in reports if r[:2] == (k, every)]
@@ -373,7 +373,7 @@ class CeilingProcesses:
 
     def describe(self) -> dict[str, Any]:
         return {"processes": len(self.pins), "pinned_to": self.pins, "seconds_per_k": self.seconds,
-                "camera": camera(self.plan), "render_preset": self.plan.render_preset}  # fmt: skip
+                "camera": camera(self.plan), "render_preset": self.plan.render_preset}
 
 
 def ceiling_key(k: int, every: int) -> str:
@@ -412,24 +412,24 @@ def ceiling_over_rounds(rounds: Sequence[CeilingRound], described: dict[str, Any
 
 
 def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Deadline,
-            bare: CeilingProcesses) -> dict[str, Any]:  # fmt: skip
+            bare: CeilingProcesses) -> dict[str, Any]:
     """Every contender (module docstring) and the ceiling (``bare``'s processes, run while the pods
     idle) in interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     one = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300)
     two = (TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
-           if plan.pods > 1 and "pods" in plan.stage_layouts else None)  # fmt: skip
+           if plan.pods > 1 and "pods" in plan.stage_layouts else None)
     # Two stages as slices of every pod: each pod has the other stage's call queued while the
     # policy works on one, so it does not idle between its calls.
     sliced = (TimedStageClient(regroup_slices(table, names, 2), token=job.token, timeout_s=300)
-              if "slices" in plan.stage_layouts else None)  # fmt: skip
+              if "slices" in plan.stage_layouts else None)
     try:
         space, action = one.observation_space, one.action_space
         policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
         sizes = [one.routing.num_envs, *([s.num_envs for s in two.routing.stages] if two else [])]
         # Every multiple of a pod's envs, other batch sizes padded: none is captured in a round.
         graphed = GraphedPolicy(policy, space, plan.device, pod_multiples(plan.envs_per_pod, max(sizes), sizes),
-                                   pad=True)  # fmt: skip
+                                   pad=True)
         chunked = {k: ChunkedPolicy(graphed, action, k) for k in settings.chunks}
         policy_info = {
             "name": "ResNet-18 per camera + proprio MLP + MLP head, one forward pass per chunk",
@@ -438,7 +438,7 @@ def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Dead
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
             "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
-                           for b in sorted(set(sizes))},  # fmt: skip
+                           for b in sorted(set(sizes))},
         }
         log.info("policy: %s", policy_info)
         warm = min(settings.chunks[-1], settings.actions)
@@ -560,7 +560,7 @@ def run(args: argparse.Namespace) -> int:
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
     log.info("ceiling: %d processes, cameras %s once per K, %g s per K, in every round",
-             plan.pods, camera(plan), settings.physics_seconds)  # fmt: skip
+             plan.pods, camera(plan), settings.physics_seconds)
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
@@ -572,7 +572,7 @@ def run(args: argparse.Namespace) -> int:
         CeilingProcesses(pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions,
                          min(deadline.left(), 300.0)) as bare,
         running_job(config, args.copy_to) as job,
-    ):  # fmt: skip
+    ):
         table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
         log.info("%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
@@ -584,22 +584,22 @@ def run(args: argparse.Namespace) -> int:
     rows = [(f"{kind}/K={k}", k, measured[kind][f"K={k}"]) for kind in ("service", "loop") for k in settings.chunks]
     rows += [(name, PIPELINE_K, measured[kind]["stages=2"])
              for kind, name in (("pipeline", f"loop_stages=2/K={PIPELINE_K}"), ("slices", f"loop_slices=2/K={PIPELINE_K}"))
-             if kind in measured]  # fmt: skip
+             if kind in measured]
     for name, k, row in rows:
         row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
         # Paired by round: each round's rate over the ceiling of the same round; the second, the
         # ceiling with a reset every --actions actions, as a rollout of that horizon has.
         for field, key in (("fraction_of_ceiling", ceiling_key(k, 0)),
-                           ("fraction_of_ceiling_with_resets", ceiling_key(k, settings.actions))):  # fmt: skip
+                           ("fraction_of_ceiling_with_resets", ceiling_key(k, settings.actions))):
             paired = paired_ratio(per_round[name], per_round[f"ceiling/{key}"])
             row[field] = paired["median"]
             row[f"{field}_by_round"] = paired
     at = f"K={settings.headline_k}"
     # The best EnvLoop at K=8, whichever stage layout it used: the user picks the layout.
     loops = {"loop/1 stage": measured["loop"].get(at, {}), "loop/2 stages (pods)": measured.get("pipeline", {}).get("stages=2", {}),
-             "loop/2 stages (slices)": measured.get("slices", {}).get("stages=2", {})}  # fmt: skip
+             "loop/2 stages (slices)": measured.get("slices", {}).get("stages=2", {})}
     best = max((name for name in loops if loops[name].get("fraction_of_ceiling")),
-               key=lambda name: loops[name]["fraction_of_ceiling"], default=None)  # fmt: skip
+               key=lambda name: loops[name]["fraction_of_ceiling"], default=None)
     chunk_gain = measured["loop"].get(at, {}).get("over_K=1") or {}
     node_fraction = measured["loop"].get(at, {}).get("fraction_of_physics_only")
     # Where a pod's step time goes beyond the bare processes' (same cores, same task mix).
@@ -609,7 +609,7 @@ def run(args: argparse.Namespace) -> int:
            for k in top if k.startswith("K=")},
         **{f"pod/{kind}/{k}": {key: row["time_split_ms"][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
            for kind in ("service", "loop") for k, row in measured[kind].items()},
-    }  # fmt: skip
+    }
     print_table(measured, physics, top)
     summary: dict[str, Any] = {
         "quick": not args.gpu,
@@ -662,7 +662,7 @@ def print_table(measured: dict[str, Any], physics: dict[str, Any], top: dict[str
         name = f"ceiling, {resets.replace('_', ' ')}" if resets else "ceiling (cameras once per K)"
         rows.append((name, at, top[k]["env_steps_per_s"], "", "" if resets else "1.0", "1.0" if resets else ""))
     for kind, name in (("service", "service alone"), ("loop", "EnvLoop"), ("pipeline", "EnvLoop, 2 stages (pods)"),
-                       ("slices", "EnvLoop, 2 stages (slices)")):  # fmt: skip
+                       ("slices", "EnvLoop, 2 stages (slices)")):
         if kind not in measured:
             continue
         section = {f"K={PIPELINE_K}": measured[kind]["stages=2"]} if kind in ("pipeline", "slices") else measured[kind]

@@ -113,7 +113,7 @@ def controller_process(timing: ControllerTiming, token: str, workdir: Path, core
         "--heartbeat-ttl", str(timing.heartbeat_ttl_s),
         "--reconcile-interval", str(timing.reconcile_interval_s),
         "--adopt-grace", "0", "--log-level", "warning",
-    ]  # fmt: skip
+    ]
     with running(controller_server(workdir, args=args, token=token, wrap=("taskset", "-c", str(core)))) as server:
         yield server.url
 

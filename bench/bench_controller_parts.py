@@ -70,7 +70,7 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
             "osc_substep (in fused_control)": lambda: kernel(*arm_step.kernel_args),
         }
         timings = {name: min(timeit.repeat(call, number=number, repeat=repeats)) / number * 1e6
-                   for name, call in calls.items()}  # fmt: skip
+                   for name, call in calls.items()}
         scratch = mujoco.MjData(model)
         spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
         state = np.empty(mujoco.mj_stateSize(model, spec))
@@ -108,7 +108,7 @@ def main() -> int:
         "fastest_us": microseconds,
         "setup": {"number": args.number, "repeats": args.repeats, "pinned_to": cpu,
                   "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg()},
-    }  # fmt: skip
+    }
     suffix = f"_{args.tag}" if args.tag else ""
     write_result("bench_controller_parts" + suffix, summary)
     return 0

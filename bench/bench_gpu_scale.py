@@ -140,7 +140,7 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
             "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
-                           for b in sorted(set(sizes.values()))},  # fmt: skip
+                           for b in sorted(set(sizes.values()))},
         }
         log.info("policy: %s", policy_info)
         for p, client in clients.items():  # warm-up: connections open, caches filled, kernels picked
@@ -182,7 +182,7 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
 
 
 def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int, target_ms: float,
-                  batch_sizes: Sequence[int], pad_sizes: Sequence[int] = ()) -> tuple[GraphedPolicy, dict[str, Any]]:  # fmt: skip
+                  batch_sizes: Sequence[int], pad_sizes: Sequence[int] = ()) -> tuple[GraphedPolicy, dict[str, Any]]:
     """Return a ViT policy, graphed for ``batch_sizes``, whose forward pass on ``batch``
     observations lasts about ``target_ms``, and what the calibration found. The depth is
     extrapolated from two shallow ViTs, then corrected once by the time the first pick takes;
@@ -191,7 +191,7 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
 
     def build(depth: int, sizes: Sequence[int]) -> GraphedPolicy:
         policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, vit_width=plan.vit_width,
-                              device=plan.device, dtype=plan.torch_dtype)  # fmt: skip
+                              device=plan.device, dtype=plan.torch_dtype)
         return GraphedPolicy(policy, space, plan.device, sizes)
 
     def release() -> None:
@@ -287,7 +287,7 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
             service_rollout(client, min(plan.service_steps, 2), 300, k)
         service = interleave({"service/stages=1": lambda: service_rollout(one, plan.service_steps, 300, k),
                               "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300, k)},
-                             plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))  # fmt: skip
+                             plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))
         target_ms = breakdown(service["service/stages=1"])["stage_call_ms"]
         batch = one.routing.num_envs
         stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages}
@@ -299,27 +299,27 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         # up front and other sizes padded. More stages' lanes are not (a pod's envs split three
         # ways leave lanes of one env); their whole stages are, and part stages are padded.
         lane = math.gcd(*(p.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages
-                          for p in stage.pods), plan.envs_per_pod)  # fmt: skip
+                          for p in stage.pods), plan.envs_per_pod)
         graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes],
-                                             pod_multiples(lane, batch))  # fmt: skip
+                                             pod_multiples(lane, batch))
         policy = Chunked(graphed, k)
         # Each contender: (its client, its batch_wait_s); for each compare_batch_wait_s, each
         # 2-stage layout again, waiting that long for more of a stage's pods before the policy runs.
         contenders = {name: (name, plan.batch_wait_s)
-                      for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]}  # fmt: skip
+                      for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]}
         contenders.update({waiting(layout, wait): (f"{layout}/stages=2", wait)
-                           for wait in plan.compare_batch_wait_s for layout in plan.stage_layouts})  # fmt: skip
+                           for wait in plan.compare_batch_wait_s for layout in plan.stage_layouts})
         for n in plan.compare_stages:
             contenders[f"slices/stages={n}"] = (f"slices/stages={n}", plan.batch_wait_s)
             contenders.update({waiting("slices", wait, n): (f"slices/stages={n}", wait)
-                               for wait in plan.compare_batch_wait_s})  # fmt: skip
+                               for wait in plan.compare_batch_wait_s})
         # Warm-up: a short rollout per contender (connections, the pods' first renders); the
         # policy's batch sizes are all captured already.
         for client_name, wait in contenders.values():
             loop_rollout(clients[client_name], policy, min(plan.horizon, WARMUP_HORIZON), plan.device, wait)
         log.info("warm-up done, %.0f s left", deadline.left())
         runs = {name: (lambda c=clients[client_name], w=wait: loop_rollout(c, policy, plan.horizon, plan.device, w))
-                for name, (client_name, wait) in contenders.items()}  # fmt: skip
+                for name, (client_name, wait) in contenders.items()}
         # One stage in lockstep: the whole stage's answers before each policy call.
         runs["stages=1/lockstep"] = lambda: loop_rollout(one, policy, plan.horizon, plan.device, LOCKSTEP_WAIT_S)
         loops = interleave(runs, plan.rounds, deadline, reserve_s=20)
@@ -334,7 +334,7 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
             layout: paired_ratio(rates[waiting(layout, wait)], rates[f"{layout}/stages=2"]) for layout in plan.stage_layouts},
         "speedup_2_vs_1_lockstep": {
             layout: paired_ratio(rates[waiting(layout, wait)], rates["stages=1/lockstep"]) for layout in plan.stage_layouts},
-    } for wait in plan.compare_batch_wait_s]  # fmt: skip
+    } for wait in plan.compare_batch_wait_s]
     return {
         **({"batch_wait": compared} if compared else {}),
         "policy": {**policy_info, "chunk": plan.chunk, "graphs": graphed.describe()},
@@ -394,7 +394,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     else:
         pods = 1 if dry else args.pods or (12 if gpu else 2)
         given = tuple(int(c) for c in args.pod_counts.split(",")) if args.pod_counts else (
-            (1, 2, 4, 8, 12) if gpu else (1, 2))  # fmt: skip
+            (1, 2, 4, 8, 12) if gpu else (1, 2))
         counts = tuple(sorted({c for c in given if 1 <= c <= pods} | {1, pods}))
     cuda = torch.cuda.is_available()
     max_depth = args.vit_max_depth or (512 if gpu else 256)
@@ -435,7 +435,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         # The loop gives request i to stage i % n: the stages must be of one size.
         if envs % n:
             raise SystemExit(f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
-                             "(change --tasks-per-pod, --envs-per-task or the pods)")  # fmt: skip
+                             "(change --tasks-per-pod, --envs-per-task or the pods)")
     return plan
 
 
@@ -444,7 +444,7 @@ def run_mode(args: argparse.Namespace) -> int:
     deadline = Deadline(args.deadline)
     plan = make_plan(args)
     tag = ("_dry" if args.dry else "" if args.gpu else "_quick" if args.quick else "_cpu") + (
-        f"_{args.tag}" if args.tag else "")  # fmt: skip
+        f"_{args.tag}" if args.tag else "")
     gl = gl_probe()
     gpu = gpu_name()
     log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu, torch.__version__, plan.device)
@@ -464,7 +464,7 @@ def run_mode(args: argparse.Namespace) -> int:
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
     log.info("topology: %d CPUs, %d physical cores; pods pinned to %s; trainer on %s", topology["cpus"],
-             topology["physical_cores"], pod_pins, trainer)  # fmt: skip
+             topology["physical_cores"], pod_pins, trainer)
 
     started = time.monotonic()
     config = job_config(plan, pins, f"gpu-{plan.mode}", plan.pods)
@@ -475,7 +475,7 @@ def run_mode(args: argparse.Namespace) -> int:
         processes = pod_processes(job)
         gpu_processes = gpu_process_table()
         log.info("%d pods ready in %.0f s; memory used %.1f GiB; per pod %s", plan.pods, build_s, used,
-                 next(iter(processes.values())))  # fmt: skip
+                 next(iter(processes.values())))
         if plan.mode == "scaling":
             measured = measure_scaling(plan, job, table, deadline)
         else:
@@ -532,7 +532,7 @@ def run_mode(args: argparse.Namespace) -> int:
             "met": {"scaling_service": service is not None and service >= SCALING_TARGET,
                     "scaling_loop": loop is not None and loop >= SCALING_TARGET,
                     "scaling_loop_stage_per_pod": loop_per_pod is not None and loop_per_pod >= SCALING_TARGET},
-        })  # fmt: skip
+        })
     else:
         speedups = {layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1"].items()}
         setup["stage_envs"] = [plan.envs_per_pod * (plan.pods // 2)] * 2
@@ -547,7 +547,7 @@ def run_mode(args: argparse.Namespace) -> int:
                 layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1_lockstep"].items()},
             "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage at K={plan.chunk}",
             "met": {f"pipelining_{layout}": speedup >= PIPELINE_TARGET for layout, speedup in speedups.items()},
-        })  # fmt: skip
+        })
     summary.update({"setup": setup, "topology": topology, "gpu": gpu, "gl": gl, **measured})
     if args.dry:
         plots: list[Path] = []
@@ -626,7 +626,7 @@ def main() -> int:
     if args.gpu and not torch.cuda.is_available():
         # Before anything starts (GL probe, pods): a machine without a GPU fails at once.
         log.error("--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
-                  torch.__version__)  # fmt: skip
+                  torch.__version__)
         return 2
     if args.render_compare:
         return render_compare(args)

@@ -53,7 +53,7 @@ def heal_config() -> JobConfig:
             "controller": {"port": controller_port, "heartbeat_interval_s": 0.5, "heartbeat_ttl_s": 3.0,
                            "reconcile_interval_s": 0.25},
         }
-    )  # fmt: skip
+    )
 
 
 def layout(table: RoutingTable) -> list[tuple[int, str, str]]:

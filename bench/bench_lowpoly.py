@@ -83,7 +83,7 @@ def measure(task: str, size: int, cells: list[float], seconds: float, wall: bool
             rows.append(
                 {"cell_m": cell, "faces": simplified.faces_after, "simplify_s": round(simplify_s, 3),
                  "frames_per_s": rate, "speedup": round(rate / base, 2), **quality(reference, images)}
-            )  # fmt: skip
+            )
             log.info("%s cell %g: %s", task, cell, rows[-1])
         return {"rows": rows}, pictures
     finally:

@@ -64,7 +64,7 @@ def assignment(task: str, envs: int, size: int, engine: str) -> Assignment:
     return Assignment(
         generation=0, pod="sim-0", stage_id=0, engine=engine, camera=camera,
         tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
-    )  # fmt: skip
+    )
 
 
 def time_chunks(engine: Any, envs: int, chunk: int, calls: int, deadline: float) -> dict[str, Any]:
@@ -89,7 +89,7 @@ def time_chunks(engine: Any, envs: int, chunk: int, calls: int, deadline: float)
         "calls": done, "env_steps": int(steps), "seconds": elapsed, "env_steps_per_s": steps / elapsed,
         "physics_s_per_call": physics / done, "render_s_per_call": render / done,
         "other_s_per_call": (elapsed - physics - render) / done,
-    }  # fmt: skip
+    }
 
 
 def write(record: dict[str, Any], out: Path) -> None:
@@ -128,7 +128,7 @@ def reference(args: argparse.Namespace) -> None:
     np.savez_compressed(
         args.out, actions=actions, states=states, success=success, record=json.dumps(record),
         **{f"image.{name}": pixels for name, pixels in images.items()},
-    )  # fmt: skip
+    )
     print("RESULT", json.dumps(record))
 
 
@@ -159,7 +159,7 @@ def fidelity(args: argparse.Namespace, ref: Any) -> dict[str, Any]:
         mad_flipped = {
             f"{name}/{flip}": float(np.abs(obs["images"][name][index].astype(np.int16) - ref[f"image.{name}"]).mean())
             for name in CAMERAS for flip, index in flips.items()
-        }  # fmt: skip
+        }
         have = np.zeros_like(want)
         have[:, 0] = obs["state"]
         won = np.zeros((n, steps), dtype=bool)
@@ -177,7 +177,7 @@ def fidelity(args: argparse.Namespace, ref: Any) -> dict[str, Any]:
         "eef_pos_divergence_m": {str(t): {"median": float(np.median(eef[:, t])), "max": float(eef[:, t].max())} for t in marks},
         "gripper_divergence_max": float(np.abs(have[..., 6:] - want[..., 6:]).max()),
         "success_agreement": float((won == ref["success"]).mean()), "errors": errors,
-    }  # fmt: skip
+    }
 
 
 def run(args: argparse.Namespace) -> None:
@@ -323,7 +323,7 @@ def main() -> None:
         command.add_argument(
             "--machine", default=platform.node(),
             help="names the machine; a ratio to the CPU engine is given only when both steps name the same one",
-        )  # fmt: skip
+        )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)

@@ -123,7 +123,7 @@ def main() -> int:
         "rows": rows,
         "rows_by_step_path": by_path,
         "seconds_total": round(time.monotonic() - started, 1),
-    }  # fmt: skip
+    }
     write_result("bench_physics_scaling" + (f"_{args.tag}" if args.tag else ""), summary)
     return 0
 

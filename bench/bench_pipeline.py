@@ -81,7 +81,7 @@ def routing(pods: list[Any], task: str, stages: int, per_pod: int) -> RoutingTab
     for s in range(stages):
         routed = [
             RoutedPod(pod=f"sim-{i}", url=pods[i].url, num_envs=per_pod,
-                      tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),))  # fmt: skip
+                      tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),))
             for i in range(s * per_stage, (s + 1) * per_stage)
         ]
         grouped.append(RoutedStage(stage_id=s, pods=tuple(routed)))
@@ -203,7 +203,7 @@ def main() -> None:
             generation=0, job_id="bench-pipeline", pod=f"sim-{i}", stage_id=0,
             tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
             envs_per_worker=1, max_episode_steps=1000,
-        )  # fmt: skip
+        )
         for i in range(PODS)
     ]
     requests = [(task, i % 50) for i in range(envs)]

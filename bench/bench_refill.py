@@ -150,7 +150,7 @@ def main() -> None:
             generation=0, job_id="bench-refill", pod=f"sim-{i}", stage_id=0,
             tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
             envs_per_worker=1, max_episode_steps=10 * mode["horizon"],
-        )  # fmt: skip
+        )
         for i in range(pods)
     ]
     cores = sorted(os.sched_getaffinity(0))
@@ -208,7 +208,7 @@ def main() -> None:
     steps = {
         "refill": statistics.median(s.env_steps for s in runs["refill"]),
         "batch": statistics.median(sum(s.env_steps for s in runs["batch"][r * mode["waves"] : (r + 1) * mode["waves"]])
-                                   for r in range(mode["rounds"])),  # fmt: skip
+                                   for r in range(mode["rounds"])),
     }
     waves = [horizons[b : b + envs] for b in range(0, n, envs)]
     summary = {

@@ -53,7 +53,7 @@ CAMERAS = ("agentview", "robot0_eye_in_hand")
 
 
 def renderer_main(index: int, core: int | None, priority: str, task: str, size: int, views: int,
-                  period_s: float, go: Any, stop: Any, ready: Any, results: Any) -> None:  # fmt: skip
+                  period_s: float, go: Any, stop: Any, ready: Any, results: Any) -> None:
     """A render process: one scene, ``views`` views a batch every ``period_s`` while ``go`` is set.
 
     Puts ``("ready", index, gl_info)`` once it has rendered a first batch, then ``("times",
@@ -100,7 +100,7 @@ class RenderSet:
     """``count`` render processes at one priority, started paused."""
 
     def __init__(self, ctx: Any, priority: str, count: int, cores: list[int | None], args: argparse.Namespace,
-                 first_index: int) -> None:  # fmt: skip
+                 first_index: int) -> None:
         self.priority = priority
         self.go = ctx.Event()
         self.stop = ctx.Event()
@@ -112,7 +112,7 @@ class RenderSet:
                         args=(first_index + i, cores[i % len(cores)], priority, tasks[i], args.size, args.views,
                               args.period_ms / 1000, self.go, self.stop, self.ready, self.results), daemon=True)
             for i in range(count)
-        ]  # fmt: skip
+        ]
         for process in self.processes:
             process.start()
         self.gl: list[dict[str, str]] = []
@@ -163,7 +163,7 @@ def build_policy(args: argparse.Namespace, device: str) -> Any:
 
     box = spaces.Box(0, 255, (args.size, args.size, 3), np.uint8)
     space = spaces.Dict({"images": spaces.Dict({c: box for c in CAMERAS}),
-                         "proprio": spaces.Box(-np.inf, np.inf, (9,), np.float32)})  # fmt: skip
+                         "proprio": spaces.Box(-np.inf, np.inf, (9,), np.float32)})
     action = spaces.Box(-1.0, 1.0, (7,), np.float32)
     dtype = torch.bfloat16 if device.startswith("cuda") else torch.float32
     policy = VisionPolicy(space, action, encoder="vit", vit_depth=args.vit_depth, device=device, dtype=dtype)
@@ -192,12 +192,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     os.sched_setaffinity(0, {policy_core})
     ctx = mp.get_context("spawn")
     sets = {p: RenderSet(ctx, p, args.renderers, render_cores, args, i * args.renderers)
-            for i, p in enumerate(args.priorities)}  # fmt: skip
+            for i, p in enumerate(args.priorities)}
     try:
         for render_set in sets.values():
             render_set.wait_ready(args.build_timeout_s)
             log.info("%d renderers at %s priority ready; granted: %s", args.renderers, render_set.priority,
-                     sorted({g.get("priority", "?") for g in render_set.gl}))  # fmt: skip
+                     sorted({g.get("priority", "?") for g in render_set.gl}))
         contenders = ["alone", *(f"renders/{p}" for p in args.priorities)]
         policy_ms: dict[str, list[float]] = {c: [] for c in contenders}
         render_ms: dict[str, list[float]] = {c: [] for c in contenders[1:]}
@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 policy_ms[name].append(statistics.median(calls))
                 log.info("round %d %s: policy %.1f ms a call (%d calls)%s", round_index + 1, name,
                          policy_ms[name][-1], len(calls),
-                         f", renders {render_ms[name][-1]:.1f} ms a batch" if name in render_ms else "")  # fmt: skip
+                         f", renders {render_ms[name][-1]:.1f} ms a batch" if name in render_ms else "")
     finally:
         for render_set in sets.values():
             render_set.close()
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "policy_ms": {c: spread(v) for c, v in policy_ms.items()},
         "render_ms": {c: spread(v) for c, v in render_ms.items()},
         "policy_slowdown_over_alone": {c: spread([m / a for m, a in zip(v, alone)])
-                                       for c, v in policy_ms.items() if c != "alone"},  # fmt: skip
+                                       for c, v in policy_ms.items() if c != "alone"},
         "gl": {p: s.gl[0] if s.gl else None for p, s in sets.items()},
         "granted": {p: sorted({g.get("priority", "?") for g in s.gl}) for p, s in sets.items()},
     }
@@ -236,11 +236,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         summary["policy_speedup_over_medium"] = {
             c: spread([m / v for m, v in zip(medium, values)])
             for c, values in policy_ms.items() if c.startswith("renders/") and c != "renders/medium"
-        }  # fmt: skip
+        }
     summary["setup"] = {"device": device, "batch": args.batch, "vit_depth": args.vit_depth, "size": args.size,
                         "renderers": args.renderers, "views": args.views, "period_ms": args.period_ms,
                         "seconds": args.seconds, "rounds": args.rounds, "policy_core": policy_core,
-                        "render_cores": render_cores, "torch": torch.__version__}  # fmt: skip
+                        "render_cores": render_cores, "torch": torch.__version__}
     return summary
 
 

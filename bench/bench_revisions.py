@@ -66,7 +66,7 @@ def resolve(repo: Path, revisions: str, bench: str) -> list[dict[str, str]]:
         except RuntimeError:
             raise ValueError(f"--revisions: {rev!r} is not a commit of {repo}") from None
         if subprocess.run(["git", "-C", str(repo), "cat-file", "-e", f"{commit}:bench/{bench}"],
-                          capture_output=True, timeout=GIT_TIMEOUT_S).returncode != 0:  # fmt: skip
+                          capture_output=True, timeout=GIT_TIMEOUT_S).returncode != 0:
             raise ValueError(f"--bench: bench/{bench} does not exist at revision {rev!r}")
         resolved.append({"rev": rev, "commit": commit, "subject": git(repo, "log", "-1", "--format=%s", commit)})
     return resolved
@@ -120,7 +120,7 @@ def imported_from(tree: Path) -> dict[str, str]:
     """
     code = "import vecsim, service; print(vecsim.__file__); print(service.__file__)"
     done = subprocess.run([sys.executable, "-c", code], cwd=tree, env=tree_env(tree),
-                          capture_output=True, text=True, timeout=GIT_TIMEOUT_S)  # fmt: skip
+                          capture_output=True, text=True, timeout=GIT_TIMEOUT_S)
     paths = dict(zip(("vecsim", "service"), done.stdout.split()))
     if done.returncode != 0 or len(paths) != 2 or not all(Path(p).is_relative_to(tree) for p in paths.values()):
         raise RuntimeError(f"{tree.name}: vecsim/service not imported from {tree}: {paths or done.stderr[-500:]}")
@@ -140,7 +140,7 @@ def run_bench(tree: Path, bench: str, bench_args: Sequence[str], timeout_s: floa
         process = subprocess.Popen(
             [sys.executable, str(tree / "bench" / bench), *bench_args],
             cwd=tree, env=env, stdout=stdout, stderr=stderr, text=True, start_new_session=True,
-        )  # fmt: skip
+        )
         try:
             rc = process.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:

@@ -46,7 +46,7 @@ from typing import Any
 for _threads in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_threads, "1")
 
-import numpy as np  # noqa: E402 - after the thread settings, which BLAS reads as it loads
+import numpy as np  # after the thread settings, which BLAS reads as it loads
 from lib.pods import paired_ratio, rate_spread, setup_logging
 from lib.machine import cores_first, cpu_topology, gl_probe, split_cores
 from lib.records import write_result
@@ -110,7 +110,7 @@ def pod_assignments(suite: str, tasks: Sequence[int], cores: int, size: int, ren
                     "libero": {"settle_steps": SETTLE_STEPS},
                 }
             )
-        )  # fmt: skip
+        )
     return assignments
 
 
@@ -140,10 +140,10 @@ def standalone_pods(assignments: Sequence[Assignment], pins: Sequence[str], work
             path.write_text(assignment.model_dump_json())
             port = _free_port()
             argv = ["taskset", "-c", pin, sys.executable, "-m", "service.cli", "pod", "--host", "127.0.0.1",
-                    "--port", str(port), "--log-level", "warning", "--assignment", str(path), "--name", assignment.pod]  # fmt: skip
+                    "--port", str(port), "--log-level", "warning", "--assignment", str(path), "--name", assignment.pod]
             log_file = (workdir / f"{assignment.pod}.log").open("ab")
             procs.append(subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
-                                          env={**os.environ, "POD_NAME": assignment.pod}))  # fmt: skip
+                                          env={**os.environ, "POD_NAME": assignment.pod}))
             urls.append(f"http://127.0.0.1:{port}")
         end = time.monotonic() + READY_TIMEOUT_S
         for url, proc in zip(urls, procs):
@@ -171,7 +171,7 @@ def rlinf_config(suite: str, num_envs: int, size: int, pod_urls: Sequence[str] |
         "ignore_terminations": False, "auto_reset": False, "use_rel_reward": True, "reward_coef": 5.0,
         "max_episode_steps": 10_000, "reset_gripper_open": True, "video_cfg": {"save_video": False},
         "init_params": {"camera_heights": size, "camera_widths": size},
-    }  # fmt: skip
+    }
     if pod_urls is not None:
         cfg["vecsim"] = {"pod_urls": list(pod_urls)}
     return OmegaConf.create(cfg)

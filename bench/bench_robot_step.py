@@ -103,7 +103,7 @@ def change_variants() -> dict[str, Any]:
         _integrate = ExactStep._integrate
 
     return {"controller": ControllerOnly, "+observables": PlusObservables, "+one forward": PlusOneForward,
-            "+compiled controller (exact)": ExactStep}  # fmt: skip
+            "+compiled controller (exact)": ExactStep}
 
 
 def python_controller(inner: Any) -> Any:
@@ -173,7 +173,7 @@ def physics_only(model: Any, data: Any, scratch: Any, substeps: int, reps: int) 
                           mujoco.mj_fwdVelocity(model, scratch), mujoco.mj_sensorVel(model, scratch),
                           mujoco.mj_checkPos(model, scratch), mujoco.mj_checkVel(model, scratch),
                           mujoco.mj_step2(model, scratch)),
-    }  # fmt: skip
+    }
     spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
     state = np.empty(mujoco.mj_stateSize(model, spec))
     mujoco.mj_getState(model, data, state, spec)
@@ -412,7 +412,7 @@ def parity_episode(task_id: str, episode: int, steps: int, path: str) -> dict[st
             "task": task_id, "episode": episode, "path": path, "steps": index + 1, "identical": first is None,
             "first_difference": first, "max_abs_qpos_difference": drift, "success_steps": successes,
             "success_disagreements": disagreements,
-        }  # fmt: skip
+        }
     finally:
         for env in envs.values():
             env.close()
@@ -463,7 +463,7 @@ def main() -> int:
                       "pinned_to": cpu},
             "episodes": episodes,
             "seconds_total": round(time.monotonic() - started, 1),
-        }  # fmt: skip
+        }
         write_result("bench_robot_step_parity_exact" + suffix, summary)
         return 0 if identical else 1
     if args.resets_only:
@@ -479,7 +479,7 @@ def main() -> int:
                       "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg()},
             "rows": rows,
             "seconds_total": round(time.monotonic() - started, 1),
-        }  # fmt: skip
+        }
         write_result("bench_robot_step_resets" + suffix, summary)
         return 0
     rows = {task_id: measure_task(task_id, args) for task_id in tasks}
@@ -517,7 +517,7 @@ def main() -> int:
                   "load_average_at_end": os.getloadavg()},
         "rows": rows,
         "seconds_total": round(time.monotonic() - started, 1),
-    }  # fmt: skip
+    }
     write_result("bench_robot_step" + suffix, summary)
     return 0
 

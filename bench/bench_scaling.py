@@ -53,7 +53,7 @@ def measure(task_id: str, per_pod: int, camera: CameraConfig, counts: list[int],
             generation=0, job_id="bench-scaling", pod=f"sim-{i}", stage_id=0,
             tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
             envs_per_worker=AUTO_ENVS_PER_WORKER, max_episode_steps=1000,
-        )  # fmt: skip
+        )
         for i in range(max(counts))
     ]
     pins = [str(cores[i % len(cores)]) for i in range(len(assignments))]
@@ -101,7 +101,7 @@ def plot(results: dict[str, dict[str, Any]], path: Any) -> None:
         ax.errorbar(
             counts, measured, yerr=[[m - lo for m, lo in zip(measured, low)], [hi - m for m, hi in zip(measured, high)]],
             marker="o", capsize=3, label="measured (median, min-max)",
-        )  # fmt: skip
+        )
         ax.set_xticks(counts)
         ax.set_xlabel("pods (one core each)")
         ax.set_ylabel("env-steps/s")

@@ -105,7 +105,7 @@ class _PoolVectorEnv:
         assignment = Assignment(
             generation=0, job_id="serving-pool", pod="pool", stage_id=0, tasks=tuple(blocks), camera=camera,
             render="lean", envs_per_worker=1, max_episode_steps=CAP,
-        )  # fmt: skip
+        )
         # Spawned, not from this process's forkserver: that one is the in-process run's, and its
         # children (the memory and CPU counted for ``inproc``) must stay that run's workers.
         self.env = TaskGroupedVectorEnv(assignment, context="spawn")

@@ -70,13 +70,13 @@ def view(table: RoutingTable, name: str) -> RoutingTable:
     if name == "slices":
         return table
     envs = sorted((b.env_start + k, b.task_id) for stage in table.stages for p in stage.pods
-                  for b in p.tasks for k in range(b.num_envs))  # fmt: skip
+                  for b in p.tasks for k in range(b.num_envs))
     parts = [envs] if name == "one_stage" else [envs[: len(envs) // 2], envs[len(envs) // 2 :]]
     stages = tuple(
         RoutedStage(stage_id=s, pods=(RoutedPod(pod=pod.pod, url=pod.url, num_envs=len(part), tasks=tuple(
             TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for env, task in part)),))
         for s, part in enumerate(parts)
-    )  # fmt: skip
+    )
     return table.model_copy(update={"stages": stages})
 
 
@@ -88,7 +88,7 @@ def chunk_of(client: StageClient, keys: list[str], chunk: int) -> dict[str, np.n
 def probe(client: StageClient, chunk: int, calls: int) -> dict[str, float]:
     """Median ms of stage 0's chunk step alone and of both stages' steps sent at once."""
     placed = [(b.task_id, s) for s, stage in enumerate(client.routing.stages) for p in stage.pods
-              for b in p.tasks for _ in range(b.num_envs)]  # fmt: skip
+              for b in p.tasks for _ in range(b.num_envs)]
     envs, stages = [(task, 0) for task, _ in placed], [s for _, s in placed]
     client.reset_trajectories(envs, stages=stages)
     for s in range(client.num_stages):
@@ -115,10 +115,10 @@ def probe(client: StageClient, chunk: int, calls: int) -> dict[str, float]:
 def settings(args: argparse.Namespace) -> dict[str, Any]:
     if args.quick:
         mode = {"task": "gym/HalfCheetah-v5", "group_size": 2, "envs_per_worker": 2, "size": 8, "chunk": 4,
-                "horizon": 16, "rounds": 2, "probe_calls": 3}  # fmt: skip
+                "horizon": 16, "rounds": 2, "probe_calls": 3}
     else:
         mode = {"task": "tiny/lift", "group_size": 4, "envs_per_worker": 4, "size": 32, "chunk": 8,
-                "horizon": 48, "rounds": 3, "probe_calls": 5}  # fmt: skip
+                "horizon": 48, "rounds": 3, "probe_calls": 5}
     return with_flags(mode, args)
 
 
@@ -146,7 +146,7 @@ def main() -> None:
         tasks=slice_blocks([mode["task"]], mode["group_size"], 2),
         camera=CameraConfig(names=names, height=mode["size"], width=mode["size"]), render="lean",
         envs_per_worker=mode["envs_per_worker"], max_episode_steps=10 * mode["horizon"],
-    )  # fmt: skip
+    )
     with contextlib.ExitStack() as stack:
         (pod,) = stack.enter_context(standalone_pods([assignment], ready_timeout_s=READY_TIMEOUT_S))
         own = stack.enter_context(StageClient.from_pods([pod.url], timeout_s=120))
@@ -159,7 +159,7 @@ def main() -> None:
         def rollout(name: str) -> float:
             # Request i on stage i % S, as the sampler interleaves them; one per env.
             per_stage = [[(b.task_id, k) for p in stage.pods for b in p.tasks for k in range(b.num_envs)]
-                         for stage in clients[name].routing.stages]  # fmt: skip
+                         for stage in clients[name].routing.stages]
             batch = [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]
             stats = EnvLoop(clients[name], policy, horizon=mode["horizon"], keep_obs=()).run(batch).stats
             return stats.env_steps / stats.wall_s
@@ -174,7 +174,7 @@ def main() -> None:
         "probe": probes,
         "env_steps_per_s": {name: rate_spread(values) for name, values in rates.items()},
         "two_stages_over_one": {name: paired_ratio(rates[name], rates["one_stage"]) for name in ("slices", "stage_major")},
-    }  # fmt: skip
+    }
     write_result("bench_stage_slices", summary, {"per_round": rates})
 
 

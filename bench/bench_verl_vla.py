@@ -54,7 +54,7 @@ def measure(pods: int, per_pod: int, size: int, k: int, chunks: int, rounds: int
             tasks=(TaskBlock(task_id=f"libero_spatial/{p}", env_start=0, num_envs=per_pod),),
         )
         for p in range(pods)
-    ]  # fmt: skip
+    ]
     rng = np.random.default_rng(0)
     num_envs = pods * per_pod
     actions = rng.uniform(-0.3, 0.3, (chunks, num_envs, k, 7)).astype(np.float32)

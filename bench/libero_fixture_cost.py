@@ -49,7 +49,7 @@ def build(task_id: str) -> Any:
     return OffScreenRenderEnv(
         bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
         hard_reset=True, ignore_done=True,
-    )  # fmt: skip
+    )
 
 
 def main() -> None:

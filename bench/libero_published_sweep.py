@@ -168,7 +168,7 @@ def main() -> None:
     summary.update(
         tasks=args.tasks, episodes=episodes, steps=args.steps, size=args.size, seed=args.seed,
         seconds=round(time.perf_counter() - started, 1),
-    )  # fmt: skip
+    )
     name = f"libero_published_sweep{'_' + args.tag if args.tag else ''}"
     write_result(name, summary, {"cases": cases, "builds": builds})
 

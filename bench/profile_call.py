@@ -313,7 +313,7 @@ def _assignment(pod: str) -> Any:
         camera=CameraConfig(names=tuple(c for c in ARGS.cameras.split(",") if c), height=ARGS.size, width=ARGS.size),
         render="lean",
         envs_per_worker=ARGS.envs_per_worker or AUTO_ENVS_PER_WORKER, max_episode_steps=EPISODE_CAP,
-    )  # fmt: skip
+    )
 
 
 @contextlib.contextmanager
@@ -329,7 +329,7 @@ def pod_process(mode: str, workdir: Path) -> Iterator[Any]:
     log_path = workdir / f"{name}.log"
     argv = ["--serve-pod", mode, "--serve-out", str(log_path.with_suffix(".out")), "--",
             "--assignment", str(path), "--name", name, "--host", "127.0.0.1", "--port", str(port),
-            "--log-level", "warning"]  # fmt: skip
+            "--log-level", "warning"]
     server = Server(name, argv, port, clean_env(), log_path, program=(sys.executable, __file__))
     with running(server):
         server.wait_ready(READY_TIMEOUT_S)
@@ -616,7 +616,7 @@ def main() -> None:
         "quick": ARGS.quick,
         "setup": {"envs": n, "task": ARGS.task, "cameras": ARGS.cameras, "size": ARGS.size, "envs_per_worker": per_worker, "cores": available_cores(),
                   "calls_per_round": calls, "rounds": rounds, "load_avg_before": load_before,
-                  "load_avg_after": os.getloadavg()},  # fmt: skip
+                  "load_avg_after": os.getloadavg()},
         "median_ms_per_call": medians,
         "ratio_to_in_process": {k: round(v / medians["in_process"], 2) for k, v in medians.items()},
         "cpu_ms_per_call": cpu_ms,
@@ -641,7 +641,7 @@ def main() -> None:
                 ]).items()
             },
         },
-    }  # fmt: skip
+    }
     _report(result)
     profiles = {k: result.pop(k) for k in ("client_profile", "pod_profile")}
     write_result("profile_call", result, profiles)
@@ -686,7 +686,7 @@ def _report(result: dict[str, Any]) -> None:
         for key in ("main_thread_top", "loop_thread_top"):
             for row in profile.get(key, []):
                 out.write(f"  [{key[:4]}] own {row['own_ms_per_call']:7.3f} cum {row['cum_ms_per_call']:7.3f} "
-                          f"{100 * row['share']:5.1f}%  {row['where']}\n")  # fmt: skip
+                          f"{100 * row['share']:5.1f}%  {row['where']}\n")
         for key, ms in profile.get("cumulative_ms_per_call", {}).items():
             out.write(f"  [cum ] {ms:7.3f}  {key}\n")
     log.info("report\n%s", out.getvalue())

@@ -131,7 +131,7 @@ def thin_visual_meshes(model: mujoco.MjModel, keep_every: int) -> int:
     return int(
         sum(model.mesh_facenum[int(model.geom_dataid[g])] for g in range(model.ngeom)
             if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and model.geom_group[g] == VISUAL_GROUP)
-    )  # fmt: skip
+    )
 
 
 def frames_per_s(renderer: BatchRenderer, views: list[CameraView], seconds: float) -> dict[str, float]:
@@ -154,7 +154,7 @@ def scene_update_ms(views: list[CameraView], seconds: float) -> float:
     while time.perf_counter() - started < seconds:
         for view in views:
             mujoco.mjv_updateScene(view.model, view.data, view.option, perturb, view.camera,
-                                   mujoco.mjtCatBit.mjCAT_ALL, scene)  # fmt: skip
+                                   mujoco.mjtCatBit.mjCAT_ALL, scene)
         count += len(views)
     return 1e3 * (time.perf_counter() - started) / count
 
@@ -198,7 +198,7 @@ def measure(
         variant(name, preset, views)
         out[name].update(quality(reference, _picture(size, preset, model, base_views)))
         out[name].update({"cell_m": cell, "faces_kept": simplified.faces_after, "faces_all": simplified.faces_before,
-                          "simplify_s": round(simplify_s, 3)})  # fmt: skip
+                          "simplify_s": round(simplify_s, 3)})
     faces_before = geometry(model)["faces_by_geom_group"].get(str(VISUAL_GROUP), 0)
     done = 1
     for k in sorted(keep_every):

@@ -226,7 +226,7 @@ _SONAME = re.compile(r"\(SONAME\)\s+Library soname: \[([^\]]+)\]")
 def elf_links(path: Path) -> tuple[str, list[str]]:
     """Return a shared library's soname (its file name when it has none) and the sonames it loads."""
     dynamic = subprocess.run(["readelf", "-d", str(path)], capture_output=True, text=True, check=True,
-                             timeout=60).stdout  # fmt: skip
+                             timeout=60).stdout
     soname = _SONAME.search(dynamic)
     return (soname.group(1) if soname else path.name), _NEEDED.findall(dynamic)
 
@@ -279,7 +279,7 @@ def download_mesa(out: Path) -> dict[str, Any]:
         staging.mkdir()
         for deb in debs:
             subprocess.run(["dpkg-deb", "-x", str(deb), str(staging / deb.name.split("_")[0])], check=True,
-                           timeout=300)  # fmt: skip
+                           timeout=300)
         closure = mesa_closure(staging)
         unused = sorted({*MESA_OWN_PACKAGES, *MESA_DEPENDENCIES} - {package for package, _ in closure.values()})
         if unused:
@@ -290,7 +290,7 @@ def download_mesa(out: Path) -> dict[str, Any]:
             source = Path(tmp) / "icu_stub.c"
             source.write_text(ICU_STUB_C % {"symbol": f"icudt{soname.rsplit('.', 1)[1]}_dat"})
             subprocess.run(["cc", "-shared", "-fPIC", "-s", "-O2", f"-Wl,-soname,{soname}", "-o", str(stub),
-                            str(source)], check=True, capture_output=True, timeout=120)  # fmt: skip
+                            str(source)], check=True, capture_output=True, timeout=120)
             closure[soname] = (closure[soname][0], stub)
             stubbed[soname] = "ICU's stub data (an empty table), not the 31 MB of locale tables"
         archive = out / "mesa.tar.xz"
@@ -666,7 +666,7 @@ def mesa_probe(env: dict[str, str]) -> dict[str, Any]:
         RuntimeError: the child made no GL context (its output is in the message).
     """
     done = subprocess.run([sys.executable, "-c", MESA_PROBE_CODE], env={**os.environ, "MUJOCO_GL": "egl", **env},
-                          capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)  # fmt: skip
+                          capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
     if done.returncode != 0:
         raise RuntimeError(f"no GL context through the bundle's Mesa:\n{done.stderr[-4000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -691,14 +691,14 @@ def verify_mesa(out: Path) -> None:
         vendor.write_text(json.dumps({"file_format_version": "1.0.0",
                                       "ICD": {"library_path": str(prefix / "own" / "libEGL_mesa.so.0")}}))
         every = {"__EGL_VENDOR_LIBRARY_FILENAMES": str(vendor), "LIBGL_DRIVERS_PATH": str(prefix / "dri"),
-                 "LD_LIBRARY_PATH": f"{prefix / 'own'}:{prefix / 'deps'}"}  # fmt: skip
+                 "LD_LIBRARY_PATH": f"{prefix / 'own'}:{prefix / 'deps'}"}
         script = (f'source "{out.resolve() / "mesa.sh"}" && printf "%s\\n" "$VECSIM_MESA_EGL_VENDOR" '
                   '"$VECSIM_MESA_LIBRARY_PATH" "$VECSIM_MESA_DRIVERS"')
         done = subprocess.run(["bash", "-c", script], env={**os.environ, "VECSIM_MESA_PREFIX": str(Path(tmp) / "sh")},
-                              capture_output=True, text=True, timeout=300, check=True)  # fmt: skip
+                              capture_output=True, text=True, timeout=300, check=True)
         vendor_file, library_path, drivers = done.stdout.split()
         as_set_up = {"__EGL_VENDOR_LIBRARY_FILENAMES": vendor_file, "LD_LIBRARY_PATH": library_path,
-                     "LIBGL_DRIVERS_PATH": drivers}  # fmt: skip
+                     "LIBGL_DRIVERS_PATH": drivers}
         for label, env, root in (("every library carried", every, prefix), ("mesa.sh", as_set_up, Path(tmp) / "sh")):
             info = mesa_probe(env)
             mapped = {Path(path).name: path for path in info["libraries"]}
@@ -711,7 +711,7 @@ def verify_mesa(out: Path) -> None:
                 raise RuntimeError(f"{label}: renderer {info['renderer']!r}; not from the bundle: {strays}")
             from_bundle = [name for name, path in mapped.items() if path.startswith(str(root.resolve()))]
             log.info("Mesa (%s): %s, %s; mapped from the bundle: %s", label, info["renderer"], info["version"],
-                     ", ".join(sorted(from_bundle)))  # fmt: skip
+                     ", ".join(sorted(from_bundle)))
 
 
 def main() -> int:

@@ -176,7 +176,7 @@ def step_costs(pod_calls: Sequence[tuple[int, str, float, float, int, int]]) -> 
         first, median = calls[0][1], statistics.median(d for _, d in calls)
         ratio = first / median if median > 0 else float("inf")
         per_pod.append({"stage_id": stage, "pod": pod, "calls": len(calls), "first_s": first,
-                        "median_s": median, "ratio": ratio})  # fmt: skip
+                        "median_s": median, "ratio": ratio})
     worst = max((p["ratio"] for p in per_pod), default=None)
     return {"first_over_median": worst, "per_pod": per_pod}
 
@@ -315,7 +315,7 @@ def main(argv: list[str]) -> int:
                 log_every_s=5.0,
             )
             logger.info("rolling out %d trajectories over %d stages and %d envs", len(requests), job.num_stages,
-                        table.num_envs)  # fmt: skip
+                        table.num_envs)
             result = loop.run(requests)
         finally:
             client.close()

@@ -36,7 +36,7 @@ from vecsim.wire import WireError, from_jsonable, to_jsonable
 __all__ = [
     "check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
     "without_rng",
-]  # fmt: skip
+]
 
 _FIELDS = {
     "Box": {"type", "dtype", "shape", "low", "high"},

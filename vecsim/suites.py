@@ -17,7 +17,7 @@ engine builds the tasks (``vecsim.engine.tasks``), and a test holds the two to o
 from __future__ import annotations
 
 __all__ = ["LIBERO_SUITE_SIZES", "ROBOSUITE_SUITES", "is_known", "normalize_task_id", "space_family",
-           "suite_names", "suite_task_ids"]  # fmt: skip
+           "suite_names", "suite_task_ids"]
 
 # Suite -> number of tasks, as LIBERO's benchmark lists them.
 LIBERO_SUITE_SIZES: dict[str, int] = {
@@ -33,7 +33,7 @@ ROBOSUITE_SUITES: dict[str, tuple[str, ...]] = {
         "NutAssembly", "NutAssemblySquare", "NutAssemblyRound", "Door",
     ),
     "tiny": ("lift", "stack", "door"),
-}  # fmt: skip
+}
 
 
 def normalize_task_id(task_id: str) -> str:

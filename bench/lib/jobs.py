@@ -216,7 +216,7 @@ def requests_for(table: RoutingTable, waves: int = 1) -> list[tuple[str, int]]:
         raise ValueError(f"stages of {sizes} envs: every stage needs as many envs (change the pods or envs per task)")
     per_stage = [
         [(block.task_id, (pod_index * 7 + k) % 50) for pod_index, pod in enumerate(stage.pods)
-         for block in pod.tasks for k in range(block.num_envs)]  # fmt: skip
+         for block in pod.tasks for k in range(block.num_envs)]
         for stage in table.stages
     ]
     one = [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]

@@ -23,7 +23,7 @@ import psutil
 
 MESA_VENDOR_GLOBS = ("/usr/share/glvnd/egl_vendor.d/*mesa*.json", "/etc/glvnd/egl_vendor.d/*mesa*.json")
 NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json",
-                       "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")  # fmt: skip
+                       "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")
 GL_LIBRARY = re.compile(r"EGL|GLX|GLdispatch|nvidia|mesa|LLVM|_dri\.so|gallium|gbm|glapi")
 
 
@@ -51,7 +51,7 @@ def gpu_name() -> str | None:
     """Return nvidia-smi's name and driver of the GPU, or None without one."""
     try:
         done = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
-                              capture_output=True, text=True, timeout=20)  # fmt: skip
+                              capture_output=True, text=True, timeout=20)
     except (OSError, subprocess.TimeoutExpired):
         return None
     return done.stdout.strip() or None
@@ -96,7 +96,7 @@ def cpu_topology() -> dict[str, Any]:
         for line in out.splitlines():
             key, _, value = line.partition(":")
             if key.strip() in ("Model name", "CPU(s)", "Thread(s) per core", "Core(s) per socket", "Socket(s)",
-                               "NUMA node(s)", "Hypervisor vendor"):  # fmt: skip
+                               "NUMA node(s)", "Hypervisor vendor"):
                 lscpu[key.strip()] = value.strip()
     return {
         "cpus": len(allowed),
@@ -167,7 +167,7 @@ class MemoryWatch:
         self._thread.join()
         if self.tripped is not None and (kind is None or issubclass(kind, KeyboardInterrupt)):
             raise MemoryError(f"{self.tripped} GiB of memory in use, above --max-memory-gib {self.limit_gib}: "
-                              "run fewer pods, tasks per pod or envs")  # fmt: skip
+                              "run fewer pods, tasks per pod or envs")
 
 
 
@@ -185,7 +185,7 @@ def render_probe(env: dict[str, str], timeout_s: float = 120.0) -> dict[str, Any
     full = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **env}
     try:
         done = subprocess.run([sys.executable, "-c", RENDER_PROBE_CODE], env=full, capture_output=True, text=True,
-                              timeout=timeout_s)  # fmt: skip
+                              timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return {"error": f"no GL context within {timeout_s:.0f} s"}
     if done.returncode != 0:

@@ -197,7 +197,7 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float, chunk: in
         for step in range(steps):
             keys = {s: client.stage_traj_keys(s) for s in stages}
             calls = {s: client.step_stage(s, dict(zip(keys[s], scripted_chunks(action_space, step, len(keys[s]), chunk))))
-                     for s in stages}  # fmt: skip
+                     for s in stages}
             for stage, call in calls.items():
                 batch = call.result(timeout_s)
                 timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
@@ -208,7 +208,7 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float, chunk: in
     env_steps = steps * len(routes) * chunk
     stats = RolloutStats(num_trajectories=len(routes), env_steps=env_steps, wall_s=ended - started,
                          env_steps_per_s=env_steps / max(ended - stepping, 1e-9), simulation_s=ended - started,
-                         timeline=sorted(timeline, key=lambda item: item[2]))  # fmt: skip
+                         timeline=sorted(timeline, key=lambda item: item[2]))
     return Measured(stats, **seen)
 
 
@@ -225,7 +225,7 @@ class Deadline:
 
 
 def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadline: Deadline,
-               reserve_s: float) -> dict[str, list[Measured]]:  # fmt: skip
+               reserve_s: float) -> dict[str, list[Measured]]:
     """Run each contender once per round, the order rotating; start another round only while
     the last round's duration plus ``reserve_s`` fits in what is left (one round always runs)."""
     names = list(contenders)
@@ -234,7 +234,7 @@ def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadl
     for r in range(rounds):
         if r and deadline.left() < 1.1 * last_s + reserve_s:
             log.warning("deadline near (%.0f s left, a round takes %.0f s): %d of %d rounds run",
-                        deadline.left(), last_s, r, rounds)  # fmt: skip
+                        deadline.left(), last_s, r, rounds)
             break
         began = time.monotonic()
         for name in names[r % len(names):] + names[: r % len(names)]:

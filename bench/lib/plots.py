@@ -32,13 +32,13 @@ def plot_scaling(summary: dict[str, Any], tag: str) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6.0, 4.0))
     for kind, color, label in (("service", "tab:blue", "service alone (scripted actions)"),
                                ("loop", "tab:orange", "EnvLoop + ResNet-18 (graphed), 1 stage"),
-                               ("loop_per_pod", "tab:green", "EnvLoop + ResNet-18, a stage per pod")):  # fmt: skip
+                               ("loop_per_pod", "tab:green", "EnvLoop + ResNet-18, a stage per pod")):
         if kind not in summary:
             continue
         rates = [summary[kind][f"pods={p}"]["env_steps_per_s"] for p in counts]
         med = [r["median"] for r in rates]
         ax.errorbar(counts, med, yerr=[[m - r["min"] for m, r in zip(med, rates)], [r["max"] - m for m, r in
-                    zip(med, rates)]], marker="o", capsize=3, color=color, label=label)  # fmt: skip
+                    zip(med, rates)]], marker="o", capsize=3, color=color, label=label)
         if counts[0] == 1 and kind != "loop_per_pod":  # its 1-pod figure is the loop's
             ax.plot(counts, [med[0] * p for p in counts], "--", color=color, alpha=0.5, label=f"linear ({kind})")
     physical = summary["topology"]["physical_cores"]
@@ -48,7 +48,7 @@ def plot_scaling(summary: dict[str, Any], tag: str) -> list[Path]:
     ax.set_xlabel("pods (one CPU each)")
     ax.set_ylabel("env-steps/s")
     ax.set_title(f"{setup['suite']}: {setup['envs_per_pod']} envs/pod ({len(setup['tasks'])} tasks), "
-                 f"{setup['size']}px x {len(camera_names(setup))} cameras", fontsize=9)  # fmt: skip
+                 f"{setup['size']}px x {len(camera_names(setup))} cameras", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     paths = [img_dir() / f"gpu_scale{tag}_pods.png"]
@@ -80,7 +80,7 @@ def plot_scaling(summary: dict[str, Any], tag: str) -> list[Path]:
         ("pod step (its /metrics)", [s["time_split_ms"]["pod_step_ms"] for s in service]),
         ("round trip, mean pod", [s["slowest_pod"]["pod_round_trip_mean_ms"] or 0 for s in service]),
         ("round trip, slowest pod", [s["slowest_pod"]["pod_round_trip_slowest_ms"] or 0 for s in service]),
-    )):  # fmt: skip
+    )):
         right.bar(x + (offset - 1) * width, values, width, label=label)
     right.plot(x, [s["time_split_ms"]["stage_call_ms"] for s in service], "k_", markersize=18, label="stage call")
     right.set_xticks(x, [str(p) for p in counts])
@@ -105,7 +105,7 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     waits = [entry["batch_wait_s"] for entry in summary.get("batch_wait", [])]  # --compare-batch-wait-s
     names = [*lockstep, "stages=1", *(f"{layout}/stages=2" for layout in layouts)]
     labels = [*(["1 stage\n(lockstep)"] if lockstep else []), "1 stage\n(all pods)",
-              *(f"2 stages\n({layout})" for layout in layouts)]  # fmt: skip
+              *(f"2 stages\n({layout})" for layout in layouts)]
     for wait in waits:
         names += [waiting(layout, wait) for layout in layouts]
         labels += [f"2 stages\n({layout},\nwait {wait:g} s)" for layout in layouts]
@@ -117,7 +117,7 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     rates = [loop[name]["env_steps_per_s"]["median"] for name in names]
     extra = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     colours = ["tab:gray", "tab:blue", "tab:orange", "tab:green"][-base:] + [
-        extra[i % len(extra)] for i in range(len(names) - base)]  # fmt: skip
+        extra[i % len(extra)] for i in range(len(names) - base)]
     bars = left.bar(labels, rates, color=colours)
     left.bar_label(bars, fmt="%.1f", fontsize=8)
     left.tick_params(axis="x", labelsize=7 if len(names) > 4 else 10)
@@ -133,13 +133,13 @@ def plot_pipeline(summary: dict[str, Any], tag: str) -> list[Path]:
     alone = [policy["forward_ms"].get(str(policy["target_batch"]), 0)] * (1 + len(lockstep)) + [
         statistics.mean(policy["forward_ms"].get(str(sum(stage)), 0) for stage in sizes[layout])
         for layout in [*layouts * (1 + len(waits)),
-                       *(f"slices/stages={n}" for n in more for _ in range(1 + len(waits)))]  # fmt: skip
+                       *(f"slices/stages={n}" for n in more for _ in range(1 + len(waits)))]
     ]
     for offset, (label, values) in enumerate((
         ("stage call (loop)", [loop[name]["time_split_ms"]["stage_call_ms"] for name in names]),
         ("policy per call (loop)", [loop[name]["time_split_ms"]["policy_ms"] for name in names]),
         ("policy alone" + (" (CUDA graph)" if policy["cuda_graphs"] else " (eager)"), alone),
-    )):  # fmt: skip
+    )):
         right.bar(x + (offset - 1) * width, values, width, label=label)
     right.set_xticks(x, labels if waits else [label.replace("\n", " ") for label in labels], fontsize=7)
     right.set_ylabel("ms")

@@ -52,7 +52,7 @@ class ResNet18Encoder(nn.Module):
         super().__init__()
         layers: list[nn.Module] = [
             nn.Conv2d(3, 64, 7, 2, 3, bias=False), nn.BatchNorm2d(64), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
-        ]  # fmt: skip
+        ]
         inputs = 64
         for outputs, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
             layers += [BasicBlock(inputs, outputs, stride), BasicBlock(outputs, outputs, 1)]
@@ -138,7 +138,7 @@ class VisionPolicy(nn.Module):
             self.proprio = nn.Sequential(nn.Linear(proprio, 128), nn.GELU())
             actions = int(np.prod(action_space.shape))
             self.head = nn.Sequential(nn.Linear(feature + 128, 512), nn.GELU(), nn.Linear(512, 256), nn.GELU(),
-                                      nn.Linear(256, actions))  # fmt: skip
+                                      nn.Linear(256, actions))
         low, high = np.asarray(action_space.low, np.float32), np.asarray(action_space.high, np.float32)
         bounded = np.isfinite(low) & np.isfinite(high)
         self.register_buffer("center", torch.from_numpy(np.where(bounded, (low + high) / 2, 0.0).astype(np.float32)))
@@ -196,7 +196,7 @@ class GraphedPolicy:
     where the loop's batches take many sizes, would fall inside the timed rounds."""
 
     def __init__(self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int],
-                 pad: bool = False) -> None:  # fmt: skip
+                 pad: bool = False) -> None:
         self.policy = policy
         self.space = space
         self.device = device
@@ -255,7 +255,7 @@ class GraphedPolicy:
     def describe(self) -> dict[str, Any]:
         """The captured sizes and, with ``pad``, what padding cost."""
         return {"graph_sizes": sorted(self.graphs), "pad": self.pad, "padded_calls": self.padded_calls,
-                "padded_rows": self.padded_rows}  # fmt: skip
+                "padded_rows": self.padded_rows}
 
 
 def pod_multiples(per_pod: int, largest: int, extra: Sequence[int] = ()) -> list[int]:

@@ -52,7 +52,7 @@ def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
             "pods_per_call": pods_per_call,
             # The policy's batch: K actions per row, so rows per call = this / K.
             "env_steps_per_policy_call": stats.env_steps / max(len(policy_calls), 1),
-        })  # fmt: skip
+        })
     return {key: round(statistics.median(r[key] for r in rows), 2) for key in rows[0]}
 
 
@@ -99,7 +99,7 @@ def slowest_pod(measured: Sequence[Measured]) -> dict[str, Any]:
         "pod_step_ms_by_pod": step_ms,
         "pod_step_ms_spread": (
             {"min": min(step_ms.values()), "mean": round(statistics.mean(step_ms.values()), 2),
-             "max": max(step_ms.values())} if step_ms else {}  # fmt: skip
+             "max": max(step_ms.values())} if step_ms else {}
         ),
     }
 
@@ -185,7 +185,7 @@ def handoff(runs: Sequence[Measured]) -> dict[str, float | None]:
         return round(1000 * statistics.median(values), 2) if values else None
 
     return {"send": ms(sends), "send_spread": ms(spreads), "call_beyond_request": ms(beyond),
-            "last_answer_to_policy": ms(handoffs), "last_answer_to_policy_idle": ms(idles)}  # fmt: skip
+            "last_answer_to_policy": ms(handoffs), "last_answer_to_policy_idle": ms(idles)}
 
 
 def thread_share(runs: Sequence[Measured]) -> dict[str, float]:

@@ -229,7 +229,7 @@ class ControllerState:
             log.info(
                 "job %s: %d tasks, %d stages, stage_layout %s, pods_per_stage %d (%d pods)",
                 job.job_id, len(tasks), job.num_stages, job.stage_layout, job.pods_per_stage, job.pods_needed,
-            )  # fmt: skip
+            )
         self.job = job
         self.tasks = tuple(tasks)
         self.changes += 1

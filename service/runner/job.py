@@ -141,7 +141,7 @@ class LocalJob:
             "--heartbeat-interval", str(c.heartbeat_interval_s),
             "--heartbeat-ttl", str(c.heartbeat_ttl_s),
             "--reconcile-interval", str(c.reconcile_interval_s),
-        ]  # fmt: skip
+        ]
 
     def check(self) -> list[str]:
         """Returns what to change in the config for the job to run (empty: nothing), the same

@@ -17,7 +17,7 @@ from support.bench_scripts import bench_result
 pytestmark = pytest.mark.slow
 
 ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--actions", "8",
-        "--chunks", "1,8", "--physics-seconds", "0.5", "--waves", "2"]  # fmt: skip
+        "--chunks", "1,8", "--physics-seconds", "0.5", "--waves", "2"]
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
     assert set(record["details"]["per_round"]) == {
         "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8", "loop_slices=2/K=8",
         "ceiling/K=1", "ceiling/K=1/reset_every_8", "ceiling/K=8", "ceiling/K=8/reset_every_8",
-    }  # fmt: skip
+    }
 
 
 @pytest.mark.timeout(180)

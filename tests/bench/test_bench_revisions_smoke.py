@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 def revision_worktrees() -> list[str]:
     """The repository's worktrees that bench_revisions.py made (under its temporary directories)."""
     done = subprocess.run(["git", "-C", str(ROOT), "worktree", "list", "--porcelain"],
-                          capture_output=True, text=True, timeout=30, check=True)  # fmt: skip
+                          capture_output=True, text=True, timeout=30, check=True)
     return [line for line in done.stdout.splitlines() if line.startswith("worktree ") and "bench_revisions-" in line]
 
 
@@ -35,7 +35,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     root = tmp_path_factory.mktemp("bench-revisions")
     result = bench_result(root, "bench_revisions.py", "--bench", "bench_scaling.py", "--quick",
                           "--revisions", "HEAD,HEAD", "--repo", str(ROOT), "--timeout-s", "120",
-                          timeout=170)  # fmt: skip
+                          timeout=170)
     record = json.loads((root / "out" / "bench" / "bench_revisions_bench_scaling.json").read_text())
     return result, record, revision_worktrees()
 
@@ -80,6 +80,6 @@ def test_an_unknown_revision_is_refused_naming_the_flag(tmp_path: Path) -> None:
         [sys.executable, str(ROOT / "bench" / "bench_revisions.py"), "--bench", "bench_scaling.py",
          "--revisions", "HEAD,no-such-revision-xyz"],
         cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    )
     assert done.returncode == 2
     assert "--revisions" in done.stderr and "no-such-revision-xyz" in done.stderr

@@ -28,7 +28,7 @@ def soak(tmp_path_factory) -> dict:
         capture_output=True,
         text=True,
         timeout=420,
-    )  # fmt: skip
+    )
     assert (out / "soak.json").exists(), result.stdout[-3000:] + result.stderr[-3000:]
     record = json.loads((out / "soak.json").read_text())
     record["returncode"] = result.returncode

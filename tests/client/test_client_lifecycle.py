@@ -247,7 +247,7 @@ def test_vecsim_up_logs_its_probes_at_debug_and_the_job_it_sent_at_info(tmp_path
          "--grace", "10", "--status-every", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
         env={**os.environ, "VECSIM_TOKEN": TOKEN},
-    )  # fmt: skip
+    )
     try:
         with closing(HTTPVectorEnv(job_config=config, wait_ready_s=240, token=TOKEN)) as env:
             env.reset(seed=0)

@@ -70,7 +70,7 @@ def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torc
     done = subprocess.run(
         [str(python), "-c", TRAINER, *(p.url for p in pods)],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+    )
     assert done.returncode == 0, done.stderr[-4000:]
     seen = json.loads(done.stdout.strip().splitlines()[-1])
     assert seen["loaded"] == []

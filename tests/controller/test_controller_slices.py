@@ -17,7 +17,7 @@ def env_ids(table: dict, pod: str) -> dict[int, list[int]]:
         stage["stage_id"]: [env for p in stage["pods"] if p["pod"] == pod for t in p["tasks"]
                             for env in range(t["env_start"], t["env_start"] + t["num_envs"])]
         for stage in table["stages"]
-    }  # fmt: skip
+    }
 
 
 async def test_a_slices_job_pushes_every_pod_blocks_of_every_stage():

@@ -31,9 +31,9 @@ WITHOUT_SIMULATOR = [
     sys.executable, "-c",
     f"import sys\nfor name in {BLOCKED!r}:\n    sys.modules[name] = None\n"
     "from service.cli import main\nsys.exit(main(sys.argv[1:]))",
-]  # fmt: skip
+]
 JOB = {"job_id": "no-sim", "tasks": ["gym/Pendulum-v1"], "group_size": 2, "num_stages": 1, "pods_per_stage": 1,
-       "camera": {"names": []}, "max_episode_steps": 5}  # fmt: skip
+       "camera": {"names": []}, "max_episode_steps": 5}
 
 
 def routing_ready(url: str) -> bool:

@@ -86,7 +86,7 @@ def lost_fields(given: Any, understood: Any, path: str = "") -> list[str]:
     adds (defaults) is not a loss."""
     if isinstance(given, dict) and isinstance(understood, dict):
         return [p for k, v in given.items() for p in
-                (lost_fields(v, understood[k], f"{path}/{k}") if k in understood else [f"{path}/{k}"])]  # fmt: skip
+                (lost_fields(v, understood[k], f"{path}/{k}") if k in understood else [f"{path}/{k}"])]
     if isinstance(given, list) and isinstance(understood, list) and len(given) == len(understood):
         return [p for i, (a, b) in enumerate(zip(given, understood)) for p in lost_fields(a, b, f"{path}/{i}")]
     return [] if given == understood else [path or "/"]
@@ -207,7 +207,7 @@ def test_jobset_sims_are_named_and_addressed_by_their_index() -> None:
     resolved = expand_env(env, {
         "metadata.annotations['batch.kubernetes.io/job-completion-index']": "3",
         "metadata.namespace": namespace, "status.podIP": "10.1.2.3",
-    })  # fmt: skip
+    })
     from service.pod.settings import PodSettings
 
     settings = PodSettings.from_env(resolved)
@@ -301,7 +301,7 @@ def test_podmonitor_scrapes_sims_and_the_controller_on_their_metrics_port() -> N
     objects = monitored_objects()
     (monitor,) = of_kind(objects, "PodMonitor")
     workloads = {o["spec"]["template"]["metadata"]["labels"][LABEL_COMPONENT]: o for o in objects
-                 if o["kind"] in ("StatefulSet", "Deployment")}  # fmt: skip
+                 if o["kind"] in ("StatefulSet", "Deployment")}
     (endpoint,) = monitor["spec"]["podMetricsEndpoints"]
     for component, workload in workloads.items():
         assert selects(monitor["spec"]["selector"], workload["spec"]["template"]["metadata"]["labels"]), component

@@ -73,7 +73,7 @@ def driven_job() -> Iterator[tuple[LocalJob, dict[str, dict[str, set[str]]]]]:
     job = {
         "job_id": "metrics", "suite": None, "tasks": ["gym/Pendulum-v1"], "group_size": 2,
         "num_stages": 2, "pods_per_stage": 1, "camera": {"names": []}, "max_episode_steps": 5,
-    }  # fmt: skip
+    }
     with local_job(job_config(job, replicas=2, max_envs=4)) as running:
         routing = running.wait_ready(timeout=120)
         pod = routing.stages[0].pods[0]
@@ -128,7 +128,7 @@ def test_idle_envs_count_envs_without_an_episode(driven_job) -> None:
 
     def idle() -> float:
         (family,) = [f for f in text_string_to_metric_families(httpx.get(f"{pod.url}/metrics", timeout=5).text)
-                     if f.name == "vecsim_pod_idle_envs"]  # fmt: skip
+                     if f.name == "vecsim_pod_idle_envs"]
         return family.samples[0].value
 
     envs = httpx.get(f"{pod.url}/v1/info", headers={"Accept": "application/json"}, timeout=5).json()["num_envs"]

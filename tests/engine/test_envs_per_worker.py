@@ -68,7 +68,7 @@ def _assignment(
     return Assignment(
         generation=1, pod="sim-0", stage_id=0, tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=num_envs),),
         camera=camera, envs_per_worker=envs_per_worker,
-    )  # fmt: skip
+    )
 
 
 def _pod(envs_per_worker: int) -> TaskGroupedVectorEnv:

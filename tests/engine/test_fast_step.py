@@ -207,7 +207,7 @@ def test_exact_path_gives_libero_own_trajectory(task_id: str) -> None:
 # inverse-inertia product) is neither written nor read for a dense-Jacobian model under the
 # Newton solver without noslip, so they show whatever the arena held before.
 SPARSE_LAYOUT = ("efc_J_rownnz", "efc_J_rowadr", "efc_J_rowsuper", "efc_J_colind",
-                 "efc_AR_rownnz", "efc_AR_rowadr", "efc_AR_colind")  # fmt: skip
+                 "efc_AR_rownnz", "efc_AR_rowadr", "efc_AR_colind")
 
 
 def _arrays(obj: Any, prefix: str, skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -241,7 +241,7 @@ def everything(env: Any) -> dict[str, np.ndarray]:
             state[f"robot{index}.{name}"] = np.array(getattr(robot, name))
         state[f"robot{index}.gripper.current_action"] = np.array(robot.gripper.current_action)
         for name in ("recent_qpos", "recent_actions", "recent_torques", "recent_ee_forcetorques",
-                     "recent_ee_pose", "recent_ee_vel", "recent_ee_acc"):  # fmt: skip
+                     "recent_ee_pose", "recent_ee_vel", "recent_ee_acc"):
             buffer = getattr(robot, name)
             state[f"robot{index}.{name}"] = np.array([buffer.last, buffer.current])
         ring = robot.recent_ee_vel_buffer
@@ -265,7 +265,7 @@ def test_exact_path_resets_a_libero_env_as_the_library_path_does(task_id: str, s
                 {**everything(envs[path]), "observation proprio": observations[path]["proprio"],
                  "observation state": observations[path]["state"]}
                 for path in ("exact", "library")
-            )  # fmt: skip
+            )
             assert_identical(task_id, -1, exact, library)
             for step, action in enumerate(table[:8]):
                 results = {path: env.step(action.astype(np.float32)) for path, env in envs.items()}
@@ -273,5 +273,5 @@ def test_exact_path_resets_a_libero_env_as_the_library_path_does(task_id: str, s
                     {**everything(envs[path]), "observation proprio": results[path][0]["proprio"],
                      "reward": np.array(results[path][1]), "success": np.array(results[path][4]["success"])}
                     for path in ("exact", "library")
-                )  # fmt: skip
+                )
                 assert_identical(f"{task_id} from state {state_id}", step, exact, library)

@@ -136,7 +136,7 @@ def served(
         f"libero-{size}", [(task, 1) for task in _tasks(cases)],
         camera=CameraConfig(names=CAMERAS, height=size, width=size), render=None,
         max_episode_steps=None, envs_per_worker=0, libero=FRESH_ENV_RULE,
-    )  # fmt: skip
+    )
     with contextlib.ExitStack() as stack, ThreadPoolExecutor(1) as starter:
         starting = starter.submit(stack.enter_context, standalone_pods([spec], workdir))
         try:
@@ -262,7 +262,7 @@ def _published_pod(name: str, tasks: list[str]):
         name, [(task, 1) for task in tasks],
         camera=CameraConfig(names=CAMERAS, height=PUBLISHED_SIZE, width=PUBLISHED_SIZE), render=None,
         max_episode_steps=None, envs_per_worker=0,
-    )  # fmt: skip
+    )
 
 
 def _pod_episode(url: str, env_index: int, state_id: int, steps: int) -> list[dict]:

@@ -153,7 +153,7 @@ BAD_CALLS = [
                  lambda p: p.reset_envs([3, 2, 3], [0, 0, 0]), id="duplicate_env"),
     pytest.param(InvalidRequestError, "the action for env 3 is not finite",
                  lambda p: p.step_envs([2, 3], [[0.0] * 6, [np.nan] * 6]), id="nan_action"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize(("error", "message", "call"), BAD_CALLS)
@@ -174,7 +174,7 @@ def test_a_dead_worker_is_named_with_every_task_it_hosted() -> None:
     with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=2)) as pod:
         kill_worker(pod.worker_pids[1])
         with pytest.raises(SimCrashedError, match=r"worker 1 hosting gym/HalfCheetah-v5 \(envs 2-2\), "
-                                                  r"gym/HalfCheetah-v4 \(envs 3-3\) died"):  # fmt: skip
+                                                  r"gym/HalfCheetah-v4 \(envs 3-3\) died"):
             pod.reset_envs([0], [0])
 
 
@@ -238,7 +238,7 @@ def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
 
 def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> None:
     six = sim_assignment([("tiny/lift", 2), ("tiny/stack", 2), ("tiny/door", 2)], TINY_CAMERA,
-                      envs_per_worker=AUTO_ENVS_PER_WORKER)  # fmt: skip
+                      envs_per_worker=AUTO_ENVS_PER_WORKER)
     assert resolve_envs_per_worker(six, cores=2) == 3
     assert resolve_envs_per_worker(six, cores=4) == 2
     assert resolve_envs_per_worker(six, cores=16) == 1

@@ -261,7 +261,7 @@ def test_the_loop_serves_whichever_stage_lands_when_none_had(scenes):
         *rounds(2, 1, 0),
         *rounds(1, 2, 0),
         ("take", 0), ("take", 2), ("take", 1),
-    ]  # fmt: skip
+    ]
     assert [t.length for t in result.trajectories.values()] == [2, 2, 2]
 
 
@@ -294,7 +294,7 @@ def test_of_the_stages_that_have_landed_the_next_in_turn_is_served(scenes):
         *rounds(1, 2),
         *rounds(0),
         ("take", 2), ("take", 0), ("take", 1),
-    ]  # fmt: skip
+    ]
 
 
 def test_while_the_policy_works_on_one_stage_the_others_calls_are_at_their_pods(scenes):
@@ -339,7 +339,7 @@ def test_a_slow_stage_holds_up_only_itself(scenes):
         ("take", 0), ("take", 1),
         *rounds(2) * 3,
         ("take", 2),
-    ]  # fmt: skip
+    ]
     assert [pod.calls for pod in scene.pods] == [[("reset", (0,))] + [("step", (0,))] * 3] * 3
     assert {key: t.length for key, t in result.trajectories.items()} == {"traj-0": 3, "traj-1": 3, "traj-2": 3}
 
@@ -402,7 +402,7 @@ def test_each_trajectory_holds_exactly_what_its_env_did_and_ended_ones_are_not_s
             (0, [(0, 1, 0), (1, 0, 0)]), (0, [(1, 0, 1)]), (0, [(1, 0, 2)]),
             (1, [(0, 2, 0), (1, 3, 0)]), (1, [(0, 2, 1), (1, 3, 1)]), (1, [(1, 3, 2)]),
         ]
-    )  # fmt: skip
+    )
     stats = result.stats
     assert (stats.num_trajectories, stats.env_steps) == (4, 1 + 2 + 3 + 3)
     assert stats.success_per_task == {TASK: 0.75}

@@ -165,7 +165,7 @@ def test_an_env_whose_trajectory_ended_starts_the_next_waiting_request_at_once(j
         ("reset", (0, 1)), ("step", (0, 1)),  # r3 and r4 start at once; r4 ends
         ("reset+step", ((1,), (0,))),         # r5 starts on env 1 in the request that steps r3, which ends
         ("step", (1,)), ("step", (1,)), ("step", (1,)), ("step", (1,)),  # r5 runs to the horizon
-    ]  # fmt: skip
+    ]
     assert list(result.trajectories) == [f"r{i}" for i in range(6)] and result.lost == {}
     placed = {key: (t.route.env_index, t.route.state_id, t.length) for key, t in result.trajectories.items()}
     assert placed == {"r0": (0, 1, 1), "r1": (1, 3, 3), "r2": (0, 1, 1), "r3": (0, 2, 2), "r4": (1, 1, 1), "r5": (1, 0, 4)}
@@ -189,7 +189,7 @@ def test_waiting_requests_go_to_whichever_pod_frees_an_env_first_so_a_faster_pod
     result = job.result()
     assert {key: t.route.pod for key, t in result.trajectories.items()} == {
         "r0": "pod-0a", "r1": "pod-0b", "r2": "pod-0a", "r3": "pod-0a", "r4": "pod-0a", "r5": "pod-0a",
-    }  # fmt: skip
+    }
     assert slow.calls == [("reset", (0,)), ("step", (0,))] and result.lost == {}
 
 
@@ -205,7 +205,7 @@ def test_waiting_requests_keep_their_stage_and_the_result_keeps_request_order(jo
     # Stage 1's three requests ran one after another on its one env.
     assert job.pod("pod-1a").calls == [
         ("reset", (0,)), ("step", (0,)), ("reset", (0,)), ("step", (0,)), ("reset", (0,)), ("step", (0,)), ("step", (0,)),
-    ]  # fmt: skip
+    ]
 
 
 def test_a_dead_pod_loses_its_own_trajectories_and_waiting_requests_run_on_the_pods_left(jobs):

@@ -26,7 +26,7 @@ def run_demo(out: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], s
     done = subprocess.run(
         [sys.executable, "-m", "service.cli", "demo", "--out", str(out), *args],
         cwd=out.parent, env=env, capture_output=True, text=True, timeout=380,
-    )  # fmt: skip
+    )
     return done, marker
 
 
@@ -77,7 +77,7 @@ def test_the_demo_says_so_and_exits_non_zero_when_it_loses_trajectories(tmp_path
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), MARK: marker}
     env.pop("VECSIM_TOKEN", None)
     command = [sys.executable, "-m", "service.cli", "demo", "--out", str(out), "--batch", "4", "--horizon", "50",
-               "--videos", "0", "--timeout-s", "8", "--ready-timeout", "300"]  # fmt: skip
+               "--videos", "0", "--timeout-s", "8", "--ready-timeout", "300"]
     demo = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stopped: list[psutil.Process] = []
     try:

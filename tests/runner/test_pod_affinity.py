@@ -32,7 +32,7 @@ def cheetah_config(
         job=JobSpec(
             job_id="pinned", tasks=("gym/HalfCheetah-v5",), group_size=2, num_stages=1, pods_per_stage=replicas,
             camera=CameraConfig(names=()), envs_per_worker=1, max_episode_steps=50,
-        ),  # fmt: skip
+        ),
         pods=PodsConfig(replicas=replicas, base_port=base + 1, max_envs=8, cpu_affinity=cpu_affinity,
                         render_gpus=render_gpus),
         controller=ControllerConfig(port=base, heartbeat_interval_s=0.5, heartbeat_ttl_s=5.0, reconcile_interval_s=0.2),

@@ -81,7 +81,7 @@ def test_every_pod_serves_every_stage_with_env_ids_of_its_own(job):
             stage.stage_id: {env for p in stage.pods if p.pod == name for b in p.tasks
                              for env in range(b.env_start, b.env_start + b.num_envs)}
             for stage in table.stages
-        }  # fmt: skip
+        }
         assert by_stage[0] and by_stage[1] and not by_stage[0] & by_stage[1]
         assert by_stage[0] | by_stage[1] == set(range(info["num_envs"]))
         # What the pod says of its blocks is what the table says.

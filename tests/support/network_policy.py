@@ -82,7 +82,7 @@ class Cluster:
             if p["metadata"]["namespace"] == subject.namespace
             and kind in _policy_types(p)
             and selects(p["spec"]["podSelector"], subject.labels)
-        ]  # fmt: skip
+        ]
         if not selecting:
             return True
         for policy in selecting:

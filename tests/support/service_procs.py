@@ -273,7 +273,7 @@ def assignment_file(
             pod, tasks, generation=generation, job_id="reliability", stage_id=stage_id, camera=camera,
             render="lean", max_episode_steps=max_episode_steps,
         ).model_dump_json()
-    )  # fmt: skip
+    )
     return path
 
 
@@ -296,7 +296,7 @@ class PodSpec:
             self.name, self.tasks, generation=self.generation, job_id="trainer-tests", stage_id=self.stage_id,
             camera=self.camera, render=self.render, max_episode_steps=self.max_episode_steps,
             envs_per_worker=self.envs_per_worker, make_kwargs=self.make_kwargs,
-        )  # fmt: skip
+        )
 
 
 class RunningPod(Server):
@@ -310,7 +310,7 @@ class RunningPod(Server):
         path.write_text(self.assignment.model_dump_json())
         port = free_port()
         argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
-                "--assignment", str(path), "--name", name]  # fmt: skip
+                "--assignment", str(path), "--name", name]
         super().__init__(name, argv, port, clean_env(POD_NAME=name), workdir / f"{name}.log", wrap=wrap)
 
 

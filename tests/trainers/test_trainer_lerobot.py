@@ -147,11 +147,11 @@ def _vecsim_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, Scripte
     spec = assignment(
         "sim-0", [(f"{suite}/{index}", N_ENVS)], job_id="lerobot", camera=CameraConfig(height=SIZE, width=SIZE),
         render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(**documented_job()["libero"]),
-    )  # fmt: skip
+    )
     policy, processors = _processors(suite)
     with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as pods:
         names = {"pod_urls": [pods[0].url], "policy": policy, **processors, "n_episodes": N_ENVS * EPISODES_PER_ENV,
-                 "videos_dir": tmp_path_factory.mktemp("vecsim-videos")}  # fmt: skip
+                 "videos_dir": tmp_path_factory.mktemp("vecsim-videos")}
         exec(compile(_documented("python"), str(DOCS), "exec"), names)
     return names["info"], policy
 
@@ -160,14 +160,14 @@ def _lerobot_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, Script
     envs = create_libero_envs(
         task=suite, n_envs=N_ENVS, env_cls=SyncVectorEnv, episode_length=EPISODE,
         gym_kwargs={"task_ids": [index], "obs_type": "pixels_agent_pos", "observation_width": SIZE, "observation_height": SIZE},
-    )  # fmt: skip
+    )
     env = envs[suite][index]
     policy, processors = _processors(suite)
     try:
         info = lerobot_eval.eval_policy(
             env, policy, **processors, n_episodes=N_ENVS * EPISODES_PER_ENV, max_episodes_rendered=1,
             videos_dir=tmp_path_factory.mktemp("lerobot-videos"), start_seed=START_SEED,
-        )  # fmt: skip
+        )
     finally:
         env.close()
     return info, policy

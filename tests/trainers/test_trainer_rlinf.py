@@ -366,9 +366,9 @@ def rlinf_job(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
         "camera": {"names": ["agentview", "robot0_eye_in_hand"], "height": SIZE, "width": SIZE},
         "max_episode_steps": None, "envs_per_worker": 0,
         "libero": {"settle_steps": 15, "fixture_seed": FIXTURE_SEED, "fixture_rule": "first_reset"},
-    }  # fmt: skip
+    }
     local = LocalJob(job_config(job, replicas=1), log_dir=tmp_path_factory.mktemp("rlinf-job"), grace_s=10,
-                     backoff=Backoff(initial_s=0.2))  # fmt: skip
+                     backoff=Backoff(initial_s=0.2))
     with local:
         local.wait_ready(timeout=600)
         yield local

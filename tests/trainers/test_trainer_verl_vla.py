@@ -65,7 +65,7 @@ def pods(tmp_path_factory) -> Iterator[list[RunningPod]]:
     evaluation = assignment(
         "sim-2", [(task, 1) for task in TASKS], job_id="trainer-tests", camera=CAMERA, render="lean",
         max_episode_steps=1, libero=LiberoProtocol(settle_steps=0),
-    )  # fmt: skip
+    )
     with standalone_pods([*train, evaluation], tmp_path_factory.mktemp("pods")) as running:
         yield running
 
@@ -87,7 +87,7 @@ def worker_config(pods, *, modes=("train",), auto_reset: bool = False, whole_chu
         "action_execution": {"_target_": "verl_vla.envs.action_executor.ActionExecutionConfig", "mode": "serial"},
         "teleop": {"_target_": "verl_vla.teleop.config.TeleopConfig", "enable": False},
         "recorder": {"_target_": "verl_vla.recorder.config.RecorderConfig", "enable": False},
-    })  # fmt: skip
+    })
 
 
 def make_worker(pods, **kwargs: Any) -> Any:

@@ -374,7 +374,7 @@ class BaseEnv:
             step_result = self.mask_step(
                 action, execute_mask, is_intervention=is_intervened, critic_value=critic_value,
                 manual_reward=manual_reward, force_truncated=force_truncated,
-            )  # fmt: skip
+            )
             merged_step_result = self._update_step_result(merged_step_result, np.flatnonzero(execute_mask), step_result)
         return merged_step_result, restart_episode, chunk_intervened
 
@@ -495,12 +495,12 @@ class EnvWorker:
                 self.simulator_list.append(
                     EnvManager(self.simulator_cfg, rank=self._rank, world_size=self._world_size, env_cls=LiberoEnv,
                                stage_id=stage_id, stage_num=self.stage_num)
-                )  # fmt: skip
+                )
             if eval_cfg is not None:
                 self.eval_simulator_list.append(
                     EnvManager(eval_cfg, rank=self._rank, world_size=self._world_size, env_cls=LiberoEnv,
                                stage_id=stage_id, stage_num=self.stage_num, only_eval=True)
-                )  # fmt: skip
+                )
         for simulator in self.simulator_list + self.eval_simulator_list:
             simulator.start_simulator()
 
@@ -640,7 +640,7 @@ def collect_non_auto_reset_records(batches: list[dict[str, Any]]) -> list[dict[s
             "success": bool(success_row[segment].any().item()),
             "task_id": int(task_id_steps[batch_idx, 0]),
             "eval_episode_id": int(eval_episode_id_steps[batch_idx, 0]),
-        })  # fmt: skip
+        })
     return records
 
 

@@ -638,7 +638,7 @@ def tls_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, 
         ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
          "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
         check=True, capture_output=True, timeout=60,
-    )  # fmt: skip
+    )
     with uvicorn_server(ssl_keyfile=str(key), ssl_certfile=str(cert)) as served:
         yield served.url.replace("http://", "https://"), cert
 

@@ -381,7 +381,7 @@ async def run_call(
         return np.array([routes[k].env_index for k in keys], dtype=np.int64)
 
     async def send(pod: str, op: str, row_list: list[int], all_keys: Sequence[str], field: str,
-                   values: np.ndarray, batch: StageBatch, refill: list[int] | None = None) -> None:  # fmt: skip
+                   values: np.ndarray, batch: StageBatch, refill: list[int] | None = None) -> None:
         """One request; a step with ``refill`` (reset rows) also resets those envs in it."""
         rows = np.asarray(row_list)
         keys = [all_keys[r] for r in rows]

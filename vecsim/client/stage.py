@@ -663,7 +663,7 @@ class StageClient:
                     batches = await run_call(
                         self._book, self._info, self._post, reset_keys, state_ids, list(step), actions, pick,
                         recorded, seeded, frozen, self.ended_envs == "step",
-                    )  # fmt: skip
+                    )
                 except (PodUnavailableError, RoutingChangedError) as error:
                     if error.answered is not None:
                         if pick is None:

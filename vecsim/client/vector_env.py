@@ -182,17 +182,17 @@ class HTTPVectorEnv(VectorEnv):
             self.client = StageClient(
                 table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
                 token=token, ended_envs=self.ended_envs,
-            )  # fmt: skip
+            )
         elif routing is not None:
             self.client = StageClient(
                 routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
                 token=token, ended_envs=self.ended_envs,
-            )  # fmt: skip
+            )
         else:
             self.client = StageClient.from_pods(
                 list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
                 token=token, ended_envs=self.ended_envs,
-            )  # fmt: skip
+            )
         try:
             self._setup(num_envs)
         except BaseException:

@@ -206,7 +206,7 @@ class _GL:
             elif backend in ("osmesa", "glfw"):
                 if priority != "medium":
                     log.warning("%s=%s applies to EGL only; MUJOCO_GL=%s renders at its default priority",
-                                RENDER_PRIORITY_ENV, priority, backend)  # fmt: skip
+                                RENDER_PRIORITY_ENV, priority, backend)
                 if backend == "osmesa":
                     from mujoco.osmesa import GLContext
                 else:

@@ -170,7 +170,7 @@ def drawn_with(model: mujoco.MjModel, simplified: SimplifiedMeshes) -> Iterator[
         for (mesh, start, _, normal_start), face, facenormal, facetexcoord, normal_indices, normal in zip(
             saved, simplified.face, simplified.facenormal, simplified.facetexcoord, simplified.normal_index,
             simplified.normal,
-        ):  # fmt: skip
+        ):
             end = start + len(face)
             model.mesh_face[start:end] = face
             model.mesh_facenormal[start:end] = facenormal

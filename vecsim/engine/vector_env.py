@@ -435,7 +435,7 @@ class TaskGroupedVectorEnv:
                 "task_id": [self.task_ids[i] for i in reset[0]],
                 "env_info": env_info[n:],
                 "errors": [dataclasses.replace(e, row=e.row - n) for e in errors if e.row >= n],
-            })  # fmt: skip
+            })
             obs, rows = trees.map_leaves(lambda leaf: leaf[:n], obs), rows[:n]
             env_info, errors = env_info[:n], [e for e in errors if e.row < n]
         result = dataclasses.replace(

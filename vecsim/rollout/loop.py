@@ -184,7 +184,7 @@ class EnvLoop:
             return RolloutResult({}, RolloutStats())
         placed = set(first)
         waiting = {stage: [i for i in range(len(requests)) if i not in placed and stages[i] == stage]
-                   for stage in set(stages)}  # fmt: skip
+                   for stage in set(stages)}
         instructions = self.client.instructions
         buffers = {key: _Buffer(key, route, self.keep_obs, cap_of[key]) for key, route in routes.items()}
         recorded = self._recorded_keys(keys)
@@ -193,7 +193,7 @@ class EnvLoop:
         # A lane is one stage's envs on one pod, (stage, pod): the unit a call goes to. A pod of
         # the 'slices' layout is in a lane of every stage, each with a call of its own.
         stage_pods = {stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
-                      for stage in self.client.routing.stages}  # fmt: skip
+                      for stage in self.client.routing.stages}
         inflight = _InFlight()
         lost: dict[str, LostTrajectory] = {}
         failed: set[str] = set()  # pods that failed a call: no request is started on them any more
@@ -202,7 +202,7 @@ class EnvLoop:
             # Reset every lane at once; then serve whichever stage is next in line, lane by lane.
             for lane in (lane for lanes in stage_pods.values() for lane in lanes):
                 self._send(lane, [key for key, route in routes.items() if (route.stage_id, route.pod) == lane], {},
-                           inflight, buffers, lost, recorded)  # fmt: skip
+                           inflight, buffers, lost, recorded)
             turn = -1  # the stage served last
             while inflight.calls:
                 stage = clock.next_ready(inflight, turn)  # the next stage in turn with a pod's answer in
@@ -508,7 +508,7 @@ class _Buffer:
         if self.sent is not None:  # a step answer
             applied = int(batch.num_steps[row])
             per_action = [np.reshape(values[row], -1)[:applied] for values in
-                          (batch.reward, batch.terminated, batch.truncated, batch.success)]  # fmt: skip
+                          (batch.reward, batch.terminated, batch.truncated, batch.success)]
             reward, terminated, truncated, success = per_action
             self.actions.extend(self.sent[:applied])
             self.rewards.extend(float(r) for r in reward)

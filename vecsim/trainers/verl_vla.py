@@ -42,10 +42,10 @@ __all__ = [
     "CONTROLLER_URL_ENV",
     "POD_URLS_ENV",
     "TOKEN_ENV",
-    "LiberoEnv",
+    "LiberoEnv",  # noqa: F822 - made on first use, by __getattr__ below
     "VecsimLiberoEnv",
     "VecsimSettings",
-    "VecsimSimulatorConfig",
+    "VecsimSimulatorConfig",  # noqa: F822 - made on first use, by __getattr__ below
     "register",
 ]
 
@@ -371,7 +371,7 @@ class VecsimLiberoEnv:
                 "next.success": terminations[:, k].copy(),
             })
             for k in range(action.shape[1])
-        ]  # fmt: skip
+        ]
         result, _reset_mask = self._finish_execution_slice(steps)  # type: ignore[attr-defined]
         return result
 

@@ -235,10 +235,10 @@ async def _step(state: PodState, request: Request, req: StepRequest) -> Response
             reset, result = env.reset_and_step_envs(
                 req.reset_env_indices, req.reset_state_ids, req.env_indices, req.actions, chunked=is_chunk,
                 record_env_indices=req.record_env_indices, step_past_end=req.step_past_end,
-            )  # fmt: skip
+            )
             if not is_chunk:  # one action per env: the answer's arrays are [n]
                 result = (result.obs, result.reward[:, 0], result.terminated[:, 0], result.truncated[:, 0],
-                          {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors})  # fmt: skip
+                          {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors})
         elif is_chunk:
             result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices, req.step_past_end)
         else:

@@ -116,7 +116,7 @@ def _apply(ctl: PandaController, actions: np.ndarray, data: dict[str, wp.array],
         wp.array(actions.astype(np.float32), device=CPU),
         data["qpos"], data["qvel"], data[mass], data["qfrc_bias"], data["site_xpos"], data["site_xmat"],
         data["xanchor"], data["xaxis"], data["ctrl"],
-    )  # fmt: skip
+    )
 
 
 @pytest.mark.parametrize("mass", ["M", "qM"])

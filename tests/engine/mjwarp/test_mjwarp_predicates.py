@@ -143,7 +143,7 @@ def _evaluate(table: GoalTable, frames: list[dict], live: int | None = None) -> 
         wp.array([len(geoms) if live is None else live], dtype=wp.int32, device=CPU),
         wp.array(geoms, dtype=wp.vec2i, device=CPU),
         wp.array(worlds, dtype=wp.int32, device=CPU),
-    )  # fmt: skip
+    )
     return goal
 
 
@@ -208,7 +208,7 @@ def test_joint_thresholds_follow_libero_objects(category):
             geom_side=np.zeros((1, 1), np.int32), joint_qpos=np.zeros((1, MAX_JOINTS), np.int32),
             joint_count=np.ones(1, np.int32), any_joint=np.array([predicate in ("open", "turnon")], np.int32),
             compare=np.array([compare], np.int32), threshold=np.array([threshold], np.float32),
-        )  # fmt: skip
+        )
         method = getattr(obj, LIBERO_METHODS[predicate])
         expected = np.array([bool(method(v)) for v in values], dtype=np.int32)
         goal = GoalEvaluator(table, len(values), CPU)
@@ -219,5 +219,5 @@ def test_joint_thresholds_follow_libero_objects(category):
             wp.zeros((len(values), 1), dtype=wp.mat33, device=CPU),
             wp.zeros(1, dtype=wp.int32, device=CPU), wp.zeros(0, dtype=wp.vec2i, device=CPU),
             wp.zeros(0, dtype=wp.int32, device=CPU),
-        )  # fmt: skip
+        )
         np.testing.assert_array_equal(goal.holds.numpy()[:, 0], expected, err_msg=f"{category} {predicate}")

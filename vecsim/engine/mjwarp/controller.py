@@ -436,7 +436,7 @@ class PandaController:
             controller_reset, dim=self.nworld, device=self.device,
             inputs=[mask, initial_joint, goal_pos, goal_ori],
             outputs=[self.initial_joint, self.goal_pos, self.goal_ori, self.gripper_command],
-        )  # fmt: skip
+        )
 
     def set_goal(self, action: wp.array, site_xpos: wp.array, site_xmat: wp.array) -> None:
         """Take a new env action's arm goal from the current pose (its first substep only)."""
@@ -446,7 +446,7 @@ class PandaController:
             inputs=[action, site_xpos, site_xmat, self.index.eef_site, cfg.input_min, cfg.input_max,
                     self._action_scale, self._action_offset],
             outputs=[self.goal_pos, self.goal_ori],
-        )  # fmt: skip
+        )
 
     def apply(
         self,
@@ -471,9 +471,9 @@ class PandaController:
                     cfg.kp, float(kd), cfg.nullspace_kp, self._torque_low, self._torque_high,
                     self.goal_pos, self.goal_ori, self.initial_joint],
             outputs=[ctrl],
-        )  # fmt: skip
+        )
         wp.launch(
             panda_gripper_ctrl, dim=self.nworld, device=self.device,
             inputs=[action, cfg.gripper_speed, self._gripper_actuators, self._gripper_low, self._gripper_high],
             outputs=[self.gripper_command, ctrl],
-        )  # fmt: skip
+        )

@@ -230,7 +230,7 @@ class MjwarpEngine:
             render = mjw.create_render_context(
                 mjm, nworld=nworld, cam_res=(camera.width, camera.height), render_rgb=True, render_depth=False,
                 cam_active=list(camera.names), enabled_geom_groups=GEOM_GROUPS,
-            )  # fmt: skip
+            )
         limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
         log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
         action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
@@ -400,7 +400,7 @@ class MjwarpEngine:
         batch.controller.reset(
             wp.array(mask, dtype=wp.int32, device=device), wp.array(full, dtype=wp.float32, device=device),
             wp.array(goal_pos, dtype=wp.vec3, device=device), wp.array(goal_ori, dtype=wp.mat33, device=device),
-        )  # fmt: skip
+        )
         command = batch.controller.gripper_command.numpy()
         command[worlds] = recorded["gripper_action"][states]
         batch.controller.gripper_command.assign(command)
@@ -551,11 +551,11 @@ def _action_substeps(batch: _Batch) -> None:
         if substep == 0:
             controller.set_goal(action, data.site_xpos, data.site_xmat)
         controller.apply(action, data.qpos, data.qvel, data.M, data.qfrc_bias, data.site_xpos,
-                         data.site_xmat, data.xanchor, data.xaxis, data.ctrl)  # fmt: skip
+                         data.site_xmat, data.xanchor, data.xaxis, data.ctrl)
         mjw.step2(model, data)
     batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
     batch.goal.evaluate(data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon,
-                        data.contact.geom, data.contact.worldid)  # fmt: skip
+                        data.contact.geom, data.contact.worldid)
 
 
 def _apply_action(batch: _Batch) -> None:
@@ -583,7 +583,7 @@ def _apply_action(batch: _Batch) -> None:
 _OVERFLOWS = {1 << 0: "ran out of constraint rows (njmax)", 1 << 1: "ran out of constraint nonzeros",
               1 << 2: "overflowed its broadphase", 1 << 3: "ran out of contacts (nconmax)",
               1 << 4: "overflowed its collision buffers (CCD)", 1 << 7: "overflowed its island buffers",
-              1 << 8: "overflowed its EPA buffers"}  # fmt: skip
+              1 << 8: "overflowed its EPA buffers"}
 
 
 _OVERFLOW_BITS = sum(_OVERFLOWS)

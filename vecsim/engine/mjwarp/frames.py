@@ -43,4 +43,4 @@ def unpack(packed: wp.array, first: int, height: int, width: int, orientation: s
     wp.launch(
         _unpack_rgb, dim=(packed.shape[0], height * width), device=packed.device,
         inputs=[packed, int(first), height, width, flip_rows, flip_cols], outputs=[out],
-    )  # fmt: skip
+    )

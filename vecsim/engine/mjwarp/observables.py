@@ -125,4 +125,4 @@ class PandaObservables:
             inputs=[qpos, site_xpos, xquat, self.index.eef_site, self.index.eef_body,
                     self._arm_qpos, self._gripper_qpos],
             outputs=[self.state, self.proprio],
-        )  # fmt: skip
+        )

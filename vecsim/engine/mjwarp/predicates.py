@@ -105,7 +105,7 @@ def compile_goal(env: Any) -> GoalTable:
         "needs_contact": np.zeros(n, np.int32), "geom_side": np.zeros((n, model.ngeom), np.int32),
         "joint_qpos": np.zeros((n, MAX_JOINTS), np.int32), "joint_count": np.zeros(n, np.int32),
         "any_joint": np.zeros(n, np.int32), "compare": np.zeros(n, np.int32), "threshold": np.zeros(n, np.float32),
-    }  # fmt: skip
+    }
     sites = env.object_sites_dict
 
     def contact_between(i: int, first: Any, second: Any) -> None:
@@ -317,7 +317,7 @@ class GoalEvaluator:
             put(table.site, wp.int32), put(table.size, wp.vec3), put(table.needs_contact, wp.int32),
             put(table.joint_qpos, wp.int32), put(table.joint_count, wp.int32), put(table.any_joint, wp.int32),
             put(table.compare, wp.int32), put(table.threshold, wp.float32),
-        ]  # fmt: skip
+        ]
         self._geom_side = put(table.geom_side, wp.int32)
         self.touching = wp.zeros((nworld, self.natoms), dtype=wp.int32, device=self.device)
         self.holds = wp.zeros((nworld, self.natoms), dtype=wp.int32, device=self.device)
@@ -339,11 +339,11 @@ class GoalEvaluator:
             wp.launch(
                 goal_contacts, dim=(contact_geom.shape[0], self.natoms), device=self.device,
                 inputs=[nacon, contact_geom, contact_worldid, self._geom_side], outputs=[self.touching],
-            )  # fmt: skip
+            )
         wp.launch(
             goal_atoms, dim=(self.nworld, self.natoms), device=self.device,
             inputs=[qpos, xpos, site_xpos, site_xmat, self.touching, *self._arrays], outputs=[self.holds],
-        )  # fmt: skip
+        )
         wp.launch(
             goal_success, dim=self.nworld, device=self.device, inputs=[self.holds, self.natoms], outputs=[self.success]
         )

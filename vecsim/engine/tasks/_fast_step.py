@@ -210,7 +210,7 @@ class ExactStep:
         # MjData's arrays for osc_substep (views of buffers MuJoCo never moves).
         self.data_arrays = (
             data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
-        )  # fmt: skip
+        )
         # The warning counters mj_checkPos/mj_checkVel raise (views of MjData's, as the arrays).
         self.bad_qpos, self.bad_qvel = data.warning[_BADQPOS], data.warning[_BADQVEL]
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
@@ -481,7 +481,7 @@ class ArmStep:
             arm.ee_pos, arm.ee_ori_mat, arm.ee_pos_vel, arm.ee_ori_vel, arm.joint_pos, arm.joint_vel,
             arm.j_pos, arm.j_ori, arm.j_full, arm.mass_matrix, arm.torques, arm.clipped, arm.gripper_action,
             arm.wrench,
-        )  # fmt: skip
+        )
         self.fused = True
         return True
 

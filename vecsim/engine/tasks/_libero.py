@@ -493,7 +493,7 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str, stride: i
             log.info(
                 "replayed %d LIBERO resets of %s (seed %d) in %.2f s into %s",
                 task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
-            )  # fmt: skip
+            )
             return fixtures
 
 

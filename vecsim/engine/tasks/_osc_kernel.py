@@ -48,7 +48,7 @@ _dgemv = types.ExternalFunction(
         types.int32, types.int32, types.int64, types.int64, types.float64, types.intp, types.int64,
         types.intp, types.int64, types.float64, types.intp, types.int64,
     ),
-)  # fmt: skip
+)
 
 
 def numpy_dgemv_library() -> str | None:
@@ -100,7 +100,7 @@ def _numpy_dot(matrix: Any, vector: Any, out: Any) -> None:
         order, lda = _COL_MAJOR, max(rows, 1)
     out[:] = 0.0
     _dgemv(order, _NO_TRANS, rows, cols, 1.0, matrix.ctypes.data, lda,
-           vector.ctypes.data, vector.strides[0] // 8, 0.0, out.ctypes.data, 1)  # fmt: skip
+           vector.ctypes.data, vector.strides[0] // 8, 0.0, out.ctypes.data, 1)
 
 
 @numba.njit(cache=True)
@@ -121,7 +121,7 @@ def osc_substep(
     gripper_step, gripper_bias, gripper_weight,
     ee_pos, ee_ori_mat, ee_pos_vel, ee_ori_vel, joint_pos, joint_vel,
     j_pos, j_ori, j_full, mass_matrix, torques, clipped, gripper_action, wrench,
-):  # fmt: skip
+):
     """One arm's OSC update and control for a non-policy substep, after ``mj_jacSite``.
 
     Fills the controller's update outputs (``ee_pos`` .. ``mass_matrix``, in the layouts
