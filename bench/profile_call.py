@@ -234,6 +234,10 @@ def serve_bare(port: int) -> int:
     from vecsim.engine import TaskGroupedVectorEnv
 
     env = TaskGroupedVectorEnv(_assignment("bare"))
+    # A pod never resets a gym env it builds (the env starts as its factory left it), and a gym
+    # env steps only after a reset: reset every env once, as the pod's clients do.
+    every = np.arange(env.num_envs)
+    env.reset_envs(every, every)
     head = "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {length}\r\n\r\n"
 
     def answer(method: bytes, url: bytes, body: bytes) -> bytes:
@@ -481,6 +485,7 @@ def main() -> None:
         vec.reset(seed=0)
         local = TaskGroupedVectorEnv(assignment)
         stack.callback(local.close)
+        local.reset_envs(np.arange(local.num_envs), np.arange(local.num_envs))
         async_env = AsyncVectorEnv(makers, context="forkserver", autoreset_mode=AutoresetMode.NEXT_STEP)
         stack.callback(async_env.close)
         async_env.reset(seed=0)

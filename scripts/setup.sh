@@ -116,7 +116,10 @@ if [ "$(cd / && "$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Pat
 fi
 
 # The venv's `vecsim` command names the checkout it runs, and says so when that checkout is gone.
-"$venv/bin/python" -m service.launcher "$venv/bin/vecsim"
+# (The pod image runs this script before it copies the sources in: pip's own command stays there.)
+if [ -f "$here/service/launcher.py" ]; then
+  "$venv/bin/python" -m service.launcher "$venv/bin/vecsim"
+fi
 
 # LIBERO looks for assets in its own package folder first; point that at the assets packages.
 "$venv/bin/python" - <<'PY'
