@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 import pytest
 from support.controller_in_process import JOB
-from support.service_procs import AppThread, loopback_socket, socket_server, wait_until
+from support.service_procs import AppThread, loopback_socket, raw_server, socket_server, wait_until
 
 from service.controller import ControllerSettings, create_app
 from service.pod.app import create_app as create_pod_app
@@ -197,41 +197,29 @@ def test_the_control_planes_blocking_get_is_capped_alike(in_a_loop: bool) -> Non
     assert read_count("one-endless-trailer", caught.value) <= BOUNDS["one-endless-trailer"]
 
 
+async def fetch_once(url: str) -> tuple[int, bytes]:
+    """``GET url`` once through a fresh transport, answers up to 64 MiB."""
+    async with make_transport() as transport:
+        return await transport.fetch("GET", url, (), b"", 64 << 20)
+
+
 def test_a_chunked_answer_with_extensions_and_trailers_under_the_caps_arrives_whole() -> None:
     pieces = [bytes([i % 256]) * 4000 for i in range(1000)]
     body = b"".join(b"%x;n=%d\r\n%s\r\n" % (len(p), i, p) for i, p in enumerate(pieces))
     reply = CHUNKED_HEAD + body + b"0\r\nX-Checksum: abc\r\nX-Other: " + b"o" * 1000 + b"\r\n\r\n"
-
-    def answer(conn: socket.socket, _number: int) -> None:
-        conn.recv(65536)
-        conn.sendall(reply)
-
-    async def main(url: str) -> tuple[int, bytes]:
-        async with make_transport() as transport:
-            return await transport.fetch("GET", url, (), b"", 64 << 20)
-
-    with socket_server(answer) as url:
-        assert asyncio.run(main(f"{url}/")) == (200, b"".join(pieces))
+    with raw_server(reply) as url:
+        assert asyncio.run(fetch_once(f"{url}/")) == (200, b"".join(pieces))
 
 
 @pytest.mark.parametrize("chunks", [MAX_CHUNKS, MAX_CHUNKS + 1])
 def test_an_answer_of_max_chunks_arrives_and_one_more_is_refused(chunks: int) -> None:
     reply = CHUNKED_HEAD + b"1\r\nx\r\n" * chunks + b"0\r\n\r\n"
-
-    def answer(conn: socket.socket, _number: int) -> None:
-        conn.recv(65536)
-        conn.sendall(reply)
-
-    async def main(url: str) -> tuple[int, bytes]:
-        async with make_transport() as transport:
-            return await transport.fetch("GET", url, (), b"", 64 << 20)
-
-    with socket_server(answer) as url:
+    with raw_server(reply) as url:
         if chunks <= MAX_CHUNKS:
-            assert asyncio.run(main(f"{url}/")) == (200, b"x" * chunks)
+            assert asyncio.run(fetch_once(f"{url}/")) == (200, b"x" * chunks)
         else:
             with pytest.raises(httpx.RemoteProtocolError, match=f"more than {MAX_CHUNKS} chunks"):
-                asyncio.run(main(f"{url}/"))
+                asyncio.run(fetch_once(f"{url}/"))
 
 
 @pytest.mark.parametrize("lean", [True, False], ids=["fetch", "httpx-client"])
