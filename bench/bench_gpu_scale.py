@@ -82,7 +82,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -90,10 +90,9 @@ import psutil
 import torch
 from lib.pods import paired_ratio, setup_logging
 from lib.records import img_dir, write_result
-from gymnasium import spaces
 
 from vecsim.config import RoutingTable
-from lib.policies import VisionPolicy, forward_ms, GraphedPolicy, pod_multiples, parameters_m
+from lib.policies import VisionPolicy, calibrate_vit, forward_ms, GraphedPolicy, pod_multiples, parameters_m
 from lib.machine import gl_probe, gpu_name, gpu_process_table, cpu_topology, cores_first, split_cores, memory_gib, MemoryWatch, physical_core_of
 from lib.jobs import STAGE_LAYOUTS, Plan, parse_stage_layouts, camera, job_config, running_job, wait_for_job, pod_processes, regroup, regroup_slices, requests_for
 from lib.measure import TimedStageClient, Measured, Chunked, loop_rollout, service_rollout, Deadline, interleave
@@ -103,9 +102,6 @@ from lib.plots import plot_scaling, plot_pipeline
 
 log = logging.getLogger("bench.gpu_scale")
 
-# How close the calibrated policy's forward pass must come to its target before the picking stops
-# (within 3 picks). At 10% the picks ran 3-8% over the simulation call they stood for.
-CALIBRATION_TOLERANCE = 0.04
 # A batch wait that outlasts any stage call: EnvLoop then waits for every pod of the stage before
 # the policy runs, the lockstep rollout from before issue 27 (the baseline that issue measured).
 LOCKSTEP_WAIT_S = 300.0
@@ -179,76 +175,6 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
 
 
 # -- pipelining ----------------------------------------------------------------------------------
-
-
-def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int, target_ms: float,
-                  batch_sizes: Sequence[int], pad_sizes: Sequence[int] = ()) -> tuple[GraphedPolicy, dict[str, Any]]:
-    """Return a ViT policy, graphed for ``batch_sizes``, whose forward pass on ``batch``
-    observations lasts about ``target_ms``, and what the calibration found. The depth is
-    extrapolated from two shallow ViTs, then corrected once by the time the first pick takes;
-    never above ``plan.vit_max_depth``. With ``pad_sizes``, the picked policy is then also
-    captured for those sizes and pads a batch of any other size to the next captured one."""
-
-    def build(depth: int, sizes: Sequence[int]) -> GraphedPolicy:
-        policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, vit_width=plan.vit_width,
-                              device=plan.device, dtype=plan.torch_dtype)
-        return GraphedPolicy(policy, space, plan.device, sizes)
-
-    def release() -> None:
-        if plan.device.startswith("cuda"):
-            torch.cuda.synchronize()
-            torch.cuda.empty_cache()
-
-    def timed(depth: int) -> float:
-        probe = build(depth, [batch])
-        ms = forward_ms(probe, space, batch, 3, plan.device)
-        del probe
-        release()
-        return ms
-
-    low_depth, high_depth = 1, min(5, max(plan.vit_max_depth, 2))
-    low, high = timed(low_depth), timed(high_depth)
-    per_block = max((high - low) / (high_depth - low_depth), 1e-3)
-    wanted = round(low_depth + (target_ms - low) / per_block)
-    picks: list[tuple[int, float]] = []
-    for attempt in range(3):  # pick, time, and correct by the time taken (about linear in depth)
-        depth = int(min(max(wanted, 1), plan.vit_max_depth))
-        graphed = build(depth, batch_sizes)
-        achieved = {str(b): round(forward_ms(graphed, space, b, 3, plan.device), 2) for b in sorted(set(batch_sizes))}
-        took = achieved[str(batch)]
-        picks.append((depth, took))
-        wanted = round(depth * target_ms / max(took, 1e-3))
-        if abs(took - target_ms) <= CALIBRATION_TOLERANCE * target_ms or attempt == 2:
-            break
-        if int(min(max(wanted, 1), plan.vit_max_depth)) == depth:
-            break  # the cap (or depth 1) stops it here
-        graphed = None  # type: ignore[assignment]  # its weights and graphs go before the next build
-        release()
-    info = {
-        "name": f"ViT-B/16-style per camera (width {plan.vit_width}, {depth} blocks) + proprio MLP + MLP head",
-        "parameters_m": parameters_m(graphed.policy),
-        "dtype": plan.dtype,
-        "device": plan.device,
-        "cuda_graphs": graphed.graphed,
-        "target_ms": round(target_ms, 2),
-        "target_batch": batch,
-        "depth": depth,
-        "depth_wanted": wanted,
-        "capped": wanted > plan.vit_max_depth,
-        "ms_per_block": round(per_block, 3),
-        "picks_depth_ms": picks,
-        "forward_ms": achieved,
-    }
-    if pad_sizes:
-        started = time.perf_counter()
-        graphed.pad = True
-        for size in pad_sizes:
-            graphed.capture(size)
-        info["pad_capture_s"] = round(time.perf_counter() - started, 1)
-    if plan.device.startswith("cuda"):
-        info["gpu_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 1)
-    log.info("calibrated policy: %s", info)
-    return graphed, info
 
 
 WARMUP_HORIZON = 32  # pipeline: actions per trajectory in each contender's warm-up rollout

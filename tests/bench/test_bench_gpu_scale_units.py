@@ -1,8 +1,8 @@
 """Parts of the GPU benches that their runs depend on, checked here: from ``bench/lib`` (what
 ``bench/bench_gpu_scale.py`` is built of), which CPUs pods get on a machine with hyperthreads, the
 slowest-pod figures of a stage call, ``--stage-layout`` and the CUDA-graph sizes a loop's
-batches run in; from ``bench/bench_chunks.py``, the
-ceiling's pinned processes, which stay up between rounds and fail a run naming their error.
+batches run in; and the chunks bench's ceiling processes (``lib.ceiling``), which stay up between
+rounds and fail a run naming their error.
 
 ``bench/lib`` is imported with ``bench/`` on ``sys.path``, as a bench script imports it.
 """
@@ -23,6 +23,7 @@ BENCH = ROOT / "bench"
 def lib():
     sys.path.insert(0, str(BENCH))
     try:
+        import lib.ceiling
         import lib.jobs
         import lib.machine
         import lib.measure
@@ -30,17 +31,6 @@ def lib():
         import lib.stats
 
         yield lib
-    finally:
-        sys.path.remove(str(BENCH))
-
-
-@pytest.fixture(scope="module")
-def chunks(lib):
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_chunks
-
-        yield bench_chunks
     finally:
         sys.path.remove(str(BENCH))
 
@@ -186,8 +176,8 @@ def _plan(lib, tasks: tuple[str, ...]):
 
 
 @pytest.mark.timeout(120)
-def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rounds(lib, chunks):
-    with chunks.CeilingProcesses(["0"], _plan(lib, ("gym/HalfCheetah-v5",)), [1, 4], 0.2, 3, 60.0) as top:
+def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rounds(lib):
+    with lib.ceiling.CeilingProcesses(["0"], _plan(lib, ("gym/HalfCheetah-v5",)), [1, 4], 0.2, 3, 60.0) as top:
         first, second = top.measure(), top.measure()
         assert all(proc.is_alive() for proc in top._procs)
     for figures in (first, second):
@@ -197,8 +187,8 @@ def test_the_ceiling_processes_measure_every_k_on_demand_and_stay_up_between_rou
 
 
 @pytest.mark.timeout(120)
-def test_a_ceiling_process_that_cannot_build_its_envs_fails_the_run_naming_its_error(lib, chunks):
-    top = chunks.CeilingProcesses(["0"], _plan(lib, ("gym/NoSuchEnv-v0",)), [1], 0.2, 0, 60.0)
+def test_a_ceiling_process_that_cannot_build_its_envs_fails_the_run_naming_its_error(lib):
+    top = lib.ceiling.CeilingProcesses(["0"], _plan(lib, ("gym/NoSuchEnv-v0",)), [1], 0.2, 0, 60.0)
     with pytest.raises(RuntimeError, match="pinned process 0 failed"):
         top.__enter__()
     assert not any(proc.is_alive() for proc in top._procs)
