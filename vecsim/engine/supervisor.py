@@ -10,9 +10,11 @@ pod must rebuild.
 
 Example::
 
-    crew = WorkerSupervisor(specs, "forkserver", timeout_s=60.0, build_timeout_s=600.0)
-    replies = crew.ask("env_attr", {0: requests})
-    crew.close()
+    supervisor = WorkerSupervisor(specs, "forkserver", timeout_s=60.0, build_timeout_s=600.0)
+    # Worker 0's first env to state 3; then its observation and result rows.
+    reset = Order(local_indices=np.array([0]), state_ids=np.array([3]))
+    obs, rows, replies = supervisor.run({0: reset}, workers=np.array([0]), local_indices=np.array([0]))
+    supervisor.close()
 """
 
 from __future__ import annotations
