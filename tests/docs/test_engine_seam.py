@@ -29,6 +29,8 @@ CONCRETE = (
     "vecsim.engine.cpu",
     "vecsim.engine.vector_env",
     "vecsim.engine.pool",
+    "vecsim.engine.supervisor",
+    "vecsim.engine.answers",
     "vecsim.engine.worker",
     "vecsim.engine.protocol",
     "vecsim.engine.mjwarp",

@@ -8,8 +8,9 @@ imports this package (tests/docs/test_layering.py).
   and reset by env index in worker processes;
 - ``mjwarp``: the MuJoCo Warp engine (docs/mjwarp.md);
 - ``checks``: what a call must satisfy before any worker is touched;
-- ``pool``, ``worker``, ``protocol``: the worker processes, what runs in each, and the messages
-  between them and the pod;
+- ``answers``: a call's answer, row by row, from what the workers left;
+- ``supervisor``, ``pool``, ``worker``, ``protocol``: the workers' life (built, spoken to one call
+  at a time, watched), their processes, what runs in each, and the messages between them and the pod;
 - ``errors``: what the engines raise (the pod answers them as they are);
 - ``tasks``: the task registry and its envs; ``render``, ``batch_render``, ``mesh_lod``: drawing
   the envs' cameras.

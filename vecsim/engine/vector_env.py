@@ -1,7 +1,8 @@
 """The pod's task-grouped vector env: the envs of one assignment, stepped and reset by env index.
 
 :class:`TaskGroupedVectorEnv` runs the envs of one :class:`~vecsim.config.Assignment` as contiguous
-blocks, one per task, in a pool of worker processes of its own (:mod:`vecsim.engine.pool`). A
+blocks, one per task, in a pool of worker processes of its own (:mod:`vecsim.engine.pool`, built,
+spoken to and watched by :mod:`vecsim.engine.supervisor`). A
 worker hosts ``envs_per_worker`` consecutive env indices, whatever their tasks: a run of envs may
 cross from one task block into the next, each env built for its own task (the last worker may
 host fewer; ``envs_per_worker`` 0 lets the pod pick,
@@ -10,7 +11,8 @@ local index ``i`` of worker ``w`` (:mod:`vecsim.engine.worker`).
 
 A call checks every argument first (:mod:`vecsim.engine.checks`; a rejected call changes nothing),
 sends an order only to the workers that host an env it names (:mod:`vecsim.engine.protocol`),
-then copies the named envs' observations and result rows out of the pool's shared memory. A step
+then copies the named envs' observations and result rows out of the pool's shared memory and
+reads its answer from them (:mod:`vecsim.engine.answers`). A step
 applies each env's chunk (``[envs, K, ...]``, K from 1 to ``max_chunk``) in order and stops an env
 at its first termination or truncation. An exception an env raises is named in the answer
 (:class:`~vecsim.engine.errors.EnvError`) and every other env of the call goes on.
@@ -24,44 +26,24 @@ Example::
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
-import logging
-import multiprocessing
-import multiprocessing.connection
-import threading
-import time
-from collections import Counter
 from typing import Any
 
 import gymnasium
 import numpy as np
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim import trees
 from vecsim.config import Assignment
-from vecsim.engine import checks
+from vecsim.engine import answers, checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult
 from vecsim.engine.checks import assignment_spaces
-from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError, SimCrashedError
-from vecsim.engine.pool import WorkerFailure, WorkerPool, resolve_envs_per_worker
+from vecsim.engine.errors import EnvError, InvalidRequestError
+from vecsim.engine.pool import resolve_envs_per_worker
 from vecsim.engine.protocol import Order, Reply
+from vecsim.engine.supervisor import WorkerSupervisor
 from vecsim.engine.tasks import get_task
-from vecsim.engine.worker import REWARD, SUCCESS, TERMINATED, TRUNCATED, WorkerSpec
+from vecsim.engine.worker import WorkerSpec
 from vecsim.spaces import wire_action_space
-
-log = logging.getLogger("vecsim.engine.vector_env")
-
-_PROGRESS_EVERY_S = 10.0
-
-
-def _gather(tree: Any, workers: np.ndarray, local_indices: np.ndarray) -> Any:
-    # Fancy indexing copies, so results never alias the shared memory the next call overwrites.
-    if isinstance(tree, dict):
-        return {key: _gather(sub, workers, local_indices) for key, sub in tree.items()}
-    if isinstance(tree, tuple):
-        return tuple(_gather(sub, workers, local_indices) for sub in tree)
-    return tree[workers, local_indices]
 
 
 class TaskGroupedVectorEnv:
@@ -106,11 +88,6 @@ class TaskGroupedVectorEnv:
         self.num_envs = assignment.num_envs
         self.task_ids: list[str] = []
         self._num_states = np.zeros(self.num_envs, dtype=np.int64)
-        self._timeout_s = timeout_s
-        self._lock = threading.Lock()
-        self._broken: str | None = None
-        self._closed = False
-        self._pool: WorkerPool | None = None
         self.last_timing = CallTiming()
 
         per_worker = self.envs_per_worker = resolve_envs_per_worker(assignment)
@@ -137,8 +114,9 @@ class TaskGroupedVectorEnv:
         ]
         envs = np.arange(self.num_envs, dtype=np.int64)
         self._location = np.stack(divmod(envs, per_worker), axis=1).reshape(-1, 2)
-        if self._workers:
-            self._start(context, build_timeout_s)
+        self._supervisor = WorkerSupervisor(
+            self._workers, context, timeout_s=timeout_s, build_timeout_s=build_timeout_s
+        )
 
     @property
     def num_workers(self) -> int:
@@ -148,88 +126,7 @@ class TaskGroupedVectorEnv:
     @property
     def worker_pids(self) -> list[int]:
         """Process ids of the workers, in worker order."""
-        return [] if self._pool is None else [process.pid for process in self._pool.processes]
-
-    def _start(self, context: str, build_timeout_s: float | None) -> None:
-        counts = Counter(self.task_ids)
-        log.info(
-            "building %d envs (%s) in %d worker processes, %d envs per worker",
-            self.num_envs,
-            ", ".join(f"{task} x{n}" for task, n in counts.items()),
-            len(self._workers),
-            self.envs_per_worker,
-        )
-        started = time.monotonic()
-        self._pool = WorkerPool(self._workers, context)
-        try:
-            for worker in range(len(self._workers)):
-                self._pool.send(worker, "build")
-            took = self._wait_for_build(started, build_timeout_s)
-        except SimBuildError:
-            self._pool.close()
-            raise
-        except WorkerFailure as exc:
-            self._pool.close()
-            if exc.type_name == SimBuildError.__name__:
-                raise SimBuildError(exc.message) from None
-            raise SimBuildError(f"building envs failed: {exc}") from None
-        except Exception as exc:
-            self._pool.close()
-            raise SimBuildError(f"building envs failed: {type(exc).__name__}: {exc}") from exc
-        log.info("built %d envs in %.1f s", self.num_envs, time.monotonic() - started)
-        if took:
-            # The warm-up, in one line: what a trainer's first call would otherwise have paid.
-            log.info(
-                "warm-up done: first step (step path, compiled kernels) %.1f s, first render of "
-                "every camera %.1f s (slowest worker's)",
-                max(t["warm"] for t in took),
-                max(t["render"] for t in took),
-            )
-
-    def _wait_for_build(self, started: float, build_timeout_s: float | None) -> list[dict[str, float]]:
-        """Wait for every worker's build, logging each as it lands; return their timings."""
-        assert self._pool is not None
-        pipes = {pipe: index for index, pipe in enumerate(self._pool.pipes)}
-        pending = set(pipes)
-        timings: list[dict[str, float]] = []
-        last_report = started
-        while pending:
-            elapsed = time.monotonic() - started
-            if build_timeout_s is not None and elapsed > build_timeout_s:
-                raise SimBuildError(
-                    f"building envs took over {build_timeout_s} s; "
-                    f"{len(pipes) - len(pending)} of {len(pipes)} workers were ready"
-                )
-            wait_s = _PROGRESS_EVERY_S
-            if build_timeout_s is not None:
-                wait_s = min(wait_s, max(build_timeout_s - elapsed, 0.0))
-            for pipe in multiprocessing.connection.wait(list(pending), timeout=wait_s):
-                pending.discard(pipe)
-                index = pipes[pipe]
-                took = self._pool.receive([index], timeout_s=None)[index]
-                timings.append(took)
-                log.info(
-                    "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, warmed the first step %.1f s, "
-                    "warmed the cameras %.1f s)",
-                    index + 1,
-                    len(pipes),
-                    self._workers[index].describe(),
-                    time.monotonic() - started,
-                    took["make"],
-                    took["reset"],
-                    took["warm"],
-                    took["render"],
-                )
-            if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
-                last_report = time.monotonic()
-                log.info(
-                    "still building: %d of %d workers ready after %.0f s",
-                    len(pipes) - len(pending),
-                    len(pipes),
-                    last_report - started,
-                )
-        return timings
-
+        return self._supervisor.pids
 
     def reset_envs(
         self, env_indices: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
@@ -269,33 +166,7 @@ class TaskGroupedVectorEnv:
                 orders[worker] = Order(local_indices[rows], state_ids=states[rows])
             else:
                 orders[worker] = Order(local_indices[rows], seeds=seed_values[rows], options=options)
-        obs, rows, replies = self._run(orders, workers, local_indices)
-        env_info, errors = self._per_row(replies, ids)
-        return obs, {
-            "success": rows[:, 0, SUCCESS] != 0,
-            "task_id": [self.task_ids[i] for i in ids],
-            "env_info": env_info,
-            "errors": errors,
-        }
-
-    def _per_row(self, replies: dict[int, Reply], ids: np.ndarray) -> tuple[list[dict[str, Any]], list[EnvError]]:
-        """Each row's own env info and the rows whose env raised, from the workers' replies."""
-        env_info: list[dict[str, Any]] = [{} for _ in range(ids.size)]
-        errors: list[EnvError] = []
-        if not any(reply.env_info or reply.errors for reply in replies.values()):
-            return env_info, errors
-        # Worker w's local index i is env w * envs_per_worker + i.
-        row_of = {env: row for row, env in enumerate(ids.tolist())}
-        for worker, reply in replies.items():
-            first = worker * self.envs_per_worker
-            for local, own in reply.env_info:
-                env_info[row_of[first + local]] = own
-            for local, type_name, message in reply.errors:
-                errors.append(EnvError(row_of[first + local], type_name, message))
-        errors.sort(key=lambda e: e.row)
-        for error in errors:
-            log.info("env %d (%s) raised %s: %s", int(ids[error.row]), self.task_ids[int(ids[error.row])], error.type_name, error.message)
-        return env_info, errors
+        return answers.reset_answer(self._run(orders, workers, local_indices, ids)[0], [self.task_ids[i] for i in ids])
 
     def step_envs(
         self, env_indices: Any, actions: Any
@@ -406,72 +277,36 @@ class TaskGroupedVectorEnv:
         reset's ``(obs, info)`` (None without one) and the step's result."""
         n, k = chunk.shape[:2]
         workers, local_indices = self._location[ids].T
+        images = self._images_space()
         if n == 0 or k == 0:
-            obs = self._empty_obs() if n == 0 else self._current(workers, local_indices)
-            result = self._result(obs, np.zeros((n, k, 4)), recorded, past_end)
-            return None, dataclasses.replace(result, env_info=[{} for _ in range(n)])
+            obs = self._empty_obs() if n == 0 else self._supervisor.observations(workers, local_indices)
+            nothing = answers.EnvRows(obs, np.zeros((n, k, 4)), [{} for _ in range(n)], [])
+            return None, answers.chunk_result(nothing, recorded, past_end, images)
         record = np.zeros(n, dtype=bool)
         record[recorded] = True
         orders: dict[int, Order | tuple[Order, ...]] = {}
+        all_ids = ids
         if reset is not None:
             reset_workers, reset_locals = self._location[reset[0]].T
             for worker, rows in self._by_worker(reset_workers, reset_locals):
                 orders[worker] = Order(reset_locals[rows], state_ids=reset[1][rows])
             workers = np.concatenate([workers, reset_workers])
             local_indices = np.concatenate([local_indices, reset_locals])
+            all_ids = np.concatenate([ids, reset[0]])
         for worker, rows in self._by_worker(workers[:n], local_indices[:n]):
             step = Order(
                 local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None, past_end=past_end
             )
             # A worker with envs of both runs its resets, then its steps, in one order.
             orders[worker] = (orders[worker], step) if worker in orders else step
-        obs, rows, replies = self._run(orders, workers, local_indices)
-        all_ids = ids if reset is None else np.concatenate([ids, reset[0]])
-        env_info, errors = self._per_row(replies, all_ids)
+        stepped, replies = self._run(orders, workers, local_indices, all_ids)
         reset_answer = None
         if reset is not None:
-            reset_answer = (trees.map_leaves(lambda leaf: leaf[n:], obs), {
-                "success": rows[n:, 0, SUCCESS] != 0,
-                "task_id": [self.task_ids[i] for i in reset[0]],
-                "env_info": env_info[n:],
-                "errors": [dataclasses.replace(e, row=e.row - n) for e in errors if e.row >= n],
-            })
-            obs, rows = trees.map_leaves(lambda leaf: leaf[:n], obs), rows[:n]
-            env_info, errors = env_info[:n], [e for e in errors if e.row < n]
-        result = dataclasses.replace(
-            self._result(obs, rows[:, :k], recorded, past_end), env_info=env_info, errors=errors
-        )
-        drawn = {(worker, local): frames for worker, reply in replies.items() for local, frames in reply.frames}
-        for index, row in enumerate(recorded):
-            before_last = drawn[(int(workers[row]), int(local_indices[row]))]
-            last = int(result.num_steps[row]) - 1
-            for camera, out in result.frames.items():
-                for step, frame in enumerate(before_last):
-                    out[index, step] = frame[camera][0]
-                out[index, last] = obs["images"][camera][row]
+            stepped, reset_rows = stepped.split(n)
+            reset_answer = answers.reset_answer(reset_rows, [self.task_ids[i] for i in reset[0]])
+        result = answers.chunk_result(stepped._replace(rows=stepped.rows[:, :k]), recorded, past_end, images)
+        answers.fill_frames(result, replies, recorded, workers, local_indices)
         return reset_answer, result
-
-    def _result(self, obs: dict[str, Any], rows: np.ndarray, recorded: np.ndarray, past_end: bool = False) -> ChunkResult:
-        """The answer over result rows ``[n, K, 4]``; recorded envs' frames zeroed, to be filled."""
-        n, k = rows.shape[:2]
-        stopped = (rows[:, :, TERMINATED] != 0) | (rows[:, :, TRUNCATED] != 0)
-        if past_end:
-            stopped = np.zeros_like(stopped)  # every env applied all K
-        # An env stops at its first termination or truncation; one that never did applied all K.
-        first_stop = np.argmax(stopped, axis=1) if k else np.zeros(n, dtype=np.int64)
-        num_steps = np.where(stopped.any(axis=1), first_stop + 1, k).astype(np.int32)
-        images = self._images_space()
-        cameras = images.spaces if images is not None and recorded.size else {}
-        frames = {camera: np.zeros((recorded.size, k, *space.shape), space.dtype) for camera, space in cameras.items()}
-        return ChunkResult(
-            obs=obs,
-            reward=rows[:, :, REWARD].copy(),
-            terminated=rows[:, :, TERMINATED] != 0,
-            truncated=rows[:, :, TRUNCATED] != 0,
-            success=rows[:, :, SUCCESS] != 0,
-            num_steps=num_steps,
-            frames=frames,
-        )
 
     def frame(self, env_index: int, camera: str) -> np.ndarray:
         """Return a copy of the uint8 HxWx3 image ``camera`` of env ``env_index`` saw last.
@@ -486,22 +321,12 @@ class TaskGroupedVectorEnv:
         cameras = [] if images is None else list(images.spaces)
         if camera not in cameras:
             raise InvalidRequestError(f"camera: no camera {camera!r}; cameras: {cameras}")
-        worker, local = self._location[ids[0]]
-        with self._lock:
-            self._check_usable()
-            assert self._pool is not None
-            return np.array(self._pool.results["obs"]["images"][camera][worker, local])
+        workers, local_indices = self._location[ids].T
+        return self._supervisor.observations(workers, local_indices)["images"][camera][0]
 
     def close(self) -> None:
         """Stop the worker processes. Idempotent. Returns None."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-            if self._pool is not None:
-                # Terminating cannot hang on a stuck worker, and the workers hold nothing to save.
-                self._pool.close()
-                log.info("closed %d worker processes", len(self._workers))
+        self._supervisor.close()
 
     def __enter__(self) -> TaskGroupedVectorEnv:
         return self
@@ -531,9 +356,8 @@ class TaskGroupedVectorEnv:
         for row, env in enumerate(ids.tolist()):
             worker = int(self._location[env, 0])
             requests.setdefault(worker, {})[env] = (op, name, payload[row] if op == "set" else payload)
-        with self._lock:
-            answers = self._ask("env_attr", requests)
-        by_env = {env: (ok, value) for entries in answers.values() for env, ok, value in entries}
+        replies = self._supervisor.ask("env_attr", requests)
+        by_env = {env: (ok, value) for entries in replies.values() for env, ok, value in entries}
         results: list[Any] = []
         errors: list[EnvError] = []
         for row, env in enumerate(ids):
@@ -561,81 +385,16 @@ class TaskGroupedVectorEnv:
         bounds = [0, *(np.flatnonzero(ordered[1:] != ordered[:-1]) + 1).tolist(), rows.size]
         return [(int(ordered[first]), rows[first:last]) for first, last in itertools.pairwise(bounds) if last > first]
 
-    def _current(self, workers: np.ndarray, local_indices: np.ndarray) -> dict[str, Any]:
-        """The named envs' observations as they stand, without a worker call."""
-        with self._lock:
-            self._check_usable()
-            assert self._pool is not None
-            return _gather(self._pool.results["obs"], workers, local_indices)
-
-    def _dead_worker(self) -> str | None:
-        assert self._pool is not None
-        index = self._pool.dead()
-        if index is None:
-            return None
-        hosted = self._workers[index].describe()
-        process = self._pool.processes[index]
-        process.join(timeout=0.5)  # its exit code, when its end is a matter of moments
-        return f"worker {index} hosting {hosted} died with exit code {process.exitcode}"
-
-    def _check_usable(self) -> None:
-        if self._closed:
-            raise SimCrashedError("the envs are closed")
-        if self._broken is None:
-            self._broken = self._dead_worker()
-        if self._broken is not None:
-            raise SimCrashedError(self._broken)
-
-    def _failure(self, exc: Exception) -> str:
-        if isinstance(exc, WorkerFailure):
-            hosted = self._workers[exc.worker].describe()
-            return f"worker {exc.worker} hosting {hosted} failed: {exc}"
-        # A worker whose pipe closed is exiting; give it a moment so the message can name it.
-        deadline = time.monotonic() + 1.0
-        dead = self._dead_worker()
-        while dead is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-            dead = self._dead_worker()
-        return f"{dead or 'a worker failed'}: {type(exc).__name__}: {exc}"
-
-    def _ask(self, order: str, args: dict[int, Any]) -> dict[int, Any]:
-        """Send ``order`` to each worker in ``args`` (worker -> its one argument), and to no
-        other; return each one's reply. Any worker found dead, before or after, breaks the pod.
-        The caller holds ``self._lock``.
-
-        Raises:
-            SimCrashedError: a worker died, did not answer within the timeout, or failed.
-        """
-        self._check_usable()
-        assert self._pool is not None
-        try:
-            for worker, arg in args.items():
-                # A tuple is several orders for one worker (a reset and a step of one call).
-                self._pool.send(worker, order, *(arg if isinstance(arg, tuple) else (arg,)))
-            replies = self._pool.receive(list(args), self._timeout_s)
-        except multiprocessing.TimeoutError as exc:
-            self._broken = f"the workers did not answer within {self._timeout_s} s ({exc})"
-            raise SimCrashedError(self._broken) from exc
-        except Exception as exc:
-            self._broken = self._failure(exc)
-            raise SimCrashedError(self._broken) from exc
-        # A worker that died while others worked breaks the pod as surely as one that had work.
-        self._check_usable()
-        return replies
-
     def _run(
-        self, orders: dict[int, Order | tuple[Order, ...]], workers: np.ndarray, local_indices: np.ndarray
-    ) -> tuple[Any, np.ndarray, dict[int, Reply]]:
-        """Send each worker of ``orders`` its order (no other worker hears of the call); return
-        the named envs' observations, their result rows ``[n, max_chunk, 4]`` and the replies."""
-        with self._lock:
-            replies: dict[int, Reply] = self._ask("run", orders)
-            assert self._pool is not None
-            obs = _gather(self._pool.results["obs"], workers, local_indices)
-            rows = self._pool.results["flags"][workers, local_indices]
+        self, orders: dict[int, Order | tuple[Order, ...]], workers: np.ndarray, local_indices: np.ndarray, ids: np.ndarray
+    ) -> tuple[answers.EnvRows, dict[int, Reply]]:
+        """Send each worker of ``orders`` its order (no other worker hears of the call); return what
+        they left for envs ``ids`` (at ``workers``, ``local_indices``) row by row, and their replies."""
+        obs, rows, replies = self._supervisor.run(orders, workers, local_indices)
         self.last_timing = CallTiming(
             float(sum(reply.physics_s for reply in replies.values())),
             float(sum(reply.render_s for reply in replies.values())),
             sum(reply.renders for reply in replies.values()),
         )
-        return obs, rows, replies
+        env_info, errors = answers.per_row(replies, ids, self.envs_per_worker, self.task_ids)
+        return answers.EnvRows(obs, rows, env_info, errors), replies
