@@ -185,6 +185,15 @@ def ssim(first: np.ndarray, second: np.ndarray, window: int = 7) -> np.ndarray:
     return index.mean(axis=(1, 2, 3))
 
 
+def rotation_between(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The angle (rad) of the rotation between two arrays of ``(w, x, y, z)`` unit quaternions,
+    from the sine of its half angle (the cosine's ``arccos`` loses float32 inputs' precision)."""
+    w1, v1, w2, v2 = first[..., :1], first[..., 1:], second[..., :1], second[..., 1:]
+    # The vector part of conj(first) * second.
+    vector = w1 * v2 - w2 * v1 - np.cross(v1, v2)
+    return 2 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs((first * second).sum(-1)))
+
+
 def spread(values: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(values)), "max": float(np.max(values))}
 
@@ -240,8 +249,7 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
     # Every free joint's body (the objects): position and rotation angle apart.
     free = [int(mjm.jnt_qposadr[j]) for j in range(mjm.njnt) if mjm.jnt_type[j] == 0]
     pos = np.stack([np.linalg.norm(have["qpos"][..., a : a + 3] - ref["qpos"][..., a : a + 3], axis=-1) for a in free], -1)
-    dot = np.stack([np.abs((have["qpos"][..., a + 3 : a + 7] * ref["qpos"][..., a + 3 : a + 7]).sum(-1)) for a in free], -1)
-    angle = 2 * np.arccos(np.clip(dot, 0.0, 1.0))
+    angle = np.stack([rotation_between(have["qpos"][..., a + 3 : a + 7], ref["qpos"][..., a + 3 : a + 7]) for a in free], -1)
     images = {}
     for name in CAMERAS:
         want, got = ref[f"image.{name}"], have[f"image.{name}"]
@@ -251,6 +259,9 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
             for i, t in enumerate(ref["image_marks"])
         }
     repeat = {key: float(np.abs(have[key].astype(np.float64) - again[key]).max()) for key in have if key != "errors"}
+    # The first action after which the repeat's state or joints differ (None: never).
+    differs = [t for t in range(steps + 1) if (have["state"][:, t] != again["state"][:, t]).any()
+               or (have["qpos"][:, t] != again["qpos"][:, t]).any()]
     return {
         "states": n, "actions": steps, "image_size": size, "deterministic": deterministic, "build_s": built,
         "eef_pos_divergence_m": {str(t): spread(eef[:, t]) for t in marks},
@@ -262,6 +273,7 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
         "success_agreement": float((have["success"] == ref["success"]).mean()),
         "success_reached": {"mjwarp": int(have["success"].any(1).sum()), "cpu": int(ref["success"].any(1).sum())},
         "repeat_max_abs_diff": repeat, "repeat_identical": all(v == 0.0 for v in repeat.values()),
+        "repeat_first_differing_action": differs[0] if differs else None,
         "errors": have["errors"],
     }
 
@@ -328,23 +340,74 @@ def gpu_memory_used_mib() -> int | None:
     return int(text.split()[0])
 
 
-def layout_spec(text: str) -> tuple[int, int]:
-    pods, _, envs = text.partition("x")
-    return int(pods), int(envs)
+def scrape(urls: list[str]) -> dict[str, float]:
+    """The pods' step counters (``/metrics``), summed over ``urls``."""
+    import re
+
+    import httpx
+
+    totals: dict[str, float] = dict.fromkeys(POD_COUNTERS, 0.0)
+    for url in urls:
+        for name, value in re.findall(r"^(vecsim_pod_[a-z_]+?)(?:\{[^}]*\})? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.M):
+            if name in totals:
+                totals[name] += float(value)
+    return totals
 
 
-def run_layout(args: argparse.Namespace, engine: str, pods: int, envs: int, pythonpath: str | None, port: int) -> dict[str, Any]:
+POD_COUNTERS = ("vecsim_pod_step_seconds_sum", "vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
+
+
+def layout_spec(text: str) -> tuple[int, int, int | None]:
+    """``PODSxENVS`` or ``PODSxENVS@SIZE`` (the cameras' size for this layout, 0: none)."""
+    layout, _, size = text.partition("@")
+    pods, _, envs = layout.partition("x")
+    return int(pods), int(envs), int(size) if size else None
+
+
+def drive(url: str, envs: int, chunk: int, calls: int, seed: int) -> dict[str, Any]:
+    """Step every env of the pod at ``url`` ``calls`` times, back to back (in a process of its
+    own, so that decoding one pod's answers does not wait on another's): env-steps, the span,
+    and the seconds spent waiting for answers and decoding them."""
+    import httpx
+
+    from vecsim import wire
+
+    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
+    rng = np.random.default_rng(seed)
+    ids = np.arange(envs)
+    steps, waiting, decoding, size = 0, 0.0, 0.0, 0
+    with httpx.Client(timeout=600) as client:
+        begun = time.perf_counter()
+        for _ in range(calls):
+            actions = rng.uniform(-0.3, 0.3, (envs, chunk, 7)).astype(np.float32)
+            body = wire.encode({"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
+            sent = time.perf_counter()
+            answer = client.post(f"{url}/v1/step", content=body, headers=headers)
+            answer.raise_for_status()
+            received = time.perf_counter()
+            steps += int(np.asarray(wire.decode(answer.content)["num_steps"]).sum())
+            waiting += received - sent
+            decoding += time.perf_counter() - received
+            size = len(answer.content)
+        ended = time.perf_counter()
+    return {"steps": steps, "begun": begun, "ended": ended, "waiting": waiting, "decoding": decoding, "bytes": size}
+
+
+def run_layout(
+    args: argparse.Namespace, engine: str, pods: int, envs: int, size: int, pythonpath: str | None, port: int
+) -> dict[str, Any]:
     """Start ``pods`` real pods (``vecsim pod``, uvicorn, loopback) of ``envs`` envs each on
     ``engine``; reset every env; step every pod ``--calls`` times with chunks of random actions
-    through ``/v1/step`` (wire format), one client thread a pod; stop them. CPU pods are pinned
-    to equal shares of this process's cores; ``mjwarp`` pods start one after the other."""
+    through ``/v1/step`` (wire format), one client process a pod (:func:`drive`); stop them.
+    CPU pods are pinned to equal shares of this process's cores; ``mjwarp`` pods start one
+    after the other."""
+    import multiprocessing
     import subprocess
     import sys
     import tempfile
-    import threading
+    from concurrent.futures import ProcessPoolExecutor
 
     import httpx
-    from lib.measure import scrape
 
     from vecsim import wire
 
@@ -358,7 +421,7 @@ def run_layout(args: argparse.Namespace, engine: str, pods: int, envs: int, pyth
     urls = [f"http://127.0.0.1:{port + i}" for i in range(pods)]
     headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
     record: dict[str, Any] = {"engine": engine, "pods": pods, "envs_per_pod": envs, "envs": pods * envs,
-                              "cores_per_pod": share if engine == "cpu" else len(cores), "size": args.size, "chunk": args.chunk}
+                              "cores_per_pod": share if engine == "cpu" else len(cores), "size": size, "chunk": args.chunk}
     processes: list[subprocess.Popen] = []
     started = time.monotonic()
 
@@ -377,7 +440,7 @@ def run_layout(args: argparse.Namespace, engine: str, pods: int, envs: int, pyth
     try:
         with tempfile.TemporaryDirectory() as folder:
             for i in range(pods):
-                spec = assignment(args.task, envs, args.size, engine).model_copy(update={"pod": f"sim-{i}"})
+                spec = assignment(args.task, envs, size, engine).model_copy(update={"pod": f"sim-{i}"})
                 path = Path(folder) / f"pod{i}.json"
                 path.write_text(spec.model_dump_json())
                 pinned = set(cores[i * share : (i + 1) * share]) if engine == "cpu" else None
@@ -393,52 +456,26 @@ def run_layout(args: argparse.Namespace, engine: str, pods: int, envs: int, pyth
         record["ready_s"] = time.monotonic() - started
         record["gpu_memory_used_mib"] = gpu_memory_used_mib()
         ids = np.arange(envs)
-        clients = [httpx.Client(timeout=600) for _ in urls]
-
-        def call(index: int, op: str, body: dict[str, Any]) -> tuple[dict[str, Any], int]:
-            answer = clients[index].post(f"{urls[index]}/v1/{op}", content=wire.encode(body), headers=headers)
-            answer.raise_for_status()
-            return wire.decode(answer.content), len(answer.content)
-
-        for i in range(pods):
-            call(i, "reset", {"generation": 0, "env_indices": ids, "state_ids": (ids + i * envs) % 50})
+        with httpx.Client(timeout=600) as client:
+            for i, url in enumerate(urls):
+                body = wire.encode({"generation": 0, "env_indices": ids, "state_ids": (ids + i * envs) % 50})
+                client.post(f"{url}/v1/reset", content=body, headers=headers).raise_for_status()
         before = scrape(urls)
-        steps = [0] * pods
-        spans: list[tuple[float, float]] = [(0.0, 0.0)] * pods
-        answer_bytes = [0] * pods
-        failures: list[str] = []
-
-        def drive(index: int) -> None:
-            rng = np.random.default_rng(index)
-            begun = time.perf_counter()
-            try:
-                for _ in range(args.calls):
-                    actions = rng.uniform(-0.3, 0.3, (envs, args.chunk, 7)).astype(np.float32)
-                    answer, answer_bytes[index] = call(
-                        index, "step", {"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
-                    steps[index] += int(np.asarray(answer["num_steps"]).sum())
-            except Exception as exc:  # noqa: BLE001 - recorded, the layout's figure is then not given
-                failures.append(f"pod {index}: {type(exc).__name__}: {exc}")
-            spans[index] = (begun, time.perf_counter())
-
-        threads = [threading.Thread(target=drive, args=(i,)) for i in range(pods)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        with ProcessPoolExecutor(pods, mp_context=multiprocessing.get_context("fork")) as pool:
+            driven = list(pool.map(drive, urls, [envs] * pods, [args.chunk] * pods, [args.calls] * pods, range(pods)))
         after = scrape(urls)
-        for client in clients:
-            client.close()
-        if failures:
-            raise RuntimeError("; ".join(failures))
-        elapsed = max(end for _, end in spans) - min(begin for begin, _ in spans)
+        elapsed = max(d["ended"] for d in driven) - min(d["begun"] for d in driven)
+        steps = sum(d["steps"] for d in driven)
         calls = pods * args.calls
         counters = {name.removeprefix("vecsim_pod_"): after[name] - before[name] for name in after}
         record.update(
-            calls_per_pod=args.calls, env_steps=sum(steps), seconds=elapsed, env_steps_per_s=sum(steps) / elapsed,
-            answer_bytes=answer_bytes[0],
-            # Per call: the client's wall time, and the pod's (the engine's call, its physics and render).
-            per_call_s={"client": sum(end - begin for begin, end in spans) / calls,
+            calls_per_pod=args.calls, env_steps=steps, seconds=elapsed, env_steps_per_s=steps / elapsed,
+            answer_bytes=driven[0]["bytes"],
+            # Per call: the client's wall time, its wait for the answer and its decoding; the pod's
+            # engine call, its physics and render (summed over a CPU pod's workers).
+            per_call_s={"client": sum(d["ended"] - d["begun"] for d in driven) / calls,
+                        "client_waiting": sum(d["waiting"] for d in driven) / calls,
+                        "client_decoding": sum(d["decoding"] for d in driven) / calls,
                         "engine": counters["step_seconds_sum"] / calls,
                         "physics": counters["physics_seconds_total"] / calls,
                         "render": counters["render_seconds_total"] / calls},
@@ -452,30 +489,34 @@ def run_layout(args: argparse.Namespace, engine: str, pods: int, envs: int, pyth
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait(timeout=30)
-    log.info("%s %dx%d: %.0f env-steps/s", engine, pods, envs, record["env_steps_per_s"])
+    log.info("%s %dx%d at %d: %.0f env-steps/s", engine, pods, envs, size, record["env_steps_per_s"])
     return record
 
 
 def side(args: argparse.Namespace) -> None:
     """The node's CPU pods and the mjwarp pods, one layout after the other, in one invocation."""
+    import httpx
+
     deadline = time.monotonic() + args.budget_s
     record: dict[str, Any] = {"task": args.task, "size": args.size, "chunk": args.chunk, "machine": args.machine,
                               "cores": len(os.sched_getaffinity(0)), "layouts": [], "complete": False}
     write(record, args.out)
     plan = [("cpu", *layout, args.cpu_pythonpath) for layout in args.cpu_layouts]
     plan += [("mjwarp", *layout, args.mjwarp_pythonpath) for layout in args.mjwarp_layouts]
-    for index, (engine, pods, envs, pythonpath) in enumerate(plan):
+    for index, (engine, pods, envs, size, pythonpath) in enumerate(plan):
+        size = args.size if size is None else size
         if time.monotonic() > deadline:
-            record["cut_short"] = f"budget of {args.budget_s} s spent before {engine} {pods}x{envs}"
+            record["cut_short"] = f"budget of {args.budget_s} s spent before {engine} {pods}x{envs}@{size}"
             break
         try:
-            record["layouts"].append(run_layout(args, engine, pods, envs, pythonpath, args.port + 32 * index))
-        except (RuntimeError, OSError, ValueError) as exc:
-            record["layouts"].append({"engine": engine, "pods": pods, "envs_per_pod": envs, "error": str(exc)})
-            log.error("%s %dx%d failed: %s", engine, pods, envs, exc)
+            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, args.port + 32 * index))
+        except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
+            record["layouts"].append({"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)})
+            log.error("%s %dx%d@%d failed: %s", engine, pods, envs, size, exc)
         best = {}
         for entry in record["layouts"]:
-            if "env_steps_per_s" in entry:
+            # The ratio is the issue's: at --size on both sides.
+            if "env_steps_per_s" in entry and entry["size"] == args.size:
                 best[entry["engine"]] = max(best.get(entry["engine"], 0.0), entry["env_steps_per_s"])
         if len(best) == 2:
             record["ratio_best_mjwarp_to_best_cpu"] = best["mjwarp"] / best["cpu"]
@@ -488,7 +529,7 @@ def side(args: argparse.Namespace) -> None:
 
 def through_pod(args: argparse.Namespace) -> None:
     """One real pod on ``--engine`` (a layout of one, see :func:`run_layout`)."""
-    record = {"machine": args.machine, **run_layout(args, args.engine, 1, args.envs, None, args.port)}
+    record = {"machine": args.machine, **run_layout(args, args.engine, 1, args.envs, args.size, None, args.port)}
     write(record, args.out)
     print("RESULT", json.dumps(record))
 
@@ -535,8 +576,10 @@ def main() -> None:
     both.add_argument("--size", type=int, default=256)
     both.add_argument("--chunk", type=int, default=8)
     both.add_argument("--calls", type=int, default=10)
-    both.add_argument("--cpu-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x32")], help="PODSxENVS, in order")
-    both.add_argument("--mjwarp-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x1024")], help="PODSxENVS, in order")
+    both.add_argument("--cpu-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x32")],
+                      help="PODSxENVS[@SIZE], in order (SIZE: the cameras' size if not --size; 0: none)")
+    both.add_argument("--mjwarp-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x1024")],
+                      help="PODSxENVS[@SIZE], in order")
     both.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
     both.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
     both.add_argument("--port", type=int, default=8100)
