@@ -225,23 +225,46 @@ def replay(engine: Any, ref: Any) -> dict[str, np.ndarray]:
     return out
 
 
+def sameness(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
+    """How two replays of the same inputs differ: the largest difference of each output, the
+    first action after which the state or joints differ (None: never), and how far apart the
+    joints are after it."""
+    largest = {key: float(np.abs(first[key].astype(np.float64) - second[key]).max()) for key in first if key != "errors"}
+    steps = first["state"].shape[1]
+    differs = [t for t in range(steps) if (first["state"][:, t] != second["state"][:, t]).any()
+               or (first["qpos"][:, t] != second["qpos"][:, t]).any()]
+    t = differs[0] if differs else None
+    return {"max_abs_diff": largest, "identical": all(v == 0.0 for v in largest.values()), "first_differing_action": t,
+            "qpos_diff_there": None if t is None else float(np.abs(first["qpos"][:, t] - second["qpos"][:, t]).max())}
+
+
 def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) -> dict[str, Any]:
-    """Replay the reference's actions on the mjwarp engine from the same init states, twice."""
+    """Replay the reference's actions on the mjwarp engine from the same init states: twice on
+    one build (a reset between), once more on a second build."""
     from vecsim.engine.base import engine_kind
 
     n, steps = ref["actions"].shape[:2]
     size = int(ref[f"image.{CAMERAS[0]}"].shape[2])
-    os.environ["VECSIM_MJWARP_DETERMINISTIC"] = "1" if deterministic else "0"
+
+    def build() -> Any:
+        os.environ["VECSIM_MJWARP_DETERMINISTIC"] = "1" if deterministic else "0"
+        try:
+            return engine_kind("mjwarp").build(assignment(args.task, n, size, "mjwarp"))
+        finally:
+            del os.environ["VECSIM_MJWARP_DETERMINISTIC"]  # the mode is read at the build only
+
     started = time.monotonic()
-    try:
-        engine = engine_kind("mjwarp").build(assignment(args.task, n, size, "mjwarp"))
-    finally:
-        del os.environ["VECSIM_MJWARP_DETERMINISTIC"]  # the mode is read at the build only
+    engine = build()
     built = time.monotonic() - started
     try:
         mjm = engine._batches[0].mjm
         have = replay(engine, ref)
         again = replay(engine, ref)
+    finally:
+        engine.close()
+    engine = build()
+    try:
+        fresh = replay(engine, ref)
     finally:
         engine.close()
     marks = [t for t in MARKS if t <= steps]
@@ -258,10 +281,6 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
                           "ssim": float(ssim(got[:, i], want[:, i]).mean())}
             for i, t in enumerate(ref["image_marks"])
         }
-    repeat = {key: float(np.abs(have[key].astype(np.float64) - again[key]).max()) for key in have if key != "errors"}
-    # The first action after which the repeat's state or joints differ (None: never).
-    differs = [t for t in range(steps + 1) if (have["state"][:, t] != again["state"][:, t]).any()
-               or (have["qpos"][:, t] != again["qpos"][:, t]).any()]
     return {
         "states": n, "actions": steps, "image_size": size, "deterministic": deterministic, "build_s": built,
         "eef_pos_divergence_m": {str(t): spread(eef[:, t]) for t in marks},
@@ -272,8 +291,7 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
         "images": images,
         "success_agreement": float((have["success"] == ref["success"]).mean()),
         "success_reached": {"mjwarp": int(have["success"].any(1).sum()), "cpu": int(ref["success"].any(1).sum())},
-        "repeat_max_abs_diff": repeat, "repeat_identical": all(v == 0.0 for v in repeat.values()),
-        "repeat_first_differing_action": differs[0] if differs else None,
+        "repeat_after_reset": sameness(have, again), "repeat_on_new_build": sameness(have, fresh),
         "errors": have["errors"],
     }
 
