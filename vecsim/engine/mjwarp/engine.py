@@ -55,8 +55,8 @@ log = logging.getLogger(__name__)
 # task 0; MuJoCo Warp's defaults overflowed there, these did not.
 NCONMAX = int(os.environ.get("VECSIM_MJWARP_NCONMAX", "96"))
 NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
-# "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics): the
-# same inputs then give the same outputs, at a cost in speed.
+# "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics). On
+# LIBERO-10 task 0 it shrank, not removed, the run-to-run spread (docs/mjwarp.md, Determinism).
 DETERMINISTIC_ENV = "VECSIM_MJWARP_DETERMINISTIC"
 # The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
 # render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
