@@ -1,12 +1,13 @@
 """The ``mjwarp`` engine on one GPU, against the CPU engine: rate, scaling, memory, fidelity.
 
-Two steps, on two machines:
+Steps, each in the environment it needs:
 
 ``reference`` (the CPU stack: robosuite, LIBERO, mujoco 3.3) records what the CPU engine does
-for one LIBERO task: for each of ``--states`` init states, the 8-float state after every action
-of a fixed action sequence (a smooth pseudo-random walk, seeded), and the two cameras' images
-after the reset. It also times the CPU engine itself (``TaskGroupedVectorEnv``, one worker per
-core, chunks of ``--chunk``, the same cameras), the baseline of the ratio::
+for one LIBERO task: for each of ``--states`` init states, the 8-float state and ``qpos`` after
+every action of a fixed action sequence (a smooth pseudo-random walk, seeded), and the two
+cameras' images after the reset and after actions ``IMAGE_MARKS``. With ``--cpu-envs`` it also
+times the CPU engine itself (``TaskGroupedVectorEnv``, one worker per core, chunks of
+``--chunk``, the same cameras)::
 
     python bench/bench_mjwarp.py reference --task libero_10/0 --out out/bench/mjwarp_reference.npz
 
@@ -15,14 +16,28 @@ the whole serving path included::
 
     python bench/bench_mjwarp.py pod --engine mjwarp --envs 1024 --size 256 --out out/bench/pod_mjwarp.json
 
+``side`` measures the node's CPU pods and the ``mjwarp`` pods in one invocation, one layout
+after the other on the same machine, and prints the ratio. Each layout is ``PODSxENVS``: CPU
+pods pinned to an equal share of the cores (as the runner places them), ``mjwarp`` pods on the
+one GPU (started one after the other, so later ones find the kernel cache warm). Every pod of a
+layout is stepped by its own client thread, back to back; the pods' counters (``/metrics``) say
+where the time goes. Each side runs with its own ``PYTHONPATH`` (the two stacks pin different
+mujoco versions)::
+
+    python bench/bench_mjwarp.py side --cpu-layouts 1x32 8x4 --mjwarp-layouts 1x1024 2x512 \\
+        --cpu-pythonpath /tmp/site --mjwarp-pythonpath /tmp/site-mjw --out out/bench/side.json
+
 ``run`` (the ``mjwarp`` extra, a GPU) builds the ``mjwarp`` engine (``vecsim.engine.base.engine_kind``)
 for each camera setting and worlds-per-task count, resets every env and times chunk steps of
 ``--chunk`` actions: env-steps/s, the physics and render seconds of each call, GPU memory per
 world (``torch.cuda.mem_get_info`` before and after the build). With ``--reference``, it replays
-the recorded action sequences from the same init states and reports the divergence of the
-8-float state over time and the images' mean absolute difference per camera; and a ratio to
-the CPU engine's rate when the reference holds one measured on this machine (``--cpu-rate``
-names a figure measured elsewhere only to print it beside, never as a ratio)::
+the recorded action sequences from the same init states and reports the divergence over time
+of the end effector and of every free object, and per camera the images' mean absolute
+difference and SSIM; then it replays them again on the same worlds and reports whether the
+outputs repeat bit for bit (``--deterministic`` adds the same with MuJoCo Warp's
+``opt.deterministic`` on). A ratio to the CPU engine's rate is given when the reference holds
+one measured on this machine (``--cpu-rate`` names a figure measured elsewhere only to print
+it beside, never as a ratio)::
 
     python bench/bench_mjwarp.py run --task libero_10/0 --runs 256:256 256:1024 128:1024 0:1024 \\
         --reference out/bench/mjwarp_reference.npz --out out/bench/bench_mjwarp.json
@@ -48,6 +63,10 @@ from vecsim.config import Assignment, CameraConfig, TaskBlock
 log = logging.getLogger("bench_mjwarp")
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
+# Actions after which the reference keeps both cameras' images (0: after the reset).
+IMAGE_MARKS = (0, 1, 10, 40, 80)
+# Actions at which divergence is reported.
+MARKS = (0, 1, 5, 10, 20, 40, 80, 160)
 
 
 def action_walk(num: int, steps: int, seed: int) -> np.ndarray:
@@ -98,24 +117,29 @@ def write(record: dict[str, Any], out: Path) -> None:
 
 
 def reference(args: argparse.Namespace) -> None:
-    """The CPU engine's trajectories, images and rate (the CPU stack)."""
+    """The CPU engine's trajectories, images and (with ``--cpu-envs``) rate (the CPU stack)."""
     from vecsim.engine.base import engine_kind
     from vecsim.engine.tasks import make_env
 
     actions = action_walk(args.states, args.steps, args.seed)
+    marks = [t for t in IMAGE_MARKS if t <= args.steps]
     env = make_env(args.task, CameraConfig(names=CAMERAS, height=args.size, width=args.size))
+    sim = env.inner.sim
     states = np.zeros((args.states, args.steps + 1, 8), dtype=np.float32)
-    images = {name: np.zeros((args.states, args.size, args.size, 3), np.uint8) for name in CAMERAS}
+    qpos = np.zeros((args.states, args.steps + 1, sim.model.nq), dtype=np.float64)
+    images = {name: np.zeros((args.states, len(marks), args.size, args.size, 3), np.uint8) for name in CAMERAS}
     success = np.zeros((args.states, args.steps), dtype=bool)
     for k in range(args.states):
         obs, _ = env.reset(options={"state_id": k})
-        states[k, 0] = obs["state"]
-        for name in CAMERAS:
-            images[name][k] = obs["images"][name]
-        for t in range(args.steps):
-            obs, _, _, _, info = env.step(actions[k, t])
-            states[k, t + 1] = obs["state"]
-            success[k, t] = bool(info["success"])
+        for t in range(args.steps + 1):
+            if t:
+                obs, _, _, _, info = env.step(actions[k, t - 1])
+                success[k, t - 1] = bool(info["success"])
+            states[k, t] = obs["state"]
+            qpos[k, t] = sim.data.qpos
+            if t in marks:
+                for name in CAMERAS:
+                    images[name][k, marks.index(t)] = obs["images"][name]
     env.close()
     record: dict[str, Any] = {"task": args.task, "machine": args.machine, "cores": os.cpu_count()}
     if args.cpu_envs:
@@ -126,8 +150,8 @@ def reference(args: argparse.Namespace) -> None:
             engine.close()
         record["cpu_engine"].update(envs=args.cpu_envs, size=args.cpu_size, chunk=args.chunk)
     np.savez_compressed(
-        args.out, actions=actions, states=states, success=success, record=json.dumps(record),
-        **{f"image.{name}": pixels for name, pixels in images.items()},
+        args.out, actions=actions, states=states, qpos=qpos, success=success, image_marks=np.array(marks),
+        record=json.dumps(record), **{f"image.{name}": pixels for name, pixels in images.items()},
     )
     print("RESULT", json.dumps(record))
 
@@ -141,42 +165,134 @@ def gpu_free() -> int | None:
         return None
 
 
-def fidelity(args: argparse.Namespace, ref: Any) -> dict[str, Any]:
-    """Replay the reference's actions on the mjwarp engine from the same init states."""
+def ssim(first: np.ndarray, second: np.ndarray, window: int = 7) -> np.ndarray:
+    """Mean SSIM per image of two ``uint8 [n, H, W, 3]`` stacks: Wang et al.'s index over every
+    7x7 window (uniform weights, sample covariance, K1 0.01, K2 0.03, range 255), averaged over
+    the windows and the channels."""
+    x, y = (np.moveaxis(a.astype(np.float64), -1, 1) for a in (first, second))
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        total = np.pad(a, [(0, 0)] * (a.ndim - 2) + [(1, 0), (1, 0)]).cumsum(-2).cumsum(-1)
+        w = window
+        return (total[..., w:, w:] - total[..., :-w, w:] - total[..., w:, :-w] + total[..., :-w, :-w]) / w**2
+
+    correction = window**2 / (window**2 - 1)
+    mx, my = mean(x), mean(y)
+    vx, vy = (mean(x * x) - mx**2) * correction, (mean(y * y) - my**2) * correction
+    cov = (mean(x * y) - mx * my) * correction
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    index = (2 * mx * my + c1) * (2 * cov + c2) / ((mx**2 + my**2 + c1) * (vx + vy + c2))
+    return index.mean(axis=(1, 2, 3))
+
+
+def rotation_between(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The angle (rad) of the rotation between two arrays of ``(w, x, y, z)`` unit quaternions,
+    from the sine of its half angle (the cosine's ``arccos`` loses float32 inputs' precision)."""
+    w1, v1, w2, v2 = first[..., :1], first[..., 1:], second[..., :1], second[..., 1:]
+    # The vector part of conj(first) * second.
+    vector = w1 * v2 - w2 * v1 - np.cross(v1, v2)
+    return 2 * np.arctan2(np.linalg.norm(vector, axis=-1), np.abs((first * second).sum(-1)))
+
+
+def spread(values: np.ndarray) -> dict[str, float]:
+    return {"median": float(np.median(values)), "max": float(np.max(values))}
+
+
+def replay(engine: Any, ref: Any) -> dict[str, np.ndarray]:
+    """The reference's actions on ``engine`` from the same init states, one action a call: the
+    8-float state and ``qpos`` after each, the images at the reference's marks, success."""
+    actions = ref["actions"]
+    n, steps = actions.shape[:2]
+    marks = [int(t) for t in ref["image_marks"]]
+    # The bench reads the worlds' joints, which no pod call answers.
+    data = engine._batches[0].data
+    ids = np.arange(n)
+    out = {"state": np.zeros((n, steps + 1, 8), np.float32), "qpos": np.zeros((n, steps + 1, data.qpos.shape[1])),
+           "success": np.zeros((n, steps), dtype=bool), "errors": []}
+    out.update({f"image.{name}": np.zeros((n, len(marks), *ref[f"image.{name}"].shape[2:]), np.uint8) for name in CAMERAS})
+    obs, _ = engine.reset_envs(ids, ids)
+    for t in range(steps + 1):
+        if t:
+            result = engine.chunk_step_envs(ids, actions[:, t - 1 : t], step_past_end=True)
+            obs = result.obs
+            out["success"][:, t - 1] = result.success[:, 0]
+            out["errors"] += [e.message for e in result.errors]
+        out["state"][:, t] = obs["state"]
+        out["qpos"][:, t] = data.qpos.numpy()[:n]
+        if t in marks:
+            for name in CAMERAS:
+                out[f"image.{name}"][:, marks.index(t)] = obs["images"][name]
+    return out
+
+
+def sameness(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
+    """How two replays of the same inputs differ: the largest difference of each output, the
+    first action after which the state or joints differ (None: never), and how far apart the
+    joints are after it."""
+    largest = {key: float(np.abs(first[key].astype(np.float64) - second[key]).max()) for key in first if key != "errors"}
+    steps = first["state"].shape[1]
+    differs = [t for t in range(steps) if (first["state"][:, t] != second["state"][:, t]).any()
+               or (first["qpos"][:, t] != second["qpos"][:, t]).any()]
+    t = differs[0] if differs else None
+    return {"max_abs_diff": largest, "identical": all(v == 0.0 for v in largest.values()), "first_differing_action": t,
+            "qpos_diff_there": None if t is None else float(np.abs(first["qpos"][:, t] - second["qpos"][:, t]).max())}
+
+
+def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) -> dict[str, Any]:
+    """Replay the reference's actions on the mjwarp engine from the same init states: twice on
+    one build (a reset between), once more on a second build."""
     from vecsim.engine.base import engine_kind
 
-    actions, want = ref["actions"], ref["states"]
-    n, steps = actions.shape[:2]
-    size = int(ref[f"image.{CAMERAS[0]}"].shape[1])
-    engine = engine_kind("mjwarp").build(assignment(args.task, n, size, "mjwarp"))
+    n, steps = ref["actions"].shape[:2]
+    size = int(ref[f"image.{CAMERAS[0]}"].shape[2])
+
+    def build() -> Any:
+        os.environ["VECSIM_MJWARP_DETERMINISTIC"] = "1" if deterministic else "0"
+        try:
+            return engine_kind("mjwarp").build(assignment(args.task, n, size, "mjwarp"))
+        finally:
+            del os.environ["VECSIM_MJWARP_DETERMINISTIC"]  # the mode is read at the build only
+
+    started = time.monotonic()
+    engine = build()
+    built = time.monotonic() - started
     try:
-        ids = np.arange(n)
-        obs, _ = engine.reset_envs(ids, ids)
-        mad = {name: float(np.abs(obs["images"][name].astype(np.int16) - ref[f"image.{name}"]).mean()) for name in CAMERAS}
-        # The same with the image flipped each way: a layout mismatch shows as a large MAD that
-        # one flip brings down.
-        flips = {"rows": (slice(None), slice(None, None, -1)), "columns": (slice(None), slice(None), slice(None, None, -1))}
-        mad_flipped = {
-            f"{name}/{flip}": float(np.abs(obs["images"][name][index].astype(np.int16) - ref[f"image.{name}"]).mean())
-            for name in CAMERAS for flip, index in flips.items()
-        }
-        have = np.zeros_like(want)
-        have[:, 0] = obs["state"]
-        won = np.zeros((n, steps), dtype=bool)
-        for t in range(steps):
-            result = engine.chunk_step_envs(ids, actions[:, t : t + 1], step_past_end=True)
-            have[:, t + 1] = result.obs["state"]
-            won[:, t] = result.success[:, 0]
-        errors = [e.message for e in result.errors]
+        mjm = engine._batches[0].mjm
+        have = replay(engine, ref)
+        again = replay(engine, ref)
     finally:
         engine.close()
-    eef = np.linalg.norm(have[..., :3] - want[..., :3], axis=-1)
-    marks = [t for t in (0, 1, 5, 10, 20, 40, 80, 160) if t <= steps]
+    engine = build()
+    try:
+        fresh = replay(engine, ref)
+    finally:
+        engine.close()
+    marks = [t for t in MARKS if t <= steps]
+    eef = np.linalg.norm(have["state"][..., :3] - ref["states"][..., :3], axis=-1)
+    # Every free joint's body (the objects): position and rotation angle apart.
+    free = [int(mjm.jnt_qposadr[j]) for j in range(mjm.njnt) if mjm.jnt_type[j] == 0]
+    pos = np.stack([np.linalg.norm(have["qpos"][..., a : a + 3] - ref["qpos"][..., a : a + 3], axis=-1) for a in free], -1)
+    angle = np.stack([rotation_between(have["qpos"][..., a + 3 : a + 7], ref["qpos"][..., a + 3 : a + 7]) for a in free], -1)
+    images = {}
+    for name in CAMERAS:
+        want, got = ref[f"image.{name}"], have[f"image.{name}"]
+        images[name] = {
+            str(int(t)): {"mad": float(np.abs(got[:, i].astype(np.int16) - want[:, i]).mean()),
+                          "ssim": float(ssim(got[:, i], want[:, i]).mean())}
+            for i, t in enumerate(ref["image_marks"])
+        }
     return {
-        "states": n, "actions": steps, "image_size": size, "image_mad": mad, "image_mad_flipped": mad_flipped,
-        "eef_pos_divergence_m": {str(t): {"median": float(np.median(eef[:, t])), "max": float(eef[:, t].max())} for t in marks},
-        "gripper_divergence_max": float(np.abs(have[..., 6:] - want[..., 6:]).max()),
-        "success_agreement": float((won == ref["success"]).mean()), "errors": errors,
+        "states": n, "actions": steps, "image_size": size, "deterministic": deterministic, "build_s": built,
+        "eef_pos_divergence_m": {str(t): spread(eef[:, t]) for t in marks},
+        "objects": len(free),
+        "object_pos_divergence_m": {str(t): spread(pos[:, t]) for t in marks},
+        "object_angle_divergence_rad": {str(t): spread(angle[:, t]) for t in marks},
+        "gripper_divergence_max": float(np.abs(have["state"][..., 6:] - ref["states"][..., 6:]).max()),
+        "images": images,
+        "success_agreement": float((have["success"] == ref["success"]).mean()),
+        "success_reached": {"mjwarp": int(have["success"].any(1).sum()), "cpu": int(ref["success"].any(1).sum())},
+        "repeat_after_reset": sameness(have, again), "repeat_on_new_build": sameness(have, fresh),
+        "errors": have["errors"],
     }
 
 
@@ -217,6 +333,9 @@ def run(args: argparse.Namespace) -> None:
             # Right after the first run, while the budget lasts: its kernels are compiled.
             record["fidelity"] = fidelity(args, ref)
             write(record, args.out)
+            if args.deterministic and time.monotonic() < deadline:
+                record["fidelity_deterministic"] = fidelity(args, ref, deterministic=True)
+                write(record, args.out)
     record["complete"] = True
     write(record, args.out)
     print("RESULT", json.dumps(record))
@@ -227,58 +346,208 @@ def run_spec(text: str) -> tuple[int, int]:
     return int(size), int(worlds)
 
 
-def through_pod(args: argparse.Namespace) -> None:
-    """One real pod (``vecsim pod``, uvicorn, HTTP on loopback) on ``--engine``: reset every env,
-    then time ``--calls`` chunk steps of random actions through ``/v1/step`` (wire format)."""
+def gpu_memory_used_mib() -> int | None:
+    """The GPU's used memory as ``nvidia-smi`` reads it (every process), or None without one."""
+    import subprocess
+
+    try:
+        text = subprocess.run(["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"],
+                              capture_output=True, text=True, timeout=30, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return int(text.split()[0])
+
+
+def scrape(urls: list[str]) -> dict[str, float]:
+    """The pods' step counters (``/metrics``), summed over ``urls``."""
+    import re
+
+    import httpx
+
+    totals: dict[str, float] = dict.fromkeys(POD_COUNTERS, 0.0)
+    for url in urls:
+        for name, value in re.findall(r"^(vecsim_pod_[a-z_]+?)(?:\{[^}]*\})? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.M):
+            if name in totals:
+                totals[name] += float(value)
+    return totals
+
+
+POD_COUNTERS = ("vecsim_pod_step_seconds_sum", "vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
+
+
+def layout_spec(text: str) -> tuple[int, int, int | None]:
+    """``PODSxENVS`` or ``PODSxENVS@SIZE`` (the cameras' size for this layout, 0: none)."""
+    layout, _, size = text.partition("@")
+    pods, _, envs = layout.partition("x")
+    return int(pods), int(envs), int(size) if size else None
+
+
+def drive(url: str, envs: int, chunk: int, calls: int, seed: int) -> dict[str, Any]:
+    """Step every env of the pod at ``url`` ``calls`` times, back to back (in a process of its
+    own, so that decoding one pod's answers does not wait on another's): env-steps, the span,
+    and the seconds spent waiting for answers and decoding them."""
+    import httpx
+
+    from vecsim import wire
+
+    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
+    rng = np.random.default_rng(seed)
+    ids = np.arange(envs)
+    steps, waiting, decoding, size = 0, 0.0, 0.0, 0
+    with httpx.Client(timeout=600) as client:
+        begun = time.perf_counter()
+        for _ in range(calls):
+            actions = rng.uniform(-0.3, 0.3, (envs, chunk, 7)).astype(np.float32)
+            body = wire.encode({"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
+            sent = time.perf_counter()
+            answer = client.post(f"{url}/v1/step", content=body, headers=headers)
+            answer.raise_for_status()
+            received = time.perf_counter()
+            steps += int(np.asarray(wire.decode(answer.content)["num_steps"]).sum())
+            waiting += received - sent
+            decoding += time.perf_counter() - received
+            size = len(answer.content)
+        ended = time.perf_counter()
+    return {"steps": steps, "begun": begun, "ended": ended, "waiting": waiting, "decoding": decoding, "bytes": size}
+
+
+def run_layout(
+    args: argparse.Namespace, engine: str, pods: int, envs: int, size: int, pythonpath: str | None, port: int
+) -> dict[str, Any]:
+    """Start ``pods`` real pods (``vecsim pod``, uvicorn, loopback) of ``envs`` envs each on
+    ``engine``; reset every env; step every pod ``--calls`` times with chunks of random actions
+    through ``/v1/step`` (wire format), one client process a pod (:func:`drive`); stop them.
+    CPU pods are pinned to equal shares of this process's cores; ``mjwarp`` pods start one
+    after the other."""
+    import multiprocessing
     import subprocess
     import sys
     import tempfile
+    from concurrent.futures import ProcessPoolExecutor
 
     import httpx
 
     from vecsim import wire
 
-    spec = assignment(args.task, args.envs, args.size, args.engine)
-    record: dict[str, Any] = {"engine": args.engine, "envs": args.envs, "size": args.size, "chunk": args.chunk, "machine": args.machine}
-    url = f"http://127.0.0.1:{args.port}"
+    cores = sorted(os.sched_getaffinity(0))
+    share = len(cores) // pods
+    if engine == "cpu" and share < 1:
+        raise ValueError(f"--cpu-layouts: {pods} pods on {len(cores)} cores")
+    code = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "VECSIM_MAX_ENVS": str(envs), "VECSIM_BUILD_TIMEOUT_S": "900"}
+    env["PYTHONPATH"] = ":".join(p for p in (code, pythonpath or env.get("PYTHONPATH")) if p)
+    urls = [f"http://127.0.0.1:{port + i}" for i in range(pods)]
     headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
-    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as handle:
-        handle.write(spec.model_dump_json())
-    env = {**os.environ, "VECSIM_MAX_ENVS": str(args.envs), "VECSIM_BUILD_TIMEOUT_S": "900"}
-    command = [sys.executable, "-m", "service.cli", "pod", "--assignment", handle.name, "--port", str(args.port)]
-    pod = subprocess.Popen(command, env=env)
-    try:
-        started = time.monotonic()
-        with httpx.Client(timeout=300) as client:
+    record: dict[str, Any] = {"engine": engine, "pods": pods, "envs_per_pod": envs, "envs": pods * envs,
+                              "cores_per_pod": share if engine == "cpu" else len(cores), "size": size, "chunk": args.chunk}
+    processes: list[subprocess.Popen] = []
+    started = time.monotonic()
+
+    def wait_ready(index: int) -> None:
+        with httpx.Client(timeout=30) as client:
             while True:
                 try:
-                    if client.get(f"{url}/readyz").status_code == 200:
-                        break
+                    if client.get(f"{urls[index]}/readyz").status_code == 200:
+                        return
                 except httpx.TransportError:
                     pass  # not listening yet
-                if pod.poll() is not None or time.monotonic() - started > args.ready_timeout_s:
-                    raise RuntimeError(f"pod not ready after {time.monotonic() - started:.0f} s")
+                if processes[index].poll() is not None or time.monotonic() - started > args.ready_timeout_s:
+                    raise RuntimeError(f"{engine} pod {index} not ready after {time.monotonic() - started:.0f} s")
                 time.sleep(1.0)
-            record["ready_s"] = time.monotonic() - started
-            ids = np.arange(args.envs)
 
-            def call(op: str, body: dict[str, Any]) -> dict[str, Any]:
-                answer = client.post(f"{url}/v1/{op}", content=wire.encode(body), headers=headers)
-                answer.raise_for_status()
-                return wire.decode(answer.content)
-
-            call("reset", {"generation": 0, "env_indices": ids, "state_ids": ids % 50})
-            rng = np.random.default_rng(0)
-            steps, begun = 0, time.perf_counter()
-            for _ in range(args.calls):
-                actions = rng.uniform(-0.3, 0.3, (args.envs, args.chunk, 7)).astype(np.float32)
-                answer = call("step", {"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
-                steps += int(np.asarray(answer["num_steps"]).sum())
-            elapsed = time.perf_counter() - begun
-        record.update(calls=args.calls, env_steps=steps, seconds=elapsed, env_steps_per_s=steps / elapsed)
+    try:
+        with tempfile.TemporaryDirectory() as folder:
+            for i in range(pods):
+                spec = assignment(args.task, envs, size, engine).model_copy(update={"pod": f"sim-{i}"})
+                path = Path(folder) / f"pod{i}.json"
+                path.write_text(spec.model_dump_json())
+                pinned = set(cores[i * share : (i + 1) * share]) if engine == "cpu" else None
+                command = [sys.executable, "-m", "service.cli", "pod", "--assignment", str(path), "--name", spec.pod,
+                           "--port", str(port + i)]
+                processes.append(subprocess.Popen(
+                    command, env=env, cwd=code, preexec_fn=(lambda c=pinned: os.sched_setaffinity(0, c)) if pinned else None,
+                ))
+                if engine == "mjwarp":
+                    wait_ready(i)  # the next pod finds the kernel cache warm
+            for i in range(pods):
+                wait_ready(i)
+        record["ready_s"] = time.monotonic() - started
+        record["gpu_memory_used_mib"] = gpu_memory_used_mib()
+        ids = np.arange(envs)
+        with httpx.Client(timeout=600) as client:
+            for i, url in enumerate(urls):
+                body = wire.encode({"generation": 0, "env_indices": ids, "state_ids": (ids + i * envs) % 50})
+                client.post(f"{url}/v1/reset", content=body, headers=headers).raise_for_status()
+        before = scrape(urls)
+        with ProcessPoolExecutor(pods, mp_context=multiprocessing.get_context("fork")) as pool:
+            driven = list(pool.map(drive, urls, [envs] * pods, [args.chunk] * pods, [args.calls] * pods, range(pods)))
+        after = scrape(urls)
+        elapsed = max(d["ended"] for d in driven) - min(d["begun"] for d in driven)
+        steps = sum(d["steps"] for d in driven)
+        calls = pods * args.calls
+        counters = {name.removeprefix("vecsim_pod_"): after[name] - before[name] for name in after}
+        record.update(
+            calls_per_pod=args.calls, env_steps=steps, seconds=elapsed, env_steps_per_s=steps / elapsed,
+            answer_bytes=driven[0]["bytes"],
+            # Per call: the client's wall time, its wait for the answer and its decoding; the pod's
+            # engine call, its physics and render (summed over a CPU pod's workers).
+            per_call_s={"client": sum(d["ended"] - d["begun"] for d in driven) / calls,
+                        "client_waiting": sum(d["waiting"] for d in driven) / calls,
+                        "client_decoding": sum(d["decoding"] for d in driven) / calls,
+                        "engine": counters["step_seconds_sum"] / calls,
+                        "physics": counters["physics_seconds_total"] / calls,
+                        "render": counters["render_seconds_total"] / calls},
+        )
     finally:
-        pod.terminate()
-        pod.wait(timeout=60)
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=30)
+    log.info("%s %dx%d at %d: %.0f env-steps/s", engine, pods, envs, size, record["env_steps_per_s"])
+    return record
+
+
+def side(args: argparse.Namespace) -> None:
+    """The node's CPU pods and the mjwarp pods, one layout after the other, in one invocation."""
+    import httpx
+
+    deadline = time.monotonic() + args.budget_s
+    record: dict[str, Any] = {"task": args.task, "size": args.size, "chunk": args.chunk, "machine": args.machine,
+                              "cores": len(os.sched_getaffinity(0)), "layouts": [], "complete": False}
+    write(record, args.out)
+    plan = [("cpu", *layout, args.cpu_pythonpath) for layout in args.cpu_layouts]
+    plan += [("mjwarp", *layout, args.mjwarp_pythonpath) for layout in args.mjwarp_layouts]
+    for index, (engine, pods, envs, size, pythonpath) in enumerate(plan):
+        size = args.size if size is None else size
+        if time.monotonic() > deadline:
+            record["cut_short"] = f"budget of {args.budget_s} s spent before {engine} {pods}x{envs}@{size}"
+            break
+        try:
+            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, args.port + 32 * index))
+        except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
+            record["layouts"].append({"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)})
+            log.error("%s %dx%d@%d failed: %s", engine, pods, envs, size, exc)
+        best = {}
+        for entry in record["layouts"]:
+            # The ratio is the issue's: at --size on both sides.
+            if "env_steps_per_s" in entry and entry["size"] == args.size:
+                best[entry["engine"]] = max(best.get(entry["engine"], 0.0), entry["env_steps_per_s"])
+        if len(best) == 2:
+            record["ratio_best_mjwarp_to_best_cpu"] = best["mjwarp"] / best["cpu"]
+        write(record, args.out)
+    else:
+        record["complete"] = True
+    write(record, args.out)
+    print("RESULT", json.dumps(record))
+
+
+def through_pod(args: argparse.Namespace) -> None:
+    """One real pod on ``--engine`` (a layout of one, see :func:`run_layout`)."""
+    record = {"machine": args.machine, **run_layout(args, args.engine, 1, args.envs, args.size, None, args.port)}
     write(record, args.out)
     print("RESULT", json.dumps(record))
 
@@ -307,6 +576,7 @@ def main() -> None:
     go.add_argument("--calls", type=int, default=10)
     go.add_argument("--budget-s", type=float, default=480.0)
     go.add_argument("--reference", type=Path, default=None)
+    go.add_argument("--deterministic", action="store_true", help="replay the reference again with opt.deterministic on")
     go.add_argument("--cpu-rate", type=float, default=None, help="a CPU-pod rate measured elsewhere, printed beside only")
     go.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp.json"))
     pod = sub.add_parser("pod", help="one real pod on an engine, timed through HTTP")
@@ -319,7 +589,22 @@ def main() -> None:
     pod.add_argument("--port", type=int, default=8100)
     pod.add_argument("--ready-timeout-s", type=float, default=500.0)
     pod.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp_pod.json"))
-    for command in (ref, go, pod):
+    both = sub.add_parser("side", help="the node's CPU pods and the mjwarp pods in one invocation, with the ratio")
+    both.add_argument("--task", default="libero_10/0")
+    both.add_argument("--size", type=int, default=256)
+    both.add_argument("--chunk", type=int, default=8)
+    both.add_argument("--calls", type=int, default=10)
+    both.add_argument("--cpu-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x32")],
+                      help="PODSxENVS[@SIZE], in order (SIZE: the cameras' size if not --size; 0: none)")
+    both.add_argument("--mjwarp-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x1024")],
+                      help="PODSxENVS[@SIZE], in order")
+    both.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
+    both.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
+    both.add_argument("--port", type=int, default=8100)
+    both.add_argument("--ready-timeout-s", type=float, default=500.0)
+    both.add_argument("--budget-s", type=float, default=540.0)
+    both.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp_side.json"))
+    for command in (ref, go, pod, both):
         command.add_argument(
             "--machine", default=platform.node(),
             help="names the machine; a ratio to the CPU engine is given only when both steps name the same one",
@@ -327,7 +612,7 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    {"reference": reference, "run": run, "pod": through_pod}[args.command](args)
+    {"reference": reference, "run": run, "pod": through_pod, "side": side}[args.command](args)
 
 
 if __name__ == "__main__":

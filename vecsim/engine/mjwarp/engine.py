@@ -4,9 +4,11 @@ Each task block of an assignment is one batch of worlds (one MuJoCo Warp model, 
 the block's envs), built from the task's exported scene (:mod:`vecsim.engine.mjwarp.scene`).
 Per env action, 25 physics substeps run as robosuite runs them: ``step1`` (positions and
 velocities), then the batched OSC_POSE and gripper controller writes ``ctrl`` (its goal taken at
-the first substep), then ``step2`` (actuation, constraints, integration). After each action the
-success predicates, the 8-float state and proprio are computed on the GPU; cameras are drawn
-once per chunk, after the last action, by MuJoCo Warp's ray tracer.
+the first substep), then ``step2`` (actuation, constraints, integration). The 8-float state and
+proprio are taken where LIBERO samples its observables, after substep 24 of 25
+(``observables.LIBERO_SAMPLE_SUBSTEP``), with a copy of the kinematics the cameras read; the
+success predicates after the last substep, as LIBERO's reward. Cameras are drawn once per
+chunk, from that copy of each world's last action, by MuJoCo Warp's ray tracer.
 
 What a call guarantees, as on the CPU engine:
 
@@ -53,12 +55,17 @@ log = logging.getLogger(__name__)
 # task 0; MuJoCo Warp's defaults overflowed there, these did not.
 NCONMAX = int(os.environ.get("VECSIM_MJWARP_NCONMAX", "96"))
 NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
+# "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics). On
+# LIBERO-10 task 0 it shrank, not removed, the run-to-run spread (docs/mjwarp.md, Determinism).
+DETERMINISTIC_ENV = "VECSIM_MJWARP_DETERMINISTIC"
 # The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
 # render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
 GEOM_GROUPS = [1, 2]
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
 _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
+# The kinematics MuJoCo Warp's renderer reads (render.py, bvh.py), copied where LIBERO samples.
+_VIEW = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat", "light_xpos", "light_xdir")
 
 
 def _missing_packages() -> list[str]:
@@ -138,8 +145,13 @@ class _Batch:
     max_steps: int
     # The action of every world for the action being applied (zeros where a world does not step).
     action: Any
-    # One camera's pixels of every world, uint8 [nworld, H, W, 3] (None without cameras).
+    # One camera's pixels of every world, uint8 [nworld, H, W, 3], on the GPU and in pinned host
+    # memory (None without cameras).
     pixels: Any = None
+    host: Any = None
+    # Each world's _VIEW arrays as LIBERO's cameras see them: at the sample substep of its last
+    # action, or at its reset (None without cameras).
+    view: dict[str, Any] | None = None
     # One action's substeps as a CUDA graph, captured at the first action (None on a CPU device).
     graph: Any = None
 
@@ -217,6 +229,8 @@ class MjwarpEngine:
         mjm.body_pos[:], mjm.body_quat[:] = states["body_pos"][0], states["body_quat"][0]
         nworld = block.num_envs
         model = mjw.put_model(mjm)
+        if os.environ.get(DETERMINISTIC_ENV, "0") == "1":
+            model.opt.deterministic = int(mjw.DeterminismType.ALL)
         data = mjw.make_data(mjm, nworld=nworld, nconmax=NCONMAX, njmax=NJMAX)
         panda = dict(tables["panda"])
         # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
@@ -234,10 +248,14 @@ class MjwarpEngine:
         limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
         log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
         action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
-        pixels = None
+        batch = _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action)
         if render is not None:
-            pixels = wp.zeros((nworld, camera.height, camera.width, 3), dtype=wp.uint8, device=controller.device)
-        return _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action, pixels)
+            shape = (nworld, camera.height, camera.width, 3)
+            batch.pixels = wp.zeros(shape, dtype=wp.uint8, device=controller.device)
+            # Pinned: the copy to the host runs at the bus's rate, not through a staging buffer.
+            batch.host = wp.zeros(shape, dtype=wp.uint8, device="cpu", pinned=controller.device.is_cuda)
+            batch.view = {name: wp.clone(getattr(data, name)) for name in _VIEW}
+        return batch
 
     # The PodEngine calls.
 
@@ -408,6 +426,11 @@ class MjwarpEngine:
         # Derived quantities at the restored state, for the camera; the observation is the one
         # the CPU pod answered for this reset.
         mjw.forward(batch.model, data)
+        if batch.view is not None:
+            for name, view in batch.view.items():
+                values = view.numpy()
+                values[worlds] = getattr(data, name).numpy()[worlds]
+                view.assign(values)
         envs = worlds + batch.block.env_start
         self._obs["state"][envs] = recorded["obs_state"][states]
         self._obs["proprio"][envs] = recorded["obs_proprio"][states]
@@ -416,18 +439,22 @@ class MjwarpEngine:
         for env in envs:
             self._broken.pop(int(env), None)
 
-    def _snapshot(self, batch: _Batch) -> dict[str, np.ndarray]:
-        arrays = {name: getattr(batch.data, name).numpy() for name in _DATA_STATE}
-        arrays.update({f"controller.{n}": getattr(batch.controller, n).numpy() for n in _CONTROLLER_STATE})
+    @staticmethod
+    def _state_arrays(batch: _Batch) -> dict[str, Any]:
+        """Every per-world array that a world which does not step must keep."""
+        arrays = {name: getattr(batch.data, name) for name in _DATA_STATE}
+        arrays.update({f"controller.{n}": getattr(batch.controller, n) for n in _CONTROLLER_STATE})
+        arrays.update({f"view.{n}": view for n, view in (batch.view or {}).items()})
         return arrays
+
+    def _snapshot(self, batch: _Batch) -> dict[str, np.ndarray]:
+        return {key: array.numpy() for key, array in self._state_arrays(batch).items()}
 
     def _put_back(self, batch: _Batch, saved: dict[str, np.ndarray], frozen: np.ndarray) -> None:
         """Give the ``frozen`` worlds (bool per world) their ``saved`` state again."""
-        for key, before in saved.items():
-            owner, name = (batch.controller, key.split(".", 1)[1]) if key.startswith("controller.") else (batch.data, key)
-            array = getattr(owner, name)
+        for key, array in self._state_arrays(batch).items():
             now = array.numpy()
-            now[frozen] = before[frozen]
+            now[frozen] = saved[key][frozen]
             array.assign(now)
 
     def _step_batch(
@@ -448,7 +475,9 @@ class MjwarpEngine:
         worlds = ids[rows] - batch.block.env_start
         running = np.zeros(nworld, dtype=bool)
         running[worlds] = True
-        saved = self._snapshot(batch)
+        # Taken only when a world may not step: when every world steps, none is put back until
+        # one ends (then that world's state is saved) or fails (then it must be reset anyway).
+        saved = self._snapshot(batch) if not running.all() else None
         data = batch.data
         world_action = np.zeros((nworld, actions.shape[2]), dtype=np.float32)
         row_of_world = {int(w): int(r) for w, r in zip(worlds, rows)}
@@ -495,9 +524,11 @@ class MjwarpEngine:
             running[ended] = False
             if ended:
                 now = self._snapshot(batch)
+                if saved is None:
+                    saved = now
                 for key, values in now.items():
                     saved[key][ended] = values[ended]
-            if frozen.any():
+            if frozen.any() and saved is not None:
                 self._put_back(batch, saved, frozen)
 
     def _render(self, ids: np.ndarray) -> tuple[float, int]:
@@ -506,6 +537,7 @@ class MjwarpEngine:
         if not self.assignment.camera.names or ids.size == 0:
             return 0.0, 0
         import mujoco_warp as mjw
+        import warp as wp
 
         from vecsim.engine.mjwarp import frames
 
@@ -515,13 +547,19 @@ class MjwarpEngine:
         orientation = self.assignment.libero.image_orientation
         for batch, rows, worlds in self._split(ids):
             rc = batch.render
+            # The cameras see the kinematics LIBERO sampled; the data's own are recomputed by the
+            # next step1 or reset, so they may be overwritten here.
+            for name, view in batch.view.items():
+                wp.copy(getattr(batch.data, name), view)
             mjw.refit_bvh(batch.model, batch.data, rc)
             mjw.render(batch.model, batch.data, rc)
             first = rc.rgb_adr.numpy()
             start, count = batch.block.env_start, batch.block.num_envs
             for index, name in enumerate(camera.names):
                 frames.unpack(rc.rgb_data, first[index], camera.height, camera.width, orientation, batch.pixels)
-                host = batch.pixels.numpy()
+                wp.copy(batch.host, batch.pixels)
+                wp.synchronize_device(batch.pixels.device)
+                host = batch.host.numpy()
                 if worlds.size == count:
                     self._obs["images"][name][start : start + count] = host
                 else:
@@ -541,19 +579,28 @@ class MjwarpEngine:
 
 def _action_substeps(batch: _Batch) -> None:
     """One env action in every world of ``batch``: its physics substeps as robosuite runs them
-    (controller between ``step1`` and ``step2``), then the observables and the goal."""
+    (controller between ``step1`` and ``step2``); the observables and the cameras' kinematics
+    where LIBERO samples them, the goal after the last substep."""
     import mujoco_warp as mjw
+    import warp as wp
+
+    from vecsim.engine.mjwarp.observables import LIBERO_SAMPLE_SUBSTEP
 
     data, model, controller, action = batch.data, batch.model, batch.controller, batch.action
     data.overflow.zero_()
-    for substep in range(int(batch.scene.manifest["robot"]["substeps"])):
+    substeps = int(batch.scene.manifest["robot"]["substeps"])
+    sample = min(LIBERO_SAMPLE_SUBSTEP, substeps - 1)
+    for substep in range(substeps):
         mjw.step1(model, data)
         if substep == 0:
             controller.set_goal(action, data.site_xpos, data.site_xmat)
         controller.apply(action, data.qpos, data.qvel, data.M, data.qfrc_bias, data.site_xpos,
                          data.site_xmat, data.xanchor, data.xaxis, data.ctrl)
         mjw.step2(model, data)
-    batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
+        if substep == sample:
+            batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
+            for name, view in (batch.view or {}).items():
+                wp.copy(view, getattr(data, name))
     batch.goal.evaluate(data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon,
                         data.contact.geom, data.contact.worldid)
 
