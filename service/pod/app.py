@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 from collections.abc import AsyncIterator
 
 from fastapi import FastAPI
@@ -60,7 +61,10 @@ def create_app(settings: PodSettings) -> FastAPI:
         if settings.controller_url:
             agent = ControllerAgent(settings, lambda: heartbeat_of(state))
             agent_task = asyncio.create_task(agent.run(), name=f"{settings.name}-agent")
-        log.info("pod %s (namespace %s) serving at %s", settings.name, settings.namespace, settings.url)
+        log.info(
+            "pod %s (namespace %s) serving at %s, on CPUs %s", settings.name, settings.namespace, settings.url,
+            sorted(os.sched_getaffinity(0)),
+        )
         try:
             yield
         finally:
