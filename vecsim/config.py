@@ -8,6 +8,7 @@ default.
 from __future__ import annotations
 
 import re
+from collections.abc import Collection
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -325,11 +326,13 @@ class PodsConfig(_Model):
     host: str = "127.0.0.1"
     base_port: int = Field(8100, ge=1024, le=65000)
     max_envs: int = Field(64, ge=0)
-    cpu_affinity: tuple[str, ...] = Field(
-        (),
+    cpu_affinity: Literal["auto", "off"] | tuple[str, ...] = Field(
+        "auto",
         description=(
-            "CPU lists (taskset -c syntax) to pin pods to, as a CPU limit confines a pod in "
-            "Kubernetes: pod i (its env workers too) runs on cpu_affinity[i % len]; empty: unpinned"
+            "how pods share the machine's CPUs, as CPU limits share a Kubernetes node: 'auto' gives "
+            "each pod (its env workers too) an equal share of the CPUs the runner may use (more pods "
+            "than CPUs: one CPU each, in turn); CPU lists (taskset -c syntax) pin pod i to "
+            "cpu_affinity[i % len]; 'off' or an empty list leaves pods unpinned"
         ),
     )
 
@@ -344,14 +347,28 @@ class PodsConfig(_Model):
 
     @field_validator("cpu_affinity")
     @classmethod
-    def _cpu_lists(cls, lists: tuple[str, ...]) -> tuple[str, ...]:
-        for text in lists:
+    def _cpu_lists(cls, lists: str | tuple[str, ...]) -> str | tuple[str, ...]:
+        for text in () if isinstance(lists, str) else lists:
             parse_cpu_list(text)
         return lists
 
-    def cpus_of(self, ordinal: int) -> str | None:
-        """Return the CPU list pod ``ordinal`` is pinned to, or None when pods are not pinned."""
-        return self.cpu_affinity[ordinal % len(self.cpu_affinity)] if self.cpu_affinity else None
+    def cpus_of(self, ordinal: int, usable: Collection[int]) -> list[int] | None:
+        """Return the CPUs pod ``ordinal`` runs on, or None when pods are not pinned.
+
+        ``usable``: the CPUs the pods may share (the runner's own affinity), which ``auto``
+        splits into ``replicas`` contiguous shares of equal size (the first ones one CPU larger
+        when they do not divide); with more pods than CPUs, pod ``i`` gets CPU ``i % len``.
+        """
+        if self.cpu_affinity == "off" or not self.cpu_affinity:
+            return None
+        if self.cpu_affinity != "auto":
+            return sorted(parse_cpu_list(self.cpu_affinity[ordinal % len(self.cpu_affinity)]))
+        cpus = sorted(usable)
+        if self.replicas >= len(cpus):
+            return [cpus[ordinal % len(cpus)]]
+        size, larger = divmod(len(cpus), self.replicas)
+        start = ordinal * size + min(ordinal, larger)
+        return cpus[start : start + size + (ordinal < larger)]
 
     def render_gpu_of(self, ordinal: int) -> int | None:
         """Return the EGL device pod ``ordinal`` renders on, or None for the default device."""

@@ -16,16 +16,25 @@ engine builds the tasks (``vecsim.engine.tasks``), and a test holds the two to o
 
 from __future__ import annotations
 
-__all__ = ["LIBERO_SUITE_SIZES", "ROBOSUITE_SUITES", "is_known", "normalize_task_id", "space_family",
+from typing import NamedTuple
+
+__all__ = ["LIBERO_SUITES", "ROBOSUITE_SUITES", "LiberoSuite", "is_known", "normalize_task_id", "space_family",
            "suite_names", "suite_task_ids"]
 
-# Suite -> number of tasks, as LIBERO's benchmark lists them.
-LIBERO_SUITE_SIZES: dict[str, int] = {
-    "libero_10": 10,
-    "libero_spatial": 10,
-    "libero_object": 10,
-    "libero_goal": 10,
-    "libero_90": 90,
+
+class LiberoSuite(NamedTuple):
+    num_tasks: int  # as LIBERO's benchmark lists them
+    # The default episode length: the step budget of LIBERO's published evaluations (the longest
+    # training demonstration of the suite plus a margin), settle steps not counted.
+    max_episode_steps: int
+
+
+LIBERO_SUITES: dict[str, LiberoSuite] = {
+    "libero_10": LiberoSuite(10, 520),
+    "libero_spatial": LiberoSuite(10, 220),
+    "libero_object": LiberoSuite(10, 280),
+    "libero_goal": LiberoSuite(10, 300),
+    "libero_90": LiberoSuite(90, 400),
 }
 ROBOSUITE_SUITES: dict[str, tuple[str, ...]] = {
     "robosuite": (
@@ -45,7 +54,7 @@ def normalize_task_id(task_id: str) -> str:
 
 def suite_names() -> list[str]:
     """The suites' names (gymnasium ids are tasks of no suite)."""
-    return [*LIBERO_SUITE_SIZES, *ROBOSUITE_SUITES]
+    return [*LIBERO_SUITES, *ROBOSUITE_SUITES]
 
 
 def suite_task_ids(suite: str) -> list[str]:
@@ -54,8 +63,8 @@ def suite_task_ids(suite: str) -> list[str]:
     Raises:
         KeyError: no suite of that name.
     """
-    if suite in LIBERO_SUITE_SIZES:
-        return [f"{suite}/{index}" for index in range(LIBERO_SUITE_SIZES[suite])]
+    if suite in LIBERO_SUITES:
+        return [f"{suite}/{index}" for index in range(LIBERO_SUITES[suite].num_tasks)]
     if suite in ROBOSUITE_SUITES:
         return [f"{suite}/{name}" for name in ROBOSUITE_SUITES[suite]]
     raise KeyError(suite)
@@ -66,8 +75,8 @@ def is_known(task_id: str) -> bool:
     suite, _, name = normalize_task_id(task_id).partition("/")
     if suite == "gym":
         return bool(name)
-    if suite in LIBERO_SUITE_SIZES:
-        return name.isdigit() and int(name) < LIBERO_SUITE_SIZES[suite] and str(int(name)) == name
+    if suite in LIBERO_SUITES:
+        return name.isdigit() and int(name) < LIBERO_SUITES[suite].num_tasks and str(int(name)) == name
     return name in ROBOSUITE_SUITES.get(suite, ())
 
 
@@ -77,7 +86,7 @@ def space_family(task_id: str) -> str:
     share one observation space and one action space."""
     normalized = normalize_task_id(task_id)
     suite = normalized.partition("/")[0]
-    if suite in LIBERO_SUITE_SIZES:
+    if suite in LIBERO_SUITES:
         return "libero"
     if suite in ROBOSUITE_SUITES:
         return "robosuite"

@@ -1,5 +1,5 @@
 """The controller's FastAPI app: routers over one :class:`ControllerState`, and the reconcile
-loop running for the app's lifetime."""
+loop running for the app's lifetime, wired as both servers are (:func:`service.app.server_app`)."""
 
 from __future__ import annotations
 
@@ -9,14 +9,10 @@ import logging
 import time
 from collections.abc import AsyncIterator, Callable
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
-from service.http import BearerTokenMiddleware, BodyLimitMiddleware, describe_validation_error, document_bearer_security
-from service.metrics import refusal
+from service.app import server_app
 from service.routers import probe_router
-from vecsim import __version__
 from vecsim.auth import TOKEN_ENV, bearer_headers
 from vecsim.transport import make_async_client
 
@@ -84,34 +80,15 @@ def create_app(
                 stop.set()
                 await asyncio.gather(*tasks)
 
-    app = FastAPI(
+    app = server_app(
         title="vecsim controller",
-        version=__version__,
         description="Pod registry, job plan and routing table of a vecsim job (docs/api.md).",
         lifespan=lifespan,
+        server="the controller",
+        refused=state.metrics.refused,
+        max_body_bytes=settings.max_body_bytes,
+        token=settings.token,
+        routers=[pods.router, job.router, routing.router, probe_router(get_state)],
     )
     app.state.controller = state
-
-    @app.exception_handler(RequestValidationError)
-    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-        # One line naming each field at fault, like every other refusal (docs/api.md).
-        return refusal(state.metrics.refused, 422, "invalid_request", describe_validation_error(exc))
-
-    app.add_middleware(
-        BodyLimitMiddleware,
-        limit=settings.max_body_bytes,
-        on_refused=state.metrics.refused.labels(reason="body_too_large").inc,
-        server="the controller",
-    )
-    # Added last, so it runs first: a request without the token is refused before its body is read.
-    app.add_middleware(
-        BearerTokenMiddleware,
-        token=settings.token,
-        server="the controller",
-        on_refused=state.metrics.refused.labels(reason="unauthorized").inc,
-    )
-    for router in (pods.router, job.router, routing.router, probe_router(get_state)):
-        app.include_router(router)
-    default_openapi = app.openapi
-    app.openapi = lambda: document_bearer_security(default_openapi())  # type: ignore[method-assign]
     return app

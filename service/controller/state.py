@@ -18,33 +18,12 @@ from vecsim.config import Assignment, JobSpec, PodCapacity, PodRecord, PodRegist
 from vecsim.plan import Plan, Slot, adopt, plan
 
 from ..models import Problem, Readiness
+from .errors import NoJobError, NoPlanError, PodUrlConflictError, UnknownPodError
 from .metrics import ControllerMetrics, Gauges
 from .reconcile import Action, Desired, Observed, ObservedPod, desired_assignments, safe_generation, satisfied
 from .settings import ControllerSettings
 
 log = logging.getLogger(__name__)
-
-
-class UnknownPodError(LookupError):
-    """A heartbeat from a pod that is not registered (it should register again)."""
-
-
-class PodUrlConflictError(ValueError):
-    """A heartbeat names another URL than the one its pod registered at.
-
-    Pods are addressed by stable names (a StatefulSet's DNS names), so a live pod's URL does not
-    change; a heartbeat that says otherwise is refused, and the pod keeps its registered URL. A
-    pod that really moved registers again (``POST /v1/pods``), which counts as a restart.
-    """
-
-
-
-class NoJobError(LookupError):
-    """The controller has no job yet."""
-
-
-class NoPlanError(RuntimeError):
-    """The controller has a job but no plan yet (it waits for pods to report)."""
 
 
 @dataclass

@@ -19,6 +19,7 @@ from pathlib import Path
 import uvicorn
 from pydantic import ValidationError
 
+from service.errors import RefusedError
 from service.probes import quiet_probe_logs
 from service.serving import uvicorn_limits
 from vecsim.config import Assignment, ConfigError, JobSpec, load_job_config
@@ -26,7 +27,6 @@ from vecsim.engine.tasks import normalize_task_id, suite_tasks
 from vecsim.plan import Plan, slot_contents
 
 from .app import create_app
-from .errors import PodError
 from .settings import PodSettings, SettingsError
 from .state import check_assignment
 
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         if assignment is not None:
             check_assignment(settings, assignment)
             settings = settings.model_copy(update={"assignment": assignment})
-    except PodError as exc:
+    except RefusedError as exc:
         print(f"vecsim pod: {exc.detail}", file=sys.stderr)
         return 2
     except (SettingsError, ConfigError, ValueError, KeyError) as exc:

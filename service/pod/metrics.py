@@ -4,6 +4,7 @@ lists them."""
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Iterable
 
@@ -59,6 +60,12 @@ class PodMetrics:
         )
         self.envs = Gauge("vecsim_pod_envs", "Envs this pod runs now.", registry=self.registry)
         self.ready = Gauge("vecsim_pod_ready", "1 when the envs are built and serving.", registry=self.registry)
+        self.cpus = Gauge(
+            "vecsim_pod_cpus",
+            "CPUs this pod and its env workers may run on (its CPU affinity; a local job's share).",
+            registry=self.registry,
+        )
+        self.cpus.set_function(lambda: len(os.sched_getaffinity(0)))
         self.refused = refused_requests(self.registry, "pod")
         # Waiting work, both ways: envs waiting for a trajectory, calls waiting for the sim thread.
         self._num_envs = 0

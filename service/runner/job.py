@@ -2,7 +2,8 @@
 
 Pods are named ``sim-0 … sim-N-1``, listen on ``base_port + ordinal``, and get the environment
 a pod gets in Kubernetes (POD_NAME, POD_NAMESPACE, POD_IP, VECSIM_ADVERTISE_URL, CONTROLLER_URL,
-VECSIM_PORT, VECSIM_MAX_ENVS, VECSIM_TOKEN); ``pods.cpu_affinity`` pins them to CPUs (``taskset``).
+VECSIM_PORT, VECSIM_MAX_ENVS, VECSIM_TOKEN); ``pods.cpu_affinity`` shares the runner's CPUs
+between them (by default each pod, its env workers too, runs on its own equal share).
 Every process is probed and restarted like a container; each (re)start of the controller is
 followed by ``PUT /v1/job``. Every process gets
 the job's shared token (``VECSIM_TOKEN``): the one given, else a random one made per job, which
@@ -19,7 +20,6 @@ import atexit
 import logging
 import os
 import secrets
-import shutil
 import sys
 import tempfile
 import time
@@ -172,26 +172,22 @@ class LocalJob:
 
     def _affinity_problems(self) -> list[str]:
         lists = self.config.pods.cpu_affinity
-        if not lists:
+        if isinstance(lists, str):
             return []
+        usable = os.sched_getaffinity(0)
         problems = []
-        if shutil.which("taskset") is None:
-            problems.append("pods.cpu_affinity: pinning pods needs the taskset command (util-linux), not found")
-        count = os.cpu_count() or 1
         for text in lists:
-            missing = sorted(cpu for cpu in parse_cpu_list(text) if cpu >= count)
+            missing = sorted(parse_cpu_list(text) - usable)
             if missing:
                 problems.append(
-                    f"pods.cpu_affinity: {text!r} names CPUs {missing}, but this machine has CPUs 0-{count - 1}"
+                    f"pods.cpu_affinity: {text!r} names CPUs {missing}, but this runner may use CPUs {sorted(usable)}"
                 )
         return problems
 
-    def pod_argv(self, name: str) -> list[str]:
-        """Returns the command that runs pod ``name``: ``vecsim pod``, under ``taskset -c`` when
-        ``pods.cpu_affinity`` pins it (its env workers inherit the pin)."""
-        argv = [self._python, "-m", "service.cli", "pod"]
-        cpus = self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]))
-        return argv if cpus is None else ["taskset", "-c", cpus, *argv]
+    def pod_cpus(self, name: str) -> list[int] | None:
+        """Returns the CPUs pod ``name`` and its env workers run on (``pods.cpu_affinity``), or
+        None when pods are not pinned."""
+        return self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]), os.sched_getaffinity(0))
 
     def start(self) -> LocalJob:
         """Starts the controller and every pod. Returns at once; see :meth:`wait_ready`.
@@ -230,13 +226,14 @@ class LocalJob:
         for name in self.pod_names:
             self.processes[name] = ManagedProcess(
                 name,
-                self.pod_argv(name),
+                [self._python, "-m", "service.cli", "pod"],
                 env={**self._base_env, **self.pod_env(name)},
                 log_path=self.log_dir / f"{name}.log",
                 url=self.pod_url(name),
                 probes=POD,
                 backoff=self._backoff,
                 grace_s=self.grace_s,
+                cpus=self.pod_cpus(name),
             )
         for process in self.processes.values():
             process.start()

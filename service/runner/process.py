@@ -16,7 +16,7 @@ import signal
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,11 +67,20 @@ def signal_group(pgid: int, sig: int) -> None:
         pass
 
 
+def _prepare_child(parent_pid: int, cpus: frozenset[int] | None) -> None:
+    """Runs in the child between fork and exec: it dies with the runner, and the CPUs it is
+    pinned to hold for every thread and process its program will start."""
+    exit_with_parent(parent_pid)
+    if cpus is not None:
+        os.sched_setaffinity(0, cpus)
+
+
 class ManagedProcess:
     """A command kept running: restarted on exit or failed probes, until :meth:`stop`.
 
     ``on_started`` runs (in the watcher thread) each time the startup probe first succeeds
-    after a (re)start; an exception from it is logged, not raised.
+    after a (re)start; an exception from it is logged, not raised. ``cpus`` pins the process
+    (and so all it starts) to those CPUs from before its program runs; None leaves it unpinned.
     """
 
     def __init__(
@@ -86,8 +95,10 @@ class ManagedProcess:
         backoff: Backoff = Backoff(),
         grace_s: float = TERMINATION_GRACE_S,
         on_started: Callable[[], None] | None = None,
+        cpus: Collection[int] | None = None,
     ) -> None:
         self.name = name
+        self.cpus = None if cpus is None else frozenset(cpus)
         self.argv = list(argv)
         self.env = dict(env)
         self.log_path = log_path
@@ -187,10 +198,11 @@ class ManagedProcess:
                     stderr=subprocess.STDOUT,
                     start_new_session=True,
                     # Forked by the watcher thread, which lives until the process is stopped.
-                    preexec_fn=functools.partial(exit_with_parent, os.getpid()),
+                    preexec_fn=functools.partial(_prepare_child, os.getpid(), self.cpus),
                 )
             self.started = self.ready = self.probes is None
-            log.info("%s started (pid %d)", self.name, self._proc.pid)
+            pinned = "" if self.cpus is None else f" on CPUs {sorted(self.cpus)}"
+            log.info("%s started (pid %d)%s", self.name, self._proc.pid, pinned)
             return self._proc
 
     def _supervise(self) -> None:

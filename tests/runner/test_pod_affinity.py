@@ -1,13 +1,16 @@
-"""Pinning a local job's pods to CPUs (``pods.cpu_affinity``), as a CPU limit confines a pod in
-Kubernetes: the config names bad CPU lists, the runner refuses CPUs the machine lacks, and a
-started pod, its env workers included, runs on exactly the CPUs it was given. Likewise
-``pods.render_gpus``: the EGL device each pod (and its env workers) renders on."""
+"""Sharing the machine's CPUs between a local job's pods (``pods.cpu_affinity``), as CPU limits
+share a Kubernetes node: by default each pod gets an equal share of the runner's CPUs; the config
+names bad CPU lists, the runner refuses CPUs it may not use, and a started pod, its env workers
+included, runs on exactly the CPUs it was given, with ``auto`` envs per worker sized to them.
+Likewise ``pods.render_gpus``: the EGL device each pod (and its env workers) renders on."""
 
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 
+import httpx
 import psutil
 import pytest
 from support.service_procs import free_port_block
@@ -25,13 +28,15 @@ from vecsim.config import (
 
 
 def cheetah_config(
-    cpu_affinity: tuple[str, ...], replicas: int = 1, render_gpus: tuple[int, ...] = ()
+    cpu_affinity: str | tuple[str, ...], replicas: int = 1, render_gpus: tuple[int, ...] = (), envs_per_worker: int = 1
 ) -> JobConfig:
+    """A job of two HalfCheetah envs on each of ``replicas`` pods (a stage each)."""
     base = free_port_block(replicas + 1)
     return JobConfig(
         job=JobSpec(
-            job_id="pinned", tasks=("gym/HalfCheetah-v5",), group_size=2, num_stages=1, pods_per_stage=replicas,
-            camera=CameraConfig(names=()), envs_per_worker=1, max_episode_steps=50,
+            job_id="pinned", tasks=("gym/HalfCheetah-v5",), group_size=2, num_stages=max(replicas, 1),
+            pods_per_stage=1, camera=CameraConfig(names=()), envs_per_worker=envs_per_worker,
+            max_episode_steps=50,
         ),
         pods=PodsConfig(replicas=replicas, base_port=base + 1, max_envs=8, cpu_affinity=cpu_affinity,
                         render_gpus=render_gpus),
@@ -51,10 +56,34 @@ def test_a_cpu_range_that_runs_backwards_is_refused():
         PodsConfig(cpu_affinity=("3-1",))
 
 
-def test_pods_take_cpu_lists_in_turn_and_run_unpinned_without_any():
+def test_pods_take_cpu_lists_in_turn_and_run_unpinned_when_turned_off():
     pods = PodsConfig(replicas=3, cpu_affinity=("0", "1-2"))
-    assert [pods.cpus_of(i) for i in range(3)] == ["0", "1-2", "0"]
-    assert PodsConfig().cpus_of(0) is None
+    assert [pods.cpus_of(i, usable=range(4)) for i in range(3)] == [[0], [1, 2], [0]]
+    assert PodsConfig(cpu_affinity="off").cpus_of(0, usable=range(4)) is None
+    assert PodsConfig(cpu_affinity=()).cpus_of(0, usable=range(4)) is None
+
+
+@pytest.mark.parametrize("replicas", [1, 2, 3, 4, 5, 7])
+@pytest.mark.parametrize("usable", [[0], [0, 1], [2, 3, 5, 6], list(range(6))])
+def test_auto_shares_the_usable_cpus_evenly_between_pods(replicas, usable):
+    shares = [PodsConfig(replicas=replicas).cpus_of(i, usable=usable) for i in range(replicas)]
+    assert PodsConfig().cpu_affinity == "auto"
+    if replicas <= len(usable):
+        # Disjoint, contiguous in the usable order, covering all, sizes one apart at most.
+        assert [cpu for share in shares for cpu in share] == sorted(usable)
+        assert max(map(len, shares)) - min(map(len, shares)) <= 1
+    else:
+        # More pods than CPUs: one CPU each, every CPU used, none twice more than another.
+        assert all(len(share) == 1 for share in shares)
+        counts = [sum(share == [cpu] for share in shares) for cpu in usable]
+        assert min(counts) >= 1 and max(counts) - min(counts) <= 1
+
+
+def test_a_cpu_affinity_neither_a_list_nor_auto_nor_off_is_refused_naming_the_field(tmp_path):
+    path = tmp_path / "job.yaml"
+    path.write_text("job: {tasks: [gym/HalfCheetah-v5]}\npods: {cpu_affinity: sometimes}\n")
+    with pytest.raises(ConfigError, match=r"pods\.cpu_affinity"):
+        load_job_config(path)
 
 
 def test_pods_take_render_gpus_in_turn_and_a_negative_device_is_refused_naming_the_field(tmp_path):
@@ -67,16 +96,10 @@ def test_pods_take_render_gpus_in_turn_and_a_negative_device_is_refused_naming_t
         load_job_config(path)
 
 
-def test_a_pinned_pod_runs_its_usual_command_under_taskset():
-    unpinned = LocalJob(cheetah_config(())).pod_argv("sim-0")
-    assert unpinned[-3:] == ["-m", "service.cli", "pod"]
-    assert LocalJob(cheetah_config(("0",))).pod_argv("sim-0") == ["taskset", "-c", "0", *unpinned]
-
-
 def test_a_job_pinned_to_cpus_the_machine_lacks_is_refused_before_anything_starts(tmp_path):
     missing = str(os.cpu_count() or 1)
     job = LocalJob(cheetah_config((missing,)), log_dir=tmp_path)
-    with pytest.raises(JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\]"):
+    with pytest.raises(JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\], but this runner"):
         job.start()
     assert job.processes == {}
 
@@ -107,3 +130,53 @@ def test_a_pod_and_its_env_workers_get_the_egl_device_it_was_given(pinned_job):
     pod = psutil.Process(pinned_job.processes["sim-0"].pid)
     tree = [pod, *pod.children(recursive=True)]
     assert {proc.pid: proc.environ().get("MUJOCO_EGL_DEVICE_ID") for proc in tree} == {proc.pid: "0" for proc in tree}
+
+
+def pod_tree(job: LocalJob, name: str) -> tuple[list[psutil.Process], list[psutil.Process]]:
+    """Every process of pod ``name`` (itself first), and its env workers: the forkserver's children."""
+    pod = psutil.Process(job.processes[name].pid)
+    workers = [worker for child in pod.children() for worker in child.children()]
+    return [pod, *pod.children(recursive=True)], workers
+
+
+def pod_cpus_metric(url: str) -> float:
+    text = httpx.get(f"{url}/metrics", timeout=10).text
+    return float(re.search(r"^vecsim_pod_cpus (\S+)$", text, re.M).group(1))
+
+
+@pytest.mark.timeout(240)
+def test_by_default_each_pod_runs_on_its_own_share_of_the_runners_cpus(tmp_path):
+    usable = sorted(os.sched_getaffinity(0))
+    replicas = min(len(usable), 2)
+    job = LocalJob(cheetah_config("auto", replicas=replicas, envs_per_worker=0), log_dir=tmp_path, grace_s=5)
+    try:
+        job.start()
+        job.wait_ready(timeout=180)
+        seen: list[int] = []
+        for name in job.pod_names:
+            share = job.pod_cpus(name)
+            tree, workers = pod_tree(job, name)
+            assert {proc.pid: sorted(proc.cpu_affinity()) for proc in tree} == {proc.pid: share for proc in tree}
+            # envs_per_worker auto: one env worker per CPU of the share, for the pod's 2 envs.
+            assert len(workers) == min(len(share), 2)
+            assert pod_cpus_metric(job.pod_url(name)) == len(share)
+            assert f"on CPUs {share}" in job.processes[name].log_tail(200)
+            seen += share
+    finally:
+        job.stop()
+    assert sorted(seen) == usable
+
+
+@pytest.mark.timeout(180)
+def test_pods_of_a_job_with_affinity_off_may_each_run_on_every_cpu_of_the_runner(tmp_path):
+    job = LocalJob(cheetah_config("off", replicas=2), log_dir=tmp_path, grace_s=5)
+    assert job.pod_cpus("sim-0") is None and job.pod_cpus("sim-1") is None
+    try:
+        job.start()
+        job.wait_ready(timeout=120)
+        for name in job.pod_names:
+            tree, _ = pod_tree(job, name)
+            assert all(sorted(proc.cpu_affinity()) == sorted(os.sched_getaffinity(0)) for proc in tree), name
+            assert pod_cpus_metric(job.pod_url(name)) == len(os.sched_getaffinity(0))
+    finally:
+        job.stop()

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Path
-from fastapi.responses import JSONResponse
 
 from service.contract import Heartbeat, HeartbeatAnswer
-from service.metrics import refusal
+from service.errors import InvalidFieldError
 from vecsim.config import POD_NAME_PATTERN, PodRecord, PodRegistration
 
 from ..deps import get_state
 from ...models import Problem
-from ..state import ControllerState, PodUrlConflictError, UnknownPodError
+from ..state import ControllerState
 
 router = APIRouter(prefix="/v1/pods", tags=["pods"])
 
@@ -44,16 +43,10 @@ async def list_pods(state: ControllerState = Depends(get_state)) -> list[PodReco
 )
 async def heartbeat(
     body: Heartbeat, pod: str = POD_NAME, state: ControllerState = Depends(get_state)
-) -> HeartbeatAnswer | JSONResponse:
+) -> HeartbeatAnswer:
     """Keeps the pod registered and records its assignment and readiness. A heartbeat cannot move
     a pod to another URL (409): a pod that moved registers again."""
     if body.assignment is not None and body.generation is not None and body.generation != body.assignment.generation:
         detail = f"generation: {body.generation} differs from assignment.generation {body.assignment.generation}"
-        return refusal(state.metrics.refused, 422, "invalid_request", detail)
-    try:
-        generation = state.heartbeat(pod, body.url, body.assignment, body.ready)
-    except UnknownPodError as exc:
-        return refusal(state.metrics.refused, 404, "unknown_pod", str(exc))
-    except PodUrlConflictError as exc:
-        return refusal(state.metrics.refused, 409, "url_conflict", str(exc))
-    return HeartbeatAnswer(generation=generation)
+        raise InvalidFieldError(detail)
+    return HeartbeatAnswer(generation=state.heartbeat(pod, body.url, body.assignment, body.ready))

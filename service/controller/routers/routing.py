@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends
-from fastapi.responses import JSONResponse
-
-from service.metrics import refusal
 from vecsim.config import RoutingTable
 
 from ..deps import get_state
 from ...models import Problem
-from ..state import ControllerState, NoJobError, NoPlanError
+from ..state import ControllerState
 
 router = APIRouter(prefix="/v1/routing", tags=["routing"])
 
@@ -24,11 +21,6 @@ router = APIRouter(prefix="/v1/routing", tags=["routing"])
     },
     summary="The routing table",
 )
-async def routing(state: ControllerState = Depends(get_state)) -> RoutingTable | JSONResponse:
+async def routing(state: ControllerState = Depends(get_state)) -> RoutingTable:
     """The current plan's stages and pods; ``ready`` is true once every slot's pod runs it."""
-    try:
-        return state.routing()
-    except NoJobError as exc:
-        return refusal(state.metrics.refused, 404, "no_job", str(exc))
-    except NoPlanError as exc:
-        return refusal(state.metrics.refused, 503, "no_plan", str(exc))
+    return state.routing()

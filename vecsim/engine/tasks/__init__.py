@@ -12,8 +12,10 @@ Task ids are ``<suite>/<name>``:
   ``gym/<module>:<id>`` (the module is imported first, gymnasium's own ``"module:EnvId"`` form);
   served without cameras, a gym task is the env itself (its spaces, info and seeding).
 
-All tasks of a suite share one observation space and one action space (docs/api.md); so do all
-robot tasks (LIBERO, robosuite, tiny) under one camera config. Importing this module imports
+The suites and their task ids are the task catalogue's (:mod:`vecsim.suites`, which needs no
+simulator); this registry adds what building them takes. All tasks of a suite share one
+observation space and one action space (docs/api.md); so do all robot tasks (LIBERO, robosuite,
+tiny) under one camera config. Importing this module imports
 neither robosuite nor LIBERO: they load when an env is made (or, for LIBERO, listed).
 """
 
@@ -25,7 +27,7 @@ from typing import Any
 import gymnasium
 
 from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
-from vecsim.suites import normalize_task_id
+from vecsim.suites import ROBOSUITE_SUITES, normalize_task_id, suite_names
 from vecsim.engine.tasks._base import (
     TaskEnv,
     TaskSetupError,
@@ -95,14 +97,14 @@ __all__ = [
     "task_spaces",
 ]
 
-_ROBOSUITE_SUITES = ("robosuite", "tiny")
 # Episode length of a pod's non-LIBERO tasks when the assignment sets none.
 POD_MAX_EPISODE_STEPS = 300
 
 
 def list_suites() -> list[str]:
-    """Return the names of the suites (gymnasium ids are tasks of no suite listing)."""
-    return [*LIBERO_SUITES, *_ROBOSUITE_SUITES]
+    """Return the names of the suites, as the task catalogue (:mod:`vecsim.suites`) lists them
+    (gymnasium ids are tasks of no suite listing)."""
+    return suite_names()
 
 
 def _unknown(what: str) -> UnknownTaskError:
@@ -118,7 +120,7 @@ def suite_tasks(suite: str) -> list[TaskSpec]:
     """
     if suite in LIBERO_SUITES:
         return libero_specs(suite)
-    if suite in _ROBOSUITE_SUITES:
+    if suite in ROBOSUITE_SUITES:
         return robosuite_specs()[suite]
     raise _unknown(f"unknown suite {suite!r}")
 
@@ -137,7 +139,7 @@ def get_task(task_id: str) -> TaskSpec:
         spec = gym_spec(normalized)
         if spec is not None:
             return spec
-    elif suite in LIBERO_SUITES or suite in _ROBOSUITE_SUITES:
+    elif suite in LIBERO_SUITES or suite in ROBOSUITE_SUITES:
         for spec in suite_tasks(suite):
             if spec.task_id == normalized:
                 return spec

@@ -48,16 +48,8 @@ from vecsim.engine.tasks._robot import (
     seeded_global_rngs,
 )
 from vecsim.files import write_whole
+from vecsim.suites import LIBERO_SUITES
 
-# Suite -> default episode length: the step budgets of LIBERO's published evaluations (the
-# longest training demonstration of the suite plus a margin), settle steps not counted.
-LIBERO_SUITES: dict[str, int] = {
-    "libero_10": 520,
-    "libero_spatial": 220,
-    "libero_object": 280,
-    "libero_goal": 300,
-    "libero_90": 400,
-}
 LIBERO_NUM_STATES = 50
 # The 8 floats of ``state``: end-effector position (3), the axis-angle of its quaternion (3),
 # the two gripper finger joints (2), as LIBERO's training data and evaluations build it.
@@ -169,7 +161,7 @@ def libero_specs(suite: str) -> list[TaskSpec]:
                 instruction=task.language,
                 scene=match.group(1) if match else suite,
                 num_states=LIBERO_NUM_STATES,
-                max_episode_steps=LIBERO_SUITES[suite],
+                max_episode_steps=LIBERO_SUITES[suite].max_episode_steps,
             )
         )
     return specs

@@ -35,6 +35,7 @@ import numpy as np
 from vecsim.engine import render as render_presets
 from vecsim.engine.batch_render import BatchRenderer, CameraView, fixed_camera, shared_renderer
 from vecsim.config import CameraConfig, RenderPreset
+from vecsim.suites import ROBOSUITE_SUITES
 from vecsim.engine.tasks._base import (
     TaskEnv,
     TaskSetupError,
@@ -345,28 +346,28 @@ TINY_MAX_EPISODE_STEPS = 50
 
 
 def robosuite_specs() -> dict[str, list[TaskSpec]]:
-    """Return the ``robosuite`` and ``tiny`` suites' tasks."""
+    """Return the ``robosuite`` and ``tiny`` suites' tasks, named and ordered by the task catalogue."""
     robosuite_suite = [
         TaskSpec(
             task_id=f"robosuite/{name}",
             suite="robosuite",
-            instruction=instruction,
-            scene=scene,
+            instruction=ROBOSUITE_TASKS[name][2],
+            scene=ROBOSUITE_TASKS[name][1],
             num_states=GENERATED_STATES,
             max_episode_steps=ROBOSUITE_MAX_EPISODE_STEPS,
         )
-        for name, (_, scene, instruction) in ROBOSUITE_TASKS.items()
+        for name in ROBOSUITE_SUITES["robosuite"]
     ]
     tiny_suite = [
         TaskSpec(
             task_id=f"tiny/{name}",
             suite="tiny",
-            instruction=ROBOSUITE_TASKS[env_name][2],
-            scene=ROBOSUITE_TASKS[env_name][1],
+            instruction=ROBOSUITE_TASKS[TINY_TASKS[name]][2],
+            scene=ROBOSUITE_TASKS[TINY_TASKS[name]][1],
             num_states=GENERATED_STATES,
             max_episode_steps=TINY_MAX_EPISODE_STEPS,
         )
-        for name, env_name in TINY_TASKS.items()
+        for name in ROBOSUITE_SUITES["tiny"]
     ]
     return {"robosuite": robosuite_suite, "tiny": tiny_suite}
 
