@@ -2,8 +2,10 @@
 is carried out: the actions checked, each pod sent its rows, the answers written into batch
 arrays allocated before the requests go out, and a pod's failure kept to its own trajectories.
 
-No routing decisions here: the routes come from the route book, the HTTP from a ``post`` callable
-(``StageClient._post``: one pod, one request, with the routing generation and its 409 handling).
+No routing decisions here: the routes come from the route book, the HTTP from the client's
+:class:`~vecsim.client.pods.PodSet` (one pod, one request, with the routing generation and its
+409 handling). What a call's actions are (one action or a chunk of K per trajectory) is said
+once, by :func:`step_actions`, and travels with the call as :class:`StepActions`.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import time
-from collections.abc import Awaitable, Callable, Generator, Mapping, Sequence
+from collections.abc import Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -20,19 +22,25 @@ from gymnasium import Space
 from gymnasium.spaces import Box
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim import trees
+from vecsim import trees, wire
 from vecsim.client.errors import PodRequestError, PodUnavailableError, call_error
-from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread
-from vecsim.client.routebook import RouteBook
+from vecsim.client.pods import EventLoopThread, PodSet
 from vecsim.client.routing import TrajRoute
 
-__all__ = ["Ended", "PendingCall", "StageBatch", "check_actions", "completed", "empty_batch", "run_call", "take_rows"]
+__all__ = [
+    "Ended",
+    "PendingCall",
+    "StageBatch",
+    "StepActions",
+    "check_actions",
+    "completed",
+    "empty_batch",
+    "run_call",
+    "step_actions",
+    "take_rows",
+]
 
 T = TypeVar("T")
-
-# ``post(pod, op, body, traj_keys, extra_answer_bytes)``: one request to one pod, its decoded answer.
-Post = Callable[[str, str, dict[str, Any], list[str], int], Awaitable[dict[str, Any]]]
 
 
 @dataclass
@@ -46,8 +54,9 @@ class StageBatch:
     A step of chunks (K actions per trajectory) answers ``reward``, ``terminated``, ``truncated``
     and ``success`` of shape ``[n, K]`` (0/false after a trajectory's env stopped), ``obs`` after
     each one's last applied action, ``num_steps`` ``[n]`` the actions each applied, and ``frames``
-    ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded. A
-    one-action step answers ``[n]`` arrays and ``num_steps`` of ones; a reset, zeros.
+    ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded, and
+    ``chunk`` is K (also with no rows). A one-action step answers ``[n]`` arrays, ``num_steps``
+    of ones and ``chunk`` None; a reset, zeros and None.
 
     ``env_info`` holds the envs' own info as the pods answered it: ``(rows, batched)`` per pod,
     ``batched`` over those rows as :func:`vecsim.info.batch_infos` makes it. ``errors`` names the
@@ -68,10 +77,43 @@ class StageBatch:
     frames: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     env_info: list[tuple[np.ndarray, dict[str, Any]]] = field(default_factory=list)
     errors: list[tuple[str, str, str]] = field(default_factory=list)
+    chunk: int | None = None
 
     @property
     def n(self) -> int:
         return len(self.traj_keys)
+
+    def ended(self) -> np.ndarray:
+        """Per row: whether its env terminated or truncated (at any action of a chunk)."""
+        flags = self.terminated | self.truncated
+        return flags if self.chunk is None else flags.any(axis=1)
+
+    def last(self, values: np.ndarray) -> np.ndarray:
+        """Per row, the per-action ``values`` (``reward``, ``success``, ...) at the row's last
+        applied action (a chunk's: action ``num_steps - 1``, the first one if it applied none)."""
+        if self.chunk is None:
+            return values
+        return values[np.arange(self.n), np.maximum(self.num_steps.astype(np.int64) - 1, 0)]
+
+
+@dataclass(frozen=True)
+class StepActions:
+    """One call's actions, as :func:`step_actions` checked them: row ``j`` of ``array`` for
+    ``traj_keys[j]``, ``[n, *action shape]`` (one action each, ``chunk`` None) or
+    ``[n, K, *action shape]`` (a chunk of ``chunk`` = K each)."""
+
+    traj_keys: list[str]
+    array: np.ndarray
+    chunk: int | None
+
+    def rows(self, index: Sequence[int], at_most: int | None = None) -> StepActions:
+        """The actions of rows ``index``, in that order; chunks cut to their first ``at_most``
+        actions (one action each stays as it is)."""
+        keys = [self.traj_keys[i] for i in index]
+        array = self.array[np.asarray(index, dtype=np.int64)]
+        if self.chunk is None or at_most is None or at_most >= self.chunk:
+            return StepActions(keys, array, self.chunk)
+        return StepActions(keys, array[:, :at_most], at_most)
 
 
 class PendingCall(Generic[T]):
@@ -174,6 +216,7 @@ def take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         frames={key: batch.frames[key] for key in (batch.traj_keys[r] for r in rows) if key in batch.frames},
         env_info=env_info,
         errors=[error for error in batch.errors if error[0] in kept],
+        chunk=batch.chunk,
     )
 
 
@@ -190,19 +233,13 @@ class Ended:
 
 def ended_rows(batch: StageBatch) -> dict[str, Ended]:
     """The rows of a step answer whose env terminated or truncated (at any action), as :class:`Ended`."""
-    flags = batch.terminated | batch.truncated
-    ended = flags if flags.ndim == 1 else flags.any(axis=1)
-    out: dict[str, Ended] = {}
-    for j in np.flatnonzero(ended):
-        if batch.terminated.ndim == 1:
-            last = (batch.terminated[j], batch.truncated[j], batch.success[j])
-        else:
-            # The flags where the env ended: its last applied action (num_steps of K), or the
-            # last action for an env stepped past its end.
-            k = max(int(batch.num_steps[j]) - 1, 0)
-            last = (batch.terminated[j, k], batch.truncated[j, k], batch.success[j, k])
-        out[batch.traj_keys[j]] = Ended(trees.row(batch.obs, int(j)), *(bool(v) for v in last))
-    return out
+    # The flags where the env ended: its last applied action (num_steps of K; the last action
+    # for an env stepped past its end).
+    terminated, truncated, success = (batch.last(values) for values in (batch.terminated, batch.truncated, batch.success))
+    return {
+        batch.traj_keys[j]: Ended(trees.row(batch.obs, int(j)), bool(terminated[j]), bool(truncated[j]), bool(success[j]))
+        for j in np.flatnonzero(batch.ended())
+    }
 
 
 @dataclass
@@ -235,6 +272,7 @@ def empty_batch(
         truncated=np.zeros(per_action, dtype=bool),
         success=np.zeros(per_action, dtype=bool),
         num_steps=np.zeros(n, dtype=np.int32),
+        chunk=chunk,
     )
 
 def fill_batch(
@@ -285,70 +323,97 @@ def _fill_answer(
         else:
             trees.fill_rows(batch.num_steps, answer.get("num_steps"), rows, "num_steps")
 
-def check_actions(space: Space | None, step: Mapping[str, Any]) -> np.ndarray:
-    """Return the call's actions as ``[n, *action shape]``, or its chunks (Box action spaces
-    only) as ``[n, K, *action shape]``, in the action space's dtype (``space``, None: float32 of any shape).
+def step_actions(space: Space | None, traj_keys: Sequence[str], actions: Any) -> StepActions:
+    """Say what a call's actions are, once for every layer: ``actions`` (row ``j`` for
+    ``traj_keys[j]``) as ``[n, *action shape]`` (one action each) or ``[n, K, *action shape]``
+    (a chunk each; Box action spaces only, :func:`vecsim.wire.chunk_length`'s rule), in the
+    action space's dtype (``space``, None: float32 of any shape, one action each).
 
     Raises:
-        ValueError: an action not numeric, of the wrong shape or not finite, or chunks of
-            different lengths (names the traj_key).
+        ValueError: actions not numeric, of another shape or count than ``traj_keys``, a chunk
+            of a non-Box space, or NaN or inf (names the traj_key).
+    """
+    keys = list(traj_keys)
+    shape = tuple(space.shape) if space is not None and space.shape is not None else None
+    dtype = space.dtype if space is not None and space.dtype is not None else np.float32
+    try:
+        array = np.asarray(actions, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"actions are not numeric: {exc}") from None
+    chunk = None if shape is None else wire.chunk_length(array.shape, shape)
+    if chunk is not None and not isinstance(space, Box):
+        raise ValueError(
+            f"actions have shape {list(array.shape)}; chunks of actions are for Box action spaces, this job's is {space}"
+        )
+    if shape is not None:
+        expected = (len(keys), *shape) if chunk is None else (len(keys), chunk, *shape)
+        if array.shape != expected:
+            raise ValueError(
+                f"actions have shape {list(array.shape)}, expected {list(expected)} for {len(keys)} traj_keys "
+                f"(or chunks [{len(keys)}, K, {', '.join(map(str, shape))}])"
+            )
+    if array.dtype.kind == "f" and len(keys):
+        # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
+        finite = np.isfinite(array.reshape(len(keys), -1)).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"traj_key {keys[int(np.flatnonzero(~finite)[0])]!r}: action holds NaN or inf")
+    return StepActions(keys, array, chunk)
+
+
+def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
+    """:func:`step_actions` of a mapping ``{traj_key: action or chunk}``, each value checked
+    alone first so that an error names its traj_key.
+
+    Raises:
+        ValueError: as :func:`step_actions`, or values that are not one form (one action, or
+            chunks of one length).
     """
     shape = tuple(space.shape) if space is not None and space.shape is not None else None
     dtype = space.dtype if space is not None and space.dtype is not None else np.float32
     rows = []
-    chunk: int | None = None  # K of the call's chunks; None: one action per trajectory
+    first: int | None = None  # K of the call's first value; None: one action
     for index, (key, action) in enumerate(step.items()):
         try:
             row = np.asarray(action, dtype=dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
-        if shape is not None and row.shape != shape and row.shape[1:] != shape:
+        this = None if shape is None else wire.chunk_length((1, *row.shape), shape)
+        if shape is not None and row.shape[this is not None :] != shape:
             raise ValueError(
                 f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)} "
                 f"or a chunk [K, {', '.join(map(str, shape))}]"
             )
-        this = None if shape is None or row.shape == shape else row.shape[0]
         if this is not None and not isinstance(space, Box):
             raise ValueError(
                 f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape or ())}; "
                 f"chunks of actions are for Box action spaces, this job's is {space}"
             )
-        if index and this != chunk:
+        if index and this != first:
             sent = "one action" if this is None else f"a chunk of {this}"
-            first = "one action" if chunk is None else f"chunks of {chunk}"
+            said = "one action" if first is None else f"chunks of {first}"
             raise ValueError(
-                f"traj_key {key!r}: {sent}, the call's first traj_key sent {first}; one call, one chunk length"
+                f"traj_key {key!r}: {sent}, the call's first traj_key sent {said}; one call, one chunk length"
             )
-        chunk = this
+        first = this
         rows.append(row)
-    actions = np.stack(rows)
-    if actions.dtype.kind != "f":
-        return actions  # the pod checks integer actions against the space
-    # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
-    finite = np.isfinite(actions.reshape(len(rows), -1)).all(axis=1)
-    if not finite.all():
-        key = list(step)[int(np.flatnonzero(~finite)[0])]
-        raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
-    return actions
+    return step_actions(space, list(step), np.stack(rows))
+
 
 async def run_call(
-    book: RouteBook,
-    info: JobInfo,
-    post: Post,
+    pods: PodSet,
     reset_keys: list[str],
     state_ids: np.ndarray,
-    step_keys: list[str],
-    actions: np.ndarray | None,
+    actions: StepActions | None,
     pick: int | None,
     recorded: set[str],
     seeded: tuple[list[int | None], dict[str, Any]] | None = None,
     frozen: Mapping[str, Ended] | None = None,
     step_past_end: bool = False,
 ) -> tuple[StageBatch, StageBatch]:
-    """Carry out one call on the routes in ``book``: each pod its resets (to ``state_ids``, or
-    the envs' own reset with ``seeded`` = (seeds, options)), then its steps, pods concurrently; a
-    pod with both fixed-state resets and steps gets them in one ``/v1/step`` request.
-    Returns ``(reset_batch, step_batch)``; records the state ids reset to in ``book``.
+    """Carry out one call on the routes in ``pods.book``: each pod its resets (to ``state_ids``,
+    or the envs' own reset with ``seeded`` = (seeds, options)), then its ``actions``, pods
+    concurrently; a pod with both fixed-state resets and steps gets them in one ``/v1/step``
+    request. Returns ``(reset_batch, step_batch)``; records the state ids reset to in the book.
 
     Step keys in ``frozen`` are not sent: their rows answer what their env was when it ended
     (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the pods
@@ -359,11 +424,13 @@ async def run_call(
             of the pods' failures, carrying the answering pods' rows (``pick``: which batch).
     """
     submitted = time.perf_counter()
+    book, info = pods.book, pods.info
     routes = book.routes()
     space = info.observation_space
     reset_batch = empty_batch(space, reset_keys, routes)
     reset_batch.state_ids = state_ids.copy()
-    chunk = actions.shape[1] if actions is not None and actions.ndim == single_action_ndim(info) + 1 else None
+    step_keys = actions.traj_keys if actions is not None else []
+    chunk = actions.chunk if actions is not None else None
     step_batch = empty_batch(space, step_keys, routes, chunk)
     work: dict[str, _PodWork] = {}
     for row, key in enumerate(reset_keys):
@@ -403,7 +470,7 @@ async def run_call(
             body["reset_env_indices"] = env_ids(resetting)
             body["reset_state_ids"] = state_ids[reset_rows]
         extra = info.chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
-        answer = await post(pod, op, body, [*resetting, *keys], extra)
+        answer = await pods.post(pod, op, body, [*resetting, *keys], extra)
         try:
             if resetting:
                 reset = answer.get("reset")
@@ -422,9 +489,9 @@ async def run_call(
     async def one_pod(pod: str, todo: _PodWork) -> None:
         reset_done = False
         try:
-            if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.size:
+            if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.array.size:
                 # A refill: the resets ride in the step's request, and run beside its steps.
-                await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch, todo.reset_rows)
+                await send(pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch, todo.reset_rows)
                 answered.reset_rows.extend(todo.reset_rows)
                 answered.step_rows.extend(todo.step_rows)
                 return
@@ -433,7 +500,7 @@ async def run_call(
                 answered.reset_rows.extend(todo.reset_rows)
                 reset_done = True
             if todo.step_rows:
-                await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch)
+                await send(pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch)  # type: ignore[union-attr]
                 answered.step_rows.extend(todo.step_rows)
         except PodUnavailableError as exc:
             # Name everything of this call the pod did not answer: after a failed reset, its
@@ -477,8 +544,3 @@ def _put_frozen(batch: StageBatch, row: int, ended: Ended) -> None:
     batch.success[row] = ended.success
     batch.num_steps[row] = 0
 
-
-def single_action_ndim(info: JobInfo) -> int:
-    """The ndim of one call's actions of one action each (``[n, *action shape]``); one more: chunks."""
-    space = info.action_space
-    return 1 + len(space.shape or ()) if space is not None else 2

@@ -51,16 +51,17 @@ from vecsim.client.calls import (
     Ended,
     PendingCall,
     StageBatch,
+    StepActions,
     check_actions,
     completed,
     empty_batch,
     ended_rows,
     run_call,
-    single_action_ndim,
+    step_actions,
 )
-from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
+from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodConnection, new_idempotency_key, refusal
+from vecsim.client.pods import EventLoopThread, PodSet, refusal
 from vecsim.client.refresh import RoutingRefresher, fetch_routing
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
@@ -70,7 +71,7 @@ from vecsim.transport import as_transport, get_answer
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "check_ended_envs", "fetch_routing"]
+__all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "StepActions", "check_ended_envs", "fetch_routing"]
 
 # What stepping a trajectory whose episode ended does: refuse (ResetNeeded), step its env on
 # (the pod applies every action, also past the end), or answer it unstepped with its flags held.
@@ -88,6 +89,10 @@ def check_ended_envs(value: str) -> str:
     return value
 
 T = TypeVar("T")
+
+
+def _keys_of(step: Mapping[str, Any] | StepActions) -> list[str]:
+    return step.traj_keys if isinstance(step, StepActions) else list(step)
 
 # Clients not closed yet: closed at interpreter exit while their loop threads still run, so
 # that a script ending in an exception or Ctrl-C exits quietly, its connections closed.
@@ -155,20 +160,18 @@ class StageClient:
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
         self._transport = as_transport(transport)
-        self._token = token if token is not None else token_from_env()
-        self._pods: dict[str, PodConnection] = {}
         self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
-        self._pods_lock = threading.RLock()
         self._states = StageStates()
         self._batches = itertools.count()
         self._info = JobInfo()
         self._closed = False
         self._loop = EventLoopThread()
-        self._refresher = RoutingRefresher(
-            self._book, self._info, self.controller_url, self.timeout_s, self._transport, self._pod_info, self._sync_pods
+        self._refresher = RoutingRefresher(self._book, self._info, self.controller_url, self.timeout_s, self._transport)
+        self._pods = PodSet(
+            self._book, self._info, self._refresher, self._transport, self.timeout_s,
+            token if token is not None else token_from_env(), max_answer_bytes,
         )
         _open_clients.add(self)
-        self._sync_pods()
 
     @classmethod
     def from_controller(
@@ -334,7 +337,7 @@ class StageClient:
         # Before a new batch: the controller's table if it has moved on and is ready, so that a
         # reassignment finished before the batch costs the batch nothing (not while calls run).
         if not self._states.busy():
-            self._refresher.before_batch(self._loop)
+            self._refresher.before_batch(self._loop, self._pods)
         keys = list(traj_keys) if traj_keys is not None else self.new_traj_keys(len(requests))
         routes = self._book.place(requests, keys, stages)
         self._replace_routes(routes)
@@ -447,7 +450,7 @@ class StageClient:
         return self._submit(reset=keys, step={}, pick=0)
 
     def step_stage(
-        self, stage_id: int, actions_by_traj_key: Mapping[str, Any], record: Sequence[str] = ()
+        self, stage_id: int, actions_by_traj_key: Mapping[str, Any] | StepActions, record: Sequence[str] = ()
     ) -> PendingCall[StageBatch]:
         """Step the given trajectories of a stage, one action or one chunk each; don't wait.
 
@@ -457,6 +460,8 @@ class StageClient:
         the pod renders once, after the last applied action. ``record`` names traj_keys (of a
         chunk call) whose frame after every applied action the answer carries in ``frames``.
         An empty mapping is a no-op (an empty batch). Rows of the answer follow the mapping's order.
+        In place of the mapping, :meth:`step_actions` of the keys and one array of all their
+        actions or chunks (no per-key values to stack).
 
         Raises:
             ValueError: no such stage, a key not live on it, an action of the wrong shape or not
@@ -466,14 +471,14 @@ class StageClient:
                 :meth:`reset_stage`, whose notes on the result's errors hold here too.
         """
         self._check_stage(stage_id)
-        self._check_keys(list(actions_by_traj_key), stage_id)
+        self._check_keys(_keys_of(actions_by_traj_key), stage_id)
         return self._submit(reset=(), step=actions_by_traj_key, pick=1, record=record)
 
     def call(
         self,
         *,
         reset: Sequence[str] | Mapping[str, int] = (),
-        step: Mapping[str, Any] | None = None,
+        step: Mapping[str, Any] | StepActions | None = None,
         record: Sequence[str] = (),
         seeds: Mapping[str, int | None] | None = None,
         options: Mapping[str, Any] | None = None,
@@ -482,7 +487,7 @@ class StageClient:
 
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
         state ids (their routes take them on success). ``step`` maps traj_keys to actions or
-        chunks, and ``record`` names stepped keys whose every frame is wanted, as in
+        chunks (or is :meth:`step_actions`'s), and ``record`` names stepped keys whose every frame is wanted, as in
         :meth:`step_stage`. ``seeds`` (instead of ``reset``) maps traj_keys to a seed or None:
         their envs reset as the envs' own ``reset(seed=..., options=options)``, not to a fixed
         state (the routes keep their state ids). Each pod gets its resets first, then its steps; pods run
@@ -509,7 +514,7 @@ class StageClient:
         pod: str,
         *,
         reset: Sequence[str] | Mapping[str, int] = (),
-        step: Mapping[str, Any] | None = None,
+        step: Mapping[str, Any] | StepActions | None = None,
         record: Sequence[str] = (),
     ) -> PendingCall[tuple[StageBatch, StageBatch]]:
         """:meth:`call` on the trajectories of one pod, holding only that pod: the other pods of
@@ -522,8 +527,8 @@ class StageClient:
             RoutingChangedError, ClosedEnvironmentError: as :meth:`call`.
         """
         self._check_open()
-        step = dict(step or {})
-        keys = [*reset, *step]
+        step = step or {}
+        keys = [*reset, *_keys_of(step)]
         self._book.check_lost(keys)
         routes = self._book.live(keys)
         if pod not in {routed.pod for stage in self._book.table.stages for routed in stage.pods}:
@@ -532,6 +537,16 @@ class StageClient:
         if elsewhere:
             raise ValueError(f"traj_key {elsewhere[0]!r} runs on pod {routes[elsewhere[0]].pod}, not {pod}")
         return self._submit(reset=reset, step=step, pick=None, record=record, pod=pod)
+
+    def step_actions(self, traj_keys: Sequence[str], actions: Any) -> StepActions:
+        """The actions of ``traj_keys`` as one call's, from one array (row ``j`` for
+        ``traj_keys[j]``): ``[n, action dim]``, or chunks ``[n, K, action dim]``. Pass the result as
+        a call's ``step``: the array goes to the pods as it is, cut per pod.
+
+        Raises:
+            ValueError: as :func:`vecsim.client.calls.step_actions` (shape, count, NaN, names the key).
+        """
+        return step_actions(self.action_space, traj_keys, actions)
 
     def env_attr(
         self, op: str, keys: Sequence[str], name: str, payload: Any = None
@@ -605,7 +620,7 @@ class StageClient:
         self,
         *,
         reset: Sequence[str] | Mapping[str, int],
-        step: Mapping[str, Any],
+        step: Mapping[str, Any] | StepActions,
         pick: int | None,
         record: Sequence[str] = (),
         seeds: Mapping[str, int | None] | None = None,
@@ -613,20 +628,20 @@ class StageClient:
         pod: str | None = None,
     ) -> PendingCall[Any]:
         self._check_open()
-        step = dict(step)
+        step_keys = _keys_of(step)
         recorded = set(record)
-        if recorded - set(step):
-            raise ValueError(f"record: traj_keys {sorted(recorded - set(step))} are not stepped in this call")
+        if recorded - set(step_keys):
+            raise ValueError(f"record: traj_keys {sorted(recorded - set(step_keys))} are not stepped in this call")
         reset_map = dict(reset) if isinstance(reset, Mapping) else None
         reset_keys = list(reset)
-        both = set(reset_keys) & set(step)
+        both = set(reset_keys) & set(step_keys)
         if both:
             raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
-        if len(set(reset_keys)) != len(reset_keys) or len(set(step)) != len(step):
+        if len(set(reset_keys)) != len(reset_keys) or len(set(step_keys)) != len(step_keys):
             raise ValueError("traj_keys repeat within one call")
-        self._book.check_lost([*reset_keys, *step])
-        routes = self._book.live(itertools.chain(reset_keys, step))
-        ended = [k for k in step if k in self._ended]
+        self._book.check_lost([*reset_keys, *step_keys])
+        routes = self._book.live(itertools.chain(reset_keys, step_keys))
+        ended = [k for k in step_keys if k in self._ended]
         if ended and self.ended_envs == "raise":
             raise ResetNeeded(
                 f"traj_keys {ended} ended (terminated or truncated) and were not reset; reset them, or "
@@ -643,14 +658,18 @@ class StageClient:
                     raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
         # Spaces first, so even an empty answer has the job's observation structure (0 rows).
         self._load_info()
-        if not reset_keys and not step:
-            space = self._info.observation_space
-            return completed((empty_batch(space), empty_batch(space)), pick)
-        actions = check_actions(self.action_space, step) if step else None
-        if recorded and (actions is None or actions.ndim != single_action_ndim(self._info) + 1):
+        if isinstance(step, StepActions):
+            actions: StepActions | None = step
+        else:
+            actions = check_actions(self.action_space, step) if step_keys else None
+        if recorded and (actions is None or actions.chunk is None):
             raise ValueError("record: frames are recorded for chunk steps only; send [K, action dim] per traj_key")
+        if not reset_keys and not step_keys:
+            space = self._info.observation_space
+            chunk = None if actions is None else actions.chunk
+            return completed((empty_batch(space), empty_batch(space, chunk=chunk)), pick)
         resetting = {routes[k].stage_id for k in reset_keys}
-        stepping = {routes[k].stage_id for k in step}
+        stepping = {routes[k].stage_id for k in step_keys}
         states = {
             stage: StageState.waiting_for(stage in resetting, stage in stepping) for stage in resetting | stepping
         }
@@ -661,8 +680,8 @@ class StageClient:
             try:
                 try:
                     batches = await run_call(
-                        self._book, self._info, self._post, reset_keys, state_ids, list(step), actions, pick,
-                        recorded, seeded, frozen, self.ended_envs == "step",
+                        self._pods, reset_keys, state_ids, actions, pick, recorded, seeded, frozen,
+                        self.ended_envs == "step",
                     )
                 except (PodUnavailableError, RoutingChangedError) as error:
                     if error.answered is not None:
@@ -744,29 +763,6 @@ class StageClient:
 
     # -- what runs on the loop ------------------------------------------------------------------
 
-    def _sync_pods(self) -> None:
-        """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
-        with its answer cap (runs on the caller's thread and on the loop)."""
-        with self._pods_lock:
-            # A pod of several stages ('slices') answers at most all its envs, whatever the stage.
-            envs: dict[str, int] = {}
-            for stage in self._book.table.stages:
-                for routed in stage.pods:
-                    envs[routed.pod] = envs.get(routed.pod, 0) + routed.num_envs
-            for stage in self._book.table.stages:
-                for routed in stage.pods:
-                    known = self._pods.get(routed.pod)
-                    if known is None or known.url != routed.url.rstrip("/"):
-                        self._pods[routed.pod] = PodConnection(
-                            routed.pod, routed.url, self._transport, self.timeout_s, self._token
-                        )
-                    self._pods[routed.pod].max_answer_bytes = self._info.answer_cap(
-                        envs[routed.pod], self.max_answer_bytes
-                    )
-
-    async def _pod_info(self, pod: str) -> dict[str, Any]:
-        return await self._pods[pod].info()
-
     def _load_info(self) -> None:
         if self._info.spaces is None:
             self._check_open()
@@ -782,23 +778,4 @@ class StageClient:
     def _adopt_info(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
         """Take instructions and spaces from pods' ``/v1/info`` answers (pods with envs only)."""
         self._info.adopt(infos)
-        self._sync_pods()  # the answer caps follow from the spaces just read
-
-    async def _post(
-        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0
-    ) -> dict[str, Any]:
-        """POST to one pod with the current generation; after a 409, re-read routing and retry once.
-
-        The one seam where a call meets one pod (``bench/bench_gpu_scale.py`` times it per pod).
-        """
-        generation = self._book.generation
-        key = new_idempotency_key()  # one call: the same key after a 409, the pod answers it once
-        try:
-            return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes, key)
-        except StaleGenerationError as stale:
-            await self._refresher.after_stale(pod, generation, stale.detail, keys)
-        try:
-            body = {**body, "generation": self._book.generation}
-            return await self._pods[pod].call(op, body, keys, extra_answer_bytes, key)
-        except StaleGenerationError as stale:
-            raise StaleGenerationError(pod, self._book.generation, stale.detail) from None
+        self._pods.sync()  # the answer caps follow from the spaces just read

@@ -32,7 +32,7 @@ from vecsim.client.gym_values import env_observation, wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, StepActions, check_ended_envs, fetch_routing
 from vecsim.config import JobConfig, RoutingTable, load_job_config
 from vecsim.info import merge_rows
 
@@ -69,18 +69,9 @@ def autoreset_mode_of(mode: AutoresetMode | str) -> AutoresetMode:
 _PARTIAL = (PodUnavailableError, RoutingChangedError)
 
 
-def _ended(batch: StageBatch) -> np.ndarray:
-    """Per row of a step answer: whether its env terminated or truncated (at any chunk action)."""
-    flags = batch.terminated | batch.truncated
-    return flags if flags.ndim == 1 else flags.any(axis=1)
-
-
 def _row_success(batch: StageBatch) -> np.ndarray:
     """Per row: success after the row's last applied action (a chunk's), or the row's success."""
-    if batch.success.ndim == 1:
-        return batch.success
-    last = np.maximum(batch.num_steps.astype(np.int64) - 1, 0)
-    return batch.success[np.arange(batch.n), last] & (batch.num_steps > 0)
+    return batch.success if batch.chunk is None else batch.last(batch.success) & (batch.num_steps > 0)
 
 
 def _controller_url_of(job_config: JobConfig | str | Path) -> str:
@@ -247,7 +238,6 @@ class HTTPVectorEnv(VectorEnv):
         self._state = AsyncState.DEFAULT
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
-        self._pending_chunk: int | None = None  # K of the chunk step in flight; None: one action
         self._pending_fixed = True  # the reset in flight puts envs in fixed initial states
 
     # -- reset ----------------------------------------------------------------------------------
@@ -511,7 +501,7 @@ class HTTPVectorEnv(VectorEnv):
             full = np.zeros((self.num_envs, *actions.shape[1:]), dtype=actions.dtype)
             full[np.asarray(env_ids, dtype=np.int64).reshape(-1)] = actions
             actions = full
-        self._send_step(actions, chunk=actions.shape[1], envs=envs)
+        self._send_step(actions, envs)
 
     def _subset(self, env_ids: Any) -> np.ndarray:
         """The mask of ``env_ids`` (None: every env).
@@ -541,10 +531,11 @@ class HTTPVectorEnv(VectorEnv):
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
             TypeError: a scalar in place of a batch of actions.
         """
-        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs), chunk=None)
+        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs))
 
-    def _send_step(self, actions: np.ndarray, chunk: int | None, envs: np.ndarray | None = None) -> None:
-        """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env."""
+    def _send_step(self, actions: np.ndarray, envs: np.ndarray | None = None) -> None:
+        """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env (one
+        action or a chunk each: the call's answer says which)."""
         envs = np.ones(self.num_envs, dtype=bool) if envs is None else envs
         self._assert_open()
         if self._state != AsyncState.DEFAULT:
@@ -572,15 +563,15 @@ class HTTPVectorEnv(VectorEnv):
             resetting = ended.copy()
         else:
             resetting = np.zeros(self.num_envs, dtype=bool)
-        step = {self._keys[i]: actions[i] for i in np.flatnonzero(envs & ~resetting)}
+        stepped = np.flatnonzero(envs & ~resetting)
+        step = self.client.step_actions([self._keys[i] for i in stepped], actions[stepped])
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             self._pending = self.client.submit(self._step_then_reset(step))
         else:
             self._pending = self.client.call(step=step, **self._autoresets(np.flatnonzero(resetting)))
-        self._pending_chunk = chunk
         self._state = AsyncState.WAITING_STEP
 
-    async def _step_then_reset(self, step: dict[str, np.ndarray]) -> tuple[StageBatch, StageBatch]:
+    async def _step_then_reset(self, step: StepActions) -> tuple[StageBatch, StageBatch]:
         # A pod failing either call fails only its envs: the answered envs that ended are reset
         # all the same, and one error names every env left without an answer.
         errors: list[BaseException] = []
@@ -596,7 +587,7 @@ class HTTPVectorEnv(VectorEnv):
                 return error.answered[pick]
 
         stepped = await answered(1, step=step)
-        ended = [self._key_index[key] for key, end in zip(stepped.traj_keys, _ended(stepped)) if end]
+        ended = [self._key_index[key] for key, end in zip(stepped.traj_keys, stepped.ended()) if end]
         again = await answered(0, **self._autoresets(ended))
         if errors:
             raise call_error(errors, (again, stepped))
@@ -657,14 +648,15 @@ class HTTPVectorEnv(VectorEnv):
     ) -> tuple[tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], np.ndarray]:
         """Take a step call's answer (all or some of its envs'); return what ``step_wait`` returns
         and the mask of the envs the answer covers (a step, or a reset in its place)."""
-        # [num_envs], or [num_envs, K] for a chunk step (an all-reset chunk call steps nothing).
-        per_action = (self.num_envs,) if self._pending_chunk is None else (self.num_envs, self._pending_chunk)
+        # [num_envs], or [num_envs, K] for a chunk step (also one that only resets: no rows, K kept).
+        chunk = step_batch.chunk
+        per_action = (self.num_envs,) if chunk is None else (self.num_envs, chunk)
         reward = np.zeros(per_action, dtype=np.float64)
         terminated = np.zeros(per_action, dtype=bool)
         truncated = np.zeros(per_action, dtype=bool)
         info: dict[str, Any] = {}
 
-        ended = _ended(step_batch)
+        ended = step_batch.ended()
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             # An env that ended is answered only once its reset is: its step row alone would
             # leave it ended, which SAME_STEP never shows.
@@ -676,7 +668,7 @@ class HTTPVectorEnv(VectorEnv):
             take = np.arange(step_batch.n, dtype=np.int64)
         stepped = np.array([self._key_index[step_batch.traj_keys[j]] for j in take], dtype=np.int64)
         reset = np.array([self._key_index[k] for k in reset_batch.traj_keys], dtype=np.int64)
-        if len(take):  # a chunk call that only resets answers a step batch without a chunk axis
+        if len(take):
             reward[stepped] = step_batch.reward[take]
             terminated[stepped] = step_batch.terminated[take]
             truncated[stepped] = step_batch.truncated[take]
@@ -711,7 +703,7 @@ class HTTPVectorEnv(VectorEnv):
         answered = np.zeros(self.num_envs, dtype=bool)
         answered[stepped] = True
         answered[reset] = True
-        if self._pending_chunk is not None:
+        if chunk is not None:
             num_steps = np.zeros(self.num_envs, dtype=np.int32)
             num_steps[stepped] = step_batch.num_steps[take]
             info["num_steps"], info["_num_steps"] = num_steps, answered.copy()
@@ -719,7 +711,7 @@ class HTTPVectorEnv(VectorEnv):
             self._autoreset[answered] = False
         else:
             ended = terminated | truncated
-            self._autoreset[answered] = (ended if ended.ndim == 1 else ended.any(axis=1))[answered]
+            self._autoreset[answered] = (ended if chunk is None else ended.any(axis=1))[answered]
         self._failed[answered] = False
         return (copy.deepcopy(self._obs), reward, terminated, truncated, info), answered
 
