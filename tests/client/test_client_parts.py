@@ -117,18 +117,18 @@ def test_admit_takes_the_lowest_free_env_of_the_task_on_the_first_pod_that_has_o
     table = _table([_pod("p0", ("a", 1), ("b", 1)), _pod("p1", ("a", 2))])
     book = RouteBook(table)
     book.replace({"k0": TrajRoute("p0", 0, "a", 0, 0)})
-    route = book.admit("k1", "a", 7, 0, ["p0", "p1"])
+    route = book.admit("k1", ("a", 7), 0, ["p0", "p1"])
     assert (route.pod, route.env_index, route.state_id) == ("p1", 0, 7)
-    assert book.admit("k2", "b", 0, 0, ["p1"]) is None  # p1 has no env of b: nothing changes
+    assert book.admit("k2", ("b", 0), 0, ["p1"]) is None  # p1 has no env of b: nothing changes
     assert list(book.routes()) == ["k0", "k1"]
 
 
 def test_a_retired_trajectory_frees_its_env_for_the_next():
     book = RouteBook(TWO_STAGES)
     book.replace(book.place([("a", 0), ("a", 1)], ["k0", "k1"], stages=[0, 0]))
-    assert book.admit("k2", "a", 2, 0, ["sim-0"]) is None
+    assert book.admit("k2", ("a", 2), 0, ["sim-0"]) is None
     book.retire(["k0"])
-    assert (book.admit("k2", "a", 2, 0, ["sim-0"]).env_index, list(book.routes())) == (0, ["k1", "k2"])
+    assert (book.admit("k2", ("a", 2), 0, ["sim-0"]).env_index, list(book.routes())) == (0, ["k1", "k2"])
     with pytest.raises(ValueError, match=r"traj_keys \['k0'\] are not live"):
         book.retire(["k0"])
 

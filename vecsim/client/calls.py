@@ -19,12 +19,14 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 from gymnasium import Space
+from gymnasium.error import ResetNeeded
 from gymnasium.spaces import Box
 from gymnasium.vector.utils import create_empty_array
 
 from vecsim import trees, wire
 from vecsim.client.errors import PodRequestError, PodUnavailableError, call_error
 from vecsim.client.pods import EventLoopThread, PodSet
+from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
 
 __all__ = [
@@ -33,8 +35,11 @@ __all__ = [
     "StageBatch",
     "StepActions",
     "check_actions",
+    "check_attr",
+    "check_call",
     "completed",
     "empty_batch",
+    "run_attr",
     "run_call",
     "step_actions",
     "take_rows",
@@ -399,25 +404,98 @@ def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
     return step_actions(space, list(step), np.stack(rows))
 
 
-async def run_call(
-    pods: PodSet,
-    reset_keys: list[str],
-    state_ids: np.ndarray,
-    actions: StepActions | None,
-    pick: int | None,
-    recorded: set[str],
-    seeded: tuple[list[int | None], dict[str, Any]] | None = None,
-    frozen: Mapping[str, Ended] | None = None,
-    step_past_end: bool = False,
-) -> tuple[StageBatch, StageBatch]:
-    """Carry out one call on the routes in ``pods.book``: each pod its resets (to ``state_ids``,
-    or the envs' own reset with ``seeded`` = (seeds, options)), then its ``actions``, pods
-    concurrently; a pod with both fixed-state resets and steps gets them in one ``/v1/step``
-    request. Returns ``(reset_batch, step_batch)``; records the state ids reset to in the book.
+@dataclass
+class CallArgs:
+    """One call's arguments, checked against the route book by :func:`check_call`: the
+    trajectories reset (to ``state_ids``, or the envs' own reset with ``seeded`` = (seeds,
+    options)), the routes of every key, the stepped keys whose frames are ``recorded`` and the
+    ``frozen`` ones (ended: answered unstepped)."""
 
-    Step keys in ``frozen`` are not sent: their rows answer what their env was when it ended
-    (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the pods
-    to apply every action of a chunk, also after an env's end.
+    reset_keys: list[str]
+    state_ids: np.ndarray
+    routes: dict[str, TrajRoute]
+    recorded: set[str]
+    seeded: tuple[list[int | None], dict[str, Any]] | None
+    frozen: dict[str, Ended]
+
+
+def check_call(
+    book: RouteBook,
+    reset: Sequence[str] | Mapping[str, int],
+    step_keys: list[str],
+    record: Sequence[str],
+    seeds: Mapping[str, int | None] | None,
+    options: Mapping[str, Any] | None,
+    ended_envs: str,
+) -> CallArgs:
+    """Check a call's keys against ``book``: ``reset`` (keys, or keys to new state ids),
+    ``step_keys``, ``record`` (stepped keys), ``seeds`` (in place of state ids); ``ended_envs`` as
+    :class:`~vecsim.client.stage.StageClient`'s says what stepping an ended trajectory does.
+
+    Raises:
+        ValueError: a key both reset and stepped, repeated, not live, recorded but not stepped,
+            a negative state id (names the key); ``seeds`` with ``reset``, ``options`` without.
+        RoutingChangedError: a key whose env went away when the routing changed.
+        ResetNeeded: (``ended_envs`` ``"raise"``) a stepped trajectory that ended.
+    """
+    if seeds is not None:
+        if reset:
+            raise ValueError("give reset (fixed initial states) or seeds (the envs' own reset), not both")
+        reset = list(seeds)
+    elif options:
+        raise ValueError("options go with seeds (the envs' own reset)")
+    recorded = set(record)
+    if recorded - set(step_keys):
+        raise ValueError(f"record: traj_keys {sorted(recorded - set(step_keys))} are not stepped in this call")
+    new_ids = dict(reset) if isinstance(reset, Mapping) and seeds is None else None
+    reset_keys = list(reset)
+    both = set(reset_keys) & set(step_keys)
+    if both:
+        raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
+    if len(set(reset_keys)) != len(reset_keys) or len(set(step_keys)) != len(step_keys):
+        raise ValueError("traj_keys repeat within one call")
+    book.check_lost([*reset_keys, *step_keys])
+    routes = book.live([*reset_keys, *step_keys])
+    ended = book.ended()
+    stepped_ended = [k for k in step_keys if k in ended]
+    if stepped_ended and ended_envs == "raise":
+        raise ResetNeeded(
+            f"traj_keys {stepped_ended} ended (terminated or truncated) and were not reset; reset them, or "
+            "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
+        )
+    state_ids = np.array([new_ids[k] if new_ids is not None else routes[k].state_id for k in reset_keys], dtype=np.int64)
+    if new_ids is not None:
+        for key, sid in zip(reset_keys, state_ids):
+            if sid < 0:
+                raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
+    return CallArgs(
+        reset_keys=reset_keys,
+        state_ids=state_ids,
+        routes=routes,
+        recorded=recorded,
+        seeded=None if seeds is None else ([seeds[k] for k in reset_keys], dict(options or {})),
+        frozen={k: ended[k] for k in stepped_ended} if ended_envs == "freeze" else {},
+    )
+
+
+def _note_ended(book: RouteBook, reset_batch: StageBatch, step_batch: StageBatch) -> None:
+    """Keep track of which trajectories ended: reset ones did not, stepped ones may have (not
+    those whose env raised)."""
+    failed = {key for key, _type, _message in step_batch.errors}
+    book.note_ended(reset_batch.traj_keys, {k: e for k, e in ended_rows(step_batch).items() if k not in failed})
+
+
+async def run_call(
+    pods: PodSet, args: CallArgs, actions: StepActions | None, pick: int | None, step_past_end: bool = False
+) -> tuple[StageBatch, StageBatch]:
+    """Carry out one call (``args``, ``actions``) on the routes in ``pods.book``: each pod its
+    resets, then its steps, pods concurrently; a pod with both fixed-state resets and steps gets
+    them in one ``/v1/step`` request. Returns ``(reset_batch, step_batch)``; records in the book
+    the state ids reset to and which trajectories ended.
+
+    Step keys in ``args.frozen`` are not sent: their rows answer what their env was when it
+    ended (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the
+    pods to apply every action of a chunk, also after an env's end.
 
     Raises:
         PodUnavailableError, RoutingChangedError, ...: :func:`~vecsim.client.errors.call_error`
@@ -425,6 +503,7 @@ async def run_call(
     """
     submitted = time.perf_counter()
     book, info = pods.book, pods.info
+    reset_keys, state_ids, recorded, seeded, frozen = args.reset_keys, args.state_ids, args.recorded, args.seeded, args.frozen
     routes = book.routes()
     space = info.observation_space
     reset_batch = empty_batch(space, reset_keys, routes)
@@ -435,7 +514,6 @@ async def run_call(
     work: dict[str, _PodWork] = {}
     for row, key in enumerate(reset_keys):
         work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
-    frozen = frozen or {}
     for row, key in enumerate(step_keys):
         if key in frozen:
             _put_frozen(step_batch, row, frozen[key])
@@ -530,8 +608,63 @@ async def run_call(
             take_rows(reset_batch, sorted(answered.reset_rows)),
             take_rows(step_batch, sorted(answered.step_rows)),
         )
+        _note_ended(book, *partial)
         raise call_error(errors, partial if pick is None else partial[pick])
+    _note_ended(book, reset_batch, step_batch)
     return reset_batch, step_batch
+
+
+
+def check_attr(book: RouteBook, op: str, keys: Sequence[str]) -> dict[str, TrajRoute]:
+    """The live routes, checked for an attribute call ``op`` on ``keys``.
+
+    Raises:
+        ValueError: an unknown op, or keys that are not live trajectories (names them).
+    """
+    if op not in ("get_attr", "call", "set_attr"):
+        raise ValueError(f"op must be get_attr, call or set_attr, got {op!r}")
+    routes = book.routes()
+    unknown = [k for k in keys if k not in routes]
+    if unknown:
+        raise ValueError(f"traj_keys {unknown} are not live trajectories")
+    return routes
+
+
+async def run_attr(
+    pods: PodSet, op: str, keys: list[str], name: str, payload: Any, routes: Mapping[str, TrajRoute]
+) -> tuple[list[Any], list[tuple[str, str, str]]]:
+    """Carry out an attribute call (``op`` ``get_attr``, ``call`` or ``set_attr``) of ``name`` on
+    the envs of ``keys``, all their pods concurrently (as JSON; a 409 is a refusal here).
+    Returns one result per key and ``(traj_key, exception type name, message)`` per env that
+    raised (see :meth:`~vecsim.client.stage.StageClient.env_attr`)."""
+    by_pod: dict[str, list[int]] = {}
+    for row, key in enumerate(keys):
+        by_pod.setdefault(routes[key].pod, []).append(row)
+
+    async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
+        body: dict[str, Any] = {
+            "generation": pods.book.generation,
+            "env_indices": [routes[keys[r]].env_index for r in rows],
+            "name": name,
+        }
+        if op == "call":
+            body["args"], body["kwargs"] = payload
+        elif op == "set_attr":
+            body["values"] = [payload[r] for r in rows]
+        return await pods[pod].call_json(op, body, [keys[r] for r in rows])
+
+    answers = await asyncio.gather(*(one_pod(pod, rows) for pod, rows in by_pod.items()))
+    results: list[Any] = [None] * len(keys)
+    errors: list[tuple[str, str, str]] = []
+    for (pod, rows), answer in zip(by_pod.items(), answers):
+        for row, result in zip(rows, answer.get("results") or []):
+            results[row] = result
+        raised = answer.get("errors") or {}
+        row_of = {routes[keys[r]].env_index: r for r in rows}
+        for env, kind, message in zip(raised.get("env_indices", ()), raised.get("type", ()), raised.get("message", ())):
+            if env in row_of:
+                errors.append((keys[row_of[env]], str(kind), str(message)))
+    return results, errors
 
 
 

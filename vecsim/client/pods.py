@@ -15,6 +15,7 @@ import asyncio
 import concurrent.futures
 import json
 import logging
+import math
 import sys
 import threading
 import time
@@ -337,6 +338,15 @@ class PodConnection:
         return answer
 
 
+def check_limits(timeout_s: float, max_answer_bytes: int | None) -> None:
+    """Raises ``ValueError``: ``timeout_s`` not a positive number, or ``max_answer_bytes`` (when
+    given) under 1."""
+    if not (timeout_s > 0 and math.isfinite(timeout_s)):
+        raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
+    if max_answer_bytes is not None and max_answer_bytes < 1:
+        raise ValueError(f"max_answer_bytes must be a positive number of bytes, got {max_answer_bytes}")
+
+
 class PodSet:
     """One :class:`PodConnection` per pod of the route book's table, and the one way a call
     reaches a pod: :meth:`post`, at the table's generation.
@@ -390,6 +400,15 @@ class PodSet:
                     self._connections[routed.pod].max_answer_bytes = self.info.answer_cap(
                         envs[routed.pod], self.max_answer_bytes
                     )
+
+    async def infos(self, pods: list[str]) -> dict[str, dict[str, Any]]:
+        """The ``/v1/info`` answers of ``pods``, read concurrently.
+
+        Raises:
+            PodUnavailableError, PodRequestError: as :meth:`PodConnection.info`.
+        """
+        answers = await asyncio.gather(*(self[pod].info() for pod in pods))
+        return dict(zip(pods, answers))
 
     async def post(
         self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0

@@ -15,7 +15,7 @@ import httpx
 
 from vecsim.client.errors import ClientError, PodRequestError, PodUnavailableError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodSet
+from vecsim.client.pods import EventLoopThread, PodSet, refusal
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import stage_by_id
 from vecsim.config import RoutingTable
@@ -103,6 +103,25 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         logger.log(level, "waiting for the controller at %s (%.0f s of %s s): %s", url, now - started, wait_ready_s, seen)
         time.sleep(min(pause, left))
         pause = min(pause * 2, _WAIT_MAX_S)
+
+
+def read_pod_info(url: str, timeout_s: float) -> tuple[str, dict[str, Any]]:
+    """A standalone pod's ``GET /v1/info`` answer, with its URL (no trailing slash).
+
+    Raises:
+        PodUnavailableError: the pod did not answer, or answered 503.
+        PodRequestError: the pod refused, or its answer is not JSON.
+    """
+    try:
+        response = get_answer(f"{url.rstrip('/')}/v1/info", timeout_s=timeout_s)
+    except httpx.HTTPError as exc:
+        raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
+    if response.status_code != 200:
+        raise refusal(url, response.status_code, response.content, [])
+    try:
+        return url.rstrip("/"), response.json()
+    except ValueError as exc:
+        raise PodRequestError(url, None, f"answer to /v1/info is not JSON: {exc}") from None
 
 
 async def controller_routing(transport: Transport, controller_url: str, timeout_s: float) -> RoutingTable:

@@ -31,50 +31,51 @@ that did answer (``error.answered``), whose envs have advanced and must not be l
 
 from __future__ import annotations
 
-import asyncio
 import atexit
 import itertools
 import logging
-import math
 import threading
 import weakref
 from collections.abc import Coroutine, Mapping, Sequence
 from typing import Any, TypeVar
 
 import httpx
-import numpy as np
 from gymnasium import Space
-from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, ResetNeeded
+from gymnasium.error import ClosedEnvironmentError
 
 from vecsim.auth import token_from_env
 from vecsim.client.calls import (
-    Ended,
     PendingCall,
     StageBatch,
     StepActions,
     check_actions,
+    check_attr,
+    check_call,
     completed,
     empty_batch,
-    ended_rows,
+    run_attr,
     run_call,
     step_actions,
 )
-from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodSet, refusal
-from vecsim.client.refresh import RoutingRefresher, fetch_routing
+from vecsim.client.pods import EventLoopThread, PodSet, check_limits
+from vecsim.client.refresh import RoutingRefresher, fetch_routing, read_pod_info
 from vecsim.client.routebook import RouteBook
-from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
+from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import as_transport, get_answer
+from vecsim.transport import as_transport
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "StepActions", "check_ended_envs", "fetch_routing"]
 
-# What stepping a trajectory whose episode ended does: refuse (ResetNeeded), step its env on
-# (the pod applies every action, also past the end), or answer it unstepped with its flags held.
+# What stepping a trajectory whose env terminated or truncated (and was not reset since) does:
+# "raise" refuses it with ResetNeeded before anything is sent; "step" steps the env on, and a
+# chunk applies all its K actions, also past an end (as RLinf's and LIBERO's own envs are
+# stepped, the trainer masking afterwards); "freeze" sends nothing for it and answers its
+# observation at the end, reward 0, its termination and truncation held at every action,
+# num_steps 0. Under "raise" and "freeze" a chunk stops each env at its first end.
 ENDED_ENVS = ("raise", "step", "freeze")
 
 
@@ -130,13 +131,8 @@ class StageClient:
     job's shared token, sent with every reset and step; left out, ``VECSIM_TOKEN`` is used
     (none: the pods must run without one).
 
-    ``ended_envs`` says what a step of a trajectory whose env terminated or truncated (and was
-    not reset since) does: ``"raise"`` refuses it with ``ResetNeeded`` before anything is sent;
-    ``"step"`` steps the env on, and a chunk applies all its K actions, also past an end (as
-    RLinf's and LIBERO's own envs are stepped, the trainer masking afterwards); ``"freeze"``
-    sends nothing for it and answers its observation at the end, reward 0, its termination and
-    truncation held at every action, ``num_steps`` 0. Under ``"raise"`` and ``"freeze"`` a chunk
-    stops each env at its first end.
+    ``ended_envs`` (one of :data:`ENDED_ENVS`, which says what each does) is what a step of a
+    trajectory whose env terminated or truncated (and was not reset since) does.
     """
 
     def __init__(
@@ -151,16 +147,12 @@ class StageClient:
         ended_envs: str = "raise",
     ) -> None:
         self.ended_envs = check_ended_envs(ended_envs)
-        if not (timeout_s > 0 and math.isfinite(timeout_s)):
-            raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
-        if max_answer_bytes is not None and max_answer_bytes < 1:
-            raise ValueError(f"max_answer_bytes must be a positive number of bytes, got {max_answer_bytes}")
+        check_limits(timeout_s, max_answer_bytes)
         self._book = RouteBook(routing)
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
         self._transport = as_transport(transport)
-        self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
         self._states = StageStates()
         self._batches = itertools.count()
         self._info = JobInfo()
@@ -193,13 +185,8 @@ class StageClient:
         """
         table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
         return cls(
-            table,
-            controller_url=controller_url,
-            timeout_s=timeout_s,
-            transport=transport,
-            max_answer_bytes=max_answer_bytes,
-            token=token,
-            ended_envs=ended_envs,
+            table, controller_url=controller_url, timeout_s=timeout_s, transport=transport,
+            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
         )
 
     @classmethod
@@ -221,26 +208,10 @@ class StageClient:
             ValueError: the pods do not make a routing table (names the problem).
         """
 
-        def info(url: str) -> tuple[str, dict[str, Any]]:
-            try:
-                response = get_answer(f"{url.rstrip('/')}/v1/info", timeout_s=timeout_s)
-            except httpx.HTTPError as exc:
-                raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
-            if response.status_code != 200:
-                raise refusal(url, response.status_code, response.content, [])
-            try:
-                return url.rstrip("/"), response.json()
-            except ValueError as exc:
-                raise PodRequestError(url, None, f"answer to /v1/info is not JSON: {exc}") from None
-
-        infos = [info(u) for u in urls]
+        infos = [read_pod_info(u, timeout_s) for u in urls]
         client = cls(
-            routing_from_pod_infos(infos),
-            timeout_s=timeout_s,
-            transport=transport,
-            max_answer_bytes=max_answer_bytes,
-            token=token,
-            ended_envs=ended_envs,
+            routing_from_pod_infos(infos), timeout_s=timeout_s, transport=transport,
+            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
         )
         try:
             client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
@@ -277,40 +248,34 @@ class StageClient:
     @property
     def observation_space(self) -> Space | None:
         """One env's observation space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
-        self._load_info()
-        return self._info.observation_space
+        return self._job().observation_space
 
     @property
     def action_space(self) -> Space | None:
         """One env's action space as the pods take it (a Dict or Tuple one flattened), read from
         the pods' ``/v1/info`` (None if no pod has envs); :attr:`served_action_space`: the envs' own."""
-        self._load_info()
-        return self._info.action_space
+        return self._job().action_space
 
     @property
     def served_action_space(self) -> Space | None:
-        self._load_info()
-        return self._info.served_action_space
+        return self._job().served_action_space
 
     @property
     def instructions(self) -> dict[str, str]:
         """Each task's instruction, read from the pods' ``/v1/info``."""
-        self._load_info()
-        return dict(self._info.instructions)
+        return dict(self._job().instructions)
 
     @property
     def reset_kinds(self) -> dict[str, str]:
         """How each task's envs reset by default, from the pods' ``/v1/info``: ``"seed"`` (the
         env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
-        self._load_info()
-        return dict(self._info.reset_kinds)
+        return dict(self._job().reset_kinds)
 
     @property
     def num_states(self) -> dict[str, int]:
         """How many fixed initial states each task has (state ids ``0..n-1``), from the pods'
         ``/v1/info``: the trainer needs no task registry of its own."""
-        self._load_info()
-        return dict(self._info.num_states)
+        return dict(self._job().num_states)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -340,7 +305,7 @@ class StageClient:
             self._refresher.before_batch(self._loop, self._pods)
         keys = list(traj_keys) if traj_keys is not None else self.new_traj_keys(len(requests))
         routes = self._book.place(requests, keys, stages)
-        self._replace_routes(routes)
+        self._states.while_idle("placing a new batch", lambda: self._book.replace(routes))
         return dict(routes)
 
     def new_traj_keys(self, n: int) -> list[str]:
@@ -364,16 +329,7 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_stage(stage_id)
-        task_id, state_id = check_request(0, request)
-        stage_pods = [routed.pod for routed in stage_by_id(self._book.table)[stage_id].pods]
-        chosen = stage_pods if pods is None else list(pods)
-        strangers = [pod for pod in chosen if pod not in stage_pods]
-        if strangers:
-            raise ValueError(f"pods {strangers} are not pods of stage {stage_id} ({stage_pods})")
-        route = self._book.admit(traj_key, task_id, state_id, stage_id, chosen)
-        if route is not None:
-            self._ended.pop(traj_key, None)
-        return route
+        return self._book.admit(traj_key, request, stage_id, pods)
 
     def retire_trajectories(self, traj_keys: Sequence[str]) -> None:
         """Drop live trajectories (ended ones): their envs become free for
@@ -387,14 +343,8 @@ class StageClient:
         self._check_open()
         traj_keys = list(dict.fromkeys(traj_keys))
         routes = self._book.live(traj_keys)
-        busy = sorted({routes[k].pod for k in traj_keys if self._states.pod_busy(routes[k].stage_id, routes[k].pod)})
-        if busy:
-            raise AlreadyPendingCallError(
-                f"pods {busy} wait on a call; take its result before retiring their trajectories", "step"
-            )
+        self._states.check_idle({(routes[k].stage_id, routes[k].pod) for k in traj_keys}, "retiring their trajectories")
         self._book.retire(traj_keys)
-        for key in traj_keys:
-            self._ended.pop(key, None)
 
     def set_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Make ``routes`` the live trajectories, as given (for callers that place envs themselves).
@@ -405,24 +355,12 @@ class StageClient:
         """
         self._check_open()
         self._book.check_routes(routes)
-        self._replace_routes(dict(routes))
-
-    def _replace_routes(self, routes: dict[str, TrajRoute]) -> None:
-        def replace() -> None:
-            old = self._book.routes()
-            self._book.replace(routes)
-            # An ended trajectory stays ended only while it keeps its env.
-            for key in list(self._ended):
-                before, now = old.get(key), routes.get(key)
-                if now is None or before is None or (before.pod, before.env_index) != (now.pod, now.env_index):
-                    del self._ended[key]
-
-        self._states.while_idle("placing a new batch", replace)
+        self._states.while_idle("placing a new batch", lambda: self._book.replace(routes))
 
     @property
     def ended_traj_keys(self) -> list[str]:
         """The trajectories whose env terminated or truncated and was not reset since."""
-        return sorted(self._ended)
+        return sorted(self._book.ended())
 
     # -- calls ----------------------------------------------------------------------------------
 
@@ -501,13 +439,7 @@ class StageClient:
             AlreadyPendingCallError: a stage involved already waits on a call.
             ClosedEnvironmentError: the client is closed.
         """
-        if seeds is not None:
-            if reset:
-                raise ValueError("give reset (fixed initial states) or seeds (the envs' own reset), not both")
-            return self._submit(reset=list(seeds), step=step or {}, pick=None, record=record, seeds=seeds, options=options)
-        if options:
-            raise ValueError("options go with seeds (the envs' own reset)")
-        return self._submit(reset=reset, step=step or {}, pick=None, record=record)
+        return self._submit(reset=reset, step=step or {}, pick=None, record=record, seeds=seeds, options=options)
 
     def pod_call(
         self,
@@ -528,14 +460,7 @@ class StageClient:
         """
         self._check_open()
         step = step or {}
-        keys = [*reset, *_keys_of(step)]
-        self._book.check_lost(keys)
-        routes = self._book.live(keys)
-        if pod not in {routed.pod for stage in self._book.table.stages for routed in stage.pods}:
-            raise ValueError(f"pod {pod!r} is not in the routing table")
-        elsewhere = [key for key in keys if routes[key].pod != pod]
-        if elsewhere:
-            raise ValueError(f"traj_key {elsewhere[0]!r} runs on pod {routes[elsewhere[0]].pod}, not {pod}")
+        self._book.check_on_pod([*reset, *_keys_of(step)], pod)
         return self._submit(reset=reset, step=step, pick=None, record=record, pod=pod)
 
     def step_actions(self, traj_keys: Sequence[str], actions: Any) -> StepActions:
@@ -564,45 +489,8 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
-        if op not in ("get_attr", "call", "set_attr"):
-            raise ValueError(f"op must be get_attr, call or set_attr, got {op!r}")
-        routes = self._book.routes()
-        unknown = [k for k in keys if k not in routes]
-        if unknown:
-            raise ValueError(f"traj_keys {unknown} are not live trajectories")
-        return self.submit(self._env_attr(op, list(keys), name, payload, routes))
-
-    async def _env_attr(
-        self, op: str, keys: list[str], name: str, payload: Any, routes: Mapping[str, TrajRoute]
-    ) -> tuple[list[Any], list[tuple[str, str, str]]]:
-        by_pod: dict[str, list[int]] = {}
-        for row, key in enumerate(keys):
-            by_pod.setdefault(routes[key].pod, []).append(row)
-
-        async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
-            body: dict[str, Any] = {
-                "generation": self._book.generation,
-                "env_indices": [routes[keys[r]].env_index for r in rows],
-                "name": name,
-            }
-            if op == "call":
-                body["args"], body["kwargs"] = payload
-            elif op == "set_attr":
-                body["values"] = [payload[r] for r in rows]
-            return await self._pods[pod].call_json(op, body, [keys[r] for r in rows])
-
-        answers = await asyncio.gather(*(one_pod(pod, rows) for pod, rows in by_pod.items()))
-        results: list[Any] = [None] * len(keys)
-        errors: list[tuple[str, str, str]] = []
-        for (pod, rows), answer in zip(by_pod.items(), answers):
-            for row, result in zip(rows, answer.get("results") or []):
-                results[row] = result
-            raised = answer.get("errors") or {}
-            row_of = {routes[keys[r]].env_index: r for r in rows}
-            for env, kind, message in zip(raised.get("env_indices", ()), raised.get("type", ()), raised.get("message", ())):
-                if env in row_of:
-                    errors.append((keys[row_of[env]], str(kind), str(message)))
-        return results, errors
+        routes = check_attr(self._book, op, keys)
+        return self.submit(run_attr(self._pods, op, list(keys), name, payload, routes))
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
         """Run ``coro`` on the client's event loop and return its pending result.
@@ -628,72 +516,29 @@ class StageClient:
         pod: str | None = None,
     ) -> PendingCall[Any]:
         self._check_open()
-        step_keys = _keys_of(step)
-        recorded = set(record)
-        if recorded - set(step_keys):
-            raise ValueError(f"record: traj_keys {sorted(recorded - set(step_keys))} are not stepped in this call")
-        reset_map = dict(reset) if isinstance(reset, Mapping) else None
-        reset_keys = list(reset)
-        both = set(reset_keys) & set(step_keys)
-        if both:
-            raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
-        if len(set(reset_keys)) != len(reset_keys) or len(set(step_keys)) != len(step_keys):
-            raise ValueError("traj_keys repeat within one call")
-        self._book.check_lost([*reset_keys, *step_keys])
-        routes = self._book.live(itertools.chain(reset_keys, step_keys))
-        ended = [k for k in step_keys if k in self._ended]
-        if ended and self.ended_envs == "raise":
-            raise ResetNeeded(
-                f"traj_keys {ended} ended (terminated or truncated) and were not reset; reset them, or "
-                "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
-            )
-        frozen = {k: self._ended[k] for k in ended} if self.ended_envs == "freeze" else {}
-        state_ids = np.array(
-            [reset_map[k] if reset_map is not None and seeds is None else routes[k].state_id for k in reset_keys],
-            dtype=np.int64,
-        )
-        if reset_map is not None and seeds is None:
-            for key, sid in zip(reset_keys, state_ids):
-                if sid < 0:
-                    raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
+        args = check_call(self._book, reset, _keys_of(step), record, seeds, options, self.ended_envs)
         # Spaces first, so even an empty answer has the job's observation structure (0 rows).
-        self._load_info()
+        self._job()
         if isinstance(step, StepActions):
             actions: StepActions | None = step
         else:
-            actions = check_actions(self.action_space, step) if step_keys else None
-        if recorded and (actions is None or actions.chunk is None):
+            actions = check_actions(self.action_space, step) if step else None
+        if args.recorded and (actions is None or actions.chunk is None):
             raise ValueError("record: frames are recorded for chunk steps only; send [K, action dim] per traj_key")
-        if not reset_keys and not step_keys:
-            space = self._info.observation_space
-            chunk = None if actions is None else actions.chunk
-            return completed((empty_batch(space), empty_batch(space, chunk=chunk)), pick)
-        resetting = {routes[k].stage_id for k in reset_keys}
-        stepping = {routes[k].stage_id for k in step_keys}
+        if actions is None or not actions.traj_keys:
+            if not args.reset_keys:
+                space = self._info.observation_space
+                return completed((empty_batch(space), empty_batch(space, chunk=actions and actions.chunk)), pick)
+        resetting = {args.routes[k].stage_id for k in args.reset_keys}
+        stepping = {args.routes[k].stage_id for k in (actions.traj_keys if actions is not None else ())}
         states = {
             stage: StageState.waiting_for(stage in resetting, stage in stepping) for stage in resetting | stepping
         }
-        seeded = None if seeds is None else ([seeds[k] for k in reset_keys], dict(options or {}))
         token = _Held()  # what holds the stages: the call, named before its future exists
 
         async def run() -> tuple[StageBatch, StageBatch]:
             try:
-                try:
-                    batches = await run_call(
-                        self._pods, reset_keys, state_ids, actions, pick, recorded, seeded, frozen,
-                        self.ended_envs == "step",
-                    )
-                except (PodUnavailableError, RoutingChangedError) as error:
-                    if error.answered is not None:
-                        if pick is None:
-                            self._note_ended(*error.answered)
-                        elif pick == 0:
-                            self._note_ended(error.answered, None)
-                        else:
-                            self._note_ended(None, error.answered)
-                    raise
-                self._note_ended(*batches)
-                return batches
+                return await run_call(self._pods, args, actions, pick, self.ended_envs == "step")
             finally:
                 # Before the answer is handed over: a caller whose result() returned finds its
                 # stages idle.
@@ -704,15 +549,6 @@ class StageClient:
         future.add_done_callback(lambda _f: self._states.end(states, token))
         token.pending = PendingCall(future, pick, self._loop)
         return token.pending
-
-    def _note_ended(self, reset_batch: StageBatch | None, step_batch: StageBatch | None) -> None:
-        """Keep track of which trajectories ended: reset ones did not, stepped ones may have."""
-        if reset_batch is not None:
-            for key in reset_batch.traj_keys:
-                self._ended.pop(key, None)
-        if step_batch is not None:
-            failed = {key for key, _type, _message in step_batch.errors}
-            self._ended.update({k: e for k, e in ended_rows(step_batch).items() if k not in self._ended and k not in failed})
 
     def stage_state(self, stage_id: int) -> StageState:
         """What a stage is doing: ``IDLE`` or waiting on a reset, a step or a mixed call.
@@ -763,17 +599,14 @@ class StageClient:
 
     # -- what runs on the loop ------------------------------------------------------------------
 
-    def _load_info(self) -> None:
+    def _job(self) -> JobInfo:
+        """What the pods said of the job, read from their ``/v1/info`` on first use."""
         if self._info.spaces is None:
             self._check_open()
             if threading.current_thread() is self._loop.thread:
                 raise RuntimeError("the pods' spaces must be read before calls are made from the client's loop")
-            self._loop.run(self._fetch_info())
-
-    async def _fetch_info(self) -> None:
-        pods = self._book.pods_with_envs()
-        infos = await asyncio.gather(*(self._pods[p].info() for p in pods))
-        self._adopt_info(dict(zip(pods, infos)))
+            self._adopt_info(self._loop.run(self._pods.infos(self._book.pods_with_envs())))
+        return self._info
 
     def _adopt_info(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
         """Take instructions and spaces from pods' ``/v1/info`` answers (pods with envs only)."""
