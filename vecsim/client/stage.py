@@ -528,7 +528,7 @@ class StageClient:
         if actions is None or not actions.traj_keys:
             if not args.reset_keys:
                 space = self._info.observation_space
-                return completed((empty_batch(space), empty_batch(space, chunk=actions and actions.chunk)), pick)
+                return completed((empty_batch(space), empty_batch(space, chunk=None if actions is None else actions.chunk)), pick)
         resetting = {args.routes[k].stage_id for k in args.reset_keys}
         stepping = {args.routes[k].stage_id for k in (actions.traj_keys if actions is not None else ())}
         states = {
