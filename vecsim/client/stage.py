@@ -9,6 +9,7 @@ Usage, top to bottom::
     ...                                             # work on another stage meanwhile
     batch = pending.result()
     pending = client.step_stage(0, {key: chunk for key, chunk in ...})   # chunks [K, action dim]
+    pending = client.step_stage(0, client.step_actions(keys, chunks))   # one array [n, K, action dim]
 
 Every call returns a :class:`PendingCall` at once (awaitable, or ``.result()`` from sync code);
 the HTTP runs on the client's own event loop thread, all pods of a call concurrently, over one
@@ -21,8 +22,10 @@ a call of their own (no lockstep over a stage's pods).
 This class is the facade over the parts, each its own module: the route book
 (:mod:`~vecsim.client.routebook`, pure), the stages' states (:mod:`~vecsim.client.stagestate`,
 pure), what the pods said of the job (:mod:`~vecsim.client.jobinfo`), one call carried out
-(:mod:`~vecsim.client.calls`), the routing re-read (:mod:`~vecsim.client.refresh`) and the pod
-connections on the loop thread (:mod:`~vecsim.client.pods`).
+(:mod:`~vecsim.client.calls`: whether its actions are one or a chunk each is said there once,
+:func:`~vecsim.client.calls.step_actions`), the routing re-read (:mod:`~vecsim.client.refresh`)
+and the pod connections on the loop thread (:mod:`~vecsim.client.pods`, whose ``PodSet`` is
+the one way a call reaches a pod).
 
 A pod that fails a call (no answer in time, refused connection, 503, envs moved by the routing)
 fails it for its own trajectories only: the error names them and carries the rows of the pods
