@@ -19,6 +19,7 @@ import multiprocessing.connection
 import os
 import select
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -27,10 +28,13 @@ from gymnasium.vector.utils import create_shared_memory, read_from_shared_memory
 
 from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment
 from vecsim.engine import protocol
+from vecsim.engine.errors import SimBuildError
 from vecsim.engine.worker import WorkerSpec, results_space, worker_process
 from vecsim.lifetime import exit_with_parent
 
 log = logging.getLogger("vecsim.engine.pool")
+
+_PROGRESS_EVERY_S = 10.0
 
 
 class WorkerFailure(RuntimeError):
@@ -144,6 +148,97 @@ class WorkerPool:
             pipe.close()
         for process in self.processes:
             process.join()
+
+
+def start_pool(specs: Sequence[WorkerSpec], context: str, build_timeout_s: float | None) -> WorkerPool:
+    """Start one worker per spec and wait until each has built, reset and warmed its envs,
+    logging each worker as it lands and the build's progress every 10 s.
+
+    Raises:
+        SimBuildError: a worker failed to build, or the build took over ``build_timeout_s``
+            (every worker is ended then).
+    """
+    task_ids = [task for spec in specs for task in spec.task_ids]
+    log.info(
+        "building %d envs (%s) in %d worker processes, %d envs per worker",
+        len(task_ids),
+        ", ".join(f"{task} x{n}" for task, n in Counter(task_ids).items()),
+        len(specs),
+        specs[0].envs_per_worker,
+    )
+    started = time.monotonic()
+    pool = WorkerPool(specs, context)
+    try:
+        for worker in range(len(specs)):
+            pool.send(worker, "build")
+        took = _wait_for_build(pool, specs, started, build_timeout_s)
+    except SimBuildError:
+        pool.close()
+        raise
+    except WorkerFailure as exc:
+        pool.close()
+        if exc.type_name == SimBuildError.__name__:
+            raise SimBuildError(exc.message) from None
+        raise SimBuildError(f"building envs failed: {exc}") from None
+    except Exception as exc:
+        pool.close()
+        raise SimBuildError(f"building envs failed: {type(exc).__name__}: {exc}") from exc
+    log.info("built %d envs in %.1f s", len(task_ids), time.monotonic() - started)
+    if took:
+        # The warm-up, in one line: what a trainer's first call would otherwise have paid.
+        log.info(
+            "warm-up done: first step (step path, compiled kernels) %.1f s, first render of "
+            "every camera %.1f s (slowest worker's)",
+            max(t["warm"] for t in took),
+            max(t["render"] for t in took),
+        )
+    return pool
+
+
+def _wait_for_build(
+    pool: WorkerPool, specs: Sequence[WorkerSpec], started: float, build_timeout_s: float | None
+) -> list[dict[str, float]]:
+    """Wait for every worker's build, logging each as it lands; return their timings."""
+    pipes = {pipe: index for index, pipe in enumerate(pool.pipes)}
+    pending = set(pipes)
+    timings: list[dict[str, float]] = []
+    last_report = started
+    while pending:
+        elapsed = time.monotonic() - started
+        if build_timeout_s is not None and elapsed > build_timeout_s:
+            raise SimBuildError(
+                f"building envs took over {build_timeout_s} s; "
+                f"{len(pipes) - len(pending)} of {len(pipes)} workers were ready"
+            )
+        wait_s = _PROGRESS_EVERY_S
+        if build_timeout_s is not None:
+            wait_s = min(wait_s, max(build_timeout_s - elapsed, 0.0))
+        for pipe in multiprocessing.connection.wait(list(pending), timeout=wait_s):
+            pending.discard(pipe)
+            index = pipes[pipe]
+            took = pool.receive([index], timeout_s=None)[index]
+            timings.append(took)
+            log.info(
+                "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, warmed the first step %.1f s, "
+                "warmed the cameras %.1f s)",
+                index + 1,
+                len(pipes),
+                specs[index].describe(),
+                time.monotonic() - started,
+                took["make"],
+                took["reset"],
+                took["warm"],
+                took["render"],
+            )
+        if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
+            last_report = time.monotonic()
+            log.info(
+                "still building: %d of %d workers ready after %.0f s",
+                len(pipes) - len(pending),
+                len(pipes),
+                last_report - started,
+            )
+    return timings
 
 
 def _worker_main(pod_pid: int, *args: Any) -> None:

@@ -31,7 +31,6 @@ import multiprocessing
 import multiprocessing.connection
 import threading
 import time
-from collections import Counter
 from typing import Any
 
 import gymnasium
@@ -43,16 +42,14 @@ from vecsim.config import Assignment
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult
 from vecsim.engine.checks import assignment_spaces
-from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError, SimCrashedError
-from vecsim.engine.pool import WorkerFailure, WorkerPool, resolve_envs_per_worker
+from vecsim.engine.errors import EnvError, InvalidRequestError, SimCrashedError
+from vecsim.engine.pool import WorkerFailure, WorkerPool, resolve_envs_per_worker, start_pool
 from vecsim.engine.protocol import Order, Reply
 from vecsim.engine.tasks import get_task
 from vecsim.engine.worker import REWARD, SUCCESS, TERMINATED, TRUNCATED, WorkerSpec
 from vecsim.spaces import wire_action_space
 
 log = logging.getLogger("vecsim.engine.vector_env")
-
-_PROGRESS_EVERY_S = 10.0
 
 
 def _gather(tree: Any, workers: np.ndarray, local_indices: np.ndarray) -> Any:
@@ -138,7 +135,7 @@ class TaskGroupedVectorEnv:
         envs = np.arange(self.num_envs, dtype=np.int64)
         self._location = np.stack(divmod(envs, per_worker), axis=1).reshape(-1, 2)
         if self._workers:
-            self._start(context, build_timeout_s)
+            self._pool = start_pool(self._workers, context, build_timeout_s)
 
     @property
     def num_workers(self) -> int:
@@ -149,87 +146,6 @@ class TaskGroupedVectorEnv:
     def worker_pids(self) -> list[int]:
         """Process ids of the workers, in worker order."""
         return [] if self._pool is None else [process.pid for process in self._pool.processes]
-
-    def _start(self, context: str, build_timeout_s: float | None) -> None:
-        counts = Counter(self.task_ids)
-        log.info(
-            "building %d envs (%s) in %d worker processes, %d envs per worker",
-            self.num_envs,
-            ", ".join(f"{task} x{n}" for task, n in counts.items()),
-            len(self._workers),
-            self.envs_per_worker,
-        )
-        started = time.monotonic()
-        self._pool = WorkerPool(self._workers, context)
-        try:
-            for worker in range(len(self._workers)):
-                self._pool.send(worker, "build")
-            took = self._wait_for_build(started, build_timeout_s)
-        except SimBuildError:
-            self._pool.close()
-            raise
-        except WorkerFailure as exc:
-            self._pool.close()
-            if exc.type_name == SimBuildError.__name__:
-                raise SimBuildError(exc.message) from None
-            raise SimBuildError(f"building envs failed: {exc}") from None
-        except Exception as exc:
-            self._pool.close()
-            raise SimBuildError(f"building envs failed: {type(exc).__name__}: {exc}") from exc
-        log.info("built %d envs in %.1f s", self.num_envs, time.monotonic() - started)
-        if took:
-            # The warm-up, in one line: what a trainer's first call would otherwise have paid.
-            log.info(
-                "warm-up done: first step (step path, compiled kernels) %.1f s, first render of "
-                "every camera %.1f s (slowest worker's)",
-                max(t["warm"] for t in took),
-                max(t["render"] for t in took),
-            )
-
-    def _wait_for_build(self, started: float, build_timeout_s: float | None) -> list[dict[str, float]]:
-        """Wait for every worker's build, logging each as it lands; return their timings."""
-        assert self._pool is not None
-        pipes = {pipe: index for index, pipe in enumerate(self._pool.pipes)}
-        pending = set(pipes)
-        timings: list[dict[str, float]] = []
-        last_report = started
-        while pending:
-            elapsed = time.monotonic() - started
-            if build_timeout_s is not None and elapsed > build_timeout_s:
-                raise SimBuildError(
-                    f"building envs took over {build_timeout_s} s; "
-                    f"{len(pipes) - len(pending)} of {len(pipes)} workers were ready"
-                )
-            wait_s = _PROGRESS_EVERY_S
-            if build_timeout_s is not None:
-                wait_s = min(wait_s, max(build_timeout_s - elapsed, 0.0))
-            for pipe in multiprocessing.connection.wait(list(pending), timeout=wait_s):
-                pending.discard(pipe)
-                index = pipes[pipe]
-                took = self._pool.receive([index], timeout_s=None)[index]
-                timings.append(took)
-                log.info(
-                    "worker %d/%d ready: %s (%.1f s: made %.1f s, reset %.1f s, warmed the first step %.1f s, "
-                    "warmed the cameras %.1f s)",
-                    index + 1,
-                    len(pipes),
-                    self._workers[index].describe(),
-                    time.monotonic() - started,
-                    took["make"],
-                    took["reset"],
-                    took["warm"],
-                    took["render"],
-                )
-            if pending and time.monotonic() - last_report >= _PROGRESS_EVERY_S:
-                last_report = time.monotonic()
-                log.info(
-                    "still building: %d of %d workers ready after %.0f s",
-                    len(pipes) - len(pending),
-                    len(pipes),
-                    last_report - started,
-                )
-        return timings
-
 
     def reset_envs(
         self, env_indices: Any, state_ids: Any = None, *, seeds: Any = None, options: dict[str, Any] | None = None
