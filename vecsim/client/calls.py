@@ -377,11 +377,15 @@ def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
     dtype = space.dtype if space is not None and space.dtype is not None else np.float32
     rows = []
     first: int | None = None  # K of the call's first value; None: one action
+    checked: tuple[int, ...] | None = None  # the shape of the rows checked so far
     for index, (key, action) in enumerate(step.items()):
         try:
             row = np.asarray(action, dtype=dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
+        rows.append(row)
+        if row.shape == checked:
+            continue  # as the rows before it
         this = None if shape is None else wire.chunk_length((1, *row.shape), shape)
         if shape is not None and row.shape[this is not None :] != shape:
             raise ValueError(
@@ -399,8 +403,7 @@ def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
             raise ValueError(
                 f"traj_key {key!r}: {sent}, the call's first traj_key sent {said}; one call, one chunk length"
             )
-        first = this
-        rows.append(row)
+        first, checked = this, row.shape
     return step_actions(space, list(step), np.stack(rows))
 
 
