@@ -386,10 +386,11 @@ def _instrument_client(timers: Timers) -> None:
     from vecsim.client import calls, stage
     from vecsim.client.pods import PodConnection
     from vecsim.client.stage import StageClient
+    from vecsim.client.vector_results import EnvResults
 
     timers.wrap(HTTPVectorEnv, "_send_step", "client._send_step (main thread: checks, submit)")
     timers.wrap(StageClient, "_submit", "client.StageClient._submit (checks, hand to loop)")
-    timers.wrap(stage, "check_actions", "client.check_actions")
+    timers.wrap(stage, "step_actions", "client.step_actions")
     timers.wrap(HTTPVectorEnv, "_take", "client._take (main thread waits for the loop)")
     timers.wrap(stage, "run_call", "client.run_call (on the loop thread)")
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
@@ -398,8 +399,8 @@ def _instrument_client(timers: Timers) -> None:
     timers.wrap(wire, "encode", "client.wire.encode")
     timers.wrap(wire, "decode", "client.wire.decode")
     timers.wrap(calls, "fill_batch", "client.fill_batch (answer into batch)")
-    timers.wrap(HTTPVectorEnv, "_apply_step", "client._apply_step (batch -> gymnasium step result, info merge)")
-    timers.wrap(HTTPVectorEnv, "_add_env_info", "client._add_env_info (merge_rows of env_info)")
+    timers.wrap(EnvResults, "take_step", "client.EnvResults.take_step (batch -> gymnasium step result, info merge)")
+    timers.wrap(EnvResults, "_add_env_info", "client.EnvResults._add_env_info (merge_rows of env_info)")
 
 
 def per_call(fn: Callable[[int], Any], calls: int, timers: Timers | None = None) -> list[float]:

@@ -35,6 +35,7 @@ __all__ = [
     "MAX_HEADER_BYTES",
     "MAX_NDIM",
     "WireError",
+    "chunk_length",
     "decode",
     "encode",
     "encode_parts",
@@ -78,6 +79,14 @@ _ALLOWED_KIND_SIZES = frozenset((dt.kind, dt.itemsize) for dt in _ALLOWED_DTYPES
 # Leaves that JSON holds as they are; floats also need a finiteness check.
 _PLAIN_TYPES = frozenset({str, int, bool, type(None)})
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
+def chunk_length(shape: tuple[int, ...], action_shape: tuple[int, ...]) -> int | None:
+    """What a step's actions of ``shape`` are, for actions of ``action_shape``: a chunk of K per
+    env (``[n, K, ...]``, one axis more than ``[n, *action_shape]``: K) or one action per env
+    (None). The one rule the client, the rollout loop and the pod decide it by; each checks the
+    rest of the shape itself."""
+    return int(shape[1]) if len(shape) == len(action_shape) + 2 else None
 
 
 def _wire_dtype_name(dtype: np.dtype) -> str:

@@ -228,6 +228,28 @@ def test_http_vector_env_next_step_autoreset_resets_in_place_of_the_chunk_after_
     assert info["_state_id"].all()  # each env was reset (to a drawn state) instead of stepped
 
 
+def test_a_stage_steps_one_array_of_actions_as_it_steps_the_same_actions_by_traj_key(pods):
+    chunks = _chunk(4, 3, seed=7)
+    with StageClient.from_pods([pods[0].url]) as client:
+        keys = list(client.reset_trajectories([(TASK, 0), (TASK, 1), (TASK, 2), (TASK, 0)]))
+        answers = {}
+        for form, actions in [
+            ("chunks by key", dict(zip(keys, chunks))),
+            ("chunks as one array", client.step_actions(keys, chunks)),
+            ("actions by key", dict(zip(keys, chunks[:, 0]))),
+            ("actions as one array", client.step_actions(keys, chunks[:, 0])),
+        ]:
+            client.reset_stage(0).result()
+            answers[form] = client.step_stage(0, actions).result()
+    for by_key, as_array, chunk in [("chunks by key", "chunks as one array", 3), ("actions by key", "actions as one array", None)]:
+        a, b = answers[by_key], answers[as_array]
+        assert a.chunk == b.chunk == chunk and a.traj_keys == b.traj_keys == keys
+        for name in ("reward", "terminated", "truncated", "num_steps"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert _same_obs(a.obs, 0, b.obs, 0) and _same_obs(a.obs, 3, b.obs, 3)
+    assert answers["actions by key"].reward.shape == (4,) and answers["chunks by key"].reward.shape == (4, 3)
+
+
 def test_env_loop_records_every_applied_action_of_a_chunking_policy(pods, tmp_path):
     def policy(obs: dict[str, torch.Tensor], instructions: list[str], task_ids: list[str]) -> torch.Tensor:
         return torch.zeros((len(task_ids), 4, ACTION_DIM))

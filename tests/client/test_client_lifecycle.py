@@ -150,13 +150,13 @@ def test_ctrl_c_while_an_answer_is_taken_in_leaves_the_envs_to_be_reset(slow_pod
     with closing(HTTPVectorEnv(pod_urls=[slow_pod], timeout_s=30)) as env:
         first, _ = env.reset(options={"state_ids": STATE_IDS})
         actions = np.zeros((2, *env.single_action_space.shape), np.float32)
-        applied = env._apply_step
+        applied = env._results.take_step
 
         def interrupted(*args):
             applied(*args)
             raise KeyboardInterrupt
 
-        monkeypatch.setattr(env, "_apply_step", interrupted)
+        monkeypatch.setattr(env._results, "take_step", interrupted)
         with pytest.raises(KeyboardInterrupt):
             env.step(actions)
         monkeypatch.undo()

@@ -1,12 +1,15 @@
-"""The client's pure parts, without I/O: the route book, the stages' state machine, observation trees."""
+"""The client's pure parts, without I/O: the route book, the stages' state machine, a call's
+actions, observation trees."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from gymnasium import spaces
 from gymnasium.error import AlreadyPendingCallError
 
-from vecsim import trees
+from vecsim import trees, wire
+from vecsim.client.calls import check_actions, step_actions
 from vecsim.client.errors import RoutingChangedError
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
@@ -117,20 +120,93 @@ def test_admit_takes_the_lowest_free_env_of_the_task_on_the_first_pod_that_has_o
     table = _table([_pod("p0", ("a", 1), ("b", 1)), _pod("p1", ("a", 2))])
     book = RouteBook(table)
     book.replace({"k0": TrajRoute("p0", 0, "a", 0, 0)})
-    route = book.admit("k1", "a", 7, 0, ["p0", "p1"])
+    route = book.admit("k1", ("a", 7), 0, ["p0", "p1"])
     assert (route.pod, route.env_index, route.state_id) == ("p1", 0, 7)
-    assert book.admit("k2", "b", 0, 0, ["p1"]) is None  # p1 has no env of b: nothing changes
+    assert book.admit("k2", ("b", 0), 0, ["p1"]) is None  # p1 has no env of b: nothing changes
     assert list(book.routes()) == ["k0", "k1"]
 
 
 def test_a_retired_trajectory_frees_its_env_for_the_next():
     book = RouteBook(TWO_STAGES)
     book.replace(book.place([("a", 0), ("a", 1)], ["k0", "k1"], stages=[0, 0]))
-    assert book.admit("k2", "a", 2, 0, ["sim-0"]) is None
+    assert book.admit("k2", ("a", 2), 0, ["sim-0"]) is None
     book.retire(["k0"])
-    assert (book.admit("k2", "a", 2, 0, ["sim-0"]).env_index, list(book.routes())) == (0, ["k1", "k2"])
+    assert (book.admit("k2", ("a", 2), 0, ["sim-0"]).env_index, list(book.routes())) == (0, ["k1", "k2"])
     with pytest.raises(ValueError, match=r"traj_keys \['k0'\] are not live"):
         book.retire(["k0"])
+
+
+def test_an_ended_trajectory_stays_ended_until_reset_retired_readmitted_or_moved():
+    book = RouteBook(TWO_STAGES)
+    book.replace(book.place([("a", 0), ("a", 1)], ["k0", "k1"], stages=[0, 0]))
+    book.note_ended([], {"k0": "first end", "k1": "end"})
+    book.note_ended([], {"k0": "second end"})  # the first record stays
+    assert book.ended() == {"k0": "first end", "k1": "end"}
+    book.note_ended(["k1"], {})  # reset
+    assert list(book.ended()) == ["k0"]
+    same_env = dict(book.routes())
+    book.replace(same_env)
+    assert list(book.ended()) == ["k0"]
+    book.replace({"k0": TrajRoute("sim-0", 1, "a", 0, 0)})  # k0 moved to another env
+    assert book.ended() == {}
+    book.note_ended([], {"k0": "end"})
+    book.retire(["k0"])
+    assert book.ended() == {}
+
+
+def test_admit_refuses_pods_of_another_stage_and_malformed_requests():
+    book = RouteBook(TWO_STAGES)
+    with pytest.raises(ValueError, match=r"pods \['sim-1'\] are not pods of stage 0"):
+        book.admit("k0", ("a", 0), 0, ["sim-1"])
+    with pytest.raises(ValueError):
+        book.admit("k0", ("a", -1), 0)
+    assert book.admit("k0", ("a", 0), 0).pod == "sim-0"  # no pods given: the stage's, in table order
+
+
+# -- a call's actions ----------------------------------------------------------------------------
+
+BOX = spaces.Box(-1.0, 1.0, (3,), np.float32)
+
+
+def test_one_axis_more_than_one_action_per_env_is_a_chunk():
+    assert wire.chunk_length((5, 3), (3,)) is None
+    assert wire.chunk_length((5, 4, 3), (3,)) == 4
+    assert wire.chunk_length((5,), ()) is None  # a Discrete action each
+    assert wire.chunk_length((5, 2), ()) == 2
+
+
+def test_one_array_and_a_mapping_of_the_same_actions_are_one_call():
+    chunks = np.arange(2 * 4 * 3, dtype=np.float32).reshape(2, 4, 3) / 100
+    from_array = step_actions(BOX, ["a", "b"], chunks)
+    from_mapping = check_actions(BOX, {"a": chunks[0], "b": chunks[1]})
+    assert from_array.traj_keys == from_mapping.traj_keys == ["a", "b"]
+    assert from_array.chunk == from_mapping.chunk == 4
+    np.testing.assert_array_equal(from_array.array, from_mapping.array)
+    one_each = step_actions(BOX, ["a", "b"], chunks[:, 0])
+    assert one_each.chunk is None and one_each.array.shape == (2, 3)
+
+
+def test_a_calls_rows_keep_its_form_and_cut_chunks_to_a_horizon():
+    actions = step_actions(BOX, ["a", "b", "c"], np.zeros((3, 4, 3), np.float32))
+    cut = actions.rows([2, 0], at_most=2)
+    assert (cut.traj_keys, cut.chunk, cut.array.shape) == (["c", "a"], 2, (2, 2, 3))
+    assert actions.rows([1], at_most=9).chunk == 4
+    one_each = step_actions(BOX, ["a", "b"], np.zeros((2, 3), np.float32))
+    assert one_each.rows([1], at_most=1).array.shape == (1, 3)
+
+
+@pytest.mark.parametrize(
+    ("space", "actions", "named"),
+    [
+        (BOX, np.zeros((2, 4, 2), np.float32), r"shape \[2, 4, 2\], expected \[2, 4, 3\]"),
+        (BOX, np.zeros((3, 3), np.float32), r"expected \[2, 3\] for 2 traj_keys"),
+        (BOX, np.array([[0, 0, 0], [0, np.nan, 0]], np.float32), r"traj_key 'b': action holds NaN"),
+        (spaces.Discrete(3), np.zeros((2, 4), np.int64), "chunks of actions are for Box action spaces"),
+    ],
+)
+def test_a_bad_array_of_actions_is_refused_naming_what_is_wrong(space, actions, named):
+    with pytest.raises(ValueError, match=named):
+        step_actions(space, ["a", "b"], actions)
 
 
 # -- the stages' state machine -----------------------------------------------------------------

@@ -25,7 +25,7 @@ from vecsim.client.errors import (
     StaleGenerationError,
 )
 from vecsim.client.routing import RoutedEnv, TrajRoute, place_requests, routed_envs
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, fetch_routing
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, StepActions, fetch_routing
 from vecsim.client.vector_env import HTTPVectorEnv
 from vecsim.client.vla_env import VLAEnv
 
@@ -41,6 +41,7 @@ __all__ = [
     "StageBatch",
     "StageClient",
     "StaleGenerationError",
+    "StepActions",
     "TrajRoute",
     "VLAEnv",
     "fetch_routing",

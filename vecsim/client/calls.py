@@ -2,8 +2,10 @@
 is carried out: the actions checked, each pod sent its rows, the answers written into batch
 arrays allocated before the requests go out, and a pod's failure kept to its own trajectories.
 
-No routing decisions here: the routes come from the route book, the HTTP from a ``post`` callable
-(``StageClient._post``: one pod, one request, with the routing generation and its 409 handling).
+No routing decisions here: the routes come from the route book, the HTTP from the client's
+:class:`~vecsim.client.pods.PodSet` (one pod, one request, with the routing generation and its
+409 handling). What a call's actions are (one action or a chunk of K per trajectory) is said
+once, by :func:`step_actions`, and travels with the call as :class:`StepActions`.
 """
 
 from __future__ import annotations
@@ -11,28 +13,39 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import time
-from collections.abc import Awaitable, Callable, Generator, Mapping, Sequence
+from collections.abc import Generator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 from gymnasium import Space
+from gymnasium.error import ResetNeeded
 from gymnasium.spaces import Box
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim import trees
+from vecsim import trees, wire
 from vecsim.client.errors import PodRequestError, PodUnavailableError, call_error
-from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread
+from vecsim.client.pods import EventLoopThread, PodSet
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
 
-__all__ = ["Ended", "PendingCall", "StageBatch", "check_actions", "completed", "empty_batch", "run_call", "take_rows"]
+__all__ = [
+    "Ended",
+    "PendingCall",
+    "StageBatch",
+    "StepActions",
+    "check_actions",
+    "check_attr",
+    "check_call",
+    "completed",
+    "empty_batch",
+    "run_attr",
+    "run_call",
+    "step_actions",
+    "take_rows",
+]
 
 T = TypeVar("T")
-
-# ``post(pod, op, body, traj_keys, extra_answer_bytes)``: one request to one pod, its decoded answer.
-Post = Callable[[str, str, dict[str, Any], list[str], int], Awaitable[dict[str, Any]]]
 
 
 @dataclass
@@ -46,8 +59,9 @@ class StageBatch:
     A step of chunks (K actions per trajectory) answers ``reward``, ``terminated``, ``truncated``
     and ``success`` of shape ``[n, K]`` (0/false after a trajectory's env stopped), ``obs`` after
     each one's last applied action, ``num_steps`` ``[n]`` the actions each applied, and ``frames``
-    ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded. A
-    one-action step answers ``[n]`` arrays and ``num_steps`` of ones; a reset, zeros.
+    ``{traj_key: {camera: uint8[K, H, W, 3]}}`` for the trajectories asked to be recorded, and
+    ``chunk`` is K (also with no rows). A one-action step answers ``[n]`` arrays, ``num_steps``
+    of ones and ``chunk`` None; a reset, zeros and None.
 
     ``env_info`` holds the envs' own info as the pods answered it: ``(rows, batched)`` per pod,
     ``batched`` over those rows as :func:`vecsim.info.batch_infos` makes it. ``errors`` names the
@@ -68,10 +82,43 @@ class StageBatch:
     frames: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     env_info: list[tuple[np.ndarray, dict[str, Any]]] = field(default_factory=list)
     errors: list[tuple[str, str, str]] = field(default_factory=list)
+    chunk: int | None = None
 
     @property
     def n(self) -> int:
         return len(self.traj_keys)
+
+    def ended(self) -> np.ndarray:
+        """Per row: whether its env terminated or truncated (at any action of a chunk)."""
+        flags = self.terminated | self.truncated
+        return flags if self.chunk is None else flags.any(axis=1)
+
+    def last(self, values: np.ndarray) -> np.ndarray:
+        """Per row, the per-action ``values`` (``reward``, ``success``, ...) at the row's last
+        applied action (a chunk's: action ``num_steps - 1``, the first one if it applied none)."""
+        if self.chunk is None:
+            return values
+        return values[np.arange(self.n), np.maximum(self.num_steps.astype(np.int64) - 1, 0)]
+
+
+@dataclass(frozen=True)
+class StepActions:
+    """One call's actions, as :func:`step_actions` checked them: row ``j`` of ``array`` for
+    ``traj_keys[j]``, ``[n, *action shape]`` (one action each, ``chunk`` None) or
+    ``[n, K, *action shape]`` (a chunk of ``chunk`` = K each)."""
+
+    traj_keys: list[str]
+    array: np.ndarray
+    chunk: int | None
+
+    def rows(self, index: Sequence[int], at_most: int | None = None) -> StepActions:
+        """The actions of rows ``index``, in that order; chunks cut to their first ``at_most``
+        actions (one action each stays as it is)."""
+        keys = [self.traj_keys[i] for i in index]
+        array = self.array[np.asarray(index, dtype=np.int64)]
+        if self.chunk is None or at_most is None or at_most >= self.chunk:
+            return StepActions(keys, array, self.chunk)
+        return StepActions(keys, array[:, :at_most], at_most)
 
 
 class PendingCall(Generic[T]):
@@ -174,6 +221,7 @@ def take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
         frames={key: batch.frames[key] for key in (batch.traj_keys[r] for r in rows) if key in batch.frames},
         env_info=env_info,
         errors=[error for error in batch.errors if error[0] in kept],
+        chunk=batch.chunk,
     )
 
 
@@ -190,19 +238,13 @@ class Ended:
 
 def ended_rows(batch: StageBatch) -> dict[str, Ended]:
     """The rows of a step answer whose env terminated or truncated (at any action), as :class:`Ended`."""
-    flags = batch.terminated | batch.truncated
-    ended = flags if flags.ndim == 1 else flags.any(axis=1)
-    out: dict[str, Ended] = {}
-    for j in np.flatnonzero(ended):
-        if batch.terminated.ndim == 1:
-            last = (batch.terminated[j], batch.truncated[j], batch.success[j])
-        else:
-            # The flags where the env ended: its last applied action (num_steps of K), or the
-            # last action for an env stepped past its end.
-            k = max(int(batch.num_steps[j]) - 1, 0)
-            last = (batch.terminated[j, k], batch.truncated[j, k], batch.success[j, k])
-        out[batch.traj_keys[j]] = Ended(trees.row(batch.obs, int(j)), *(bool(v) for v in last))
-    return out
+    # The flags where the env ended: its last applied action (num_steps of K; the last action
+    # for an env stepped past its end).
+    terminated, truncated, success = (batch.last(values) for values in (batch.terminated, batch.truncated, batch.success))
+    return {
+        batch.traj_keys[j]: Ended(trees.row(batch.obs, int(j)), bool(terminated[j]), bool(truncated[j]), bool(success[j]))
+        for j in np.flatnonzero(batch.ended())
+    }
 
 
 @dataclass
@@ -235,6 +277,7 @@ def empty_batch(
         truncated=np.zeros(per_action, dtype=bool),
         success=np.zeros(per_action, dtype=bool),
         num_steps=np.zeros(n, dtype=np.int32),
+        chunk=chunk,
     )
 
 def fill_batch(
@@ -285,90 +328,195 @@ def _fill_answer(
         else:
             trees.fill_rows(batch.num_steps, answer.get("num_steps"), rows, "num_steps")
 
-def check_actions(space: Space | None, step: Mapping[str, Any]) -> np.ndarray:
-    """Return the call's actions as ``[n, *action shape]``, or its chunks (Box action spaces
-    only) as ``[n, K, *action shape]``, in the action space's dtype (``space``, None: float32 of any shape).
+def step_actions(space: Space | None, traj_keys: Sequence[str], actions: Any) -> StepActions:
+    """Say what a call's actions are, once for every layer: ``actions`` (row ``j`` for
+    ``traj_keys[j]``) as ``[n, *action shape]`` (one action each) or ``[n, K, *action shape]``
+    (a chunk each; Box action spaces only, :func:`vecsim.wire.chunk_length`'s rule), in the
+    action space's dtype (``space``, None: float32 of any shape, one action each).
 
     Raises:
-        ValueError: an action not numeric, of the wrong shape or not finite, or chunks of
-            different lengths (names the traj_key).
+        ValueError: actions not numeric, of another shape or count than ``traj_keys``, a chunk
+            of a non-Box space, or NaN or inf (names the traj_key).
+    """
+    keys = list(traj_keys)
+    shape = tuple(space.shape) if space is not None and space.shape is not None else None
+    dtype = space.dtype if space is not None and space.dtype is not None else np.float32
+    try:
+        array = np.asarray(actions, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"actions are not numeric: {exc}") from None
+    chunk = None if shape is None else wire.chunk_length(array.shape, shape)
+    if chunk is not None and not isinstance(space, Box):
+        raise ValueError(
+            f"actions have shape {list(array.shape)}; chunks of actions are for Box action spaces, this job's is {space}"
+        )
+    if shape is not None:
+        expected = (len(keys), *shape) if chunk is None else (len(keys), chunk, *shape)
+        if array.shape != expected:
+            raise ValueError(
+                f"actions have shape {list(array.shape)}, expected {list(expected)} for {len(keys)} traj_keys "
+                f"(or chunks [{len(keys)}, K, {', '.join(map(str, shape))}])"
+            )
+    if array.dtype.kind == "f" and len(keys):
+        # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
+        finite = np.isfinite(array.reshape(len(keys), -1)).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"traj_key {keys[int(np.flatnonzero(~finite)[0])]!r}: action holds NaN or inf")
+    return StepActions(keys, array, chunk)
+
+
+def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
+    """:func:`step_actions` of a mapping ``{traj_key: action or chunk}``, each value checked
+    alone first so that an error names its traj_key.
+
+    Raises:
+        ValueError: as :func:`step_actions`, or values that are not one form (one action, or
+            chunks of one length).
     """
     shape = tuple(space.shape) if space is not None and space.shape is not None else None
     dtype = space.dtype if space is not None and space.dtype is not None else np.float32
     rows = []
-    chunk: int | None = None  # K of the call's chunks; None: one action per trajectory
+    first: int | None = None  # K of the call's first value; None: one action
+    checked: tuple[int, ...] | None = None  # the shape of the rows checked so far
     for index, (key, action) in enumerate(step.items()):
         try:
             row = np.asarray(action, dtype=dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
-        if shape is not None and row.shape != shape and row.shape[1:] != shape:
+        rows.append(row)
+        if row.shape == checked:
+            continue  # as the rows before it
+        this = None if shape is None else wire.chunk_length((1, *row.shape), shape)
+        if shape is not None and row.shape[this is not None :] != shape:
             raise ValueError(
                 f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape)} "
                 f"or a chunk [K, {', '.join(map(str, shape))}]"
             )
-        this = None if shape is None or row.shape == shape else row.shape[0]
         if this is not None and not isinstance(space, Box):
             raise ValueError(
                 f"traj_key {key!r}: action has shape {list(row.shape)}, expected {list(shape or ())}; "
                 f"chunks of actions are for Box action spaces, this job's is {space}"
             )
-        if index and this != chunk:
+        if index and this != first:
             sent = "one action" if this is None else f"a chunk of {this}"
-            first = "one action" if chunk is None else f"chunks of {chunk}"
+            said = "one action" if first is None else f"chunks of {first}"
             raise ValueError(
-                f"traj_key {key!r}: {sent}, the call's first traj_key sent {first}; one call, one chunk length"
+                f"traj_key {key!r}: {sent}, the call's first traj_key sent {said}; one call, one chunk length"
             )
-        chunk = this
-        rows.append(row)
-    actions = np.stack(rows)
-    if actions.dtype.kind != "f":
-        return actions  # the pod checks integer actions against the space
-    # One finiteness check for the whole batch: per-row checks cost more than a cheap scene's step.
-    finite = np.isfinite(actions.reshape(len(rows), -1)).all(axis=1)
-    if not finite.all():
-        key = list(step)[int(np.flatnonzero(~finite)[0])]
-        raise ValueError(f"traj_key {key!r}: action holds NaN or inf")
-    return actions
+        first, checked = this, row.shape
+    return step_actions(space, list(step), np.stack(rows))
+
+
+@dataclass
+class CallArgs:
+    """One call's arguments, checked against the route book by :func:`check_call`: the
+    trajectories reset (to ``state_ids``, or the envs' own reset with ``seeded`` = (seeds,
+    options)), the routes of every key, the stepped keys whose frames are ``recorded`` and the
+    ``frozen`` ones (ended: answered unstepped)."""
+
+    reset_keys: list[str]
+    state_ids: np.ndarray
+    routes: dict[str, TrajRoute]
+    recorded: set[str]
+    seeded: tuple[list[int | None], dict[str, Any]] | None
+    frozen: dict[str, Ended]
+
+
+def check_call(
+    book: RouteBook,
+    reset: Sequence[str] | Mapping[str, int],
+    step_keys: list[str],
+    record: Sequence[str],
+    seeds: Mapping[str, int | None] | None,
+    options: Mapping[str, Any] | None,
+    ended_envs: str,
+) -> CallArgs:
+    """Check a call's keys against ``book``: ``reset`` (keys, or keys to new state ids),
+    ``step_keys``, ``record`` (stepped keys), ``seeds`` (in place of state ids); ``ended_envs`` as
+    :class:`~vecsim.client.stage.StageClient`'s says what stepping an ended trajectory does.
+
+    Raises:
+        ValueError: a key both reset and stepped, repeated, not live, recorded but not stepped,
+            a negative state id (names the key); ``seeds`` with ``reset``, ``options`` without.
+        RoutingChangedError: a key whose env went away when the routing changed.
+        ResetNeeded: (``ended_envs`` ``"raise"``) a stepped trajectory that ended.
+    """
+    if seeds is not None:
+        if reset:
+            raise ValueError("give reset (fixed initial states) or seeds (the envs' own reset), not both")
+        reset = list(seeds)
+    elif options:
+        raise ValueError("options go with seeds (the envs' own reset)")
+    recorded = set(record)
+    if recorded - set(step_keys):
+        raise ValueError(f"record: traj_keys {sorted(recorded - set(step_keys))} are not stepped in this call")
+    new_ids = dict(reset) if isinstance(reset, Mapping) and seeds is None else None
+    reset_keys = list(reset)
+    both = set(reset_keys) & set(step_keys)
+    if both:
+        raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
+    if len(set(reset_keys)) != len(reset_keys) or len(set(step_keys)) != len(step_keys):
+        raise ValueError("traj_keys repeat within one call")
+    book.check_lost([*reset_keys, *step_keys])
+    routes = book.live([*reset_keys, *step_keys])
+    ended = book.ended()
+    stepped_ended = [k for k in step_keys if k in ended]
+    if stepped_ended and ended_envs == "raise":
+        raise ResetNeeded(
+            f"traj_keys {stepped_ended} ended (terminated or truncated) and were not reset; reset them, or "
+            "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
+        )
+    state_ids = np.array([new_ids[k] if new_ids is not None else routes[k].state_id for k in reset_keys], dtype=np.int64)
+    if new_ids is not None:
+        for key, sid in zip(reset_keys, state_ids):
+            if sid < 0:
+                raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
+    return CallArgs(
+        reset_keys=reset_keys,
+        state_ids=state_ids,
+        routes=routes,
+        recorded=recorded,
+        seeded=None if seeds is None else ([seeds[k] for k in reset_keys], dict(options or {})),
+        frozen={k: ended[k] for k in stepped_ended} if ended_envs == "freeze" else {},
+    )
+
+
+def _note_ended(book: RouteBook, reset_batch: StageBatch, step_batch: StageBatch) -> None:
+    """Keep track of which trajectories ended: reset ones did not, stepped ones may have (not
+    those whose env raised)."""
+    failed = {key for key, _type, _message in step_batch.errors}
+    book.note_ended(reset_batch.traj_keys, {k: e for k, e in ended_rows(step_batch).items() if k not in failed})
+
 
 async def run_call(
-    book: RouteBook,
-    info: JobInfo,
-    post: Post,
-    reset_keys: list[str],
-    state_ids: np.ndarray,
-    step_keys: list[str],
-    actions: np.ndarray | None,
-    pick: int | None,
-    recorded: set[str],
-    seeded: tuple[list[int | None], dict[str, Any]] | None = None,
-    frozen: Mapping[str, Ended] | None = None,
-    step_past_end: bool = False,
+    pods: PodSet, args: CallArgs, actions: StepActions | None, pick: int | None, step_past_end: bool = False
 ) -> tuple[StageBatch, StageBatch]:
-    """Carry out one call on the routes in ``book``: each pod its resets (to ``state_ids``, or
-    the envs' own reset with ``seeded`` = (seeds, options)), then its steps, pods concurrently; a
-    pod with both fixed-state resets and steps gets them in one ``/v1/step`` request.
-    Returns ``(reset_batch, step_batch)``; records the state ids reset to in ``book``.
+    """Carry out one call (``args``, ``actions``) on the routes in ``pods.book``: each pod its
+    resets, then its steps, pods concurrently; a pod with both fixed-state resets and steps gets
+    them in one ``/v1/step`` request. Returns ``(reset_batch, step_batch)``; records in the book
+    the state ids reset to and which trajectories ended.
 
-    Step keys in ``frozen`` are not sent: their rows answer what their env was when it ended
-    (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the pods
-    to apply every action of a chunk, also after an env's end.
+    Step keys in ``args.frozen`` are not sent: their rows answer what their env was when it
+    ended (reward 0, the flags held at every action, ``num_steps`` 0). ``step_past_end`` asks the
+    pods to apply every action of a chunk, also after an env's end.
 
     Raises:
         PodUnavailableError, RoutingChangedError, ...: :func:`~vecsim.client.errors.call_error`
             of the pods' failures, carrying the answering pods' rows (``pick``: which batch).
     """
     submitted = time.perf_counter()
+    book, info = pods.book, pods.info
+    reset_keys, state_ids, recorded, seeded, frozen = args.reset_keys, args.state_ids, args.recorded, args.seeded, args.frozen
     routes = book.routes()
     space = info.observation_space
     reset_batch = empty_batch(space, reset_keys, routes)
     reset_batch.state_ids = state_ids.copy()
-    chunk = actions.shape[1] if actions is not None and actions.ndim == single_action_ndim(info) + 1 else None
+    step_keys = actions.traj_keys if actions is not None else []
+    chunk = actions.chunk if actions is not None else None
     step_batch = empty_batch(space, step_keys, routes, chunk)
     work: dict[str, _PodWork] = {}
     for row, key in enumerate(reset_keys):
         work.setdefault(routes[key].pod, _PodWork()).reset_rows.append(row)
-    frozen = frozen or {}
     for row, key in enumerate(step_keys):
         if key in frozen:
             _put_frozen(step_batch, row, frozen[key])
@@ -403,7 +551,7 @@ async def run_call(
             body["reset_env_indices"] = env_ids(resetting)
             body["reset_state_ids"] = state_ids[reset_rows]
         extra = info.chunk_answer_bytes(len(keys), chunk, len(record)) if op == "step" else 0
-        answer = await post(pod, op, body, [*resetting, *keys], extra)
+        answer = await pods.post(pod, op, body, [*resetting, *keys], extra)
         try:
             if resetting:
                 reset = answer.get("reset")
@@ -422,9 +570,9 @@ async def run_call(
     async def one_pod(pod: str, todo: _PodWork) -> None:
         reset_done = False
         try:
-            if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.size:
+            if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.array.size:
                 # A refill: the resets ride in the step's request, and run beside its steps.
-                await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch, todo.reset_rows)
+                await send(pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch, todo.reset_rows)
                 answered.reset_rows.extend(todo.reset_rows)
                 answered.step_rows.extend(todo.step_rows)
                 return
@@ -433,7 +581,7 @@ async def run_call(
                 answered.reset_rows.extend(todo.reset_rows)
                 reset_done = True
             if todo.step_rows:
-                await send(pod, "step", todo.step_rows, step_keys, "actions", actions, step_batch)
+                await send(pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch)  # type: ignore[union-attr]
                 answered.step_rows.extend(todo.step_rows)
         except PodUnavailableError as exc:
             # Name everything of this call the pod did not answer: after a failed reset, its
@@ -463,8 +611,63 @@ async def run_call(
             take_rows(reset_batch, sorted(answered.reset_rows)),
             take_rows(step_batch, sorted(answered.step_rows)),
         )
+        _note_ended(book, *partial)
         raise call_error(errors, partial if pick is None else partial[pick])
+    _note_ended(book, reset_batch, step_batch)
     return reset_batch, step_batch
+
+
+
+def check_attr(book: RouteBook, op: str, keys: Sequence[str]) -> dict[str, TrajRoute]:
+    """The live routes, checked for an attribute call ``op`` on ``keys``.
+
+    Raises:
+        ValueError: an unknown op, or keys that are not live trajectories (names them).
+    """
+    if op not in ("get_attr", "call", "set_attr"):
+        raise ValueError(f"op must be get_attr, call or set_attr, got {op!r}")
+    routes = book.routes()
+    unknown = [k for k in keys if k not in routes]
+    if unknown:
+        raise ValueError(f"traj_keys {unknown} are not live trajectories")
+    return routes
+
+
+async def run_attr(
+    pods: PodSet, op: str, keys: list[str], name: str, payload: Any, routes: Mapping[str, TrajRoute]
+) -> tuple[list[Any], list[tuple[str, str, str]]]:
+    """Carry out an attribute call (``op`` ``get_attr``, ``call`` or ``set_attr``) of ``name`` on
+    the envs of ``keys``, all their pods concurrently (as JSON; a 409 is a refusal here).
+    Returns one result per key and ``(traj_key, exception type name, message)`` per env that
+    raised (see :meth:`~vecsim.client.stage.StageClient.env_attr`)."""
+    by_pod: dict[str, list[int]] = {}
+    for row, key in enumerate(keys):
+        by_pod.setdefault(routes[key].pod, []).append(row)
+
+    async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
+        body: dict[str, Any] = {
+            "generation": pods.book.generation,
+            "env_indices": [routes[keys[r]].env_index for r in rows],
+            "name": name,
+        }
+        if op == "call":
+            body["args"], body["kwargs"] = payload
+        elif op == "set_attr":
+            body["values"] = [payload[r] for r in rows]
+        return await pods[pod].call_json(op, body, [keys[r] for r in rows])
+
+    answers = await asyncio.gather(*(one_pod(pod, rows) for pod, rows in by_pod.items()))
+    results: list[Any] = [None] * len(keys)
+    errors: list[tuple[str, str, str]] = []
+    for (pod, rows), answer in zip(by_pod.items(), answers):
+        for row, result in zip(rows, answer.get("results") or []):
+            results[row] = result
+        raised = answer.get("errors") or {}
+        row_of = {routes[keys[r]].env_index: r for r in rows}
+        for env, kind, message in zip(raised.get("env_indices", ()), raised.get("type", ()), raised.get("message", ())):
+            if env in row_of:
+                errors.append((keys[row_of[env]], str(kind), str(message)))
+    return results, errors
 
 
 
@@ -477,8 +680,3 @@ def _put_frozen(batch: StageBatch, row: int, ended: Ended) -> None:
     batch.success[row] = ended.success
     batch.num_steps[row] = 0
 
-
-def single_action_ndim(info: JobInfo) -> int:
-    """The ndim of one call's actions of one action each (``[n, *action shape]``); one more: chunks."""
-    space = info.action_space
-    return 1 + len(space.shape or ()) if space is not None else 2

@@ -15,11 +15,13 @@ import asyncio
 import concurrent.futures
 import json
 import logging
+import math
 import sys
 import threading
+import time
 import uuid
-from collections.abc import Coroutine
-from typing import Any, TypeVar
+from collections.abc import Callable, Coroutine
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import httpx
 import numpy as np
@@ -28,8 +30,13 @@ import vecsim
 from vecsim import wire
 from vecsim.auth import bearer_headers
 from vecsim.client.errors import PodRequestError, PodUnavailableError, StaleGenerationError
+from vecsim.client.jobinfo import JobInfo
+from vecsim.client.routebook import RouteBook
 from vecsim.transport import DEFAULT_MAX_ANSWER_BYTES, Transport
 from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY
+
+if TYPE_CHECKING:
+    from vecsim.client.refresh import RoutingRefresher
 
 logger = logging.getLogger(__name__)
 
@@ -329,3 +336,107 @@ class PodConnection:
                 {self.name: held}, f"answer to /v1/{op} is for env ids {got.tolist()}, asked {sent.tolist()}"
             )
         return answer
+
+
+def check_limits(timeout_s: float, max_answer_bytes: int | None) -> None:
+    """Raises ``ValueError``: ``timeout_s`` not a positive number, or ``max_answer_bytes`` (when
+    given) under 1."""
+    if not (timeout_s > 0 and math.isfinite(timeout_s)):
+        raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
+    if max_answer_bytes is not None and max_answer_bytes < 1:
+        raise ValueError(f"max_answer_bytes must be a positive number of bytes, got {max_answer_bytes}")
+
+
+class PodSet:
+    """One :class:`PodConnection` per pod of the route book's table, and the one way a call
+    reaches a pod: :meth:`post`, at the table's generation.
+
+    ``refresher`` (a :class:`~vecsim.client.refresh.RoutingRefresher`) re-reads the table after a
+    409; each connection's answer cap follows from ``info``'s spaces (``max_answer_bytes``, when
+    given, caps every pod alike). ``observe``, when set, is told ``(pod, op, begin, end)``
+    (``time.perf_counter()``) of every :meth:`post`: benchmarks time each pod's round trip by it.
+    """
+
+    def __init__(
+        self,
+        book: RouteBook,
+        info: JobInfo,
+        refresher: RoutingRefresher,
+        transport: Transport,
+        timeout_s: float,
+        token: str | None,
+        max_answer_bytes: int | None,
+    ) -> None:
+        self.book, self.info, self.refresher = book, info, refresher
+        self.timeout_s = timeout_s
+        self.max_answer_bytes = max_answer_bytes
+        self.observe: Callable[[str, str, float, float], None] | None = None
+        self._transport = transport
+        self._token = token
+        self._connections: dict[str, PodConnection] = {}
+        self._lock = threading.RLock()
+        self.sync()
+
+    def __getitem__(self, pod: str) -> PodConnection:
+        return self._connections[pod]
+
+    def sync(self) -> None:
+        """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
+        with its answer cap (runs on the caller's thread and on the loop)."""
+        with self._lock:
+            table = self.book.table
+            # A pod of several stages ('slices') answers at most all its envs, whatever the stage.
+            envs: dict[str, int] = {}
+            for stage in table.stages:
+                for routed in stage.pods:
+                    envs[routed.pod] = envs.get(routed.pod, 0) + routed.num_envs
+            for stage in table.stages:
+                for routed in stage.pods:
+                    known = self._connections.get(routed.pod)
+                    if known is None or known.url != routed.url.rstrip("/"):
+                        self._connections[routed.pod] = PodConnection(
+                            routed.pod, routed.url, self._transport, self.timeout_s, self._token
+                        )
+                    self._connections[routed.pod].max_answer_bytes = self.info.answer_cap(
+                        envs[routed.pod], self.max_answer_bytes
+                    )
+
+    async def infos(self, pods: list[str]) -> dict[str, dict[str, Any]]:
+        """The ``/v1/info`` answers of ``pods``, read concurrently.
+
+        Raises:
+            PodUnavailableError, PodRequestError: as :meth:`PodConnection.info`.
+        """
+        answers = await asyncio.gather(*(self[pod].info() for pod in pods))
+        return dict(zip(pods, answers))
+
+    async def post(
+        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0
+    ) -> dict[str, Any]:
+        """POST to one pod with the current generation; after a 409, re-read routing and retry once.
+
+        Raises:
+            what :meth:`PodConnection.call` raises; ``StaleGenerationError`` for a second 409;
+            what the refresher's ``after_stale`` raises (``RoutingChangedError``: ``keys`` moved).
+        """
+        begin = time.perf_counter()
+        try:
+            return await self._post(pod, op, body, keys, extra_answer_bytes)
+        finally:
+            if self.observe is not None:
+                self.observe(pod, op, begin, time.perf_counter())
+
+    async def _post(
+        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int
+    ) -> dict[str, Any]:
+        generation = self.book.generation
+        key = new_idempotency_key()  # one call: the same key after a 409, the pod answers it once
+        try:
+            return await self[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes, key)
+        except StaleGenerationError as stale:
+            await self.refresher.after_stale(self, pod, generation, stale.detail, keys)
+        try:
+            body = {**body, "generation": self.book.generation}
+            return await self[pod].call(op, body, keys, extra_answer_bytes, key)
+        except StaleGenerationError as stale:
+            raise StaleGenerationError(pod, self.book.generation, stale.detail) from None

@@ -9,14 +9,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Awaitable, Callable
 from typing import Any
 
 import httpx
 
 from vecsim.client.errors import ClientError, PodRequestError, PodUnavailableError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread
+from vecsim.client.pods import EventLoopThread, PodSet, refusal
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import stage_by_id
 from vecsim.config import RoutingTable
@@ -106,6 +105,25 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         pause = min(pause * 2, _WAIT_MAX_S)
 
 
+def read_pod_info(url: str, timeout_s: float) -> tuple[str, dict[str, Any]]:
+    """A standalone pod's ``GET /v1/info`` answer, with its URL (no trailing slash).
+
+    Raises:
+        PodUnavailableError: the pod did not answer, or answered 503.
+        PodRequestError: the pod refused, or its answer is not JSON.
+    """
+    try:
+        response = get_answer(f"{url.rstrip('/')}/v1/info", timeout_s=timeout_s)
+    except httpx.HTTPError as exc:
+        raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
+    if response.status_code != 200:
+        raise refusal(url, response.status_code, response.content, [])
+    try:
+        return url.rstrip("/"), response.json()
+    except ValueError as exc:
+        raise PodRequestError(url, None, f"answer to /v1/info is not JSON: {exc}") from None
+
+
 async def controller_routing(transport: Transport, controller_url: str, timeout_s: float) -> RoutingTable:
     """The controller's routing table now, read on the running loop through ``transport`` (the
     client's own, which its pods are reached through too).
@@ -127,9 +145,9 @@ class RoutingRefresher:
     """Keeps a route book's table current from a controller (``controller_url`` None: no
     controller, the table in use stays and a 409 is a :class:`StaleGenerationError`).
 
-    ``transport`` is the client's, which the table is read through; ``pod_info(pod)`` reads a pod's ``/v1/info`` on the client's loop;
-    ``on_table()`` runs after the book took a new table (the client makes its pod connections
-    follow it).
+    ``transport`` is the client's, which the table is read through. The client's
+    :class:`~vecsim.client.pods.PodSet` comes with each re-read: its connections follow a new
+    table, and it reads the pods' ``/v1/info``.
     """
 
     def __init__(
@@ -139,18 +157,14 @@ class RoutingRefresher:
         controller_url: str | None,
         timeout_s: float,
         transport: Transport,
-        pod_info: Callable[[str], Awaitable[dict[str, Any]]],
-        on_table: Callable[[], None],
     ) -> None:
         self.book, self.info = book, info
         self.controller_url = controller_url
         self.timeout_s = timeout_s
         self._transport = transport
-        self._pod_info = pod_info
-        self._on_table = on_table
         self._lock: asyncio.Lock | None = None  # made on the loop, at the first 409
 
-    def before_batch(self, loop: EventLoopThread) -> None:
+    def before_batch(self, loop: EventLoopThread, pods: PodSet) -> None:
         """Take the controller's table if it has moved on and is ready (the caller checked that no
         call is in flight). When the controller does not answer (within ``timeout_s``, 5 s at
         most), the table in use stays: the pods' 409 catch a stale one."""
@@ -171,21 +185,21 @@ class RoutingRefresher:
             )
             return
         logger.info("routing table moved from generation %d to %d; new batches go there", old, new.generation)
-        self._on_table()
+        pods.sync()
         # The envs' builds now, so that a later 409 tells a rebuilt pod from a renumbered one.
-        pods = self.book.pods_with_envs()
+        names = self.book.pods_with_envs()
 
         async def builds() -> list[Any]:
-            return await asyncio.gather(*(self._pod_info(p) for p in pods), return_exceptions=True)
+            return await asyncio.gather(*(pods[p].info() for p in names), return_exceptions=True)
 
-        for pod, info in zip(pods, loop.run(builds())):
+        for pod, info in zip(names, loop.run(builds())):
             self.info.instances[pod] = None if isinstance(info, BaseException) else info.get("instance")
 
     async def _routing(self, timeout_s: float) -> RoutingTable:
         assert self.controller_url is not None
         return await controller_routing(self._transport, self.controller_url, timeout_s)
 
-    async def after_stale(self, pod: str, generation: int, detail: str, keys: list[str]) -> None:
+    async def after_stale(self, pods: PodSet, pod: str, generation: int, detail: str, keys: list[str]) -> None:
         """After ``pod`` answered 409 at ``generation``: re-read the table once per generation.
 
         Raises:
@@ -197,10 +211,10 @@ class RoutingRefresher:
             self._lock = asyncio.Lock()
         async with self._lock:
             if self.book.generation == generation:
-                await self._take_new_routing(pod, generation, detail)
+                await self._take_new_routing(pods, pod, generation, detail)
         self.book.check_lost(keys)
 
-    async def _take_new_routing(self, pod: str, generation: int, detail: str) -> None:
+    async def _take_new_routing(self, pods: PodSet, pod: str, generation: int, detail: str) -> None:
         if self.controller_url is None:
             raise StaleGenerationError(
                 pod, generation, f"{detail} (no controller_url to re-read the routing table from)"
@@ -210,10 +224,10 @@ class RoutingRefresher:
             "pod %s answered 409 at generation %d; routing table now at generation %d", pod, generation, new.generation
         )
         moved = self.book.take_table(new)
-        self._on_table()
+        pods.sync()
         holders = self.book.holders()
         # Same blocks, new generation: the envs survived unless the pod built them anew (restart).
-        infos = await asyncio.gather(*(self._pod_info(name) for name in holders), return_exceptions=True)
+        infos = await asyncio.gather(*(pods[name].info() for name in holders), return_exceptions=True)
         for name, info in zip(holders, infos):
             if isinstance(info, BaseException):
                 continue  # an unreachable pod fails the retry itself, naming its trajectories

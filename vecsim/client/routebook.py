@@ -1,5 +1,5 @@
-"""The client's route book: the routing table in use, where each live trajectory runs, and which
-trajectories lost their envs when the routing changed. Pure (no I/O): the rules of placing are
+"""The client's route book: the routing table in use, where each live trajectory runs, which
+trajectories lost their envs when the routing changed, and which ended and were not reset since. Pure (no I/O): the rules of placing are
 :mod:`vecsim.client.routing`'s; this keeps their result and answers questions about it.
 
 Thread-safe: the caller's thread places and checks, the client's loop records state ids and
@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 import threading
 from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 from vecsim.client.errors import RoutingChangedError
-from vecsim.client.routing import TrajRoute, changed_routes, place_requests, stage_by_id, validate_routes
+from vecsim.client.routing import TrajRoute, changed_routes, check_request, place_requests, stage_by_id, validate_routes
 from vecsim.config import RoutingTable
 
 __all__ = ["RouteBook"]
@@ -32,6 +33,8 @@ class RouteBook:
         self._table = table
         self._routes: dict[str, TrajRoute] = {}
         self._lost: dict[str, int] = {}  # traj_key -> generation at which its env went away
+        # traj_key -> what its env was when its episode ended (a calls.Ended), until it is reset.
+        self._ended: dict[str, Any] = {}
 
     # -- reading --------------------------------------------------------------------------------
 
@@ -60,6 +63,12 @@ class RouteBook:
     def pods_with_envs(self) -> list[str]:
         """The table's pods that have envs, stage by stage, each once."""
         return list(dict.fromkeys(p.pod for stage in self._table.stages for p in stage.pods if p.num_envs > 0))
+
+    def ended(self) -> dict[str, Any]:
+        """A copy of the trajectories whose env ended and was not reset since, with what their env
+        was when it ended."""
+        with self._lock:
+            return dict(self._ended)
 
     def holders(self) -> list[str]:
         """The sorted names of the pods that run live trajectories."""
@@ -94,6 +103,17 @@ class RouteBook:
                 if route.stage_id != stage_id:
                     raise ValueError(f"traj_key {key!r} runs on stage {route.stage_id}, not stage {stage_id}")
 
+    def check_on_pod(self, keys: Sequence[str], pod: str) -> None:
+        """Raises ``RoutingChangedError`` (a key lost its env) or ``ValueError`` (a pod not in the
+        table, a key not live, or live on another pod), naming the key or pod."""
+        self.check_lost(keys)
+        routes = self.live(keys)
+        if pod not in {routed.pod for stage in self._table.stages for routed in stage.pods}:
+            raise ValueError(f"pod {pod!r} is not in the routing table")
+        elsewhere = [key for key in keys if routes[key].pod != pod]
+        if elsewhere:
+            raise ValueError(f"traj_key {elsewhere[0]!r} runs on pod {routes[elsewhere[0]].pod}, not {pod}")
+
     def live(self, keys: Iterable[str]) -> dict[str, TrajRoute]:
         """A copy of the live routes, checked to hold every key of ``keys``.
 
@@ -115,16 +135,24 @@ class RouteBook:
         nothing is replaced yet (see :meth:`replace`)."""
         return place_requests(self._table, requests, keys, stages)
 
-    def admit(self, key: str, task_id: str, state_id: int, stage_id: int, pods: Sequence[str]) -> TrajRoute | None:
-        """Add one live trajectory on the lowest env of its task that no live trajectory holds, on
-        the first of ``pods`` (pods of stage ``stage_id``, in the caller's order of preference) that
-        has one; return its route, or None (nothing changes) when none has.
+    def admit(
+        self, key: str, request: tuple[str, int], stage_id: int, pods: Sequence[str] | None = None
+    ) -> TrajRoute | None:
+        """Add one live trajectory for ``request`` ``(task_id, state_id)`` on the lowest env of its
+        task that no live trajectory holds, on the first of ``pods`` (pods of stage ``stage_id``,
+        in the caller's order of preference; None: the stage's in table order) that has one;
+        return its route, or None (nothing changes) when none has.
 
         Raises:
-            ValueError: ``key`` is live already.
+            ValueError: a malformed request, a pod not of the stage, or ``key`` live already.
         """
+        task_id, state_id = check_request(0, request)
         stage = stage_by_id(self._table)[stage_id]
         envs = {routed.pod: routed for routed in stage.pods}
+        strangers = [pod for pod in pods or () if pod not in envs]
+        if strangers:
+            raise ValueError(f"pods {strangers} are not pods of stage {stage_id} ({list(envs)})")
+        pods = list(envs) if pods is None else pods
         with self._lock:
             if key in self._routes:
                 raise ValueError(f"traj_key {key!r} is live already")
@@ -138,6 +166,7 @@ class RouteBook:
                             route = TrajRoute(pod, env, task_id, stage_id, int(state_id))
                             self._routes[key] = route
                             self._lost.pop(key, None)
+                            self._ended.pop(key, None)
                             return route
         return None
 
@@ -153,16 +182,31 @@ class RouteBook:
                 raise ValueError(f"traj_keys {unknown} are not live trajectories")
             for key in keys:
                 del self._routes[key]
+                self._ended.pop(key, None)
 
     def check_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Raises ``ValueError`` for routes that do not fit the table (see ``validate_routes``)."""
         validate_routes(self._table, routes)
 
     def replace(self, routes: Mapping[str, TrajRoute]) -> None:
-        """Make ``routes`` the live trajectories; no trajectory counts as lost any more."""
+        """Make ``routes`` the live trajectories; no trajectory counts as lost any more, and an
+        ended one stays ended only while it keeps its env."""
         with self._lock:
+            for key in list(self._ended):
+                before, now = self._routes.get(key), routes.get(key)
+                if now is None or before is None or (before.pod, before.env_index) != (now.pod, now.env_index):
+                    del self._ended[key]
             self._routes = dict(routes)
             self._lost = {}
+
+    def note_ended(self, reset: Iterable[str], ended: Mapping[str, Any]) -> None:
+        """Note a call's answer: the trajectories ``reset`` did not end, those in ``ended`` did
+        (with what their env was then; one that had ended already keeps its first record)."""
+        with self._lock:
+            for key in reset:
+                self._ended.pop(key, None)
+            for key, record in ended.items():
+                self._ended.setdefault(key, record)
 
     def set_state_ids(self, keys: Sequence[str], state_ids: Sequence[int]) -> None:
         """Record the state ids live trajectories were just reset to (keys no longer live are skipped)."""

@@ -9,6 +9,7 @@ Usage, top to bottom::
     ...                                             # work on another stage meanwhile
     batch = pending.result()
     pending = client.step_stage(0, {key: chunk for key, chunk in ...})   # chunks [K, action dim]
+    pending = client.step_stage(0, client.step_actions(keys, chunks))   # one array [n, K, action dim]
 
 Every call returns a :class:`PendingCall` at once (awaitable, or ``.result()`` from sync code);
 the HTTP runs on the client's own event loop thread, all pods of a call concurrently, over one
@@ -21,8 +22,10 @@ a call of their own (no lockstep over a stage's pods).
 This class is the facade over the parts, each its own module: the route book
 (:mod:`~vecsim.client.routebook`, pure), the stages' states (:mod:`~vecsim.client.stagestate`,
 pure), what the pods said of the job (:mod:`~vecsim.client.jobinfo`), one call carried out
-(:mod:`~vecsim.client.calls`), the routing re-read (:mod:`~vecsim.client.refresh`) and the pod
-connections on the loop thread (:mod:`~vecsim.client.pods`).
+(:mod:`~vecsim.client.calls`: whether its actions are one or a chunk each is said there once,
+:func:`~vecsim.client.calls.step_actions`), the routing re-read (:mod:`~vecsim.client.refresh`)
+and the pod connections on the loop thread (:mod:`~vecsim.client.pods`, whose ``PodSet`` is
+the one way a call reaches a pod).
 
 A pod that fails a call (no answer in time, refused connection, 503, envs moved by the routing)
 fails it for its own trajectories only: the error names them and carries the rows of the pods
@@ -31,49 +34,51 @@ that did answer (``error.answered``), whose envs have advanced and must not be l
 
 from __future__ import annotations
 
-import asyncio
 import atexit
 import itertools
 import logging
-import math
 import threading
 import weakref
 from collections.abc import Coroutine, Mapping, Sequence
 from typing import Any, TypeVar
 
 import httpx
-import numpy as np
 from gymnasium import Space
-from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, ResetNeeded
+from gymnasium.error import ClosedEnvironmentError
 
 from vecsim.auth import token_from_env
 from vecsim.client.calls import (
-    Ended,
     PendingCall,
     StageBatch,
+    StepActions,
     check_actions,
+    check_attr,
+    check_call,
     completed,
     empty_batch,
-    ended_rows,
+    run_attr,
     run_call,
-    single_action_ndim,
+    step_actions,
 )
-from vecsim.client.errors import PodRequestError, PodUnavailableError, RoutingChangedError, StaleGenerationError
 from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodConnection, new_idempotency_key, refusal
-from vecsim.client.refresh import RoutingRefresher, fetch_routing
+from vecsim.client.pods import EventLoopThread, PodSet, check_limits
+from vecsim.client.refresh import RoutingRefresher, fetch_routing, read_pod_info
 from vecsim.client.routebook import RouteBook
-from vecsim.client.routing import TrajRoute, check_request, routing_from_pod_infos, stage_by_id
+from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import as_transport, get_answer
+from vecsim.transport import as_transport
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "check_ended_envs", "fetch_routing"]
+__all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "StepActions", "check_ended_envs", "fetch_routing"]
 
-# What stepping a trajectory whose episode ended does: refuse (ResetNeeded), step its env on
-# (the pod applies every action, also past the end), or answer it unstepped with its flags held.
+# What stepping a trajectory whose env terminated or truncated (and was not reset since) does:
+# "raise" refuses it with ResetNeeded before anything is sent; "step" steps the env on, and a
+# chunk applies all its K actions, also past an end (as RLinf's and LIBERO's own envs are
+# stepped, the trainer masking afterwards); "freeze" sends nothing for it and answers its
+# observation at the end, reward 0, its termination and truncation held at every action,
+# num_steps 0. Under "raise" and "freeze" a chunk stops each env at its first end.
 ENDED_ENVS = ("raise", "step", "freeze")
 
 
@@ -88,6 +93,10 @@ def check_ended_envs(value: str) -> str:
     return value
 
 T = TypeVar("T")
+
+
+def _keys_of(step: Mapping[str, Any] | StepActions) -> list[str]:
+    return step.traj_keys if isinstance(step, StepActions) else list(step)
 
 # Clients not closed yet: closed at interpreter exit while their loop threads still run, so
 # that a script ending in an exception or Ctrl-C exits quietly, its connections closed.
@@ -125,13 +134,8 @@ class StageClient:
     job's shared token, sent with every reset and step; left out, ``VECSIM_TOKEN`` is used
     (none: the pods must run without one).
 
-    ``ended_envs`` says what a step of a trajectory whose env terminated or truncated (and was
-    not reset since) does: ``"raise"`` refuses it with ``ResetNeeded`` before anything is sent;
-    ``"step"`` steps the env on, and a chunk applies all its K actions, also past an end (as
-    RLinf's and LIBERO's own envs are stepped, the trainer masking afterwards); ``"freeze"``
-    sends nothing for it and answers its observation at the end, reward 0, its termination and
-    truncation held at every action, ``num_steps`` 0. Under ``"raise"`` and ``"freeze"`` a chunk
-    stops each env at its first end.
+    ``ended_envs`` (one of :data:`ENDED_ENVS`, which says what each does) is what a step of a
+    trajectory whose env terminated or truncated (and was not reset since) does.
     """
 
     def __init__(
@@ -146,29 +150,23 @@ class StageClient:
         ended_envs: str = "raise",
     ) -> None:
         self.ended_envs = check_ended_envs(ended_envs)
-        if not (timeout_s > 0 and math.isfinite(timeout_s)):
-            raise ValueError(f"timeout_s must be a positive number, got {timeout_s}")
-        if max_answer_bytes is not None and max_answer_bytes < 1:
-            raise ValueError(f"max_answer_bytes must be a positive number of bytes, got {max_answer_bytes}")
+        check_limits(timeout_s, max_answer_bytes)
         self._book = RouteBook(routing)
         self.controller_url = controller_url.rstrip("/") if controller_url else None
         self.timeout_s = float(timeout_s)
         self.max_answer_bytes = max_answer_bytes
         self._transport = as_transport(transport)
-        self._token = token if token is not None else token_from_env()
-        self._pods: dict[str, PodConnection] = {}
-        self._ended: dict[str, Ended] = {}  # trajectories whose env ended and was not reset since
-        self._pods_lock = threading.RLock()
         self._states = StageStates()
         self._batches = itertools.count()
         self._info = JobInfo()
         self._closed = False
         self._loop = EventLoopThread()
-        self._refresher = RoutingRefresher(
-            self._book, self._info, self.controller_url, self.timeout_s, self._transport, self._pod_info, self._sync_pods
+        self._refresher = RoutingRefresher(self._book, self._info, self.controller_url, self.timeout_s, self._transport)
+        self._pods = PodSet(
+            self._book, self._info, self._refresher, self._transport, self.timeout_s,
+            token if token is not None else token_from_env(), max_answer_bytes,
         )
         _open_clients.add(self)
-        self._sync_pods()
 
     @classmethod
     def from_controller(
@@ -190,13 +188,8 @@ class StageClient:
         """
         table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
         return cls(
-            table,
-            controller_url=controller_url,
-            timeout_s=timeout_s,
-            transport=transport,
-            max_answer_bytes=max_answer_bytes,
-            token=token,
-            ended_envs=ended_envs,
+            table, controller_url=controller_url, timeout_s=timeout_s, transport=transport,
+            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
         )
 
     @classmethod
@@ -218,26 +211,10 @@ class StageClient:
             ValueError: the pods do not make a routing table (names the problem).
         """
 
-        def info(url: str) -> tuple[str, dict[str, Any]]:
-            try:
-                response = get_answer(f"{url.rstrip('/')}/v1/info", timeout_s=timeout_s)
-            except httpx.HTTPError as exc:
-                raise PodUnavailableError({url: []}, f"GET /v1/info: {type(exc).__name__}: {exc}") from None
-            if response.status_code != 200:
-                raise refusal(url, response.status_code, response.content, [])
-            try:
-                return url.rstrip("/"), response.json()
-            except ValueError as exc:
-                raise PodRequestError(url, None, f"answer to /v1/info is not JSON: {exc}") from None
-
-        infos = [info(u) for u in urls]
+        infos = [read_pod_info(u, timeout_s) for u in urls]
         client = cls(
-            routing_from_pod_infos(infos),
-            timeout_s=timeout_s,
-            transport=transport,
-            max_answer_bytes=max_answer_bytes,
-            token=token,
-            ended_envs=ended_envs,
+            routing_from_pod_infos(infos), timeout_s=timeout_s, transport=transport,
+            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
         )
         try:
             client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
@@ -274,40 +251,34 @@ class StageClient:
     @property
     def observation_space(self) -> Space | None:
         """One env's observation space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
-        self._load_info()
-        return self._info.observation_space
+        return self._job().observation_space
 
     @property
     def action_space(self) -> Space | None:
         """One env's action space as the pods take it (a Dict or Tuple one flattened), read from
         the pods' ``/v1/info`` (None if no pod has envs); :attr:`served_action_space`: the envs' own."""
-        self._load_info()
-        return self._info.action_space
+        return self._job().action_space
 
     @property
     def served_action_space(self) -> Space | None:
-        self._load_info()
-        return self._info.served_action_space
+        return self._job().served_action_space
 
     @property
     def instructions(self) -> dict[str, str]:
         """Each task's instruction, read from the pods' ``/v1/info``."""
-        self._load_info()
-        return dict(self._info.instructions)
+        return dict(self._job().instructions)
 
     @property
     def reset_kinds(self) -> dict[str, str]:
         """How each task's envs reset by default, from the pods' ``/v1/info``: ``"seed"`` (the
         env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
-        self._load_info()
-        return dict(self._info.reset_kinds)
+        return dict(self._job().reset_kinds)
 
     @property
     def num_states(self) -> dict[str, int]:
         """How many fixed initial states each task has (state ids ``0..n-1``), from the pods'
         ``/v1/info``: the trainer needs no task registry of its own."""
-        self._load_info()
-        return dict(self._info.num_states)
+        return dict(self._job().num_states)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -334,10 +305,10 @@ class StageClient:
         # Before a new batch: the controller's table if it has moved on and is ready, so that a
         # reassignment finished before the batch costs the batch nothing (not while calls run).
         if not self._states.busy():
-            self._refresher.before_batch(self._loop)
+            self._refresher.before_batch(self._loop, self._pods)
         keys = list(traj_keys) if traj_keys is not None else self.new_traj_keys(len(requests))
         routes = self._book.place(requests, keys, stages)
-        self._replace_routes(routes)
+        self._states.while_idle("placing a new batch", lambda: self._book.replace(routes))
         return dict(routes)
 
     def new_traj_keys(self, n: int) -> list[str]:
@@ -361,16 +332,7 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_stage(stage_id)
-        task_id, state_id = check_request(0, request)
-        stage_pods = [routed.pod for routed in stage_by_id(self._book.table)[stage_id].pods]
-        chosen = stage_pods if pods is None else list(pods)
-        strangers = [pod for pod in chosen if pod not in stage_pods]
-        if strangers:
-            raise ValueError(f"pods {strangers} are not pods of stage {stage_id} ({stage_pods})")
-        route = self._book.admit(traj_key, task_id, state_id, stage_id, chosen)
-        if route is not None:
-            self._ended.pop(traj_key, None)
-        return route
+        return self._book.admit(traj_key, request, stage_id, pods)
 
     def retire_trajectories(self, traj_keys: Sequence[str]) -> None:
         """Drop live trajectories (ended ones): their envs become free for
@@ -384,14 +346,8 @@ class StageClient:
         self._check_open()
         traj_keys = list(dict.fromkeys(traj_keys))
         routes = self._book.live(traj_keys)
-        busy = sorted({routes[k].pod for k in traj_keys if self._states.pod_busy(routes[k].stage_id, routes[k].pod)})
-        if busy:
-            raise AlreadyPendingCallError(
-                f"pods {busy} wait on a call; take its result before retiring their trajectories", "step"
-            )
+        self._states.check_idle({(routes[k].stage_id, routes[k].pod) for k in traj_keys}, "retiring their trajectories")
         self._book.retire(traj_keys)
-        for key in traj_keys:
-            self._ended.pop(key, None)
 
     def set_routes(self, routes: Mapping[str, TrajRoute]) -> None:
         """Make ``routes`` the live trajectories, as given (for callers that place envs themselves).
@@ -402,24 +358,12 @@ class StageClient:
         """
         self._check_open()
         self._book.check_routes(routes)
-        self._replace_routes(dict(routes))
-
-    def _replace_routes(self, routes: dict[str, TrajRoute]) -> None:
-        def replace() -> None:
-            old = self._book.routes()
-            self._book.replace(routes)
-            # An ended trajectory stays ended only while it keeps its env.
-            for key in list(self._ended):
-                before, now = old.get(key), routes.get(key)
-                if now is None or before is None or (before.pod, before.env_index) != (now.pod, now.env_index):
-                    del self._ended[key]
-
-        self._states.while_idle("placing a new batch", replace)
+        self._states.while_idle("placing a new batch", lambda: self._book.replace(routes))
 
     @property
     def ended_traj_keys(self) -> list[str]:
         """The trajectories whose env terminated or truncated and was not reset since."""
-        return sorted(self._ended)
+        return sorted(self._book.ended())
 
     # -- calls ----------------------------------------------------------------------------------
 
@@ -447,7 +391,7 @@ class StageClient:
         return self._submit(reset=keys, step={}, pick=0)
 
     def step_stage(
-        self, stage_id: int, actions_by_traj_key: Mapping[str, Any], record: Sequence[str] = ()
+        self, stage_id: int, actions_by_traj_key: Mapping[str, Any] | StepActions, record: Sequence[str] = ()
     ) -> PendingCall[StageBatch]:
         """Step the given trajectories of a stage, one action or one chunk each; don't wait.
 
@@ -457,6 +401,8 @@ class StageClient:
         the pod renders once, after the last applied action. ``record`` names traj_keys (of a
         chunk call) whose frame after every applied action the answer carries in ``frames``.
         An empty mapping is a no-op (an empty batch). Rows of the answer follow the mapping's order.
+        In place of the mapping, :meth:`step_actions` of the keys and one array of all their
+        actions or chunks (no per-key values to stack).
 
         Raises:
             ValueError: no such stage, a key not live on it, an action of the wrong shape or not
@@ -466,14 +412,14 @@ class StageClient:
                 :meth:`reset_stage`, whose notes on the result's errors hold here too.
         """
         self._check_stage(stage_id)
-        self._check_keys(list(actions_by_traj_key), stage_id)
+        self._check_keys(_keys_of(actions_by_traj_key), stage_id)
         return self._submit(reset=(), step=actions_by_traj_key, pick=1, record=record)
 
     def call(
         self,
         *,
         reset: Sequence[str] | Mapping[str, int] = (),
-        step: Mapping[str, Any] | None = None,
+        step: Mapping[str, Any] | StepActions | None = None,
         record: Sequence[str] = (),
         seeds: Mapping[str, int | None] | None = None,
         options: Mapping[str, Any] | None = None,
@@ -482,7 +428,7 @@ class StageClient:
 
         ``reset`` lists traj_keys to reset to their route's state id, or maps traj_keys to new
         state ids (their routes take them on success). ``step`` maps traj_keys to actions or
-        chunks, and ``record`` names stepped keys whose every frame is wanted, as in
+        chunks (or is :meth:`step_actions`'s), and ``record`` names stepped keys whose every frame is wanted, as in
         :meth:`step_stage`. ``seeds`` (instead of ``reset``) maps traj_keys to a seed or None:
         their envs reset as the envs' own ``reset(seed=..., options=options)``, not to a fixed
         state (the routes keep their state ids). Each pod gets its resets first, then its steps; pods run
@@ -496,20 +442,14 @@ class StageClient:
             AlreadyPendingCallError: a stage involved already waits on a call.
             ClosedEnvironmentError: the client is closed.
         """
-        if seeds is not None:
-            if reset:
-                raise ValueError("give reset (fixed initial states) or seeds (the envs' own reset), not both")
-            return self._submit(reset=list(seeds), step=step or {}, pick=None, record=record, seeds=seeds, options=options)
-        if options:
-            raise ValueError("options go with seeds (the envs' own reset)")
-        return self._submit(reset=reset, step=step or {}, pick=None, record=record)
+        return self._submit(reset=reset, step=step or {}, pick=None, record=record, seeds=seeds, options=options)
 
     def pod_call(
         self,
         pod: str,
         *,
         reset: Sequence[str] | Mapping[str, int] = (),
-        step: Mapping[str, Any] | None = None,
+        step: Mapping[str, Any] | StepActions | None = None,
         record: Sequence[str] = (),
     ) -> PendingCall[tuple[StageBatch, StageBatch]]:
         """:meth:`call` on the trajectories of one pod, holding only that pod: the other pods of
@@ -522,16 +462,19 @@ class StageClient:
             RoutingChangedError, ClosedEnvironmentError: as :meth:`call`.
         """
         self._check_open()
-        step = dict(step or {})
-        keys = [*reset, *step]
-        self._book.check_lost(keys)
-        routes = self._book.live(keys)
-        if pod not in {routed.pod for stage in self._book.table.stages for routed in stage.pods}:
-            raise ValueError(f"pod {pod!r} is not in the routing table")
-        elsewhere = [key for key in keys if routes[key].pod != pod]
-        if elsewhere:
-            raise ValueError(f"traj_key {elsewhere[0]!r} runs on pod {routes[elsewhere[0]].pod}, not {pod}")
+        step = step or {}
+        self._book.check_on_pod([*reset, *_keys_of(step)], pod)
         return self._submit(reset=reset, step=step, pick=None, record=record, pod=pod)
+
+    def step_actions(self, traj_keys: Sequence[str], actions: Any) -> StepActions:
+        """The actions of ``traj_keys`` as one call's, from one array (row ``j`` for
+        ``traj_keys[j]``): ``[n, action dim]``, or chunks ``[n, K, action dim]``. Pass the result as
+        a call's ``step``: the array goes to the pods as it is, cut per pod.
+
+        Raises:
+            ValueError: as :func:`vecsim.client.calls.step_actions` (shape, count, NaN, names the key).
+        """
+        return step_actions(self.action_space, traj_keys, actions)
 
     def env_attr(
         self, op: str, keys: Sequence[str], name: str, payload: Any = None
@@ -549,45 +492,8 @@ class StageClient:
             ClosedEnvironmentError: the client is closed.
         """
         self._check_open()
-        if op not in ("get_attr", "call", "set_attr"):
-            raise ValueError(f"op must be get_attr, call or set_attr, got {op!r}")
-        routes = self._book.routes()
-        unknown = [k for k in keys if k not in routes]
-        if unknown:
-            raise ValueError(f"traj_keys {unknown} are not live trajectories")
-        return self.submit(self._env_attr(op, list(keys), name, payload, routes))
-
-    async def _env_attr(
-        self, op: str, keys: list[str], name: str, payload: Any, routes: Mapping[str, TrajRoute]
-    ) -> tuple[list[Any], list[tuple[str, str, str]]]:
-        by_pod: dict[str, list[int]] = {}
-        for row, key in enumerate(keys):
-            by_pod.setdefault(routes[key].pod, []).append(row)
-
-        async def one_pod(pod: str, rows: list[int]) -> dict[str, Any]:
-            body: dict[str, Any] = {
-                "generation": self._book.generation,
-                "env_indices": [routes[keys[r]].env_index for r in rows],
-                "name": name,
-            }
-            if op == "call":
-                body["args"], body["kwargs"] = payload
-            elif op == "set_attr":
-                body["values"] = [payload[r] for r in rows]
-            return await self._pods[pod].call_json(op, body, [keys[r] for r in rows])
-
-        answers = await asyncio.gather(*(one_pod(pod, rows) for pod, rows in by_pod.items()))
-        results: list[Any] = [None] * len(keys)
-        errors: list[tuple[str, str, str]] = []
-        for (pod, rows), answer in zip(by_pod.items(), answers):
-            for row, result in zip(rows, answer.get("results") or []):
-                results[row] = result
-            raised = answer.get("errors") or {}
-            row_of = {routes[keys[r]].env_index: r for r in rows}
-            for env, kind, message in zip(raised.get("env_indices", ()), raised.get("type", ()), raised.get("message", ())):
-                if env in row_of:
-                    errors.append((keys[row_of[env]], str(kind), str(message)))
-        return results, errors
+        routes = check_attr(self._book, op, keys)
+        return self.submit(run_attr(self._pods, op, list(keys), name, payload, routes))
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
         """Run ``coro`` on the client's event loop and return its pending result.
@@ -605,7 +511,7 @@ class StageClient:
         self,
         *,
         reset: Sequence[str] | Mapping[str, int],
-        step: Mapping[str, Any],
+        step: Mapping[str, Any] | StepActions,
         pick: int | None,
         record: Sequence[str] = (),
         seeds: Mapping[str, int | None] | None = None,
@@ -613,68 +519,29 @@ class StageClient:
         pod: str | None = None,
     ) -> PendingCall[Any]:
         self._check_open()
-        step = dict(step)
-        recorded = set(record)
-        if recorded - set(step):
-            raise ValueError(f"record: traj_keys {sorted(recorded - set(step))} are not stepped in this call")
-        reset_map = dict(reset) if isinstance(reset, Mapping) else None
-        reset_keys = list(reset)
-        both = set(reset_keys) & set(step)
-        if both:
-            raise ValueError(f"traj_keys {sorted(both)} are both reset and stepped in one call")
-        if len(set(reset_keys)) != len(reset_keys) or len(set(step)) != len(step):
-            raise ValueError("traj_keys repeat within one call")
-        self._book.check_lost([*reset_keys, *step])
-        routes = self._book.live(itertools.chain(reset_keys, step))
-        ended = [k for k in step if k in self._ended]
-        if ended and self.ended_envs == "raise":
-            raise ResetNeeded(
-                f"traj_keys {ended} ended (terminated or truncated) and were not reset; reset them, or "
-                "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
-            )
-        frozen = {k: self._ended[k] for k in ended} if self.ended_envs == "freeze" else {}
-        state_ids = np.array(
-            [reset_map[k] if reset_map is not None and seeds is None else routes[k].state_id for k in reset_keys],
-            dtype=np.int64,
-        )
-        if reset_map is not None and seeds is None:
-            for key, sid in zip(reset_keys, state_ids):
-                if sid < 0:
-                    raise ValueError(f"traj_key {key!r}: state_id must be >= 0, got {sid}")
+        args = check_call(self._book, reset, _keys_of(step), record, seeds, options, self.ended_envs)
         # Spaces first, so even an empty answer has the job's observation structure (0 rows).
-        self._load_info()
-        if not reset_keys and not step:
-            space = self._info.observation_space
-            return completed((empty_batch(space), empty_batch(space)), pick)
-        actions = check_actions(self.action_space, step) if step else None
-        if recorded and (actions is None or actions.ndim != single_action_ndim(self._info) + 1):
+        self._job()
+        if isinstance(step, StepActions):
+            actions: StepActions | None = step
+        else:
+            actions = check_actions(self.action_space, step) if step else None
+        if args.recorded and (actions is None or actions.chunk is None):
             raise ValueError("record: frames are recorded for chunk steps only; send [K, action dim] per traj_key")
-        resetting = {routes[k].stage_id for k in reset_keys}
-        stepping = {routes[k].stage_id for k in step}
+        if actions is None or not actions.traj_keys:
+            if not args.reset_keys:
+                space = self._info.observation_space
+                return completed((empty_batch(space), empty_batch(space, chunk=None if actions is None else actions.chunk)), pick)
+        resetting = {args.routes[k].stage_id for k in args.reset_keys}
+        stepping = {args.routes[k].stage_id for k in (actions.traj_keys if actions is not None else ())}
         states = {
             stage: StageState.waiting_for(stage in resetting, stage in stepping) for stage in resetting | stepping
         }
-        seeded = None if seeds is None else ([seeds[k] for k in reset_keys], dict(options or {}))
         token = _Held()  # what holds the stages: the call, named before its future exists
 
         async def run() -> tuple[StageBatch, StageBatch]:
             try:
-                try:
-                    batches = await run_call(
-                        self._book, self._info, self._post, reset_keys, state_ids, list(step), actions, pick,
-                        recorded, seeded, frozen, self.ended_envs == "step",
-                    )
-                except (PodUnavailableError, RoutingChangedError) as error:
-                    if error.answered is not None:
-                        if pick is None:
-                            self._note_ended(*error.answered)
-                        elif pick == 0:
-                            self._note_ended(error.answered, None)
-                        else:
-                            self._note_ended(None, error.answered)
-                    raise
-                self._note_ended(*batches)
-                return batches
+                return await run_call(self._pods, args, actions, pick, self.ended_envs == "step")
             finally:
                 # Before the answer is handed over: a caller whose result() returned finds its
                 # stages idle.
@@ -685,15 +552,6 @@ class StageClient:
         future.add_done_callback(lambda _f: self._states.end(states, token))
         token.pending = PendingCall(future, pick, self._loop)
         return token.pending
-
-    def _note_ended(self, reset_batch: StageBatch | None, step_batch: StageBatch | None) -> None:
-        """Keep track of which trajectories ended: reset ones did not, stepped ones may have."""
-        if reset_batch is not None:
-            for key in reset_batch.traj_keys:
-                self._ended.pop(key, None)
-        if step_batch is not None:
-            failed = {key for key, _type, _message in step_batch.errors}
-            self._ended.update({k: e for k, e in ended_rows(step_batch).items() if k not in self._ended and k not in failed})
 
     def stage_state(self, stage_id: int) -> StageState:
         """What a stage is doing: ``IDLE`` or waiting on a reset, a step or a mixed call.
@@ -744,61 +602,16 @@ class StageClient:
 
     # -- what runs on the loop ------------------------------------------------------------------
 
-    def _sync_pods(self) -> None:
-        """Make one connection per pod of the table (a pod whose URL changed gets a new one), each
-        with its answer cap (runs on the caller's thread and on the loop)."""
-        with self._pods_lock:
-            # A pod of several stages ('slices') answers at most all its envs, whatever the stage.
-            envs: dict[str, int] = {}
-            for stage in self._book.table.stages:
-                for routed in stage.pods:
-                    envs[routed.pod] = envs.get(routed.pod, 0) + routed.num_envs
-            for stage in self._book.table.stages:
-                for routed in stage.pods:
-                    known = self._pods.get(routed.pod)
-                    if known is None or known.url != routed.url.rstrip("/"):
-                        self._pods[routed.pod] = PodConnection(
-                            routed.pod, routed.url, self._transport, self.timeout_s, self._token
-                        )
-                    self._pods[routed.pod].max_answer_bytes = self._info.answer_cap(
-                        envs[routed.pod], self.max_answer_bytes
-                    )
-
-    async def _pod_info(self, pod: str) -> dict[str, Any]:
-        return await self._pods[pod].info()
-
-    def _load_info(self) -> None:
+    def _job(self) -> JobInfo:
+        """What the pods said of the job, read from their ``/v1/info`` on first use."""
         if self._info.spaces is None:
             self._check_open()
             if threading.current_thread() is self._loop.thread:
                 raise RuntimeError("the pods' spaces must be read before calls are made from the client's loop")
-            self._loop.run(self._fetch_info())
-
-    async def _fetch_info(self) -> None:
-        pods = self._book.pods_with_envs()
-        infos = await asyncio.gather(*(self._pods[p].info() for p in pods))
-        self._adopt_info(dict(zip(pods, infos)))
+            self._adopt_info(self._loop.run(self._pods.infos(self._book.pods_with_envs())))
+        return self._info
 
     def _adopt_info(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
         """Take instructions and spaces from pods' ``/v1/info`` answers (pods with envs only)."""
         self._info.adopt(infos)
-        self._sync_pods()  # the answer caps follow from the spaces just read
-
-    async def _post(
-        self, pod: str, op: str, body: dict[str, Any], keys: list[str], extra_answer_bytes: int = 0
-    ) -> dict[str, Any]:
-        """POST to one pod with the current generation; after a 409, re-read routing and retry once.
-
-        The one seam where a call meets one pod (``bench/bench_gpu_scale.py`` times it per pod).
-        """
-        generation = self._book.generation
-        key = new_idempotency_key()  # one call: the same key after a 409, the pod answers it once
-        try:
-            return await self._pods[pod].call(op, {"generation": generation, **body}, keys, extra_answer_bytes, key)
-        except StaleGenerationError as stale:
-            await self._refresher.after_stale(pod, generation, stale.detail, keys)
-        try:
-            body = {**body, "generation": self._book.generation}
-            return await self._pods[pod].call(op, body, keys, extra_answer_bytes, key)
-        except StaleGenerationError as stale:
-            raise StaleGenerationError(pod, self._book.generation, stale.detail) from None
+        self._pods.sync()  # the answer caps follow from the spaces just read

@@ -76,6 +76,14 @@ class StageStates:
         with self._lock:
             return self._conflicts(stage_id, pod)
 
+    def check_idle(self, lanes: Iterable[tuple[int, str]], what: str) -> None:
+        """Raises ``AlreadyPendingCallError`` (naming the pods) when a call holds any of ``lanes``
+        ``(stage, pod)`` (the pod, or its whole stage), before ``what``."""
+        with self._lock:
+            busy = sorted({pod for stage, pod in lanes if self._conflicts(stage, pod)})
+        if busy:
+            raise AlreadyPendingCallError(f"pods {busy} wait on a call; take its result before {what}", "step")
+
     def _busy(self, stages: Iterable[int] | None) -> list[int]:
         if stages is None:
             return sorted(self._waiting)

@@ -9,32 +9,30 @@ explicit pod resets. The async protocol is an explicit state machine like ``Asyn
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
-import copy
 import logging
 import multiprocessing
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
-from gymnasium.utils import seeding
+from gymnasium.error import AlreadyPendingCallError, ClosedEnvironmentError, NoAsyncCallError
 from gymnasium.vector.async_vector_env import AsyncState
-from gymnasium.vector.utils import batch_space, create_empty_array
+from gymnasium.vector.utils import batch_space
 from gymnasium import logger as gym_logger
 from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
-from vecsim import trees
-from vecsim.client.gym_values import env_observation, wire_actions
+from vecsim.client.gym_values import wire_actions
 from vecsim.client.conventions import env_indices
-from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
+from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception
 from vecsim.client.routing import TrajRoute, routed_envs
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
+from vecsim.client.vector_autoreset import Autoresets
+from vecsim.client.vector_resets import StateDraws, autoreset_mode_of, env_seeds, reset_mask
+from vecsim.client.vector_results import EnvResults
 from vecsim.config import JobConfig, RoutingTable, load_job_config
-from vecsim.info import merge_rows
 
 logger = logging.getLogger(__name__)
 
@@ -48,39 +46,22 @@ class WaitTimeoutError(multiprocessing.TimeoutError, TimeoutError):
     ``multiprocessing.TimeoutError``, and a builtin ``TimeoutError`` too. The call stays pending."""
 
 
-def autoreset_mode_of(mode: AutoresetMode | str) -> AutoresetMode:
-    """Return the :class:`AutoresetMode` that ``mode`` names: the enum, its value
-    (``"NextStep"``), or its name in any case (``"next_step"``, ``"SAME_STEP"``).
-
-    Raises:
-        ValueError: no such mode (names the valid spellings).
-    """
-    if isinstance(mode, AutoresetMode):
-        return mode
-    wanted = str(mode).replace("_", "").replace("-", "").lower()
-    for member in AutoresetMode:
-        if wanted in (member.value.lower(), member.name.replace("_", "").lower()):
-            return member
-    raise ValueError(
-        f"unknown autoreset_mode {mode!r}; use gymnasium.vector.AutoresetMode or one of "
-        f"{[m.name.lower() for m in AutoresetMode]}"
-    )
 # The errors that fail a call for one pod's envs alone, handing over the other pods' rows.
 _PARTIAL = (PodUnavailableError, RoutingChangedError)
 
 
-def _ended(batch: StageBatch) -> np.ndarray:
-    """Per row of a step answer: whether its env terminated or truncated (at any chunk action)."""
-    flags = batch.terminated | batch.truncated
-    return flags if flags.ndim == 1 else flags.any(axis=1)
+def _env_mask(env_ids: Any, num_envs: int) -> np.ndarray:
+    """The mask of ``env_ids`` (None: every env).
 
-
-def _row_success(batch: StageBatch) -> np.ndarray:
-    """Per row: success after the row's last applied action (a chunk's), or the row's success."""
-    if batch.success.ndim == 1:
-        return batch.success
-    last = np.maximum(batch.num_steps.astype(np.int64) - 1, 0)
-    return batch.success[np.arange(batch.n), last] & (batch.num_steps > 0)
+    Raises:
+        ValueError: ids that are not distinct ints in ``0..num_envs-1`` (names them).
+    """
+    mask = np.zeros(num_envs, dtype=bool)
+    if env_ids is None:
+        mask[:] = True
+        return mask
+    mask[env_indices(env_ids, num_envs)] = True
+    return mask
 
 
 def _controller_url_of(job_config: JobConfig | str | Path) -> str:
@@ -230,24 +211,17 @@ class HTTPVectorEnv(VectorEnv):
         missing = sorted(set(self.task_ids) - set(known))
         if missing:
             raise ValueError(f"the pods' /v1/info names no number of initial states for task(s) {missing}")
-        self._num_states = {t: known[t] for t in set(self.task_ids)}
+        self._draws = StateDraws(self.task_ids, {t: known[t] for t in set(self.task_ids)})
         self._keys = [f"env{i}" for i in range(self.num_envs)]
         self._key_index = {key: i for i, key in enumerate(self._keys)}
-        self.client.set_routes(
-            {
-                key: TrajRoute(routed.pod, routed.env_index, routed.task_id, routed.stage_id, 0)
-                for key, routed in zip(self._keys, self.routed_envs)
-            }
+        self._route_envs({})
+        self._results = EnvResults(
+            self.single_observation_space, self._keys, self.task_ids, self._native, self.autoreset_mode
         )
-        self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
-        self._ever_reset = np.zeros(self.num_envs, dtype=bool)
-        self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        self._failed = np.zeros(self.num_envs, dtype=bool)  # no answer in their last call: reset them
-        self._env_rngs: dict[int, tuple[np.random.Generator, int]] = {}  # env -> (generator, its seed)
+        self._autoresets = Autoresets(self.client, self._keys, self._draws, self._native, self.autoreset_mode)
         self._state = AsyncState.DEFAULT
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
-        self._pending_chunk: int | None = None  # K of the chunk step in flight; None: one action
         self._pending_fixed = True  # the reset in flight puts envs in fixed initial states
 
     # -- reset ----------------------------------------------------------------------------------
@@ -274,7 +248,7 @@ class HTTPVectorEnv(VectorEnv):
             TypeError, ValueError: a bad seed, ``reset_mask`` or ``state_ids`` (named).
         """
         self._assert_open()
-        seeds = self._seeds(seed)
+        seeds = env_seeds(seed, self.num_envs)
         if self._state != AsyncState.DEFAULT:
             raise AlreadyPendingCallError(
                 f"Calling `reset_async` while waiting for a pending call to `{self._state.value}` to complete",
@@ -287,19 +261,19 @@ class HTTPVectorEnv(VectorEnv):
             # own), those that no env here reads are dropped; vecsim's own are still checked.
             logger.debug("reset options %s go to no env here; ignored", sorted(env_options))
             env_options = {}
-        mask = self._reset_mask(options.get("reset_mask"))
+        mask = reset_mask(options.get("reset_mask"), self.num_envs)
         indices = np.flatnonzero(mask)
         # One generator per env, as each of gymnasium's envs has its own: a seed reseeds it.
-        reseeded = {int(i): seeding.np_random(seeds[i]) for i in indices if seeds[i] is not None}
+        reseeded = self._draws.reseeded(seeds, indices)
         if self._native and options.get("state_ids") is None:
             self._place_lost_envs(mask)
-            self._env_rngs.update(reseeded)
+            self._draws.take(reseeded)
             self._pending = self.client.call(seeds={self._keys[i]: seeds[i] for i in indices}, options=env_options)
             self._pending_fixed = False
         else:
-            state_ids = self._state_ids_for_reset(reseeded, options.get("state_ids"), mask)
+            state_ids = self._draws.state_ids(reseeded, options.get("state_ids"), mask)
             self._place_lost_envs(mask)
-            self._env_rngs.update(reseeded)
+            self._draws.take(reseeded)
             self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
             self._pending_fixed = True
         self._pending_mask = mask
@@ -326,38 +300,13 @@ class HTTPVectorEnv(VectorEnv):
             batch, _ = self._take(timeout)
         except _PARTIAL as error:
             answered = error.answered[0] if error.answered is not None else None
-            result, done = self._apply_reset(answered)
-            self._fail(error, mask & ~done, result)
+            result, done = self._results.take_reset(answered, self._pending_fixed)
+            self._results.fail(error, mask & ~done, result)
             raise
-        with self._failing_if_interrupted(mask):
-            result = self._apply_reset(batch)[0]
-        self._raise_env_errors(batch)
+        with self._results.failing_if_interrupted(mask):
+            result = self._results.take_reset(batch, self._pending_fixed)[0]
+        self._results.raise_env_errors(batch)
         return result
-
-    def _apply_reset(self, batch: StageBatch | None) -> tuple[tuple[Any, dict[str, Any]], np.ndarray]:
-        """Take the reset rows of ``batch`` (all or some of the call's); return ``(obs, info)`` and
-        the mask of the envs it reset."""
-        done = np.zeros(self.num_envs, dtype=bool)
-        info: dict[str, Any] = {}
-        if batch is not None:
-            rows = np.array([self._key_index[k] for k in batch.traj_keys], dtype=np.int64)
-            trees.put_rows(self._obs, batch.obs, rows)
-            self._ever_reset[rows] = True
-            self._autoreset[rows] = False
-            self._failed[rows] = False
-            self._add_env_info(info, batch, rows)
-            self._add_batch_info(info, batch, rows, with_state_ids=self._pending_fixed)
-            done[rows] = True
-        return (copy.deepcopy(self._obs), info), done
-
-    def _fail(self, error: ClientError, failed: np.ndarray, result: tuple[Any, ...] | None) -> None:
-        """Mark the envs of a call that got no answer and tell the caller through ``error``."""
-        self._failed |= failed
-        self._autoreset[failed] = False
-        envs = np.flatnonzero(failed).tolist()
-        error.failed_envs = envs
-        error.result = result
-        logger.warning("envs %s got no answer and must be reset: %s", envs, error)
 
     def _place_lost_envs(self, mask: np.ndarray) -> None:
         """Route the masked envs whose pod's envs went away with a routing change back to their
@@ -378,76 +327,16 @@ class HTTPVectorEnv(VectorEnv):
                 f"({', '.join(self._keys[i] for i in lost)}) lost their envs; close this HTTPVectorEnv "
                 "and make a new one"
             )
+        self._route_envs(live)
+
+    def _route_envs(self, live: Mapping[str, TrajRoute]) -> None:
+        """Route each env to its own ``(pod, env_index)``: ``live``'s route where it has one."""
         self.client.set_routes(
             {
                 key: live.get(key) or TrajRoute(routed.pod, routed.env_index, routed.task_id, routed.stage_id, 0)
                 for key, routed in zip(self._keys, self.routed_envs)
             }
         )
-
-    def _reset_mask(self, mask: Any) -> np.ndarray:
-        if mask is None:
-            return np.ones(self.num_envs, dtype=bool)
-        # gymnasium's own wording (SyncVectorEnv.reset), which its tests match.
-        if not isinstance(mask, np.ndarray):
-            raise TypeError(f"`options['reset_mask']` must be a numpy array, got {type(mask)}")
-        if mask.shape != (self.num_envs,):
-            raise ValueError(f"`options['reset_mask']` must have shape `({self.num_envs},)`, got {mask.shape}")
-        if mask.dtype != np.bool_:
-            raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
-        if not mask.any():
-            raise ValueError(
-                f"`options['reset_mask']` must contain a boolean array with at least one True value, got reset_mask={mask}"
-            )
-        return mask.copy()
-
-    def _seeds(self, seed: Any) -> list[int | None]:
-        """Each env's seed by gymnasium's rule: ``seed + i``, ``seed[i]`` or None."""
-        if seed is None:
-            return [None] * self.num_envs
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            return [int(seed) + i for i in range(self.num_envs)]
-        seeds = list(seed)
-        if len(seeds) != self.num_envs:
-            raise ValueError(
-                f"If seeds are passed as a list the length must match num_envs={self.num_envs} but got length={len(seeds)}."
-            )
-        for i, s in enumerate(seeds):
-            if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer))):
-                raise TypeError(f"seed for env {i} must be an int or None, got {s!r}")
-        return [None if s is None else int(s) for s in seeds]
-
-    def _state_ids_for_reset(
-        self, reseeded: dict[int, tuple[np.random.Generator, int]], state_ids: Any, mask: np.ndarray
-    ) -> np.ndarray:
-        if state_ids is not None:
-            ids = np.asarray(state_ids)
-            if ids.shape != (self.num_envs,) or ids.dtype.kind not in "iu":
-                raise ValueError(
-                    f"options['state_ids'] must be {self.num_envs} ints (one per env), "
-                    f"got {ids.dtype} {list(ids.shape)}"
-                )
-            ids = ids.astype(np.int64)
-        else:
-            ids = np.array(
-                [self._draw_state_id(i, reseeded.get(i)) if m else 0 for i, m in enumerate(mask)], dtype=np.int64
-            )
-        for i in np.flatnonzero(mask):
-            limit = self._num_states[self.task_ids[i]]
-            if not 0 <= ids[i] < limit:
-                raise ValueError(f"state id {ids[i]} for env {i} ({self.task_ids[i]}) is outside 0..{limit - 1}")
-        return ids
-
-    def _draw_state_id(self, i: int, reseeded: tuple[np.random.Generator, int] | None = None) -> int:
-        """Env ``i``'s next state id, from its own generator (or ``reseeded``, its new one)."""
-        limit = self._num_states[self.task_ids[i]]
-        return int((reseeded or self._env_rng(i))[0].integers(limit))
-
-    def _env_rng(self, i: int) -> tuple[np.random.Generator, int]:
-        # Made on first use, from fresh entropy, as a gymnasium env's np_random is.
-        if i not in self._env_rngs:
-            self._env_rngs[i] = seeding.np_random()
-        return self._env_rngs[i]
 
     @property
     def np_random_seed(self) -> tuple[int, ...]:
@@ -456,7 +345,7 @@ class HTTPVectorEnv(VectorEnv):
         from (``seed + i`` after ``reset(seed=seed)``; a seed of fresh entropy before any)."""
         if self._native:
             return self.get_attr("np_random_seed")
-        return tuple(int(self._env_rng(i)[1]) for i in range(self.num_envs))
+        return tuple(int(self._draws.rng(i)[1]) for i in range(self.num_envs))
 
     # -- step -----------------------------------------------------------------------------------
 
@@ -501,7 +390,7 @@ class HTTPVectorEnv(VectorEnv):
         """
         if not isinstance(self.single_action_space, Box):
             raise TypeError(f"chunk_step takes chunks of Box actions; this job's action space is {self.single_action_space}")
-        envs = self._subset(env_ids)
+        envs = _env_mask(env_ids, self.num_envs)
         actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         n = int(envs.sum())
         expected = (n, "K", *self.single_action_space.shape)
@@ -511,20 +400,7 @@ class HTTPVectorEnv(VectorEnv):
             full = np.zeros((self.num_envs, *actions.shape[1:]), dtype=actions.dtype)
             full[np.asarray(env_ids, dtype=np.int64).reshape(-1)] = actions
             actions = full
-        self._send_step(actions, chunk=actions.shape[1], envs=envs)
-
-    def _subset(self, env_ids: Any) -> np.ndarray:
-        """The mask of ``env_ids`` (None: every env).
-
-        Raises:
-            ValueError: ids that are not distinct ints in ``0..num_envs-1`` (names them).
-        """
-        mask = np.zeros(self.num_envs, dtype=bool)
-        if env_ids is None:
-            mask[:] = True
-            return mask
-        mask[env_indices(env_ids, self.num_envs)] = True
-        return mask
+        self._send_step(actions, envs)
 
     def step_async(self, actions: Any) -> None:
         """Send the step and return at once; :meth:`step_wait` takes the answer.
@@ -541,10 +417,11 @@ class HTTPVectorEnv(VectorEnv):
             ValueError: ``actions`` of the wrong shape or not finite (names the env).
             TypeError: a scalar in place of a batch of actions.
         """
-        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs), chunk=None)
+        self._send_step(wire_actions(self.single_action_space, self.action_space, actions, self.num_envs))
 
-    def _send_step(self, actions: np.ndarray, chunk: int | None, envs: np.ndarray | None = None) -> None:
-        """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env."""
+    def _send_step(self, actions: np.ndarray, envs: np.ndarray | None = None) -> None:
+        """Send a step of the envs ``envs`` marks (None: all); ``actions`` has a row per env (one
+        action or a chunk each: the call's answer says which)."""
         envs = np.ones(self.num_envs, dtype=bool) if envs is None else envs
         self._assert_open()
         if self._state != AsyncState.DEFAULT:
@@ -552,63 +429,9 @@ class HTTPVectorEnv(VectorEnv):
                 f"Calling `step_async` while waiting for a pending call to `{self._state.value}` to complete.",
                 str(self._state.value),
             )
-        if not self._ever_reset[envs].all():
-            raise ResetNeeded(f"envs {np.flatnonzero(envs & ~self._ever_reset).tolist()} were never reset; call reset() first")
-        if (self._failed & envs).any():
-            failed = np.flatnonzero(self._failed & envs).tolist()
-            raise ResetNeeded(
-                f"envs {failed} got no answer in their last call (their pod failed, or the call was "
-                "interrupted); reset them with "
-                "reset(options={'reset_mask': mask}) before stepping"
-            )
-        ended = self._autoreset & envs
-        if self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise" and ended.any():
-            raise ResetNeeded(
-                f"envs {np.flatnonzero(ended).tolist()} ended and autoreset is disabled; "
-                "reset them with reset(options={'reset_mask': mask}) before stepping, or make the env "
-                "with ended_envs='step' or 'freeze'"
-            )
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            resetting = ended.copy()
-        else:
-            resetting = np.zeros(self.num_envs, dtype=bool)
-        step = {self._keys[i]: actions[i] for i in np.flatnonzero(envs & ~resetting)}
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            self._pending = self.client.submit(self._step_then_reset(step))
-        else:
-            self._pending = self.client.call(step=step, **self._autoresets(np.flatnonzero(resetting)))
-        self._pending_chunk = chunk
+        ended = self._results.steppable(envs, refuse_ended=self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise")
+        self._pending = self._autoresets.step(actions, envs, ended)
         self._state = AsyncState.WAITING_STEP
-
-    async def _step_then_reset(self, step: dict[str, np.ndarray]) -> tuple[StageBatch, StageBatch]:
-        # A pod failing either call fails only its envs: the answered envs that ended are reset
-        # all the same, and one error names every env left without an answer.
-        errors: list[BaseException] = []
-
-        async def answered(pick: int, **work: Any) -> StageBatch:
-            """Item ``pick`` of the call's answer; after a lone failure, its answered rows."""
-            try:
-                return (await self.client.call(**work))[pick]
-            except _PARTIAL as error:
-                if error.answered is None:
-                    raise
-                errors.append(error)
-                return error.answered[pick]
-
-        stepped = await answered(1, step=step)
-        ended = [self._key_index[key] for key, end in zip(stepped.traj_keys, _ended(stepped)) if end]
-        again = await answered(0, **self._autoresets(ended))
-        if errors:
-            raise call_error(errors, (again, stepped))
-        return again, stepped
-
-    def _autoresets(self, envs: Any) -> dict[str, Any]:
-        """The ``client.call`` arguments that autoreset ``envs``: a gym task's own ``reset()`` (no
-        seed, as gymnasium's vector envs do), a robot task's reset to a state id drawn from the
-        env's own generator."""
-        if self._native:
-            return {"seeds": {self._keys[i]: None for i in envs}} if len(envs) else {}
-        return {"reset": {self._keys[i]: self._draw_state_id(i) for i in envs}}
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Wait for the step sent by :meth:`step_async`; return ``(obs, reward, terminated, truncated, info)``.
@@ -632,96 +455,13 @@ class HTTPVectorEnv(VectorEnv):
             if error.answered is None:
                 result, done = None, np.zeros(self.num_envs, dtype=bool)
             else:
-                result, done = self._apply_step(*error.answered)
-            self._fail(error, ~done, result)
+                result, done = self._results.take_step(*error.answered)
+            self._results.fail(error, ~done, result)
             raise
-        with self._failing_if_interrupted(np.ones(self.num_envs, dtype=bool)):
-            result = self._apply_step(reset_batch, step_batch)[0]
-        self._raise_env_errors(step_batch, reset_batch)
+        with self._results.failing_if_interrupted(np.ones(self.num_envs, dtype=bool)):
+            result = self._results.take_step(reset_batch, step_batch)[0]
+        self._results.raise_env_errors(step_batch, reset_batch)
         return result
-
-    @contextlib.contextmanager
-    def _failing_if_interrupted(self, envs: np.ndarray) -> Iterator[None]:
-        """Mark ``envs`` failed (to be reset before a step) if a Ctrl-C lands while an answer is
-        being taken in: what this env holds of them is then partly the old call's."""
-        try:
-            yield
-        except BaseException as exc:
-            if not isinstance(exc, Exception):
-                self._failed |= envs
-                self._autoreset[self._failed] = False
-            raise
-
-    def _apply_step(
-        self, reset_batch: StageBatch, step_batch: StageBatch
-    ) -> tuple[tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]], np.ndarray]:
-        """Take a step call's answer (all or some of its envs'); return what ``step_wait`` returns
-        and the mask of the envs the answer covers (a step, or a reset in its place)."""
-        # [num_envs], or [num_envs, K] for a chunk step (an all-reset chunk call steps nothing).
-        per_action = (self.num_envs,) if self._pending_chunk is None else (self.num_envs, self._pending_chunk)
-        reward = np.zeros(per_action, dtype=np.float64)
-        terminated = np.zeros(per_action, dtype=bool)
-        truncated = np.zeros(per_action, dtype=bool)
-        info: dict[str, Any] = {}
-
-        ended = _ended(step_batch)
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            # An env that ended is answered only once its reset is: its step row alone would
-            # leave it ended, which SAME_STEP never shows.
-            reset_keys = set(reset_batch.traj_keys)
-            take = np.array(
-                [j for j, k in enumerate(step_batch.traj_keys) if not ended[j] or k in reset_keys], dtype=np.int64
-            )
-        else:
-            take = np.arange(step_batch.n, dtype=np.int64)
-        stepped = np.array([self._key_index[step_batch.traj_keys[j]] for j in take], dtype=np.int64)
-        reset = np.array([self._key_index[k] for k in reset_batch.traj_keys], dtype=np.int64)
-        if len(take):  # a chunk call that only resets answers a step batch without a chunk axis
-            reward[stepped] = step_batch.reward[take]
-            terminated[stepped] = step_batch.terminated[take]
-            truncated[stepped] = step_batch.truncated[take]
-        trees.put_rows(self._obs, step_batch.obs, stepped, take)
-
-        if self.autoreset_mode == AutoresetMode.SAME_STEP and len(reset):
-            # The stepped obs of an env that ended goes to final_obs; its reset obs replaces it.
-            final_obs = np.full(self.num_envs, None, dtype=object)
-            rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
-            for i in reset:
-                final_obs[i] = env_observation(self.single_observation_space, trees.row(step_batch.obs, rows_of[self._keys[i]]))
-            final_info: dict[str, Any] = {}
-            ended_rows = np.array([rows_of[self._keys[i]] for i in reset], dtype=np.int64)
-            ended_mask = np.zeros(step_batch.n, dtype=bool)
-            ended_mask[ended_rows] = True
-            self._add_env_info(final_info, step_batch, None, ended_mask)
-            self._add_rows_info(final_info, step_batch, ended_rows, reset)
-            done = np.zeros(self.num_envs, dtype=bool)
-            done[reset] = True
-            info["final_obs"], info["_final_obs"] = final_obs, done
-            info["final_info"], info["_final_info"] = final_info, done.copy()
-
-        trees.put_rows(self._obs, reset_batch.obs, reset)
-        keep = np.zeros(step_batch.n, dtype=bool)
-        keep[take] = True
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            keep &= ~ended  # an env reset in the same step shows its reset's info; its step's is final_info
-        self._add_env_info(info, step_batch, None, keep)
-        self._add_env_info(info, reset_batch, None)
-        self._add_rows_info(info, step_batch, take, stepped)
-        self._add_batch_info(info, reset_batch, reset, with_state_ids=not self._native)
-        answered = np.zeros(self.num_envs, dtype=bool)
-        answered[stepped] = True
-        answered[reset] = True
-        if self._pending_chunk is not None:
-            num_steps = np.zeros(self.num_envs, dtype=np.int32)
-            num_steps[stepped] = step_batch.num_steps[take]
-            info["num_steps"], info["_num_steps"] = num_steps, answered.copy()
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            self._autoreset[answered] = False
-        else:
-            ended = terminated | truncated
-            self._autoreset[answered] = (ended if ended.ndim == 1 else ended.any(axis=1))[answered]
-        self._failed[answered] = False
-        return (copy.deepcopy(self._obs), reward, terminated, truncated, info), answered
 
     # -- shared ---------------------------------------------------------------------------------
 
@@ -736,60 +476,13 @@ class HTTPVectorEnv(VectorEnv):
             if not isinstance(exc, Exception) or isinstance(exc, concurrent.futures.CancelledError):
                 # Interrupted (Ctrl-C; the call is cancelled): whether its envs reset or stepped
                 # is unknown, so they must be reset before the next step.
-                self._failed |= self._pending_mask if self._state == AsyncState.WAITING_RESET else True
-                self._autoreset[self._failed] = False
+                results = self._results
+                results.failed |= self._pending_mask if self._state == AsyncState.WAITING_RESET else True
+                results.autoreset[results.failed] = False
             self._state, self._pending = AsyncState.DEFAULT, None
             raise
         self._state, self._pending = AsyncState.DEFAULT, None
         return answer
-
-    def _add_env_info(
-        self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray | None, keep: np.ndarray | None = None
-    ) -> None:
-        """Merge the envs' own info of ``batch`` (the rows ``keep`` marks, or all) into ``info``."""
-        if not batch.env_info:
-            return
-        env_of_row = np.array([self._key_index[k] for k in batch.traj_keys], dtype=np.int64)
-        for rows, batched in batch.env_info:
-            merge_rows(info, batched, env_of_row[rows], self.num_envs, None if keep is None else keep[rows])
-
-    def _raise_env_errors(self, *batches: StageBatch) -> None:
-        """Raise the first exception an env of the call raised (its envs must be reset)."""
-        errors = [error for batch in batches for error in batch.errors]
-        if not errors:
-            return
-        failed = sorted({self._key_index[key] for key, _, _ in errors})
-        self._failed[failed] = True
-        self._autoreset[failed] = False
-        key, type_name, message = errors[0]
-        logger.warning("envs %s raised (first: env %d %s: %s); they must be reset", failed, self._key_index[key], type_name, message)
-        raise builtin_exception(type_name, message)
-
-    def _add_batch_info(
-        self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray, with_state_ids: bool = False
-    ) -> None:
-        self._add_rows_info(info, batch, np.arange(batch.n), envs)
-        if with_state_ids and len(envs):
-            # Like the task envs' own reset info, which names the state id they reset to.
-            if "state_id" not in info:
-                info["state_id"] = np.zeros(self.num_envs, dtype=np.int64)
-                info["_state_id"] = np.zeros(self.num_envs, dtype=bool)
-            info["state_id"][envs] = batch.state_ids
-            info["_state_id"][envs] = True
-
-    def _add_rows_info(self, info: dict[str, Any], batch: StageBatch, rows: np.ndarray, envs: np.ndarray) -> None:
-        """Put a robot task's ``success`` and ``task_id`` of rows ``rows`` at envs ``envs``, masked."""
-        if len(envs) == 0 or self._native:
-            return
-        if "success" not in info:
-            info["success"], info["_success"] = np.zeros(self.num_envs, dtype=bool), np.zeros(self.num_envs, dtype=bool)
-            info["task_id"] = np.full(self.num_envs, None, dtype=object)
-            info["_task_id"] = np.zeros(self.num_envs, dtype=bool)
-        info["success"][envs] = _row_success(batch)[rows]
-        info["_success"][envs] = True
-        for i in envs:
-            info["task_id"][i] = self.task_ids[i]
-        info["_task_id"][envs] = True
 
     def _assert_open(self) -> None:
         if self.closed:

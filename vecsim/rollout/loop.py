@@ -53,6 +53,7 @@ from vecsim.client import (
     RoutingChangedError,
     StageBatch,
     StageClient,
+    StepActions,
     TrajRoute,
 )
 from vecsim.client.routing import check_request
@@ -201,7 +202,7 @@ class EnvLoop:
         try:
             # Reset every lane at once; then serve whichever stage is next in line, lane by lane.
             for lane in (lane for lanes in stage_pods.values() for lane in lanes):
-                self._send(lane, [key for key, route in routes.items() if (route.stage_id, route.pod) == lane], {},
+                self._send(lane, [key for key, route in routes.items() if (route.stage_id, route.pod) == lane], None,
                            inflight, buffers, lost, recorded)
             turn = -1  # the stage served last
             while inflight.calls:
@@ -227,18 +228,16 @@ class EnvLoop:
                 stepped = list(dict.fromkeys(pod for pod, _, _ in live))
                 for pod in resets:
                     if pod not in stepped:  # nothing to step there: reset at once, before the policy
-                        self._send(pod, resets[pod], {}, inflight, buffers, lost, recorded)
+                        self._send(pod, resets[pod], None, inflight, buffers, lost, recorded)
                 if not live:
                     continue
                 with clock.in_policy(stage):
                     actions = self._act(live, instructions)  # the policy, on the stage's landed pods
                 for pod in stepped:  # each pod its next actions as soon as they exist
                     rows = [j for j, (on, _, _) in enumerate(live) if on == pod]
-                    row_keys = [live[j][1].traj_keys[live[j][2]] for j in rows]
                     # One call, one chunk length: the pod's shortest remaining horizon cuts them all.
-                    left = min(buffers[key].left() for key in row_keys)
-                    step = {key: _within(actions[j], left) for j, key in zip(rows, row_keys)}
-                    self._send(pod, resets.get(pod, []), step, inflight, buffers, lost, recorded)
+                    left = min(buffers[actions.traj_keys[j]].left() for j in rows)
+                    self._send(pod, resets.get(pod, []), actions.rows(rows, left), inflight, buffers, lost, recorded)
         except BaseException:
             inflight.cancel_all()  # Ctrl-C or a refused call: the client takes new calls at once
             raise
@@ -317,7 +316,7 @@ class EnvLoop:
         self,
         pod: Lane,
         reset: list[str],
-        step: dict[str, np.ndarray],
+        step: StepActions | None,
         inflight: _InFlight,
         buffers: Mapping[str, _Buffer],
         lost: dict[str, LostTrajectory],
@@ -329,10 +328,9 @@ class EnvLoop:
         Trajectories whose envs went away when another call re-read the routing are refused
         before anything is sent: they are lost, and the rest is sent without them.
         """
-        while reset or step:
+        while reset or (step is not None and step.traj_keys):
             try:
-                chunked = bool(step) and next(iter(step.values())).ndim == 2
-                record = [key for key in recorded if key in step] if chunked else []
+                record = [key for key in recorded if key in step.traj_keys] if step is not None and step.chunk else []
                 call = self.client.pod_call(pod[1], reset=reset, step=step, record=record)
             except RoutingChangedError as exc:
                 named = set(exc.traj_keys)
@@ -341,11 +339,13 @@ class EnvLoop:
                     raise  # not about these trajectories: sending again would meet it again
                 lost.update(self._lose(gone, buffers, exc))
                 reset = [key for key in reset if key not in named]
-                step = {key: action for key, action in step.items() if key not in named}
+                if step is not None:
+                    step = step.rows([j for j, key in enumerate(step.traj_keys) if key not in named])
                 continue
-            for key, action in step.items():
-                buffers[key].act(action)
-            inflight.add(pod, call, [*reset, *step])
+            stepped = [] if step is None else step.traj_keys
+            for j, key in enumerate(stepped):
+                buffers[key].act(step.array[j] if step.chunk is not None else step.array[j : j + 1])  # type: ignore[union-attr]
+            inflight.add(pod, call, [*reset, *stepped])
             return
 
     @staticmethod
@@ -366,9 +366,9 @@ class EnvLoop:
             for key in keys
         }
 
-    def _act(self, rows: list[tuple[Lane, StageBatch, int]], instructions: Mapping[str, str]) -> list[np.ndarray]:
+    def _act(self, rows: list[tuple[Lane, StageBatch, int]], instructions: Mapping[str, str]) -> StepActions:
         """Run the policy on ``rows`` (``(lane, batch, row)``), at most ``max_batch`` a call;
-        return each row's action or chunk as a float32 array."""
+        return the rows' actions or chunks, as the client checked them (float32)."""
         size = self.max_batch or len(rows)
         out: list[np.ndarray] = []
         for begin in range(0, len(rows), size):
@@ -377,8 +377,9 @@ class EnvLoop:
             task_ids = [batch.task_ids[row] for _, batch, row in part]
             with torch.no_grad():
                 actions = self.policy(obs, [instructions.get(t, "") for t in task_ids], task_ids)
-            out.extend(actions.detach().to("cpu", torch.float32).numpy())
-        return out
+            out.append(actions.detach().to("cpu", torch.float32).numpy())
+        keys = [batch.traj_keys[row] for _, batch, row in rows]
+        return self.client.step_actions(keys, out[0] if len(out) == 1 else np.concatenate(out))
 
     def _video_camera(self) -> str | None:
         """The camera to record, checked against the observation space before anything runs."""
@@ -477,11 +478,6 @@ def _first_wave(table: RoutingTable, requests: Sequence[tuple[str, int]], stages
     return wave
 
 
-def _within(action: np.ndarray, left: int) -> np.ndarray:
-    """A chunk (``[K, A]``) cut to at most ``left`` actions; one action (``[A]``) as it is."""
-    return action[:left] if action.ndim == 2 else action
-
-
 def _take_row(obs: Any, row: int, keep: tuple[str, ...] | None) -> Any:
     """Row ``row`` of a batched observation (copies), its top-level keys cut to ``keep`` if given."""
     if isinstance(obs, dict) and keep is not None:
@@ -520,9 +516,10 @@ class _Buffer:
         else:
             self.success = self.success or bool(np.reshape(batch.success[row], -1).any())
 
-    def act(self, action: np.ndarray) -> None:
-        """Note the action (``[A]``) or chunk (``[K, A]``) sent; :meth:`add` keeps what was applied."""
-        self.sent = action[None] if action.ndim == 1 else action
+    def act(self, chunk: np.ndarray) -> None:
+        """Note the actions sent (``[K, *action shape]``; one action is a chunk of one);
+        :meth:`add` keeps what was applied."""
+        self.sent = chunk
 
     def left(self) -> int:
         """Actions left before the horizon."""

@@ -214,7 +214,7 @@ async def _once(state: PodState, request: Request, req: ResetRequest | StepReque
 async def _step(state: PodState, request: Request, req: StepRequest) -> Response:
     env = state.serving_env(req.generation)
     as_json = wants_json(request)
-    is_chunk = req.actions.ndim == len(env.single_action_space.shape or ()) + 2
+    is_chunk = wire.chunk_length(req.actions.shape, env.single_action_space.shape or ()) is not None
     if req.step_past_end and not is_chunk:
         raise InvalidRequestError(
             f"step_past_end: pod {state.settings.name} steps past an env's end in chunks only; "
