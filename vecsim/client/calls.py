@@ -26,6 +26,7 @@ from vecsim.client.jobinfo import JobInfo
 from vecsim.client.pods import EventLoopThread
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
+from vecsim.spaces import in_kind_of
 
 __all__ = ["Ended", "PendingCall", "StageBatch", "check_actions", "completed", "empty_batch", "run_call", "take_rows"]
 
@@ -287,7 +288,8 @@ def _fill_answer(
 
 def check_actions(space: Space | None, step: Mapping[str, Any]) -> np.ndarray:
     """Return the call's actions as ``[n, *action shape]``, or its chunks (Box action spaces
-    only) as ``[n, K, *action shape]``, in the action space's dtype (``space``, None: float32 of any shape).
+    only) as ``[n, K, *action shape]``, in the dtype sent where it is of the action space's kind
+    (:func:`vecsim.spaces.in_kind_of`; ``space`` None: float32 of any shape).
 
     Raises:
         ValueError: an action not numeric, of the wrong shape or not finite, or chunks of
@@ -299,7 +301,7 @@ def check_actions(space: Space | None, step: Mapping[str, Any]) -> np.ndarray:
     chunk: int | None = None  # K of the call's chunks; None: one action per trajectory
     for index, (key, action) in enumerate(step.items()):
         try:
-            row = np.asarray(action, dtype=dtype)
+            row = in_kind_of(np.asarray(action), dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
         if shape is not None and row.shape != shape and row.shape[1:] != shape:

@@ -28,7 +28,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim import trees
-from vecsim.client.gym_values import env_observation, wire_actions
+from vecsim.client.gym_values import env_observation, rendered, served_render_mode, wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception, call_error
 from vecsim.client.routing import TrajRoute, routed_envs
@@ -219,7 +219,6 @@ class HTTPVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
-        self.render_mode = None
         self.task_ids = [routed.task_id for routed in self.routed_envs]
         # Gym tasks without cameras reset as the envs' own reset (seeds), the others to fixed
         # initial states, as the pods say. A gym task is not looked up here: its module (a
@@ -249,6 +248,7 @@ class HTTPVectorEnv(VectorEnv):
         self._pending_mask: np.ndarray | None = None
         self._pending_chunk: int | None = None  # K of the chunk step in flight; None: one action
         self._pending_fixed = True  # the reset in flight puts envs in fixed initial states
+        self.render_mode = served_render_mode(self) if self._native else None
 
     # -- reset ----------------------------------------------------------------------------------
 
@@ -851,6 +851,13 @@ class HTTPVectorEnv(VectorEnv):
             key, type_name, message = errors[0]
             raise builtin_exception(type_name, message)
         return results
+
+    def render(self) -> tuple[Any, ...] | None:
+        """Each gym env's own ``render()`` (gymnasium's ``AsyncVectorEnv.render``), an
+        ``rgb_array`` frame as uint8. Raises NotImplementedError for robot tasks (cameras instead)."""
+        if not self._native:
+            return super().render()
+        return rendered(self.render_mode, self.call("render"))
 
     def close_extras(self, **kwargs: Any) -> None:
         """Close the client: pod connections and its event loop thread (a call still pending is

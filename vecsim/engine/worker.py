@@ -341,6 +341,8 @@ class Worker:
         of them, as LIBERO's and the trainers' own envs are stepped on); return the frames
         recorded after each applied action but the last, and the seconds spent drawing them."""
         env = self._envs[local]
+        if not getattr(env, "native", False):  # a gym env takes actions as sent; a robot task in its dtype
+            chunk = chunk.astype(env.action_space.dtype, copy=False)
         rows = self._out["flags"][local]
         rows[:] = 0.0
         frames: list[dict[str, np.ndarray]] = []
