@@ -102,7 +102,8 @@ class SleepyEnv(gymnasium.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        return np.full((2, 3, 3), self.count, dtype=np.uint8)
+        # CartPole's frame size: as JSON, two of them outgrow the answer cap its observations set.
+        return np.full((400, 600, 3), self.count, dtype=np.uint8)
 
 
 def sleepy(render_mode: str | None = "rgb_array") -> gymnasium.Env:
