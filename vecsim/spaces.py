@@ -34,7 +34,7 @@ from gymnasium import spaces
 from vecsim.wire import WireError, from_jsonable, to_jsonable
 
 __all__ = [
-    "check_action_space", "check_travels", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
+    "check_action_space", "check_travels", "in_kind_of", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
     "without_rng",
 ]
 
@@ -323,3 +323,17 @@ def tuples_as_dicts(value: Any) -> Any:
     if isinstance(value, dict):
         return {key: tuples_as_dicts(item) for key, item in value.items()}
     return value
+
+
+# Kinds of numpy dtypes that hold the same kind of number: an action of one of them keeps its dtype.
+_KINDS = {"b": "b", "i": "iu", "u": "iu", "f": "f"}
+
+
+def in_kind_of(values: np.ndarray, dtype: Any) -> np.ndarray:
+    """``values`` as they are if their dtype holds the kind of number ``dtype`` does (floats for a
+    float space, integers for an integer one, bools for bools; 8 bytes at most, as the wire's), else
+    cast to ``dtype``: actions
+    reach the env in the dtype the user sent them in, as gymnasium's vector envs hand them on."""
+    if values.dtype.kind in _KINDS.get(np.dtype(dtype).kind, "") and values.dtype.itemsize <= 8:
+        return values
+    return values.astype(dtype)

@@ -52,6 +52,7 @@ from gymnasium.vector import AutoresetMode  # noqa: E402
 from support.service_procs import PodSpec, standalone_pods  # noqa: E402
 
 from vecsim.client import HTTPVectorEnv  # noqa: E402
+from vecsim.engine.checks import assignment_spaces  # noqa: E402
 
 _AsyncVectorEnv = gymnasium.vector.AsyncVectorEnv
 signal.signal(signal.SIGTERM, signal.default_int_handler)  # run.sh's timeout: pytest stops its pods
@@ -90,18 +91,27 @@ def _served_async(
     spec = PodSpec(f"gymtests-{token}", 0, tasks, max_episode_steps=None, envs_per_worker=len(tasks))
     stack = contextlib.ExitStack()
     try:
+        # AsyncVectorEnv checks its envs' spaces as it is made. A pod runs this same check on its
+        # assignment as it starts, but its exception would reach the test only as a line of the
+        # pod's log: run here too, it reaches the test as it reaches a caller of the check.
+        assignment_spaces(spec.assignment())
         pod = stack.enter_context(standalone_pods([spec]))[0]
     except Exception as exc:
         stack.close()
         cause = _pod_refusal(exc)
         if cause is not None:
             _refused[test] = cause
-        missing = re.search(r"DependencyNotInstalled: [^\n]*", str(exc))
-        if missing:
-            _unbuildable[test] = missing.group(0)[:200]
+        _note_missing_package(test, str(exc))
         raise
     _pods.append(stack)
     return HTTPVectorEnv(pod_urls=[pod.url], autoreset_mode=autoreset_mode, timeout_s=30)
+
+
+def _note_missing_package(test: str, text: str) -> None:
+    """Count ``test`` as cannot run here if ``text`` (its error) says a package is missing."""
+    missing = re.search(r"DependencyNotInstalled: [^\n]*", text)
+    if missing:
+        _unbuildable[test] = missing.group(0)[:200]
 
 
 # A refusal naming a space (or dtype) the wire cannot carry: the only cause counted not applicable.
@@ -136,6 +146,8 @@ def pytest_runtest_logreport(report):
             message = (lines[0] if lines else str(report.longrepr).strip().splitlines()[-1])[:200]
         if report.nodeid not in _outcomes or report.outcome != "passed":
             _outcomes[report.nodeid] = (report.outcome, message)
+        if report.failed and report.longrepr:  # an env of the test needing a package not installed
+            _note_missing_package(report.nodeid, str(report.longrepr))
 
 
 def _group(entries: dict[str, str]) -> dict[str, list[str]]:

@@ -3,7 +3,8 @@
 gymnasium's own ``SyncVectorEnv`` over the same factories is the judge: real pods over loopback
 serve CartPole by id, ``support.gym_served_envs:seeded_cartpole`` (a factory that seeds its
 spaces and resets, as gymnasium's tests write them) and ``support.gym_served_envs:probe`` (bool
-Box actions; ends after ``max_count`` steps once that attribute is set). A robot job (tiny/lift)
+Box actions; ends after ``max_count`` steps once that attribute is set) and
+``support.gym_served_envs:sleepy`` (float actions handed to ``time.sleep``; an rgb_array render). A robot job (tiny/lift)
 checks the attributes gymnasium users read there: ``np_random_seed``, ``task``, ``spec``.
 """
 
@@ -18,16 +19,18 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import SyncVectorEnv
 from support import gym_served_envs
-from support.service_procs import PodSpec, standalone_pods
+from support.service_procs import PodSpec, assignment, standalone_pods
 
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import CameraConfig
+from vecsim.engine import SpacesDifferError, assignment_spaces
 from vecsim.engine.tasks import make_env
 
 CARTPOLE = "gym/CartPole-v1"
 SEEDED = "gym/support.gym_served_envs:seeded_cartpole"
 PROBE = "gym/support.gym_served_envs:probe"
 COMPOSED = "gym/support.gym_served_envs:composed"
+SLEEPY = "gym/support.gym_served_envs:sleepy"
 NUM_ENVS = 4
 
 
@@ -41,6 +44,7 @@ def pods(tmp_path_factory):
         PodSpec("probe", 0, [(PROBE, 2)], max_episode_steps=50),
         PodSpec("robot", 0, [("tiny/lift", 2)], max_episode_steps=20),
         PodSpec("composed", 0, [(COMPOSED, 2)], max_episode_steps=None),
+        PodSpec("sleepy", 0, [(SLEEPY, 2)], max_episode_steps=None),
     ]
     with standalone_pods(specs, tmp_path_factory.mktemp("pods")) as running:
         yield {spec.name: pod.url for spec, pod in zip(specs, running)}
@@ -168,3 +172,45 @@ def test_gymnasiums_check_env_passes_on_the_env_a_pod_serves(gym_id):
         check_env(env, skip_render_check=True)
     finally:
         env.close()
+
+
+def test_float_actions_reach_the_env_in_the_dtype_sent(vector):
+    remote = vector("sleepy")
+    sync = SyncVectorEnv([gym_served_envs.sleepy] * 2)
+    remote.reset(seed=0)
+    sync.reset(seed=0)
+    actions = np.array([0.001, 0.002])  # float64, in a float32 space: time.sleep takes them
+    got, want = remote.step(actions), sync.step(actions)
+    assert got[0].dtype == want[0].dtype and np.array_equal(got[0], want[0])
+    assert list(got[4]["action_type"]) == list(want[4]["action_type"]) == ["float64"] * 2
+    for env in (remote, sync):  # float32 ones reach the env as float32: time.sleep refuses them
+        with pytest.raises(TypeError, match="numpy.float32"):
+            env.step(actions.astype(np.float32))
+    sync.close()
+
+
+def test_render_gives_each_envs_own_frame_as_gymnasium(vector):
+    remote, plain = vector("sleepy"), vector("fresh-a")
+    sync = SyncVectorEnv([gym_served_envs.sleepy] * 2)
+    assert remote.render_mode == sync.render_mode == "rgb_array"
+    assert plain.render_mode is None
+    remote.reset(seed=0)
+    sync.reset(seed=0)
+    for env in (remote, sync):
+        env.step(np.zeros(2))
+    got, want = remote.render(), sync.render()
+    assert isinstance(got, tuple) and len(got) == 2
+    for frame, expected in zip(got, want):
+        assert frame.dtype == expected.dtype == np.uint8 and np.array_equal(frame, expected)
+    sync.close()
+
+
+def test_envs_whose_spaces_differ_are_refused_as_gymnasium_refuses_them():
+    # CartPole (Box observations) beside FrozenLake (Discrete ones), as gymnasium's own test.
+    factories = [functools.partial(gymnasium.make, "CartPole-v1"), functools.partial(gymnasium.make, "FrozenLake-v1")]
+    with pytest.raises(RuntimeError):
+        gymnasium.vector.AsyncVectorEnv(factories)
+    tasks = [("gym/CartPole-v1", 1), ("gym/FrozenLake-v1", 1)]
+    with pytest.raises(RuntimeError, match="'gym/FrozenLake-v1' and 'gym/CartPole-v1' have different observation spaces") as refused:
+        assignment_spaces(assignment("mixed", tasks, camera=CameraConfig(names=())))
+    assert isinstance(refused.value, SpacesDifferError)

@@ -59,6 +59,15 @@ def test_a_step_order_of_discrete_actions_keeps_the_spaces_integer_dtype() -> No
     assert decoded.record is None
 
 
+@pytest.mark.parametrize("dtype", ["float64", "float16", ">f8", "int8", "uint64", "bool"])
+def test_a_step_order_carries_the_dtype_its_actions_were_sent_in(dtype: str) -> None:
+    # A float32 Box space: float64 actions (as a user sends them) reach the worker as float64.
+    actions = (np.arange(12).reshape(2, 1, 2, 3) % 2).astype(dtype)
+    decoded = decode_run(bytearray(encode_run(Order(np.array([0, 1]), actions=actions))), BOX)
+    assert decoded.actions.dtype == np.dtype(dtype).newbyteorder("=")
+    np.testing.assert_array_equal(decoded.actions, actions)
+
+
 def test_reset_orders_round_trip_state_ids_and_seeds_with_none_as_minus_one() -> None:
     states = decode_run(bytearray(encode_run(Order(np.array([0, 2]), state_ids=np.array([7, 0])))), BOX)
     assert (states.local_indices.tolist(), states.state_ids.tolist(), states.seeds, states.actions) == ([0, 2], [7, 0], None, None)

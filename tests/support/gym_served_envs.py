@@ -3,6 +3,8 @@ as a user's package would be (``gym/support.gym_served_envs:<callable>``)."""
 
 from __future__ import annotations
 
+import time
+
 import gymnasium
 import numpy as np
 from gymnasium import spaces
@@ -72,3 +74,38 @@ class ComposedActionEnv(gymnasium.Env):
 def composed() -> gymnasium.Env:
     """A factory of the Dict-action env."""
     return ComposedActionEnv()
+
+
+class SleepyEnv(gymnasium.Env):
+    """gymnasium's own tests' ``SlowEnv`` in small: a float32 Box action of shape () that the
+    step hands to ``time.sleep`` (which takes a Python float or a float64, not a float32), and
+    answers with its type; an ``rgb_array`` render of the steps taken so far."""
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.action_space = spaces.Box(0.0, 0.01, (), np.float32)
+        self.observation_space = spaces.Box(0.0, 1.0, (), np.float64)
+        self.render_mode = render_mode
+        self.count = 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.count = 0
+        return np.zeros(()), {}
+
+    def step(self, action):
+        time.sleep(action)
+        self.count += 1
+        return np.asarray(action, dtype=np.float64), 0.0, False, False, {"action_type": type(action).__name__}
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        # CartPole's frame size: as JSON, two of them outgrow the answer cap its observations set.
+        return np.full((400, 600, 3), self.count, dtype=np.uint8)
+
+
+def sleepy(render_mode: str | None = "rgb_array") -> gymnasium.Env:
+    """A factory of the sleepy env, rendering rgb arrays unless told otherwise."""
+    return SleepyEnv(render_mode)

@@ -28,6 +28,7 @@ from vecsim.client.errors import PodRequestError, PodUnavailableError, call_erro
 from vecsim.client.pods import EventLoopThread, PodSet
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
+from vecsim.spaces import in_kind_of
 
 __all__ = [
     "Ended",
@@ -331,8 +332,9 @@ def _fill_answer(
 def step_actions(space: Space | None, traj_keys: Sequence[str], actions: Any) -> StepActions:
     """Say what a call's actions are, once for every layer: ``actions`` (row ``j`` for
     ``traj_keys[j]``) as ``[n, *action shape]`` (one action each) or ``[n, K, *action shape]``
-    (a chunk each; Box action spaces only, :func:`vecsim.wire.chunk_length`'s rule), in the
-    action space's dtype (``space``, None: float32 of any shape, one action each).
+    (a chunk each; Box action spaces only, :func:`vecsim.wire.chunk_length`'s rule), in the dtype
+    sent where it is of the action space's kind (:func:`vecsim.spaces.in_kind_of`; ``space`` None:
+    float32 of any shape, one action each).
 
     Raises:
         ValueError: actions not numeric, of another shape or count than ``traj_keys``, a chunk
@@ -342,7 +344,7 @@ def step_actions(space: Space | None, traj_keys: Sequence[str], actions: Any) ->
     shape = tuple(space.shape) if space is not None and space.shape is not None else None
     dtype = space.dtype if space is not None and space.dtype is not None else np.float32
     try:
-        array = np.asarray(actions, dtype=dtype)
+        array = in_kind_of(np.asarray(actions), dtype)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"actions are not numeric: {exc}") from None
     chunk = None if shape is None else wire.chunk_length(array.shape, shape)
@@ -380,7 +382,7 @@ def check_actions(space: Space | None, step: Mapping[str, Any]) -> StepActions:
     checked: tuple[int, ...] | None = None  # the shape of the rows checked so far
     for index, (key, action) in enumerate(step.items()):
         try:
-            row = np.asarray(action, dtype=dtype)
+            row = in_kind_of(np.asarray(action), dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"traj_key {key!r}: action is not numeric: {exc}") from None
         rows.append(row)

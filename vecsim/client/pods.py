@@ -286,7 +286,10 @@ class PodConnection:
             text = json.dumps(body, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError) as exc:  # the caller's values, before anything is sent
             raise ValueError(f"/v1/{op}: the values are not JSON ({exc}); attributes take JSON values only") from None
-        status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, text)
+        # Attribute results (a render() frame, say) are not sized by the observation space the cap
+        # follows from: they may take the default cap.
+        extra = max(0, DEFAULT_MAX_ANSWER_BYTES - self.max_answer_bytes)
+        status, content = await self._request("POST", f"/v1/{op}", held, self._json_headers, text, extra)
         if status != 200:
             raise refusal(self.name, status, content, held)
         try:

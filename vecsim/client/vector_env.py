@@ -24,7 +24,7 @@ from gymnasium import logger as gym_logger
 from gymnasium.spaces import Box
 from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
-from vecsim.client.gym_values import wire_actions
+from vecsim.client.gym_values import rendered, served_render_mode, wire_actions
 from vecsim.client.conventions import env_indices
 from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception
 from vecsim.client.routing import TrajRoute, routed_envs
@@ -200,7 +200,6 @@ class HTTPVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
-        self.render_mode = None
         self.task_ids = [routed.task_id for routed in self.routed_envs]
         # Gym tasks without cameras reset as the envs' own reset (seeds), the others to fixed
         # initial states, as the pods say. A gym task is not looked up here: its module (a
@@ -223,6 +222,7 @@ class HTTPVectorEnv(VectorEnv):
         self._pending: PendingCall[Any] | None = None
         self._pending_mask: np.ndarray | None = None
         self._pending_fixed = True  # the reset in flight puts envs in fixed initial states
+        self.render_mode = served_render_mode(self) if self._native else None
 
     # -- reset ----------------------------------------------------------------------------------
 
@@ -544,6 +544,13 @@ class HTTPVectorEnv(VectorEnv):
             key, type_name, message = errors[0]
             raise builtin_exception(type_name, message)
         return results
+
+    def render(self) -> tuple[Any, ...] | None:
+        """Each gym env's own ``render()`` (gymnasium's ``AsyncVectorEnv.render``), an
+        ``rgb_array`` frame as uint8. Raises NotImplementedError for robot tasks (cameras instead)."""
+        if not self._native:
+            return super().render()
+        return rendered(self.render_mode, self.call("render"))
 
     def close_extras(self, **kwargs: Any) -> None:
         """Close the client: pod connections and its event loop thread (a call still pending is

@@ -35,6 +35,7 @@ _WHERE = {
     "InvalidRequestError": "vecsim.engine.errors",
     "SimBuildError": "vecsim.engine.errors",
     "SimCrashedError": "vecsim.engine.errors",
+    "SpacesDifferError": "vecsim.engine.errors",
     "UnknownEnvError": "vecsim.engine.errors",
     "TaskGroupedVectorEnv": "vecsim.engine.vector_env",
     "assignment_spaces": "vecsim.engine.checks",

@@ -18,8 +18,9 @@ import gymnasium
 import numpy as np
 
 from vecsim.config import Assignment
-from vecsim.engine.errors import InvalidRequestError, UnknownEnvError
+from vecsim.engine.errors import InvalidRequestError, SpacesDifferError, UnknownEnvError
 from vecsim.engine.tasks import task_spaces
+from vecsim.spaces import in_kind_of
 
 MAX_SEED = 2**63 - 1
 # What get_attr / call / set_attr may name: public attributes; close stays the pod's to call.
@@ -43,7 +44,8 @@ def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasiu
     Raises:
         UnknownTaskError: a task id no provider knows.
         TaskSetupError: a LIBERO task, and LIBERO is not installed or lacks its assets.
-        InvalidRequestError: the tasks do not share one observation space and one action space.
+        SpacesDifferError: the tasks do not share one observation space and one action space
+            (an InvalidRequestError and a RuntimeError, as gymnasium's vector envs raise).
         ValueError: a gym task with a space vecsim cannot serve (named).
     """
     first: tuple[str, gymnasium.Space, gymnasium.Space] | None = None
@@ -52,11 +54,13 @@ def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasiu
         observation_space, action_space = task_spaces(block.task_id, assignment.camera, kwargs)
         if first is None:
             first = (block.task_id, observation_space, action_space)
-        elif (observation_space, action_space) != first[1:]:
-            raise InvalidRequestError(
-                f"tasks: {block.task_id!r} and {first[0]!r} have different observation or action "
-                "spaces; one pod's tasks must share them"
-            )
+        else:
+            for what, space, reference in (("observation", observation_space, first[1]), ("action", action_space, first[2])):
+                if space != reference:
+                    raise SpacesDifferError(
+                        f"tasks: {block.task_id!r} and {first[0]!r} have different {what} spaces ({space} and "
+                        f"{reference}); one pod's tasks must share one observation space and one action space"
+                    )
     return _empty_spaces() if first is None else first[1:]
 
 
@@ -199,11 +203,12 @@ def _finite(chunk: np.ndarray, ids: np.ndarray, space: gymnasium.Space) -> np.nd
         raise InvalidRequestError(
             f"actions: {where} for env {int(ids[row])} is not finite (NaN, inf or too large)"
         )
-    return cast
+    return in_kind_of(chunk, space.dtype)
 
 
 def _in_range(chunk: np.ndarray, ids: np.ndarray, space: gymnasium.Space) -> np.ndarray:
-    """``chunk`` in the integer action space's dtype, each action a member of the space."""
+    """``chunk``, each action a member of the integer (or bool) action space (its dtype kept
+    where it is of the space's kind, :func:`~vecsim.spaces.in_kind_of`)."""
     flat = chunk.reshape(*chunk.shape[:2], -1)
     if chunk.dtype.kind == "f" and not (np.isfinite(flat) & (flat == np.round(flat))).all():
         bad = int(np.nonzero(~(np.isfinite(flat) & (flat == np.round(flat))).all(axis=2))[0][0])
@@ -222,7 +227,7 @@ def _in_range(chunk: np.ndarray, ids: np.ndarray, space: gymnasium.Space) -> np.
         raise InvalidRequestError(
             f"actions: the action {flat[row, 0].tolist()} for env {int(ids[row])} is not in the action space {space}"
         )
-    return chunk.astype(space.dtype)
+    return in_kind_of(chunk, space.dtype)
 
 
 def _int_array(name: str, values: Any) -> np.ndarray:

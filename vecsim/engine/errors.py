@@ -21,6 +21,11 @@ class InvalidRequestError(ValueError):
     """A request that cannot be served as given: shape, dtype, value or length (HTTP 422)."""
 
 
+class SpacesDifferError(InvalidRequestError, RuntimeError):
+    """An assignment whose tasks' observation or action spaces differ (HTTP 422). A RuntimeError
+    too: what gymnasium's vector envs raise for envs whose spaces differ."""
+
+
 class SimCrashedError(RuntimeError):
     """A worker process died, hung or failed; the envs must be rebuilt (pod not ready)."""
 

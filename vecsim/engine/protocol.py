@@ -7,7 +7,7 @@ in state 0), ``run`` (one :class:`Order`: reset these envs (by local index) to t
 reset them by the env's own ``reset(seed=..., options=...)`` (seed -1: None), or step them
 through a chunk of K actions each, recording the frames of some), ``env_attr`` (get, call or set
 attributes of named envs). A ``run`` travels as a small binary message (local indices, then state
-ids, seeds or the actions in the action space's dtype: :func:`encode_run`); the other orders (and
+ids, seeds or the actions in the dtype they were sent in: :func:`encode_run`); the other orders (and
 a seeded reset with options) as a one-byte message saying that an object follows, then the
 object; every reply is one object (a :class:`Reply` for a ``run``). Objects are multiprocessing's
 own pickled messages (``Connection.send``, ``recv``) between the pod and its own processes:
@@ -68,12 +68,19 @@ WORKER_ORDERS = frozenset({"build", "run", "env_attr"})
 # the pod's own processes, as with any multiprocessing pipe. One exchange (an order, then its
 # reply) is in flight on a pipe at a time.
 PICKLED = ord("p")
-# A run order in binary: _RUN_HEAD (tag, kind, whether frames are recorded, m envs, chunk K),
-# their local indices int64[m], then for _STEP the actions [m, K, *action shape] in the action space's
-# dtype and, when recorded, bool[m]; for _STATE the state ids int64[m]; for _SEED the seeds
+# A run order in binary: _RUN_HEAD (tag, kind, whether frames are recorded, the actions' dtype
+# as its index in _ACTION_DTYPES, m envs, chunk K), their local indices int64[m], then for _STEP
+# the actions [m, K, *action shape] in that dtype (the one the user sent them in) and, when
+# recorded, bool[m]; for _STATE the state ids int64[m]; for _SEED the seeds
 # int64[m] (-1: None). Every field at an offset its dtype's size divides.
 RUN = ord("r")
-_RUN_HEAD = struct.Struct("<BBBxIQ")
+_RUN_HEAD = struct.Struct("<BBBBIQ")
+# The dtypes actions travel in (those of the wire, vecsim.wire).
+_ACTION_DTYPES = tuple(
+    np.dtype(name)
+    for name in ("bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64", "float16", "float32", "float64")
+)
+_DTYPE_CODES = {dtype: code for code, dtype in enumerate(_ACTION_DTYPES)}
 _STEP, _STATE, _SEED = 0, 1, 2
 
 
@@ -100,8 +107,10 @@ def encode_run(order: Order) -> bytes | None:
         k = order.actions.shape[1]
         # The flags byte: bit 0 a record mask follows, bit 1 step past each env's end.
         flags = int(order.record is not None) | (int(order.past_end) << 1)
-        head = _RUN_HEAD.pack(RUN, _STEP, flags, m, k)
-        parts = [head, local, np.ascontiguousarray(order.actions).tobytes()]
+        dtype = order.actions.dtype.newbyteorder("=")
+        actions = np.ascontiguousarray(order.actions, dtype=dtype)
+        head = _RUN_HEAD.pack(RUN, _STEP, flags, _DTYPE_CODES[dtype], m, k)
+        parts = [head, local, actions.tobytes()]
         if order.record is not None:
             parts.append(np.ascontiguousarray(order.record, dtype=bool).tobytes())
         return b"".join(parts)
@@ -109,23 +118,23 @@ def encode_run(order: Order) -> bytes | None:
         if order.options is not None:
             return None
         values = order.seeds
-        head = _RUN_HEAD.pack(RUN, _SEED, False, m, 0)
+        head = _RUN_HEAD.pack(RUN, _SEED, False, 0, m, 0)
     else:
         assert order.state_ids is not None
         values = order.state_ids
-        head = _RUN_HEAD.pack(RUN, _STATE, False, m, 0)
+        head = _RUN_HEAD.pack(RUN, _STATE, False, 0, m, 0)
     return b"".join((head, local, np.ascontiguousarray(values, dtype=np.int64).tobytes()))
 
 
 def decode_run(message: bytearray, action_space: gymnasium.Space) -> Order:
     """The :class:`Order` of a binary run message (:func:`encode_run`); arrays are views of it."""
-    _tag, kind, record, m, k = _RUN_HEAD.unpack_from(message)
+    _tag, kind, record, dtype, m, k = _RUN_HEAD.unpack_from(message)
     offset = _RUN_HEAD.size
     local = np.frombuffer(message, np.int64, m, offset)
     offset += local.nbytes
     if kind == _STEP:
         shape = (m, k, *action_space.shape)
-        actions = np.frombuffer(message, action_space.dtype, math.prod(shape), offset).reshape(shape)
+        actions = np.frombuffer(message, _ACTION_DTYPES[dtype], math.prod(shape), offset).reshape(shape)
         offset += actions.nbytes
         recorded = np.frombuffer(message, bool, m, offset) if record & 1 else None
         return Order(local, actions=actions, record=recorded, past_end=bool(record & 2))

@@ -169,9 +169,13 @@ def _view(value: Any) -> Any:
 
 def _jsonable(value: Any, what: str) -> Any:
     """``value`` (a spec: its view, :func:`_view`) as plain JSON data, or ValueError saying it
-    cannot travel."""
+    cannot travel. An array of bools or integers (a ``render()`` frame) stays an array: the
+    answer's encoding makes it JSON in one pass, as it cannot fail."""
+    value = _view(value)
+    if isinstance(value, np.ndarray) and value.dtype.kind in "biu" and value.dtype.itemsize <= 8:
+        return value
     try:
-        data = wire.to_jsonable(_view(value))
+        data = wire.to_jsonable(value)
         json.dumps(data, allow_nan=False)
     except (wire.WireError, TypeError, ValueError) as exc:
         raise ValueError(f"{what} is a {type(value).__name__}, not JSON-serialisable: {exc}") from None
@@ -341,6 +345,8 @@ class Worker:
         of them, as LIBERO's and the trainers' own envs are stepped on); return the frames
         recorded after each applied action but the last, and the seconds spent drawing them."""
         env = self._envs[local]
+        if not getattr(env, "native", False):  # a gym env takes actions as sent; a robot task in its dtype
+            chunk = chunk.astype(env.action_space.dtype, copy=False)
         rows = self._out["flags"][local]
         rows[:] = 0.0
         frames: list[dict[str, np.ndarray]] = []
