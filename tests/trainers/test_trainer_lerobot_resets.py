@@ -9,21 +9,27 @@ job knows, on libero_10/8 (a stove and an open/close sampler, whose draws grow w
 A real pod serving that task (one env) takes each reset as the env's own seeded reset with the
 options ``{LEROBOT_RESETS: {str(s): {"state_id": k, "resets_before": r}}}``, sent through the
 client's ``StageClient.call``: both cameras are equal bit for bit after each reset, and so is the
-float64 robot state LeRobot reads. The plan's bad entries are refused, naming the field.
+float64 robot state LeRobot reads. The plan's bad entries are refused, naming the field; and
+``LeRobotVectorEnv`` (over a cheap robosuite pod) refuses, before sending anything, seeds LIBERO
+cannot take, resets that seed some envs and not others, and one seed for two envs.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
 from support.service_procs import assignment, standalone_pods
 
+from support.service_procs import PodSpec
+from support.wire_http import metric
+
 from vecsim.client import HTTPVectorEnv
 from vecsim.config import LEROBOT_RESETS, CameraConfig, LiberoProtocol
 from vecsim.engine.tasks._libero import ensure_config, libero_benchmark
-
-pytestmark = pytest.mark.libero
+from vecsim.trainers.lerobot import LeRobotVectorEnv
 
 ensure_config()  # LIBERO asks for its paths on stdin when it has no config
 pytest.importorskip("torch")
@@ -62,6 +68,7 @@ def _lerobot_reset(env: HTTPVectorEnv, seed: int | None, plan: object):
     return batch.obs, batch.errors
 
 
+@pytest.mark.libero
 def test_each_reset_is_lerobots_for_its_seed_and_count(envs):
     ours, theirs = envs
     for r, seed in enumerate(SEEDS):
@@ -81,6 +88,7 @@ def test_each_reset_is_lerobots_for_its_seed_and_count(envs):
         assert np.array_equal(mine["proprio"][21:23], state["gripper"]["qpos"]), r
 
 
+@pytest.mark.libero
 @pytest.mark.parametrize(
     ("seed", "plan", "named"),
     [
@@ -98,3 +106,28 @@ def test_a_bad_plan_is_refused_naming_it(envs, seed, plan, named):
     assert len(errors) == 1
     _key, type_name, message = errors[0]
     assert type_name == "ValueError" and named in message and LEROBOT_RESETS in message
+
+
+@pytest.fixture(scope="module")
+def robot_pod(tmp_path_factory) -> Iterator[str]:
+    spec = PodSpec("robot-0", 0, [("tiny/lift", 2)], camera=CameraConfig(height=8, width=8))
+    with standalone_pods([spec], tmp_path_factory.mktemp("robot-pod")) as pods:
+        yield pods[0].url
+
+
+@pytest.mark.parametrize(
+    ("seed", "named"),
+    [([2**32, 1], "seed for env 0 is 4294967296"), ([1, None], "envs [1] have no seed"), ([5, 5], "seed 5 is given to envs")],
+)
+def test_lerobot_vector_env_refuses_seeds_it_cannot_place_before_sending(robot_pod, seed, named):
+    env = LeRobotVectorEnv(pod_urls=[robot_pod])
+    try:
+        before = metric(robot_pod, "vecsim_pod_env_resets")
+        with pytest.raises(ValueError) as caught:
+            env.reset(seed=seed)
+        assert named in str(caught.value)
+        assert metric(robot_pod, "vecsim_pod_env_resets") == before
+        env.reset(seed=None)  # the env is still usable
+        assert metric(robot_pod, "vecsim_pod_env_resets") == before + 2
+    finally:
+        env.close()
