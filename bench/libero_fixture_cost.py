@@ -68,7 +68,7 @@ def main() -> None:
         for label in ("uncached", "cached"):
             wrapper = build(task_id)
             try:
-                fixtures, row[f"{label}_wall_s"], row[f"{label}_cpu_s"] = timed(
+                (fixtures, _replay), row[f"{label}_wall_s"], row[f"{label}_cpu_s"] = timed(
                     lambda: episode_fixtures(task, wrapper.env, args.seed, "published")
                 )
                 if label == "cached":

@@ -24,9 +24,15 @@ ImageOrientation = Literal["upright", "rotate180", "raw"]
 # Where a LIBERO task's fixtures stand after a reset to state id k (docs/libero.md, "Fixtures"):
 # ``published``: where LIBERO's env has them in episode k of the published evaluation loop (one
 # env per task, seeded once, reset once per episode); ``first_reset``: where a freshly built env's
-# first reset puts them, for every k; ``lerobot``: where LeRobot's LIBERO env has them when its
-# eval loop sets init state k (``env.seed(fixture_seed + k)`` before that reset).
-FixtureRule = Literal["published", "first_reset", "lerobot"]
+# first reset puts them, for every k. (LeRobot's placements come per reset, from the seed its eval
+# loop gives each reset: vecsim.trainers.lerobot.)
+FixtureRule = Literal["published", "first_reset"]
+# The reset option that asks a LIBERO env for LeRobot's reset, sent with each env's seed (what
+# vecsim.trainers.lerobot.LeRobotVectorEnv sends): {str(seed): {"state_id": k, "resets_before": r}}.
+# The env reset with ``seed`` sets init state ``k`` as LeRobot's ``LiberoEnv`` does after ``r``
+# earlier resets under ``env.seed(seed)``: fixtures and arm pose. Keyed by seed because one reset's
+# options go to every env of the call, and LeRobot's eval seeds each env of a reset differently.
+LEROBOT_RESETS = "lerobot_resets"
 # How a job's pipeline stages sit on its pods (docs/control-plane.md, "Stage layouts"):
 # ``slices``: every pod holds envs of every stage, so a stage is a slice of every pod (RLinf's
 # layout: while the policy works on one stage, every pod simulates another); ``pods``: each pod
@@ -87,12 +93,8 @@ class LiberoProtocol(_Model):
     - ``fixture_rule``: which of LIBERO's placements of those fixtures a reset to state id ``k``
       restores (:data:`FixtureRule`): by default ``published``, the one LIBERO's env has in
       episode ``k`` of the published evaluation loop after ``env.seed(fixture_seed)``;
-      ``first_reset``, the one of a freshly built env's first reset, whatever ``k``; ``lerobot``,
-      the one LeRobot's ``LiberoEnv`` has when its ``eval_policy`` (``start_seed = fixture_seed``,
-      ``fixture_stride`` envs per task) sets init state ``k``: ``env.seed(fixture_seed + k)``
-      before its reset, the env's ``k // fixture_stride + 1``-th. All are functions of (task,
-      ``k``, ``fixture_seed``, ``fixture_stride``) alone.
-    - ``fixture_stride``: with ``fixture_rule: lerobot``, LeRobot's ``n_envs`` (envs per task).
+      ``first_reset``, the one of a freshly built env's first reset, whatever ``k``. Both are
+      functions of (task, ``k``, ``fixture_seed``) alone.
 
     Episode limits are not here: ``max_episode_steps`` left unset gives each LIBERO suite its own.
     """
@@ -101,7 +103,6 @@ class LiberoProtocol(_Model):
     settle_steps: int = Field(10, ge=0, le=10_000)
     fixture_seed: int = Field(0, ge=0, lt=2**32)
     fixture_rule: FixtureRule = "published"
-    fixture_stride: int = Field(1, ge=1, le=4096)
 
 
 MAX_EPISODE_STEPS_DOC = (

@@ -87,8 +87,8 @@ def _frame(env, raw: dict, reward: float = 0.0, done: bool = False) -> Frame:
         images={name: raw[f"{name}_image"][::-1, ::-1].copy() for name in CAMERAS},
         state=np.concatenate(
             [raw["robot0_eef_pos"], quat_to_axis_angle(raw["robot0_eef_quat"]), raw["robot0_gripper_qpos"]]
-        ).astype(np.float32),
-        proprio=np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32),
+        ).astype(np.float64),
+        proprio=np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float64),
         sim_state=env.get_sim_state().copy(),
         reward=float(reward),
         done=bool(done),

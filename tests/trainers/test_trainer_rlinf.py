@@ -27,6 +27,8 @@ import pytest
 
 pytest.importorskip("rlinf")
 
+from support.rlinf_worker import env_worker as support_env_worker  # noqa: E402
+from support.rlinf_worker import rlinf_config as support_rlinf_config  # noqa: E402
 from support.service_procs import assignment, standalone_pods  # noqa: E402
 
 from vecsim.config import CameraConfig  # noqa: E402
@@ -61,8 +63,6 @@ def pod_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
 def rlinf_config(auto_reset: bool, pod_url: str | None, **env: Any) -> Any:
     """An RLinf config as its EnvWorker reads it; ``pod_url`` adds the vecsim block."""
-    from omegaconf import OmegaConf
-
     train = {
         "env_type": "libero",
         "task_suite_name": "libero_spatial",
@@ -86,42 +86,11 @@ def rlinf_config(auto_reset: bool, pod_url: str | None, **env: Any) -> Any:
     }
     if pod_url is not None:
         train["vecsim"] = {"pod_urls": [pod_url]}
-    return OmegaConf.create(
-        {
-            "env": {"train": train},
-            "actor": {"model": {"model_type": "openpi", "num_action_chunks": K, "action_dim": 7}},
-            "rollout": {"pipeline_stage_num": 1},
-            "runner": {},
-        }
-    )
+    return support_rlinf_config(train, K)
 
 
 def env_worker(cfg: Any, env: Any) -> Any:
-    """RLinf's EnvWorker without its Ray base: only the attributes its four methods read.
-
-    ``EnvWorker.__init__`` needs a Ray cluster (``Worker.__init__``, ``HybridComponentPlacement``),
-    so the object is made with ``__new__`` and given what ``_init_env``, ``bootstrap_step``,
-    ``env_interact_step`` and ``finish_rollout`` read (env_worker.py:55-160 sets them alike):
-    the config, one pipeline stage holding ``env``, training on and eval and offload off, the
-    model's chunk size, no external reward model; ``_timer_metrics`` and ``_accelerator_type``
-    for the ``Worker.timer`` decorator around them (no accelerator: no profiling ranges).
-    """
-    from rlinf.scheduler.hardware.accelerators.accelerator import AcceleratorType
-    from rlinf.workers.env.env_worker import EnvWorker
-
-    worker = EnvWorker.__new__(EnvWorker)
-    worker.cfg = cfg
-    worker.model_cfg = cfg.actor.model
-    worker.stage_num = 1
-    worker.enable_train, worker.enable_eval = True, False
-    worker.train_enable_offload = worker.eval_enable_offload = False
-    worker.train_num_envs_per_stage = NUM_ENVS
-    worker.use_external_reward_model = False
-    worker.env_list, worker.eval_env_list = [env], []
-    worker.last_obs_list, worker.last_intervened_info_list = [], []
-    worker._timer_metrics = {}
-    worker._accelerator_type = AcceleratorType.NO_ACCEL
-    return worker
+    return support_env_worker(cfg, env, NUM_ENVS)
 
 
 def rlinf_libero_env(cfg: Any) -> Any:

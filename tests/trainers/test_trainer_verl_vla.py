@@ -11,6 +11,7 @@ episodes stays cheap); 32x32 cameras, K = 8.
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +23,7 @@ import torch
 import yaml
 from gymnasium.error import ClosedEnvironmentError
 from hydra.errors import InstantiationException
+from omegaconf import OmegaConf
 from support.service_procs import PodSpec, RunningPod, assignment, standalone_pods
 from support.wire_http import metric
 
@@ -270,6 +272,42 @@ def test_a_chunk_is_one_request_per_pod_and_equals_verl_vlas_own_step_loop(pods)
             assert torch.equal(mine, theirs)
         for mine, theirs in zip(chunk[0]["observation"], loop[0]["observation"]):
             _equal(mine, theirs)
+
+
+def test_the_simulator_runs_in_a_process_spawned_as_verl_vlas_env_manager_spawns_it(pods, tmp_path, monkeypatch):
+    """verl-vla's env manager runs each simulator in a spawned process, ``cfg`` and ``env_cls``
+    pickled into it (env_manager.py:183-205): vecsim's lazily made ``LiberoEnv`` pickles by name,
+    the env worker's config (``OmegaConf.structured`` of the typed one, env_worker.py:119-130, holding
+    ``VecsimSettings``) with it, and both work there as in this process. The spawned process
+    imports verl-vla's names from files standing in for its installed package."""
+    from verl_vla.envs.libero.libero_env import LiberoEnv
+
+    verl_vla_code.write_packages(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))  # a spawned process starts with this sys.path
+
+    worker = EnvWorker(worker_config(pods), pipeline_stage_num=1)
+    assert OmegaConf.get_type(worker.simulator_cfg.simulator.vecsim) is adapter.VecsimSettings
+    spawned = verl_vla_code.SpawnedEnvManager(worker.simulator_cfg, rank=0, world_size=1, env_cls=LiberoEnv)
+    spawned.start_simulator()
+    try:
+        child = spawned.process.pid
+        assert child != os.getpid() and spawned.context.get_start_method() == "spawn"
+        spawned._latest_obs = _reset_to(spawned, [7, 159])
+        theirs = [spawned.step(c, chunk_values=None) for c in chunks(2, seed=5)]
+    finally:
+        spawned.stop_simulator()
+    assert spawned.exitcode == 0 and spawned.state_buffer is not None  # get_state answered, then shutdown
+    local = make_env(pods)
+    try:
+        local._latest_obs = _reset_to(local, [7, 159])
+        ours = [local.step(c, chunk_values=None) for c in chunks(2, seed=5)]
+    finally:
+        local.close()
+    for mine, spawn in zip(ours, theirs):
+        for a, b in zip(mine[1:], spawn[1:]):
+            assert a.dtype == b.dtype and torch.equal(a, b)
+        for a, b in zip(mine[0]["observation"], spawn[0]["observation"]):
+            _equal(a, b)
 
 
 def test_an_episode_that_ends_mid_chunk_is_stepped_on_without_auto_reset(env):

@@ -13,6 +13,8 @@ block cites the file and lines it follows (paths under src/verl_vla/). Nothing h
 - the env worker's simulator construction, ``reset_env`` and ``env_interact_step``
   (workers/env/env_worker.py), the env manager's command loop and stop/start
   (workers/env/env_manager.py), in this process instead of a spawned one;
+- the env manager again as verl-vla runs it, the simulator in a spawned process
+  (:class:`SpawnedEnvManager`, ``_simulator_worker``);
 - ``TrainCluster.eval``'s loop and acceptance rule with its non-auto-reset records
   (train_cluster/cluster.py:542-598, 703-739).
 
@@ -29,6 +31,7 @@ import sys
 import types
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from dataclasses import FrozenInstanceError, dataclass, field, fields
 from types import SimpleNamespace
 from typing import Any, Optional
@@ -609,6 +612,155 @@ class EnvManager:
         return method_proxy
 
 
+def _simulator_worker(cfg, rank, world_size, stage_id, stage_num, env_cls, only_eval, command_queue, result_queue,
+                      state_buffer, bind_numa=True) -> None:
+    """The spawned simulator process's body (env_manager.py:334-411); NUMA binding (356) only
+    where verl-vla asks it (``torch.cuda.is_available()``, 200), never here."""
+    import logging
+    import os
+
+    pid = os.getpid()
+    logger = logging.getLogger(f"simulator_worker_{rank}_{pid}")
+    try:
+        if bind_numa:
+            raise NotImplementedError("NUMA binding is not re-enacted (env_manager.py:356): a CUDA machine's")
+        try:
+            env = env_cls(cfg, rank, world_size, stage_id=stage_id, stage_num=stage_num, only_eval=only_eval)
+        except TypeError:
+            env = env_cls(cfg, rank, world_size)
+        if state_buffer:
+            env.load_state(state_buffer)
+        result_queue.put({"status": "ready"})
+        while True:
+            try:
+                command = command_queue.get()
+                if command["method"] == "shutdown":
+                    env.close()
+                    break
+                method_name = command["method"]
+                args = command.get("args", [])
+                kwargs = command.get("kwargs", {})
+                if method_name == "__setattr__":
+                    attr_name, attr_value = args
+                    setattr(env, attr_name, attr_value)
+                    result_queue.put({"status": "success", "data": None})
+                elif hasattr(env, method_name):
+                    method = getattr(env, method_name)
+                    assert callable(method), f"Method {method_name} is not callable"
+                    result_queue.put({"status": "success", "data": method(*args, **kwargs)})
+                else:
+                    logger.error(f"Method '{method_name}' not found")
+                    result_queue.put({"status": "error", "error": f"Method '{method_name}' not found"})
+            except Exception as e:
+                logger.exception(e)
+                result_queue.put({"status": "error", "error": str(e)})
+    except Exception as e:
+        logger.exception(e)
+        result_queue.put({"status": "error", "error": str(e)})
+    finally:
+        command_queue.close()
+        result_queue.close()
+
+
+class SpawnedEnvManager:
+    """The env manager as verl-vla runs it: its simulator in a process of multiprocessing's
+    ``spawn`` context, ``cfg`` and ``env_cls`` pickled into it (env_manager.py:151-331, without
+    ``recursive_to_own``'s shared-tensor copies, 138-148: nothing here is in shared memory)."""
+
+    def __init__(self, cfg, rank, world_size, env_cls, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False,
+                 start_timeout_s: int = 180) -> None:
+        # env_manager.py:152-175
+        self.cfg, self.rank, self.world_size = cfg, rank, world_size
+        self.stage_id, self.stage_num, self.only_eval = stage_id, stage_num, only_eval
+        self.start_timeout_s = int(start_timeout_s)
+        self.process = self.command_queue = self.result_queue = None
+        self.state_buffer: Optional[bytes] = None
+        self.env_cls = env_cls
+
+    def start_simulator(self) -> None:
+        # env_manager.py:177-233
+        import queue
+        import time
+
+        import torch.multiprocessing as mp
+
+        if self.process:
+            return
+        self.context = mp.get_context("spawn")
+        self.command_queue = self.context.Queue()
+        self.result_queue = self.context.Queue()
+        self.process = self.context.Process(
+            target=_simulator_worker,
+            args=(self.cfg, self.rank, self.world_size, self.stage_id, self.stage_num, self.env_cls, self.only_eval,
+                  self.command_queue, self.result_queue, self.state_buffer, torch.cuda.is_available()),
+        )
+        self.process.start()
+        deadline = time.monotonic() + self.start_timeout_s
+        while True:
+            remaining_s = deadline - time.monotonic()
+            if remaining_s <= 0:
+                raise RuntimeError(f"Simulator initialization timed out after {self.start_timeout_s}s")
+            try:
+                result = self.result_queue.get(timeout=min(1.0, remaining_s))
+                break
+            except queue.Empty:
+                if not self.process.is_alive():
+                    raise RuntimeError(f"Simulator initialization process exited (exitcode={self.process.exitcode})") from None
+        if result["status"] != "ready":
+            raise RuntimeError(f"Simulator initialization failed: {result}")
+
+    def stop_simulator(self) -> None:
+        # env_manager.py:235-260
+        if not self.process:
+            return
+        self.command_queue.put({"method": "get_state", "args": [], "kwargs": {}})
+        result = self.result_queue.get(timeout=180)
+        if result["status"] == "success":
+            self.state_buffer = result["data"]
+        self.command_queue.put({"method": "shutdown"})
+        self.command_queue.close()
+        self.result_queue.close()
+        self.command_queue = self.result_queue = None
+        self.process.join(timeout=5)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join()
+        self.exitcode = self.process.exitcode
+        self.process = None
+
+    def __getattr__(self, name: str):
+        # env_manager.py:262-294 (only called for names not set in __init__)
+        def method_proxy(*args, **kwargs):
+            if self.__dict__.get("process") is None:
+                raise RuntimeError("Simulator not running")
+            self.command_queue.put({"method": name, "args": args, "kwargs": kwargs})
+            result = self.result_queue.get()
+            if result["status"] == "error":
+                raise Exception(result["error"])
+            return result["data"]
+
+        return method_proxy
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # env_manager.py:296-332: the manager's own names here, the others the simulator's
+        if name in _MANAGER_NAMES:
+            super().__setattr__(name, value)
+            return
+        if self.__dict__.get("process") is None:
+            raise RuntimeError(f"Simulator not running to set attribute {name} to {value}")
+        self.command_queue.put({"method": "__setattr__", "args": [name, value], "kwargs": {}})
+        result = self.result_queue.get()
+        if result["status"] == "error":
+            raise Exception(result["error"])
+
+
+# env_manager.py:298-311, and the exit code kept for the tests.
+_MANAGER_NAMES = frozenset({
+    "cfg", "rank", "world_size", "stage_id", "stage_num", "only_eval", "process", "command_queue", "result_queue",
+    "state_buffer", "env_cls", "context", "start_timeout_s", "exitcode",
+})
+
+
 # -- train_cluster/cluster.py ---------------------------------------------------------------------------
 
 
@@ -675,11 +827,9 @@ def train_cluster_eval(worker: EnvWorker, rollout, max_episodes: Optional[int] =
 # -- the module names verl-vla's code is imported by ----------------------------------------------------
 
 
-@contextmanager
-def install() -> Iterator[None]:
-    """Register this module's re-enactments under verl's and verl-vla's module names for the
-    block (hydra's ``instantiate`` and docs/trainers.md's instructions import them by name)."""
-    provided = {
+def _provided() -> dict[str, dict[str, Any]]:
+    """verl's and verl-vla's module names and what this module gives each."""
+    return {
         "verl.base_config": {"BaseConfig": BaseConfig},
         "verl_vla.envs.base": {"BaseEnv": BaseEnv},
         "verl_vla.envs.libero.config": {"LiberoSimulatorConfig": LiberoSimulatorConfig},
@@ -688,6 +838,13 @@ def install() -> Iterator[None]:
         "verl_vla.recorder.config": {"RecorderConfig": RecorderConfig},
         "verl_vla.workers.env.config": {"SimulatorConfig": SimulatorConfig, "EnvWorkerConfig": EnvWorkerConfig},
     }
+
+
+@contextmanager
+def install() -> Iterator[None]:
+    """Register this module's re-enactments under verl's and verl-vla's module names for the
+    block (hydra's ``instantiate`` and docs/trainers.md's instructions import them by name)."""
+    provided = _provided()
     names = sorted({".".join(name.split(".")[: i + 1]) for name in provided for i in range(name.count(".") + 1)})
     saved = {name: sys.modules.get(name) for name in names + ["verl_vla.envs.libero.libero_env"]}
     try:
@@ -705,3 +862,17 @@ def install() -> Iterator[None]:
                 sys.modules.pop(name, None)
             else:
                 sys.modules[name] = module
+
+
+def write_packages(root: Path) -> None:
+    """Write, under ``root``, the modules :func:`install` registers, as files that import this
+    module's re-enactments: with ``root`` on ``sys.path``, a spawned process (which gets the
+    parent's ``sys.path``, not its ``sys.modules``) imports verl-vla's names as if it were
+    installed."""
+    for name, provided in _provided().items():
+        parts = name.split(".")
+        for depth in range(1, len(parts)):
+            package = root.joinpath(*parts[:depth])
+            package.mkdir(parents=True, exist_ok=True)
+            (package / "__init__.py").touch()
+        (root.joinpath(*parts[:-1]) / f"{parts[-1]}.py").write_text(f"from verl_vla_code import {', '.join(provided)}\n")

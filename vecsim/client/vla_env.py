@@ -52,7 +52,7 @@ class VLAEnv:
     ``job_config``, ``routing``, ``pod_urls``). ``keys`` picks the observation's key names:
 
     - ``"vecsim"``: ``{"images": {camera: uint8[n, H, W, 3]}, "proprio": float[n, d],
-      "state": float32[n, 8] (LIBERO tasks only), "instruction": [str] * n}``;
+      "state": float64[n, 8] (LIBERO tasks only), "instruction": [str] * n}``;
     - ``"lerobot"``: LeRobot's names, ``{"observation.images.<camera>": ...,
       "observation.state": ..., "task": [str] * n}``; ``observation.state`` is LIBERO's 8-float
       ``state`` where the job serves it, else ``proprio``.

@@ -10,15 +10,15 @@ LeRobot's LIBERO observation layout (``envs/libero.py``, ``obs_type="pixels_agen
 
 Example::
 
-    # a job with libero: {image_orientation: raw, fixture_rule: lerobot, fixture_seed: 0, fixture_stride: 2}
+    # a job with libero: {image_orientation: raw}, n envs of the task
     env = LeRobotVectorEnv(pod_urls=["http://127.0.0.1:8000"])
-    info = eval_policy(env, policy, env_pre, env_post, pre, post, n_episodes=env.num_envs, start_seed=0)
+    info = eval_policy(env, policy, env_pre, env_post, pre, post, n_episodes=env.num_envs, start_seed=1000)
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,6 +27,7 @@ from gymnasium.vector import AsyncVectorEnv
 from gymnasium.vector.vector_env import AutoresetMode
 
 from vecsim.client.vector_env import HTTPVectorEnv
+from vecsim.config import LEROBOT_RESETS
 
 __all__ = ["LEROBOT_CAMERA_KEYS", "LeRobotVectorEnv"]
 
@@ -36,6 +37,8 @@ LEROBOT_CAMERA_KEYS: dict[str, str] = {"agentview": "image", "robot0_eye_in_hand
 # LiberoEnv.metadata (envs/libero.py): eval_policy writes its videos at this rate.
 LEROBOT_RENDER_FPS = 80
 
+# numpy's legacy seeding (LIBERO's env.seed) takes 0..2**32 - 1.
+_MAX_LIBERO_SEED = 2**32 - 1
 # Offsets of the pods' 23-float ``proprio`` (vecsim.engine.tasks._robot.PROPRIO_KEYS).
 _COS, _SIN, _EEF_POS, _EEF_QUAT, _GRIPPER_QPOS = slice(0, 7), slice(7, 14), slice(14, 17), slice(17, 21), slice(21, 23)
 
@@ -84,10 +87,13 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
       ``LiberoProcessorStep`` reads. Images come as the job serves them: LeRobot flips LIBERO's
       raw frames itself, so serve them with ``libero: {image_orientation: raw}``. LeRobot's
       ``eef.mat``, ``gripper.qvel`` and ``joints.vel`` are not served.
-    - Resets: env ``i``'s resets take initial states ``i, i + n, i + 2n, ...`` (``n`` envs),
-      LeRobot's ``init_state_id`` sequence, unless ``options["state_ids"]`` names them; reset
-      options LeRobot passes are ignored. LeRobot's seeds place LIBERO's fixtures: the job's
-      ``libero.fixture_rule: lerobot`` places them as LeRobot's env does (docs/trainers.md).
+    - Resets as LeRobot's ``LiberoEnv`` resets: env ``i``'s ``r``-th reset (counting those its
+      env makes itself when an episode terminates, and the vector env's autoreset after it)
+      takes init state ``(i + r * n) % 50`` (``n`` envs), LeRobot's ``init_state_id`` sequence,
+      unless ``options["state_ids"]`` names them. A seeded reset is LeRobot's
+      ``env.seed(seed); env.reset()`` after ``r`` earlier ones: the pods replay its fixture
+      placement and arm pose (the reset option ``vecsim.config.LEROBOT_RESETS``). Other reset
+      options LeRobot passes are ignored.
     - ``info["is_success"]`` beside ``success``; an env that ends a step has
       ``info["final_info"]["is_success"]`` (NEXT_STEP and SAME_STEP).
     - ``envs[i]`` has ``task`` (the vecsim task id), ``task_description`` (the instruction),
@@ -149,17 +155,64 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         )
         self.metadata = {**self.metadata, "render_modes": ["rgb_array"], "render_fps": render_fps}
         self.render_mode = "rgb_array"
-        self._next_state = np.arange(self.num_envs, dtype=np.int64)
+        self._lerobot_resets = np.zeros(self.num_envs, dtype=np.int64)  # each env's resets so far, LeRobot's count
         self.max_episode_steps = tuple(int(steps) for steps in super()._attr("get_attr", "max_episode_steps", None))
         self.envs = [_EnvView(self, i) for i in range(self.num_envs)]
 
-    # -- resets in LeRobot's init-state order ---------------------------------------------------
+    # -- resets as LeRobot's LiberoEnv makes them ------------------------------------------------
+
+    def reset_async(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None) -> None:
+        """:meth:`HTTPVectorEnv.reset_async`; with seeds, each env's reset is LeRobot's under its
+        seed (see the class docstring).
+
+        Raises:
+            ValueError: some reset envs seeded and others not, or a seed outside
+                ``0..2**32 - 1`` (LIBERO's ``env.seed`` takes no other; named).
+            as :meth:`HTTPVectorEnv.reset_async`.
+        """
+        options = dict(options or {})
+        plan = self._lerobot_plan(seed, options)
+        if plan is None:
+            super().reset_async(seed=seed, options=options)
+            return
+        # LeRobot's reset is each LIBERO env's own seeded reset: the base class's path for envs
+        # that reset themselves, with the plan as the options every env of the call reads.
+        self._native = True
+        try:
+            super().reset_async(seed=seed, options={**options, LEROBOT_RESETS: plan})
+        finally:
+            self._native = False
+        self._lerobot_resets[self._reset_mask(options.get("reset_mask"))] += 1
+
+    def _lerobot_plan(self, seed: Any, options: dict[str, Any]) -> dict[str, dict[str, int]] | None:
+        """The reset option :data:`LEROBOT_RESETS` for a seeded reset, None for the others."""
+        if options.get("state_ids") is not None:
+            return None
+        seeds, mask = self._seeds(seed), self._reset_mask(options.get("reset_mask"))
+        reset = np.flatnonzero(mask).tolist()
+        seeded = [i for i in reset if seeds[i] is not None]
+        if not seeded:
+            return None
+        if len(seeded) != len(reset):
+            unseeded = sorted(set(reset) - set(seeded))
+            raise ValueError(f"seed: envs {unseeded} have no seed beside seeded ones; seed every env reset, or none")
+        plan: dict[str, dict[str, int]] = {}
+        for i in seeded:
+            if seeds[i] > _MAX_LIBERO_SEED:
+                raise ValueError(f"seed for env {i} is {seeds[i]}; LIBERO's env.seed takes 0..{_MAX_LIBERO_SEED}")
+            entry = {"state_id": self._state_of(i), "resets_before": int(self._lerobot_resets[i])}
+            if plan.setdefault(str(seeds[i]), entry) != entry:
+                raise ValueError(f"seed {seeds[i]} is given to envs of different init states; give each env its own seed")
+        return plan
+
+    def _state_of(self, i: int) -> int:
+        """Env ``i``'s next ``init_state_id``, as LeRobot's ``LiberoEnv`` counts it."""
+        return int((i + self._lerobot_resets[i] * self.num_envs) % self._num_states[self.task_ids[i]])
 
     def _draw_state_id(self, i: int, reseeded: Any = None) -> int:
-        """LeRobot's ``LiberoEnv.reset``: env ``i``'s ``init_state_id`` goes ``i, i + n, ...``
-        (modulo the task's states), whatever the seed (the seed only seeds LIBERO's placements)."""
-        state_id = int(self._next_state[i] % self._num_states[self.task_ids[i]])
-        self._next_state[i] += self.num_envs
+        """An unseeded reset or autoreset of env ``i``: LeRobot's next ``init_state_id``."""
+        state_id = self._state_of(i)
+        self._lerobot_resets[i] += 1
         return state_id
 
     # -- answers in LeRobot's layout ------------------------------------------------------------
@@ -174,6 +227,8 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         that ended, ``final_info["is_success"]``."""
         obs, reward, terminated, truncated, info = super().step_wait(timeout)
         info = _with_is_success(info)
+        # LeRobot's LiberoEnv.step resets the env itself when it terminates (never truncates).
+        self._lerobot_resets += terminated if terminated.ndim == 1 else terminated.any(axis=1)
         ended = terminated | truncated
         ended = ended if ended.ndim == 1 else ended.any(axis=1)
         if "final_info" in info:  # SAME_STEP: the step's own info of the envs that were reset
@@ -185,7 +240,7 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         return self._layout(obs), reward, terminated, truncated, info
 
     def _layout(self, obs: dict[str, Any]) -> dict[str, Any]:
-        proprio = obs["proprio"].astype(np.float64)
+        proprio = obs["proprio"].astype(np.float64)  # float64 as served: LIBERO's observables
         return {
             "pixels": {key: obs["images"][name] for name, key in self.camera_keys.items()},
             "robot_state": {

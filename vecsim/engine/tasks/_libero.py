@@ -31,7 +31,7 @@ import numpy as np
 import yaml
 
 from vecsim.engine import render as render_presets
-from vecsim.config import CameraConfig, LiberoProtocol, RenderPreset
+from vecsim.config import LEROBOT_RESETS, CameraConfig, LiberoProtocol, RenderPreset
 from vecsim.engine.tasks._base import (
     TaskSetupError,
     TaskSpec,
@@ -41,6 +41,7 @@ from vecsim.engine.tasks._base import (
     stdout_to_log,
 )
 from vecsim.engine.tasks._robot import (
+    PROPRIO_KEYS,
     RobotTaskEnv,
     _file_lock,
     robosuite_reset_without_observing,
@@ -69,6 +70,10 @@ _PLACEMENT_ATTEMPTS = 100
 _SCENE = re.compile(r"^([A-Z_]+_SCENE\d+)_")
 # Bumped whenever what the fixture cache (:func:`fixtures_path`) holds changes meaning.
 FIXTURES_VERSION = "v1"
+# numpy's legacy seeding (LIBERO's env.seed) takes 0..2**32 - 1.
+_MAX_LIBERO_SEED = 2**32 - 1
+# LeRobot's env appends its open/close samplers at every reset; a replay holds them all.
+MAX_LEROBOT_RESETS_BEFORE = 100_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +89,33 @@ class EpisodeFixtures:
     body_pos: np.ndarray
     body_quat: np.ndarray
     rng: tuple[Any, ...]
+
+
+def lerobot_plan_entry(plan: Any, seed: int | None, task_id: str, num_states: int) -> tuple[int, int, int]:
+    """``(seed, state_id, resets_before)`` for the env reset with ``seed`` under the reset option
+    :data:`LEROBOT_RESETS` ``plan``.
+
+    Raises:
+        ValueError: no seed, a seed LIBERO cannot take, none of ``plan`` for it, or an entry
+            whose ``state_id`` or ``resets_before`` is not an int in range (named).
+    """
+    field = f"{task_id}: options[{LEROBOT_RESETS!r}]"
+    if seed is None:
+        raise ValueError(f"{field}: a LeRobot reset needs a seed (LeRobot's env.seed(seed) places the fixtures)")
+    if not 0 <= seed <= _MAX_LIBERO_SEED:
+        raise ValueError(f"{field}: seed {seed} is outside 0..{_MAX_LIBERO_SEED} (LIBERO's env.seed takes no other)")
+    if not isinstance(plan, dict):
+        raise ValueError(f"{field} must map seeds to {{state_id, resets_before}}, got {type(plan).__name__}")
+    entry = plan.get(str(seed))
+    if not isinstance(entry, dict) or set(entry) != {"state_id", "resets_before"}:
+        raise ValueError(f"{field}[{str(seed)!r}] must be {{state_id, resets_before}}, got {entry!r:.80}")
+    values = []
+    for name, limit in (("state_id", num_states - 1), ("resets_before", MAX_LEROBOT_RESETS_BEFORE)):
+        value = entry[name]
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= limit:
+            raise ValueError(f"{field}[{str(seed)!r}].{name} must be an int in 0..{limit}, got {value!r:.40}")
+        values.append(value)
+    return seed, values[0], values[1]
 
 
 def _package_dir() -> Path:
@@ -198,10 +230,13 @@ def quat_to_axis_angle(quat: np.ndarray) -> np.ndarray:
 def libero_observation_space(camera: CameraConfig) -> gymnasium.spaces.Dict:
     """Return the observation space of every LIBERO task under ``camera``.
 
-    A robot task's (``images``, ``proprio``) plus ``state``: LIBERO's 8-float robot state.
+    A robot task's (``images``, ``proprio``) plus ``state``: LIBERO's 8-float robot state. Both
+    vectors are float64, as LIBERO's observables are and as the trainers' own LIBERO envs build
+    their state (LeRobot's ``robot_state``, verl-vla's ``observation.state``).
     """
     space = robot_observation_space(camera)
-    space.spaces["state"] = gymnasium.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)
+    space.spaces["proprio"] = gymnasium.spaces.Box(-np.inf, np.inf, space["proprio"].shape, np.float64)
+    space.spaces["state"] = gymnasium.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float64)
     return space
 
 
@@ -225,6 +260,8 @@ class LiberoTaskEnv(RobotTaskEnv):
       ``k``);
     - the arm's controller is the one that reset built, from the reset's own arm pose; setting
       the init state does not rebuild it (LIBERO does not);
+    - a reset with the option :data:`vecsim.config.LEROBOT_RESETS` is LeRobot's instead
+      (:meth:`reset`): placement and arm pose replayed for that reset's seed and count;
     - the observables' clocks run as LIBERO's do: the reset and the set state each force a
       sample, which moves every later sample to physics substep 24 of a step's 25.
 
@@ -249,6 +286,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         max_episode_steps: int,
         protocol: LiberoProtocol,
         fixtures: list[EpisodeFixtures],
+        replay: HardResetReplay,
         owner: Any = None,
         render: RenderPreset | None = None,
     ) -> None:
@@ -259,6 +297,8 @@ class LiberoTaskEnv(RobotTaskEnv):
         if len(fixtures) != len(states):
             raise ValueError(f"{task.task_id}: {len(fixtures)} fixture placements for {len(states)} init states")
         self._fixtures = fixtures
+        self._replay = replay
+        self._reset_fixtures: EpisodeFixtures | None = None  # the next reset's, when not its state id's
         self.observation_space = libero_observation_space(camera)
         model, data = inner.sim.model._model, inner.sim.data._data
         self._frame = mujoco.MjData(model)
@@ -278,6 +318,27 @@ class LiberoTaskEnv(RobotTaskEnv):
             for view in self.camera_views
         ]
 
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Reset to a fixed state (:meth:`TaskEnv.reset`), or, with ``options["lerobot_resets"]``,
+        as LeRobot's ``LiberoEnv.reset(seed=seed)`` does (:data:`LEROBOT_RESETS`).
+
+        Raises:
+            ValueError: as :meth:`TaskEnv.reset`, or a LeRobot reset without a seed, a seed
+                outside ``0..2**32 - 1`` or missing from the plan, a bad plan entry (named).
+        """
+        plan = (options or {}).get(LEROBOT_RESETS)
+        if plan is None:
+            return super().reset(seed=seed, options=options)
+        seed, state_id, before = lerobot_plan_entry(plan, seed, self.task.task_id, self.task.num_states)
+        with stdout_to_log():
+            self._reset_fixtures = self._replay.lerobot_reset(self.task, self.inner, seed, before)
+        try:
+            return super().reset(seed=seed, options={"state_id": state_id})
+        finally:
+            self._reset_fixtures = None
+
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:
         from robosuite.utils.errors import RandomizationError
 
@@ -285,7 +346,7 @@ class LiberoTaskEnv(RobotTaskEnv):
         # LIBERO's reset loads a new model: grippers start with no integrated command.
         for robot in inner.robots:
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
-        fixtures = self._fixtures[state_id]
+        fixtures = self._reset_fixtures or self._fixtures[state_id]
         with seeded_global_rngs(self.protocol.fixture_seed):
             # numpy's generator where episode k's reset drew (LIBERO draws nothing from Python's).
             np.random.set_state(fixtures.rng)
@@ -312,9 +373,10 @@ class LiberoTaskEnv(RobotTaskEnv):
 
     def _observation(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
         observation = super()._observation(raw)
+        observation["proprio"] = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float64)
         observation["state"] = np.concatenate(
             [raw["robot0_eef_pos"], quat_to_axis_angle(raw["robot0_eef_quat"]), raw["robot0_gripper_qpos"]]
-        ).astype(np.float32)
+        ).astype(np.float64)
         return observation
 
 
@@ -382,12 +444,10 @@ def _replayed_hard_reset(task: TaskSpec, inner: Any, fresh: tuple[np.ndarray, np
     raise RuntimeError(f"{task.task_id}: LIBERO could not place the objects")
 
 
-def fixtures_path(task: TaskSpec, seed: int, rule: str = "published", stride: int = 1) -> Path:
-    """Return where the fixtures of ``task`` under ``rule`` (``published``: the published loop's
-    after ``env.seed(seed)``; ``lerobot``: LeRobot's, ``stride`` envs per task) are cached."""
+def fixtures_path(task: TaskSpec, seed: int) -> Path:
+    """Return where the published loop's fixtures of ``task`` after ``env.seed(seed)`` are cached."""
     suite, index = task.task_id.split("/", 1)
-    name = f"{index}-seed{seed}.npz" if rule == "published" else f"{index}-{rule}-seed{seed}-stride{stride}.npz"
-    return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / name
+    return cache_dir() / "libero_fixtures" / FIXTURES_VERSION / suite / f"{index}-seed{seed}.npz"
 
 
 def load_fixtures(path: Path, count: int, nbody: int) -> list[EpisodeFixtures] | None:
@@ -433,75 +493,81 @@ def _save_fixtures(path: Path, fixtures: list[EpisodeFixtures]) -> None:
     write_whole(path, save)
 
 
-def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str, stride: int = 1) -> list[EpisodeFixtures]:
+@dataclasses.dataclass(frozen=True)
+class HardResetReplay:
+    """What replaying one of a LIBERO env's later hard resets needs (:func:`_replayed_hard_reset`):
+    the placement a freshly loaded model has (``fresh``: ``body_pos``, ``body_quat``), how many
+    samplers each load appends (``per_load``) and how many the env holds after its build and
+    first reset (``kept``: two loads)."""
+
+    fresh: tuple[np.ndarray, np.ndarray]
+    per_load: int
+    kept: int
+
+    def lerobot_reset(self, task: TaskSpec, inner: Any, seed: int, before: int) -> EpisodeFixtures:
+        """What LeRobot's ``LiberoEnv.reset(seed=seed)`` leaves after ``before`` earlier resets of
+        that env (lerobot 0.4.4, envs/libero.py: ``env.seed(seed); env.reset()``, a hard reset):
+        its model was loaded ``before + 2`` times already (built, reset in its constructor, then
+        once per reset), each load appending the open/close samplers again. Leaves ``inner``'s
+        samplers as they were; its model and data hold the replayed reset."""
+        initializers = inner.object_property_initializers
+        initializers.extend(initializers[: self.per_load] * before)
+        try:
+            with seeded_global_rngs(seed), _reset_entries(inner) as entries:
+                _replayed_hard_reset(task, inner, self.fresh, self.per_load)
+        finally:
+            del initializers[self.kept :]
+        model = inner.sim.model._model
+        return EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
+
+
+def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> tuple[list[EpisodeFixtures], HardResetReplay]:
     """Reset a freshly built LIBERO env as the published loop's first episode does and return,
-    per state id ``k``, what the reset that sets init state ``k`` leaves besides the init state.
+    per state id ``k``, what the reset that sets init state ``k`` leaves besides the init state,
+    and what replaying a later hard reset of the env needs.
 
     ``inner`` must be a LIBERO env just built (``hard_reset`` on) and not reset since. Under
     ``rule`` ``published``, entry ``k`` is episode ``k`` of the published evaluation loop
     (``env.seed(seed)`` once, then one ``env.reset()`` per episode; the loop's steps draw nothing
     from the generator): the first from the env's own hard reset, the others replayed
-    (:func:`_replayed_hard_reset`). Under ``lerobot``, entry ``k`` is the reset of LeRobot's
-    ``LiberoEnv`` that sets init state ``k`` in its ``eval_policy`` from ``start_seed = seed``
-    with ``stride`` envs per task (lerobot 0.4.4, envs/libero.py: the env is built, reset once,
-    then ``env.seed(seed + k); env.reset()``, its ``k // stride + 1``-th eval reset), replayed.
-    Both are cached on disk (:func:`fixtures_path`; one process computes, others wait and
-    read). Under ``first_reset``, every entry is the first reset's. Leaves the env with the
-    first reset's placement.
+    (:func:`_replayed_hard_reset`) and cached on disk (:func:`fixtures_path`; one process
+    computes, others wait and read). Under ``first_reset``, every entry is the first reset's.
+    Leaves the env with the first reset's placement.
     """
     per_load = len(inner.object_property_initializers)  # what the constructor's _load_model appended
     with seeded_global_rngs(seed), stdout_to_log():
         with _reset_entries(inner) as entries:
             _hard_reset(task, inner)
-        fresh = entries[-1][:2]
         model = inner.sim.model._model
+        replay = HardResetReplay(entries[-1][:2], per_load, len(inner.object_property_initializers))
         first = EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
         if rule == "first_reset":
-            return [first] * task.num_states
-        path = fixtures_path(task, seed, rule, stride)
+            return [first] * task.num_states, replay
+        path = fixtures_path(task, seed)
         fixtures = load_fixtures(path, task.num_states, model.nbody)
         if fixtures is not None:
-            return fixtures
+            return fixtures, replay
         path.parent.mkdir(parents=True, exist_ok=True)
         with _file_lock(path.with_name(path.name + ".lock")):
             fixtures = load_fixtures(path, task.num_states, model.nbody)
             if fixtures is not None:
-                return fixtures
+                return fixtures, replay
             started = time.perf_counter()
-            kept = len(inner.object_property_initializers)
+            fixtures = [first]
             try:
-                fixtures = [first] if rule == "published" else []
-                for k in range(len(fixtures), task.num_states):
-                    if rule == "lerobot":
-                        fixtures.append(_lerobot_reset(task, inner, fresh, per_load, kept, seed + k, k // stride))
-                        continue
+                for _ in range(1, task.num_states):
                     with _reset_entries(inner) as entries:
-                        _replayed_hard_reset(task, inner, fresh, per_load)
+                        _replayed_hard_reset(task, inner, replay.fresh, per_load)
                     fixtures.append(EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2]))
             finally:
-                del inner.object_property_initializers[kept:]
+                del inner.object_property_initializers[replay.kept :]
                 model.body_pos[:], model.body_quat[:] = first.body_pos, first.body_quat
             _save_fixtures(path, fixtures)
             log.info(
                 "replayed %d LIBERO resets of %s (seed %d) in %.2f s into %s",
                 task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
             )
-            return fixtures
-
-
-def _lerobot_reset(
-    task: TaskSpec, inner: Any, fresh: tuple[np.ndarray, np.ndarray], per_load: int, kept: int, seed: int, before: int
-) -> EpisodeFixtures:
-    """Replay LeRobot's ``LiberoEnv.reset`` under ``env.seed(seed)`` after ``before`` earlier eval
-    resets: its model was loaded ``before + 2`` times already (built, reset in its constructor,
-    then once per eval reset), each load appending the open/close samplers again."""
-    initializers = inner.object_property_initializers
-    del initializers[kept:]
-    initializers.extend(initializers[:per_load] * before)
-    with seeded_global_rngs(seed), _reset_entries(inner) as entries:
-        _replayed_hard_reset(task, inner, fresh, per_load)
-    model = inner.sim.model._model
-    return EpisodeFixtures(model.body_pos.copy(), model.body_quat.copy(), entries[-1][2])
+            return fixtures, replay
 
 
 def make_libero_env(
@@ -543,12 +609,12 @@ def make_libero_env(
             raise ValueError(f"{task.task_id}: cannot build it with cameras {cameras}: {exc}") from exc
     inner = wrapper.env
     try:
-        fixtures = episode_fixtures(task, inner, protocol.fixture_seed, protocol.fixture_rule, protocol.fixture_stride)
+        fixtures, replay = episode_fixtures(task, inner, protocol.fixture_seed, protocol.fixture_rule)
         inner.hard_reset = False
         render_presets.apply_to_robosuite(inner.sim, render)
         states = init_states(task)
         return LiberoTaskEnv(
-            task, inner, states, camera, max_episode_steps, protocol, fixtures, owner=wrapper, render=render
+            task, inner, states, camera, max_episode_steps, protocol, fixtures, replay, owner=wrapper, render=render
         )
     except BaseException:
         wrapper.close()
