@@ -54,7 +54,7 @@ from vecsim.config import LiberoProtocol
 log = logging.getLogger(__name__)
 
 # Bumped whenever what a scene folder holds changes, so a stale cache is never read.
-SCENE_FORMAT = 2
+SCENE_FORMAT = 3  # 3: the recorded obs_state and obs_proprio are float64, as the CPU pod serves them
 ROOT_ENV = "VECSIM_MJWARP_SCENES"
 # Model fields allowed to differ after the round trip through MJCF, and by how much: MJCF holds
 # six significant digits, so values read back carry relative errors near 1e-6; fields derived
