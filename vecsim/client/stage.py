@@ -25,7 +25,9 @@ pure), what the pods said of the job (:mod:`~vecsim.client.jobinfo`), one call c
 (:mod:`~vecsim.client.calls`: whether its actions are one or a chunk each is said there once,
 :func:`~vecsim.client.calls.step_actions`), the routing re-read (:mod:`~vecsim.client.refresh`)
 and the pod connections on the loop thread (:mod:`~vecsim.client.pods`, whose ``PodSet`` is
-the one way a call reaches a pod).
+the one way a call reaches a pod). Its base, :class:`~vecsim.client.jobclient.JobClient`, holds
+the connection to the job (loop thread, transport, pods, re-read, spaces); this class adds the
+trajectories and the stages.
 
 A pod that fails a call (no answer in time, refused connection, 503, envs moved by the routing)
 fails it for its own trajectories only: the error names them and carries the rows of the pods
@@ -36,17 +38,12 @@ from __future__ import annotations
 
 import atexit
 import itertools
-import logging
-import threading
 import weakref
-from collections.abc import Coroutine, Mapping, Sequence
-from typing import Any, TypeVar
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import httpx
-from gymnasium import Space
-from gymnasium.error import ClosedEnvironmentError
 
-from vecsim.auth import token_from_env
 from vecsim.client.calls import (
     PendingCall,
     StageBatch,
@@ -60,16 +57,11 @@ from vecsim.client.calls import (
     run_call,
     step_actions,
 )
-from vecsim.client.jobinfo import JobInfo
-from vecsim.client.pods import EventLoopThread, PodSet, check_limits
-from vecsim.client.refresh import RoutingRefresher, fetch_routing, read_pod_info
-from vecsim.client.routebook import RouteBook
+from vecsim.client.jobclient import JobClient
+from vecsim.client.refresh import fetch_routing, read_pod_info
 from vecsim.client.routing import TrajRoute, routing_from_pod_infos
 from vecsim.client.stagestate import StageState, StageStates
 from vecsim.config import RoutingTable
-from vecsim.transport import as_transport
-
-logger = logging.getLogger(__name__)
 
 __all__ = ["ENDED_ENVS", "PendingCall", "StageBatch", "StageClient", "StepActions", "check_ended_envs", "fetch_routing"]
 
@@ -92,11 +84,10 @@ def check_ended_envs(value: str) -> str:
         raise ValueError(f"ended_envs must be one of {list(ENDED_ENVS)}, got {value!r}")
     return value
 
-T = TypeVar("T")
-
 
 def _keys_of(step: Mapping[str, Any] | StepActions) -> list[str]:
     return step.traj_keys if isinstance(step, StepActions) else list(step)
+
 
 # Clients not closed yet: closed at interpreter exit while their loop threads still run, so
 # that a script ending in an exception or Ctrl-C exits quietly, its connections closed.
@@ -118,7 +109,7 @@ class _Held:
         self.pending: PendingCall[Any] | None = None
 
 
-class StageClient:
+class StageClient(JobClient):
     """Routes trajectories to pod envs and steps them stage by stage (see the module docstring).
 
     ``routing`` is the job's routing table; ``controller_url``, when given, is where the table is
@@ -150,22 +141,12 @@ class StageClient:
         ended_envs: str = "raise",
     ) -> None:
         self.ended_envs = check_ended_envs(ended_envs)
-        check_limits(timeout_s, max_answer_bytes)
-        self._book = RouteBook(routing)
-        self.controller_url = controller_url.rstrip("/") if controller_url else None
-        self.timeout_s = float(timeout_s)
-        self.max_answer_bytes = max_answer_bytes
-        self._transport = as_transport(transport)
+        super().__init__(
+            routing, controller_url=controller_url, timeout_s=timeout_s, transport=transport,
+            max_answer_bytes=max_answer_bytes, token=token,
+        )
         self._states = StageStates()
         self._batches = itertools.count()
-        self._info = JobInfo()
-        self._closed = False
-        self._loop = EventLoopThread()
-        self._refresher = RoutingRefresher(self._book, self._info, self.controller_url, self.timeout_s, self._transport)
-        self._pods = PodSet(
-            self._book, self._info, self._refresher, self._transport, self.timeout_s,
-            token if token is not None else token_from_env(), max_answer_bytes,
-        )
         _open_clients.add(self)
 
     @classmethod
@@ -226,11 +207,6 @@ class StageClient:
     # -- what the client routes over ------------------------------------------------------------
 
     @property
-    def routing(self) -> RoutingTable:
-        """The routing table in use (re-read after a 409 when a controller is known)."""
-        return self._book.table
-
-    @property
     def num_stages(self) -> int:
         return self._book.num_stages
 
@@ -247,38 +223,6 @@ class StageClient:
         """
         self._check_stage(stage_id)
         return self._book.stage_keys(stage_id)
-
-    @property
-    def observation_space(self) -> Space | None:
-        """One env's observation space, read from the pods' ``/v1/info`` (None if no pod has envs)."""
-        return self._job().observation_space
-
-    @property
-    def action_space(self) -> Space | None:
-        """One env's action space as the pods take it (a Dict or Tuple one flattened), read from
-        the pods' ``/v1/info`` (None if no pod has envs); :attr:`served_action_space`: the envs' own."""
-        return self._job().action_space
-
-    @property
-    def served_action_space(self) -> Space | None:
-        return self._job().served_action_space
-
-    @property
-    def instructions(self) -> dict[str, str]:
-        """Each task's instruction, read from the pods' ``/v1/info``."""
-        return dict(self._job().instructions)
-
-    @property
-    def reset_kinds(self) -> dict[str, str]:
-        """How each task's envs reset by default, from the pods' ``/v1/info``: ``"seed"`` (the
-        env's own seeded reset: a gym task without cameras) or ``"state_id"`` (fixed states)."""
-        return dict(self._job().reset_kinds)
-
-    @property
-    def num_states(self) -> dict[str, int]:
-        """How many fixed initial states each task has (state ids ``0..n-1``), from the pods'
-        ``/v1/info``: the trainer needs no task registry of its own."""
-        return dict(self._job().num_states)
 
     # -- placing trajectories -------------------------------------------------------------------
 
@@ -495,18 +439,6 @@ class StageClient:
         routes = check_attr(self._book, op, keys)
         return self.submit(run_attr(self._pods, op, list(keys), name, payload, routes))
 
-    def submit(self, coro: Coroutine[Any, Any, T]) -> PendingCall[T]:
-        """Run ``coro`` on the client's event loop and return its pending result.
-
-        For chaining calls without a round trip through the caller: inside ``coro``, ``await``
-        the client's calls (``await client.call(...)``).
-
-        Raises:
-            ClosedEnvironmentError: the client is closed.
-        """
-        self._check_open()
-        return PendingCall(self._loop.submit(coro), loop=self._loop)
-
     def _submit(
         self,
         *,
@@ -571,15 +503,7 @@ class StageClient:
         for held in self._states.end_all():
             if held.pending is not None:
                 held.pending.cancel()
-        if self._loop.running:  # not so at interpreter exit (see _close_open_clients)
-            try:
-                self._loop.run(self._aclose(), timeout=min(self.timeout_s, 5.0))
-            except (TimeoutError, RuntimeError) as exc:
-                logger.warning("closing pod connections: %s", exc)
-        self._loop.close()
-
-    async def _aclose(self) -> None:
-        await self._transport.aclose()
+        self._disconnect()
 
     def __enter__(self) -> StageClient:
         return self
@@ -589,29 +513,9 @@ class StageClient:
 
     # -- checks ---------------------------------------------------------------------------------
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ClosedEnvironmentError("the StageClient is closed")
-
     def _check_stage(self, stage_id: int) -> None:
         self._check_open()
         self._book.check_stage(stage_id)
 
     def _check_keys(self, keys: list[str], stage_id: int) -> None:
         self._book.check_on_stage(keys, stage_id)
-
-    # -- what runs on the loop ------------------------------------------------------------------
-
-    def _job(self) -> JobInfo:
-        """What the pods said of the job, read from their ``/v1/info`` on first use."""
-        if self._info.spaces is None:
-            self._check_open()
-            if threading.current_thread() is self._loop.thread:
-                raise RuntimeError("the pods' spaces must be read before calls are made from the client's loop")
-            self._adopt_info(self._loop.run(self._pods.infos(self._book.pods_with_envs())))
-        return self._info
-
-    def _adopt_info(self, infos: Mapping[str, Mapping[str, Any]]) -> None:
-        """Take instructions and spaces from pods' ``/v1/info`` answers (pods with envs only)."""
-        self._info.adopt(infos)
-        self._pods.sync()  # the answer caps follow from the spaces just read

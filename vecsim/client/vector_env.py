@@ -26,12 +26,13 @@ from gymnasium.vector.vector_env import AutoresetMode, VectorEnv
 
 from vecsim.client.gym_values import rendered, served_render_mode, wire_actions
 from vecsim.client.conventions import env_indices
-from vecsim.client.errors import ClientError, PodUnavailableError, RoutingChangedError, builtin_exception
-from vecsim.client.routing import TrajRoute, routed_envs
-from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs, fetch_routing
+from vecsim.client.errors import PodUnavailableError, RoutingChangedError, builtin_exception
+from vecsim.client.routing import TrajRoute
+from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs
 from vecsim.client.vector_autoreset import Autoresets
 from vecsim.client.vector_resets import StateDraws, autoreset_mode_of, env_seeds, reset_mask
 from vecsim.client.vector_results import EnvResults
+from vecsim.client.vector_routes import EnvRoutes
 from vecsim.config import JobConfig, RoutingTable, load_job_config
 
 logger = logging.getLogger(__name__)
@@ -156,24 +157,19 @@ class HTTPVectorEnv(VectorEnv):
             raise ValueError(f"give exactly one of {', '.join(sources)}; got {given or 'none'}")
         self.autoreset_mode = autoreset_mode_of(autoreset_mode)
         self.ended_envs = check_ended_envs(ended_envs)
+        # StageClient's own arguments, the same whatever the source.
+        options: dict[str, Any] = {
+            "timeout_s": timeout_s, "transport": transport, "max_answer_bytes": max_answer_bytes, "token": token,
+            "ended_envs": self.ended_envs,
+        }
         if job_config is not None:
             controller_url = _controller_url_of(job_config)
         if controller_url is not None:
-            table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
-            self.client = StageClient(
-                table, controller_url=controller_url, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
-                token=token, ended_envs=self.ended_envs,
-            )
+            self.client = StageClient.from_controller(controller_url, wait_ready_s=wait_ready_s, **options)
         elif routing is not None:
-            self.client = StageClient(
-                routing, timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
-                token=token, ended_envs=self.ended_envs,
-            )
+            self.client = StageClient(routing, **options)
         else:
-            self.client = StageClient.from_pods(
-                list(pod_urls or ()), timeout_s=timeout_s, transport=transport, max_answer_bytes=max_answer_bytes,
-                token=token, ended_envs=self.ended_envs,
-            )
+            self.client = StageClient.from_pods(list(pod_urls or ()), **options)
         try:
             self._setup(num_envs)
         except BaseException:
@@ -182,18 +178,8 @@ class HTTPVectorEnv(VectorEnv):
             raise
 
     def _setup(self, num_envs: int | None) -> None:
-        self.routed_envs = routed_envs(self.client.routing)
-        if not self.routed_envs:
-            raise ValueError(
-                f"routing table generation {self.client.routing.generation} has no envs; is the job ready?"
-            )
-        if num_envs is not None:
-            if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or not 1 <= num_envs <= len(self.routed_envs):
-                raise ValueError(
-                    f"num_envs={num_envs!r} but the job has {len(self.routed_envs)} envs; ask for 1..{len(self.routed_envs)} "
-                    "(the first num_envs of them) or leave num_envs out (all)"
-                )
-            self.routed_envs = self.routed_envs[: int(num_envs)]
+        self._envs = EnvRoutes(self.client, num_envs)
+        self.routed_envs = self._envs.routed
         self.num_envs = len(self.routed_envs)
         self.single_observation_space = self.client.observation_space
         self.single_action_space = self.client.served_action_space
@@ -211,9 +197,7 @@ class HTTPVectorEnv(VectorEnv):
         if missing:
             raise ValueError(f"the pods' /v1/info names no number of initial states for task(s) {missing}")
         self._draws = StateDraws(self.task_ids, {t: known[t] for t in set(self.task_ids)})
-        self._keys = [f"env{i}" for i in range(self.num_envs)]
-        self._key_index = {key: i for i, key in enumerate(self._keys)}
-        self._route_envs({})
+        self._keys = self._envs.keys
         self._results = EnvResults(
             self.single_observation_space, self._keys, self.task_ids, self._native, self.autoreset_mode
         )
@@ -266,13 +250,13 @@ class HTTPVectorEnv(VectorEnv):
         # One generator per env, as each of gymnasium's envs has its own: a seed reseeds it.
         reseeded = self._draws.reseeded(seeds, indices)
         if self._native and options.get("state_ids") is None:
-            self._place_lost_envs(mask)
+            self._envs.place_lost(mask)
             self._draws.take(reseeded)
             self._pending = self.client.call(seeds={self._keys[i]: seeds[i] for i in indices}, options=env_options)
             self._pending_fixed = False
         else:
             state_ids = self._draws.state_ids(reseeded, options.get("state_ids"), mask)
-            self._place_lost_envs(mask)
+            self._envs.place_lost(mask)
             self._draws.take(reseeded)
             self._pending = self.client.call(reset={self._keys[i]: int(state_ids[i]) for i in indices})
             self._pending_fixed = True
@@ -307,36 +291,6 @@ class HTTPVectorEnv(VectorEnv):
             result = self._results.take_reset(batch, self._pending_fixed)[0]
         self._results.raise_env_errors(batch)
         return result
-
-    def _place_lost_envs(self, mask: np.ndarray) -> None:
-        """Route the masked envs whose pod's envs went away with a routing change back to their
-        own ``(pod, env_index)``, if the job still has the same envs (a pod that came back into
-        its plan slot).
-
-        Raises:
-            ClientError: the job's envs are no longer this vector env's (names the generation).
-        """
-        live = self.client.routes
-        lost = [int(i) for i in np.flatnonzero(mask) if self._keys[i] not in live]
-        if not lost:
-            return
-        table = self.client.routing
-        if routed_envs(table) != self.routed_envs:
-            raise ClientError(
-                f"the job's envs changed at routing generation {table.generation}: envs {lost} "
-                f"({', '.join(self._keys[i] for i in lost)}) lost their envs; close this HTTPVectorEnv "
-                "and make a new one"
-            )
-        self._route_envs(live)
-
-    def _route_envs(self, live: Mapping[str, TrajRoute]) -> None:
-        """Route each env to its own ``(pod, env_index)``: ``live``'s route where it has one."""
-        self.client.set_routes(
-            {
-                key: live.get(key) or TrajRoute(routed.pod, routed.env_index, routed.task_id, routed.stage_id, 0)
-                for key, routed in zip(self._keys, self.routed_envs)
-            }
-        )
 
     @property
     def np_random_seed(self) -> tuple[int, ...]:
@@ -568,5 +522,4 @@ class HTTPVectorEnv(VectorEnv):
     def routes(self) -> Mapping[int, TrajRoute]:
         """Env index -> its fixed ``(pod, env_index, task_id, stage_id, state_id)``; an env whose
         pod's envs went away with a routing change is left out until it is reset."""
-        routes = self.client.routes
-        return {i: routes[key] for i, key in enumerate(self._keys) if key in routes}
+        return self._envs.by_env()
