@@ -196,7 +196,7 @@ class HTTPVectorEnv(VectorEnv):
         missing = sorted(set(self.task_ids) - set(known))
         if missing:
             raise ValueError(f"the pods' /v1/info names no number of initial states for task(s) {missing}")
-        self._draws = StateDraws(self.task_ids, {t: known[t] for t in set(self.task_ids)})
+        self._draws = self._state_draws(self.task_ids, {t: known[t] for t in set(self.task_ids)})
         self._keys = self._envs.keys
         self._results = EnvResults(
             self.single_observation_space, self._keys, self.task_ids, self._native, self.autoreset_mode
@@ -240,7 +240,8 @@ class HTTPVectorEnv(VectorEnv):
             )
         options = dict(options or {})
         env_options = {k: v for k, v in options.items() if k not in _RESET_OPTIONS}
-        if env_options and (not self._native or options.get("state_ids") is not None):
+        resets_itself = self._resets_itself(options)
+        if env_options and not resets_itself:
             # As a gymnasium env ignores options it does not know (LeRobot's rollout passes its
             # own), those that no env here reads are dropped; vecsim's own are still checked.
             logger.debug("reset options %s go to no env here; ignored", sorted(env_options))
@@ -249,7 +250,7 @@ class HTTPVectorEnv(VectorEnv):
         indices = np.flatnonzero(mask)
         # One generator per env, as each of gymnasium's envs has its own: a seed reseeds it.
         reseeded = self._draws.reseeded(seeds, indices)
-        if self._native and options.get("state_ids") is None:
+        if resets_itself:
             self._envs.place_lost(mask)
             self._draws.take(reseeded)
             self._pending = self.client.call(seeds={self._keys[i]: seeds[i] for i in indices}, options=env_options)
@@ -262,6 +263,16 @@ class HTTPVectorEnv(VectorEnv):
             self._pending_fixed = True
         self._pending_mask = mask
         self._state = AsyncState.WAITING_RESET
+
+    def _state_draws(self, task_ids: list[str], num_states: dict[str, int]) -> StateDraws:
+        """How the envs' state ids are drawn for resets and autoresets that name none (a subclass
+        may count them as its trainer's own env does)."""
+        return StateDraws(task_ids, num_states)
+
+    def _resets_itself(self, options: dict[str, Any]) -> bool:
+        """Whether a reset with ``options`` is each env's own reset (seeds and the env's options go
+        to the env), not one to fixed initial states (``state_ids``, drawn or given)."""
+        return self._native and options.get("state_ids") is None
 
     def reset_wait(self, timeout: float | None = None) -> tuple[Any, dict[str, Any]]:
         """Wait for the reset sent by :meth:`reset_async`; return ``(obs, info)``.

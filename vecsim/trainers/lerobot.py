@@ -27,6 +27,7 @@ from gymnasium.vector import AsyncVectorEnv
 from gymnasium.vector.vector_env import AutoresetMode
 
 from vecsim.client.vector_env import HTTPVectorEnv
+from vecsim.client.vector_resets import StateDraws, env_seeds, reset_mask
 from vecsim.config import LEROBOT_RESETS
 
 __all__ = ["LEROBOT_CAMERA_KEYS", "LeRobotVectorEnv"]
@@ -74,6 +75,26 @@ class _EnvView:
     def render(self) -> np.ndarray:
         """This env's frame: the first camera of its last observation, as LeRobot renders it."""
         return self._vector.render_frames()[self._index]
+
+
+class _LeRobotDraws(StateDraws):
+    """State ids as LeRobot's ``LiberoEnv`` takes them: env ``i`` of ``n`` starts its ``k``-th
+    reset (every reset counted: its own, the one inside a terminating step, the autoreset after
+    it) in init state ``(i + k * n) % num_states``."""
+
+    def __init__(self, task_ids: list[str], num_states: Mapping[str, int]) -> None:
+        super().__init__(task_ids, num_states)
+        self.resets = np.zeros(len(task_ids), dtype=np.int64)  # each env's resets so far
+
+    def next_state(self, i: int) -> int:
+        """Env ``i``'s next ``init_state_id``."""
+        return int((i + self.resets[i] * len(self.task_ids)) % self.num_states[self.task_ids[i]])
+
+    def draw(self, i: int, reseeded: Any = None) -> int:
+        """An unseeded reset or autoreset of env ``i``: its next ``init_state_id``, counted."""
+        state_id = self.next_state(i)
+        self.resets[i] += 1
+        return state_id
 
 
 class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
@@ -155,7 +176,6 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         )
         self.metadata = {**self.metadata, "render_modes": ["rgb_array"], "render_fps": render_fps}
         self.render_mode = "rgb_array"
-        self._lerobot_resets = np.zeros(self.num_envs, dtype=np.int64)  # each env's resets so far, LeRobot's count
         self.max_episode_steps = tuple(int(steps) for steps in super()._attr("get_attr", "max_episode_steps", None))
         self.envs = [_EnvView(self, i) for i in range(self.num_envs)]
 
@@ -175,20 +195,20 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         if plan is None:
             super().reset_async(seed=seed, options=options)
             return
-        # LeRobot's reset is each LIBERO env's own seeded reset: the base class's path for envs
-        # that reset themselves, with the plan as the options every env of the call reads.
-        self._native = True
-        try:
-            super().reset_async(seed=seed, options={**options, LEROBOT_RESETS: plan})
-        finally:
-            self._native = False
-        self._lerobot_resets[self._reset_mask(options.get("reset_mask"))] += 1
+        # LeRobot's reset is each LIBERO env's own seeded reset (see _resets_itself), with the
+        # plan as the options every env of the call reads.
+        super().reset_async(seed=seed, options={**options, LEROBOT_RESETS: plan})
+        self._draws.resets[reset_mask(options.get("reset_mask"), self.num_envs)] += 1
+
+    def _resets_itself(self, options: dict[str, Any]) -> bool:
+        """A reset carrying LeRobot's plan is the LIBERO envs' own seeded reset."""
+        return LEROBOT_RESETS in options or super()._resets_itself(options)
 
     def _lerobot_plan(self, seed: Any, options: dict[str, Any]) -> dict[str, dict[str, int]] | None:
         """The reset option :data:`LEROBOT_RESETS` for a seeded reset, None for the others."""
         if options.get("state_ids") is not None:
             return None
-        seeds, mask = self._seeds(seed), self._reset_mask(options.get("reset_mask"))
+        seeds, mask = env_seeds(seed, self.num_envs), reset_mask(options.get("reset_mask"), self.num_envs)
         reset = np.flatnonzero(mask).tolist()
         seeded = [i for i in reset if seeds[i] is not None]
         if not seeded:
@@ -200,20 +220,13 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         for i in seeded:
             if seeds[i] > _MAX_LIBERO_SEED:
                 raise ValueError(f"seed for env {i} is {seeds[i]}; LIBERO's env.seed takes 0..{_MAX_LIBERO_SEED}")
-            entry = {"state_id": self._state_of(i), "resets_before": int(self._lerobot_resets[i])}
+            entry = {"state_id": self._draws.next_state(i), "resets_before": int(self._draws.resets[i])}
             if plan.setdefault(str(seeds[i]), entry) != entry:
                 raise ValueError(f"seed {seeds[i]} is given to envs of different init states; give each env its own seed")
         return plan
 
-    def _state_of(self, i: int) -> int:
-        """Env ``i``'s next ``init_state_id``, as LeRobot's ``LiberoEnv`` counts it."""
-        return int((i + self._lerobot_resets[i] * self.num_envs) % self._num_states[self.task_ids[i]])
-
-    def _draw_state_id(self, i: int, reseeded: Any = None) -> int:
-        """An unseeded reset or autoreset of env ``i``: LeRobot's next ``init_state_id``."""
-        state_id = self._state_of(i)
-        self._lerobot_resets[i] += 1
-        return state_id
+    def _state_draws(self, task_ids: list[str], num_states: dict[str, int]) -> StateDraws:
+        return _LeRobotDraws(task_ids, num_states)
 
     # -- answers in LeRobot's layout ------------------------------------------------------------
 
@@ -228,7 +241,7 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         obs, reward, terminated, truncated, info = super().step_wait(timeout)
         info = _with_is_success(info)
         # LeRobot's LiberoEnv.step resets the env itself when it terminates (never truncates).
-        self._lerobot_resets += terminated if terminated.ndim == 1 else terminated.any(axis=1)
+        self._draws.resets += terminated if terminated.ndim == 1 else terminated.any(axis=1)
         ended = terminated | truncated
         ended = ended if ended.ndim == 1 else ended.any(axis=1)
         if "final_info" in info:  # SAME_STEP: the step's own info of the envs that were reset
@@ -256,7 +269,7 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         """Every env's frame ``[num_envs, H, W, 3]``: its first camera's image of the last
         observation, turned 180 degrees (``raw[::-1, ::-1]``, LeRobot's ``LiberoEnv.render``)."""
         self._assert_open()
-        return np.ascontiguousarray(self._obs["images"][self._render_camera][:, ::-1, ::-1])
+        return np.ascontiguousarray(self._results.obs["images"][self._render_camera][:, ::-1, ::-1])
 
     def render(self) -> tuple[np.ndarray, ...]:
         """Each env's frame (see :meth:`render_frames`)."""
