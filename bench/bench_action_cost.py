@@ -64,8 +64,9 @@ def policy_stream(space: Any, k: int = PIPELINE_K) -> Callable[[int], np.ndarray
     return lambda step: np.clip(offsets[step % k], low, high)
 
 
-def measure(envs: list[Any], streams: dict[str, list[Callable[[int], np.ndarray]]], actions: int, rounds: int
-            ) -> tuple[dict[str, list[float]], dict[str, list[float]], list[float]]:
+def measure(
+    envs: list[Any], streams: dict[str, list[Callable[[int], np.ndarray]]], actions: int, rounds: int
+) -> tuple[dict[str, list[float]], dict[str, list[float]], list[float]]:
     """Per stream and round: physics ms per env-step over all envs; also per task (ms per step,
     per stream, over the rounds) and the reset seconds of every round."""
     per_task: dict[str, list[float]] = {name: [0.0] * len(envs) for name in streams}
@@ -147,15 +148,22 @@ def main() -> int:
         "ratio_by_stream": {name: r["median"] for name, r in ratios.items()},
         "ratio_spread": ratios,
         "physics_ms_per_env_step": ms,
-        "per_task_ms_per_env_step": {task: {name: round(per_task[name][i], 3) for name in streams}
-                                     for i, task in enumerate(tasks)},
+        "per_task_ms_per_env_step": {
+            task: {name: round(per_task[name][i], 3) for name in streams} for i, task in enumerate(tasks)
+        },
         "reset_s_per_env": round(statistics.median(resets) / len(envs), 4),
         "quick": args.quick,
-        "setup": {"tasks": tasks, "actions": actions, "rounds": rounds, "cpu": args.cpu, "streams": {
-            "random": "uniform within +-0.3, a table of 64 per env (bench_chunks' ceiling)",
-            "sine": "lib.measure.scripted_actions: half of each dimension's range (the service alone)",
-            "policy": "zero plus ChunkedPolicy's 2% sine within chunks of 8 (the loop, an untrained policy)",
-        }},
+        "setup": {
+            "tasks": tasks,
+            "actions": actions,
+            "rounds": rounds,
+            "cpu": args.cpu,
+            "streams": {
+                "random": "uniform within +-0.3, a table of 64 per env (bench_chunks' ceiling)",
+                "sine": "lib.measure.scripted_actions: half of each dimension's range (the service alone)",
+                "policy": "zero plus ChunkedPolicy's 2% sine within chunks of 8 (the loop, an untrained policy)",
+            },
+        },
     }
     path = write_result("bench_action_cost" + ("_quick" if args.quick else ""), summary, {"per_round": figures})
     log.info("wrote %s", path)

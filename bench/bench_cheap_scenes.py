@@ -36,7 +36,16 @@ import logging
 from typing import Any
 
 import gymnasium
-from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
+from lib.pods import (
+    READY_TIMEOUT_S,
+    interleaved,
+    paired_ratio,
+    rate_spread,
+    setup_logging,
+    standalone_pods,
+    stepper,
+    wait_for_quiet,
+)
 from lib.records import write_result
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
@@ -51,14 +60,23 @@ TARGET_CHEAP = 3.0  # pod_auto / async on cheap scenes
 TARGET_ROBOSUITE = 1.0  # pod_auto / async on robosuite: no slower
 
 
-def _assignment(name: str, blocks: list[tuple[str, int]], camera: CameraConfig, per_worker: int, cap: int) -> Assignment:
+def _assignment(
+    name: str, blocks: list[tuple[str, int]], camera: CameraConfig, per_worker: int, cap: int
+) -> Assignment:
     tasks, start = [], 0
     for task_id, n in blocks:
         tasks.append(TaskBlock(task_id=task_id, env_start=start, num_envs=n))
         start += n
     return Assignment(
-        generation=0, job_id="bench", pod=name, stage_id=0, tasks=tuple(tasks), camera=camera,
-        render="lean", envs_per_worker=per_worker, max_episode_steps=cap,
+        generation=0,
+        job_id="bench",
+        pod=name,
+        stage_id=0,
+        tasks=tuple(tasks),
+        camera=camera,
+        render="lean",
+        envs_per_worker=per_worker,
+        max_episode_steps=cap,
     )
 
 

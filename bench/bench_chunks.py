@@ -66,7 +66,18 @@ from typing import Any
 
 import numpy as np
 import torch
-from lib.jobs import Plan, STAGE_LAYOUTS, camera, job_config, parse_stage_layouts, regroup, regroup_slices, requests_for, running_job, wait_for_job
+from lib.jobs import (
+    Plan,
+    STAGE_LAYOUTS,
+    camera,
+    job_config,
+    parse_stage_layouts,
+    regroup,
+    regroup_slices,
+    requests_for,
+    running_job,
+    wait_for_job,
+)
 from lib.machine import MemoryWatch, cores_first, cpu_topology, gl_probe, gpu_name, split_cores
 from lib.measure import Deadline, Measured, TimedStageClient, counted, interleave, loop_rollout, scripted_actions
 from lib.policies import PIPELINE_K, ChunkedPolicy, GraphedPolicy, VisionPolicy, forward_ms, parameters_m, pod_multiples
@@ -85,7 +96,14 @@ CHUNK_TARGET = 1.5  # loop at K = 8 over K = 1
 PHYSICS_TARGET = 0.8  # the node at K = 8 over the physics-only rate of the same cores
 CEILING_TARGET = 0.9  # EnvLoop at K = 8 over the ceiling: the same cores with cameras once per K (issue 27)
 # --quick: the sizes of --cpu-small's smoke run (flags given on the command line win).
-QUICK = {"tasks": "gym/HalfCheetah-v5", "envs_per_task": 2, "size": 16, "actions": 8, "chunks": "1,8", "physics_seconds": 0.5}
+QUICK = {
+    "tasks": "gym/HalfCheetah-v5",
+    "envs_per_task": 2,
+    "size": 16,
+    "actions": 8,
+    "chunks": "1,8",
+    "physics_seconds": 0.5,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,8 +147,11 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
         live = {s: client.stage_traj_keys(s) for s in stages}
         for first in range(0, actions, k):
             size = min(k, actions - first)
-            calls = {s: client.step_stage(s, dict(zip(keys, scripted_chunk(space, first, size, len(keys)))))
-                     for s, keys in live.items() if keys}
+            calls = {
+                s: client.step_stage(s, dict(zip(keys, scripted_chunk(space, first, size, len(keys)))))
+                for s, keys in live.items()
+                if keys
+            }
             for stage, call in calls.items():
                 batch = call.result(timeout_s)
                 timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
@@ -138,31 +159,44 @@ def service_chunks(client: StageClient, actions: int, k: int, timeout_s: float) 
                 ended = (batch.terminated | batch.truncated).any(axis=1)
                 live[stage] = [key for key, end in zip(batch.traj_keys, ended) if not end]
         finished = time.perf_counter()
-    stats = RolloutStats(num_trajectories=len(routes), env_steps=applied, wall_s=finished - started,
-                         env_steps_per_s=applied / max(finished - stepping, 1e-9), simulation_s=finished - started,
-                         timeline=sorted(timeline, key=lambda item: item[2]))
+    stats = RolloutStats(
+        num_trajectories=len(routes),
+        env_steps=applied,
+        wall_s=finished - started,
+        env_steps_per_s=applied / max(finished - stepping, 1e-9),
+        simulation_s=finished - started,
+        timeline=sorted(timeline, key=lambda item: item[2]),
+    )
     return Measured(stats, **seen)
 
 
-def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Deadline,
-            bare: CeilingProcesses) -> dict[str, Any]:
+def measure(
+    plan: Plan, settings: Settings, job: Any, table: Any, deadline: Deadline, bare: CeilingProcesses
+) -> dict[str, Any]:
     """Every contender (module docstring) and the ceiling (``bare``'s processes, run while the pods
     idle) in interleaved rounds."""
     names = [f"sim-{i}" for i in range(plan.pods)]
     one = TimedStageClient(regroup(table, names, 1), token=job.token, timeout_s=300)
-    two = (TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
-           if plan.pods > 1 and "pods" in plan.stage_layouts else None)
+    two = (
+        TimedStageClient(regroup(table, names, 2), token=job.token, timeout_s=300)
+        if plan.pods > 1 and "pods" in plan.stage_layouts
+        else None
+    )
     # Two stages as slices of every pod: each pod has the other stage's call queued while the
     # policy works on one, so it does not idle between its calls.
-    sliced = (TimedStageClient(regroup_slices(table, names, 2), token=job.token, timeout_s=300)
-              if "slices" in plan.stage_layouts else None)
+    sliced = (
+        TimedStageClient(regroup_slices(table, names, 2), token=job.token, timeout_s=300)
+        if "slices" in plan.stage_layouts
+        else None
+    )
     try:
         space, action = one.observation_space, one.action_space
         policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
         sizes = [one.routing.num_envs, *([s.num_envs for s in two.routing.stages] if two else [])]
         # Every multiple of a pod's envs, other batch sizes padded: none is captured in a round.
-        graphed = GraphedPolicy(policy, space, plan.device, pod_multiples(plan.envs_per_pod, max(sizes), sizes),
-                                   pad=True)
+        graphed = GraphedPolicy(
+            policy, space, plan.device, pod_multiples(plan.envs_per_pod, max(sizes), sizes), pad=True
+        )
         chunked = {k: ChunkedPolicy(graphed, action, k) for k in settings.chunks}
         policy_info = {
             "name": "ResNet-18 per camera + proprio MLP + MLP head, one forward pass per chunk",
@@ -170,8 +204,7 @@ def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Dead
             "dtype": plan.dtype,
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
-            "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
-                           for b in sorted(set(sizes))},
+            "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2) for b in sorted(set(sizes))},
         }
         log.info("policy: %s", policy_info)
         warm = min(settings.chunks[-1], settings.actions)
@@ -186,13 +219,16 @@ def measure(plan: Plan, settings: Settings, job: Any, table: Any, deadline: Dead
         for k in settings.chunks:
             contenders[f"service/K={k}"] = lambda k=k: service_chunks(one, settings.actions, k, 300)
             contenders[f"loop/K={k}"] = lambda k=k: loop_rollout(
-                one, chunked[k], settings.actions, plan.device, waves=settings.waves)
+                one, chunked[k], settings.actions, plan.device, waves=settings.waves
+            )
         if two is not None and PIPELINE_K in chunked:
             contenders[f"loop_stages=2/K={PIPELINE_K}"] = lambda: loop_rollout(
-                two, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
+                two, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves
+            )
         if sliced is not None and PIPELINE_K in chunked:
             contenders[f"loop_slices=2/K={PIPELINE_K}"] = lambda: loop_rollout(
-                sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves)
+                sliced, chunked[PIPELINE_K], settings.actions, plan.device, waves=settings.waves
+            )
         contenders["ceiling"] = lambda: CeilingRound(bare.measure(), ceiling_key(settings.headline_k, 0))
         runs = interleave(contenders, plan.rounds, deadline, reserve_s=10)
     finally:
@@ -292,8 +328,12 @@ def run(args: argparse.Namespace) -> int:
     log.info("physics only: %d processes on %s, %.0f s", plan.pods, pod_pins, settings.physics_seconds)
     physics = physics_only(pod_pins, plan.tasks, settings.physics_seconds, min(deadline.left(), 300.0))
     log.info("physics only: %.1f env-steps/s", physics["env_steps_per_s"])
-    log.info("ceiling: %d processes, cameras %s once per K, %g s per K, in every round",
-             plan.pods, camera(plan), settings.physics_seconds)
+    log.info(
+        "ceiling: %d processes, cameras %s once per K, %g s per K, in every round",
+        plan.pods,
+        camera(plan),
+        settings.physics_seconds,
+    )
 
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
@@ -302,46 +342,67 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     with (
         MemoryWatch(plan.max_memory_gib) as memory,
-        CeilingProcesses(pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions,
-                         min(deadline.left(), 300.0)) as bare,
+        CeilingProcesses(
+            pod_pins, plan, settings.chunks, settings.physics_seconds, settings.actions, min(deadline.left(), 300.0)
+        ) as bare,
         running_job(config, args.copy_to) as job,
     ):
         table = wait_for_job(job, max(60.0, min(600.0, deadline.left())))
         build_s = time.monotonic() - started
-        log.info("%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left())
+        log.info(
+            "%d pods and the ceiling's processes ready in %.0f s, %.0f s left", plan.pods, build_s, deadline.left()
+        )
         measured = measure(plan, settings, job, table, deadline, bare)
 
     node = physics["env_steps_per_s"]
     top = measured.pop("ceiling")
     per_round = measured["per_round"]
     rows = [(f"{kind}/K={k}", k, measured[kind][f"K={k}"]) for kind in ("service", "loop") for k in settings.chunks]
-    rows += [(name, PIPELINE_K, measured[kind]["stages=2"])
-             for kind, name in (("pipeline", f"loop_stages=2/K={PIPELINE_K}"), ("slices", f"loop_slices=2/K={PIPELINE_K}"))
-             if kind in measured]
+    rows += [
+        (name, PIPELINE_K, measured[kind]["stages=2"])
+        for kind, name in (("pipeline", f"loop_stages=2/K={PIPELINE_K}"), ("slices", f"loop_slices=2/K={PIPELINE_K}"))
+        if kind in measured
+    ]
     for name, k, row in rows:
         row["fraction_of_physics_only"] = round(row["env_steps_per_s"]["median"] / node, 3) if node else None
         # Paired by round: each round's rate over the ceiling of the same round; the second, the
         # ceiling with a reset every --actions actions, as a rollout of that horizon has.
-        for field, key in (("fraction_of_ceiling", ceiling_key(k, 0)),
-                           ("fraction_of_ceiling_with_resets", ceiling_key(k, settings.actions))):
+        for field, key in (
+            ("fraction_of_ceiling", ceiling_key(k, 0)),
+            ("fraction_of_ceiling_with_resets", ceiling_key(k, settings.actions)),
+        ):
             paired = paired_ratio(per_round[name], per_round[f"ceiling/{key}"])
             row[field] = paired["median"]
             row[f"{field}_by_round"] = paired
     at = f"K={settings.headline_k}"
     # The best EnvLoop at K=8, whichever stage layout it used: the user picks the layout.
-    loops = {"loop/1 stage": measured["loop"].get(at, {}), "loop/2 stages (pods)": measured.get("pipeline", {}).get("stages=2", {}),
-             "loop/2 stages (slices)": measured.get("slices", {}).get("stages=2", {})}
-    best = max((name for name in loops if loops[name].get("fraction_of_ceiling")),
-               key=lambda name: loops[name]["fraction_of_ceiling"], default=None)
+    loops = {
+        "loop/1 stage": measured["loop"].get(at, {}),
+        "loop/2 stages (pods)": measured.get("pipeline", {}).get("stages=2", {}),
+        "loop/2 stages (slices)": measured.get("slices", {}).get("stages=2", {}),
+    }
+    best = max(
+        (name for name in loops if loops[name].get("fraction_of_ceiling")),
+        key=lambda name: loops[name]["fraction_of_ceiling"],
+        default=None,
+    )
     chunk_gain = measured["loop"].get(at, {}).get("over_K=1") or {}
     node_fraction = measured["loop"].get(at, {}).get("fraction_of_physics_only")
     # Where a pod's step time goes beyond the bare processes' (same cores, same task mix).
     per_env_step_ms = {
         "bare_physics_only": physics["ms_per_env_step"],
-        **{f"bare_ceiling/{k}": {key: top[k][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
-           for k in top if k.startswith("K=")},
-        **{f"pod/{kind}/{k}": {key: row["time_split_ms"][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
-           for kind in ("service", "loop") for k, row in measured[kind].items()},
+        **{
+            f"bare_ceiling/{k}": {key: top[k][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")}
+            for k in top
+            if k.startswith("K=")
+        },
+        **{
+            f"pod/{kind}/{k}": {
+                key: row["time_split_ms"][key] for key in ("physics_ms_per_env_step", "render_ms_per_env_step")
+            }
+            for kind in ("service", "loop")
+            for k, row in measured[kind].items()
+        },
     }
     print_table(measured, physics, top)
     summary: dict[str, Any] = {
@@ -351,11 +412,15 @@ def run(args: argparse.Namespace) -> int:
         "ratio": chunk_gain.get("median"),
         "ratio_of_physics_only": node_fraction,
         "ratio_of_ceiling": measured["loop"].get(at, {}).get("fraction_of_ceiling"),
-        "best_loop_of_ceiling": {"contender": best, "of_ceiling": loops[best]["fraction_of_ceiling"],
-                                 "of_ceiling_with_resets": loops[best]["fraction_of_ceiling_with_resets"]}
-        if best else None,
+        "best_loop_of_ceiling": {
+            "contender": best,
+            "of_ceiling": loops[best]["fraction_of_ceiling"],
+            "of_ceiling_with_resets": loops[best]["fraction_of_ceiling_with_resets"],
+        }
+        if best
+        else None,
         "target": f"loop K={PIPELINE_K} >= {CHUNK_TARGET}x K=1, >= {PHYSICS_TARGET} of physics-only and "
-                  f">= {CEILING_TARGET} of the ceiling",
+        f">= {CEILING_TARGET} of the ceiling",
         "met": {
             "chunks": None if chunk_gain.get("median") is None else chunk_gain["median"] >= CHUNK_TARGET,
             "physics_only": node_fraction is not None and node_fraction >= PHYSICS_TARGET,
@@ -394,15 +459,29 @@ def print_table(measured: dict[str, Any], physics: dict[str, Any], top: dict[str
         at, _, resets = k.partition("/")
         name = f"ceiling, {resets.replace('_', ' ')}" if resets else "ceiling (cameras once per K)"
         rows.append((name, at, top[k]["env_steps_per_s"], "", "" if resets else "1.0", "1.0" if resets else ""))
-    for kind, name in (("service", "service alone"), ("loop", "EnvLoop"), ("pipeline", "EnvLoop, 2 stages (pods)"),
-                       ("slices", "EnvLoop, 2 stages (slices)")):
+    for kind, name in (
+        ("service", "service alone"),
+        ("loop", "EnvLoop"),
+        ("pipeline", "EnvLoop, 2 stages (pods)"),
+        ("slices", "EnvLoop, 2 stages (slices)"),
+    ):
         if kind not in measured:
             continue
         section = {f"K={PIPELINE_K}": measured[kind]["stages=2"]} if kind in ("pipeline", "slices") else measured[kind]
         for k, row in section.items():
-            rows.append((name, k, row["env_steps_per_s"]["median"], f"{row['fraction_of_physics_only']}",
-                         f"{row['fraction_of_ceiling']}", f"{row['fraction_of_ceiling_with_resets']}"))
-    print(f"{'contender':<30} {'K':>6} {'env-steps/s':>12} {'of physics-only':>16} {'of ceiling':>11} {'with resets':>12}")
+            rows.append(
+                (
+                    name,
+                    k,
+                    row["env_steps_per_s"]["median"],
+                    f"{row['fraction_of_physics_only']}",
+                    f"{row['fraction_of_ceiling']}",
+                    f"{row['fraction_of_ceiling_with_resets']}",
+                )
+            )
+    print(
+        f"{'contender':<30} {'K':>6} {'env-steps/s':>12} {'of physics-only':>16} {'of ceiling':>11} {'with resets':>12}"
+    )
     for name, k, rate, of_physics, of_top, of_resets in rows:
         print(f"{name:<30} {k:>6} {rate:>12.1f} {of_physics:>16} {of_top:>11} {of_resets:>12}")
 
@@ -412,27 +491,40 @@ def main() -> int:
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--gpu", action="store_true", help="LIBERO-10, 256x256 x 2 cameras, 12 pods; GL must be NVIDIA's")
     mode.add_argument("--cpu-small", action="store_true", help="2 pods of tiny/lift + tiny/door, 32x32 (Mesa)")
-    mode.add_argument("--quick", action="store_true",
-                      help="--cpu-small on HalfCheetah (2 envs a pod), 16x16, 8 actions, K = 1 and 8: a smoke run")
+    mode.add_argument(
+        "--quick",
+        action="store_true",
+        help="--cpu-small on HalfCheetah (2 envs a pod), 16x16, 8 actions, K = 1 and 8: a smoke run",
+    )
     parser.add_argument("--dry", action="store_true", help="1 pod, K = 1 and 4, 4 actions, 1 round: fails fast")
     parser.add_argument("--tasks", help="comma-separated task ids every pod serves")
     parser.add_argument("--envs-per-task", type=int, help="envs per task per pod (default 1)")
     parser.add_argument("--pods", type=int, help="pods, one per core (default 12; --cpu-small 2)")
-    parser.add_argument("--chunks", help="comma-separated chunk lengths K (default 1,4,8,16; without 1, the "
-                        "chunks target (K=8 over K=1) is not measured)")
-    parser.add_argument("--waves", type=int, default=1,
-                        help="trajectories per env in each EnvLoop rollout: the envs refill as trajectories end, "
-                        "so a faster pod takes more of them (default 1: one per env)")
+    parser.add_argument(
+        "--chunks",
+        help="comma-separated chunk lengths K (default 1,4,8,16; without 1, the "
+        "chunks target (K=8 over K=1) is not measured)",
+    )
+    parser.add_argument(
+        "--waves",
+        type=int,
+        default=1,
+        help="trajectories per env in each EnvLoop rollout: the envs refill as trajectories end, "
+        "so a faster pod takes more of them (default 1: one per env)",
+    )
     parser.add_argument("--actions", type=int, help="actions per env in every rollout (default 32; --cpu-small 8)")
     parser.add_argument("--size", type=int, help="camera height and width (default 256; --cpu-small 32)")
     parser.add_argument("--rounds", type=int, help="interleaved rounds (default 2; --cpu-small 1)")
     parser.add_argument("--physics-seconds", type=float, help="length of the physics-only run (default 10)")
-    parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
-                        help="the 2-stage layouts measured at K = 8 beside 1 stage, comma-separated "
-                        "(slices, pods; default both)")
+    parser.add_argument(
+        "--stage-layout",
+        default=",".join(STAGE_LAYOUTS),
+        help="the 2-stage layouts measured at K = 8 beside 1 stage, comma-separated (slices, pods; default both)",
+    )
     parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"))
-    parser.add_argument("--max-memory-gib", type=float, default=100.0,
-                        help="stop when memory in use passes this while the pods build")
+    parser.add_argument(
+        "--max-memory-gib", type=float, default=100.0, help="stop when memory in use passes this while the pods build"
+    )
     parser.add_argument("--deadline", type=float, default=540.0, help="seconds: stop adding rounds after this")
     parser.add_argument("--copy-to", type=Path, help="also copy the JSON (and a failed job's logs) here")
     args = parser.parse_args()

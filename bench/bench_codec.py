@@ -130,9 +130,7 @@ def main() -> None:
     median = {name: spread(values)["median"] for name, values in times.items()}
     # Ratios are taken within each round (contenders ran back to back) and then the median over
     # rounds, so that load from other processes, which drifts between rounds, cancels out.
-    per_round_ratio = {
-        name: [m / t for m, t in zip(times["memcpy"], values)] for name, values in times.items()
-    }
+    per_round_ratio = {name: [m / t for m, t in zip(times["memcpy"], values)] for name, values in times.items()}
     per_round_speedup = {
         peer: [p / w for p, w in zip(times[peer], times["vecsim.wire"])] for peer in ("msgpack-numpy", "pickle")
     }

@@ -109,10 +109,16 @@ def job_for(pods: int, tasks: list[str], losses: int) -> dict[str, Any]:
 def controller_process(timing: ControllerTiming, token: str, workdir: Path, core: int) -> Iterator[str]:
     """Run ``vecsim controller`` on a free port, pinned to ``core``, until the block ends; yield its URL."""
     args = [
-        "--heartbeat-interval", str(timing.heartbeat_interval_s),
-        "--heartbeat-ttl", str(timing.heartbeat_ttl_s),
-        "--reconcile-interval", str(timing.reconcile_interval_s),
-        "--adopt-grace", "0", "--log-level", "warning",
+        "--heartbeat-interval",
+        str(timing.heartbeat_interval_s),
+        "--heartbeat-ttl",
+        str(timing.heartbeat_ttl_s),
+        "--reconcile-interval",
+        str(timing.reconcile_interval_s),
+        "--adopt-grace",
+        "0",
+        "--log-level",
+        "warning",
     ]
     with running(controller_server(workdir, args=args, token=token, wrap=("taskset", "-c", str(core)))) as server:
         yield server.url
@@ -160,7 +166,9 @@ class Fleet:
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
         await web.TCPSite(self._runner, "127.0.0.1", self.port).start()
-        pods_transport = HttpxTransport(httpx.AsyncHTTPTransport(limits=httpx.Limits(max_connections=256), trust_env=False))
+        pods_transport = HttpxTransport(
+            httpx.AsyncHTTPTransport(limits=httpx.Limits(max_connections=256), trust_env=False)
+        )
         self._client = make_async_client(pods_transport, timeout=30.0, headers=self.headers)
         await asyncio.gather(*(self._register(pod) for pod in self.pods.values()))
         interval = self.timing.heartbeat_interval_s

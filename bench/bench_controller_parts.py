@@ -66,11 +66,14 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
                 controller.mass_matrix, controller.J_full, controller.J_pos, controller.J_ori
             ),
             "controller from Python (_update + control)": python_controller,
-            "compiled controller (fused_control: mj_jacSite + osc_substep)": lambda: arm_step.fused_control(model, data),
+            "compiled controller (fused_control: mj_jacSite + osc_substep)": lambda: arm_step.fused_control(
+                model, data
+            ),
             "osc_substep (in fused_control)": lambda: kernel(*arm_step.kernel_args),
         }
-        timings = {name: min(timeit.repeat(call, number=number, repeat=repeats)) / number * 1e6
-                   for name, call in calls.items()}
+        timings = {
+            name: min(timeit.repeat(call, number=number, repeat=repeats)) / number * 1e6 for name, call in calls.items()
+        }
         scratch = mujoco.MjData(model)
         spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
         state = np.empty(mujoco.mj_stateSize(model, spec))
@@ -82,7 +85,9 @@ def parts(task_id: str, number: int, repeats: int) -> dict[str, float]:
                 mujoco.mj_step(model, scratch)
 
         timings["mj_step (floor, mean of 25 from the same state)"] = (
-            min(timeit.repeat(mj_steps, number=max(1, number // 25), repeat=repeats)) / (max(1, number // 25) * 25) * 1e6
+            min(timeit.repeat(mj_steps, number=max(1, number // 25), repeat=repeats))
+            / (max(1, number // 25) * 25)
+            * 1e6
         )
         return {name: round(value, 2) for name, value in timings.items()}
     finally:
@@ -106,8 +111,13 @@ def main() -> int:
     summary = {
         "task": args.task,
         "fastest_us": microseconds,
-        "setup": {"number": args.number, "repeats": args.repeats, "pinned_to": cpu,
-                  "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg()},
+        "setup": {
+            "number": args.number,
+            "repeats": args.repeats,
+            "pinned_to": cpu,
+            "load_average_at_start": load_at_start,
+            "load_average_at_end": os.getloadavg(),
+        },
     }
     suffix = f"_{args.tag}" if args.tag else ""
     write_result("bench_controller_parts" + suffix, summary)

@@ -93,11 +93,15 @@ def main() -> None:
                         step: dict[str, Any] = {}
                     else:
                         batch = last[pod]
-                        obs = {"images": {c: torch.from_numpy(np.asarray(v)) for c, v in batch.obs["images"].items()},
-                               "proprio": torch.from_numpy(np.asarray(batch.obs["proprio"]))}
+                        obs = {
+                            "images": {c: torch.from_numpy(np.asarray(v)) for c, v in batch.obs["images"].items()},
+                            "proprio": torch.from_numpy(np.asarray(batch.obs["proprio"])),
+                        }
                         begin = time.perf_counter()
                         with torch.no_grad():
-                            actions = policy(obs, [client.instructions.get(t, "") for t in batch.task_ids], batch.task_ids)
+                            actions = policy(
+                                obs, [client.instructions.get(t, "") for t in batch.task_ids], batch.task_ids
+                            )
                         policy_s = time.perf_counter() - begin
                         step = {key: actions[j].numpy() for j, key in enumerate(batch.traj_keys)}
                     before = pod_counters(urls[pod])
@@ -106,8 +110,13 @@ def main() -> None:
                     client_s = time.perf_counter() - begin
                     after = pod_counters(urls[pod])
                     last[pod] = answer[1] if step else answer[0]
-                    row = {"call": call, "kind": "step" if step else "reset", "client_s": client_s, "policy_s": policy_s,
-                           **{f"{k}_s": after[k] - before[k] for k in COUNTERS}}
+                    row = {
+                        "call": call,
+                        "kind": "step" if step else "reset",
+                        "client_s": client_s,
+                        "policy_s": policy_s,
+                        **{f"{k}_s": after[k] - before[k] for k in COUNTERS},
+                    }
                     per_pod.setdefault(pod, []).append(row)
                     print(
                         f"{pod} {row['kind']} {call}: client {client_s:.3f} s, pod step {row['step_s']:.3f} s "

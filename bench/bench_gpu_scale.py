@@ -93,8 +93,30 @@ from lib.records import img_dir, write_result
 
 from vecsim.config import RoutingTable
 from lib.policies import VisionPolicy, calibrate_vit, forward_ms, GraphedPolicy, pod_multiples, parameters_m
-from lib.machine import gl_probe, gpu_name, gpu_process_table, cpu_topology, cores_first, split_cores, memory_gib, MemoryWatch, physical_core_of
-from lib.jobs import STAGE_LAYOUTS, Plan, parse_stage_layouts, camera, job_config, running_job, wait_for_job, pod_processes, regroup, regroup_slices, requests_for
+from lib.machine import (
+    gl_probe,
+    gpu_name,
+    gpu_process_table,
+    cpu_topology,
+    cores_first,
+    split_cores,
+    memory_gib,
+    MemoryWatch,
+    physical_core_of,
+)
+from lib.jobs import (
+    STAGE_LAYOUTS,
+    Plan,
+    parse_stage_layouts,
+    camera,
+    job_config,
+    running_job,
+    wait_for_job,
+    pod_processes,
+    regroup,
+    regroup_slices,
+    requests_for,
+)
 from lib.measure import TimedStageClient, Measured, Chunked, loop_rollout, service_rollout, Deadline, interleave
 from lib.stats import PIPELINE_TARGET, SCALING_TARGET, breakdown, core_overlap, summarise, waiting
 from lib.render_compare import render_compare
@@ -121,9 +143,13 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
     per_pod: dict[int, TimedStageClient] = {}
     try:
         for p in plan.pod_counts:
-            clients[p] = TimedStageClient(regroup(table, names[:p], 1), token=job.token, timeout_s=300, ended_envs="step")
+            clients[p] = TimedStageClient(
+                regroup(table, names[:p], 1), token=job.token, timeout_s=300, ended_envs="step"
+            )
             if p > 1:
-                per_pod[p] = TimedStageClient(regroup(table, names[:p], p), token=job.token, timeout_s=300, ended_envs="step")
+                per_pod[p] = TimedStageClient(
+                    regroup(table, names[:p], p), token=job.token, timeout_s=300, ended_envs="step"
+                )
         full = clients[plan.pods]
         space, action = full.observation_space, full.action_space
         policy = VisionPolicy(space, action, device=plan.device, dtype=plan.torch_dtype)
@@ -135,8 +161,9 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
             "dtype": plan.dtype,
             "device": plan.device,
             "cuda_graphs": graphed.graphed,
-            "forward_ms": {str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2)
-                           for b in sorted(set(sizes.values()))},
+            "forward_ms": {
+                str(b): round(forward_ms(graphed, space, b, 5, plan.device), 2) for b in sorted(set(sizes.values()))
+            },
         }
         log.info("policy: %s", policy_info)
         for p, client in clients.items():  # warm-up: connections open, caches filled, kernels picked
@@ -151,7 +178,8 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
             contenders[f"loop/pods={p}"] = lambda c=client: loop_rollout(c, graphed, plan.horizon, plan.device)
             if p in per_pod:
                 contenders[f"loop_per_pod/pods={p}"] = lambda c=per_pod[p]: loop_rollout(
-                    c, graphed, plan.horizon, plan.device)
+                    c, graphed, plan.horizon, plan.device
+                )
         runs = interleave(contenders, plan.rounds, deadline, reserve_s=20)
     finally:
         for client in [*clients.values(), *per_pod.values()]:
@@ -168,7 +196,8 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
             section[f"pods={p}"] = summarise(rounds)
             if one is not None:
                 section[f"pods={p}"]["fraction_of_linear"] = paired_ratio(
-                    [m.env_steps_per_s for m in rounds], [p * x for x in one])
+                    [m.env_steps_per_s for m in rounds], [p * x for x in one]
+                )
         result[kind] = section
     result["per_round"] = {name: [round(m.env_steps_per_s, 2) for m in v] for name, v in runs.items()}
     return result
@@ -211,41 +240,62 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         k = plan.chunk
         for client in (one, clients["half"]):  # warm-up
             service_rollout(client, min(plan.service_steps, 2), 300, k)
-        service = interleave({"service/stages=1": lambda: service_rollout(one, plan.service_steps, 300, k),
-                              "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300, k)},
-                             plan.rounds, deadline, reserve_s=0.6 * max(deadline.left(), 0))
+        service = interleave(
+            {
+                "service/stages=1": lambda: service_rollout(one, plan.service_steps, 300, k),
+                "service/half": lambda: service_rollout(clients["half"], plan.service_steps, 300, k),
+            },
+            plan.rounds,
+            deadline,
+            reserve_s=0.6 * max(deadline.left(), 0),
+        )
         target_ms = breakdown(service["service/stages=1"])["stage_call_ms"]
         batch = one.routing.num_envs
-        stage_sizes = sorted({stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages}
-                             | {stage.num_envs for routing in more_stages.values() for stage in routing.stages})
+        stage_sizes = sorted(
+            {stage.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages}
+            | {stage.num_envs for routing in more_stages.values() for stage in routing.stages}
+        )
         space, action = one.observation_space, one.action_space
         # Without lockstep the loop's policy calls take batches of many sizes, mostly whole lanes'
         # answers (a lane: one stage's envs on one pod); a size met first inside a timed round would
         # be captured there (seconds for this ViT). So every multiple of a lane's envs is captured
         # up front and other sizes padded. More stages' lanes are not (a pod's envs split three
         # ways leave lanes of one env); their whole stages are, and part stages are padded.
-        lane = math.gcd(*(p.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages
-                          for p in stage.pods), plan.envs_per_pod)
-        graphed, policy_info = calibrate_vit(plan, space, action, batch, target_ms, [batch, *stage_sizes],
-                                             pod_multiples(lane, batch))
+        lane = math.gcd(
+            *(p.num_envs for layout in plan.stage_layouts for stage in two_stages[layout].stages for p in stage.pods),
+            plan.envs_per_pod,
+        )
+        graphed, policy_info = calibrate_vit(
+            plan, space, action, batch, target_ms, [batch, *stage_sizes], pod_multiples(lane, batch)
+        )
         policy = Chunked(graphed, k)
         # Each contender: (its client, its batch_wait_s); for each compare_batch_wait_s, each
         # 2-stage layout again, waiting that long for more of a stage's pods before the policy runs.
-        contenders = {name: (name, plan.batch_wait_s)
-                      for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]}
-        contenders.update({waiting(layout, wait): (f"{layout}/stages=2", wait)
-                           for wait in plan.compare_batch_wait_s for layout in plan.stage_layouts})
+        contenders = {
+            name: (name, plan.batch_wait_s)
+            for name in ["stages=1", *(f"{layout}/stages=2" for layout in plan.stage_layouts)]
+        }
+        contenders.update(
+            {
+                waiting(layout, wait): (f"{layout}/stages=2", wait)
+                for wait in plan.compare_batch_wait_s
+                for layout in plan.stage_layouts
+            }
+        )
         for n in plan.compare_stages:
             contenders[f"slices/stages={n}"] = (f"slices/stages={n}", plan.batch_wait_s)
-            contenders.update({waiting("slices", wait, n): (f"slices/stages={n}", wait)
-                               for wait in plan.compare_batch_wait_s})
+            contenders.update(
+                {waiting("slices", wait, n): (f"slices/stages={n}", wait) for wait in plan.compare_batch_wait_s}
+            )
         # Warm-up: a short rollout per contender (connections, the pods' first renders); the
         # policy's batch sizes are all captured already.
         for client_name, wait in contenders.values():
             loop_rollout(clients[client_name], policy, min(plan.horizon, WARMUP_HORIZON), plan.device, wait)
         log.info("warm-up done, %.0f s left", deadline.left())
-        runs = {name: (lambda c=clients[client_name], w=wait: loop_rollout(c, policy, plan.horizon, plan.device, w))
-                for name, (client_name, wait) in contenders.items()}
+        runs = {
+            name: (lambda c=clients[client_name], w=wait: loop_rollout(c, policy, plan.horizon, plan.device, w))
+            for name, (client_name, wait) in contenders.items()
+        }
         # One stage in lockstep: the whole stage's answers before each policy call.
         runs["stages=1/lockstep"] = lambda: loop_rollout(one, policy, plan.horizon, plan.device, LOCKSTEP_WAIT_S)
         loops = interleave(runs, plan.rounds, deadline, reserve_s=20)
@@ -253,20 +303,29 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         for client in clients.values():
             client.close()
     rates = {name: [m.env_steps_per_s for m in runs] for name, runs in loops.items()}
-    compared = [{
-        "batch_wait_s": wait,
-        # Over the same layout at --batch-wait-s (default 0: no wait).
-        "speedup_over_same_layout": {
-            layout: paired_ratio(rates[waiting(layout, wait)], rates[f"{layout}/stages=2"]) for layout in plan.stage_layouts},
-        "speedup_2_vs_1_lockstep": {
-            layout: paired_ratio(rates[waiting(layout, wait)], rates["stages=1/lockstep"]) for layout in plan.stage_layouts},
-    } for wait in plan.compare_batch_wait_s]
+    compared = [
+        {
+            "batch_wait_s": wait,
+            # Over the same layout at --batch-wait-s (default 0: no wait).
+            "speedup_over_same_layout": {
+                layout: paired_ratio(rates[waiting(layout, wait)], rates[f"{layout}/stages=2"])
+                for layout in plan.stage_layouts
+            },
+            "speedup_2_vs_1_lockstep": {
+                layout: paired_ratio(rates[waiting(layout, wait)], rates["stages=1/lockstep"])
+                for layout in plan.stage_layouts
+            },
+        }
+        for wait in plan.compare_batch_wait_s
+    ]
     return {
         **({"batch_wait": compared} if compared else {}),
         "policy": {**policy_info, "chunk": plan.chunk, "graphs": graphed.describe()},
         "service": {name.split("/")[1]: summarise(runs) for name, runs in service.items()},
         # Pods i and i+C share core i: how often they simulate at once (0 with a pod a core).
-        "loop": {name: {**summarise(runs), "core_overlap": core_overlap(runs, core_of)} for name, runs in loops.items()},
+        "loop": {
+            name: {**summarise(runs), "core_overlap": core_overlap(runs, core_of)} for name, runs in loops.items()
+        },
         "speedup_2_vs_1": {
             layout: paired_ratio(rates[f"{layout}/stages=2"], rates["stages=1"]) for layout in plan.stage_layouts
         },
@@ -279,13 +338,18 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
         # Every contender over 1 stage in lockstep, more stages' included.
         "speedup_over_lockstep": {
             name: paired_ratio(values, rates["stages=1/lockstep"])
-            for name, values in rates.items() if name != "stages=1/lockstep"
+            for name, values in rates.items()
+            if name != "stages=1/lockstep"
         },
         "stage_envs": {
-            **{layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
-               for layout in plan.stage_layouts},
-            **{f"slices/stages={n}": [[p.num_envs for p in stage.pods] for stage in routing.stages]
-               for n, routing in more_stages.items()},
+            **{
+                layout: [[p.num_envs for p in stage.pods] for stage in two_stages[layout].stages]
+                for layout in plan.stage_layouts
+            },
+            **{
+                f"slices/stages={n}": [[p.num_envs for p in stage.pods] for stage in routing.stages]
+                for n, routing in more_stages.items()
+            },
         },
         "per_round": {name: [round(m.env_steps_per_s, 2) for m in runs] for name, runs in {**service, **loops}.items()},
     }
@@ -319,8 +383,11 @@ def make_plan(args: argparse.Namespace) -> Plan:
         counts = (pods,)
     else:
         pods = 1 if dry else args.pods or (12 if gpu else 2)
-        given = tuple(int(c) for c in args.pod_counts.split(",")) if args.pod_counts else (
-            (1, 2, 4, 8, 12) if gpu else (1, 2))
+        given = (
+            tuple(int(c) for c in args.pod_counts.split(","))
+            if args.pod_counts
+            else ((1, 2, 4, 8, 12) if gpu else (1, 2))
+        )
         counts = tuple(sorted({c for c in given if 1 <= c <= pods} | {1, pods}))
     cuda = torch.cuda.is_available()
     max_depth = args.vit_max_depth or (512 if gpu else 256)
@@ -360,8 +427,10 @@ def make_plan(args: argparse.Namespace) -> Plan:
     for n in plan.compare_stages:
         # The loop gives request i to stage i % n: the stages must be of one size.
         if envs % n:
-            raise SystemExit(f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
-                             "(change --tasks-per-pod, --envs-per-task or the pods)")
+            raise SystemExit(
+                f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
+                "(change --tasks-per-pod, --envs-per-task or the pods)"
+            )
     return plan
 
 
@@ -370,7 +439,8 @@ def run_mode(args: argparse.Namespace) -> int:
     deadline = Deadline(args.deadline)
     plan = make_plan(args)
     tag = ("_dry" if args.dry else "" if args.gpu else "_quick" if args.quick else "_cpu") + (
-        f"_{args.tag}" if args.tag else "")
+        f"_{args.tag}" if args.tag else ""
+    )
     gl = gl_probe()
     gpu = gpu_name()
     log.info("GL: %s; GPU: %s; torch %s on %s", gl, gpu, torch.__version__, plan.device)
@@ -389,8 +459,13 @@ def run_mode(args: argparse.Namespace) -> int:
     os.sched_setaffinity(0, set(trainer))
     torch.set_num_threads(len(trainer))
     torch.backends.cudnn.benchmark = True
-    log.info("topology: %d CPUs, %d physical cores; pods pinned to %s; trainer on %s", topology["cpus"],
-             topology["physical_cores"], pod_pins, trainer)
+    log.info(
+        "topology: %d CPUs, %d physical cores; pods pinned to %s; trainer on %s",
+        topology["cpus"],
+        topology["physical_cores"],
+        pod_pins,
+        trainer,
+    )
 
     started = time.monotonic()
     config = job_config(plan, pins, f"gpu-{plan.mode}", plan.pods)
@@ -400,8 +475,13 @@ def run_mode(args: argparse.Namespace) -> int:
         used = memory_gib()
         processes = pod_processes(job)
         gpu_processes = gpu_process_table()
-        log.info("%d pods ready in %.0f s; memory used %.1f GiB; per pod %s", plan.pods, build_s, used,
-                 next(iter(processes.values())))
+        log.info(
+            "%d pods ready in %.0f s; memory used %.1f GiB; per pod %s",
+            plan.pods,
+            build_s,
+            used,
+            next(iter(processes.values())),
+        )
         if plan.mode == "scaling":
             measured = measure_scaling(plan, job, table, deadline)
         else:
@@ -445,35 +525,43 @@ def run_mode(args: argparse.Namespace) -> int:
         loop = measured["loop"][top].get("fraction_of_linear", {}).get("median")
         loop_per_pod = measured["loop_per_pod"][top].get("fraction_of_linear", {}).get("median")
         at_cores = f"pods={max(within)}" if within else None
-        summary.update({
-            "baseline": "1 pod of the same job (same task mix), same round; linear = pods x that",
-            "ratio": service,
-            "ratio_loop": loop,
-            "ratio_loop_stage_per_pod": loop_per_pod,
-            "ratio_at_physical_cores": measured["service"][at_cores].get("fraction_of_linear", {}).get("median")
-            if at_cores else None,
-            "largest_pod_count_on_distinct_physical_cores": max(within) if within else None,
-            "pod_counts_beyond_physical_cores": [p for p in plan.pod_counts if p not in within],
-            "target": f"scaling >= {SCALING_TARGET} of linear at {plan.pods} pods ({physical} physical cores)",
-            "met": {"scaling_service": service is not None and service >= SCALING_TARGET,
+        summary.update(
+            {
+                "baseline": "1 pod of the same job (same task mix), same round; linear = pods x that",
+                "ratio": service,
+                "ratio_loop": loop,
+                "ratio_loop_stage_per_pod": loop_per_pod,
+                "ratio_at_physical_cores": measured["service"][at_cores].get("fraction_of_linear", {}).get("median")
+                if at_cores
+                else None,
+                "largest_pod_count_on_distinct_physical_cores": max(within) if within else None,
+                "pod_counts_beyond_physical_cores": [p for p in plan.pod_counts if p not in within],
+                "target": f"scaling >= {SCALING_TARGET} of linear at {plan.pods} pods ({physical} physical cores)",
+                "met": {
+                    "scaling_service": service is not None and service >= SCALING_TARGET,
                     "scaling_loop": loop is not None and loop >= SCALING_TARGET,
-                    "scaling_loop_stage_per_pod": loop_per_pod is not None and loop_per_pod >= SCALING_TARGET},
-        })
+                    "scaling_loop_stage_per_pod": loop_per_pod is not None and loop_per_pod >= SCALING_TARGET,
+                },
+            }
+        )
     else:
         speedups = {layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1"].items()}
         setup["stage_envs"] = [plan.envs_per_pod * (plan.pods // 2)] * 2
         setup["stage_envs_by_layout"] = measured.pop("stage_envs")
-        summary.update({
-            "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy; "
-                        "also 1 stage in lockstep (speedup_2_vs_1_lockstep)",
-            # The headline: the first layout measured (--stage-layout's order; 'slices' by default).
-            "ratio": speedups[plan.stage_layouts[0]],
-            "ratio_by_layout": speedups,
-            "ratio_over_lockstep_by_layout": {
-                layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1_lockstep"].items()},
-            "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage at K={plan.chunk}",
-            "met": {f"pipelining_{layout}": speedup >= PIPELINE_TARGET for layout, speedup in speedups.items()},
-        })
+        summary.update(
+            {
+                "baseline": "1 stage over the same pods (both pods of a core simulate at once), same policy; "
+                "also 1 stage in lockstep (speedup_2_vs_1_lockstep)",
+                # The headline: the first layout measured (--stage-layout's order; 'slices' by default).
+                "ratio": speedups[plan.stage_layouts[0]],
+                "ratio_by_layout": speedups,
+                "ratio_over_lockstep_by_layout": {
+                    layout: ratio["median"] for layout, ratio in measured["speedup_2_vs_1_lockstep"].items()
+                },
+                "target": f"2 stages >= {PIPELINE_TARGET}x 1 stage at K={plan.chunk}",
+                "met": {f"pipelining_{layout}": speedup >= PIPELINE_TARGET for layout, speedup in speedups.items()},
+            }
+        )
     summary.update({"setup": setup, "topology": topology, "gpu": gpu, "gl": gl, **measured})
     if args.dry:
         plots: list[Path] = []
@@ -495,17 +583,32 @@ def main() -> int:
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--gpu", action="store_true", help="LIBERO-10 at 256x256 with its defaults; GL must be NVIDIA's")
     mode.add_argument("--cpu-small", action="store_true", help="2 LIBERO-10 tasks per pod, 64x64, few pods (Mesa)")
-    mode.add_argument("--quick", action="store_true",
-                      help="--only pipeline on this machine in about 2 min: a cheap gym scene, 16x16, a tiny ViT")
-    mode.add_argument("--render-compare", action="store_true",
-                      help="one pod of one scene (default libero_10/0, 256x256, 4 envs): default EGL, then Mesa's")
-    parser.add_argument("--only", choices=("scaling", "pipeline"),
-                        help="which measurement (one job each; required with --gpu and --cpu-small)")
-    parser.add_argument("--dry", action="store_true",
-                        help="the same code at the smallest size (1 pod / 1 core, 2 steps, a 4-block ViT): fails fast")
+    mode.add_argument(
+        "--quick",
+        action="store_true",
+        help="--only pipeline on this machine in about 2 min: a cheap gym scene, 16x16, a tiny ViT",
+    )
+    mode.add_argument(
+        "--render-compare",
+        action="store_true",
+        help="one pod of one scene (default libero_10/0, 256x256, 4 envs): default EGL, then Mesa's",
+    )
+    parser.add_argument(
+        "--only",
+        choices=("scaling", "pipeline"),
+        help="which measurement (one job each; required with --gpu and --cpu-small)",
+    )
+    parser.add_argument(
+        "--dry",
+        action="store_true",
+        help="the same code at the smallest size (1 pod / 1 core, 2 steps, a 4-block ViT): fails fast",
+    )
     parser.add_argument("--tasks", help="comma-separated task ids (default: LIBERO-10; --cpu-small: its first 2)")
-    parser.add_argument("--tasks-per-pod", type=int,
-                        help="how many of --tasks every pod serves (default: all; --gpu --only pipeline: 5)")
+    parser.add_argument(
+        "--tasks-per-pod",
+        type=int,
+        help="how many of --tasks every pod serves (default: all; --gpu --only pipeline: 5)",
+    )
     parser.add_argument("--envs-per-task", type=int, help="envs per task per pod (default 1; --render-compare 4)")
     parser.add_argument("--pods", type=int, help="scaling: the most pods (default 12; --cpu-small 2)")
     parser.add_argument("--pod-counts", help="scaling: comma-separated pod counts (default 1,2,4,8,12)")
@@ -514,34 +617,64 @@ def main() -> int:
     parser.add_argument("--horizon", type=int, help="steps per trajectory in each EnvLoop rollout")
     parser.add_argument("--service-steps", type=int, help="steps per service-alone rollout")
     parser.add_argument("--rounds", type=int)
-    parser.add_argument("--batch-wait-s", type=float, default=0.0,
-                        help="pipeline: EnvLoop's batch_wait_s, how long the loop waits for more of a stage's "
-                        "answers before the policy runs (default 0: at once)")
-    parser.add_argument("--compare-batch-wait-s", default="",
-                        help="pipeline: also run each 2-stage layout with each of these batch_wait_s (seconds, "
-                        "comma-separated), side by side in the same rounds (contenders "
-                        "'<layout>/stages=2/batch_wait=<W>s'): fuller policy batches against the time the loop "
-                        "waits for them; a wait longer than a stage call is each stage in lockstep")
-    parser.add_argument("--chunk", type=int, default=1,
-                        help="pipeline: actions per env per call, the policy's chunk K (default 1; issue 27: 8)")
-    parser.add_argument("--stage-layout", default=",".join(STAGE_LAYOUTS),
-                        help="pipeline: the 2-stage layouts to measure against 1 stage, comma-separated "
-                        "(slices, pods; default both, side by side)")
-    parser.add_argument("--compare-stages", default="",
-                        help="pipeline: also run 'slices' in each of these stage counts (3 or more, comma-separated), "
-                        "at --batch-wait-s and each --compare-batch-wait-s (contenders 'slices/stages=<N>[...]')")
-    parser.add_argument("--pods-per-core", type=int, default=2,
-                        help="pipeline: pods pinned to each core (2: one of each 'pods' stage a core; 1: one pod a "
-                             "core, its envs split between the stages in 'slices')")
+    parser.add_argument(
+        "--batch-wait-s",
+        type=float,
+        default=0.0,
+        help="pipeline: EnvLoop's batch_wait_s, how long the loop waits for more of a stage's "
+        "answers before the policy runs (default 0: at once)",
+    )
+    parser.add_argument(
+        "--compare-batch-wait-s",
+        default="",
+        help="pipeline: also run each 2-stage layout with each of these batch_wait_s (seconds, "
+        "comma-separated), side by side in the same rounds (contenders "
+        "'<layout>/stages=2/batch_wait=<W>s'): fuller policy batches against the time the loop "
+        "waits for them; a wait longer than a stage call is each stage in lockstep",
+    )
+    parser.add_argument(
+        "--chunk",
+        type=int,
+        default=1,
+        help="pipeline: actions per env per call, the policy's chunk K (default 1; issue 27: 8)",
+    )
+    parser.add_argument(
+        "--stage-layout",
+        default=",".join(STAGE_LAYOUTS),
+        help="pipeline: the 2-stage layouts to measure against 1 stage, comma-separated "
+        "(slices, pods; default both, side by side)",
+    )
+    parser.add_argument(
+        "--compare-stages",
+        default="",
+        help="pipeline: also run 'slices' in each of these stage counts (3 or more, comma-separated), "
+        "at --batch-wait-s and each --compare-batch-wait-s (contenders 'slices/stages=<N>[...]')",
+    )
+    parser.add_argument(
+        "--pods-per-core",
+        type=int,
+        default=2,
+        help="pipeline: pods pinned to each core (2: one of each 'pods' stage a core; 1: one pod a "
+        "core, its envs split between the stages in 'slices')",
+    )
     parser.add_argument("--vit-width", type=int, help="pipeline: the ViT's width (default 768; --cpu-small 192)")
-    parser.add_argument("--vit-max-depth", type=int,
-                        help="pipeline: the calibration's cap (default 512; --cpu-small 256)")
-    parser.add_argument("--max-memory-gib", type=float, default=100.0,
-                        help="stop when memory in use passes this while the pods build")
-    parser.add_argument("--render-preset", default="lean", choices=("full", "fast", "lean", "lowpoly"),
-                        help="the pods' render preset (default lean)")
-    parser.add_argument("--render-gpu", type=int,
-                        help="the EGL device (GPU index) pods render on (pods.render_gpus); the policy stays on cuda:0")
+    parser.add_argument(
+        "--vit-max-depth", type=int, help="pipeline: the calibration's cap (default 512; --cpu-small 256)"
+    )
+    parser.add_argument(
+        "--max-memory-gib", type=float, default=100.0, help="stop when memory in use passes this while the pods build"
+    )
+    parser.add_argument(
+        "--render-preset",
+        default="lean",
+        choices=("full", "fast", "lean", "lowpoly"),
+        help="the pods' render preset (default lean)",
+    )
+    parser.add_argument(
+        "--render-gpu",
+        type=int,
+        help="the EGL device (GPU index) pods render on (pods.render_gpus); the policy stays on cuda:0",
+    )
     parser.add_argument("--tag", help="suffix of the output files' names (e.g. lowpoly)")
     parser.add_argument("--deadline", type=float, default=480.0, help="seconds: stop adding rounds after this")
     parser.add_argument("--soft-rounds", type=int, default=1, help="--render-compare: rollouts with Mesa")
@@ -551,8 +684,10 @@ def main() -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     if args.gpu and not torch.cuda.is_available():
         # Before anything starts (GL probe, pods): a machine without a GPU fails at once.
-        log.error("--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
-                  torch.__version__)
+        log.error(
+            "--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
+            torch.__version__,
+        )
         return 2
     if args.render_compare:
         return render_compare(args)
@@ -566,7 +701,10 @@ def main() -> int:
         args.compare_batch_wait_s = tuple(float(w) for w in args.compare_batch_wait_s.split(",") if w.strip())
     except ValueError:
         parser.error(f"--compare-batch-wait-s takes seconds, comma-separated: got {args.compare_batch_wait_s!r}")
-    for flag, wait in (("--batch-wait-s", args.batch_wait_s), *(("--compare-batch-wait-s", w) for w in args.compare_batch_wait_s)):
+    for flag, wait in (
+        ("--batch-wait-s", args.batch_wait_s),
+        *(("--compare-batch-wait-s", w) for w in args.compare_batch_wait_s),
+    ):
         if not (math.isfinite(wait) and wait >= 0):
             parser.error(f"{flag} must be a finite number of seconds >= 0, got {wait}")
     if len(set(args.compare_batch_wait_s)) < len(args.compare_batch_wait_s):
@@ -578,11 +716,14 @@ def main() -> int:
     except ValueError:
         parser.error(f"--compare-stages takes stage counts, comma-separated: got {args.compare_stages!r}")
     if any(n < 3 for n in args.compare_stages):
-        parser.error(f"--compare-stages: stage counts of 3 or more (1 and 2 are always measured), "
-                     f"got {args.compare_stages}")
+        parser.error(
+            f"--compare-stages: stage counts of 3 or more (1 and 2 are always measured), got {args.compare_stages}"
+        )
     if args.compare_stages and (args.only != "pipeline" or "slices" not in args.stage_layout.split(",")):
-        parser.error("--compare-stages runs the 'slices' layout in more stages: "
-                     "say --only pipeline with slices in --stage-layout")
+        parser.error(
+            "--compare-stages runs the 'slices' layout in more stages: "
+            "say --only pipeline with slices in --stage-layout"
+        )
     return run_mode(args)
 
 

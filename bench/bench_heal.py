@@ -50,8 +50,12 @@ def heal_config() -> JobConfig:
         {
             "job": JOB,
             "pods": {"replicas": 2, "base_port": free_port_block(2, avoid={controller_port}), "max_envs": 16},
-            "controller": {"port": controller_port, "heartbeat_interval_s": 0.5, "heartbeat_ttl_s": 3.0,
-                           "reconcile_interval_s": 0.25},
+            "controller": {
+                "port": controller_port,
+                "heartbeat_interval_s": 0.5,
+                "heartbeat_ttl_s": 3.0,
+                "reconcile_interval_s": 0.25,
+            },
         }
     )
 

@@ -81,8 +81,14 @@ def measure(task: str, size: int, cells: list[float], seconds: float, wall: bool
             images, rate = run(dataclasses.replace(PRESETS["lowpoly"], mesh_cell=cell))
             pictures[cell] = images
             rows.append(
-                {"cell_m": cell, "faces": simplified.faces_after, "simplify_s": round(simplify_s, 3),
-                 "frames_per_s": rate, "speedup": round(rate / base, 2), **quality(reference, images)}
+                {
+                    "cell_m": cell,
+                    "faces": simplified.faces_after,
+                    "simplify_s": round(simplify_s, 3),
+                    "frames_per_s": rate,
+                    "speedup": round(rate / base, 2),
+                    **quality(reference, images),
+                }
             )
             log.info("%s cell %g: %s", task, cell, rows[-1])
         return {"rows": rows}, pictures

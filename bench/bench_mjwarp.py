@@ -81,7 +81,11 @@ def action_walk(num: int, steps: int, seed: int) -> np.ndarray:
 def assignment(task: str, envs: int, size: int, engine: str) -> Assignment:
     camera = CameraConfig(names=CAMERAS if size else (), height=size or 128, width=size or 128)
     return Assignment(
-        generation=0, pod="sim-0", stage_id=0, engine=engine, camera=camera,
+        generation=0,
+        pod="sim-0",
+        stage_id=0,
+        engine=engine,
+        camera=camera,
         tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
     )
 
@@ -105,8 +109,12 @@ def time_chunks(engine: Any, envs: int, chunk: int, calls: int, deadline: float)
             break
     elapsed = time.perf_counter() - started
     return {
-        "calls": done, "env_steps": int(steps), "seconds": elapsed, "env_steps_per_s": steps / elapsed,
-        "physics_s_per_call": physics / done, "render_s_per_call": render / done,
+        "calls": done,
+        "env_steps": int(steps),
+        "seconds": elapsed,
+        "env_steps_per_s": steps / elapsed,
+        "physics_s_per_call": physics / done,
+        "render_s_per_call": render / done,
         "other_s_per_call": (elapsed - physics - render) / done,
     }
 
@@ -150,8 +158,14 @@ def reference(args: argparse.Namespace) -> None:
             engine.close()
         record["cpu_engine"].update(envs=args.cpu_envs, size=args.cpu_size, chunk=args.chunk)
     np.savez_compressed(
-        args.out, actions=actions, states=states, qpos=qpos, success=success, image_marks=np.array(marks),
-        record=json.dumps(record), **{f"image.{name}": pixels for name, pixels in images.items()},
+        args.out,
+        actions=actions,
+        states=states,
+        qpos=qpos,
+        success=success,
+        image_marks=np.array(marks),
+        record=json.dumps(record),
+        **{f"image.{name}": pixels for name, pixels in images.items()},
     )
     print("RESULT", json.dumps(record))
 
@@ -207,9 +221,15 @@ def replay(engine: Any, ref: Any) -> dict[str, np.ndarray]:
     # The bench reads the worlds' joints, which no pod call answers.
     data = engine._batches[0].data
     ids = np.arange(n)
-    out = {"state": np.zeros((n, steps + 1, 8), np.float32), "qpos": np.zeros((n, steps + 1, data.qpos.shape[1])),
-           "success": np.zeros((n, steps), dtype=bool), "errors": []}
-    out.update({f"image.{name}": np.zeros((n, len(marks), *ref[f"image.{name}"].shape[2:]), np.uint8) for name in CAMERAS})
+    out = {
+        "state": np.zeros((n, steps + 1, 8), np.float32),
+        "qpos": np.zeros((n, steps + 1, data.qpos.shape[1])),
+        "success": np.zeros((n, steps), dtype=bool),
+        "errors": [],
+    }
+    out.update(
+        {f"image.{name}": np.zeros((n, len(marks), *ref[f"image.{name}"].shape[2:]), np.uint8) for name in CAMERAS}
+    )
     obs, _ = engine.reset_envs(ids, ids)
     for t in range(steps + 1):
         if t:
@@ -229,13 +249,22 @@ def sameness(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
     """How two replays of the same inputs differ: the largest difference of each output, the
     first action after which the state or joints differ (None: never), and how far apart the
     joints are after it."""
-    largest = {key: float(np.abs(first[key].astype(np.float64) - second[key]).max()) for key in first if key != "errors"}
+    largest = {
+        key: float(np.abs(first[key].astype(np.float64) - second[key]).max()) for key in first if key != "errors"
+    }
     steps = first["state"].shape[1]
-    differs = [t for t in range(steps) if (first["state"][:, t] != second["state"][:, t]).any()
-               or (first["qpos"][:, t] != second["qpos"][:, t]).any()]
+    differs = [
+        t
+        for t in range(steps)
+        if (first["state"][:, t] != second["state"][:, t]).any() or (first["qpos"][:, t] != second["qpos"][:, t]).any()
+    ]
     t = differs[0] if differs else None
-    return {"max_abs_diff": largest, "identical": all(v == 0.0 for v in largest.values()), "first_differing_action": t,
-            "qpos_diff_there": None if t is None else float(np.abs(first["qpos"][:, t] - second["qpos"][:, t]).max())}
+    return {
+        "max_abs_diff": largest,
+        "identical": all(v == 0.0 for v in largest.values()),
+        "first_differing_action": t,
+        "qpos_diff_there": None if t is None else float(np.abs(first["qpos"][:, t] - second["qpos"][:, t]).max()),
+    }
 
 
 def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) -> dict[str, Any]:
@@ -271,18 +300,28 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
     eef = np.linalg.norm(have["state"][..., :3] - ref["states"][..., :3], axis=-1)
     # Every free joint's body (the objects): position and rotation angle apart.
     free = [int(mjm.jnt_qposadr[j]) for j in range(mjm.njnt) if mjm.jnt_type[j] == 0]
-    pos = np.stack([np.linalg.norm(have["qpos"][..., a : a + 3] - ref["qpos"][..., a : a + 3], axis=-1) for a in free], -1)
-    angle = np.stack([rotation_between(have["qpos"][..., a + 3 : a + 7], ref["qpos"][..., a + 3 : a + 7]) for a in free], -1)
+    pos = np.stack(
+        [np.linalg.norm(have["qpos"][..., a : a + 3] - ref["qpos"][..., a : a + 3], axis=-1) for a in free], -1
+    )
+    angle = np.stack(
+        [rotation_between(have["qpos"][..., a + 3 : a + 7], ref["qpos"][..., a + 3 : a + 7]) for a in free], -1
+    )
     images = {}
     for name in CAMERAS:
         want, got = ref[f"image.{name}"], have[f"image.{name}"]
         images[name] = {
-            str(int(t)): {"mad": float(np.abs(got[:, i].astype(np.int16) - want[:, i]).mean()),
-                          "ssim": float(ssim(got[:, i], want[:, i]).mean())}
+            str(int(t)): {
+                "mad": float(np.abs(got[:, i].astype(np.int16) - want[:, i]).mean()),
+                "ssim": float(ssim(got[:, i], want[:, i]).mean()),
+            }
             for i, t in enumerate(ref["image_marks"])
         }
     return {
-        "states": n, "actions": steps, "image_size": size, "deterministic": deterministic, "build_s": built,
+        "states": n,
+        "actions": steps,
+        "image_size": size,
+        "deterministic": deterministic,
+        "build_s": built,
         "eef_pos_divergence_m": {str(t): spread(eef[:, t]) for t in marks},
         "objects": len(free),
         "object_pos_divergence_m": {str(t): spread(pos[:, t]) for t in marks},
@@ -291,7 +330,8 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
         "images": images,
         "success_agreement": float((have["success"] == ref["success"]).mean()),
         "success_reached": {"mjwarp": int(have["success"].any(1).sum()), "cpu": int(ref["success"].any(1).sum())},
-        "repeat_after_reset": sameness(have, again), "repeat_on_new_build": sameness(have, fresh),
+        "repeat_after_reset": sameness(have, again),
+        "repeat_on_new_build": sameness(have, fresh),
         "errors": have["errors"],
     }
 
@@ -301,7 +341,13 @@ def run(args: argparse.Namespace) -> None:
     from vecsim.engine.base import engine_kind
 
     deadline = time.monotonic() + args.budget_s
-    record: dict[str, Any] = {"task": args.task, "chunk": args.chunk, "machine": args.machine, "runs": [], "complete": False}
+    record: dict[str, Any] = {
+        "task": args.task,
+        "chunk": args.chunk,
+        "machine": args.machine,
+        "runs": [],
+        "complete": False,
+    }
     ref = np.load(args.reference) if args.reference else None
     if ref is not None:
         record["cpu_reference"] = json.loads(str(ref["record"]))
@@ -322,12 +368,20 @@ def run(args: argparse.Namespace) -> None:
             measured = time_chunks(engine, worlds, args.chunk, args.calls, deadline)
         finally:
             engine.close()
-        entry = {"size": size, "worlds": worlds, "build_s": built, "gpu_bytes_per_world": None if used is None else used / worlds, **measured}
+        entry = {
+            "size": size,
+            "worlds": worlds,
+            "build_s": built,
+            "gpu_bytes_per_world": None if used is None else used / worlds,
+            **measured,
+        }
         cpu = record.get("cpu_reference", {}).get("cpu_engine")
         if cpu and cpu["size"] == size and record["cpu_reference"]["machine"] == record["machine"]:
             entry["ratio_to_cpu_engine"] = measured["env_steps_per_s"] / cpu["env_steps_per_s"]
         record["runs"].append(entry)
-        log.info("size %s, %d worlds: %.0f env-steps/s (built in %.0f s)", size, worlds, measured["env_steps_per_s"], built)
+        log.info(
+            "size %s, %d worlds: %.0f env-steps/s (built in %.0f s)", size, worlds, measured["env_steps_per_s"], built
+        )
         write(record, args.out)
         if index == 0 and ref is not None:
             # Right after the first run, while the budget lasts: its kernels are compiled.
@@ -351,8 +405,13 @@ def gpu_memory_used_mib() -> int | None:
     import subprocess
 
     try:
-        text = subprocess.run(["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"],
-                              capture_output=True, text=True, timeout=30, check=True).stdout
+        text = subprocess.run(
+            ["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=True,
+        ).stdout
     except (OSError, subprocess.SubprocessError):
         return None
     return int(text.split()[0])
@@ -366,7 +425,9 @@ def scrape(urls: list[str]) -> dict[str, float]:
 
     totals: dict[str, float] = dict.fromkeys(POD_COUNTERS, 0.0)
     for url in urls:
-        for name, value in re.findall(r"^(vecsim_pod_[a-z_]+?)(?:\{[^}]*\})? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.M):
+        for name, value in re.findall(
+            r"^(vecsim_pod_[a-z_]+?)(?:\{[^}]*\})? (\S+)$", httpx.get(f"{url}/metrics", timeout=10).text, re.M
+        ):
             if name in totals:
                 totals[name] += float(value)
     return totals
@@ -438,8 +499,15 @@ def run_layout(
     env["PYTHONPATH"] = ":".join(p for p in (code, pythonpath or env.get("PYTHONPATH")) if p)
     urls = [f"http://127.0.0.1:{port + i}" for i in range(pods)]
     headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
-    record: dict[str, Any] = {"engine": engine, "pods": pods, "envs_per_pod": envs, "envs": pods * envs,
-                              "cores_per_pod": share if engine == "cpu" else len(cores), "size": size, "chunk": args.chunk}
+    record: dict[str, Any] = {
+        "engine": engine,
+        "pods": pods,
+        "envs_per_pod": envs,
+        "envs": pods * envs,
+        "cores_per_pod": share if engine == "cpu" else len(cores),
+        "size": size,
+        "chunk": args.chunk,
+    }
     processes: list[subprocess.Popen] = []
     started = time.monotonic()
 
@@ -462,11 +530,26 @@ def run_layout(
                 path = Path(folder) / f"pod{i}.json"
                 path.write_text(spec.model_dump_json())
                 pinned = set(cores[i * share : (i + 1) * share]) if engine == "cpu" else None
-                command = [sys.executable, "-m", "service.cli", "pod", "--assignment", str(path), "--name", spec.pod,
-                           "--port", str(port + i)]
-                processes.append(subprocess.Popen(
-                    command, env=env, cwd=code, preexec_fn=(lambda c=pinned: os.sched_setaffinity(0, c)) if pinned else None,
-                ))
+                command = [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "pod",
+                    "--assignment",
+                    str(path),
+                    "--name",
+                    spec.pod,
+                    "--port",
+                    str(port + i),
+                ]
+                processes.append(
+                    subprocess.Popen(
+                        command,
+                        env=env,
+                        cwd=code,
+                        preexec_fn=(lambda c=pinned: os.sched_setaffinity(0, c)) if pinned else None,
+                    )
+                )
                 if engine == "mjwarp":
                     wait_ready(i)  # the next pod finds the kernel cache warm
             for i in range(pods):
@@ -487,16 +570,21 @@ def run_layout(
         calls = pods * args.calls
         counters = {name.removeprefix("vecsim_pod_"): after[name] - before[name] for name in after}
         record.update(
-            calls_per_pod=args.calls, env_steps=steps, seconds=elapsed, env_steps_per_s=steps / elapsed,
+            calls_per_pod=args.calls,
+            env_steps=steps,
+            seconds=elapsed,
+            env_steps_per_s=steps / elapsed,
             answer_bytes=driven[0]["bytes"],
             # Per call: the client's wall time, its wait for the answer and its decoding; the pod's
             # engine call, its physics and render (summed over a CPU pod's workers).
-            per_call_s={"client": sum(d["ended"] - d["begun"] for d in driven) / calls,
-                        "client_waiting": sum(d["waiting"] for d in driven) / calls,
-                        "client_decoding": sum(d["decoding"] for d in driven) / calls,
-                        "engine": counters["step_seconds_sum"] / calls,
-                        "physics": counters["physics_seconds_total"] / calls,
-                        "render": counters["render_seconds_total"] / calls},
+            per_call_s={
+                "client": sum(d["ended"] - d["begun"] for d in driven) / calls,
+                "client_waiting": sum(d["waiting"] for d in driven) / calls,
+                "client_decoding": sum(d["decoding"] for d in driven) / calls,
+                "engine": counters["step_seconds_sum"] / calls,
+                "physics": counters["physics_seconds_total"] / calls,
+                "render": counters["render_seconds_total"] / calls,
+            },
         )
     finally:
         for process in processes:
@@ -516,8 +604,15 @@ def side(args: argparse.Namespace) -> None:
     import httpx
 
     deadline = time.monotonic() + args.budget_s
-    record: dict[str, Any] = {"task": args.task, "size": args.size, "chunk": args.chunk, "machine": args.machine,
-                              "cores": len(os.sched_getaffinity(0)), "layouts": [], "complete": False}
+    record: dict[str, Any] = {
+        "task": args.task,
+        "size": args.size,
+        "chunk": args.chunk,
+        "machine": args.machine,
+        "cores": len(os.sched_getaffinity(0)),
+        "layouts": [],
+        "complete": False,
+    }
     write(record, args.out)
     plan = [("cpu", *layout, args.cpu_pythonpath) for layout in args.cpu_layouts]
     plan += [("mjwarp", *layout, args.mjwarp_pythonpath) for layout in args.mjwarp_layouts]
@@ -529,7 +624,9 @@ def side(args: argparse.Namespace) -> None:
         try:
             record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, args.port + 32 * index))
         except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
-            record["layouts"].append({"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)})
+            record["layouts"].append(
+                {"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)}
+            )
             log.error("%s %dx%d@%d failed: %s", engine, pods, envs, size, exc)
         best = {}
         for entry in record["layouts"]:
@@ -569,7 +666,10 @@ def main() -> None:
     go = sub.add_parser("run", help="the mjwarp engine's rates, scaling, memory and fidelity")
     go.add_argument("--task", default="libero_10/0")
     go.add_argument(
-        "--runs", type=run_spec, nargs="+", default=[run_spec(s) for s in ("256:256", "256:1024", "128:1024", "0:1024")],
+        "--runs",
+        type=run_spec,
+        nargs="+",
+        default=[run_spec(s) for s in ("256:256", "256:1024", "128:1024", "0:1024")],
         help="SIZE:WORLDS per measurement, in order (size 0: no camera); the fidelity replay follows the first",
     )
     go.add_argument("--chunk", type=int, default=8)
@@ -577,7 +677,9 @@ def main() -> None:
     go.add_argument("--budget-s", type=float, default=480.0)
     go.add_argument("--reference", type=Path, default=None)
     go.add_argument("--deterministic", action="store_true", help="replay the reference again with opt.deterministic on")
-    go.add_argument("--cpu-rate", type=float, default=None, help="a CPU-pod rate measured elsewhere, printed beside only")
+    go.add_argument(
+        "--cpu-rate", type=float, default=None, help="a CPU-pod rate measured elsewhere, printed beside only"
+    )
     go.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp.json"))
     pod = sub.add_parser("pod", help="one real pod on an engine, timed through HTTP")
     pod.add_argument("--engine", choices=["cpu", "mjwarp"], required=True)
@@ -594,19 +696,32 @@ def main() -> None:
     both.add_argument("--size", type=int, default=256)
     both.add_argument("--chunk", type=int, default=8)
     both.add_argument("--calls", type=int, default=10)
-    both.add_argument("--cpu-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x32")],
-                      help="PODSxENVS[@SIZE], in order (SIZE: the cameras' size if not --size; 0: none)")
-    both.add_argument("--mjwarp-layouts", type=layout_spec, nargs="*", default=[layout_spec("1x1024")],
-                      help="PODSxENVS[@SIZE], in order")
+    both.add_argument(
+        "--cpu-layouts",
+        type=layout_spec,
+        nargs="*",
+        default=[layout_spec("1x32")],
+        help="PODSxENVS[@SIZE], in order (SIZE: the cameras' size if not --size; 0: none)",
+    )
+    both.add_argument(
+        "--mjwarp-layouts",
+        type=layout_spec,
+        nargs="*",
+        default=[layout_spec("1x1024")],
+        help="PODSxENVS[@SIZE], in order",
+    )
     both.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
-    both.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
+    both.add_argument(
+        "--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)"
+    )
     both.add_argument("--port", type=int, default=8100)
     both.add_argument("--ready-timeout-s", type=float, default=500.0)
     both.add_argument("--budget-s", type=float, default=540.0)
     both.add_argument("--out", type=Path, default=Path("out/bench/bench_mjwarp_side.json"))
     for command in (ref, go, pod, both):
         command.add_argument(
-            "--machine", default=platform.node(),
+            "--machine",
+            default=platform.node(),
             help="names the machine; a ratio to the CPU engine is given only when both steps name the same one",
         )
     args = parser.parse_args()

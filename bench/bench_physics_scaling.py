@@ -64,7 +64,9 @@ def main() -> int:
     context = multiprocessing.get_context("spawn")
     barrier, results = context.Barrier(counts[-1]), context.Queue()
     procs = [
-        context.Process(target=physics_worker, args=(i, cpus[i], tasks, counts, paths, args.rounds, args.seconds, barrier, results))
+        context.Process(
+            target=physics_worker, args=(i, cpus[i], tasks, counts, paths, args.rounds, args.seconds, barrier, results)
+        )
         for i in range(counts[-1])
     ]
     started = time.monotonic()
@@ -117,9 +119,16 @@ def main() -> int:
     summary = {
         "baseline": "1 process of the same task mix, same round; linear = P x that",
         "ratio": rows[str(counts[-1])]["ratio_to_linear"],
-        "setup": {"tasks": tasks, "envs_per_process": len(tasks), "cameras": "none (physics only)",
-                  "procs": counts, "pinned_to": cpus[: counts[-1]], "seconds": args.seconds, "rounds": args.rounds,
-                  "step_paths": paths},
+        "setup": {
+            "tasks": tasks,
+            "envs_per_process": len(tasks),
+            "cameras": "none (physics only)",
+            "procs": counts,
+            "pinned_to": cpus[: counts[-1]],
+            "seconds": args.seconds,
+            "rounds": args.rounds,
+            "step_paths": paths,
+        },
         "rows": rows,
         "rows_by_step_path": by_path,
         "seconds_total": round(time.monotonic() - started, 1),

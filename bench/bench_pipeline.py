@@ -38,7 +38,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
+from lib.pods import (
+    READY_TIMEOUT_S,
+    interleaved,
+    paired_ratio,
+    rate_spread,
+    setup_logging,
+    standalone_pods,
+    wait_for_quiet,
+)
 from lib.records import img_dir, write_result
 from gymnasium import spaces
 from torch import nn
@@ -80,8 +88,12 @@ def routing(pods: list[Any], task: str, stages: int, per_pod: int) -> RoutingTab
     grouped = []
     for s in range(stages):
         routed = [
-            RoutedPod(pod=f"sim-{i}", url=pods[i].url, num_envs=per_pod,
-                      tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),))
+            RoutedPod(
+                pod=f"sim-{i}",
+                url=pods[i].url,
+                num_envs=per_pod,
+                tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),),
+            )
             for i in range(s * per_stage, (s + 1) * per_stage)
         ]
         grouped.append(RoutedStage(stage_id=s, pods=tuple(routed)))
@@ -193,16 +205,29 @@ def main() -> None:
     os.sched_setaffinity(0, {trainer_core})
     torch.set_num_threads(1)
     if args.quick:  # a gym scene with its render camera: the same code, no robosuite to load
-        task, per_pod, camera, horizon, rounds, calls = "gym/HalfCheetah-v5", 1, CameraConfig(height=8, width=8), 3, 2, 2
+        task, per_pod, camera, horizon, rounds, calls = (
+            "gym/HalfCheetah-v5",
+            1,
+            CameraConfig(height=8, width=8),
+            3,
+            2,
+            2,
+        )
     else:
         task, per_pod, camera = "tiny/lift", args.envs_per_pod, CameraConfig(height=32, width=32)
         horizon, rounds, calls = args.horizon, args.rounds, 5
     envs = PODS * per_pod
     assignments = [
         Assignment(
-            generation=0, job_id="bench-pipeline", pod=f"sim-{i}", stage_id=0,
-            tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
-            envs_per_worker=1, max_episode_steps=1000,
+            generation=0,
+            job_id="bench-pipeline",
+            pod=f"sim-{i}",
+            stage_id=0,
+            tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),),
+            camera=camera,
+            render="lean",
+            envs_per_worker=1,
+            max_episode_steps=1000,
         )
         for i in range(PODS)
     ]

@@ -49,7 +49,15 @@ from typing import Any
 import numpy as np
 import torch
 from lib.measure import counted
-from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, wait_for_quiet
+from lib.pods import (
+    READY_TIMEOUT_S,
+    interleaved,
+    paired_ratio,
+    rate_spread,
+    setup_logging,
+    standalone_pods,
+    wait_for_quiet,
+)
 from lib.records import with_flags, write_result
 
 from vecsim.client import StageClient
@@ -111,9 +119,25 @@ def call_split(stats: list[RolloutStats], pods: dict[str, float]) -> dict[str, f
 def settings(args: argparse.Namespace) -> dict[str, Any]:
     """The mode's sizes, with the flags given on the command line taking precedence."""
     if args.quick:
-        mode = {"task": "gym/HalfCheetah-v5", "pods": 2, "envs_per_pod": 2, "size": 8, "horizon": 12, "waves": 3, "rounds": 2}
+        mode = {
+            "task": "gym/HalfCheetah-v5",
+            "pods": 2,
+            "envs_per_pod": 2,
+            "size": 8,
+            "horizon": 12,
+            "waves": 3,
+            "rounds": 2,
+        }
     elif args.gpu:
-        mode = {"task": "libero_10/0", "pods": 12, "envs_per_pod": 1, "size": 128, "horizon": 100, "waves": 6, "rounds": 2}
+        mode = {
+            "task": "libero_10/0",
+            "pods": 12,
+            "envs_per_pod": 1,
+            "size": 128,
+            "horizon": 100,
+            "waves": 6,
+            "rounds": 2,
+        }
     else:
         mode = {"task": "tiny/lift", "pods": 2, "envs_per_pod": 4, "size": 32, "horizon": 40, "waves": 4, "rounds": 3}
     return with_flags({**mode, "chunk": 1}, args)  # one action a call in every mode unless --chunk says
@@ -131,8 +155,12 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, help="the longest episode, in actions")
     parser.add_argument("--waves", type=int, help="trajectories per env: N = waves x envs")
     parser.add_argument("--rounds", type=int, help="interleaved rounds")
-    parser.add_argument("--chunk", type=int, help="actions per env and policy call (K; default 1): fewer calls, "
-                        "so less of the trainer's per-call work, for the same actions")
+    parser.add_argument(
+        "--chunk",
+        type=int,
+        help="actions per env and policy call (K; default 1): fewer calls, "
+        "so less of the trainer's per-call work, for the same actions",
+    )
     parser.add_argument("--policy-ms", type=float, default=0.0, help="how long each policy call takes (a sleep)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="wait up to this long for load < 1.5")
@@ -147,9 +175,15 @@ def main() -> None:
     camera = CameraConfig(height=mode["size"], width=mode["size"])
     assignments = [
         Assignment(
-            generation=0, job_id="bench-refill", pod=f"sim-{i}", stage_id=0,
-            tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
-            envs_per_worker=1, max_episode_steps=10 * mode["horizon"],
+            generation=0,
+            job_id="bench-refill",
+            pod=f"sim-{i}",
+            stage_id=0,
+            tasks=(TaskBlock(task_id=task, env_start=0, num_envs=per_pod),),
+            camera=camera,
+            render="lean",
+            envs_per_worker=1,
+            max_episode_steps=10 * mode["horizon"],
         )
         for i in range(pods)
     ]
@@ -207,8 +241,10 @@ def main() -> None:
     expected_steps = sum(horizons)
     steps = {
         "refill": statistics.median(s.env_steps for s in runs["refill"]),
-        "batch": statistics.median(sum(s.env_steps for s in runs["batch"][r * mode["waves"] : (r + 1) * mode["waves"]])
-                                   for r in range(mode["rounds"])),
+        "batch": statistics.median(
+            sum(s.env_steps for s in runs["batch"][r * mode["waves"] : (r + 1) * mode["waves"]])
+            for r in range(mode["rounds"])
+        ),
     }
     waves = [horizons[b : b + envs] for b in range(0, n, envs)]
     summary = {

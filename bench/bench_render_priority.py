@@ -52,8 +52,19 @@ log = logging.getLogger("bench.render_priority")
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 
 
-def renderer_main(index: int, core: int | None, priority: str, task: str, size: int, views: int,
-                  period_s: float, go: Any, stop: Any, ready: Any, results: Any) -> None:
+def renderer_main(
+    index: int,
+    core: int | None,
+    priority: str,
+    task: str,
+    size: int,
+    views: int,
+    period_s: float,
+    go: Any,
+    stop: Any,
+    ready: Any,
+    results: Any,
+) -> None:
     """A render process: one scene, ``views`` views a batch every ``period_s`` while ``go`` is set.
 
     Puts ``("ready", index, gl_info)`` once it has rendered a first batch, then ``("times",
@@ -99,8 +110,9 @@ def renderer_main(index: int, core: int | None, priority: str, task: str, size: 
 class RenderSet:
     """``count`` render processes at one priority, started paused."""
 
-    def __init__(self, ctx: Any, priority: str, count: int, cores: list[int | None], args: argparse.Namespace,
-                 first_index: int) -> None:
+    def __init__(
+        self, ctx: Any, priority: str, count: int, cores: list[int | None], args: argparse.Namespace, first_index: int
+    ) -> None:
         self.priority = priority
         self.go = ctx.Event()
         self.stop = ctx.Event()
@@ -108,9 +120,24 @@ class RenderSet:
         self.results = ctx.Queue()
         tasks = [f"libero_10/{i % 5}" for i in range(count)]
         self.processes = [
-            ctx.Process(target=renderer_main, name=f"render-{priority}-{i}",
-                        args=(first_index + i, cores[i % len(cores)], priority, tasks[i], args.size, args.views,
-                              args.period_ms / 1000, self.go, self.stop, self.ready, self.results), daemon=True)
+            ctx.Process(
+                target=renderer_main,
+                name=f"render-{priority}-{i}",
+                args=(
+                    first_index + i,
+                    cores[i % len(cores)],
+                    priority,
+                    tasks[i],
+                    args.size,
+                    args.views,
+                    args.period_ms / 1000,
+                    self.go,
+                    self.stop,
+                    self.ready,
+                    self.results,
+                ),
+                daemon=True,
+            )
             for i in range(count)
         ]
         for process in self.processes:
@@ -162,8 +189,9 @@ def build_policy(args: argparse.Namespace, device: str) -> Any:
     from lib.policies import GraphedPolicy, VisionPolicy, dummy_obs
 
     box = spaces.Box(0, 255, (args.size, args.size, 3), np.uint8)
-    space = spaces.Dict({"images": spaces.Dict({c: box for c in CAMERAS}),
-                         "proprio": spaces.Box(-np.inf, np.inf, (9,), np.float32)})
+    space = spaces.Dict(
+        {"images": spaces.Dict({c: box for c in CAMERAS}), "proprio": spaces.Box(-np.inf, np.inf, (9,), np.float32)}
+    )
     action = spaces.Box(-1.0, 1.0, (7,), np.float32)
     dtype = torch.bfloat16 if device.startswith("cuda") else torch.float32
     policy = VisionPolicy(space, action, encoder="vit", vit_depth=args.vit_depth, device=device, dtype=dtype)
@@ -191,18 +219,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     policy_core, render_cores = cores[0], cores[1:] or [None]
     os.sched_setaffinity(0, {policy_core})
     ctx = mp.get_context("spawn")
-    sets = {p: RenderSet(ctx, p, args.renderers, render_cores, args, i * args.renderers)
-            for i, p in enumerate(args.priorities)}
+    sets = {
+        p: RenderSet(ctx, p, args.renderers, render_cores, args, i * args.renderers)
+        for i, p in enumerate(args.priorities)
+    }
     try:
         for render_set in sets.values():
             render_set.wait_ready(args.build_timeout_s)
-            log.info("%d renderers at %s priority ready; granted: %s", args.renderers, render_set.priority,
-                     sorted({g.get("priority", "?") for g in render_set.gl}))
+            log.info(
+                "%d renderers at %s priority ready; granted: %s",
+                args.renderers,
+                render_set.priority,
+                sorted({g.get("priority", "?") for g in render_set.gl}),
+            )
         contenders = ["alone", *(f"renders/{p}" for p in args.priorities)]
         policy_ms: dict[str, list[float]] = {c: [] for c in contenders}
         render_ms: dict[str, list[float]] = {c: [] for c in contenders[1:]}
         for round_index in range(args.rounds):
-            order = contenders[round_index % len(contenders):] + contenders[: round_index % len(contenders)]
+            order = contenders[round_index % len(contenders) :] + contenders[: round_index % len(contenders)]
             for name in order:
                 render_set = sets.get(name.split("/", 1)[1]) if "/" in name else None
                 if render_set is not None:
@@ -216,9 +250,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     render_set.go.clear()
                     render_ms[name].append(statistics.median(render_set.collect()))
                 policy_ms[name].append(statistics.median(calls))
-                log.info("round %d %s: policy %.1f ms a call (%d calls)%s", round_index + 1, name,
-                         policy_ms[name][-1], len(calls),
-                         f", renders {render_ms[name][-1]:.1f} ms a batch" if name in render_ms else "")
+                log.info(
+                    "round %d %s: policy %.1f ms a call (%d calls)%s",
+                    round_index + 1,
+                    name,
+                    policy_ms[name][-1],
+                    len(calls),
+                    f", renders {render_ms[name][-1]:.1f} ms a batch" if name in render_ms else "",
+                )
     finally:
         for render_set in sets.values():
             render_set.close()
@@ -226,8 +265,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "policy_ms": {c: spread(v) for c, v in policy_ms.items()},
         "render_ms": {c: spread(v) for c, v in render_ms.items()},
-        "policy_slowdown_over_alone": {c: spread([m / a for m, a in zip(v, alone)])
-                                       for c, v in policy_ms.items() if c != "alone"},
+        "policy_slowdown_over_alone": {
+            c: spread([m / a for m, a in zip(v, alone)]) for c, v in policy_ms.items() if c != "alone"
+        },
         "gl": {p: s.gl[0] if s.gl else None for p, s in sets.items()},
         "granted": {p: sorted({g.get("priority", "?") for g in s.gl}) for p, s in sets.items()},
     }
@@ -235,12 +275,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         medium = policy_ms["renders/medium"]
         summary["policy_speedup_over_medium"] = {
             c: spread([m / v for m, v in zip(medium, values)])
-            for c, values in policy_ms.items() if c.startswith("renders/") and c != "renders/medium"
+            for c, values in policy_ms.items()
+            if c.startswith("renders/") and c != "renders/medium"
         }
-    summary["setup"] = {"device": device, "batch": args.batch, "vit_depth": args.vit_depth, "size": args.size,
-                        "renderers": args.renderers, "views": args.views, "period_ms": args.period_ms,
-                        "seconds": args.seconds, "rounds": args.rounds, "policy_core": policy_core,
-                        "render_cores": render_cores, "torch": torch.__version__}
+    summary["setup"] = {
+        "device": device,
+        "batch": args.batch,
+        "vit_depth": args.vit_depth,
+        "size": args.size,
+        "renderers": args.renderers,
+        "views": args.views,
+        "period_ms": args.period_ms,
+        "seconds": args.seconds,
+        "rounds": args.rounds,
+        "policy_core": policy_core,
+        "render_cores": render_cores,
+        "torch": torch.__version__,
+    }
     return summary
 
 
@@ -251,8 +302,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--period-ms", type=float, default=330.0, help="a renderer's batch every this many ms")
     parser.add_argument("--size", type=int, default=256, help="camera side, pixels")
     parser.add_argument("--batch", type=int, default=40, help="the policy's rows a call")
-    parser.add_argument("--vit-depth", type=int, default=448,
-                        help="the ViT's blocks (448: about 360 ms a 40-row call on an H200)")
+    parser.add_argument(
+        "--vit-depth", type=int, default=448, help="the ViT's blocks (448: about 360 ms a 40-row call on an H200)"
+    )
     parser.add_argument("--priorities", default="medium,low", help="comma-separated: low, medium, high")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=8.0, help="the policy's calls per contender, in seconds")

@@ -65,8 +65,14 @@ def resolve(repo: Path, revisions: str, bench: str) -> list[dict[str, str]]:
             commit = git(repo, "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}")
         except RuntimeError:
             raise ValueError(f"--revisions: {rev!r} is not a commit of {repo}") from None
-        if subprocess.run(["git", "-C", str(repo), "cat-file", "-e", f"{commit}:bench/{bench}"],
-                          capture_output=True, timeout=GIT_TIMEOUT_S).returncode != 0:
+        if (
+            subprocess.run(
+                ["git", "-C", str(repo), "cat-file", "-e", f"{commit}:bench/{bench}"],
+                capture_output=True,
+                timeout=GIT_TIMEOUT_S,
+            ).returncode
+            != 0
+        ):
             raise ValueError(f"--bench: bench/{bench} does not exist at revision {rev!r}")
         resolved.append({"rev": rev, "commit": commit, "subject": git(repo, "log", "-1", "--format=%s", commit)})
     return resolved
@@ -119,8 +125,14 @@ def imported_from(tree: Path) -> dict[str, str]:
     run would measure the wrong revision.
     """
     code = "import vecsim, service; print(vecsim.__file__); print(service.__file__)"
-    done = subprocess.run([sys.executable, "-c", code], cwd=tree, env=tree_env(tree),
-                          capture_output=True, text=True, timeout=GIT_TIMEOUT_S)
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=tree,
+        env=tree_env(tree),
+        capture_output=True,
+        text=True,
+        timeout=GIT_TIMEOUT_S,
+    )
     paths = dict(zip(("vecsim", "service"), done.stdout.split()))
     if done.returncode != 0 or len(paths) != 2 or not all(Path(p).is_relative_to(tree) for p in paths.values()):
         raise RuntimeError(f"{tree.name}: vecsim/service not imported from {tree}: {paths or done.stderr[-500:]}")
@@ -139,13 +151,20 @@ def run_bench(tree: Path, bench: str, bench_args: Sequence[str], timeout_s: floa
         # Its own session: on a timeout or Ctrl-C the whole group (the bench, its pods) is stopped.
         process = subprocess.Popen(
             [sys.executable, str(tree / "bench" / bench), *bench_args],
-            cwd=tree, env=env, stdout=stdout, stderr=stderr, text=True, start_new_session=True,
+            cwd=tree,
+            env=env,
+            stdout=stdout,
+            stderr=stderr,
+            text=True,
+            start_new_session=True,
         )
         try:
             rc = process.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             stop(process)
-            raise RuntimeError(f"{tree.name}: bench/{bench} ran past --timeout-s {timeout_s:g}; log {stderr_path}") from None
+            raise RuntimeError(
+                f"{tree.name}: bench/{bench} ran past --timeout-s {timeout_s:g}; log {stderr_path}"
+            ) from None
         except BaseException:
             stop(process)
             raise
@@ -184,13 +203,19 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bench", required=True, help="a script under bench/, e.g. bench_robot_step.py")
     parser.add_argument("--revisions", default="755e209,HEAD", help="A,B: two git revisions (default 755e209,HEAD)")
-    parser.add_argument("--rounds", type=int, help=f"runs of each revision, A and B alternating (default 2, at most {MAX_ROUNDS})")
+    parser.add_argument(
+        "--rounds", type=int, help=f"runs of each revision, A and B alternating (default 2, at most {MAX_ROUNDS})"
+    )
     parser.add_argument("--warmup", type=int, default=0, help="uncounted runs of each revision first (caches, JIT)")
     parser.add_argument("--timeout-s", type=float, default=900.0, help="the longest one run may take")
-    parser.add_argument("--wait-quiet-s", type=float, default=0.0, help="before each run, wait up to this long for load < 1.5")
+    parser.add_argument(
+        "--wait-quiet-s", type=float, default=0.0, help="before each run, wait up to this long for load < 1.5"
+    )
     parser.add_argument("--quick", action="store_true", help="smoke test: one round, the benchmark with --quick")
     parser.add_argument("--tag", help="suffix of the record's name")
-    parser.add_argument("--repo", type=Path, default=REPO_ROOT, help="the git checkout whose revisions run (default: this one)")
+    parser.add_argument(
+        "--repo", type=Path, default=REPO_ROOT, help="the git checkout whose revisions run (default: this one)"
+    )
     args = parser.parse_args(own)
     if not re.fullmatch(r"[A-Za-z0-9_]+\.py", args.bench):
         parser.error(f"--bench: a script name under bench/, such as bench_serving.py; got {args.bench!r}")
@@ -264,7 +289,12 @@ def main(argv: Sequence[str]) -> int:
             "python": sys.executable,
         },
         "ratios": {
-            label: {**spreads[label], "per_round": [round(x, 4) for x in ratios[label]], "rev": rev["rev"], "commit": rev["commit"]}
+            label: {
+                **spreads[label],
+                "per_round": [round(x, 4) for x in ratios[label]],
+                "rev": rev["rev"],
+                "commit": rev["commit"],
+            }
             for label, rev in zip(LABELS, revisions)
         },
         "b_over_a_per_round": [round(b / a, 4) for a, b in zip(ratios["A"], ratios["B"])],

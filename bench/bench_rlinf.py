@@ -104,9 +104,15 @@ def pod_assignments(suite: str, tasks: Sequence[int], cores: int, size: int, ren
         assignments.append(
             Assignment.model_validate(
                 {
-                    "generation": 0, "job_id": "bench-rlinf", "pod": f"rlinf-sim-{c}", "stage_id": 0,
-                    "tasks": blocks, "camera": {"names": list(CAMERAS), "height": size, "width": size},
-                    "render": render, "max_episode_steps": 10_000, "envs_per_worker": 0,
+                    "generation": 0,
+                    "job_id": "bench-rlinf",
+                    "pod": f"rlinf-sim-{c}",
+                    "stage_id": 0,
+                    "tasks": blocks,
+                    "camera": {"names": list(CAMERAS), "height": size, "width": size},
+                    "render": render,
+                    "max_episode_steps": 10_000,
+                    "envs_per_worker": 0,
                     "libero": {"settle_steps": SETTLE_STEPS},
                 }
             )
@@ -139,11 +145,35 @@ def standalone_pods(assignments: Sequence[Assignment], pins: Sequence[str], work
             path = workdir / f"{assignment.pod}.json"
             path.write_text(assignment.model_dump_json())
             port = _free_port()
-            argv = ["taskset", "-c", pin, sys.executable, "-m", "service.cli", "pod", "--host", "127.0.0.1",
-                    "--port", str(port), "--log-level", "warning", "--assignment", str(path), "--name", assignment.pod]
+            argv = [
+                "taskset",
+                "-c",
+                pin,
+                sys.executable,
+                "-m",
+                "service.cli",
+                "pod",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--log-level",
+                "warning",
+                "--assignment",
+                str(path),
+                "--name",
+                assignment.pod,
+            ]
             log_file = (workdir / f"{assignment.pod}.log").open("ab")
-            procs.append(subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
-                                          env={**os.environ, "POD_NAME": assignment.pod}))
+            procs.append(
+                subprocess.Popen(
+                    argv,
+                    stdout=log_file,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                    env={**os.environ, "POD_NAME": assignment.pod},
+                )
+            )
             urls.append(f"http://127.0.0.1:{port}")
         end = time.monotonic() + READY_TIMEOUT_S
         for url, proc in zip(urls, procs):
@@ -166,10 +196,19 @@ def rlinf_config(suite: str, num_envs: int, size: int, pod_urls: Sequence[str] |
     from omegaconf import OmegaConf
 
     cfg = {
-        "env_type": "libero", "task_suite_name": suite, "seed": 0, "group_size": 1,
-        "use_fixed_reset_state_ids": True, "use_ordered_reset_state_ids": False,
-        "ignore_terminations": False, "auto_reset": False, "use_rel_reward": True, "reward_coef": 5.0,
-        "max_episode_steps": 10_000, "reset_gripper_open": True, "video_cfg": {"save_video": False},
+        "env_type": "libero",
+        "task_suite_name": suite,
+        "seed": 0,
+        "group_size": 1,
+        "use_fixed_reset_state_ids": True,
+        "use_ordered_reset_state_ids": False,
+        "ignore_terminations": False,
+        "auto_reset": False,
+        "use_rel_reward": True,
+        "reward_coef": 5.0,
+        "max_episode_steps": 10_000,
+        "reset_gripper_open": True,
+        "video_cfg": {"save_video": False},
         "init_params": {"camera_heights": size, "camera_widths": size},
     }
     if pod_urls is not None:

@@ -57,7 +57,18 @@ PYTHON_CONTROLLER = "exact_python_controller"
 SECOND_PASS = {"exact_before_second_pass": (False, False), "exact_one_substep_loop": (True, False)}
 
 # The arrays of MuJoCo's state that an env-step carries forward, compared bit for bit.
-STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "qacc_warmstart", "qacc", "sensordata", "mocap_pos", "mocap_quat")
+STATE_FIELDS = (
+    "time",
+    "qpos",
+    "qvel",
+    "act",
+    "ctrl",
+    "qacc_warmstart",
+    "qacc",
+    "sensordata",
+    "mocap_pos",
+    "mocap_quat",
+)
 
 
 def action_table(steps: int, seed: int) -> np.ndarray:
@@ -102,8 +113,12 @@ def change_variants() -> dict[str, Any]:
         _update = ExactStep._update
         _integrate = ExactStep._integrate
 
-    return {"controller": ControllerOnly, "+observables": PlusObservables, "+one forward": PlusOneForward,
-            "+compiled controller (exact)": ExactStep}
+    return {
+        "controller": ControllerOnly,
+        "+observables": PlusObservables,
+        "+one forward": PlusOneForward,
+        "+compiled controller (exact)": ExactStep,
+    }
 
 
 def python_controller(inner: Any) -> Any:
@@ -167,12 +182,20 @@ def physics_only(model: Any, data: Any, scratch: Any, substeps: int, reps: int) 
     """
     calls = {
         "floor": lambda: mujoco.mj_step(model, scratch),
-        "library": lambda: (mujoco.mj_forward(model, scratch), mujoco.mj_forward(model, scratch),
-                            mujoco.mj_step(model, scratch)),
-        "exact": lambda: (mujoco.mj_fwdPosition(model, scratch), mujoco.mj_sensorPos(model, scratch),
-                          mujoco.mj_fwdVelocity(model, scratch), mujoco.mj_sensorVel(model, scratch),
-                          mujoco.mj_checkPos(model, scratch), mujoco.mj_checkVel(model, scratch),
-                          mujoco.mj_step2(model, scratch)),
+        "library": lambda: (
+            mujoco.mj_forward(model, scratch),
+            mujoco.mj_forward(model, scratch),
+            mujoco.mj_step(model, scratch),
+        ),
+        "exact": lambda: (
+            mujoco.mj_fwdPosition(model, scratch),
+            mujoco.mj_sensorPos(model, scratch),
+            mujoco.mj_fwdVelocity(model, scratch),
+            mujoco.mj_sensorVel(model, scratch),
+            mujoco.mj_checkPos(model, scratch),
+            mujoco.mj_checkVel(model, scratch),
+            mujoco.mj_step2(model, scratch),
+        ),
     }
     spec = int(mujoco.mjtState.mjSTATE_INTEGRATION)
     state = np.empty(mujoco.mj_stateSize(model, spec))
@@ -409,8 +432,14 @@ def parity_episode(task_id: str, episode: int, steps: int, path: str) -> dict[st
             for p, flag in zip(envs, flags):
                 successes[p] += int(flag)
         return {
-            "task": task_id, "episode": episode, "path": path, "steps": index + 1, "identical": first is None,
-            "first_difference": first, "max_abs_qpos_difference": drift, "success_steps": successes,
+            "task": task_id,
+            "episode": episode,
+            "path": path,
+            "steps": index + 1,
+            "identical": first is None,
+            "first_difference": first,
+            "max_abs_qpos_difference": drift,
+            "success_steps": successes,
             "success_disagreements": disagreements,
         }
     finally:
@@ -426,10 +455,16 @@ def main() -> int:
     parser.add_argument("--resets-only", action="store_true", help="measure resets only (--steps ignored)")
     parser.add_argument("--physics-reps", type=int, default=30, help="turns of the physics-only timing per task")
     parser.add_argument("--changes", action="store_true", help="also measure the exact path's changes one at a time")
-    parser.add_argument("--python-controller", action="store_true",
-                        help="also measure the exact path with its controller run from Python (before the compiled kernel)")
-    parser.add_argument("--second-pass", action="store_true",
-                        help="also measure the exact path without its second pass's changes, and with the first only")
+    parser.add_argument(
+        "--python-controller",
+        action="store_true",
+        help="also measure the exact path with its controller run from Python (before the compiled kernel)",
+    )
+    parser.add_argument(
+        "--second-pass",
+        action="store_true",
+        help="also measure the exact path without its second pass's changes, and with the first only",
+    )
     parser.add_argument("--cpu", type=int, help="the core to pin to (default: the last one allowed)")
     parser.add_argument("--parity-episodes", action="store_true", help="compare full episodes bit for bit instead")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task with --parity-episodes")
@@ -459,8 +494,12 @@ def main() -> int:
             "path": "exact",
             "baseline": "the library step path (robosuite's/LIBERO's own step) on an identically built and reset env",
             "identical": identical,
-            "setup": {"tasks": tasks, "episodes_per_task": args.episodes, "steps_per_episode": args.episode_steps,
-                      "pinned_to": cpu},
+            "setup": {
+                "tasks": tasks,
+                "episodes_per_task": args.episodes,
+                "steps_per_episode": args.episode_steps,
+                "pinned_to": cpu,
+            },
             "episodes": episodes,
             "seconds_total": round(time.monotonic() - started, 1),
         }
@@ -475,8 +514,14 @@ def main() -> int:
                 for key in next(iter(rows.values()))
                 if key.endswith("_over_vecsim")
             },
-            "setup": {"tasks": tasks, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
-                      "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg()},
+            "setup": {
+                "tasks": tasks,
+                "resets": args.resets,
+                "pinned_to": cpu,
+                "cameras": "none",
+                "load_average_at_start": load_at_start,
+                "load_average_at_end": os.getloadavg(),
+            },
             "rows": rows,
             "seconds_total": round(time.monotonic() - started, 1),
         }
@@ -495,26 +540,42 @@ def main() -> int:
         "target": "exact <= 2x floor; LIBERO's own step >= 2.5x exact",
         "across_tasks": {
             **{f"{name}_over_floor": across(lambda row, n=name: row["over_floor"].get(n)) for name in step_paths},
-            **{f"fastest_{name}_over_floor": across(lambda row, n=name: row["fastest_over_floor"].get(n))
-               for name in step_paths},
-            **{f"physics_{name}_over_floor": across(lambda row, n=name: row["physics_fastest_over_floor"][n])
-               for name in ("exact", "library")},
+            **{
+                f"fastest_{name}_over_floor": across(lambda row, n=name: row["fastest_over_floor"].get(n))
+                for name in step_paths
+            },
+            **{
+                f"physics_{name}_over_floor": across(lambda row, n=name: row["physics_fastest_over_floor"][n])
+                for name in ("exact", "library")
+            },
             "library_over_exact": across(lambda row: row["library_over_exact"]),
             "fastest_library_over_exact": across(lambda row: row["fastest_library_over_exact"]),
             "libero_over_exact": across(lambda row: row.get("libero_over_exact")),
             "fastest_libero_over_exact": across(lambda row: row.get("fastest_libero_over_exact")),
             "python_controller_over_exact": across(lambda row: row.get("python_controller_over_exact")),
             "fastest_python_controller_over_exact": across(lambda row: row.get("fastest_python_controller_over_exact")),
-            **{f"{prefix}{name}_over_exact": across(lambda row, k=f"{prefix}{name}_over_exact": row.get(k))
-               for name in SECOND_PASS for prefix in ("", "fastest_")},
-            **{key: across(lambda row, k=key: row.get(k))
-               for key in ("reset_libero_over_vecsim", "reset_before_over_vecsim", "fastest_reset_before_over_vecsim")},
+            **{
+                f"{prefix}{name}_over_exact": across(lambda row, k=f"{prefix}{name}_over_exact": row.get(k))
+                for name in SECOND_PASS
+                for prefix in ("", "fastest_")
+            },
+            **{
+                key: across(lambda row, k=key: row.get(k))
+                for key in ("reset_libero_over_vecsim", "reset_before_over_vecsim", "fastest_reset_before_over_vecsim")
+            },
         },
-        "setup": {"tasks": tasks, "steps": args.steps, "resets": args.resets, "pinned_to": cpu, "cameras": "none",
-                  "changes": args.changes, "python_controller": args.python_controller,
-                  "second_pass": args.second_pass,
-                  "load_average_at_start": load_at_start,
-                  "load_average_at_end": os.getloadavg()},
+        "setup": {
+            "tasks": tasks,
+            "steps": args.steps,
+            "resets": args.resets,
+            "pinned_to": cpu,
+            "cameras": "none",
+            "changes": args.changes,
+            "python_controller": args.python_controller,
+            "second_pass": args.second_pass,
+            "load_average_at_start": load_at_start,
+            "load_average_at_end": os.getloadavg(),
+        },
         "rows": rows,
         "seconds_total": round(time.monotonic() - started, 1),
     }

@@ -25,7 +25,16 @@ import logging
 import os
 from typing import Any
 
-from lib.pods import READY_TIMEOUT_S, interleaved, paired_ratio, rate_spread, setup_logging, standalone_pods, stepper, wait_for_quiet
+from lib.pods import (
+    READY_TIMEOUT_S,
+    interleaved,
+    paired_ratio,
+    rate_spread,
+    setup_logging,
+    standalone_pods,
+    stepper,
+    wait_for_quiet,
+)
 from lib.records import img_dir, write_result
 
 from vecsim.client import HTTPVectorEnv
@@ -45,14 +54,22 @@ def pod_counts(max_pods: int) -> list[int]:
     return [*counts, max_pods]
 
 
-def measure(task_id: str, per_pod: int, camera: CameraConfig, counts: list[int], steps: int, rounds: int) -> dict[str, Any]:
+def measure(
+    task_id: str, per_pod: int, camera: CameraConfig, counts: list[int], steps: int, rounds: int
+) -> dict[str, Any]:
     """Start max(counts) pinned pods; step the first P of them for each P, in interleaved rounds."""
     cores = sorted(os.sched_getaffinity(0))
     assignments = [
         Assignment(
-            generation=0, job_id="bench-scaling", pod=f"sim-{i}", stage_id=0,
-            tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=per_pod),), camera=camera, render="lean",
-            envs_per_worker=AUTO_ENVS_PER_WORKER, max_episode_steps=1000,
+            generation=0,
+            job_id="bench-scaling",
+            pod=f"sim-{i}",
+            stage_id=0,
+            tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=per_pod),),
+            camera=camera,
+            render="lean",
+            envs_per_worker=AUTO_ENVS_PER_WORKER,
+            max_episode_steps=1000,
         )
         for i in range(max(counts))
     ]
@@ -99,8 +116,12 @@ def plot(results: dict[str, dict[str, Any]], path: Any) -> None:
         ax.plot(counts, [measured[0] * p for p in counts], "--", color="grey", label="linear")
         ax.plot(counts, [TARGET * measured[0] * p for p in counts], ":", color="grey", label=f"{TARGET} x linear")
         ax.errorbar(
-            counts, measured, yerr=[[m - lo for m, lo in zip(measured, low)], [hi - m for m, hi in zip(measured, high)]],
-            marker="o", capsize=3, label="measured (median, min-max)",
+            counts,
+            measured,
+            yerr=[[m - lo for m, lo in zip(measured, low)], [hi - m for m, hi in zip(measured, high)]],
+            marker="o",
+            capsize=3,
+            label="measured (median, min-max)",
         )
         ax.set_xticks(counts)
         ax.set_xlabel("pods (one core each)")

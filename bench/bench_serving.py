@@ -103,8 +103,15 @@ class _PoolVectorEnv:
             blocks.append(TaskBlock(task_id=task, env_start=start, num_envs=per_task))
             start += per_task
         assignment = Assignment(
-            generation=0, job_id="serving-pool", pod="pool", stage_id=0, tasks=tuple(blocks), camera=camera,
-            render="lean", envs_per_worker=1, max_episode_steps=CAP,
+            generation=0,
+            job_id="serving-pool",
+            pod="pool",
+            stage_id=0,
+            tasks=tuple(blocks),
+            camera=camera,
+            render="lean",
+            envs_per_worker=1,
+            max_episode_steps=CAP,
         )
         # Spawned, not from this process's forkserver: that one is the in-process run's, and its
         # children (the memory and CPU counted for ``inproc``) must stay that run's workers.
@@ -161,12 +168,20 @@ def _local_job(job: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
 
 
 def measure(
-    name: str, tasks: list[str], per_task: int, camera: CameraConfig, steps: int, rounds: int, with_auto: bool,
+    name: str,
+    tasks: list[str],
+    per_task: int,
+    camera: CameraConfig,
+    steps: int,
+    rounds: int,
+    with_auto: bool,
     with_pool: bool = False,
 ) -> dict[str, Any]:
     """Build the contenders for one scene set, run the interleaved rounds; return the figures."""
     num_envs = len(tasks) * per_task
-    makers = [(lambda task_id=task_id: make_env(task_id, camera, "lean", CAP)) for task_id in tasks for _ in range(per_task)]
+    makers = [
+        (lambda task_id=task_id: make_env(task_id, camera, "lean", CAP)) for task_id in tasks for _ in range(per_task)
+    ]
     log.info("%s: %d envs (%s x %d), camera %s", name, num_envs, tasks, per_task, camera.model_dump())
     with contextlib.ExitStack() as stack:
         running = stack.enter_context(_local_job(_job(name, tasks, per_task, camera, 1)))
@@ -231,12 +246,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for the smoke test")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument(
-        "--libero-steps", type=int, default=40,
+        "--libero-steps",
+        type=int,
+        default=40,
         help="steps of the LIBERO set per contender and round (a step is ~15-60 ms: rounds of 8, "
         "the old count, left the median to a handful of calls)",
     )
     parser.add_argument(
-        "--no-pool", action="store_true",
+        "--no-pool",
+        action="store_true",
         help="leave the pool contender out of the LIBERO set (its 4 workers building beside the pod's "
         "and the in-process run's ran a 24 GiB machine out of memory)",
     )

@@ -69,12 +69,26 @@ def view(table: RoutingTable, name: str) -> RoutingTable:
     (pod,) = {p.pod: p for stage in table.stages for p in stage.pods}.values()
     if name == "slices":
         return table
-    envs = sorted((b.env_start + k, b.task_id) for stage in table.stages for p in stage.pods
-                  for b in p.tasks for k in range(b.num_envs))
+    envs = sorted(
+        (b.env_start + k, b.task_id)
+        for stage in table.stages
+        for p in stage.pods
+        for b in p.tasks
+        for k in range(b.num_envs)
+    )
     parts = [envs] if name == "one_stage" else [envs[: len(envs) // 2], envs[len(envs) // 2 :]]
     stages = tuple(
-        RoutedStage(stage_id=s, pods=(RoutedPod(pod=pod.pod, url=pod.url, num_envs=len(part), tasks=tuple(
-            TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for env, task in part)),))
+        RoutedStage(
+            stage_id=s,
+            pods=(
+                RoutedPod(
+                    pod=pod.pod,
+                    url=pod.url,
+                    num_envs=len(part),
+                    tasks=tuple(TaskBlock(task_id=task, env_start=env, num_envs=1, stage_id=s) for env, task in part),
+                ),
+            ),
+        )
         for s, part in enumerate(parts)
     )
     return table.model_copy(update={"stages": stages})
@@ -87,8 +101,13 @@ def chunk_of(client: StageClient, keys: list[str], chunk: int) -> dict[str, np.n
 
 def probe(client: StageClient, chunk: int, calls: int) -> dict[str, float]:
     """Median ms of stage 0's chunk step alone and of both stages' steps sent at once."""
-    placed = [(b.task_id, s) for s, stage in enumerate(client.routing.stages) for p in stage.pods
-              for b in p.tasks for _ in range(b.num_envs)]
+    placed = [
+        (b.task_id, s)
+        for s, stage in enumerate(client.routing.stages)
+        for p in stage.pods
+        for b in p.tasks
+        for _ in range(b.num_envs)
+    ]
     envs, stages = [(task, 0) for task, _ in placed], [s for _, s in placed]
     client.reset_trajectories(envs, stages=stages)
     for s in range(client.num_stages):
@@ -114,11 +133,27 @@ def probe(client: StageClient, chunk: int, calls: int) -> dict[str, float]:
 
 def settings(args: argparse.Namespace) -> dict[str, Any]:
     if args.quick:
-        mode = {"task": "gym/HalfCheetah-v5", "group_size": 2, "envs_per_worker": 2, "size": 8, "chunk": 4,
-                "horizon": 16, "rounds": 2, "probe_calls": 3}
+        mode = {
+            "task": "gym/HalfCheetah-v5",
+            "group_size": 2,
+            "envs_per_worker": 2,
+            "size": 8,
+            "chunk": 4,
+            "horizon": 16,
+            "rounds": 2,
+            "probe_calls": 3,
+        }
     else:
-        mode = {"task": "tiny/lift", "group_size": 4, "envs_per_worker": 4, "size": 32, "chunk": 8,
-                "horizon": 48, "rounds": 3, "probe_calls": 5}
+        mode = {
+            "task": "tiny/lift",
+            "group_size": 4,
+            "envs_per_worker": 4,
+            "size": 32,
+            "chunk": 8,
+            "horizon": 48,
+            "rounds": 3,
+            "probe_calls": 5,
+        }
     return with_flags(mode, args)
 
 
@@ -133,19 +168,27 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, help="actions per trajectory")
     parser.add_argument("--rounds", type=int)
     parser.add_argument("--probe-calls", type=int)
-    parser.add_argument("--policy-ms", type=float,
-                        help="the policy's sleep for a batch of every env, pro rata for fewer (default: the probe's "
-                        "one-stage call: policy as slow as the simulation)")
+    parser.add_argument(
+        "--policy-ms",
+        type=float,
+        help="the policy's sleep for a batch of every env, pro rata for fewer (default: the probe's "
+        "one-stage call: policy as slow as the simulation)",
+    )
     args = parser.parse_args()
     setup_logging()
     os.environ.setdefault("MUJOCO_GL", "egl")
     mode = settings(args)
     names = ("render",) if mode["task"].startswith("gym/") else ("agentview",)
     assignment = Assignment(
-        generation=0, job_id="bench-stage-slices", pod="sim-0", stage_id=None,
+        generation=0,
+        job_id="bench-stage-slices",
+        pod="sim-0",
+        stage_id=None,
         tasks=slice_blocks([mode["task"]], mode["group_size"], 2),
-        camera=CameraConfig(names=names, height=mode["size"], width=mode["size"]), render="lean",
-        envs_per_worker=mode["envs_per_worker"], max_episode_steps=10 * mode["horizon"],
+        camera=CameraConfig(names=names, height=mode["size"], width=mode["size"]),
+        render="lean",
+        envs_per_worker=mode["envs_per_worker"],
+        max_episode_steps=10 * mode["horizon"],
     )
     with contextlib.ExitStack() as stack:
         (pod,) = stack.enter_context(standalone_pods([assignment], ready_timeout_s=READY_TIMEOUT_S))
@@ -158,8 +201,10 @@ def main() -> None:
 
         def rollout(name: str) -> float:
             # Request i on stage i % S, as the sampler interleaves them; one per env.
-            per_stage = [[(b.task_id, k) for p in stage.pods for b in p.tasks for k in range(b.num_envs)]
-                         for stage in clients[name].routing.stages]
+            per_stage = [
+                [(b.task_id, k) for p in stage.pods for b in p.tasks for k in range(b.num_envs)]
+                for stage in clients[name].routing.stages
+            ]
             batch = [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]
             stats = EnvLoop(clients[name], policy, horizon=mode["horizon"], keep_obs=()).run(batch).stats
             return stats.env_steps / stats.wall_s
@@ -169,11 +214,19 @@ def main() -> None:
         "baseline": "one_stage: the same pod's envs in one stage, the same policy",
         "ratio": paired_ratio(rates["slices"], rates["one_stage"])["median"],
         "ratio_stage_major": paired_ratio(rates["stage_major"], rates["one_stage"])["median"],
-        "setup": {**mode, "envs": assignment.num_envs, "workers": -(-assignment.num_envs // mode["envs_per_worker"]),
-                  "policy_ms": policy_ms, "cameras": list(names), "cores": len(os.sched_getaffinity(0))},
+        "setup": {
+            **mode,
+            "envs": assignment.num_envs,
+            "workers": -(-assignment.num_envs // mode["envs_per_worker"]),
+            "policy_ms": policy_ms,
+            "cameras": list(names),
+            "cores": len(os.sched_getaffinity(0)),
+        },
         "probe": probes,
         "env_steps_per_s": {name: rate_spread(values) for name, values in rates.items()},
-        "two_stages_over_one": {name: paired_ratio(rates[name], rates["one_stage"]) for name in ("slices", "stage_major")},
+        "two_stages_over_one": {
+            name: paired_ratio(rates[name], rates["one_stage"]) for name in ("slices", "stage_major")
+        },
     }
     write_result("bench_stage_slices", summary, {"per_round": rates})
 

@@ -288,8 +288,7 @@ def main() -> None:
 
     def ratio(a: str, b: str) -> dict[str, float]:
         return {
-            _label(n, ""): round(spread([x / y for x, y in zip(gbps[a][n], gbps[b][n])])["median"], 2)
-            for n in sizes
+            _label(n, ""): round(spread([x / y for x, y in zip(gbps[a][n], gbps[b][n])])["median"], 2) for n in sizes
         }
 
     summary = {

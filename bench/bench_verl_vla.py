@@ -50,7 +50,12 @@ def measure(pods: int, per_pod: int, size: int, k: int, chunks: int, rounds: int
     camera = CameraConfig(height=size, width=size)
     assignments = [
         Assignment(
-            generation=0, job_id="bench-verl-vla", pod=f"sim-{p}", stage_id=0, camera=camera, max_episode_steps=None,
+            generation=0,
+            job_id="bench-verl-vla",
+            pod=f"sim-{p}",
+            stage_id=0,
+            camera=camera,
+            max_episode_steps=None,
             tasks=(TaskBlock(task_id=f"libero_spatial/{p}", env_start=0, num_envs=per_pod),),
         )
         for p in range(pods)

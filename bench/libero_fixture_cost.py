@@ -47,8 +47,11 @@ def build(task_id: str) -> Any:
 
     suite, index = task_id.split("/")
     return OffScreenRenderEnv(
-        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_names=[], use_camera_obs=False,
-        hard_reset=True, ignore_done=True,
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)),
+        camera_names=[],
+        use_camera_obs=False,
+        hard_reset=True,
+        ignore_done=True,
     )
 
 

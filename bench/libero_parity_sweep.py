@@ -51,13 +51,16 @@ from vecsim.engine.tasks import ensure_config, init_states, libero_benchmark
 
 log = logging.getLogger("bench.libero_parity_sweep")
 
+
 def libero_frames(task_id: str, state_id: int, size: int, actions: np.ndarray) -> list[dict[str, Any]]:
     """What LIBERO's evaluation sees after settling, then after each action."""
     from libero.libero.envs import OffScreenRenderEnv
 
     suite, index = task_id.split("/")
     env = OffScreenRenderEnv(
-        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)),
+        camera_heights=size,
+        camera_widths=size,
     )
     try:
         env.seed(0)

@@ -53,6 +53,7 @@ class ReplayTimes(logging.Handler):
         if isinstance(record.msg, str) and record.msg.startswith("replayed ") and record.args:
             self.seconds.append(float(record.args[3]))
 
+
 RULES = ("published", "first_reset")
 
 
@@ -65,7 +66,9 @@ def libero_loop(task_id: str, episodes: list[int], size: int, seed: int, actions
     states = init_states(get_task(task_id))
     started = time.perf_counter()
     env = OffScreenRenderEnv(
-        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)), camera_heights=size, camera_widths=size
+        bddl_file_name=libero_benchmark(suite).get_task_bddl_file_path(int(index)),
+        camera_heights=size,
+        camera_widths=size,
     )
     timings: dict[str, float] = {"build_s": time.perf_counter() - started, "resets_s": 0.0}
     frames: dict[int, list[dict[str, Any]]] = {}
@@ -166,7 +169,11 @@ def main() -> None:
         for rule in RULES
     }
     summary.update(
-        tasks=args.tasks, episodes=episodes, steps=args.steps, size=args.size, seed=args.seed,
+        tasks=args.tasks,
+        episodes=episodes,
+        steps=args.steps,
+        size=args.size,
+        seed=args.seed,
         seconds=round(time.perf_counter() - started, 1),
     )
     name = f"libero_published_sweep{'_' + args.tag if args.tag else ''}"

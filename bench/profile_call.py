@@ -312,11 +312,15 @@ def _assignment(pod: str) -> Any:
     from vecsim.config import AUTO_ENVS_PER_WORKER, Assignment, CameraConfig, TaskBlock
 
     return Assignment(
-        generation=0, job_id="profile", pod=pod, stage_id=0,
+        generation=0,
+        job_id="profile",
+        pod=pod,
+        stage_id=0,
         tasks=(TaskBlock(task_id=ARGS.task, env_start=0, num_envs=ARGS.envs),),
         camera=CameraConfig(names=tuple(c for c in ARGS.cameras.split(",") if c), height=ARGS.size, width=ARGS.size),
         render="lean",
-        envs_per_worker=ARGS.envs_per_worker or AUTO_ENVS_PER_WORKER, max_episode_steps=EPISODE_CAP,
+        envs_per_worker=ARGS.envs_per_worker or AUTO_ENVS_PER_WORKER,
+        max_episode_steps=EPISODE_CAP,
     )
 
 
@@ -331,9 +335,23 @@ def pod_process(mode: str, workdir: Path) -> Iterator[Any]:
     path.write_text(json.dumps(_assignment(name).model_dump(mode="json")))
     port = free_port()
     log_path = workdir / f"{name}.log"
-    argv = ["--serve-pod", mode, "--serve-out", str(log_path.with_suffix(".out")), "--",
-            "--assignment", str(path), "--name", name, "--host", "127.0.0.1", "--port", str(port),
-            "--log-level", "warning"]
+    argv = [
+        "--serve-pod",
+        mode,
+        "--serve-out",
+        str(log_path.with_suffix(".out")),
+        "--",
+        "--assignment",
+        str(path),
+        "--name",
+        name,
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--log-level",
+        "warning",
+    ]
     server = Server(name, argv, port, clean_env(), log_path, program=(sys.executable, __file__))
     with running(server):
         server.wait_ready(READY_TIMEOUT_S)
@@ -395,7 +413,11 @@ def _instrument_client(timers: Timers) -> None:
     timers.wrap(stage, "run_call", "client.run_call (on the loop thread)")
     timers.wrap(PodConnection, "call", "client.PodConnection.call (encode+HTTP+decode+checks)")
     timers.wrap(PodConnection, "_request", "client.PodConnection._request (HTTP round trip via transport)")
-    timers.wrap(transport.HttptoolsTransport, "fetch", "client.HttptoolsTransport.fetch (request out, answer in, read under the cap)")
+    timers.wrap(
+        transport.HttptoolsTransport,
+        "fetch",
+        "client.HttptoolsTransport.fetch (request out, answer in, read under the cap)",
+    )
     timers.wrap(wire, "encode", "client.wire.encode")
     timers.wrap(wire, "decode", "client.wire.decode")
     timers.wrap(calls, "fill_batch", "client.fill_batch (answer into batch)")
@@ -424,7 +446,13 @@ def top_costs(stats: pstats.Stats, total_s: float, n: int = 18) -> list[dict[str
         rows.append((tottime, cumtime, ncalls, f"{Path(path).name}:{line}({func})"))
     rows.sort(reverse=True)
     return [
-        {"where": where, "own_ms_per_call": tot, "cum_ms_per_call": cum, "calls": ncalls, "share": round(tot / total_s, 3)}
+        {
+            "where": where,
+            "own_ms_per_call": tot,
+            "cum_ms_per_call": cum,
+            "calls": ncalls,
+            "share": round(tot / total_s, 3),
+        }
         for tot, cum, ncalls, where in rows[:n]
     ]
 
@@ -512,7 +540,9 @@ def main() -> None:
             response = raw.post("/v1/step", content=bodies[t], headers=headers)
             assert response.status_code == 200, response.text
 
-        def exchange(method: str, path: str, body: bytes | None = None, conn: http.client.HTTPConnection = conn) -> None:
+        def exchange(
+            method: str, path: str, body: bytes | None = None, conn: http.client.HTTPConnection = conn
+        ) -> None:
             for attempt in (0, 1):
                 try:
                     conn.request(method, path, body=body, headers=headers)
@@ -574,7 +604,9 @@ def main() -> None:
                 after = cpu_snapshot(timed.pid, profiled.pid)
                 for group in after:
                     cpu[name][group] += after[group] - before.get(group, 0.0)
-            log.info("round %d/%d: %s", r + 1, rounds, {k: round(1e3 * statistics.median(v), 2) for k, v in times.items()})
+            log.info(
+                "round %d/%d: %s", r + 1, rounds, {k: round(1e3 * statistics.median(v), 2) for k, v in times.items()}
+            )
         pod_layers = json.loads(collect(timed).read_text())
         client_layers = client_timers.medians_ms()
 
@@ -620,9 +652,18 @@ def main() -> None:
     pod_total = sum(v[2] for v in pod_stats.stats.values())  # type: ignore[attr-defined]
     result = {
         "quick": ARGS.quick,
-        "setup": {"envs": n, "task": ARGS.task, "cameras": ARGS.cameras, "size": ARGS.size, "envs_per_worker": per_worker, "cores": available_cores(),
-                  "calls_per_round": calls, "rounds": rounds, "load_avg_before": load_before,
-                  "load_avg_after": os.getloadavg()},
+        "setup": {
+            "envs": n,
+            "task": ARGS.task,
+            "cameras": ARGS.cameras,
+            "size": ARGS.size,
+            "envs_per_worker": per_worker,
+            "cores": available_cores(),
+            "calls_per_round": calls,
+            "rounds": rounds,
+            "load_avg_before": load_before,
+            "load_avg_after": os.getloadavg(),
+        },
         "median_ms_per_call": medians,
         "ratio_to_in_process": {k: round(v / medians["in_process"], 2) for k, v in medians.items()},
         "cpu_ms_per_call": cpu_ms,
@@ -639,12 +680,31 @@ def main() -> None:
             "main_thread_top": scale(top_costs(pod_stats, pod_wall, 25), pcalls),
             "cumulative_ms_per_call": {
                 k: round(1e3 * v / pcalls, 3)
-                for k, v in cumulative(pod_stats, [
-                    "select", "_run_once", "(step)", "(step_envs)", "(send)", "(receive)",
-                    "(_per_row)", "(batch_infos)", "(encode_answer)", "(parse_body)", "(decode)", "(encode)",
-                    "(run_endpoint_function)", "(solve_dependencies)", "(_receive)", "(_send)",
-                    "(loads)", "(dumps)", "(model_validate)", "(app)",
-                ]).items()
+                for k, v in cumulative(
+                    pod_stats,
+                    [
+                        "select",
+                        "_run_once",
+                        "(step)",
+                        "(step_envs)",
+                        "(send)",
+                        "(receive)",
+                        "(_per_row)",
+                        "(batch_infos)",
+                        "(encode_answer)",
+                        "(parse_body)",
+                        "(decode)",
+                        "(encode)",
+                        "(run_endpoint_function)",
+                        "(solve_dependencies)",
+                        "(_receive)",
+                        "(_send)",
+                        "(loads)",
+                        "(dumps)",
+                        "(model_validate)",
+                        "(app)",
+                    ],
+                ).items()
             },
         },
     }
@@ -691,8 +751,10 @@ def _report(result: dict[str, Any]) -> None:
         out.write(f"\n{part}: wall {profile['wall_ms_per_call']} ms/call\n")
         for key in ("main_thread_top", "loop_thread_top"):
             for row in profile.get(key, []):
-                out.write(f"  [{key[:4]}] own {row['own_ms_per_call']:7.3f} cum {row['cum_ms_per_call']:7.3f} "
-                          f"{100 * row['share']:5.1f}%  {row['where']}\n")
+                out.write(
+                    f"  [{key[:4]}] own {row['own_ms_per_call']:7.3f} cum {row['cum_ms_per_call']:7.3f} "
+                    f"{100 * row['share']:5.1f}%  {row['where']}\n"
+                )
         for key, ms in profile.get("cumulative_ms_per_call", {}).items():
             out.write(f"  [cum ] {ms:7.3f}  {key}\n")
     log.info("report\n%s", out.getvalue())

@@ -129,8 +129,11 @@ def thin_visual_meshes(model: mujoco.MjModel, keep_every: int) -> int:
         model.mesh_face[start : start + len(kept)] = kept
         model.mesh_facenum[mesh] = len(kept)
     return int(
-        sum(model.mesh_facenum[int(model.geom_dataid[g])] for g in range(model.ngeom)
-            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and model.geom_group[g] == VISUAL_GROUP)
+        sum(
+            model.mesh_facenum[int(model.geom_dataid[g])]
+            for g in range(model.ngeom)
+            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and model.geom_group[g] == VISUAL_GROUP
+        )
     )
 
 
@@ -153,8 +156,9 @@ def scene_update_ms(views: list[CameraView], seconds: float) -> float:
     count, started = 0, time.perf_counter()
     while time.perf_counter() - started < seconds:
         for view in views:
-            mujoco.mjv_updateScene(view.model, view.data, view.option, perturb, view.camera,
-                                   mujoco.mjtCatBit.mjCAT_ALL, scene)
+            mujoco.mjv_updateScene(
+                view.model, view.data, view.option, perturb, view.camera, mujoco.mjtCatBit.mjCAT_ALL, scene
+            )
         count += len(views)
     return 1e3 * (time.perf_counter() - started) / count
 
@@ -197,8 +201,14 @@ def measure(
         simplify_s = time.perf_counter() - started
         variant(name, preset, views)
         out[name].update(quality(reference, _picture(size, preset, model, base_views)))
-        out[name].update({"cell_m": cell, "faces_kept": simplified.faces_after, "faces_all": simplified.faces_before,
-                          "simplify_s": round(simplify_s, 3)})
+        out[name].update(
+            {
+                "cell_m": cell,
+                "faces_kept": simplified.faces_after,
+                "faces_all": simplified.faces_before,
+                "simplify_s": round(simplify_s, 3),
+            }
+        )
     faces_before = geometry(model)["faces_by_geom_group"].get(str(VISUAL_GROUP), 0)
     done = 1
     for k in sorted(keep_every):

@@ -243,8 +243,12 @@ def main(argv: list[str] | None = None) -> int:
         while not stop.wait(min(10.0, max(0.0, started + duration_s - time.monotonic()))):
             if time.monotonic() >= started + duration_s:
                 break
-            log.info("%.0f s: %d env steps, %d errors", time.monotonic() - started,
-                     sum(e.env_steps for e in logs), sum(len(e.errors) for e in logs))
+            log.info(
+                "%.0f s: %d env steps, %d errors",
+                time.monotonic() - started,
+                sum(e.env_steps for e in logs),
+                sum(len(e.errors) for e in logs),
+            )
         stop.set()
         elapsed = time.monotonic() - started
         for thread in threads:

@@ -118,22 +118,68 @@ WHEELS = (
     "cloudpickle",
     "dill",
 )
-PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
-             "manylinux1_x86_64", "manylinux_2_24_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64",
-             "manylinux_2_35_x86_64")
+PLATFORMS = (
+    "manylinux_2_28_x86_64",
+    "manylinux_2_27_x86_64",
+    "manylinux_2_17_x86_64",
+    "manylinux2014_x86_64",
+    "manylinux1_x86_64",
+    "manylinux_2_24_x86_64",
+    "manylinux_2_31_x86_64",
+    "manylinux_2_34_x86_64",
+    "manylinux_2_35_x86_64",
+)
 GL_PACKAGES = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2")
 # Mesa's software EGL (Debian 12, amd64), then what its libraries load, recursively (readelf NEEDED).
 MESA_OWN_PACKAGES = ("libegl-mesa0", "libgbm1", "libglapi-mesa", "libgl1-mesa-dri", "libllvm15")
 MESA_DEPENDENCIES = (
-    "libexpat1", "liblzma5", "libtinfo6", "libx11-xcb1", "libxau6", "libxdmcp6", "libbsd0", "libmd0", "libdrm2",
-    "libdrm-amdgpu1", "libdrm-intel1", "libdrm-nouveau2", "libdrm-radeon1", "libpciaccess0", "libedit2", "libelf1",
-    "libffi8", "libicu72", "libxml2", "libz3-4", "libzstd1", "libsensors5", "libwayland-client0",
-    "libwayland-server0", "libxcb1", "libxcb-dri2-0", "libxcb-dri3-0", "libxcb-present0", "libxcb-randr0",
-    "libxcb-sync1", "libxcb-xfixes0", "libxshmfence1",
+    "libexpat1",
+    "liblzma5",
+    "libtinfo6",
+    "libx11-xcb1",
+    "libxau6",
+    "libxdmcp6",
+    "libbsd0",
+    "libmd0",
+    "libdrm2",
+    "libdrm-amdgpu1",
+    "libdrm-intel1",
+    "libdrm-nouveau2",
+    "libdrm-radeon1",
+    "libpciaccess0",
+    "libedit2",
+    "libelf1",
+    "libffi8",
+    "libicu72",
+    "libxml2",
+    "libz3-4",
+    "libzstd1",
+    "libsensors5",
+    "libwayland-client0",
+    "libwayland-server0",
+    "libxcb1",
+    "libxcb-dri2-0",
+    "libxcb-dri3-0",
+    "libxcb-present0",
+    "libxcb-randr0",
+    "libxcb-sync1",
+    "libxcb-xfixes0",
+    "libxshmfence1",
 )
 # Every machine that runs torch has these; carrying older copies could shadow the machine's own.
-MESA_BASE_SONAMES = frozenset({"libc.so.6", "libm.so.6", "libpthread.so.0", "libdl.so.2", "librt.so.1",
-                               "ld-linux-x86-64.so.2", "libgcc_s.so.1", "libstdc++.so.6", "libz.so.1"})
+MESA_BASE_SONAMES = frozenset(
+    {
+        "libc.so.6",
+        "libm.so.6",
+        "libpthread.so.0",
+        "libdl.so.2",
+        "librt.so.1",
+        "ld-linux-x86-64.so.2",
+        "libgcc_s.so.1",
+        "libstdc++.so.6",
+        "libz.so.1",
+    }
+)
 MESA_ROOTS = ("libEGL_mesa.so.0", "swrast_dri.so")
 # libLLVM loads libxml2, which loads ICU, whose libicudata is 31 MB of locale tables (7 MB packed)
 # that nothing on the rendering path reads. It ships as ICU's "stub data" instead: the one symbol
@@ -160,8 +206,25 @@ ROBOSUITE_TASKS = (
 )
 LIBERO_SUITE = "libero_10"
 # Meshes, textures and the like: copied only when a target scene loads them.
-ASSET_SUFFIXES = {".obj", ".stl", ".msh", ".png", ".jpg", ".jpeg", ".dae", ".mtl", ".zip", ".backup", ".hdf5",
-                  ".urdf", ".xacro", ".ply", ".skn", ".hdr", ".npz"}
+ASSET_SUFFIXES = {
+    ".obj",
+    ".stl",
+    ".msh",
+    ".png",
+    ".jpg",
+    ".jpeg",
+    ".dae",
+    ".mtl",
+    ".zip",
+    ".backup",
+    ".hdf5",
+    ".urdf",
+    ".xacro",
+    ".ply",
+    ".skn",
+    ".hdr",
+    ".npz",
+}
 _FILE_ATTR = re.compile(r'\bfile="([^"]+)"')
 
 
@@ -181,8 +244,20 @@ def download_wheels(target: Path) -> list[Path]:
             specs.append(f"{name}=={installed_version(name)}")
         except Exception:
             log.warning("%s is not installed here; skipping its wheel", name)
-    command = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version",
-               "3.12", "--implementation", "cp", "-d", str(target)]
+    command = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--no-deps",
+        "--only-binary=:all:",
+        "--python-version",
+        "3.12",
+        "--implementation",
+        "cp",
+        "-d",
+        str(target),
+    ]
     for platform in PLATFORMS:
         command += ["--platform", platform]
     for spec in specs:
@@ -191,8 +266,12 @@ def download_wheels(target: Path) -> list[Path]:
         if done.returncode == 0:
             continue
         # Pure-Python packages published as source only: build their (universal) wheel here.
-        built = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(target), spec],
-                               capture_output=True, text=True, timeout=600)
+        built = subprocess.run(
+            [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(target), spec],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         prefix = spec.split("==")[0].replace("-", "_").lower()
         wheels = [w for w in target.glob("*.whl") if w.name.lower().startswith(prefix)]
         if built.returncode != 0 or not any(w.name.endswith("-none-any.whl") for w in wheels):
@@ -209,8 +288,9 @@ def apt_download(packages: tuple[str, ...], target: Path) -> list[Path]:
     (lists / "partial").mkdir(parents=True, exist_ok=True)
     options = ["-oAPT::Architecture=amd64", "-oAPT::Architectures=amd64", f"-oDir::State::Lists={lists}"]
     subprocess.run(["apt-get", *options, "update"], check=True, capture_output=True, timeout=600)
-    subprocess.run(["apt-get", *options, "download", *packages], check=True, capture_output=True,
-                   cwd=target, timeout=600)
+    subprocess.run(
+        ["apt-get", *options, "download", *packages], check=True, capture_output=True, cwd=target, timeout=600
+    )
     return sorted(target.glob("*.deb"))
 
 
@@ -225,8 +305,9 @@ _SONAME = re.compile(r"\(SONAME\)\s+Library soname: \[([^\]]+)\]")
 
 def elf_links(path: Path) -> tuple[str, list[str]]:
     """Return a shared library's soname (its file name when it has none) and the sonames it loads."""
-    dynamic = subprocess.run(["readelf", "-d", str(path)], capture_output=True, text=True, check=True,
-                             timeout=60).stdout
+    dynamic = subprocess.run(
+        ["readelf", "-d", str(path)], capture_output=True, text=True, check=True, timeout=60
+    ).stdout
     soname = _SONAME.search(dynamic)
     return (soname.group(1) if soname else path.name), _NEEDED.findall(dynamic)
 
@@ -278,8 +359,7 @@ def download_mesa(out: Path) -> dict[str, Any]:
         staging = Path(tmp) / "staging"
         staging.mkdir()
         for deb in debs:
-            subprocess.run(["dpkg-deb", "-x", str(deb), str(staging / deb.name.split("_")[0])], check=True,
-                           timeout=300)
+            subprocess.run(["dpkg-deb", "-x", str(deb), str(staging / deb.name.split("_")[0])], check=True, timeout=300)
         closure = mesa_closure(staging)
         unused = sorted({*MESA_OWN_PACKAGES, *MESA_DEPENDENCIES} - {package for package, _ in closure.values()})
         if unused:
@@ -289,8 +369,12 @@ def download_mesa(out: Path) -> dict[str, Any]:
             stub = Path(tmp) / soname
             source = Path(tmp) / "icu_stub.c"
             source.write_text(ICU_STUB_C % {"symbol": f"icudt{soname.rsplit('.', 1)[1]}_dat"})
-            subprocess.run(["cc", "-shared", "-fPIC", "-s", "-O2", f"-Wl,-soname,{soname}", "-o", str(stub),
-                            str(source)], check=True, capture_output=True, timeout=120)
+            subprocess.run(
+                ["cc", "-shared", "-fPIC", "-s", "-O2", f"-Wl,-soname,{soname}", "-o", str(stub), str(source)],
+                check=True,
+                capture_output=True,
+                timeout=120,
+            )
             closure[soname] = (closure[soname][0], stub)
             stubbed[soname] = "ICU's stub data (an empty table), not the 31 MB of locale tables"
         archive = out / "mesa.tar.xz"
@@ -382,8 +466,10 @@ def libero_skips(libero_root: Path, task_ids: list[str]) -> tuple[str, ...]:
         for index in range(bench.n_tasks):
             if index not in indices:
                 task = bench.get_task(index)
-                skips += [f"libero/bddl_files/{task.problem_folder}/{task.bddl_file}",
-                          f"libero/init_files/{task.problem_folder}/{task.init_states_file}"]
+                skips += [
+                    f"libero/bddl_files/{task.problem_folder}/{task.bddl_file}",
+                    f"libero/init_files/{task.problem_folder}/{task.init_states_file}",
+                ]
     return tuple(skips)
 
 
@@ -563,7 +649,10 @@ def repo_size() -> int:
     """Return the bytes of what a device call sends of the repository (tracked and unignored files)."""
     listed = subprocess.run(
         ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, capture_output=True, check=True, timeout=60,
+        cwd=REPO,
+        capture_output=True,
+        check=True,
+        timeout=60,
     ).stdout.split(b"\0")
     paths = [REPO / name.decode() for name in listed if name]
     return sum(path.stat().st_size for path in paths if path.is_file())
@@ -616,16 +705,61 @@ def verify(out: Path, task_ids: list[str]) -> None:
         # Pure-Python wheels install the same under 3.11; compiled ones come from this venv.
         pure = [wheel for wheel in (out / "whl").glob("*.whl") if wheel.name.endswith("-none-any.whl")]
         if pure:
-            subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--target",
-                            str(site), *map(str, pure)], check=True, timeout=600)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "pip",
+                    "install",
+                    "-q",
+                    "--no-index",
+                    "--no-deps",
+                    "--target",
+                    str(site),
+                    *map(str, pure),
+                ],
+                check=True,
+                timeout=600,
+            )
         subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
         # The device's own packages, and the bundle's compiled (cp312) ones, come from this venv.
         device_has = (
-            "numpy", "scipy", "numba", "llvmlite", "cv2", "torch", "torchgen", "yaml", "PIL", "networkx", "sympy",
-            "mpmath", "jinja2", "markupsafe", "filelock", "fsspec", "matplotlib", "mpl_toolkits", "contourpy",
-            "cycler", "fontTools", "kiwisolver", "pyparsing", "dateutil", "six.py", "packaging", "imageio", "tqdm",
-            "h5py", "cloudpickle", "typing_extensions", "numpy.libs", "scipy.libs", "pillow.libs",
-            "opencv_python.libs", "torch.libs",
+            "numpy",
+            "scipy",
+            "numba",
+            "llvmlite",
+            "cv2",
+            "torch",
+            "torchgen",
+            "yaml",
+            "PIL",
+            "networkx",
+            "sympy",
+            "mpmath",
+            "jinja2",
+            "markupsafe",
+            "filelock",
+            "fsspec",
+            "matplotlib",
+            "mpl_toolkits",
+            "contourpy",
+            "cycler",
+            "fontTools",
+            "kiwisolver",
+            "pyparsing",
+            "dateutil",
+            "six.py",
+            "packaging",
+            "imageio",
+            "tqdm",
+            "h5py",
+            "cloudpickle",
+            "typing_extensions",
+            "numpy.libs",
+            "scipy.libs",
+            "pillow.libs",
+            "opencv_python.libs",
+            "torch.libs",
         )
         compiled = ("mujoco", "mujoco.libs", "glfw", "pydantic_core")
         for name in compiled:  # the cp312 builds a --mesa bundle unpacks: this Python cannot load them
@@ -652,8 +786,14 @@ def verify(out: Path, task_ids: list[str]) -> None:
             "LIBERO_CONFIG_PATH": str(config),
             "VECSIM_CACHE_DIR": str(Path(tmp) / "cache"),
         }
-        done = subprocess.run([str(venv / "bin" / "python"), "-c", VERIFY_CODE, str(site), *task_ids], env=env,
-                              capture_output=True, text=True, timeout=900, stdin=subprocess.DEVNULL)
+        done = subprocess.run(
+            [str(venv / "bin" / "python"), "-c", VERIFY_CODE, str(site), *task_ids],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            stdin=subprocess.DEVNULL,
+        )
         if done.returncode != 0:
             raise RuntimeError(f"the bundle failed its check:\n{done.stdout[-3000:]}\n{done.stderr[-6000:]}")
         log.info("verified: %s", " | ".join(done.stdout.strip().splitlines()))
@@ -665,8 +805,14 @@ def mesa_probe(env: dict[str, str]) -> dict[str, Any]:
     Raises:
         RuntimeError: the child made no GL context (its output is in the message).
     """
-    done = subprocess.run([sys.executable, "-c", MESA_PROBE_CODE], env={**os.environ, "MUJOCO_GL": "egl", **env},
-                          capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [sys.executable, "-c", MESA_PROBE_CODE],
+        env={**os.environ, "MUJOCO_GL": "egl", **env},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        stdin=subprocess.DEVNULL,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"no GL context through the bundle's Mesa:\n{done.stderr[-4000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -688,45 +834,82 @@ def verify_mesa(out: Path) -> None:
             tar.extractall(prefix, filter="tar")
         carried = {path.name for folder in ("own", "deps", "dri") for path in (prefix / folder).iterdir()}
         vendor = prefix / "50_mesa.json"
-        vendor.write_text(json.dumps({"file_format_version": "1.0.0",
-                                      "ICD": {"library_path": str(prefix / "own" / "libEGL_mesa.so.0")}}))
-        every = {"__EGL_VENDOR_LIBRARY_FILENAMES": str(vendor), "LIBGL_DRIVERS_PATH": str(prefix / "dri"),
-                 "LD_LIBRARY_PATH": f"{prefix / 'own'}:{prefix / 'deps'}"}
-        script = (f'source "{out.resolve() / "mesa.sh"}" && printf "%s\\n" "$VECSIM_MESA_EGL_VENDOR" '
-                  '"$VECSIM_MESA_LIBRARY_PATH" "$VECSIM_MESA_DRIVERS"')
-        done = subprocess.run(["bash", "-c", script], env={**os.environ, "VECSIM_MESA_PREFIX": str(Path(tmp) / "sh")},
-                              capture_output=True, text=True, timeout=300, check=True)
+        vendor.write_text(
+            json.dumps(
+                {"file_format_version": "1.0.0", "ICD": {"library_path": str(prefix / "own" / "libEGL_mesa.so.0")}}
+            )
+        )
+        every = {
+            "__EGL_VENDOR_LIBRARY_FILENAMES": str(vendor),
+            "LIBGL_DRIVERS_PATH": str(prefix / "dri"),
+            "LD_LIBRARY_PATH": f"{prefix / 'own'}:{prefix / 'deps'}",
+        }
+        script = (
+            f'source "{out.resolve() / "mesa.sh"}" && printf "%s\\n" "$VECSIM_MESA_EGL_VENDOR" '
+            '"$VECSIM_MESA_LIBRARY_PATH" "$VECSIM_MESA_DRIVERS"'
+        )
+        done = subprocess.run(
+            ["bash", "-c", script],
+            env={**os.environ, "VECSIM_MESA_PREFIX": str(Path(tmp) / "sh")},
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=True,
+        )
         vendor_file, library_path, drivers = done.stdout.split()
-        as_set_up = {"__EGL_VENDOR_LIBRARY_FILENAMES": vendor_file, "LD_LIBRARY_PATH": library_path,
-                     "LIBGL_DRIVERS_PATH": drivers}
+        as_set_up = {
+            "__EGL_VENDOR_LIBRARY_FILENAMES": vendor_file,
+            "LD_LIBRARY_PATH": library_path,
+            "LIBGL_DRIVERS_PATH": drivers,
+        }
         for label, env, root in (("every library carried", every, prefix), ("mesa.sh", as_set_up, Path(tmp) / "sh")):
             info = mesa_probe(env)
             mapped = {Path(path).name: path for path in info["libraries"]}
-            strays = {name: path for name, path in mapped.items()
-                      if name in carried and not path.startswith(str(root.resolve())) and label != "mesa.sh"}
+            strays = {
+                name: path
+                for name, path in mapped.items()
+                if name in carried and not path.startswith(str(root.resolve())) and label != "mesa.sh"
+            }
             for must in ("libEGL_mesa.so.0", "swrast_dri.so", "libLLVM-15.so.1"):
                 if not mapped.get(must, "").startswith(str(root.resolve())):
                     strays[must] = mapped.get(must, "not mapped")
             if "llvmpipe" not in info["renderer"] or strays:
                 raise RuntimeError(f"{label}: renderer {info['renderer']!r}; not from the bundle: {strays}")
             from_bundle = [name for name, path in mapped.items() if path.startswith(str(root.resolve()))]
-            log.info("Mesa (%s): %s, %s; mapped from the bundle: %s", label, info["renderer"], info["version"],
-                     ", ".join(sorted(from_bundle)))
+            log.info(
+                "Mesa (%s): %s, %s; mapped from the bundle: %s",
+                label,
+                info["renderer"],
+                info["version"],
+                ", ".join(sorted(from_bundle)),
+            )
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=REPO / ".device")
-    parser.add_argument("--keep-wheels", action="store_true", help="reuse the wheels, GL packages and Mesa archive "
-                        "already downloaded or built")
+    parser.add_argument(
+        "--keep-wheels",
+        action="store_true",
+        help="reuse the wheels, GL packages and Mesa archive already downloaded or built",
+    )
     parser.add_argument("--verify", action="store_true", help="check the bundle in a clean venv afterwards")
     parser.add_argument("--max-texture", type=int, default=512, help="largest texture side shipped, in pixels")
-    parser.add_argument("--scene-files", type=Path, help="read the scenes' file list from this JSON instead of "
-                        "building every scene (a list of paths, as the last run wrote to <out>/scene_files.json)")
-    parser.add_argument("--tasks", help="comma-separated task ids to ship (default: the robosuite Panda tasks and "
-                        "LIBERO-10); e.g. libero_10/0")
-    parser.add_argument("--mesa", action="store_true", help="add Mesa's software EGL (mesa.tar.xz, mesa.sh) and "
-                        "ship the wheels unpacked in packages.tar.xz")
+    parser.add_argument(
+        "--scene-files",
+        type=Path,
+        help="read the scenes' file list from this JSON instead of "
+        "building every scene (a list of paths, as the last run wrote to <out>/scene_files.json)",
+    )
+    parser.add_argument(
+        "--tasks",
+        help="comma-separated task ids to ship (default: the robosuite Panda tasks and LIBERO-10); e.g. libero_10/0",
+    )
+    parser.add_argument(
+        "--mesa",
+        action="store_true",
+        help="add Mesa's software EGL (mesa.tar.xz, mesa.sh) and ship the wheels unpacked in packages.tar.xz",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     out: Path = args.out
@@ -769,8 +952,9 @@ def main() -> int:
         "packages": counts,
         "scene_files": len(wanted),
         "max_texture_side": args.max_texture,
-        "targets": task_ids if args.tasks else [*ROBOSUITE_TASKS, f"{LIBERO_SUITE} (all 10 tasks)",
-                                                "tiny (Lift, Stack, Door scenes)"],
+        "targets": task_ids
+        if args.tasks
+        else [*ROBOSUITE_TASKS, f"{LIBERO_SUITE} (all 10 tasks)", "tiny (Lift, Stack, Door scenes)"],
         "mesa": mesa or None,
         "bytes": {
             "whl": tree_size(out / "whl") if (out / "whl").exists() else 0,
@@ -781,8 +965,10 @@ def main() -> int:
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     bundle, repo = tree_size(out), repo_size()
-    print(f"bundle {bundle / 2**20:.1f} MiB + repository {repo / 2**20:.1f} MiB = "
-          f"{(bundle + repo) / 2**20:.1f} MiB of the {CARRY_LIMIT / 2**20:.0f} MiB carry limit")
+    print(
+        f"bundle {bundle / 2**20:.1f} MiB + repository {repo / 2**20:.1f} MiB = "
+        f"{(bundle + repo) / 2**20:.1f} MiB of the {CARRY_LIMIT / 2**20:.0f} MiB carry limit"
+    )
     if args.verify:
         verify(out, task_ids if args.tasks else ["tiny/lift", f"{LIBERO_SUITE}/0"])
         if args.mesa:

@@ -175,8 +175,9 @@ def step_costs(pod_calls: Sequence[tuple[int, str, float, float, int, int]]) -> 
         calls.sort()
         first, median = calls[0][1], statistics.median(d for _, d in calls)
         ratio = first / median if median > 0 else float("inf")
-        per_pod.append({"stage_id": stage, "pod": pod, "calls": len(calls), "first_s": first,
-                        "median_s": median, "ratio": ratio})
+        per_pod.append(
+            {"stage_id": stage, "pod": pod, "calls": len(calls), "first_s": first, "median_s": median, "ratio": ratio}
+        )
     worst = max((p["ratio"] for p in per_pod), default=None)
     return {"first_over_median": worst, "per_pod": per_pod}
 
@@ -240,7 +241,9 @@ def plot_timeline(result: RolloutResult, num_stages: int, path: Path, policy_war
     fig, ax = plt.subplots(figsize=(11, 1.4 + 0.38 * len(rows)))
     for what, stage, begin, end in s.timeline:
         if what == "policy":
-            ax.barh(where[("policy", stage, "")], end - begin, left=begin, height=0.6, color=colors["policy"], linewidth=0)
+            ax.barh(
+                where[("policy", stage, "")], end - begin, left=begin, height=0.6, color=colors["policy"], linewidth=0
+            )
     first: set[tuple[int, str]] = set()
     for stage, pod, begin, end, resets, steps in s.pod_calls:
         # A lane's first call resets the first wave; a later call with resets starts refilled trajectories.
@@ -251,7 +254,9 @@ def plot_timeline(result: RolloutResult, num_stages: int, path: Path, policy_war
     ax.invert_yaxis()
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()]
     labels = ["policy forward pass", "pod stepping", "pod starting refilled trajectories (and stepping)", "first reset"]
-    ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.25 if len(rows) < 8 else -0.1), ncol=4, fontsize=8)
+    ax.legend(
+        handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.25 if len(rows) < 8 else -0.1), ncol=4, fontsize=8
+    )
     worst = step_costs(s.pod_calls)["first_over_median"]
     first_step = "" if worst is None else f"; first step {worst:.1f}x the median"
     ax.set_title(
@@ -289,7 +294,9 @@ def main(argv: list[str]) -> int:
         logger.info("starting %d pods and the controller (logs in %s)", config.pods.replicas, out / "logs")
         with showing_warmup(local):
             table = local.wait_ready(timeout=args.ready_timeout)
-        logger.info("job %r ready in %.0f s: generation %d", job.job_id, time.perf_counter() - started, table.generation)
+        logger.info(
+            "job %r ready in %.0f s: generation %d", job.job_id, time.perf_counter() - started, table.generation
+        )
         for line in format_status(local.status()).splitlines():
             logger.info("%s", line)
 
@@ -309,13 +316,16 @@ def main(argv: list[str]) -> int:
                 client,
                 policy,
                 horizon=args.horizon
-                or max(episode_limit(task, job.max_episode_steps) or get_task(task).max_episode_steps for task in tasks),
+                or max(
+                    episode_limit(task, job.max_episode_steps) or get_task(task).max_episode_steps for task in tasks
+                ),
                 record=args.videos,
                 video_dir=out / "videos",
                 log_every_s=5.0,
             )
-            logger.info("rolling out %d trajectories over %d stages and %d envs", len(requests), job.num_stages,
-                        table.num_envs)
+            logger.info(
+                "rolling out %d trajectories over %d stages and %d envs", len(requests), job.num_stages, table.num_envs
+            )
             result = loop.run(requests)
         finally:
             client.close()
@@ -340,7 +350,14 @@ def main(argv: list[str]) -> int:
     print(f"summary: {out / 'summary.json'}")
     if result.lost:
         for key, lost in result.lost.items():
-            logger.error("lost %s (%s on %s after %d steps): %s", key, lost.route.task_id, lost.route.pod, lost.steps, lost.reason)
+            logger.error(
+                "lost %s (%s on %s after %d steps): %s",
+                key,
+                lost.route.task_id,
+                lost.route.pod,
+                lost.steps,
+                lost.reason,
+            )
         print(
             f"FAILED: {len(result.lost)} of {len(requests)} trajectories were lost (their pods failed them; "
             f"see the errors above and the logs in {out / 'logs'})"

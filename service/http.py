@@ -41,9 +41,7 @@ class BodyLimitMiddleware:
     ``await request.body()``. ``server`` names whose limit it is in the 413's detail.
     """
 
-    def __init__(
-        self, app: ASGIApp, limit: int, on_refused: Callable[[], None], server: str = "this pod"
-    ) -> None:
+    def __init__(self, app: ASGIApp, limit: int, on_refused: Callable[[], None], server: str = "this pod") -> None:
         self.app = app
         self.limit = limit
         self.on_refused = on_refused

@@ -35,8 +35,11 @@ def checkout() -> Path:
 def write_launcher(path: Path, python: Path, root: Path) -> None:
     """Write the launcher at ``path``: it runs ``python -m service.cli`` while ``root`` holds
     ``service/cli.py``, else says that ``root`` is gone and exits 1."""
-    path.write_text(TEMPLATE.format(checkout=root, cli=shlex.quote(str(root / "service" / "cli.py")),
-                                    python=shlex.quote(str(python))))
+    path.write_text(
+        TEMPLATE.format(
+            checkout=root, cli=shlex.quote(str(root / "service" / "cli.py")), python=shlex.quote(str(python))
+        )
+    )
     path.chmod(0o755)
 
 

@@ -52,10 +52,10 @@ STAGE_LAYOUT_DOC = (
 )
 
 
-
 # A pod's name: a Kubernetes DNS label (a StatefulSet pod's name, e.g. sim-0). The one definition
 # every model and route that takes a pod name uses.
 POD_NAME_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
+
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)

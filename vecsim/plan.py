@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 
 from vecsim.config import Assignment, EnvSettings, JobSpec, PodRecord, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
+
 def stage_of(i: int, num_stages: int) -> int:
     """Return the pipeline stage of request ``i`` of a batch: ``i % num_stages``.
 
@@ -66,7 +67,9 @@ class Slot:
     @property
     def name(self) -> str:
         """``stage 1 slot 0``, or ``slot 0 (every stage)`` for a ``slices`` slot: for messages."""
-        return f"slot {self.index} (every stage)" if self.stage_id is None else f"stage {self.stage_id} slot {self.index}"
+        return (
+            f"slot {self.index} (every stage)" if self.stage_id is None else f"stage {self.stage_id} slot {self.index}"
+        )
 
     @property
     def num_envs(self) -> int:
@@ -167,7 +170,9 @@ def _assignment(
     job: JobSpec, generation: int, pod: str, stage_id: int | None, tasks: tuple[TaskBlock, ...]
 ) -> Assignment:
     settings = {name: getattr(job, name) for name in EnvSettings.model_fields}
-    settings["make_kwargs"] = {task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}}
+    settings["make_kwargs"] = {
+        task: kwargs for task, kwargs in job.make_kwargs.items() if task in {b.task_id for b in tasks}
+    }
     return Assignment(generation=generation, job_id=job.job_id, pod=pod, stage_id=stage_id, tasks=tasks, **settings)
 
 

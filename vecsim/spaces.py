@@ -34,7 +34,13 @@ from gymnasium import spaces
 from vecsim.wire import WireError, from_jsonable, to_jsonable
 
 __all__ = [
-    "check_action_space", "check_travels", "in_kind_of", "space_from_json", "space_to_json", "tuples_as_dicts", "wire_action_space",
+    "check_action_space",
+    "check_travels",
+    "in_kind_of",
+    "space_from_json",
+    "space_to_json",
+    "tuples_as_dicts",
+    "wire_action_space",
     "without_rng",
 ]
 

@@ -18,8 +18,16 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-__all__ = ["LIBERO_SUITES", "ROBOSUITE_SUITES", "LiberoSuite", "is_known", "normalize_task_id", "space_family",
-           "suite_names", "suite_task_ids"]
+__all__ = [
+    "LIBERO_SUITES",
+    "ROBOSUITE_SUITES",
+    "LiberoSuite",
+    "is_known",
+    "normalize_task_id",
+    "space_family",
+    "suite_names",
+    "suite_task_ids",
+]
 
 
 class LiberoSuite(NamedTuple):
@@ -38,8 +46,17 @@ LIBERO_SUITES: dict[str, LiberoSuite] = {
 }
 ROBOSUITE_SUITES: dict[str, tuple[str, ...]] = {
     "robosuite": (
-        "Lift", "Stack", "PickPlace", "PickPlaceMilk", "PickPlaceBread", "PickPlaceCereal", "PickPlaceCan",
-        "NutAssembly", "NutAssemblySquare", "NutAssemblyRound", "Door",
+        "Lift",
+        "Stack",
+        "PickPlace",
+        "PickPlaceMilk",
+        "PickPlaceBread",
+        "PickPlaceCereal",
+        "PickPlaceCan",
+        "NutAssembly",
+        "NutAssemblySquare",
+        "NutAssemblyRound",
+        "Door",
     ),
     "tiny": ("lift", "stack", "door"),
 }

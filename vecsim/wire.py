@@ -147,8 +147,7 @@ def _leaf(value: Any, path: tuple[str, ...], depth: int) -> Any:
     if kind is float or isinstance(value, float):
         if not math.isfinite(value):
             raise WireError(
-                f"{_fmt(path)}: non-finite float {value!r} cannot sit in the JSON header; "
-                "send it inside a numpy array"
+                f"{_fmt(path)}: non-finite float {value!r} cannot sit in the JSON header; send it inside a numpy array"
             )
         return float(value)
     if isinstance(value, (bool, str)):
@@ -329,8 +328,7 @@ def _array_spec(spec: Any, index: int, payload_len: int) -> tuple[list[str], np.
         raise WireError(f"header: array {_fmt(path)}: offset {offset} is not {ALIGN}-byte aligned")
     if offset + nbytes > payload_len:
         raise WireError(
-            f"header: array {_fmt(path)}: bytes {offset}..{offset + nbytes} lie outside "
-            f"the {payload_len}-byte payload"
+            f"header: array {_fmt(path)}: bytes {offset}..{offset + nbytes} lie outside the {payload_len}-byte payload"
         )
     count = math.prod(shape)
     if count * dtype.itemsize != nbytes:

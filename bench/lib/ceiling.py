@@ -47,8 +47,10 @@ def _collect(procs: Sequence[Any], results: Any, kind_wanted: str, count: int, t
                 raise RuntimeError(f"pinned processes {dead} exited without a {kind_wanted!r} message") from None
             if time.monotonic() < end:
                 continue
-            raise RuntimeError(f"{len(payloads)} of {count} {kind_wanted!r} messages came from the pinned processes "
-                               f"in {timeout_s:.0f} s")
+            raise RuntimeError(
+                f"{len(payloads)} of {count} {kind_wanted!r} messages came from the pinned processes "
+                f"in {timeout_s:.0f} s"
+            )
         if kind == "error":
             raise RuntimeError(f"pinned process {index} failed:\n{payload}")
         if kind == kind_wanted:
@@ -63,8 +65,9 @@ def _stop(procs: Sequence[Any]) -> None:
             proc.kill()
 
 
-def _spawn(pins: Sequence[str], target: Callable[..., None],
-           args: Callable[[int, int], tuple[Any, ...]]) -> tuple[list[Any], Any, Any]:
+def _spawn(
+    pins: Sequence[str], target: Callable[..., None], args: Callable[[int, int], tuple[Any, ...]]
+) -> tuple[list[Any], Any, Any]:
     """Start ``target(index, cpu, *args(index, cpu), barrier, results)`` in one spawned process per
     pod core (``pins``), all sharing one barrier; return the processes, their ``results`` queue and
     the barrier, which the caller keeps while they run (a spawned child unpickles it after
@@ -80,8 +83,13 @@ def _spawn(pins: Sequence[str], target: Callable[..., None],
     return procs, results, barrier
 
 
-def _pinned(pins: Sequence[str], target: Callable[..., None], args: Callable[[int, int], tuple[Any, ...]],
-            reports: int, timeout_s: float) -> list[Any]:
+def _pinned(
+    pins: Sequence[str],
+    target: Callable[..., None],
+    args: Callable[[int, int], tuple[Any, ...]],
+    reports: int,
+    timeout_s: float,
+) -> list[Any]:
     """Run ``target`` in one process per pod core (:func:`_spawn`), all at once; return the
     ``reports`` payloads of its ``("rate", index, payload)`` messages, in arrival order.
 
@@ -107,7 +115,9 @@ def physics_only(pins: Sequence[str], tasks: Sequence[str], seconds: float, time
         RuntimeError: a process failed (its traceback) or did not answer within ``timeout_s``.
     """
     args = lambda i, cpu: (list(tasks), [len(pins)], ["exact"], 1, seconds)  # noqa: E731
-    rates = [payload[3] for payload in _pinned(pins, physics_worker, args, len(pins), timeout_s)]  # (round, count, path, rate)
+    rates = [
+        payload[3] for payload in _pinned(pins, physics_worker, args, len(pins), timeout_s)
+    ]  # (round, count, path, rate)
     return {
         "env_steps_per_s": round(sum(rates), 1),
         "per_process": _spread(rates),
@@ -125,8 +135,17 @@ def ceiling_runs(chunks: Sequence[int], reset_every: int) -> list[tuple[int, int
     return [(k, every) for k in chunks for every in ([0, reset_every] if reset_every else [0])]
 
 
-def ceiling_worker(index: int, cpu: int, tasks: list[str], camera: dict[str, Any], preset: str, envs_per_task: int,
-                   commands: Any, barrier: Any, results: Any) -> None:
+def ceiling_worker(
+    index: int,
+    cpu: int,
+    tasks: list[str],
+    camera: dict[str, Any],
+    preset: str,
+    envs_per_task: int,
+    commands: Any,
+    barrier: Any,
+    results: Any,
+) -> None:
     """Pin to ``cpu``; build the task mix as a pod's worker does (``envs_per_task`` envs of each
     task, the job's cameras and render preset), say ``("ready", index, None)``, then carry out
     each ``(K, reset_every, seconds)`` from ``commands`` (None: exit), in step with the other
@@ -204,8 +223,9 @@ class CeilingProcesses:
     the processes and the physics and render milliseconds per env-step.
     """
 
-    def __init__(self, pins: Sequence[str], plan: Plan, chunks: Sequence[int], seconds: float, reset_every: int,
-                 timeout_s: float) -> None:
+    def __init__(
+        self, pins: Sequence[str], plan: Plan, chunks: Sequence[int], seconds: float, reset_every: int, timeout_s: float
+    ) -> None:
         self.pins, self.plan, self.seconds, self.timeout_s = list(pins), plan, seconds, timeout_s
         self.runs = ceiling_runs(chunks, reset_every)
         self._procs: list[Any] = []
@@ -214,8 +234,11 @@ class CeilingProcesses:
     def __enter__(self) -> CeilingProcesses:
         plan = self.plan
         self._commands = [multiprocessing.get_context("spawn").Queue() for _ in self.pins]
-        self._procs, self._results, self._barrier = _spawn(self.pins, ceiling_worker, lambda i, cpu: (
-            list(plan.tasks), camera(plan), plan.render_preset, plan.envs_per_task, self._commands[i]))
+        self._procs, self._results, self._barrier = _spawn(
+            self.pins,
+            ceiling_worker,
+            lambda i, cpu: (list(plan.tasks), camera(plan), plan.render_preset, plan.envs_per_task, self._commands[i]),
+        )
         try:
             _collect(self._procs, self._results, "ready", len(self._procs), self.timeout_s)
         except BaseException:
@@ -237,8 +260,13 @@ class CeilingProcesses:
         for k, every in self.runs:
             for commands in self._commands:
                 commands.put((k, every, self.seconds))
-        reports = _collect(self._procs, self._results, "rate", len(self._procs) * len(self.runs),
-                           self.timeout_s + len(self.runs) * self.seconds)
+        reports = _collect(
+            self._procs,
+            self._results,
+            "rate",
+            len(self._procs) * len(self.runs),
+            self.timeout_s + len(self.runs) * self.seconds,
+        )
         out: dict[str, Any] = {}
         for k, every in self.runs:
             mine = [r[2:] for r in reports if r[:2] == (k, every)]
@@ -252,8 +280,13 @@ class CeilingProcesses:
         return out
 
     def describe(self) -> dict[str, Any]:
-        return {"processes": len(self.pins), "pinned_to": self.pins, "seconds_per_k": self.seconds,
-                "camera": camera(self.plan), "render_preset": self.plan.render_preset}
+        return {
+            "processes": len(self.pins),
+            "pinned_to": self.pins,
+            "seconds_per_k": self.seconds,
+            "camera": camera(self.plan),
+            "render_preset": self.plan.render_preset,
+        }
 
 
 def ceiling_key(k: int, every: int) -> str:

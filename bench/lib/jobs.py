@@ -66,7 +66,6 @@ class Plan:
         return torch.bfloat16 if self.dtype == "bfloat16" else torch.float32
 
 
-
 def camera(plan: Plan) -> dict[str, Any]:
     """The job's cameras: LIBERO's two (gym tasks: their one render camera), ``size`` square."""
     names = ("render",) if plan.tasks[0].startswith("gym/") else ROBOT_CAMERAS
@@ -108,9 +107,7 @@ def job_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -> J
 
 
 @contextlib.contextmanager
-def running_job(
-    config: JobConfig, keep_logs: Path | None = None, env: dict[str, str] | None = None
-) -> Iterator[Any]:
+def running_job(config: JobConfig, keep_logs: Path | None = None, env: dict[str, str] | None = None) -> Iterator[Any]:
     """Start a LocalJob (not waiting for it); yield it; stop every process it started on exit.
     When the body fails, the job's logs go to ``keep_logs/<job id>-logs.tar.gz``."""
     from service.runner.job import LocalJob
@@ -126,7 +123,6 @@ def running_job(
         raise
     finally:
         job.stop()
-
 
 
 def wait_for_job(job: Any, timeout_s: float) -> RoutingTable:
@@ -215,8 +211,12 @@ def requests_for(table: RoutingTable, waves: int = 1) -> list[tuple[str, int]]:
     if len(set(sizes)) > 1:
         raise ValueError(f"stages of {sizes} envs: every stage needs as many envs (change the pods or envs per task)")
     per_stage = [
-        [(block.task_id, (pod_index * 7 + k) % 50) for pod_index, pod in enumerate(stage.pods)
-         for block in pod.tasks for k in range(block.num_envs)]
+        [
+            (block.task_id, (pod_index * 7 + k) % 50)
+            for pod_index, pod in enumerate(stage.pods)
+            for block in pod.tasks
+            for k in range(block.num_envs)
+        ]
         for stage in table.stages
     ]
     one = [per_stage[i % len(per_stage)][i // len(per_stage)] for i in range(sum(map(len, per_stage)))]

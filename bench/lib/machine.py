@@ -22,8 +22,10 @@ import psutil
 
 
 MESA_VENDOR_GLOBS = ("/usr/share/glvnd/egl_vendor.d/*mesa*.json", "/etc/glvnd/egl_vendor.d/*mesa*.json")
-NVIDIA_VENDOR_FILES = ("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json",
-                       "/usr/share/glvnd/egl_vendor.d/10_nvidia.json")
+NVIDIA_VENDOR_FILES = (
+    "/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json",
+    "/usr/share/glvnd/egl_vendor.d/10_nvidia.json",
+)
 GL_LIBRARY = re.compile(r"EGL|GLX|GLdispatch|nvidia|mesa|LLVM|_dri\.so|gallium|gbm|glapi")
 
 
@@ -50,8 +52,12 @@ def mesa_egl() -> dict[str, Any]:
 def gpu_name() -> str | None:
     """Return nvidia-smi's name and driver of the GPU, or None without one."""
     try:
-        done = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
-                              capture_output=True, text=True, timeout=20)
+        done = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
     except (OSError, subprocess.TimeoutExpired):
         return None
     return done.stdout.strip() or None
@@ -95,8 +101,15 @@ def cpu_topology() -> dict[str, Any]:
         out = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=20).stdout
         for line in out.splitlines():
             key, _, value = line.partition(":")
-            if key.strip() in ("Model name", "CPU(s)", "Thread(s) per core", "Core(s) per socket", "Socket(s)",
-                               "NUMA node(s)", "Hypervisor vendor"):
+            if key.strip() in (
+                "Model name",
+                "CPU(s)",
+                "Thread(s) per core",
+                "Core(s) per socket",
+                "Socket(s)",
+                "NUMA node(s)",
+                "Hypervisor vendor",
+            ):
                 lscpu[key.strip()] = value.strip()
     return {
         "cpus": len(allowed),
@@ -134,8 +147,6 @@ def memory_gib() -> float:
     return round(psutil.virtual_memory().used / 2**30, 1)
 
 
-
-
 class MemoryWatch:
     """Samples the machine's memory in use every ``every_s`` in a thread while the body runs;
     once it passes ``limit_gib`` it interrupts the main thread, which the body's exit turns into
@@ -166,10 +177,10 @@ class MemoryWatch:
         self._stop.set()
         self._thread.join()
         if self.tripped is not None and (kind is None or issubclass(kind, KeyboardInterrupt)):
-            raise MemoryError(f"{self.tripped} GiB of memory in use, above --max-memory-gib {self.limit_gib}: "
-                              "run fewer pods, tasks per pod or envs")
-
-
+            raise MemoryError(
+                f"{self.tripped} GiB of memory in use, above --max-memory-gib {self.limit_gib}: "
+                "run fewer pods, tasks per pod or envs"
+            )
 
 
 RENDER_PROBE_CODE = (
@@ -184,8 +195,9 @@ def render_probe(env: dict[str, str], timeout_s: float = 120.0) -> dict[str, Any
     process with this environment plus ``env`` maps once it has a context, or ``{"error": ...}``."""
     full = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **env}
     try:
-        done = subprocess.run([sys.executable, "-c", RENDER_PROBE_CODE], env=full, capture_output=True, text=True,
-                              timeout=timeout_s)
+        done = subprocess.run(
+            [sys.executable, "-c", RENDER_PROBE_CODE], env=full, capture_output=True, text=True, timeout=timeout_s
+        )
     except subprocess.TimeoutExpired:
         return {"error": f"no GL context within {timeout_s:.0f} s"}
     if done.returncode != 0:
@@ -221,11 +233,7 @@ def software_egl_env() -> tuple[dict[str, str] | None, str]:
     return None, "no Mesa EGL: neither the bundle's (source mesa.sh) nor the machine's"
 
 
-
-
 def physical_core_of(topology: dict[str, Any], cpu: str) -> str:
     """``package:core`` of a CPU (the CPU itself where the topology does not say)."""
     info = topology["per_cpu"].get(cpu, {})
     return f"{info.get('package')}:{info.get('core')}" if info.get("core") is not None else f"cpu{cpu}"
-
-

@@ -186,22 +186,31 @@ def service_rollout(client: StageClient, steps: int, timeout_s: float, chunk: in
         stepping = time.perf_counter()
         for step in range(steps):
             keys = {s: client.stage_traj_keys(s) for s in stages}
-            calls = {s: client.step_stage(s, dict(zip(keys[s], scripted_chunks(action_space, step, len(keys[s]), chunk))))
-                     for s in stages}
+            calls = {
+                s: client.step_stage(s, dict(zip(keys[s], scripted_chunks(action_space, step, len(keys[s]), chunk))))
+                for s in stages
+            }
             for stage, call in calls.items():
                 batch = call.result(timeout_s)
                 timeline.append(("sim", stage, batch.submitted_at - started, batch.finished_at - started))
                 if batch.terminated.any() or batch.truncated.any():  # stepped on all the same: the pod's work
-                    log.warning("stage %d: %d envs ended at step %d", stage,
-                                int((batch.terminated | batch.truncated).sum()), step)
+                    log.warning(
+                        "stage %d: %d envs ended at step %d",
+                        stage,
+                        int((batch.terminated | batch.truncated).sum()),
+                        step,
+                    )
         ended = time.perf_counter()
     env_steps = steps * len(routes) * chunk
-    stats = RolloutStats(num_trajectories=len(routes), env_steps=env_steps, wall_s=ended - started,
-                         env_steps_per_s=env_steps / max(ended - stepping, 1e-9), simulation_s=ended - started,
-                         timeline=sorted(timeline, key=lambda item: item[2]))
+    stats = RolloutStats(
+        num_trajectories=len(routes),
+        env_steps=env_steps,
+        wall_s=ended - started,
+        env_steps_per_s=env_steps / max(ended - stepping, 1e-9),
+        simulation_s=ended - started,
+        timeline=sorted(timeline, key=lambda item: item[2]),
+    )
     return Measured(stats, **seen)
-
-
 
 
 class Deadline:
@@ -214,8 +223,9 @@ class Deadline:
         return self.end - time.monotonic()
 
 
-def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadline: Deadline,
-               reserve_s: float) -> dict[str, list[Measured]]:
+def interleave(
+    contenders: dict[str, Callable[[], Measured]], rounds: int, deadline: Deadline, reserve_s: float
+) -> dict[str, list[Measured]]:
     """Run each contender once per round, the order rotating; start another round only while
     the last round's duration plus ``reserve_s`` fits in what is left (one round always runs)."""
     names = list(contenders)
@@ -223,14 +233,17 @@ def interleave(contenders: dict[str, Callable[[], Measured]], rounds: int, deadl
     last_s = 0.0
     for r in range(rounds):
         if r and deadline.left() < 1.1 * last_s + reserve_s:
-            log.warning("deadline near (%.0f s left, a round takes %.0f s): %d of %d rounds run",
-                        deadline.left(), last_s, r, rounds)
+            log.warning(
+                "deadline near (%.0f s left, a round takes %.0f s): %d of %d rounds run",
+                deadline.left(),
+                last_s,
+                r,
+                rounds,
+            )
             break
         began = time.monotonic()
-        for name in names[r % len(names):] + names[: r % len(names)]:
+        for name in names[r % len(names) :] + names[: r % len(names)]:
             out[name].append(contenders[name]())
         last_s = time.monotonic() - began
         log.info("round %d (%.0f s): %s", r + 1, last_s, {n: round(v[-1].env_steps_per_s, 1) for n, v in out.items()})
     return out
-
-

@@ -13,8 +13,17 @@ from typing import Any
 import numpy as np
 
 
-def physics_worker(index: int, cpu: int, tasks: list[str], counts: list[int], paths: list[str], rounds: int,
-           seconds: float, barrier: Any, results: Any) -> None:
+def physics_worker(
+    index: int,
+    cpu: int,
+    tasks: list[str],
+    counts: list[int],
+    paths: list[str],
+    rounds: int,
+    seconds: float,
+    barrier: Any,
+    results: Any,
+) -> None:
     """Pin to ``cpu``, build the envs, then measure each (round, P) in lockstep with the others."""
     logging.basicConfig(level=logging.WARNING)
     try:

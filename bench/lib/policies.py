@@ -29,7 +29,6 @@ RANDOM_ACTIONS = 64  # random_actions: a table of this many actions per env, cyc
 CALIBRATION_TOLERANCE = 0.04
 
 
-
 class BasicBlock(nn.Module):
     """ResNet's basic block: two 3x3 convs with batch norm, and a (projected) shortcut."""
 
@@ -57,7 +56,10 @@ class ResNet18Encoder(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         layers: list[nn.Module] = [
-            nn.Conv2d(3, 64, 7, 2, 3, bias=False), nn.BatchNorm2d(64), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
+            nn.Conv2d(3, 64, 7, 2, 3, bias=False),
+            nn.BatchNorm2d(64),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2, 1),
         ]
         inputs = 64
         for outputs, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
@@ -143,8 +145,9 @@ class VisionPolicy(nn.Module):
             proprio = int(np.prod(observation_space["proprio"].shape))
             self.proprio = nn.Sequential(nn.Linear(proprio, 128), nn.GELU())
             actions = int(np.prod(action_space.shape))
-            self.head = nn.Sequential(nn.Linear(feature + 128, 512), nn.GELU(), nn.Linear(512, 256), nn.GELU(),
-                                      nn.Linear(256, actions))
+            self.head = nn.Sequential(
+                nn.Linear(feature + 128, 512), nn.GELU(), nn.Linear(512, 256), nn.GELU(), nn.Linear(256, actions)
+            )
         low, high = np.asarray(action_space.low, np.float32), np.asarray(action_space.high, np.float32)
         bounded = np.isfinite(low) & np.isfinite(high)
         self.register_buffer("center", torch.from_numpy(np.where(bounded, (low + high) / 2, 0.0).astype(np.float32)))
@@ -201,8 +204,9 @@ class GraphedPolicy:
     size is captured when first seen (logged): seconds for a deep ViT, which without lockstep,
     where the loop's batches take many sizes, would fall inside the timed rounds."""
 
-    def __init__(self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int],
-                 pad: bool = False) -> None:
+    def __init__(
+        self, policy: nn.Module, space: spaces.Dict, device: str, batch_sizes: Sequence[int], pad: bool = False
+    ) -> None:
         self.policy = policy
         self.space = space
         self.device = device
@@ -260,8 +264,12 @@ class GraphedPolicy:
 
     def describe(self) -> dict[str, Any]:
         """The captured sizes and, with ``pad``, what padding cost."""
-        return {"graph_sizes": sorted(self.graphs), "pad": self.pad, "padded_calls": self.padded_calls,
-                "padded_rows": self.padded_rows}
+        return {
+            "graph_sizes": sorted(self.graphs),
+            "pad": self.pad,
+            "padded_calls": self.padded_calls,
+            "padded_rows": self.padded_rows,
+        }
 
 
 def pod_multiples(per_pod: int, largest: int, extra: Sequence[int] = ()) -> list[int]:
@@ -276,10 +284,15 @@ def parameters_m(policy: nn.Module) -> float:
     return round(sum(p.numel() for p in policy.parameters()) / 1e6, 2)
 
 
-
-
-def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int, target_ms: float,
-                  batch_sizes: Sequence[int], pad_sizes: Sequence[int] = ()) -> tuple[GraphedPolicy, dict[str, Any]]:
+def calibrate_vit(
+    plan: Plan,
+    space: spaces.Dict,
+    action: spaces.Box,
+    batch: int,
+    target_ms: float,
+    batch_sizes: Sequence[int],
+    pad_sizes: Sequence[int] = (),
+) -> tuple[GraphedPolicy, dict[str, Any]]:
     """Return a ViT policy, graphed for ``batch_sizes``, whose forward pass on ``batch``
     observations lasts about ``target_ms``, and what the calibration found. The depth is
     extrapolated from two shallow ViTs, then corrected once by the time the first pick takes;
@@ -287,8 +300,15 @@ def calibrate_vit(plan: Plan, space: spaces.Dict, action: spaces.Box, batch: int
     captured for those sizes and pads a batch of any other size to the next captured one."""
 
     def build(depth: int, sizes: Sequence[int]) -> GraphedPolicy:
-        policy = VisionPolicy(space, action, encoder="vit", vit_depth=depth, vit_width=plan.vit_width,
-                              device=plan.device, dtype=plan.torch_dtype)
+        policy = VisionPolicy(
+            space,
+            action,
+            encoder="vit",
+            vit_depth=depth,
+            vit_width=plan.vit_width,
+            device=plan.device,
+            dtype=plan.torch_dtype,
+        )
         return GraphedPolicy(policy, space, plan.device, sizes)
 
     def release() -> None:

@@ -31,8 +31,9 @@ from .stats import breakdown
 log = logging.getLogger("bench.gpu_scale")
 
 
-def render_rollouts(plan: Plan, pins: Sequence[str], name: str, env: dict[str, str], rounds: int,
-                    deadline: Deadline) -> tuple[list[Measured], dict[str, Any]]:
+def render_rollouts(
+    plan: Plan, pins: Sequence[str], name: str, env: dict[str, str], rounds: int, deadline: Deadline
+) -> tuple[list[Measured], dict[str, Any]]:
     """Start a one-pod job of ``plan.tasks[0]`` with ``env`` on core ``pins[0]``; run a warm-up
     and then ``rounds`` rollouts of ``plan.horizon`` steps (fewer once the deadline nears; at
     least one); return them and the first one's observations, ``{traj_key: observations}``."""
@@ -74,8 +75,9 @@ def compare_images(first: dict[str, Any], second: dict[str, Any]) -> dict[str, A
     (0 when both ran through the same physics states)."""
     keys = sorted(set(first) & set(second))
     steps = min(min(len(first[k]["proprio"]), len(second[k]["proprio"])) for k in keys)
-    proprio = max(float((first[k]["proprio"][:steps].double() - second[k]["proprio"][:steps].double()).abs().max())
-                  for k in keys)
+    proprio = max(
+        float((first[k]["proprio"][:steps].double() - second[k]["proprio"][:steps].double()).abs().max()) for k in keys
+    )
     cameras = {}
     for camera in first[keys[0]]["images"]:
         a = np.stack([first[k]["images"][camera][:steps].numpy() for k in keys]).astype(np.int16)
@@ -94,8 +96,13 @@ def compare_images(first: dict[str, Any], second: dict[str, Any]) -> dict[str, A
             "pixels_off_by_more_than_32": round(float((diff.max(axis=-1) > 32).mean()), 4),
             "identical": bool(diff.max() == 0),
         }
-    return {"trajectories": len(keys), "steps_compared": steps, "proprio_max_abs_diff": proprio,
-            "same_states": proprio == 0.0, "cameras": cameras}
+    return {
+        "trajectories": len(keys),
+        "steps_compared": steps,
+        "proprio_max_abs_diff": proprio,
+        "same_states": proprio == 0.0,
+        "cameras": cameras,
+    }
 
 
 def render_figures(summary: dict[str, Any], observations: dict[str, dict[str, Any]], tag: str) -> list[Path]:
@@ -120,16 +127,28 @@ def render_figures(summary: dict[str, Any], observations: dict[str, dict[str, An
         values = np.array([run["time_split_ms"][key] for run in runs.values()])
         right.bar(labels, values, bottom=bottom, label=label)
         bottom += values
-    rest = np.array([max(run["wall_ms_per_env_step"] - run["time_split_ms"]["physics_ms_per_env_step"]
-                         - run["time_split_ms"]["render_ms_per_env_step"], 0) for run in runs.values()])
+    rest = np.array(
+        [
+            max(
+                run["wall_ms_per_env_step"]
+                - run["time_split_ms"]["physics_ms_per_env_step"]
+                - run["time_split_ms"]["render_ms_per_env_step"],
+                0,
+            )
+            for run in runs.values()
+        ]
+    )
     bars = right.bar(labels, rest, bottom=bottom, label="rest (resets, IPC, serving)")
     right.bar_label(bars, labels=[f"{v:.1f} ms" for v in bottom + rest], fontsize=8)
     right.set_ylabel("ms per env-step")
     right.set_title("where an env-step's time goes", fontsize=9)
     right.legend(fontsize=7)
     setup = summary["setup"]
-    fig.suptitle(f"{setup['task']}, {setup['size']}x{setup['size']} x {len(setup['cameras'])} cameras, "
-                 f"{setup['envs']} envs: GPU against software EGL", fontsize=10)
+    fig.suptitle(
+        f"{setup['task']}, {setup['size']}x{setup['size']} x {len(setup['cameras'])} cameras, "
+        f"{setup['envs']} envs: GPU against software EGL",
+        fontsize=10,
+    )
     fig.tight_layout()
     paths = [img_dir() / f"gpu_render_compare{tag}.png"]
     fig.savefig(paths[0], dpi=110)
@@ -145,8 +164,9 @@ def render_figures(summary: dict[str, Any], observations: dict[str, dict[str, An
             a = gpu[key]["images"][camera][step].numpy()
             b = software[key]["images"][camera][step].numpy()
             diff = np.clip(np.abs(a.astype(np.int16) - b.astype(np.int16)) * 4, 0, 255).astype(np.uint8)
-            for col, (image, title) in enumerate(((a, f"GPU: {camera}"), (b, f"software: {camera}"),
-                                                  (diff, "|difference| x 4"))):
+            for col, (image, title) in enumerate(
+                ((a, f"GPU: {camera}"), (b, f"software: {camera}"), (diff, "|difference| x 4"))
+            ):
                 axes[row][col].imshow(image)
                 axes[row][col].set_title(title, fontsize=8)
                 axes[row][col].axis("off")
@@ -163,9 +183,21 @@ def render_compare(args: argparse.Namespace) -> int:
     deadline = Deadline(args.deadline)
     task = args.tasks.split(",")[0] if args.tasks else "libero_10/0"
     plan = Plan(
-        mode="render", tasks=(task,), size=args.size or 256, envs_per_task=args.envs_per_task or 4, pods=1,
-        pod_counts=(1,), pipeline_cores=0, horizon=args.horizon or 10, service_steps=0, rounds=args.rounds or 3,
-        device="cpu", dtype="float32", vit_width=768, vit_max_depth=0, max_memory_gib=args.max_memory_gib,
+        mode="render",
+        tasks=(task,),
+        size=args.size or 256,
+        envs_per_task=args.envs_per_task or 4,
+        pods=1,
+        pod_counts=(1,),
+        pipeline_cores=0,
+        horizon=args.horizon or 10,
+        service_steps=0,
+        rounds=args.rounds or 3,
+        device="cpu",
+        dtype="float32",
+        vit_width=768,
+        vit_max_depth=0,
+        max_memory_gib=args.max_memory_gib,
         deadline_s=args.deadline,
     )
     pins, trainer = split_cores(cores_first(cpu_topology()), 1)
@@ -207,8 +239,14 @@ def render_compare(args: argparse.Namespace) -> int:
         "baseline": "the same pod with the machine's default EGL (the GPU's)",
         "ratio": None,
         "setup": {
-            "task": task, "size": plan.size, "cameras": camera_setup(plan)["names"], "envs": plan.envs_per_task,
-            "horizon": plan.horizon, "preset": "lean", "pod_pinned_to": pins[0], "trainer_cores": trainer,
+            "task": task,
+            "size": plan.size,
+            "cameras": camera_setup(plan)["names"],
+            "envs": plan.envs_per_task,
+            "horizon": plan.horizon,
+            "preset": "lean",
+            "pod_pinned_to": pins[0],
+            "trainer_cores": trainer,
             "policy": "open-loop sine actions (the same each run, so the states are the same)",
             "rollout": "one EnvLoop.run: reset, then `horizon` steps of every env; a warm-up first",
         },
@@ -221,7 +259,9 @@ def render_compare(args: argparse.Namespace) -> int:
         summary["ratio"] = round(gpu_run["env_steps_per_s"]["median"] / soft_run["env_steps_per_s"]["median"], 2)
         summary["render_ms_per_env_step_software_over_gpu"] = round(
             soft_run["time_split_ms"]["render_ms_per_env_step"]
-            / max(gpu_run["time_split_ms"]["render_ms_per_env_step"], 1e-6), 1)
+            / max(gpu_run["time_split_ms"]["render_ms_per_env_step"], 1e-6),
+            1,
+        )
         summary["images"] = compare_images(observations["gpu"], observations["software"])
     tag = "" if nvidia else "_cpu"
     plots = render_figures(summary, observations, tag) if both else []
@@ -232,7 +272,3 @@ def render_compare(args: argparse.Namespace) -> int:
         for item in (path, *plots):
             shutil.copy(item, args.copy_to / item.name)
     return 0 if both else 2
-
-
-
-

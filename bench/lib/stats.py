@@ -39,20 +39,22 @@ def breakdown(measured: Sequence[Measured]) -> dict[str, float]:
         pod_ms = 1000 * pods["vecsim_pod_step_seconds_sum"] / max(calls, 1)
         call_ms = 1000 * statistics.mean(sim_calls) if sim_calls else 0.0
         env_steps = max(pods["vecsim_pod_env_steps_total"], 1)
-        rows.append({
-            "policy_ms": 1000 * statistics.mean(policy_calls) if policy_calls else 0.0,
-            "stage_call_ms": call_ms,
-            "pod_step_ms": pod_ms,
-            "physics_ms_per_pod": 1000 * pods["vecsim_pod_physics_seconds_total"] / max(calls, 1),
-            "render_ms_per_pod": 1000 * pods["vecsim_pod_render_seconds_total"] / max(calls, 1),
-            "serving_ms": max(call_ms - pod_ms, 0.0),
-            "physics_ms_per_env_step": 1000 * pods["vecsim_pod_physics_seconds_total"] / env_steps,
-            "render_ms_per_env_step": 1000 * pods["vecsim_pod_render_seconds_total"] / env_steps,
-            "envs_per_pod_call": pods["vecsim_pod_env_steps_total"] / max(calls, 1),
-            "pods_per_call": pods_per_call,
-            # The policy's batch: K actions per row, so rows per call = this / K.
-            "env_steps_per_policy_call": stats.env_steps / max(len(policy_calls), 1),
-        })
+        rows.append(
+            {
+                "policy_ms": 1000 * statistics.mean(policy_calls) if policy_calls else 0.0,
+                "stage_call_ms": call_ms,
+                "pod_step_ms": pod_ms,
+                "physics_ms_per_pod": 1000 * pods["vecsim_pod_physics_seconds_total"] / max(calls, 1),
+                "render_ms_per_pod": 1000 * pods["vecsim_pod_render_seconds_total"] / max(calls, 1),
+                "serving_ms": max(call_ms - pod_ms, 0.0),
+                "physics_ms_per_env_step": 1000 * pods["vecsim_pod_physics_seconds_total"] / env_steps,
+                "render_ms_per_env_step": 1000 * pods["vecsim_pod_render_seconds_total"] / env_steps,
+                "envs_per_pod_call": pods["vecsim_pod_env_steps_total"] / max(calls, 1),
+                "pods_per_call": pods_per_call,
+                # The policy's batch: K actions per row, so rows per call = this / K.
+                "env_steps_per_policy_call": stats.env_steps / max(len(policy_calls), 1),
+            }
+        )
     return {key: round(statistics.median(r[key] for r in rows), 2) for key in rows[0]}
 
 
@@ -98,12 +100,15 @@ def slowest_pod(measured: Sequence[Measured]) -> dict[str, Any]:
         "slowest_pod_counts": dict(sorted(slowest_counts.items(), key=lambda item: -item[1])),
         "pod_step_ms_by_pod": step_ms,
         "pod_step_ms_spread": (
-            {"min": min(step_ms.values()), "mean": round(statistics.mean(step_ms.values()), 2),
-             "max": max(step_ms.values())} if step_ms else {}
+            {
+                "min": min(step_ms.values()),
+                "mean": round(statistics.mean(step_ms.values()), 2),
+                "max": max(step_ms.values()),
+            }
+            if step_ms
+            else {}
         ),
     }
-
-
 
 
 def core_overlap(runs: Sequence[Measured], core_of: Mapping[str, int]) -> float:
@@ -175,7 +180,9 @@ def handoff(runs: Sequence[Measured]) -> dict[str, float | None]:
             if taker is not None:
                 last_in[(stage, taker)] = max(last_in.get((stage, taker), finished), finished)
         spreads.extend(max(times) - min(times) for times in sent.values())
-        others = {stage: merge(call for s, calls in policies.items() if s != stage for call in calls) for stage in policies}
+        others = {
+            stage: merge(call for s, calls in policies.items() if s != stage for call in calls) for stage in policies
+        }
         for (stage, j), landed in last_in.items():
             begin = policies[stage][j][0]
             handoffs.append(begin - landed)
@@ -184,8 +191,13 @@ def handoff(runs: Sequence[Measured]) -> dict[str, float | None]:
     def ms(values: list[float]) -> float | None:
         return round(1000 * statistics.median(values), 2) if values else None
 
-    return {"send": ms(sends), "send_spread": ms(spreads), "call_beyond_request": ms(beyond),
-            "last_answer_to_policy": ms(handoffs), "last_answer_to_policy_idle": ms(idles)}
+    return {
+        "send": ms(sends),
+        "send_spread": ms(spreads),
+        "call_beyond_request": ms(beyond),
+        "last_answer_to_policy": ms(handoffs),
+        "last_answer_to_policy_idle": ms(idles),
+    }
 
 
 def thread_share(runs: Sequence[Measured]) -> dict[str, float]:
@@ -221,10 +233,6 @@ def summarise(runs: Sequence[Measured]) -> dict[str, Any]:
     return out
 
 
-
-
 def waiting(layout: str, wait_s: float, stages: int = 2) -> str:
     """The name of a contender of ``stages`` stages run with a ``--compare-batch-wait-s`` value."""
     return f"{layout}/stages={stages}/batch_wait={wait_s:g}s"
-
-

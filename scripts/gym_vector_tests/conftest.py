@@ -71,15 +71,27 @@ def _test_id() -> str:
 
 
 def _served_async(
-    env_fns, shared_memory=True, copy=True, context=None, daemon=True, worker=None,
-    observation_mode="same", autoreset_mode=AutoresetMode.NEXT_STEP,
+    env_fns,
+    shared_memory=True,
+    copy=True,
+    context=None,
+    daemon=True,
+    worker=None,
+    observation_mode="same",
+    autoreset_mode=AutoresetMode.NEXT_STEP,
 ):
     """``AsyncVectorEnv(env_fns, ...)``, served by a pod (see the module docstring)."""
     if worker is not None or not (isinstance(observation_mode, str) and observation_mode == "same"):
         _kept[_test_id()] = "custom worker" if worker is not None else f"observation_mode={observation_mode!r}"
         return _AsyncVectorEnv(
-            env_fns, shared_memory=shared_memory, copy=copy, context=context, daemon=daemon,
-            worker=worker, observation_mode=observation_mode, autoreset_mode=autoreset_mode,
+            env_fns,
+            shared_memory=shared_memory,
+            copy=copy,
+            context=context,
+            daemon=daemon,
+            worker=worker,
+            observation_mode=observation_mode,
+            autoreset_mode=autoreset_mode,
         )
     test = _test_id()
     _reached.add(test)

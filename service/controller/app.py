@@ -61,7 +61,8 @@ def create_app(
         if settings.token is None:
             log.warning(
                 "no %s set: anyone who can reach the controller may register pods and change the job "
-                "(fine for local development only)", TOKEN_ENV,
+                "(fine for local development only)",
+                TOKEN_ENV,
             )
         if not reconcile:
             yield

@@ -52,7 +52,11 @@ def space_problems(task_ids: list[str]) -> list[str]:
         if theirs == family:
             continue
         gym = first.startswith("gym/") or task_id.startswith("gym/")
-        why = "another env: the controller makes none to compare their spaces" if gym else f"a {theirs} task, not {family}"
+        why = (
+            "another env: the controller makes none to compare their spaces"
+            if gym
+            else f"a {theirs} task, not {family}"
+        )
         problems.append(
             f"tasks: {task_id!r} has other observation/action spaces than {first!r} ({why}); a job's tasks "
             "must share one observation and one action space: run them as separate jobs"

@@ -30,9 +30,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--adopt-grace", type=float, dest="adopt_grace_s", help="wait this long for pod reports at start (s)"
     )
-    p.add_argument(
-        "--max-body-bytes", type=int, dest="max_body_bytes", help="largest request body (default 1 MiB)"
-    )
+    p.add_argument("--max-body-bytes", type=int, dest="max_body_bytes", help="largest request body (default 1 MiB)")
     p.add_argument(
         "--header-timeout", type=float, dest="header_timeout_s", help="close a connection silent this long (s)"
     )

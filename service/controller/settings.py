@@ -18,6 +18,7 @@ class ControllerSettings(ServerSettings, ControllerConfig):
     (:class:`service.settings.ServerSettings`), the job file's ``controller`` section
     (:class:`vecsim.config.ControllerConfig`: host, port, heartbeat and reconcile timing), and
     what only the server has."""
+
     stall_threshold_s: float = Field(
         1.0,
         gt=0,

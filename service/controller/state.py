@@ -100,9 +100,7 @@ class ControllerState:
             seen_at=now,
         )
         self.metrics.registrations.inc()
-        log.info(
-            "pod %s registered at %s (max_envs %d)", name, registration.url, registration.capacity.max_envs
-        )
+        log.info("pod %s registered at %s (max_envs %d)", name, registration.url, registration.capacity.max_envs)
         self.changes += 1
         self._members += 1
         self.wake.set()
@@ -207,7 +205,12 @@ class ControllerState:
         if job != self.job or tuple(tasks) != self.tasks:
             log.info(
                 "job %s: %d tasks, %d stages, stage_layout %s, pods_per_stage %d (%d pods)",
-                job.job_id, len(tasks), job.num_stages, job.stage_layout, job.pods_per_stage, job.pods_needed,
+                job.job_id,
+                len(tasks),
+                job.num_stages,
+                job.stage_layout,
+                job.pods_per_stage,
+                job.pods_needed,
             )
         self.job = job
         self.tasks = tuple(tasks)

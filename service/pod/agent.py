@@ -68,9 +68,15 @@ class ControllerAgent:
                     failures += 1
                     log.warning(
                         "pod %s: controller %s unreachable or refusing (%d in a row): %s: %s",
-                        self.settings.name, self.base_url, failures, type(exc).__name__, exc,
+                        self.settings.name,
+                        self.base_url,
+                        failures,
+                        type(exc).__name__,
+                        exc,
                     )
-                await asyncio.sleep(backoff_delay(failures, self.settings.heartbeat_interval_s, self.settings.max_backoff_s))
+                await asyncio.sleep(
+                    backoff_delay(failures, self.settings.heartbeat_interval_s, self.settings.max_backoff_s)
+                )
 
     async def beat(self, client: httpx.AsyncClient) -> None:
         """Register if not yet registered, then send one heartbeat; re-register when the

@@ -55,14 +55,19 @@ def create_app(settings: PodSettings) -> FastAPI:
         if settings.token is None:
             log.warning(
                 "pod %s: no %s set: anyone who can reach it may assign, reset and step it "
-                "(fine for local development only)", settings.name, TOKEN_ENV,
+                "(fine for local development only)",
+                settings.name,
+                TOKEN_ENV,
             )
         agent_task = None
         if settings.controller_url:
             agent = ControllerAgent(settings, lambda: heartbeat_of(state))
             agent_task = asyncio.create_task(agent.run(), name=f"{settings.name}-agent")
         log.info(
-            "pod %s (namespace %s) serving at %s, on CPUs %s", settings.name, settings.namespace, settings.url,
+            "pod %s (namespace %s) serving at %s, on CPUs %s",
+            settings.name,
+            settings.namespace,
+            settings.url,
             sorted(os.sched_getaffinity(0)),
         )
         try:

@@ -124,9 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         0 after a clean shutdown, 2 for unusable flags, settings or config.
     """
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # httpx logs every request at INFO: a heartbeat a second would drown the pod's own log.
     logging.getLogger("httpx").setLevel(logging.WARNING)
     quiet_probe_logs()

@@ -20,15 +20,18 @@ class PodMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
         self.env_steps = Counter(
-            "vecsim_pod_env_steps", "Env steps simulated (one per action applied to an env).",
+            "vecsim_pod_env_steps",
+            "Env steps simulated (one per action applied to an env).",
             registry=self.registry,
         )
         self.env_resets = Counter(
-            "vecsim_pod_env_resets", "Env resets done (one per env per reset request).",
+            "vecsim_pod_env_resets",
+            "Env resets done (one per env per reset request).",
             registry=self.registry,
         )
         self.step_seconds = Histogram(
-            "vecsim_pod_step_seconds", "Time one step request spends in the simulation worker.",
+            "vecsim_pod_step_seconds",
+            "Time one step request spends in the simulation worker.",
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0),
             registry=self.registry,
         )

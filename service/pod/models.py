@@ -215,7 +215,8 @@ class ChunkStepResponse(BaseModel):
     num_steps: list[int] = Field(description="[n] actions applied: K unless the env terminated or truncated first")
     info: ChunkStepInfo
     frames: dict[str, Any] | None = Field(
-        None, description="with record_env_indices: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action"
+        None,
+        description="with record_env_indices: {camera: uint8 [m, K, H, W, 3]}, the frame after each applied action",
     )
     env_info: dict[str, Any] | None = Field(None, description=_ENV_INFO_DOC + "; after each env's last applied action")
     errors: EnvErrors | None = Field(None, description="present when an env raised")
@@ -283,4 +284,3 @@ class AssignmentResponse(BaseModel):
 
     generation: int
     rebuilt: bool
-

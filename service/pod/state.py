@@ -247,7 +247,9 @@ class PodState:
             self._building_for = target
             log.info(
                 "pod %s: building %d envs for generation %d (%s)",
-                self.settings.name, target.num_envs, target.generation,
+                self.settings.name,
+                target.num_envs,
+                target.generation,
                 ", ".join(f"{b.task_id} x{b.num_envs}" for b in target.tasks) or "spare",
             )
             self.detail = f"building {target.num_envs} envs for generation {target.generation}"

@@ -135,12 +135,20 @@ class LocalJob:
     def _controller_argv(self) -> list[str]:
         c = self.config.controller
         return [
-            self._python, "-m", "service.cli", "controller",
-            "--host", c.host,
-            "--port", str(c.port),
-            "--heartbeat-interval", str(c.heartbeat_interval_s),
-            "--heartbeat-ttl", str(c.heartbeat_ttl_s),
-            "--reconcile-interval", str(c.reconcile_interval_s),
+            self._python,
+            "-m",
+            "service.cli",
+            "controller",
+            "--host",
+            c.host,
+            "--port",
+            str(c.port),
+            "--heartbeat-interval",
+            str(c.heartbeat_interval_s),
+            "--heartbeat-ttl",
+            str(c.heartbeat_ttl_s),
+            "--reconcile-interval",
+            str(c.reconcile_interval_s),
         ]
 
     def check(self) -> list[str]:

@@ -20,7 +20,10 @@ def test_quick_run_times_each_stream_on_every_task_and_names_its_baseline(tmp_pa
     assert set(summary["physics_ms_per_env_step"]) == {"random", "sine", "policy"}
     assert all(spread["median"] > 0 and spread["n"] == 1 for spread in summary["physics_ms_per_env_step"].values())
     # Ratios against the loop's stream, paired by round.
-    assert set(summary["ratio_by_stream"]) == {"random", "sine"} and summary["ratio"] == summary["ratio_by_stream"]["random"]
+    assert (
+        set(summary["ratio_by_stream"]) == {"random", "sine"}
+        and summary["ratio"] == summary["ratio_by_stream"]["random"]
+    )
     assert set(summary["per_task_ms_per_env_step"]) == {"libero_10/0", "libero_10/1"}
     assert summary["setup"]["actions"] == 4 and summary["reset_s_per_env"] > 0
     record = json.loads((tmp_path / "out" / "bench" / "bench_action_cost_quick.json").read_text())

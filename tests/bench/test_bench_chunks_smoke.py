@@ -16,8 +16,23 @@ from support.bench_scripts import bench_result
 # A benchmark script run end to end, with its own pods: 20-60 s a run on 2 cores.
 pytestmark = pytest.mark.slow
 
-ARGS = ["--cpu-small", "--tasks", "gym/HalfCheetah-v5", "--envs-per-task", "2", "--size", "16", "--actions", "8",
-        "--chunks", "1,8", "--physics-seconds", "0.5", "--waves", "2"]
+ARGS = [
+    "--cpu-small",
+    "--tasks",
+    "gym/HalfCheetah-v5",
+    "--envs-per-task",
+    "2",
+    "--size",
+    "16",
+    "--actions",
+    "8",
+    "--chunks",
+    "1,8",
+    "--physics-seconds",
+    "0.5",
+    "--waves",
+    "2",
+]
 
 
 @pytest.fixture(scope="module")
@@ -40,8 +55,16 @@ def test_chunks_bench_measures_every_k_against_k1_and_physics_only(summary):
     assert isinstance(result["ratio"], float) and isinstance(result["ratio_of_physics_only"], float)
     record = json.loads((root / "out" / "bench" / "bench_chunks_cpu.json").read_text())
     assert set(record["details"]["per_round"]) == {
-        "service/K=1", "service/K=8", "loop/K=1", "loop/K=8", "loop_stages=2/K=8", "loop_slices=2/K=8",
-        "ceiling/K=1", "ceiling/K=1/reset_every_8", "ceiling/K=8", "ceiling/K=8/reset_every_8",
+        "service/K=1",
+        "service/K=8",
+        "loop/K=1",
+        "loop/K=8",
+        "loop_stages=2/K=8",
+        "loop_slices=2/K=8",
+        "ceiling/K=1",
+        "ceiling/K=1/reset_every_8",
+        "ceiling/K=8",
+        "ceiling/K=8/reset_every_8",
     }
 
 
@@ -62,7 +85,8 @@ def test_chunks_bench_holds_the_node_against_its_ceiling_with_cameras_and_the_po
     assert ceiling["K=8"]["env_steps_per_s"] == ceiling["K=8"]["per_round"][0]
     loop = result["loop"]["K=8"]
     assert loop["fraction_of_ceiling"] == pytest.approx(
-        loop["env_steps_per_s"]["median"] / ceiling["K=8"]["per_round"][0], abs=0.002)
+        loop["env_steps_per_s"]["median"] / ceiling["K=8"]["per_round"][0], abs=0.002
+    )
     assert loop["fraction_of_ceiling_with_resets_by_round"]["n"] == 1
     times = result["per_env_step_ms"]
     assert times["bare_physics_only"] > 0 and times["bare_ceiling/K=8"]["physics_ms_per_env_step"] > 0

@@ -72,8 +72,10 @@ def test_the_trainer_gets_the_cpus_the_pods_do_not_and_shares_only_when_there_ar
 def test_the_slowest_pod_of_each_call_is_measured_against_the_calls_mean(lib):
     calls = [
         ("sim-0", "reset", 0.0, 5.0),  # resets are not step calls
-        ("sim-0", "step", 0.0, 0.100), ("sim-1", "step", 0.0, 0.300),
-        ("sim-0", "step", 1.0, 1.200), ("sim-1", "step", 1.0, 1.100),
+        ("sim-0", "step", 0.0, 0.100),
+        ("sim-1", "step", 0.0, 0.300),
+        ("sim-0", "step", 1.0, 1.200),
+        ("sim-1", "step", 1.0, 1.100),
     ]
     counters = dict.fromkeys(lib.measure.POD_COUNTERS, 0.0)
     per_pod = {
@@ -101,8 +103,15 @@ def test_the_handoff_splits_a_stages_turn_around_its_pods_requests(lib):
     counters = dict.fromkeys(lib.measure.POD_COUNTERS, 0.0)
     stats = RolloutStats(timeline=timeline, pod_calls=pod_calls)
     split = lib.stats.handoff([lib.measure.Measured(stats, counters, {}, requests, {}, started=100.0)])
-    assert split == pytest.approx({"send": 200.0, "send_spread": 200.0, "call_beyond_request": 100.0,
-                                   "last_answer_to_policy": 200.0, "last_answer_to_policy_idle": 150.0})
+    assert split == pytest.approx(
+        {
+            "send": 200.0,
+            "send_spread": 200.0,
+            "call_beyond_request": 100.0,
+            "last_answer_to_policy": 200.0,
+            "last_answer_to_policy_idle": 150.0,
+        }
+    )
     # Without the loop's clock origin the requests cannot be lined up: that figure is left out.
     assert lib.stats.handoff([lib.measure.Measured(stats, counters, {}, requests, {})])["call_beyond_request"] is None
 
@@ -134,12 +143,20 @@ def test_the_slices_view_puts_every_pod_in_both_stages_with_its_envs_alternating
     from vecsim.config import RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
     pods = [
-        RoutedPod(pod=f"sim-{i}", url=f"http://127.0.0.1:{8100 + i}", num_envs=3,
-                  tasks=(TaskBlock(task_id="a", env_start=0, num_envs=2), TaskBlock(task_id="b", env_start=2, num_envs=1)))
+        RoutedPod(
+            pod=f"sim-{i}",
+            url=f"http://127.0.0.1:{8100 + i}",
+            num_envs=3,
+            tasks=(TaskBlock(task_id="a", env_start=0, num_envs=2), TaskBlock(task_id="b", env_start=2, num_envs=1)),
+        )
         for i in range(2)
     ]
-    table = RoutingTable(generation=1, job_id="j", ready=True,
-                         stages=tuple(RoutedStage(stage_id=i, pods=(p,)) for i, p in enumerate(pods)))
+    table = RoutingTable(
+        generation=1,
+        job_id="j",
+        ready=True,
+        stages=tuple(RoutedStage(stage_id=i, pods=(p,)) for i, p in enumerate(pods)),
+    )
     sliced = lib.jobs.regroup_slices(table, ["sim-0", "sim-1"], 2)
     assert [[p.pod for p in stage.pods] for stage in sliced.stages] == [["sim-0", "sim-1"]] * 2
     envs = {(s.stage_id, p.pod): [(b.task_id, b.env_start) for b in p.tasks] for s in sliced.stages for p in s.pods}
@@ -170,9 +187,24 @@ def test_stage_layouts_come_in_order_each_once_and_an_unknown_one_is_named(lib):
 
 
 def _plan(lib, tasks: tuple[str, ...]):
-    return lib.jobs.Plan(mode="scaling", tasks=tasks, size=8, envs_per_task=1, pods=1, pod_counts=(1,), pipeline_cores=1,
-                      horizon=4, service_steps=4, rounds=1, device="cpu", dtype="float32", vit_width=0, vit_max_depth=0,
-                      max_memory_gib=100.0, deadline_s=60.0)
+    return lib.jobs.Plan(
+        mode="scaling",
+        tasks=tasks,
+        size=8,
+        envs_per_task=1,
+        pods=1,
+        pod_counts=(1,),
+        pipeline_cores=1,
+        horizon=4,
+        service_steps=4,
+        rounds=1,
+        device="cpu",
+        dtype="float32",
+        vit_width=0,
+        vit_max_depth=0,
+        max_memory_gib=100.0,
+        deadline_s=60.0,
+    )
 
 
 @pytest.mark.timeout(120)

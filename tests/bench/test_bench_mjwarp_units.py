@@ -33,8 +33,11 @@ def windowed_ssim(x: np.ndarray, y: np.ndarray, window: int = 7) -> float:
         for j in range(x.shape[1] - window + 1):
             a, b = x[i : i + window, j : j + window], y[i : i + window, j : j + window]
             cov = ((a - a.mean()) * (b - b.mean())).sum() / (a.size - 1)
-            values.append((2 * a.mean() * b.mean() + c1) * (2 * cov + c2)
-                          / ((a.mean() ** 2 + b.mean() ** 2 + c1) * (a.var(ddof=1) + b.var(ddof=1) + c2)))
+            values.append(
+                (2 * a.mean() * b.mean() + c1)
+                * (2 * cov + c2)
+                / ((a.mean() ** 2 + b.mean() ** 2 + c1) * (a.var(ddof=1) + b.var(ddof=1) + c2))
+            )
     return float(np.mean(values))
 
 
@@ -42,8 +45,10 @@ def test_ssim_is_the_windowed_index_averaged_over_channels(bench):
     rng = np.random.default_rng(0)
     first = rng.integers(0, 256, (2, 12, 10, 3), dtype=np.uint8)
     second = np.clip(first.astype(int) + rng.integers(-40, 40, first.shape), 0, 255).astype(np.uint8)
-    want = [np.mean([windowed_ssim(first[k, ..., c].astype(float), second[k, ..., c].astype(float)) for c in range(3)])
-            for k in range(2)]
+    want = [
+        np.mean([windowed_ssim(first[k, ..., c].astype(float), second[k, ..., c].astype(float)) for c in range(3)])
+        for k in range(2)
+    ]
     np.testing.assert_allclose(bench.ssim(first, second), want, rtol=1e-10)
     np.testing.assert_allclose(bench.ssim(first, first), [1.0, 1.0])
 

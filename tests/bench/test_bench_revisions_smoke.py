@@ -22,8 +22,13 @@ pytestmark = pytest.mark.slow
 
 def revision_worktrees() -> list[str]:
     """The repository's worktrees that bench_revisions.py made (under its temporary directories)."""
-    done = subprocess.run(["git", "-C", str(ROOT), "worktree", "list", "--porcelain"],
-                          capture_output=True, text=True, timeout=30, check=True)
+    done = subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "list", "--porcelain"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
     return [line for line in done.stdout.splitlines() if line.startswith("worktree ") and "bench_revisions-" in line]
 
 
@@ -33,9 +38,20 @@ Run = tuple[dict[str, Any], dict[str, Any], list[str]]
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Run:
     root = tmp_path_factory.mktemp("bench-revisions")
-    result = bench_result(root, "bench_revisions.py", "--bench", "bench_scaling.py", "--quick",
-                          "--revisions", "HEAD,HEAD", "--repo", str(ROOT), "--timeout-s", "120",
-                          timeout=170)
+    result = bench_result(
+        root,
+        "bench_revisions.py",
+        "--bench",
+        "bench_scaling.py",
+        "--quick",
+        "--revisions",
+        "HEAD,HEAD",
+        "--repo",
+        str(ROOT),
+        "--timeout-s",
+        "120",
+        timeout=170,
+    )
     record = json.loads((root / "out" / "bench" / "bench_revisions_bench_scaling.json").read_text())
     return result, record, revision_worktrees()
 
@@ -64,7 +80,10 @@ def test_headline_is_b_median_over_a_median(run: Run) -> None:
 @pytest.mark.timeout(200)
 def test_each_revision_runs_its_own_checkout(run: Run) -> None:
     _, record, _ = run
-    assert record["setup"]["imported_from_tree"]["A"] == {"vecsim": "vecsim/__init__.py", "service": "service/__init__.py"}
+    assert record["setup"]["imported_from_tree"]["A"] == {
+        "vecsim": "vecsim/__init__.py",
+        "service": "service/__init__.py",
+    }
     assert record["setup"]["imported_from_tree"]["B"] == record["setup"]["imported_from_tree"]["A"]
 
 
@@ -77,9 +96,19 @@ def test_checkouts_are_removed_afterwards(run: Run) -> None:
 @pytest.mark.timeout(60)
 def test_an_unknown_revision_is_refused_naming_the_flag(tmp_path: Path) -> None:
     done = subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "bench_revisions.py"), "--bench", "bench_scaling.py",
-         "--revisions", "HEAD,no-such-revision-xyz"],
-        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=60,
+        [
+            sys.executable,
+            str(ROOT / "bench" / "bench_revisions.py"),
+            "--bench",
+            "bench_scaling.py",
+            "--revisions",
+            "HEAD,no-such-revision-xyz",
+        ],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert done.returncode == 2
     assert "--revisions" in done.stderr and "no-such-revision-xyz" in done.stderr

@@ -89,7 +89,14 @@ def test_profile_call_reports_every_layer_of_one_step(tmp_path: Path) -> None:
     result, written = run_quick("profile_call.py", tmp_path)
     assert result["name"] == "profile_call" and result["quick"] is True
     medians = result["median_ms_per_call"]
-    assert set(medians) >= {"http_vector_env", "raw_httpx", "bare_http_client", "in_process", "async_vector_env", "sync_vector_env"}
+    assert set(medians) >= {
+        "http_vector_env",
+        "raw_httpx",
+        "bare_http_client",
+        "in_process",
+        "async_vector_env",
+        "sync_vector_env",
+    }
     assert all(ms > 0 for ms in medians.values())
     # The timers inside the client and inside the pod both saw the calls.
     assert result["client_layers_median_ms"]["client.PodConnection._request (HTTP round trip via transport)"] > 0

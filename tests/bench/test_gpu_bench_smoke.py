@@ -41,8 +41,18 @@ def scaling(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], P
 @pytest.fixture(scope="module")
 def pipeline(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("gpu-bench-pipeline")
-    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--render-gpu", "0",
-            "--compare-batch-wait-s", "0.01,300", *GYM)
+    args = (
+        "--cpu-small",
+        "--only",
+        "pipeline",
+        "--render-preset",
+        "fast",
+        "--render-gpu",
+        "0",
+        "--compare-batch-wait-s",
+        "0.01,300",
+        *GYM,
+    )
     return result_of(run_bench(root, *args)), root
 
 
@@ -57,7 +67,12 @@ def test_scaling_names_its_target_the_machine_and_its_record(scaling):
     assert {"date", "cores", "load_avg_1m"} <= set(summary["machine"])
     record = json.loads((root / "out" / "bench" / "bench_gpu_scale_scaling_cpu.json").read_text())
     assert record["name"] == summary["name"] and set(record["details"]["per_round"]) == {
-        "service/pods=1", "service/pods=2", "loop/pods=1", "loop/pods=2", "loop_per_pod/pods=1", "loop_per_pod/pods=2",
+        "service/pods=1",
+        "service/pods=2",
+        "loop/pods=1",
+        "loop/pods=2",
+        "loop_per_pod/pods=1",
+        "loop_per_pod/pods=2",
     }
 
 
@@ -149,8 +164,13 @@ def test_pipeline_pins_both_stages_pods_to_one_core_and_compares_one_and_two_sta
     # the last answer to the policy): every figure measured.
     for run in summary["loop"].values():
         split = run["handoff_ms"]
-        assert set(split) == {"send", "send_spread", "call_beyond_request", "last_answer_to_policy",
-                              "last_answer_to_policy_idle"}
+        assert set(split) == {
+            "send",
+            "send_spread",
+            "call_beyond_request",
+            "last_answer_to_policy",
+            "last_answer_to_policy_idle",
+        }
         assert all(value is not None and value >= 0 for value in split.values()), split
     assert {Path(p).name for p in summary["plots"]} == {"gpu_scale_cpu_stages.png"}
     assert all((root / p).is_file() for p in summary["plots"])
@@ -222,8 +242,15 @@ def test_quick_pipeline_compares_both_layouts_at_a_chunk_of_k(tmp_path):
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("flag, value", [("--batch-wait-s", "-1"), ("--compare-batch-wait-s", "0.03,nan"),
-                                         ("--compare-batch-wait-s", "30ms"), ("--compare-batch-wait-s", "0.03,0.030")])
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--batch-wait-s", "-1"),
+        ("--compare-batch-wait-s", "0.03,nan"),
+        ("--compare-batch-wait-s", "30ms"),
+        ("--compare-batch-wait-s", "0.03,0.030"),
+    ],
+)
 def test_a_batch_wait_that_is_not_a_duration_is_refused_naming_the_option(tmp_path, flag, value):
     done = run_bench(tmp_path, "--quick", flag, value, timeout=50)
     assert done.returncode == 2 and flag in done.stderr and "RESULT" not in done.stdout
@@ -238,14 +265,33 @@ def test_an_unknown_stage_layout_is_refused_naming_the_option(tmp_path):
 @pytest.mark.timeout(180)
 @pytest.mark.slow
 def test_pipeline_with_a_pod_a_core_splits_each_pod_between_the_stages(tmp_path):
-    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--pods-per-core", "1",
-            "--pipeline-cores", "2", "--stage-layout", "slices", "--compare-batch-wait-s", "300", *GYM)
+    args = (
+        "--cpu-small",
+        "--only",
+        "pipeline",
+        "--render-preset",
+        "fast",
+        "--pods-per-core",
+        "1",
+        "--pipeline-cores",
+        "2",
+        "--stage-layout",
+        "slices",
+        "--compare-batch-wait-s",
+        "300",
+        *GYM,
+    )
     summary = result_of(run_bench(tmp_path, *args))
     setup = summary["setup"]
     assert setup["pods"] == 2 and setup["pipeline_cores"] == 2 and setup["pods_per_core"] == 1
     # Each pod's two envs: one on each stage.
     assert setup["stage_envs_by_layout"] == {"slices": [[1, 1], [1, 1]]}
-    assert set(summary["loop"]) == {"stages=1", "stages=1/lockstep", "slices/stages=2", "slices/stages=2/batch_wait=300s"}
+    assert set(summary["loop"]) == {
+        "stages=1",
+        "stages=1/lockstep",
+        "slices/stages=2",
+        "slices/stages=2/batch_wait=300s",
+    }
     # No two pods share a core, so none ever simulates beside another of its core.
     assert all(run["core_overlap"] == 0.0 for run in summary["loop"].values())
     # Waiting for the whole stage: each policy call takes an env of each pod, K actions each.
@@ -257,9 +303,24 @@ def test_pipeline_with_a_pod_a_core_splits_each_pod_between_the_stages(tmp_path)
 @pytest.mark.slow
 def test_pipeline_also_runs_slices_in_three_stages_each_stage_a_third_of_every_pod(tmp_path):
     gym = [*GYM[:2], "--envs-per-task", "3", *GYM[4:]]
-    args = ("--cpu-small", "--only", "pipeline", "--render-preset", "fast", "--pods-per-core", "1",
-            "--pipeline-cores", "2", "--stage-layout", "slices", "--batch-wait-s", "300", "--compare-stages", "3",
-            *gym)
+    args = (
+        "--cpu-small",
+        "--only",
+        "pipeline",
+        "--render-preset",
+        "fast",
+        "--pods-per-core",
+        "1",
+        "--pipeline-cores",
+        "2",
+        "--stage-layout",
+        "slices",
+        "--batch-wait-s",
+        "300",
+        "--compare-stages",
+        "3",
+        *gym,
+    )
     summary = result_of(run_bench(tmp_path, *args))
     setup = summary["setup"]
     assert setup["compare_stages"] == [3]
@@ -274,8 +335,15 @@ def test_pipeline_also_runs_slices_in_three_stages_each_stage_a_third_of_every_p
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("extra", [("--compare-stages", "2"), ("--compare-stages", "3,x"),
-                                   ("--compare-stages", "3", "--stage-layout", "pods"), ("--compare-stages", "5")])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ("--compare-stages", "2"),
+        ("--compare-stages", "3,x"),
+        ("--compare-stages", "3", "--stage-layout", "pods"),
+        ("--compare-stages", "5"),
+    ],
+)
 def test_more_stages_the_pipeline_cannot_run_are_refused_naming_the_option(tmp_path, extra):
     done = run_bench(tmp_path, "--quick", *extra, timeout=50)
     # 5: the quick job's envs do not split into five equal stages.
@@ -283,8 +351,9 @@ def test_more_stages_the_pipeline_cannot_run_are_refused_naming_the_option(tmp_p
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("extra", [("--pods-per-core", "3"), ("--pods-per-core", "0"),
-                                   ("--pods-per-core", "1", "--pipeline-cores", "1")])
+@pytest.mark.parametrize(
+    "extra", [("--pods-per-core", "3"), ("--pods-per-core", "0"), ("--pods-per-core", "1", "--pipeline-cores", "1")]
+)
 def test_a_pods_per_core_the_pipeline_cannot_lay_out_is_refused_naming_the_option(tmp_path, extra):
     done = run_bench(tmp_path, "--quick", *extra, timeout=50)
     assert done.returncode != 0 and "--pods-per-core" in done.stderr and "RESULT" not in done.stdout

@@ -30,11 +30,27 @@ pytestmark = [
 def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
     root = tmp_path_factory.mktemp("render-compare")
     # EGL whatever the caller's shell says, and none of the caller's Mesa choices.
-    env = bench_env(drop=("VECSIM_TOKEN", "VECSIM_MESA_EGL_VENDOR", "VECSIM_MESA_LIBRARY_PATH", "VECSIM_MESA_DRIVERS"),
-                    extra={"MUJOCO_GL": "egl"})
-    summary = bench_result(root, "bench_gpu_scale.py", "--render-compare", "--tasks", "gym/HalfCheetah-v5",
-                           "--size", "16", "--envs-per-task", "2", "--horizon", "3", "--rounds", "1",
-                           timeout=170, env=env)
+    env = bench_env(
+        drop=("VECSIM_TOKEN", "VECSIM_MESA_EGL_VENDOR", "VECSIM_MESA_LIBRARY_PATH", "VECSIM_MESA_DRIVERS"),
+        extra={"MUJOCO_GL": "egl"},
+    )
+    summary = bench_result(
+        root,
+        "bench_gpu_scale.py",
+        "--render-compare",
+        "--tasks",
+        "gym/HalfCheetah-v5",
+        "--size",
+        "16",
+        "--envs-per-task",
+        "2",
+        "--horizon",
+        "3",
+        "--rounds",
+        "1",
+        timeout=170,
+        env=env,
+    )
     return summary, root
 
 
@@ -72,7 +88,9 @@ def test_the_same_renderer_twice_sees_the_same_states_and_draws_the_same_bytes(r
 @pytest.mark.timeout(180)
 def test_the_bar_chart_and_the_frames_figure_are_written(result):
     summary, root = result
-    assert {Path(p).name for p in summary["plots"]} == {"gpu_render_compare_cpu.png",
-                                                        "gpu_render_compare_cpu_frames.png"}
+    assert {Path(p).name for p in summary["plots"]} == {
+        "gpu_render_compare_cpu.png",
+        "gpu_render_compare_cpu_frames.png",
+    }
     assert all((root / p).is_file() for p in summary["plots"])
     assert (root / "out" / "bench" / "bench_gpu_render_compare_cpu.json").is_file()

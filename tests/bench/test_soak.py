@@ -19,9 +19,18 @@ def soak(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("soak")
     result = subprocess.run(
         [
-            sys.executable, str(REPO / "bench" / "soak.py"),
-            "--seconds", "30", "--window-s", "10", "--clients", str(CLIENTS),
-            "--json", str(out / "soak.json"), "--log-dir", str(out / "logs"),
+            sys.executable,
+            str(REPO / "bench" / "soak.py"),
+            "--seconds",
+            "30",
+            "--window-s",
+            "10",
+            "--clients",
+            str(CLIENTS),
+            "--json",
+            str(out / "soak.json"),
+            "--log-dir",
+            str(out / "logs"),
         ],
         cwd=REPO,
         env=clean_env(),

@@ -192,7 +192,9 @@ def test_json_and_wire_answer_a_chunk_alike(pod):
     via_wire = _step(pod, [0], chunk)
     body = {"generation": 0, "env_indices": np.array([1]), "actions": chunk}
     as_json = {"Content-Type": "application/json", "Accept": "application/json"}
-    via_json = _answer(httpx.post(f"{pod}/v1/step", content=json.dumps(wire.to_jsonable(body)), headers=as_json, timeout=60))
+    via_json = _answer(
+        httpx.post(f"{pod}/v1/step", content=json.dumps(wire.to_jsonable(body)), headers=as_json, timeout=60)
+    )
     assert via_json["reward"] == via_wire["reward"].tolist()
     assert via_json["num_steps"] == via_wire["num_steps"].tolist()
     assert via_json["obs"]["proprio"] == via_wire["obs"]["proprio"].tolist()
@@ -241,7 +243,10 @@ def test_a_stage_steps_one_array_of_actions_as_it_steps_the_same_actions_by_traj
         ]:
             client.reset_stage(0).result()
             answers[form] = client.step_stage(0, actions).result()
-    for by_key, as_array, chunk in [("chunks by key", "chunks as one array", 3), ("actions by key", "actions as one array", None)]:
+    for by_key, as_array, chunk in [
+        ("chunks by key", "chunks as one array", 3),
+        ("actions by key", "actions as one array", None),
+    ]:
         a, b = answers[by_key], answers[as_array]
         assert a.chunk == b.chunk == chunk and a.traj_keys == b.traj_keys == keys
         for name in ("reward", "terminated", "truncated", "num_steps"):

@@ -457,7 +457,15 @@ def test_a_changed_job_raises_routing_changed_naming_the_lost_trajectories(fresh
         client.reset_stage(0).result(timeout=60)
         generation = client.routing.generation
         bigger = {**JOB, "group_size": 3}
-        assert httpx.put(f"{fresh_job.controller_url}/v1/job", json=bigger, timeout=30, headers={"Authorization": f"Bearer {fresh_job.token}"}).status_code == 200
+        assert (
+            httpx.put(
+                f"{fresh_job.controller_url}/v1/job",
+                json=bigger,
+                timeout=30,
+                headers={"Authorization": f"Bearer {fresh_job.token}"},
+            ).status_code
+            == 200
+        )
         new_generation = wait_for_generation(fresh_job.controller_url, generation)
         stage0 = client.stage_traj_keys(0)
         with pytest.raises(RoutingChangedError, match=f"generation {new_generation}") as caught:

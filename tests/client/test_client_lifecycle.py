@@ -206,9 +206,7 @@ while True:
 def test_a_script_ended_by_an_exception_or_ctrl_c_mid_rollout_exits_quietly(slow_pod, tmp_path, how):
     script = tmp_path / "rollout.py"
     script.write_text(textwrap.dedent(SCRIPT))
-    done = subprocess.run(
-        [sys.executable, str(script), slow_pod, how], capture_output=True, text=True, timeout=120
-    )
+    done = subprocess.run([sys.executable, str(script), slow_pod, how], capture_output=True, text=True, timeout=120)
     assert done.returncode != 0
     expected = "RuntimeError: the trainer failed mid-rollout" if how == "raise" else "KeyboardInterrupt"
     assert expected in done.stderr
@@ -243,9 +241,24 @@ def test_vecsim_up_logs_its_probes_at_debug_and_the_job_it_sent_at_info(tmp_path
     path = tmp_path / "job.yaml"
     path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
     runner = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "up", "-c", str(path), "--log-dir", str(tmp_path / "logs"),
-         "--grace", "10", "--status-every", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "up",
+            "-c",
+            str(path),
+            "--log-dir",
+            str(tmp_path / "logs"),
+            "--grace",
+            "10",
+            "--status-every",
+            "1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
         env={**os.environ, "VECSIM_TOKEN": TOKEN},
     )
     try:

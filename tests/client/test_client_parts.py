@@ -314,9 +314,13 @@ def test_fill_rows_writes_a_wire_answer_into_the_given_rows():
 
 def test_fill_rows_names_the_key_path_at_fault():
     dst = _tree(2)
-    with pytest.raises(trees.TreeMismatchError, match=r"answer obs.images.cam has shape \[2, 2, 2\], expected \[2, 2, 2, 3\]"):
+    with pytest.raises(
+        trees.TreeMismatchError, match=r"answer obs.images.cam has shape \[2, 2, 2\], expected \[2, 2, 2, 3\]"
+    ):
         trees.fill_rows(dst, {"images": {"cam": np.zeros((2, 2, 2))}, "pair": {}}, np.arange(2), "obs")
-    with pytest.raises(trees.TreeMismatchError, match=r"answer obs has keys \['images'\], expected \['images', 'pair'\]"):
+    with pytest.raises(
+        trees.TreeMismatchError, match=r"answer obs has keys \['images'\], expected \['images', 'pair'\]"
+    ):
         trees.fill_rows(dst, {"images": {}}, np.arange(2), "obs")
 
 

@@ -211,6 +211,8 @@ def test_envs_whose_spaces_differ_are_refused_as_gymnasium_refuses_them():
     with pytest.raises(RuntimeError):
         gymnasium.vector.AsyncVectorEnv(factories)
     tasks = [("gym/CartPole-v1", 1), ("gym/FrozenLake-v1", 1)]
-    with pytest.raises(RuntimeError, match="'gym/FrozenLake-v1' and 'gym/CartPole-v1' have different observation spaces") as refused:
+    with pytest.raises(
+        RuntimeError, match="'gym/FrozenLake-v1' and 'gym/CartPole-v1' have different observation spaces"
+    ) as refused:
         assignment_spaces(assignment("mixed", tasks, camera=CameraConfig(names=())))
     assert isinstance(refused.value, SpacesDifferError)

@@ -30,7 +30,13 @@ from vecsim.engine.tasks import TaskSetupError, task_spaces
 CUSTOM = "support.gym_custom_env:Custom-v0"
 EPISODE = 8
 # gymnasium id -> episode limit both sides use (None: the id's own; the custom env's is 7).
-TASKS = {"HalfCheetah-v5": EPISODE, "Hopper-v5": EPISODE, "InvertedPendulum-v5": EPISODE, "CartPole-v1": EPISODE, CUSTOM: None}
+TASKS = {
+    "HalfCheetah-v5": EPISODE,
+    "Hopper-v5": EPISODE,
+    "InvertedPendulum-v5": EPISODE,
+    "CartPole-v1": EPISODE,
+    CUSTOM: None,
+}
 NUM_ENVS = 3
 STEPS = 20
 
@@ -45,7 +51,10 @@ def pods(tmp_path_factory):
         PodSpec("sim-kw", 0, [(f"gym/{CUSTOM}", 2)], max_episode_steps=None, make_kwargs={f"gym/{CUSTOM}": {"size": 3}})
     )
     with standalone_pods(specs, tmp_path_factory.mktemp("pods")) as running:
-        yield {spec.tasks[0][0].removeprefix("gym/") if spec.name != "sim-kw" else "kwargs": pod.url for spec, pod in zip(specs, running)}
+        yield {
+            spec.tasks[0][0].removeprefix("gym/") if spec.name != "sim-kw" else "kwargs": pod.url
+            for spec, pod in zip(specs, running)
+        }
 
 
 def _local(gym_id: str, mode: AutoresetMode = AutoresetMode.NEXT_STEP, n: int = NUM_ENVS) -> SyncVectorEnv:
@@ -71,7 +80,9 @@ def served(pods):
 def assert_same(served, local, path: str = "") -> None:
     """Equal structure, dtypes, shapes and values (object arrays element by element)."""
     if isinstance(local, dict):
-        assert isinstance(served, dict) and set(served) == set(local), f"{path}: keys {sorted(served)} != {sorted(local)}"
+        assert isinstance(served, dict) and set(served) == set(local), (
+            f"{path}: keys {sorted(served)} != {sorted(local)}"
+        )
         for key in local:
             assert_same(served[key], local[key], f"{path}.{key}")
     elif isinstance(local, tuple):
@@ -143,7 +154,9 @@ def test_fixed_initial_states_stay_available_for_gym_tasks(served):
     remote = served("Hopper-v5")
     first, info = remote.reset(options={"state_ids": np.array([4, 4, 5])})
     again, _ = remote.reset(seed=123, options={"state_ids": np.array([4, 4, 5])})
-    assert np.array_equal(first, again) and np.array_equal(first[0], first[1]) and not np.array_equal(first[0], first[2])
+    assert (
+        np.array_equal(first, again) and np.array_equal(first[0], first[1]) and not np.array_equal(first[0], first[2])
+    )
     assert info["state_id"].tolist() == [4, 4, 5]
 
 
@@ -218,7 +231,12 @@ def test_make_vec_honours_num_envs_and_autoreset_spellings(pods):
 
 def test_vector_kwargs_are_refused_by_gymnasium_for_a_vector_entry_point(pods):
     with pytest.raises(gymnasium.error.Error, match="vector_kwargs"):
-        gymnasium.make_vec("vecsim/HTTPVectorEnv-v0", num_envs=1, pod_urls=[pods["CartPole-v1"]], vector_kwargs={"autoreset_mode": "same_step"})
+        gymnasium.make_vec(
+            "vecsim/HTTPVectorEnv-v0",
+            num_envs=1,
+            pod_urls=[pods["CartPole-v1"]],
+            vector_kwargs={"autoreset_mode": "same_step"},
+        )
 
 
 def test_misuse_raises_gymnasium_errors_with_its_wording(served):

@@ -281,14 +281,26 @@ def test_a_hostile_info_or_routing_answer_is_the_clients_own_error(hostile):
 
 def test_the_control_plane_cap_bounds_an_info_answer():
     body = b"{" + b'"x": 1, ' * ((MAX_CONTROL_ANSWER_BYTES // 8) + 1) + b'"y": 2}'
-    reply = HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(body) + body
+    reply = (
+        HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(body) + body
+    )
     with HostileServer(reply) as server, pytest.raises(PodUnavailableError, match="exceeds the cap"):
         StageClient.from_pods([server.url], timeout_s=10)
 
 
-@pytest.mark.parametrize("info", [b'[1, 2]', b'{"x": 1}', b'{"pod": "p", "stage_id": 0, "num_envs": "many", "tasks": []}', b'{"pod": "p", "stage_id": 0, "num_envs": 1, "tasks": [3]}'])
+@pytest.mark.parametrize(
+    "info",
+    [
+        b"[1, 2]",
+        b'{"x": 1}',
+        b'{"pod": "p", "stage_id": 0, "num_envs": "many", "tasks": []}',
+        b'{"pod": "p", "stage_id": 0, "num_envs": 1, "tasks": [3]}',
+    ],
+)
 def test_an_info_answer_that_is_not_a_pods_is_a_value_error_naming_the_url(info):
-    reply = HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(info) + info
+    reply = (
+        HEAD_OK.replace(b"application/x-vecsim", b"application/json") + b"Content-Length: %d\r\n\r\n" % len(info) + info
+    )
     with HostileServer(reply) as server, pytest.raises(ValueError, match="is not a pod's") as caught:
         StageClient.from_pods([server.url], timeout_s=10)
     assert server.url in str(caught.value)

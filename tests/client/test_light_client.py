@@ -69,7 +69,11 @@ def test_the_client_alone_opens_a_job_resets_and_steps_without_simulator_or_torc
     env["PYTHONPATH"] = str(ROOT)  # this checkout's vecsim, whatever the venv's editable install points at
     done = subprocess.run(
         [str(python), "-c", TRAINER, *(p.url for p in pods)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert done.returncode == 0, done.stderr[-4000:]
     seen = json.loads(done.stdout.strip().splitlines()[-1])

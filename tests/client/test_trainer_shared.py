@@ -47,7 +47,11 @@ def test_global_state_ids_count_each_task_after_the_tasks_before_it():
     uneven = StateNumbering([50, 20, 30])
     assert [uneven.global_state_id(t, 0) for t in range(3)] == [0, 50, 70]
     assert uneven.split_global_state_id(69) == (1, 19) and uneven.split_global_state_id(70) == (2, 0)
-    assert all(uneven.split_global_state_id(uneven.global_state_id(t, r)) == (t, r) for t in range(3) for r in range(uneven.counts[t]))
+    assert all(
+        uneven.split_global_state_id(uneven.global_state_id(t, r)) == (t, r)
+        for t in range(3)
+        for r in range(uneven.counts[t])
+    )
 
 
 def test_global_state_ids_out_of_range_are_named():
@@ -61,7 +65,9 @@ def test_global_state_ids_out_of_range_are_named():
 
 
 def test_state_numbering_from_a_job_fills_unserved_tasks_only_when_counts_agree():
-    numbering = StateNumbering.from_num_states({"libero_goal/2": 50, "libero_goal/4": 50, "libero_10/0": 50}, "libero_goal")
+    numbering = StateNumbering.from_num_states(
+        {"libero_goal/2": 50, "libero_goal/4": 50, "libero_10/0": 50}, "libero_goal"
+    )
     assert numbering.counts == (50,) * 5
     with pytest.raises(ValueError, match=r"libero_goal/1"):
         StateNumbering.from_num_states({"libero_goal/0": 50, "libero_goal/2": 30}, "libero_goal")
@@ -79,7 +85,11 @@ def test_camera_key_presets_name_each_trainers_libero_inputs():
 
 @pytest.mark.parametrize(
     ("camera_keys", "message"),
-    [("verl", "unknown preset 'verl'"), ({"agentview": "x", "robot0_eye_in_hand": "x"}, r"keys \['x'\]"), ({"agentview": ""}, "agentview")],
+    [
+        ("verl", "unknown preset 'verl'"),
+        ({"agentview": "x", "robot0_eye_in_hand": "x"}, r"keys \['x'\]"),
+        ({"agentview": ""}, "agentview"),
+    ],
 )
 def test_camera_keys_that_are_no_mapping_are_refused(camera_keys, message):
     with pytest.raises(ValueError, match=message):
@@ -106,7 +116,11 @@ def _chunk(n: int, k: int = K, seed: int = 0) -> np.ndarray:
 
 
 def _reset(url: str, envs: list[int]) -> dict:
-    body = {"generation": 0, "env_indices": np.array(envs, dtype=np.int64), "state_ids": np.zeros(len(envs), dtype=np.int64)}
+    body = {
+        "generation": 0,
+        "env_indices": np.array(envs, dtype=np.int64),
+        "state_ids": np.zeros(len(envs), dtype=np.int64),
+    }
     answer = post_wire(url, "reset", body, None)
     assert answer.status_code == 200, answer.text
     return wire.decode(answer.content)
@@ -132,12 +146,25 @@ def test_a_pod_steps_an_env_past_its_end_when_asked(pods):
 def test_a_pod_refuses_step_past_end_for_one_action_steps_and_changes_nothing(pods):
     url = pods[0].url
     before = _reset(url, [0])
-    body = {"generation": 0, "env_indices": np.array([0], dtype=np.int64), "actions": _chunk(1)[:, 0], "step_past_end": True}
+    body = {
+        "generation": 0,
+        "env_indices": np.array([0], dtype=np.int64),
+        "actions": _chunk(1)[:, 0],
+        "step_past_end": True,
+    }
     answer = post_wire(url, "step", body, None)
     assert answer.status_code == 422 and "step_past_end" in answer.text
-    after = wire.decode(post_wire(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None).content)
+    after = wire.decode(
+        post_wire(
+            url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None
+        ).content
+    )
     reference = _reset(url, [0])
-    again = wire.decode(post_wire(url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None).content)
+    again = wire.decode(
+        post_wire(
+            url, "step", {**body, "step_past_end": False, "actions": np.zeros((1, ACTION_DIM), np.float32)}, None
+        ).content
+    )
     assert np.array_equal(after["obs"]["proprio"], again["obs"]["proprio"])  # the refused call moved nothing
     assert np.array_equal(before["obs"]["proprio"], reference["obs"]["proprio"])
 
@@ -213,7 +240,9 @@ def test_ended_envs_must_be_a_known_mode(pods):
 
 @pytest.mark.parametrize("ended_envs", ["step", "freeze"])
 def test_vector_env_without_autoreset_goes_on_after_an_episode_ends_mid_chunk(pods, ended_envs):
-    with closing(HTTPVectorEnv(pod_urls=[p.url for p in pods], autoreset_mode="disabled", ended_envs=ended_envs)) as env:
+    with closing(
+        HTTPVectorEnv(pod_urls=[p.url for p in pods], autoreset_mode="disabled", ended_envs=ended_envs)
+    ) as env:
         env.reset(seed=0, options={"state_ids": np.zeros(4, dtype=np.int64)})
         first = env.chunk_step(_chunk(4, seed=1))
         obs, reward, _, truncated, info = env.chunk_step(_chunk(4, seed=2))
@@ -284,7 +313,11 @@ def test_vla_env_refuses_an_unknown_reward_dtype_or_camera_preset(pods):
 @pytest.fixture(scope="module")
 def libero_pod(tmp_path_factory) -> Iterator[RunningPod]:
     spec = PodSpec(
-        "libero-0", 0, [("libero_spatial/0", 1), ("libero_spatial/3", 1)], camera=CameraConfig(height=32, width=32), max_episode_steps=20
+        "libero-0",
+        0,
+        [("libero_spatial/0", 1), ("libero_spatial/3", 1)],
+        camera=CameraConfig(height=32, width=32),
+        max_episode_steps=20,
     )
     with standalone_pods([spec], tmp_path_factory.mktemp("libero")) as running:
         yield running[0]
@@ -294,7 +327,9 @@ def libero_pod(tmp_path_factory) -> Iterator[RunningPod]:
 def test_vla_env_hands_libero_state_to_the_policy_under_the_trainers_keys(libero_pod):
     with VLAEnv(pod_urls=[libero_pod.url], keys="lerobot", camera_keys="verl_vla") as env:
         obs, _ = env.reset(state_ids=[0, 0])
-        raw = env.vector_env.reset(options={"reset_mask": np.ones(2, dtype=bool), "state_ids": np.zeros(2, dtype=np.int64)})[0]
+        raw = env.vector_env.reset(
+            options={"reset_mask": np.ones(2, dtype=bool), "state_ids": np.zeros(2, dtype=np.int64)}
+        )[0]
     assert env.task_indices == [0, 3]
     assert obs["observation.state"].shape == (2, 8) and np.array_equal(obs["observation.state"], raw["state"])
     assert set(k for k in obs if k.startswith("observation.images.")) == {
@@ -318,7 +353,9 @@ def test_vla_env_resets_to_suite_global_state_ids_of_each_envs_own_task(libero_p
         by_global, info_global = env.reset(global_state_ids=[0 * 50 + 7, 3 * 50 + 9])
         assert info_global["state_id"].tolist() == [7, 9]
         assert np.array_equal(by_row["state"], by_global["state"])
-        with pytest.raises(ValueError, match=r"id 57 of env 0 is a state of task libero_spatial/1, but env 0 runs libero_spatial/0"):
+        with pytest.raises(
+            ValueError, match=r"id 57 of env 0 is a state of task libero_spatial/1, but env 0 runs libero_spatial/0"
+        ):
             env.reset(global_state_ids=[57, 150])
         with pytest.raises(ValueError, match="env 1 .*global state id 500 is outside 0..199"):
             env.reset(global_state_ids=[7, 500])

@@ -180,7 +180,9 @@ def test_np_random_seed_is_each_envs_seed_as_gymnasiums_vector_env_gives_it(pod_
 def test_fixed_state_envs_draw_state_ids_from_their_own_seeded_generators(tmp_path):
     # A gym task with a camera resets to fixed states, as robot tasks do: each env draws its
     # state ids (its reset's, then its autoresets') from its own generator, seeded seed + i.
-    spec = PodSpec("sim-cam", 0, [(TASK, 3)], camera=CameraConfig(names=("render",), height=8, width=8), max_episode_steps=EPISODE)
+    spec = PodSpec(
+        "sim-cam", 0, [(TASK, 3)], camera=CameraConfig(names=("render",), height=8, width=8), max_episode_steps=EPISODE
+    )
     with standalone_pods([spec], tmp_path) as pods:
         env = HTTPVectorEnv(pod_urls=[pods[0].url])
         try:

@@ -20,7 +20,15 @@ import numpy as np
 import pytest
 from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode
-from support.service_procs import Server, assignment_file, job_config, local_job, pod_server, running, wait_for_generation
+from support.service_procs import (
+    Server,
+    assignment_file,
+    job_config,
+    local_job,
+    pod_server,
+    running,
+    wait_for_generation,
+)
 
 from vecsim.client import ClientError, HTTPVectorEnv, PodUnavailableError, RoutingChangedError
 

@@ -28,9 +28,7 @@ URLS = {f"sim-{i}": f"http://127.0.0.1:{8100 + i}" for i in range(8)}
 
 
 def job(**overrides) -> JobSpec:
-    fields = dict(
-        job_id="j", tasks=tuple(TASKS), group_size=2, num_stages=2, pods_per_stage=2, stage_layout="slices"
-    )
+    fields = dict(job_id="j", tasks=tuple(TASKS), group_size=2, num_stages=2, pods_per_stage=2, stage_layout="slices")
     fields.update(overrides)
     return JobSpec(**fields)
 
@@ -44,7 +42,11 @@ def stage_envs(p: Plan, pod: str) -> dict[int, list[int]]:
     table = p.routing_table(URLS)
     return {
         stage.stage_id: [
-            env for r in stage.pods if r.pod == pod for b in r.tasks for env in range(b.env_start, b.env_start + b.num_envs)
+            env
+            for r in stage.pods
+            if r.pod == pod
+            for b in r.tasks
+            for env in range(b.env_start, b.env_start + b.num_envs)
         ]
         for stage in table.stages
     }
@@ -246,7 +248,11 @@ def test_standalone_slices_pods_make_the_same_table_from_their_infos():
     infos = []
     for name in ("sim-0", "sim-1"):
         a = p.assignments[name]
-        tasks = [dict(task_id=b.task_id, env_start=b.env_start, num_envs=b.num_envs, stage_id=b.stage_id) for b in a.tasks]
-        infos.append((URLS[name], dict(pod=name, stage_id=None, generation=1, ready=True, num_envs=a.num_envs, tasks=tasks)))
+        tasks = [
+            dict(task_id=b.task_id, env_start=b.env_start, num_envs=b.num_envs, stage_id=b.stage_id) for b in a.tasks
+        ]
+        infos.append(
+            (URLS[name], dict(pod=name, stage_id=None, generation=1, ready=True, num_envs=a.num_envs, tasks=tasks))
+        )
     rebuilt = routing_from_pod_infos(infos)
     assert rebuilt.stages == table.stages

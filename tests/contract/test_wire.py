@@ -161,9 +161,7 @@ def test_decoded_arrays_are_views_into_the_buffer_not_copies() -> None:
 def test_encode_parts_hand_out_the_arrays_own_memory() -> None:
     arr = np.arange(1000, dtype=np.float64)
     parts = wire.encode_parts({"a": arr})
-    assert any(
-        isinstance(p, memoryview) and np.shares_memory(np.frombuffer(p, np.uint8), arr) for p in parts
-    )
+    assert any(isinstance(p, memoryview) and np.shares_memory(np.frombuffer(p, np.uint8), arr) for p in parts)
 
 
 def test_array_data_starts_on_64_byte_boundaries() -> None:

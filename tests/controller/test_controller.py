@@ -242,9 +242,13 @@ async def test_a_job_with_an_unknown_task_is_refused_naming_the_task_and_changes
 
 async def test_a_job_whose_tasks_have_different_spaces_is_refused_naming_them():
     async with controller() as c:
-        response = await c.api.put("/v1/job", json={**JOB, "tasks": ["gym/Pendulum-v1", "gym/MountainCarContinuous-v0"]})
+        response = await c.api.put(
+            "/v1/job", json={**JOB, "tasks": ["gym/Pendulum-v1", "gym/MountainCarContinuous-v0"]}
+        )
         assert response.status_code == 422
-        assert "'gym/MountainCarContinuous-v0' has other observation/action spaces than 'gym/Pendulum-v1'" in response.text
+        assert (
+            "'gym/MountainCarContinuous-v0' has other observation/action spaces than 'gym/Pendulum-v1'" in response.text
+        )
 
 
 async def test_a_job_with_an_unknown_suite_is_refused_naming_the_suite():

@@ -25,8 +25,9 @@ def test_the_pod_and_the_controller_take_the_heartbeat_interval_from_one_declara
 
 
 def test_a_job_files_controller_section_reaches_the_controllers_settings_whole():
-    section = ControllerConfig(host="0.0.0.0", port=8123, heartbeat_interval_s=0.5, heartbeat_ttl_s=2.0,
-                               reconcile_interval_s=0.25)
+    section = ControllerConfig(
+        host="0.0.0.0", port=8123, heartbeat_interval_s=0.5, heartbeat_ttl_s=2.0, reconcile_interval_s=0.25
+    )
     job = JobSpec(job_id="j", tasks=("gym/HalfCheetah-v5",), group_size=1)
     settings = ControllerSettings.from_job_config(JobConfig(job=job, controller=section))
     assert settings.model_dump(include=set(ControllerConfig.model_fields)) == section.model_dump()

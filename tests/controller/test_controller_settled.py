@@ -12,6 +12,7 @@ from support.controller_in_process import TTL_S, controller, running_job
 
 pytestmark = pytest.mark.anyio
 
+
 async def test_a_pass_that_finds_every_pod_on_its_assignment_settles_the_controller():
     async with controller() as c:
         await running_job(c)

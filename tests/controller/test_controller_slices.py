@@ -14,8 +14,13 @@ SLICES = {**JOB, "stage_layout": "slices", "pods_per_stage": 2}
 
 def env_ids(table: dict, pod: str) -> dict[int, list[int]]:
     return {
-        stage["stage_id"]: [env for p in stage["pods"] if p["pod"] == pod for t in p["tasks"]
-                            for env in range(t["env_start"], t["env_start"] + t["num_envs"])]
+        stage["stage_id"]: [
+            env
+            for p in stage["pods"]
+            if p["pod"] == pod
+            for t in p["tasks"]
+            for env in range(t["env_start"], t["env_start"] + t["num_envs"])
+        ]
         for stage in table["stages"]
     }
 

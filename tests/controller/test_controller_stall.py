@@ -162,8 +162,12 @@ def test_a_served_controller_whose_loop_blocks_past_the_ttl_keeps_its_pods():
             assert httpx.post(f"{url}/test/stall", params={"seconds": 2.5 * ttl}, timeout=30).status_code == 200
             passes = counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES)
             # A few reconcile passes after the stall: any of them would have expired the pods.
-            wait_until(lambda: counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES) >= passes + 3,
-                       "three reconcile passes after the stall", 30, every=0.05)
+            wait_until(
+                lambda: counter(httpx.get(f"{url}/metrics", timeout=5).text, PASSES) >= passes + 3,
+                "three reconcile passes after the stall",
+                30,
+                every=0.05,
+            )
             after = [p["pod"] for p in httpx.get(f"{url}/v1/pods", timeout=5).json()]
             metrics = httpx.get(f"{url}/metrics", timeout=5).text
         finally:

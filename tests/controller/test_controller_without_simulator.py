@@ -28,12 +28,20 @@ from vecsim.engine import tasks as registry
 BLOCKED = ("mujoco", "robosuite", "torch", "libero", "vecsim.engine")
 # ``python -c`` with every blocked module set to None in sys.modules: importing one raises ImportError.
 WITHOUT_SIMULATOR = [
-    sys.executable, "-c",
+    sys.executable,
+    "-c",
     f"import sys\nfor name in {BLOCKED!r}:\n    sys.modules[name] = None\n"
     "from service.cli import main\nsys.exit(main(sys.argv[1:]))",
 ]
-JOB = {"job_id": "no-sim", "tasks": ["gym/Pendulum-v1"], "group_size": 2, "num_stages": 1, "pods_per_stage": 1,
-       "camera": {"names": []}, "max_episode_steps": 5}
+JOB = {
+    "job_id": "no-sim",
+    "tasks": ["gym/Pendulum-v1"],
+    "group_size": 2,
+    "num_stages": 1,
+    "pods_per_stage": 1,
+    "camera": {"names": []},
+    "max_episode_steps": 5,
+}
 
 
 def routing_ready(url: str) -> bool:
@@ -93,7 +101,10 @@ def test_tasks_of_one_family_share_spaces_and_two_families_are_refused_naming_bo
     assert check_job(job, [])[1] == []
     tasks, problems = check_job(JobSpec.model_validate({**JOB, "tasks": ["robosuite/Lift", "gym:Pendulum-v1"]}), [])
     assert tasks == ["robosuite/Lift", "gym/Pendulum-v1"]
-    assert len(problems) == 1 and "'gym/Pendulum-v1' has other observation/action spaces than 'robosuite/Lift'" in problems[0]
+    assert (
+        len(problems) == 1
+        and "'gym/Pendulum-v1' has other observation/action spaces than 'robosuite/Lift'" in problems[0]
+    )
 
 
 def test_a_suite_resolves_to_its_tasks_and_an_unknown_suite_names_the_known_ones():

@@ -102,15 +102,11 @@ def test_a_slot_holder_partitioned_from_the_controller_loses_its_slot_to_the_spa
         args=["--heartbeat-interval", str(HEARTBEAT_S), "--heartbeat-ttl", str(TTL_S), "--reconcile-interval", "0.2"],
     )
     agent = {"CONTROLLER_URL": controller.url, "VECSIM_HEARTBEAT_INTERVAL_S": str(HEARTBEAT_S), "VECSIM_MAX_ENVS": "4"}
-    far = pod_server(
-        "sim-0", tmp_path, token=TOKEN, host=link.address, wrap=link.wrap(), POD_IP=link.address, **agent
-    )
+    far = pod_server("sim-0", tmp_path, token=TOKEN, host=link.address, wrap=link.wrap(), POD_IP=link.address, **agent)
     near = pod_server("sim-1", tmp_path, token=TOKEN, **agent)
 
     with running(controller):
-        put = httpx.put(
-            f"{controller.url}/v1/job", json=JOB, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10
-        )
+        put = httpx.put(f"{controller.url}/v1/job", json=JOB, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
         assert put.status_code == 200, put.text
         with running(far):
             # sim-0 takes the slot before the spare exists, so the test knows who holds it.

@@ -158,7 +158,8 @@ def _ignored(path: str, patterns: list[str]) -> bool:
 
 def test_build_context_holds_everything_the_dockerfile_copies() -> None:
     patterns = [
-        line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+        line.strip()
+        for line in (ROOT / ".dockerignore").read_text().splitlines()
         if line.strip() and not line.startswith("#")
     ]
     sources = [s for i in only("COPY") for s in i.exec_form()[:-1]]
@@ -170,7 +171,8 @@ def test_build_context_holds_everything_the_dockerfile_copies() -> None:
 
 def test_build_context_leaves_out_git_and_tests() -> None:
     patterns = [
-        line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+        line.strip()
+        for line in (ROOT / ".dockerignore").read_text().splitlines()
         if line.strip() and not line.startswith("#")
     ]
     for path in (".git", "tests", "k8s", ".venv"):

@@ -66,7 +66,9 @@ def image() -> dict[str, Any]:
     started = time.monotonic()
     done = subprocess.run(
         [str(ROOT / "scripts" / "build_image.sh"), TAG],
-        capture_output=True, text=True, timeout=BUILD_TIMEOUT_S,
+        capture_output=True,
+        text=True,
+        timeout=BUILD_TIMEOUT_S,
     )
     assert done.returncode == 0, f"scripts/build_image.sh failed:\n{done.stderr[-4000:]}"
     assert done.stdout.strip().splitlines()[-1] == TAG
@@ -106,14 +108,18 @@ class InContainer:
     """One command running in the container under ``buildah run`` (its own session, so that
     stopping it ends buildah and everything it started)."""
 
-    def __init__(self, container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path):
+    def __init__(
+        self, container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path
+    ):
         flags = [f for k, v in env.items() for f in ("--env", f"{k}={v}")]
         flags += [f for host, inside in volumes.items() for f in ("--volume", f"{host}:{inside}")]
         self.log_path = log_path
         with log_path.open("ab") as out:
             self.proc = subprocess.Popen(
                 [*BUILDAH, "run", "--isolation", "chroot", *flags, container, "--", *argv],
-                stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
             )
 
     def processes(self) -> list[psutil.Process]:
@@ -140,7 +146,9 @@ class InContainer:
 
 
 @contextlib.contextmanager
-def running(container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path) -> Iterator[InContainer]:
+def running(
+    container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path
+) -> Iterator[InContainer]:
     proc = InContainer(container, argv, env, volumes, log_path)
     try:
         yield proc
@@ -178,8 +186,12 @@ def pod(container, image, tmp_path_factory) -> Iterator[tuple[str, InContainer]]
     base = tmp_path_factory.mktemp("pod")
     env = {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
     url = f"http://127.0.0.1:{port}"
-    with running(container, _pod_argv(image, *_standalone(port)), env, _writable_volumes(base, image), base / "pod.log") as proc:
-        wait_until(lambda: _ready(url, proc), f"the pod in the image to be ready\n{proc.log_text()}", READY_TIMEOUT_S, 1.0)
+    with running(
+        container, _pod_argv(image, *_standalone(port)), env, _writable_volumes(base, image), base / "pod.log"
+    ) as proc:
+        wait_until(
+            lambda: _ready(url, proc), f"the pod in the image to be ready\n{proc.log_text()}", READY_TIMEOUT_S, 1.0
+        )
         yield url, proc
 
 
@@ -190,11 +202,15 @@ def _ready(url: str, proc: InContainer) -> bool:
     return False
 
 
-def _run_once(container: str, argv: Sequence[str], env: Mapping[str, str] = {}, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+def _run_once(
+    container: str, argv: Sequence[str], env: Mapping[str, str] = {}, timeout: float = 120
+) -> subprocess.CompletedProcess[str]:
     flags = [f for k, v in env.items() for f in ("--env", f"{k}={v}")]
     return subprocess.run(
         [*BUILDAH, "run", "--isolation", "chroot", *flags, container, "--", *argv],
-        capture_output=True, text=True, timeout=timeout,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 
@@ -240,18 +256,32 @@ def test_pod_resets_steps_and_takes_a_chunk_of_a_robosuite_task_rendered_by_mesa
     assert [task["task_id"] for task in info["tasks"]] == [TASK] and info["num_envs"] == ENVS
     generation = info["generation"]
     indices = np.arange(ENVS)
-    reset = wire_answer(url, "reset", {"generation": generation, "env_indices": indices, "state_ids": np.zeros(ENVS, np.int64)}, IMAGE_TOKEN, timeout=120)
+    reset = wire_answer(
+        url,
+        "reset",
+        {"generation": generation, "env_indices": indices, "state_ids": np.zeros(ENVS, np.int64)},
+        IMAGE_TOKEN,
+        timeout=120,
+    )
     images = reset["obs"]["images"]
     assert images, reset["obs"].keys()
     for camera, frames in images.items():
         assert frames.shape[0] == ENVS and frames.dtype == np.uint8
         assert frames.std() > 0, f"camera {camera} rendered a blank frame"
     action_dim = info["action_space"]["shape"][-1]
-    step = wire_answer(url, "step", {"generation": generation, "env_indices": indices, "actions": np.zeros((ENVS, action_dim), np.float32)}, IMAGE_TOKEN, timeout=120)
+    step = wire_answer(
+        url,
+        "step",
+        {"generation": generation, "env_indices": indices, "actions": np.zeros((ENVS, action_dim), np.float32)},
+        IMAGE_TOKEN,
+        timeout=120,
+    )
     assert step["reward"].shape == (ENVS,)
     assert not step.get("errors"), step.get("errors")
     chunk = np.random.default_rng(0).uniform(-1, 1, (ENVS, 3, action_dim)).astype(np.float32)
-    answer = wire_answer(url, "step", {"generation": generation, "env_indices": indices, "actions": chunk}, IMAGE_TOKEN, timeout=120)
+    answer = wire_answer(
+        url, "step", {"generation": generation, "env_indices": indices, "actions": chunk}, IMAGE_TOKEN, timeout=120
+    )
     assert answer["reward"].shape == (ENVS, 3)
     assert answer["num_steps"].tolist() == [3] * ENVS
     assert not answer.get("errors"), answer.get("errors")
@@ -272,9 +302,19 @@ def test_images_healthcheck_command_succeeds_against_the_pod(pod, image, contain
 
 def test_controller_command_starts_and_passes_the_healthcheck(container, image, tmp_path):
     port = free_port()
-    argv = [*image["Entrypoint"], "controller", "--config", "/app/configs/tiny.yaml", "--host", "127.0.0.1", "--port", str(port)]
+    argv = [
+        *image["Entrypoint"],
+        "controller",
+        "--config",
+        "/app/configs/tiny.yaml",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+    ]
     env = {"VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
     with running(container, argv, env, _writable_volumes(tmp_path, image), tmp_path / "controller.log") as proc:
+
         def healthy() -> bool:
             assert proc.proc.poll() is None, f"the controller exited:\n{proc.log_text()}"
             with contextlib.suppress(httpx.HTTPError):
@@ -311,7 +351,9 @@ def test_pod_with_an_unwritable_cache_answers_not_ready_naming_the_cache(contain
         _owned_dir(tmp_path / "cache", 0, 0o755): cache,  # root's: the pod's uid cannot write it
     }
     url = f"http://127.0.0.1:{port}"
-    with running(container, _pod_argv(image, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log") as proc:
+    with running(
+        container, _pod_argv(image, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log"
+    ) as proc:
         detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "Permission denied" in detail and cache in detail, detail
         # Alive, so that the readiness probe (not liveness) keeps it out of service.
@@ -327,7 +369,9 @@ def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     volumes = _writable_volumes(tmp_path, image)
-    with running(container, _pod_argv(image, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log") as proc:
+    with running(
+        container, _pod_argv(image, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log"
+    ) as proc:
         detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "EGL" in detail, detail
 
@@ -339,6 +383,7 @@ def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(conta
     url = f"http://127.0.0.1:{port}"
     log_path = tmp_path / "pod.log"
     with running(container, _pod_argv(image), _pod_env(port), _writable_volumes(tmp_path, image), log_path) as proc:
+
         def answering() -> bool:
             assert proc.proc.poll() is None, f"the pod exited:\n{proc.log_text()}"
             with contextlib.suppress(httpx.HTTPError):

@@ -33,7 +33,8 @@ LABEL_COMPONENT = "app.kubernetes.io/component"
 def the(objects: tuple[dict[str, Any], ...], kind: str, component: str | None = None) -> dict[str, Any]:
     """The one object of ``kind`` (of ``component``, when given)."""
     found = [
-        o for o in objects
+        o
+        for o in objects
         if o["kind"] == kind
         and (component is None or o["metadata"].get("labels", {}).get(LABEL_COMPONENT) == component)
     ]
@@ -77,9 +78,7 @@ def expand_env(env: list[dict[str, Any]], downward: dict[str, str]) -> dict[str,
     resolved: dict[str, str] = {}
     for var in env:
         if "value" in var:
-            resolved[var["name"]] = re.sub(
-                r"\$\((\w+)\)", lambda m: resolved.get(m.group(1), m.group(0)), var["value"]
-            )
+            resolved[var["name"]] = re.sub(r"\$\((\w+)\)", lambda m: resolved.get(m.group(1), m.group(0)), var["value"])
         elif "fieldRef" in var.get("valueFrom", {}):
             resolved[var["name"]] = downward[var["valueFrom"]["fieldRef"]["fieldPath"]]
     return resolved
@@ -140,7 +139,16 @@ def test_kustomization_builds_every_part_of_the_deployment(target: str) -> None:
     # The overlays fence the pods in (k8s/components/network-policy); the base leaves that to them.
     fence = ["NetworkPolicy", "NetworkPolicy"] if target != "base" else []
     assert kinds == sorted(
-        ["StatefulSet", "Service", "Service", "PodDisruptionBudget", "Deployment", "ServiceAccount", "ConfigMap", *fence]
+        [
+            "StatefulSet",
+            "Service",
+            "Service",
+            "PodDisruptionBudget",
+            "Deployment",
+            "ServiceAccount",
+            "ConfigMap",
+            *fence,
+        ]
     )
 
 
@@ -198,8 +206,10 @@ def test_statefulset_governing_service_is_headless_and_publishes_unready_pods(ta
 @pytest.mark.parametrize("target", TARGETS)
 def test_each_service_selects_exactly_its_components_pods(target: str) -> None:
     objects = build(target)
-    pods = {c: the(objects, k, c)["spec"]["template"]["metadata"]["labels"] for k, c in
-            (("StatefulSet", "sim"), ("Deployment", "controller"))}
+    pods = {
+        c: the(objects, k, c)["spec"]["template"]["metadata"]["labels"]
+        for k, c in (("StatefulSet", "sim"), ("Deployment", "controller"))
+    }
     for component, other in (("sim", "controller"), ("controller", "sim")):
         selector = the(objects, "Service", component)["spec"]["selector"]
         assert selects(selector, pods[component])

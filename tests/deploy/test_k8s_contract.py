@@ -71,14 +71,16 @@ def core_discovery(resources: ResourcesArray) -> dict[str, Any]:
         if res.group != "" or res.version != "v1":
             continue
         info = resources[res]
-        listed.append({
-            "name": res.plural,
-            "singularName": info.singular or "",
-            "namespaced": bool(info.namespaced),
-            "kind": info.kind,
-            "verbs": sorted(info.verbs),
-            "shortNames": sorted(info.shortnames),
-        })
+        listed.append(
+            {
+                "name": res.plural,
+                "singularName": info.singular or "",
+                "namespaced": bool(info.namespaced),
+                "kind": info.kind,
+                "verbs": sorted(info.verbs),
+                "shortNames": sorted(info.shortnames),
+            }
+        )
     return {"kind": "APIResourceList", "apiVersion": "v1", "groupVersion": "v1", "resources": listed}
 
 
@@ -93,7 +95,9 @@ def parse_path_with_namespace_objects(path: str) -> parsing.ParsedPath:
         len(parts) <= 4 or (len(parts) == 5 and parts[4] in ("status", "finalize"))
     ):
         return parsing.ParsedPath(
-            group="", version="v1", plural="namespaces",
+            group="",
+            version="v1",
+            plural="namespaces",
             name=parts[3] if len(parts) > 3 else None,
             subresource=parts[4] if len(parts) > 4 else None,
         )
@@ -130,8 +134,11 @@ class Kubectl:
         """kubectl's stdout; fails the test if it exits non-zero or runs past its time limit."""
         argv = [kubectl_path(), *args, "--server", self.server, "--cache-dir", str(self.cache)]
         proc = await asyncio.create_subprocess_exec(
-            *argv, env=self.env,
-            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            *argv,
+            env=self.env,
+            stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
         )
         try:
             out, err = await asyncio.wait_for(
@@ -305,9 +312,7 @@ async def test_apply_after_an_edit_patches_only_the_edited_field(
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
-async def test_delete_removes_every_object(
-    overlay: str, api_server: KubernetesEmulator, kubectl: Kubectl
-) -> None:
+async def test_delete_removes_every_object(overlay: str, api_server: KubernetesEmulator, kubectl: Kubectl) -> None:
     objects = build(overlay)
     await apply(kubectl, overlay)
     since = len(api_server)
@@ -315,4 +320,3 @@ async def test_delete_removes_every_object(
     deleted = [r.url.path for r in requests(api_server, "DELETE", since)]
     assert deleted == [object_path(o) for o in objects]
     assert not any(is_stored(api_server, o) for o in objects)
-

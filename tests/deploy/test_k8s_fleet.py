@@ -85,8 +85,11 @@ def lost_fields(given: Any, understood: Any, path: str = "") -> list[str]:
     """Paths of ``given`` that ``understood`` lacks or holds otherwise; what ``understood``
     adds (defaults) is not a loss."""
     if isinstance(given, dict) and isinstance(understood, dict):
-        return [p for k, v in given.items() for p in
-                (lost_fields(v, understood[k], f"{path}/{k}") if k in understood else [f"{path}/{k}"])]
+        return [
+            p
+            for k, v in given.items()
+            for p in (lost_fields(v, understood[k], f"{path}/{k}") if k in understood else [f"{path}/{k}"])
+        ]
     if isinstance(given, list) and isinstance(understood, list) and len(given) == len(understood):
         return [p for i, (a, b) in enumerate(zip(given, understood)) for p in lost_fields(a, b, f"{path}/{i}")]
     return [] if given == understood else [path or "/"]
@@ -204,10 +207,14 @@ def test_jobset_sims_are_named_and_addressed_by_their_index() -> None:
     template = pod_template(jobset, "sim")
     env = container(template, "sim")["env"]
     namespace = jobset["metadata"]["namespace"]
-    resolved = expand_env(env, {
-        "metadata.annotations['batch.kubernetes.io/job-completion-index']": "3",
-        "metadata.namespace": namespace, "status.podIP": "10.1.2.3",
-    })
+    resolved = expand_env(
+        env,
+        {
+            "metadata.annotations['batch.kubernetes.io/job-completion-index']": "3",
+            "metadata.namespace": namespace,
+            "status.podIP": "10.1.2.3",
+        },
+    )
     from service.pod.settings import PodSettings
 
     settings = PodSettings.from_env(resolved)
@@ -259,7 +266,9 @@ def test_jobset_pods_follow_the_probes_and_lockdown_of_the_base() -> None:
         for kind in ("startup", "readiness", "liveness"):
             probe, expected = c[f"{kind}Probe"], getattr(want, kind)
             assert (probe["httpGet"]["path"], probe["periodSeconds"], probe["failureThreshold"]) == (
-                expected.path, expected.period_s, expected.failure_threshold
+                expected.path,
+                expected.period_s,
+                expected.failure_threshold,
             ), f"{name} {kind}"
     for name in ("trainer", "controller", "sim"):
         spec = pod_template(jobset, name)["spec"]
@@ -300,8 +309,11 @@ def test_podmonitor_scrapes_sims_and_the_controller_on_their_metrics_port() -> N
 
     objects = monitored_objects()
     (monitor,) = of_kind(objects, "PodMonitor")
-    workloads = {o["spec"]["template"]["metadata"]["labels"][LABEL_COMPONENT]: o for o in objects
-                 if o["kind"] in ("StatefulSet", "Deployment")}
+    workloads = {
+        o["spec"]["template"]["metadata"]["labels"][LABEL_COMPONENT]: o
+        for o in objects
+        if o["kind"] in ("StatefulSet", "Deployment")
+    }
     (endpoint,) = monitor["spec"]["podMetricsEndpoints"]
     for component, workload in workloads.items():
         assert selects(monitor["spec"]["selector"], workload["spec"]["template"]["metadata"]["labels"]), component

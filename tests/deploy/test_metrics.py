@@ -31,7 +31,7 @@ RULES = ROOT / "k8s" / "components" / "monitoring" / "rules.yaml"
 def documented(server: str) -> set[str]:
     """The metric names of ``server`` (``pod``, ``controller``) in the docs' Monitoring section."""
     text = DOCS.read_text()
-    section = text[text.index("## Monitoring"):]
+    section = text[text.index("## Monitoring") :]
     section = section[: section.index("\n## ", 1)]
     return set(re.findall(rf"^\| `(vecsim_{server}_\w+)` \|", section, re.MULTILINE))
 
@@ -71,8 +71,14 @@ def alert_rules() -> list[dict[str, str]]:
 @pytest.fixture(scope="module")
 def driven_job() -> Iterator[tuple[LocalJob, dict[str, dict[str, set[str]]]]]:
     job = {
-        "job_id": "metrics", "suite": None, "tasks": ["gym/Pendulum-v1"], "group_size": 2,
-        "num_stages": 2, "pods_per_stage": 1, "camera": {"names": []}, "max_episode_steps": 5,
+        "job_id": "metrics",
+        "suite": None,
+        "tasks": ["gym/Pendulum-v1"],
+        "group_size": 2,
+        "num_stages": 2,
+        "pods_per_stage": 1,
+        "camera": {"names": []},
+        "max_episode_steps": 5,
     }
     with local_job(job_config(job, replicas=2, max_envs=4)) as running:
         routing = running.wait_ready(timeout=120)
@@ -127,8 +133,11 @@ def test_idle_envs_count_envs_without_an_episode(driven_job) -> None:
     pod = routing.stages[1].pods[0]
 
     def idle() -> float:
-        (family,) = [f for f in text_string_to_metric_families(httpx.get(f"{pod.url}/metrics", timeout=5).text)
-                     if f.name == "vecsim_pod_idle_envs"]
+        (family,) = [
+            f
+            for f in text_string_to_metric_families(httpx.get(f"{pod.url}/metrics", timeout=5).text)
+            if f.name == "vecsim_pod_idle_envs"
+        ]
         return family.samples[0].value
 
     envs = httpx.get(f"{pod.url}/v1/info", headers={"Accept": "application/json"}, timeout=5).json()["num_envs"]

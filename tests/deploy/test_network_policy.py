@@ -74,9 +74,11 @@ def cluster(objects: tuple[dict[str, Any], ...], extra: tuple[dict[str, Any], ..
 def docs_table() -> tuple[list[tuple[str, int, str]], dict[str, list[str]]]:
     """(columns: (role, port, protocol)), {row role: cells} of the docs' "who may reach whom" table."""
     text = DOCS.read_text()
-    lines = [line for line in text[text.index("| from \\ to |"):].splitlines()]
-    table = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[: next(
-        i for i, line in enumerate(lines) if not line.startswith("|"))]]
+    lines = [line for line in text[text.index("| from \\ to |") :].splitlines()]
+    table = [
+        [cell.strip() for cell in line.strip("|").split("|")]
+        for line in lines[: next(i for i, line in enumerate(lines) if not line.startswith("|"))]
+    ]
     columns = []
     for head in table[0][1:]:
         name, port, protocol = re.fullmatch(r"(.+) :(\d+)(?:/(\w+))?", head).groups()
@@ -111,15 +113,21 @@ def test_the_ray_example_lets_a_raycluster_that_denies_egress_reach_the_job() ->
     namespace = example["metadata"]["namespace"]
     # KubeRay-style: the RayCluster's pods may talk only among themselves.
     deny = {
-        "apiVersion": "networking.k8s.io/v1", "kind": "NetworkPolicy",
+        "apiVersion": "networking.k8s.io/v1",
+        "kind": "NetworkPolicy",
         "metadata": {"name": "raycluster-deny", "namespace": namespace},
-        "spec": {"podSelector": {"matchLabels": ray_labels}, "policyTypes": ["Ingress", "Egress"],
-                 "egress": [{"to": [{"podSelector": {"matchLabels": ray_labels}}]}]},
+        "spec": {
+            "podSelector": {"matchLabels": ray_labels},
+            "policyTypes": ["Ingress", "Egress"],
+            "egress": [{"to": [{"podSelector": {"matchLabels": ray_labels}}]}],
+        },
     }
     ray = Pod(namespace, {**ray_labels, **TRAINER})
     namespaces = {job_namespace(objects): {}, namespace: {"vecsim/trainers": "true"}, "kube-system": {}}
-    assert job_namespace(objects) == example["spec"]["egress"][0]["to"][0]["namespaceSelector"]["matchLabels"][
-        "kubernetes.io/metadata.name"]
+    assert (
+        job_namespace(objects)
+        == example["spec"]["egress"][0]["to"][0]["namespaceSelector"]["matchLabels"]["kubernetes.io/metadata.name"]
+    )
     denied = Cluster(namespaces, [*objects, deny])
     opened = Cluster(namespaces, [*objects, deny, example])
     for dest, port, protocol in (("sim", 8100, "TCP"), ("controller", 8000, "TCP"), ("kube-dns", 53, "UDP")):
@@ -134,8 +142,11 @@ def test_the_ray_example_lets_a_raycluster_that_denies_egress_reach_the_job() ->
 
 
 def policy(name: str, selector: dict[str, Any], namespace: str = "a", **spec: Any) -> dict[str, Any]:
-    return {"kind": "NetworkPolicy", "metadata": {"name": name, "namespace": namespace},
-            "spec": {"podSelector": selector, **spec}}
+    return {
+        "kind": "NetworkPolicy",
+        "metadata": {"name": name, "namespace": namespace},
+        "spec": {"podSelector": selector, **spec},
+    }
 
 
 WEB = Pod("a", {"app": "web"}, {"http": 8080})
@@ -190,8 +201,12 @@ def test_end_port_makes_a_range() -> None:
 
 
 def test_match_expressions_select_as_the_api_does() -> None:
-    selector = {"matchExpressions": [{"key": "app", "operator": "In", "values": ["web"]},
-                                     {"key": "canary", "operator": "DoesNotExist"}]}
+    selector = {
+        "matchExpressions": [
+            {"key": "app", "operator": "In", "values": ["web"]},
+            {"key": "canary", "operator": "DoesNotExist"},
+        ]
+    }
     assert selects(selector, {"app": "web"}) and not selects(selector, {"app": "web", "canary": "1"})
     assert selects({}, {"anything": "x"})
     with pytest.raises(ValueError, match="operator"):

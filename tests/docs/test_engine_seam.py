@@ -39,7 +39,10 @@ CONCRETE = (
 
 
 def above_the_engine() -> list:
-    return [*python_files("service"), *(p for p in python_files("vecsim") if ROOT / "vecsim" / "engine" not in p.parents)]
+    return [
+        *python_files("service"),
+        *(p for p in python_files("vecsim") if ROOT / "vecsim" / "engine" not in p.parents),
+    ]
 
 
 def test_nothing_above_the_engine_imports_a_concrete_engine():
@@ -101,7 +104,11 @@ def test_a_job_without_an_engine_runs_on_the_cpu_engine(tmp_path):
 def test_a_pod_without_the_mjwarp_extra_refuses_an_mjwarp_assignment_naming_the_engine():
     settings = PodSettings(name="sim-0")
     assignment = Assignment(
-        generation=1, pod="sim-0", stage_id=0, engine="mjwarp", tasks=(TaskBlock(task_id="libero_10/0", env_start=0, num_envs=2),)
+        generation=1,
+        pod="sim-0",
+        stage_id=0,
+        engine="mjwarp",
+        tasks=(TaskBlock(task_id="libero_10/0", env_start=0, num_envs=2),),
     )
     with pytest.raises(InvalidRequestError, match=r"^engine: the mjwarp engine needs the mjwarp extra"):
         check_assignment(settings, assignment)

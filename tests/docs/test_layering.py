@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from support import ROOT
+
 ENGINE = ROOT / "vecsim" / "engine"
 
 

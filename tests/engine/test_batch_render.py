@@ -334,8 +334,12 @@ print("RESULT", info.get("priority"), offered)
 
 @pytest.mark.skipif(os.environ.get("MUJOCO_GL", "egl").lower() != "egl", reason="render priorities are EGL's")
 def test_a_low_render_priority_is_granted_or_reported_as_medium_with_a_warning() -> None:
-    env = {**os.environ, "MUJOCO_GL": "egl", batch_render.RENDER_PRIORITY_ENV: "low",
-           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {
+        **os.environ,
+        "MUJOCO_GL": "egl",
+        batch_render.RENDER_PRIORITY_ENV: "low",
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
     done = subprocess.run([sys.executable, "-c", PRIORITY_PROBE], env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     granted, offered = done.stdout.split("RESULT ", 1)[1].split()

@@ -66,8 +66,12 @@ def _assignment(
     envs_per_worker: int, task_id: str = CHEETAH, num_envs: int = 5, camera: CameraConfig = CameraConfig(names=())
 ) -> Assignment:
     return Assignment(
-        generation=1, pod="sim-0", stage_id=0, tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=num_envs),),
-        camera=camera, envs_per_worker=envs_per_worker,
+        generation=1,
+        pod="sim-0",
+        stage_id=0,
+        tasks=(TaskBlock(task_id=task_id, env_start=0, num_envs=num_envs),),
+        camera=camera,
+        envs_per_worker=envs_per_worker,
     )
 
 

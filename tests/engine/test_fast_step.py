@@ -202,12 +202,18 @@ def test_exact_path_gives_libero_own_trajectory(task_id: str) -> None:
         assert run_side_by_side(task_id, envs, seed=2) == STEPS
 
 
-
 # Arrays of MjData that hold no state: the sparse layout of the constraint Jacobian (and of its
 # inverse-inertia product) is neither written nor read for a dense-Jacobian model under the
 # Newton solver without noslip, so they show whatever the arena held before.
-SPARSE_LAYOUT = ("efc_J_rownnz", "efc_J_rowadr", "efc_J_rowsuper", "efc_J_colind",
-                 "efc_AR_rownnz", "efc_AR_rowadr", "efc_AR_colind")
+SPARSE_LAYOUT = (
+    "efc_J_rownnz",
+    "efc_J_rowadr",
+    "efc_J_rowsuper",
+    "efc_J_colind",
+    "efc_AR_rownnz",
+    "efc_AR_rowadr",
+    "efc_AR_colind",
+)
 
 
 def _arrays(obj: Any, prefix: str, skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
@@ -240,8 +246,15 @@ def everything(env: Any) -> dict[str, np.ndarray]:
         for name in ("base_pos", "base_ori", "torques"):
             state[f"robot{index}.{name}"] = np.array(getattr(robot, name))
         state[f"robot{index}.gripper.current_action"] = np.array(robot.gripper.current_action)
-        for name in ("recent_qpos", "recent_actions", "recent_torques", "recent_ee_forcetorques",
-                     "recent_ee_pose", "recent_ee_vel", "recent_ee_acc"):
+        for name in (
+            "recent_qpos",
+            "recent_actions",
+            "recent_torques",
+            "recent_ee_forcetorques",
+            "recent_ee_pose",
+            "recent_ee_vel",
+            "recent_ee_acc",
+        ):
             buffer = getattr(robot, name)
             state[f"robot{index}.{name}"] = np.array([buffer.last, buffer.current])
         ring = robot.recent_ee_vel_buffer
@@ -262,16 +275,23 @@ def test_exact_path_resets_a_libero_env_as_the_library_path_does(task_id: str, s
         for state_id in state_ids:
             observations = {path: env.reset(options={"state_id": state_id})[0] for path, env in envs.items()}
             exact, library = (
-                {**everything(envs[path]), "observation proprio": observations[path]["proprio"],
-                 "observation state": observations[path]["state"]}
+                {
+                    **everything(envs[path]),
+                    "observation proprio": observations[path]["proprio"],
+                    "observation state": observations[path]["state"],
+                }
                 for path in ("exact", "library")
             )
             assert_identical(task_id, -1, exact, library)
             for step, action in enumerate(table[:8]):
                 results = {path: env.step(action.astype(np.float32)) for path, env in envs.items()}
                 exact, library = (
-                    {**everything(envs[path]), "observation proprio": results[path][0]["proprio"],
-                     "reward": np.array(results[path][1]), "success": np.array(results[path][4]["success"])}
+                    {
+                        **everything(envs[path]),
+                        "observation proprio": results[path][0]["proprio"],
+                        "reward": np.array(results[path][1]),
+                        "success": np.array(results[path][4]["success"]),
+                    }
                     for path in ("exact", "library")
                 )
                 assert_identical(f"{task_id} from state {state_id}", step, exact, library)

@@ -133,9 +133,13 @@ def served(
     :data:`FRESH_ENV_RULE`) and, while
     it builds, run LIBERO's episode of every case here; yield the pod's url and the episodes."""
     spec = assignment(
-        f"libero-{size}", [(task, 1) for task in _tasks(cases)],
-        camera=CameraConfig(names=CAMERAS, height=size, width=size), render=None,
-        max_episode_steps=None, envs_per_worker=0, libero=FRESH_ENV_RULE,
+        f"libero-{size}",
+        [(task, 1) for task in _tasks(cases)],
+        camera=CameraConfig(names=CAMERAS, height=size, width=size),
+        render=None,
+        max_episode_steps=None,
+        envs_per_worker=0,
+        libero=FRESH_ENV_RULE,
     )
     with contextlib.ExitStack() as stack, ThreadPoolExecutor(1) as starter:
         starting = starter.submit(stack.enter_context, standalone_pods([spec], workdir))
@@ -175,10 +179,19 @@ def _check_pod(url: str, cases: tuple[tuple[str, int], ...], libero: dict, size:
     for task, state_id in cases:
         frames = libero[(task, state_id)]
         env_indices = np.array([env_of[task]], np.int64)
-        answer = wire_answer(url, "reset", {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)}, timeout=300)
-        failures += [f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)]
+        answer = wire_answer(
+            url,
+            "reset",
+            {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)},
+            timeout=300,
+        )
+        failures += [
+            f"{task} state {state_id} {size}px reset: {what}" for what in _differences(frames[0], answer, False)
+        ]
         for step, action in enumerate(ACTIONS, start=1):
-            answer = wire_answer(url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300)
+            answer = wire_answer(
+                url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300
+            )
             failures += [
                 f"{task} state {state_id} {size}px step {step}: {what}"
                 for what in _differences(frames[step], answer, True)
@@ -259,16 +272,29 @@ def libero_published_loop(task_id: str, episodes: tuple[int, ...], size: int, st
 
 def _published_pod(name: str, tasks: list[str]):
     return assignment(
-        name, [(task, 1) for task in tasks],
-        camera=CameraConfig(names=CAMERAS, height=PUBLISHED_SIZE, width=PUBLISHED_SIZE), render=None,
-        max_episode_steps=None, envs_per_worker=0,
+        name,
+        [(task, 1) for task in tasks],
+        camera=CameraConfig(names=CAMERAS, height=PUBLISHED_SIZE, width=PUBLISHED_SIZE),
+        render=None,
+        max_episode_steps=None,
+        envs_per_worker=0,
     )
 
 
 def _pod_episode(url: str, env_index: int, state_id: int, steps: int) -> list[dict]:
     env_indices = np.array([env_index], np.int64)
-    answers = [wire_answer(url, "reset", {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)}, timeout=300)]
-    answers += [wire_answer(url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300) for action in ACTIONS[:steps]]
+    answers = [
+        wire_answer(
+            url,
+            "reset",
+            {"generation": 0, "env_indices": env_indices, "state_ids": np.array([state_id], np.int64)},
+            timeout=300,
+        )
+    ]
+    answers += [
+        wire_answer(url, "step", {"generation": 0, "env_indices": env_indices, "actions": action[None]}, timeout=300)
+        for action in ACTIONS[:steps]
+    ]
     return answers
 
 

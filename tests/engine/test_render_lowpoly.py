@@ -22,7 +22,13 @@ from vecsim.engine.tasks import RobotTaskEnv, make_env
 
 CAMERA = CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=24, width=32)
 MESH_FIELDS = (
-    "mesh_face", "mesh_facenormal", "mesh_facetexcoord", "mesh_facenum", "mesh_vert", "mesh_normal", "mesh_texcoord"
+    "mesh_face",
+    "mesh_facenormal",
+    "mesh_facetexcoord",
+    "mesh_facenum",
+    "mesh_vert",
+    "mesh_normal",
+    "mesh_texcoord",
 )
 
 

@@ -25,6 +25,8 @@ from vecsim.engine import (
 from vecsim.engine.tasks import UnknownTaskError, make_env
 
 CHEETAH = "gym/HalfCheetah-v5"
+
+
 def _batched(obs: dict[str, Any]) -> dict[str, Any]:
     """One env's observation as a batch of one."""
     return {key: _batched(value) if isinstance(value, dict) else value[None] for key, value in obs.items()}
@@ -69,7 +71,6 @@ def _unchanged_after(pod: TaskGroupedVectorEnv, action: Any) -> bool:
 
 
 # Layout and spaces.
-
 
 
 def test_env_indices_form_contiguous_task_blocks(tiny_pods: tuple[TaskGroupedVectorEnv, ...]) -> None:
@@ -199,53 +200,37 @@ def test_results_have_the_documented_types(tiny_pods: tuple[TaskGroupedVectorEnv
 
 # Bad input: the named error, and nothing changes.
 
+
 def _bad(case_id: str, error: type[Exception], message: str, call: Any) -> Any:
     return pytest.param(error, message, call, id=case_id)
 
 
 BAD_CALLS = [
-    _bad("reset_unknown_env", UnknownEnvError, "env 4 does not exist",
-         lambda p: p.reset_envs([0, 4], [0, 0])),
-    _bad("reset_negative_env", UnknownEnvError, "env -1 does not exist",
-         lambda p: p.reset_envs([-1], [0])),
-    _bad("step_unknown_env", UnknownEnvError, "env 9 does not exist",
-         lambda p: p.step_envs([9], _actions(1, 6))),
-    _bad("reset_twice", InvalidRequestError, "env 1 is named more than once",
-         lambda p: p.reset_envs([1, 1], [0, 0])),
-    _bad("step_twice", InvalidRequestError, "env 2 is named",
-         lambda p: p.step_envs([2, 0, 2], _actions(3, 6))),
-    _bad("float_env_indices", InvalidRequestError, "env_indices: expected integers",
-         lambda p: p.reset_envs([0.0], [0])),
-    _bad("nested_env_indices", InvalidRequestError, "env_indices: expected a 1-d",
-         lambda p: p.reset_envs([[0]], [0])),
-    _bad("negative_state", InvalidRequestError, "state -1 for env 1",
-         lambda p: p.reset_envs([0, 1], [0, -1])),
-    _bad("state_too_large", InvalidRequestError, "state 50 for env 0 .* 0..49",
-         lambda p: p.reset_envs([0], [50])),
-    _bad("fewer_states", InvalidRequestError, "1 state ids for 2 env_indices",
-         lambda p: p.reset_envs([0, 1], [0])),
-    _bad("fewer_actions", InvalidRequestError, r"shape \(2, 6\)",
-         lambda p: p.step_envs([0, 1], _actions(1, 6))),
-    _bad("wide_actions", InvalidRequestError, r"shape \(1, 6\)",
-         lambda p: p.step_envs([0], _actions(1, 7))),
-    _bad("text_actions", InvalidRequestError, "expected numbers",
-         lambda p: p.step_envs([0], [["a"] * 6])),
-    _bad("bool_actions", InvalidRequestError, "expected numbers",
-         lambda p: p.step_envs([0], np.ones((1, 6), bool))),
-    _bad("ragged_actions", InvalidRequestError, "not a rectangular",
-         lambda p: p.step_envs([0, 1], [[0.0] * 6, [0.0]])),
-    _bad("nan_action", InvalidRequestError, "env 3 is not finite",
-         lambda p: p.step_envs([0, 3], [[0] * 6, [np.nan] * 6])),
-    _bad("inf_action", InvalidRequestError, "env 1 is not finite",
-         lambda p: p.step_envs([1], np.full((1, 6), np.inf))),
-    _bad("huge_action", InvalidRequestError, "env 0 is not finite",
-         lambda p: p.step_envs([0], np.full((1, 6), 1e300))),
-    _bad("actions_for_no_envs", InvalidRequestError, r"shape \(0, 6\)",
-         lambda p: p.step_envs([], _actions(1, 6))),
-    _bad("frame_unknown_env", UnknownEnvError, "env 7 does not exist",
-         lambda p: p.frame(7, "render")),
-    _bad("frame_unknown_camera", InvalidRequestError, "no camera 'agentview'",
-         lambda p: p.frame(0, "agentview")),
+    _bad("reset_unknown_env", UnknownEnvError, "env 4 does not exist", lambda p: p.reset_envs([0, 4], [0, 0])),
+    _bad("reset_negative_env", UnknownEnvError, "env -1 does not exist", lambda p: p.reset_envs([-1], [0])),
+    _bad("step_unknown_env", UnknownEnvError, "env 9 does not exist", lambda p: p.step_envs([9], _actions(1, 6))),
+    _bad("reset_twice", InvalidRequestError, "env 1 is named more than once", lambda p: p.reset_envs([1, 1], [0, 0])),
+    _bad("step_twice", InvalidRequestError, "env 2 is named", lambda p: p.step_envs([2, 0, 2], _actions(3, 6))),
+    _bad(
+        "float_env_indices", InvalidRequestError, "env_indices: expected integers", lambda p: p.reset_envs([0.0], [0])
+    ),
+    _bad("nested_env_indices", InvalidRequestError, "env_indices: expected a 1-d", lambda p: p.reset_envs([[0]], [0])),
+    _bad("negative_state", InvalidRequestError, "state -1 for env 1", lambda p: p.reset_envs([0, 1], [0, -1])),
+    _bad("state_too_large", InvalidRequestError, "state 50 for env 0 .* 0..49", lambda p: p.reset_envs([0], [50])),
+    _bad("fewer_states", InvalidRequestError, "1 state ids for 2 env_indices", lambda p: p.reset_envs([0, 1], [0])),
+    _bad("fewer_actions", InvalidRequestError, r"shape \(2, 6\)", lambda p: p.step_envs([0, 1], _actions(1, 6))),
+    _bad("wide_actions", InvalidRequestError, r"shape \(1, 6\)", lambda p: p.step_envs([0], _actions(1, 7))),
+    _bad("text_actions", InvalidRequestError, "expected numbers", lambda p: p.step_envs([0], [["a"] * 6])),
+    _bad("bool_actions", InvalidRequestError, "expected numbers", lambda p: p.step_envs([0], np.ones((1, 6), bool))),
+    _bad("ragged_actions", InvalidRequestError, "not a rectangular", lambda p: p.step_envs([0, 1], [[0.0] * 6, [0.0]])),
+    _bad(
+        "nan_action", InvalidRequestError, "env 3 is not finite", lambda p: p.step_envs([0, 3], [[0] * 6, [np.nan] * 6])
+    ),
+    _bad("inf_action", InvalidRequestError, "env 1 is not finite", lambda p: p.step_envs([1], np.full((1, 6), np.inf))),
+    _bad("huge_action", InvalidRequestError, "env 0 is not finite", lambda p: p.step_envs([0], np.full((1, 6), 1e300))),
+    _bad("actions_for_no_envs", InvalidRequestError, r"shape \(0, 6\)", lambda p: p.step_envs([], _actions(1, 6))),
+    _bad("frame_unknown_env", UnknownEnvError, "env 7 does not exist", lambda p: p.frame(7, "render")),
+    _bad("frame_unknown_camera", InvalidRequestError, "no camera 'agentview'", lambda p: p.frame(0, "agentview")),
 ]
 
 

@@ -78,7 +78,6 @@ def spanning_cheetahs() -> Iterator[TaskGroupedVectorEnv]:
         yield pod
 
 
-
 def test_a_worker_hosts_consecutive_envs_across_task_blocks(spanning_cheetahs: TaskGroupedVectorEnv) -> None:
     pod = spanning_cheetahs
     assert pod.task_ids == [CHEETAH_V5] * 3 + [CHEETAH_V4] * 2
@@ -145,14 +144,30 @@ def test_more_envs_per_worker_than_envs_makes_one_worker_hosting_fewer_than_it_c
 
 
 BAD_CALLS = [
-    pytest.param(UnknownEnvError, "env 5 does not exist; this pod has envs 0..4",
-                 lambda p: p.step_envs([2, 5], _actions(2, 6)), id="unknown_env"),
-    pytest.param(InvalidRequestError, "state 50 for env 3 is out of range 0..49 of task 'gym/HalfCheetah-v4'",
-                 lambda p: p.reset_envs([2, 3], [0, 50]), id="state_of_the_second_task"),
-    pytest.param(InvalidRequestError, "env 3 is named more than once",
-                 lambda p: p.reset_envs([3, 2, 3], [0, 0, 0]), id="duplicate_env"),
-    pytest.param(InvalidRequestError, "the action for env 3 is not finite",
-                 lambda p: p.step_envs([2, 3], [[0.0] * 6, [np.nan] * 6]), id="nan_action"),
+    pytest.param(
+        UnknownEnvError,
+        "env 5 does not exist; this pod has envs 0..4",
+        lambda p: p.step_envs([2, 5], _actions(2, 6)),
+        id="unknown_env",
+    ),
+    pytest.param(
+        InvalidRequestError,
+        "state 50 for env 3 is out of range 0..49 of task 'gym/HalfCheetah-v4'",
+        lambda p: p.reset_envs([2, 3], [0, 50]),
+        id="state_of_the_second_task",
+    ),
+    pytest.param(
+        InvalidRequestError,
+        "env 3 is named more than once",
+        lambda p: p.reset_envs([3, 2, 3], [0, 0, 0]),
+        id="duplicate_env",
+    ),
+    pytest.param(
+        InvalidRequestError,
+        "the action for env 3 is not finite",
+        lambda p: p.step_envs([2, 3], [[0.0] * 6, [np.nan] * 6]),
+        id="nan_action",
+    ),
 ]
 
 
@@ -173,8 +188,11 @@ def test_bad_input_to_a_spanning_worker_raises_its_named_error_and_changes_nothi
 def test_a_dead_worker_is_named_with_every_task_it_hosted() -> None:
     with TaskGroupedVectorEnv(sim_assignment(CHEETAH_BLOCKS, envs_per_worker=2)) as pod:
         kill_worker(pod.worker_pids[1])
-        with pytest.raises(SimCrashedError, match=r"worker 1 hosting gym/HalfCheetah-v5 \(envs 2-2\), "
-                                                  r"gym/HalfCheetah-v4 \(envs 3-3\) died"):
+        with pytest.raises(
+            SimCrashedError,
+            match=r"worker 1 hosting gym/HalfCheetah-v5 \(envs 2-2\), "
+            r"gym/HalfCheetah-v4 \(envs 3-3\) died",
+        ):
             pod.reset_envs([0], [0])
 
 
@@ -236,9 +254,11 @@ def test_a_built_worker_keeps_no_compiler_copy_of_its_scenes() -> None:
 
 # auto
 
+
 def test_auto_packs_robot_scenes_with_cameras_over_the_cores_across_tasks() -> None:
-    six = sim_assignment([("tiny/lift", 2), ("tiny/stack", 2), ("tiny/door", 2)], TINY_CAMERA,
-                      envs_per_worker=AUTO_ENVS_PER_WORKER)
+    six = sim_assignment(
+        [("tiny/lift", 2), ("tiny/stack", 2), ("tiny/door", 2)], TINY_CAMERA, envs_per_worker=AUTO_ENVS_PER_WORKER
+    )
     assert resolve_envs_per_worker(six, cores=2) == 3
     assert resolve_envs_per_worker(six, cores=4) == 2
     assert resolve_envs_per_worker(six, cores=16) == 1
@@ -270,8 +290,13 @@ def test_the_build_warms_the_step_path_and_leaves_every_env_in_state_0() -> None
     # controller has run in this process (compiled, or loaded from numba's cache), and the env
     # it stepped is back in state 0 exactly as a reset to state 0 leaves it.
     tests = ROOT / "tests"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent), os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run([sys.executable, "-c", WARM_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent), os.environ.get("PYTHONPATH", "")]),
+    }
+    out = subprocess.run(
+        [sys.executable, "-c", WARM_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True
+    )
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["path"] == "exact"
     assert report["compiled"] is True
@@ -312,8 +337,13 @@ worker.close()
 def test_after_the_build_a_first_step_with_a_turning_arm_compiles_or_loads_nothing() -> None:
     # A fresh interpreter: what the trainer's first step would compile or load from numba's
     # cache (robosuite's quat2mat runs only when the arm turns) the build has done already.
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run([sys.executable, "-c", FIRST_STEP_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    out = subprocess.run(
+        [sys.executable, "-c", FIRST_STEP_PROBE], env=env, capture_output=True, text=True, timeout=600, check=True
+    )
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["kernels"] > 1
     assert report["new"] == {}

@@ -237,9 +237,7 @@ def test_reset_sets_the_generated_state_cached_on_disk(lift: TaskEnv) -> None:
     assert np.array_equal(lift.inner.sim.get_state().flatten(), cached[4])
 
 
-def test_generated_states_are_written_once_and_then_read(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_generated_states_are_written_once_and_then_read(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("VECSIM_CACHE_DIR", str(tmp_path))
     path = states_path(get_task("tiny/door"))
     first = make_env("tiny/door", CameraConfig(names=()))

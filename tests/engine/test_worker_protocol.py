@@ -70,7 +70,12 @@ def test_a_step_order_carries_the_dtype_its_actions_were_sent_in(dtype: str) -> 
 
 def test_reset_orders_round_trip_state_ids_and_seeds_with_none_as_minus_one() -> None:
     states = decode_run(bytearray(encode_run(Order(np.array([0, 2]), state_ids=np.array([7, 0])))), BOX)
-    assert (states.local_indices.tolist(), states.state_ids.tolist(), states.seeds, states.actions) == ([0, 2], [7, 0], None, None)
+    assert (states.local_indices.tolist(), states.state_ids.tolist(), states.seeds, states.actions) == (
+        [0, 2],
+        [7, 0],
+        None,
+        None,
+    )
     seeds = decode_run(bytearray(encode_run(Order(np.array([1]), seeds=np.array([-1])))), BOX)
     assert (seeds.seeds.tolist(), seeds.state_ids, seeds.options) == ([-1], None, None)
 

@@ -76,8 +76,11 @@ class Pod(Server):
         return json.loads(response.content) if accept == "json" else wire.decode(response.content)
 
     def reset(self, env_indices: list[int], state_ids: list[int], **formats: str) -> dict[str, Any]:
-        body = {"generation": self.generation, "env_indices": np.asarray(env_indices, np.int64),
-                "state_ids": np.asarray(state_ids, np.int64)}
+        body = {
+            "generation": self.generation,
+            "env_indices": np.asarray(env_indices, np.int64),
+            "state_ids": np.asarray(state_ids, np.int64),
+        }
         return self.call("reset", body, **formats)
 
     def step(self, env_indices: list[int], actions: np.ndarray, **formats: str) -> dict[str, Any]:
@@ -103,8 +106,16 @@ def assignment_for(pod: str, generation: int = 0, camera: CameraConfig = CAMERA)
         TaskBlock(task_id=task_id, env_start=i * GROUP_SIZE, num_envs=GROUP_SIZE) for i, task_id in enumerate(TASKS)
     )
     return Assignment(
-        generation=generation, job_id="pod-tests", pod=pod, stage_id=0, tasks=blocks, camera=camera,
-        render="lean", seed=0, envs_per_worker=GROUP_SIZE, max_episode_steps=50,
+        generation=generation,
+        job_id="pod-tests",
+        pod=pod,
+        stage_id=0,
+        tasks=blocks,
+        camera=camera,
+        render="lean",
+        seed=0,
+        envs_per_worker=GROUP_SIZE,
+        max_episode_steps=50,
     )
 
 
@@ -146,11 +157,32 @@ def pod_a(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pod]:
     """The pod under test, started from a job config with --tasks and --group-size."""
     tmp = tmp_path_factory.mktemp("pod_a")
     config = tmp / "job.yaml"
-    job = {"job": {"job_id": "pod-tests", "tasks": list(TASKS), "camera": CAMERA.model_dump(mode="json"),
-                   "render": "lean", "envs_per_worker": GROUP_SIZE, "max_episode_steps": 50, "num_stages": 1}}
+    job = {
+        "job": {
+            "job_id": "pod-tests",
+            "tasks": list(TASKS),
+            "camera": CAMERA.model_dump(mode="json"),
+            "render": "lean",
+            "envs_per_worker": GROUP_SIZE,
+            "max_episode_steps": 50,
+            "num_stages": 1,
+        }
+    }
     config.write_text(yaml.safe_dump(job))
-    args = ["--config", str(config), "--stage", "0", "--tasks", ",".join(TASKS), "--group-size", str(GROUP_SIZE),
-            "--max-body-bytes", str(BODY_LIMIT), "--max-envs", "8"]
+    args = [
+        "--config",
+        str(config),
+        "--stage",
+        "0",
+        "--tasks",
+        ",".join(TASKS),
+        "--group-size",
+        str(GROUP_SIZE),
+        "--max-body-bytes",
+        str(BODY_LIMIT),
+        "--max-envs",
+        "8",
+    ]
     yield from start_pod("sim-0", args, tmp)
 
 
@@ -237,7 +269,8 @@ def test_info_describes_blocks_instructions_and_spaces(pod_a: Pod) -> None:
     assert info["ready"] is True
     assert info["num_envs"] == NUM_ENVS
     assert [(t["task_id"], t["env_start"], t["num_envs"]) for t in info["tasks"]] == [
-        (TASKS[0], 0, GROUP_SIZE), (TASKS[1], GROUP_SIZE, GROUP_SIZE)
+        (TASKS[0], 0, GROUP_SIZE),
+        (TASKS[1], GROUP_SIZE, GROUP_SIZE),
     ]
     assert all(isinstance(t["instruction"], str) for t in info["tasks"])  # gym tasks have none
     assert info["observation_space"] is not None
@@ -246,8 +279,16 @@ def test_info_describes_blocks_instructions_and_spaces(pod_a: Pod) -> None:
 
 def test_openapi_page_documents_every_endpoint(pod_a: Pod) -> None:
     paths = pod_a.http.get("/openapi.json").json()["paths"]
-    assert {"/healthz", "/readyz", "/v1/info", "/v1/assignment", "/v1/reset", "/v1/step",
-            "/v1/envs/{env_index}/frame.png", "/metrics"} <= set(paths)
+    assert {
+        "/healthz",
+        "/readyz",
+        "/v1/info",
+        "/v1/assignment",
+        "/v1/reset",
+        "/v1/step",
+        "/v1/envs/{env_index}/frame.png",
+        "/metrics",
+    } <= set(paths)
     assert wire.CONTENT_TYPE in paths["/v1/step"]["post"]["requestBody"]["content"]
 
 
@@ -289,13 +330,20 @@ def test_step_of_some_envs_leaves_the_others_untouched(pods: tuple[Pod, Pod]) ->
 
 
 @pytest.mark.parametrize("chunk", [None, 3], ids=["one-action", "chunk"])
-def test_a_step_that_resets_other_envs_answers_as_a_reset_and_a_step_would(pods: tuple[Pod, Pod], chunk: int | None) -> None:
+def test_a_step_that_resets_other_envs_answers_as_a_reset_and_a_step_would(
+    pods: tuple[Pod, Pod], chunk: int | None
+) -> None:
     pod_a, pod_b = pods
     actions = actions_for([0, 3], seed=5)
     if chunk is not None:
         actions = np.repeat(actions[:, None], chunk, axis=1)
-    body = {"generation": pod_a.generation, "env_indices": np.asarray([0, 3], np.int64), "actions": actions,
-            "reset_env_indices": np.asarray([2, 1], np.int64), "reset_state_ids": np.asarray([6, 7], np.int64)}
+    body = {
+        "generation": pod_a.generation,
+        "env_indices": np.asarray([0, 3], np.int64),
+        "actions": actions,
+        "reset_env_indices": np.asarray([2, 1], np.int64),
+        "reset_state_ids": np.asarray([6, 7], np.int64),
+    }
     answer = pod_a.call("step", body)
     assert_same_tree(answer.pop("reset"), pod_b.reset([2, 1], [6, 7]), "reset")
     assert_same_tree(answer, pod_b.step([0, 3], actions), "step")
@@ -390,12 +438,14 @@ def _bad_requests() -> list[Any]:
             body = {"generation": gen, "env_indices": [0, 2], "actions": [[0.1] * ACTION_DIM] * 2}
             body.update({k: (v(gen) if callable(v) else v) for k, v in fields.items()})
             return "/v1/step", json.dumps({k: v for k, v in body.items() if v is not None}).encode(), json_h
+
         return build
 
     def step_wire(env_indices: list[int], actions: np.ndarray) -> Any:
         def build(gen: int) -> tuple[str, bytes, dict[str, str]]:
             body = {"generation": gen, "env_indices": np.asarray(env_indices, np.int64), "actions": actions}
             return "/v1/step", wire.encode(body), wire_h
+
         return build
 
     def reset_json(**fields: Any) -> Any:
@@ -403,6 +453,7 @@ def _bad_requests() -> list[Any]:
             body = {"generation": gen, "env_indices": [0, 2], "state_ids": [1, 1]}
             body.update({k: (v(gen) if callable(v) else v) for k, v in fields.items()})
             return "/v1/reset", json.dumps(body).encode(), json_h
+
         return build
 
     def raw(path: str, content: bytes, headers: dict[str, str]) -> Any:
@@ -425,27 +476,53 @@ def _bad_requests() -> list[Any]:
         pytest.param(step_json(actions=[[0.1] * ACTION_DIM, [0.1] * 2]), 422, ["actions"], id="ragged-actions"),
         pytest.param(step_json(actions=[["a"] * ACTION_DIM] * 2), 422, ["actions"], id="string-action"),
         pytest.param(step_wire([0, 2], nan), 422, ["actions", "2"], id="nan-action"),
-        pytest.param(step_json(actions=[[0.1] * ACTION_DIM, ["NaN"] * ACTION_DIM]), 422, ["actions", "2"],
-                     id="nan-action-as-json-token"),
+        pytest.param(
+            step_json(actions=[[0.1] * ACTION_DIM, ["NaN"] * ACTION_DIM]),
+            422,
+            ["actions", "2"],
+            id="nan-action-as-json-token",
+        ),
         pytest.param(step_wire([0, 2], inf), 422, ["actions", "0"], id="inf-action"),
         pytest.param(step_json(actions=[[1e39] * ACTION_DIM] * 2), 422, ["actions"], id="action-beyond-float32"),
         pytest.param(reset_json(seeds=[1, 2]), 422, ["state_ids", "seeds"], id="state-ids-and-seeds"),
         pytest.param(reset_json(state_ids=None, seeds=[1, -1]), 422, ["seeds", "-1"], id="negative-seed"),
         pytest.param(reset_json(state_ids=None, seeds=[1, "x"]), 422, ["seed"], id="string-seed"),
         pytest.param(reset_json(state_ids=None, seeds=[1]), 422, ["seeds"], id="fewer-seeds-than-envs"),
-        pytest.param(reset_json(state_ids=None, seeds=[1, 2], options=[3]), 422, ["options"], id="options-not-an-object"),
+        pytest.param(
+            reset_json(state_ids=None, seeds=[1, 2], options=[3]), 422, ["options"], id="options-not-an-object"
+        ),
         pytest.param(step_wire([0, 2], np.zeros((2, ACTION_DIM, 1), np.float32)), 422, ["actions"], id="3d-actions"),
         pytest.param(step_json(actions=None), 422, ["actions"], id="missing-actions"),
-        pytest.param(step_json(reset_env_indices=[1, 2], reset_state_ids=[1, 1]), 422, ["reset_env_indices", "2"],
-                     id="refill-env-also-stepped"),
-        pytest.param(step_json(reset_env_indices=[1], reset_state_ids=[1, 1]), 422, ["reset_state_ids"],
-                     id="refill-state-ids-of-other-length"),
-        pytest.param(step_json(reset_env_indices=[1], reset_state_ids=[999]), 422, ["reset_state_ids", "999"],
-                     id="refill-state-id-out-of-range"),
-        pytest.param(step_json(reset_env_indices=[9], reset_state_ids=[1]), 404, ["reset_env_indices", "9"],
-                     id="refill-unknown-env"),
-        pytest.param(step_json(actions=[[0.1] * ACTION_DIM, ["NaN"] * ACTION_DIM], reset_env_indices=[1],
-                               reset_state_ids=[1]), 422, ["actions", "2"], id="refill-with-a-nan-action"),
+        pytest.param(
+            step_json(reset_env_indices=[1, 2], reset_state_ids=[1, 1]),
+            422,
+            ["reset_env_indices", "2"],
+            id="refill-env-also-stepped",
+        ),
+        pytest.param(
+            step_json(reset_env_indices=[1], reset_state_ids=[1, 1]),
+            422,
+            ["reset_state_ids"],
+            id="refill-state-ids-of-other-length",
+        ),
+        pytest.param(
+            step_json(reset_env_indices=[1], reset_state_ids=[999]),
+            422,
+            ["reset_state_ids", "999"],
+            id="refill-state-id-out-of-range",
+        ),
+        pytest.param(
+            step_json(reset_env_indices=[9], reset_state_ids=[1]),
+            404,
+            ["reset_env_indices", "9"],
+            id="refill-unknown-env",
+        ),
+        pytest.param(
+            step_json(actions=[[0.1] * ACTION_DIM, ["NaN"] * ACTION_DIM], reset_env_indices=[1], reset_state_ids=[1]),
+            422,
+            ["actions", "2"],
+            id="refill-with-a-nan-action",
+        ),
         pytest.param(step_json(env_indices=[0.0, 2.0]), 422, ["env_indices"], id="float-env-ids"),
         pytest.param(step_json(generation="3"), 422, ["generation"], id="string-generation"),
         pytest.param(step_json(extra=1), 422, ["extra"], id="unknown-field"),
@@ -453,10 +530,15 @@ def _bad_requests() -> list[Any]:
         pytest.param(reset_json(state_ids=[1]), 422, ["state_ids"], id="fewer-state-ids-than-envs"),
         pytest.param(raw("/v1/step", b"{not json", json_h), 400, ["JSON"], id="malformed-json"),
         pytest.param(raw("/v1/step", b"[1, 2]", json_h), 422, ["object"], id="json-not-an-object"),
-        pytest.param(raw("/v1/step", b"VSW1\xff\xff\xff\xffgarbage", wire_h), 400, [wire.CONTENT_TYPE],
-                     id="malformed-wire"),
-        pytest.param(raw("/v1/step", b"generation=1", {"Content-Type": "application/x-www-form-urlencoded"}), 415,
-                     ["Content-Type"], id="form-body"),
+        pytest.param(
+            raw("/v1/step", b"VSW1\xff\xff\xff\xffgarbage", wire_h), 400, [wire.CONTENT_TYPE], id="malformed-wire"
+        ),
+        pytest.param(
+            raw("/v1/step", b"generation=1", {"Content-Type": "application/x-www-form-urlencoded"}),
+            415,
+            ["Content-Type"],
+            id="form-body",
+        ),
         pytest.param(step_wire(list(range(len(big))), big), 413, ["limit"], id="body-over-limit"),
     ]
 
@@ -535,13 +617,25 @@ def _refused_assignments() -> list[Any]:
     too_many = (TaskBlock(task_id=TASKS[0], env_start=0, num_envs=9),)
     unknown = (TaskBlock(task_id="gym/NoSuchEnv-v0", env_start=0, num_envs=1),)
     return [
-        pytest.param(lambda g: assignment_for("sim-0", generation=g).model_copy(update={"tasks": other_tasks}),
-                     409, ["generation"], id="same-generation-other-content"),
+        pytest.param(
+            lambda g: assignment_for("sim-0", generation=g).model_copy(update={"tasks": other_tasks}),
+            409,
+            ["generation"],
+            id="same-generation-other-content",
+        ),
         pytest.param(lambda g: assignment_for("sim-9", generation=g + 1), 422, ["sim-9", "sim-0"], id="another-pod"),
-        pytest.param(lambda g: assignment_for("sim-0", generation=g + 1).model_copy(update={"tasks": too_many}),
-                     422, ["9", "8"], id="over-max-envs"),
-        pytest.param(lambda g: assignment_for("sim-0", generation=g + 1).model_copy(update={"tasks": unknown}),
-                     422, ["gym/NoSuchEnv-v0"], id="unknown-task"),
+        pytest.param(
+            lambda g: assignment_for("sim-0", generation=g + 1).model_copy(update={"tasks": too_many}),
+            422,
+            ["9", "8"],
+            id="over-max-envs",
+        ),
+        pytest.param(
+            lambda g: assignment_for("sim-0", generation=g + 1).model_copy(update={"tasks": unknown}),
+            422,
+            ["gym/NoSuchEnv-v0"],
+            id="unknown-task",
+        ),
     ]
 
 
@@ -623,7 +717,9 @@ def test_dead_sim_worker_gives_503_then_the_pod_rebuilds(fresh_pod: Pod, camera:
     assert workers, "the pod runs its envs in worker processes"
     for worker in workers:
         worker.kill()
-    response = fresh_pod.post("step", {"generation": 1, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}, send="json")
+    response = fresh_pod.post(
+        "step", {"generation": 1, "env_indices": [0], "actions": [[0.0] * ACTION_DIM]}, send="json"
+    )
     assert response.status_code == 503
     assert "crash" in response.json()["detail"]
     fresh_pod.wait_ready()
@@ -651,9 +747,7 @@ def test_only_cheap_scenes_are_stepped_on_the_event_loop(
     assert steps_on_event_loop(assignment) is on_loop
 
 
-def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_thread(
-    fresh_pod: Pod, pod_b: Pod
-) -> None:
+def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_thread(fresh_pod: Pod, pod_b: Pod) -> None:
     assert put_assignment(fresh_pod, assignment_for("sim-2", generation=0, camera=NO_CAMERA)).status_code == 200
     fresh_pod.wait_ready()
     pod_b.wait_ready()
@@ -688,7 +782,10 @@ def test_pod_stepping_on_its_event_loop_simulates_exactly_as_on_its_worker_threa
 def test_cli_refuses_an_unusable_standalone_assignment(args: list[str], named: str) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "service.cli", "pod", "--port", str(free_port()), *args],
-        capture_output=True, text=True, timeout=60, env={**os.environ, "POD_NAME": "sim-5"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "POD_NAME": "sim-5"},
     )
     assert done.returncode == 2
     assert named in done.stderr

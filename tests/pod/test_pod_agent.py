@@ -82,8 +82,13 @@ def controller() -> Iterator[tuple[StandInController, AppThread]]:
 def serve_pod(name: str, controller_url: str) -> AppThread:
     sock = loopback_socket()
     settings = PodSettings(
-        name=name, port=sock.getsockname()[1], controller_url=controller_url, heartbeat_interval_s=HEARTBEAT_S,
-        max_backoff_s=4 * HEARTBEAT_S, max_envs=3, gpu=False,
+        name=name,
+        port=sock.getsockname()[1],
+        controller_url=controller_url,
+        heartbeat_interval_s=HEARTBEAT_S,
+        max_backoff_s=4 * HEARTBEAT_S,
+        max_envs=3,
+        gpu=False,
     )
     return AppThread(create_app(settings), sock, access_log=False, lifespan="on")
 
@@ -103,7 +108,9 @@ def test_pod_registers_with_its_name_url_and_capacity(
     stand_in, _ = controller
     wait_until(lambda: stand_in.count("registrations") >= 1, "a registration")
     assert stand_in.registrations[0] == {
-        "pod": "sim-3", "url": pod.url, "capacity": {"max_envs": 3, "gpu": False},
+        "pod": "sim-3",
+        "url": pod.url,
+        "capacity": {"max_envs": 3, "gpu": False},
     }
 
 

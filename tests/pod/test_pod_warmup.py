@@ -13,8 +13,12 @@ from support.service_procs import READY_TIMEOUT_S, assignment_file, pod_server, 
 from vecsim.config import CameraConfig
 
 CAMERA = CameraConfig(names=("agentview",), height=32, width=32)
-WORKER_WARMED = re.compile(r"worker 1/1 ready: tiny/lift .*warmed the first step (\d+\.\d) s, warmed the cameras (\d+\.\d) s")
-WARM_UP_DONE = re.compile(r"warm-up done: first step \(step path, compiled kernels\) (\d+\.\d) s, first render of every camera (\d+\.\d) s")
+WORKER_WARMED = re.compile(
+    r"worker 1/1 ready: tiny/lift .*warmed the first step (\d+\.\d) s, warmed the cameras (\d+\.\d) s"
+)
+WARM_UP_DONE = re.compile(
+    r"warm-up done: first step \(step path, compiled kernels\) (\d+\.\d) s, first render of every camera (\d+\.\d) s"
+)
 
 
 @pytest.mark.timeout(READY_TIMEOUT_S + 120)

@@ -247,9 +247,7 @@ def link() -> Iterator[HostLink]:
 
 
 @pytest.mark.slow
-def test_a_partitioned_pod_is_named_by_the_clients_error_within_its_timeout_and_other_stages_go_on(
-    link, tmp_path
-):
+def test_a_partitioned_pod_is_named_by_the_clients_error_within_its_timeout_and_other_stages_go_on(link, tmp_path):
     # sim-0 lives in its own network namespace, reached over a veth; sim-1 on loopback.
     far = standalone("sim-0", 0, tmp_path, host=link.address, port=8100, wrap=link.wrap())
     near = standalone("sim-1", 1, tmp_path)

@@ -260,7 +260,9 @@ def test_the_loop_serves_whichever_stage_lands_when_none_had(scenes):
         *resets(3),
         *rounds(2, 1, 0),
         *rounds(1, 2, 0),
-        ("take", 0), ("take", 2), ("take", 1),
+        ("take", 0),
+        ("take", 2),
+        ("take", 1),
     ]
     assert [t.length for t in result.trajectories.values()] == [2, 2, 2]
 
@@ -293,7 +295,9 @@ def test_of_the_stages_that_have_landed_the_next_in_turn_is_served(scenes):
         *rounds(1, 2, 0),
         *rounds(1, 2),
         *rounds(0),
-        ("take", 2), ("take", 0), ("take", 1),
+        ("take", 2),
+        ("take", 0),
+        ("take", 1),
     ]
 
 
@@ -336,7 +340,8 @@ def test_a_slow_stage_holds_up_only_itself(scenes):
     assert scene.loop_events() == [
         *resets(3),
         *rounds(0, 1) * 3,
-        ("take", 0), ("take", 1),
+        ("take", 0),
+        ("take", 1),
         *rounds(2) * 3,
         ("take", 2),
     ]
@@ -399,8 +404,12 @@ def test_each_trajectory_holds_exactly_what_its_env_did_and_ended_ones_are_not_s
     # The policy saw only live rows, (env, state id, t) each.
     assert sorted(scene.policy.seen) == sorted(
         [
-            (0, [(0, 1, 0), (1, 0, 0)]), (0, [(1, 0, 1)]), (0, [(1, 0, 2)]),
-            (1, [(0, 2, 0), (1, 3, 0)]), (1, [(0, 2, 1), (1, 3, 1)]), (1, [(1, 3, 2)]),
+            (0, [(0, 1, 0), (1, 0, 0)]),
+            (0, [(1, 0, 1)]),
+            (0, [(1, 0, 2)]),
+            (1, [(0, 2, 0), (1, 3, 0)]),
+            (1, [(0, 2, 1), (1, 3, 1)]),
+            (1, [(1, 3, 2)]),
         ]
     )
     stats = result.stats

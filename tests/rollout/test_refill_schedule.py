@@ -159,16 +159,28 @@ def test_an_env_whose_trajectory_ended_starts_the_next_waiting_request_at_once(j
     job.start(state_ids=[1, 3, 1, 2, 1, 0], horizon=4)
     result = job.result()
     assert pod.calls == [
-        ("reset", (0, 1)), ("step", (0, 1)),  # r0 ends at its 1st action, r1 goes on
-        ("reset+step", ((0,), (1,))),         # r2 starts on env 0 in the request that steps r1
-        ("step", (0, 1)),                     # r2 and r1 both end
-        ("reset", (0, 1)), ("step", (0, 1)),  # r3 and r4 start at once; r4 ends
-        ("reset+step", ((1,), (0,))),         # r5 starts on env 1 in the request that steps r3, which ends
-        ("step", (1,)), ("step", (1,)), ("step", (1,)), ("step", (1,)),  # r5 runs to the horizon
+        ("reset", (0, 1)),
+        ("step", (0, 1)),  # r0 ends at its 1st action, r1 goes on
+        ("reset+step", ((0,), (1,))),  # r2 starts on env 0 in the request that steps r1
+        ("step", (0, 1)),  # r2 and r1 both end
+        ("reset", (0, 1)),
+        ("step", (0, 1)),  # r3 and r4 start at once; r4 ends
+        ("reset+step", ((1,), (0,))),  # r5 starts on env 1 in the request that steps r3, which ends
+        ("step", (1,)),
+        ("step", (1,)),
+        ("step", (1,)),
+        ("step", (1,)),  # r5 runs to the horizon
     ]
     assert list(result.trajectories) == [f"r{i}" for i in range(6)] and result.lost == {}
     placed = {key: (t.route.env_index, t.route.state_id, t.length) for key, t in result.trajectories.items()}
-    assert placed == {"r0": (0, 1, 1), "r1": (1, 3, 3), "r2": (0, 1, 1), "r3": (0, 2, 2), "r4": (1, 1, 1), "r5": (1, 0, 4)}
+    assert placed == {
+        "r0": (0, 1, 1),
+        "r1": (1, 3, 3),
+        "r2": (0, 1, 1),
+        "r3": (0, 2, 2),
+        "r4": (1, 1, 1),
+        "r5": (1, 0, 4),
+    }
     # Each trajectory holds only its own env's run, from its own reset.
     for trajectory in result.trajectories.values():
         states = trajectory.observations["state"][:, 2:].long().tolist()
@@ -188,7 +200,12 @@ def test_waiting_requests_go_to_whichever_pod_frees_an_env_first_so_a_faster_pod
     slow.open()
     result = job.result()
     assert {key: t.route.pod for key, t in result.trajectories.items()} == {
-        "r0": "pod-0a", "r1": "pod-0b", "r2": "pod-0a", "r3": "pod-0a", "r4": "pod-0a", "r5": "pod-0a",
+        "r0": "pod-0a",
+        "r1": "pod-0b",
+        "r2": "pod-0a",
+        "r3": "pod-0a",
+        "r4": "pod-0a",
+        "r5": "pod-0a",
     }
     assert slow.calls == [("reset", (0,)), ("step", (0,))] and result.lost == {}
 
@@ -204,7 +221,13 @@ def test_waiting_requests_keep_their_stage_and_the_result_keeps_request_order(jo
     assert [t.route.state_id for t in result.trajectories.values()] == [2, 1, 1, 1, 1, 2]
     # Stage 1's three requests ran one after another on its one env.
     assert job.pod("pod-1a").calls == [
-        ("reset", (0,)), ("step", (0,)), ("reset", (0,)), ("step", (0,)), ("reset", (0,)), ("step", (0,)), ("step", (0,)),
+        ("reset", (0,)),
+        ("step", (0,)),
+        ("reset", (0,)),
+        ("step", (0,)),
+        ("reset", (0,)),
+        ("step", (0,)),
+        ("step", (0,)),
     ]
 
 

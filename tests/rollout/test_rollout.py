@@ -135,7 +135,9 @@ def test_more_requests_than_envs_all_run_refilling_envs_whose_trajectories_ended
     for i, ((task_id, state_id), trajectory) in enumerate(zip(requests, result.trajectories.values())):
         assert (trajectory.route.task_id, trajectory.route.state_id) == (task_id, state_id)
         assert trajectory.route.stage_id == stage_of(i, 2) and trajectory.length == 2
-    lift_envs = Counter((t.route.pod, t.route.env_index) for t in result.trajectories.values() if t.route.task_id == LIFT)
+    lift_envs = Counter(
+        (t.route.pod, t.route.env_index) for t in result.trajectories.values() if t.route.task_id == LIFT
+    )
     assert sorted(lift_envs.values()) == [1, 1, 2, 2]  # per stage, one env ran two trajectories in turn
 
 

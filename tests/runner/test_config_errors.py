@@ -36,7 +36,12 @@ VALID: dict[str, Any] = {
         "seed": 0,
         "envs_per_worker": 1,
         "max_episode_steps": 20,
-        "libero": {"image_orientation": "rotate180", "settle_steps": 10, "fixture_seed": 0, "fixture_rule": "published"},
+        "libero": {
+            "image_orientation": "rotate180",
+            "settle_steps": 10,
+            "fixture_seed": 0,
+            "fixture_rule": "published",
+        },
     },
     "pods": {"replicas": 1, "host": "127.0.0.1", "base_port": 8100, "max_envs": 4},
     "controller": {
@@ -47,6 +52,7 @@ VALID: dict[str, Any] = {
         "reconcile_interval_s": 0.5,
     },
 }
+
 
 def wrong(field: str, value: Any, says: str, named: str | None = None) -> Any:
     """A case: set ``field`` to ``value``; the message names ``named`` (default: the field's

@@ -25,7 +25,11 @@ def run_demo(out: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], s
     env.pop("VECSIM_TOKEN", None)
     done = subprocess.run(
         [sys.executable, "-m", "service.cli", "demo", "--out", str(out), *args],
-        cwd=out.parent, env=env, capture_output=True, text=True, timeout=380,
+        cwd=out.parent,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=380,
     )
     return done, marker
 
@@ -76,8 +80,24 @@ def test_the_demo_says_so_and_exits_non_zero_when_it_loses_trajectories(tmp_path
     marker = uuid.uuid4().hex
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), MARK: marker}
     env.pop("VECSIM_TOKEN", None)
-    command = [sys.executable, "-m", "service.cli", "demo", "--out", str(out), "--batch", "4", "--horizon", "50",
-               "--videos", "0", "--timeout-s", "8", "--ready-timeout", "300"]
+    command = [
+        sys.executable,
+        "-m",
+        "service.cli",
+        "demo",
+        "--out",
+        str(out),
+        "--batch",
+        "4",
+        "--horizon",
+        "50",
+        "--videos",
+        "0",
+        "--timeout-s",
+        "8",
+        "--ready-timeout",
+        "300",
+    ]
     demo = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stopped: list[psutil.Process] = []
     try:

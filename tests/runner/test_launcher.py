@@ -16,8 +16,9 @@ from service.launcher import write_launcher
 
 def run(launcher: Path, *args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([str(launcher), *args], env=env, cwd=launcher.parent, capture_output=True, text=True,
-                          timeout=60, check=False)
+    return subprocess.run(
+        [str(launcher), *args], env=env, cwd=launcher.parent, capture_output=True, text=True, timeout=60, check=False
+    )
 
 
 def test_the_command_names_the_checkout_it_runs(tmp_path):

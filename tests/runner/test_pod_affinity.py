@@ -34,12 +34,18 @@ def cheetah_config(
     base = free_port_block(replicas + 1)
     return JobConfig(
         job=JobSpec(
-            job_id="pinned", tasks=("gym/HalfCheetah-v5",), group_size=2, num_stages=max(replicas, 1),
-            pods_per_stage=1, camera=CameraConfig(names=()), envs_per_worker=envs_per_worker,
+            job_id="pinned",
+            tasks=("gym/HalfCheetah-v5",),
+            group_size=2,
+            num_stages=max(replicas, 1),
+            pods_per_stage=1,
+            camera=CameraConfig(names=()),
+            envs_per_worker=envs_per_worker,
             max_episode_steps=50,
         ),
-        pods=PodsConfig(replicas=replicas, base_port=base + 1, max_envs=8, cpu_affinity=cpu_affinity,
-                        render_gpus=render_gpus),
+        pods=PodsConfig(
+            replicas=replicas, base_port=base + 1, max_envs=8, cpu_affinity=cpu_affinity, render_gpus=render_gpus
+        ),
         controller=ControllerConfig(port=base, heartbeat_interval_s=0.5, heartbeat_ttl_s=5.0, reconcile_interval_s=0.2),
     )
 
@@ -99,7 +105,9 @@ def test_pods_take_render_gpus_in_turn_and_a_negative_device_is_refused_naming_t
 def test_a_job_pinned_to_cpus_the_machine_lacks_is_refused_before_anything_starts(tmp_path):
     missing = str(os.cpu_count() or 1)
     job = LocalJob(cheetah_config((missing,)), log_dir=tmp_path)
-    with pytest.raises(JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\], but this runner"):
+    with pytest.raises(
+        JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\], but this runner"
+    ):
         job.start()
     assert job.processes == {}
 

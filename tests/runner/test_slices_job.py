@@ -78,8 +78,13 @@ def test_every_pod_serves_every_stage_with_env_ids_of_its_own(job):
         info = httpx.get(f"{job.pod_url(name)}/v1/info", timeout=5).json()
         assert info["stage_id"] is None
         by_stage = {
-            stage.stage_id: {env for p in stage.pods if p.pod == name for b in p.tasks
-                             for env in range(b.env_start, b.env_start + b.num_envs)}
+            stage.stage_id: {
+                env
+                for p in stage.pods
+                if p.pod == name
+                for b in p.tasks
+                for env in range(b.env_start, b.env_start + b.num_envs)
+            }
             for stage in table.stages
         }
         assert by_stage[0] and by_stage[1] and not by_stage[0] & by_stage[1]

@@ -29,9 +29,7 @@ BODY_ROUTE = {"pod": "/v1/assignment", "controller": "/v1/job"}
 def both_apps() -> dict[str, FastAPI]:
     return {
         "pod": create_pod_app(PodSettings(name="sim-0", token=TOKEN, max_body_bytes=LIMIT, max_envs=1, gpu=False)),
-        "controller": create_controller_app(
-            ControllerSettings(token=TOKEN, max_body_bytes=LIMIT), reconcile=False
-        ),
+        "controller": create_controller_app(ControllerSettings(token=TOKEN, max_body_bytes=LIMIT), reconcile=False),
     }
 
 
@@ -75,8 +73,10 @@ def test_both_servers_refuse_a_bad_request_alike(servers, reason, status, body, 
     for server, thread in servers.items():
         before = refused(thread.url, server, reason)
         answer = httpx.put(
-            f"{thread.url}{BODY_ROUTE[server]}", content=body,
-            headers={"Content-Type": "application/json", **headers}, timeout=10,
+            f"{thread.url}{BODY_ROUTE[server]}",
+            content=body,
+            headers={"Content-Type": "application/json", **headers},
+            timeout=10,
         )
         answers[server] = answer
         assert answer.status_code == status, (server, answer.text)

@@ -271,8 +271,12 @@ def guarded_job(tmp_path_factory) -> Iterator[dict[str, Any]]:
     workdir = tmp_path_factory.mktemp("auth-job")
     controller = controller_server(workdir, token=TOKEN, args=["--heartbeat-interval", "0.5"])
     with running(controller):
-        member = pod_server("sim-0", workdir, token=TOKEN, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5")
-        intruder = pod_server("sim-1", workdir, token=WRONG, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5")
+        member = pod_server(
+            "sim-0", workdir, token=TOKEN, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5"
+        )
+        intruder = pod_server(
+            "sim-1", workdir, token=WRONG, CONTROLLER_URL=controller.url, VECSIM_HEARTBEAT_INTERVAL_S="0.5"
+        )
         with running(member), running(intruder):
             assert httpx.put(f"{controller.url}/v1/job", json=JOB, headers=auth(TOKEN), timeout=30).status_code == 200
             yield {"controller": controller, "member": member, "intruder": intruder}
@@ -342,7 +346,9 @@ def test_a_local_job_hands_its_token_to_every_process_and_guards_them_all(tmp_pa
         assert post_wire(pod_url, "reset", body, None).status_code == 401
         assert post_wire(pod_url, "reset", body, job.token).status_code == 200
         assert httpx.put(f"{job.controller_url}/v1/job", json=JOB, timeout=30).status_code == 401
-        assert httpx.put(f"{job.controller_url}/v1/job", json=JOB, headers=auth(job.token), timeout=30).status_code == 200
+        assert (
+            httpx.put(f"{job.controller_url}/v1/job", json=JOB, headers=auth(job.token), timeout=30).status_code == 200
+        )
 
 
 # -- nothing on the wire is unpickled ------------------------------------------------------------
@@ -366,7 +372,9 @@ def unpickling_uses(path: Path, root: Path) -> set[tuple[str, str, str]]:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             function = node.name
         if isinstance(node, ast.Import):
-            found.update((where, function, f"import {a.name}") for a in node.names if a.name.split(".")[0] in UNPICKLERS)
+            found.update(
+                (where, function, f"import {a.name}") for a in node.names if a.name.split(".")[0] in UNPICKLERS
+            )
         elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in UNPICKLERS:
             found.add((where, function, f"from {node.module} import"))
         elif isinstance(node, ast.Call):

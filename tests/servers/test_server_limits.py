@@ -58,9 +58,7 @@ def pod(tmp_path_factory) -> Iterator[Server]:
     ],
 )
 def test_json_too_deep_or_too_long_is_a_400_naming_it(pod, op, body):
-    response = httpx.post(
-        f"{pod.url}/v1/{op}", content=body, headers={"Content-Type": "application/json"}, timeout=30
-    )
+    response = httpx.post(f"{pod.url}/v1/{op}", content=body, headers={"Content-Type": "application/json"}, timeout=30)
     assert response.status_code == 400, response.text[:300]
     assert "JSON" in response.json()["detail"] or "request" in response.json()["detail"]
     assert pod.answers("/readyz")

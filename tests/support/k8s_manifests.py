@@ -46,7 +46,10 @@ def kustomize(directory: Path) -> tuple[dict[str, Any], ...]:
     """The objects ``kubectl kustomize`` renders from ``directory``."""
     proc = subprocess.run(
         [kubectl_path(), "kustomize", str(directory)],
-        capture_output=True, text=True, timeout=60, check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
     assert proc.returncode == 0, f"kubectl kustomize {directory} failed:\n{proc.stderr}"
     return tuple(doc for doc in yaml.safe_load_all(proc.stdout) if doc)

@@ -78,7 +78,8 @@ class Cluster:
         rules_key, peers_key = ("ingress", "from") if kind == "Ingress" else ("egress", "to")
         destination = subject if kind == "Ingress" else peer
         selecting = [
-            p for p in self.policies
+            p
+            for p in self.policies
             if p["metadata"]["namespace"] == subject.namespace
             and kind in _policy_types(p)
             and selects(p["spec"]["podSelector"], subject.labels)

@@ -208,10 +208,14 @@ class ScriptedPod:
         if int(body["generation"]) != self.generation:
             return _refuse(409, f"pod {self.name} holds generation {self.generation}, not {int(body['generation'])}")
         env_indices = np.asarray(body["env_indices"])
-        if env_indices.ndim != 1 or len(set(env_indices.tolist())) != len(env_indices) or not all(
-            0 <= e < self.num_envs for e in env_indices.tolist()
+        if (
+            env_indices.ndim != 1
+            or len(set(env_indices.tolist())) != len(env_indices)
+            or not all(0 <= e < self.num_envs for e in env_indices.tolist())
         ):
-            return _refuse(422, f"env_indices {env_indices.tolist()}: not distinct env indices of 0..{self.num_envs - 1}")
+            return _refuse(
+                422, f"env_indices {env_indices.tolist()}: not distinct env indices of 0..{self.num_envs - 1}"
+            )
         return body
 
     async def _info(self, request: Request) -> Response:

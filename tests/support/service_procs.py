@@ -270,8 +270,14 @@ def assignment_file(
     path = workdir / f"{pod}-assignment.json"
     path.write_text(
         assignment(
-            pod, tasks, generation=generation, job_id="reliability", stage_id=stage_id, camera=camera,
-            render="lean", max_episode_steps=max_episode_steps,
+            pod,
+            tasks,
+            generation=generation,
+            job_id="reliability",
+            stage_id=stage_id,
+            camera=camera,
+            render="lean",
+            max_episode_steps=max_episode_steps,
         ).model_dump_json()
     )
     return path
@@ -293,9 +299,16 @@ class PodSpec:
 
     def assignment(self) -> Assignment:
         return assignment(
-            self.name, self.tasks, generation=self.generation, job_id="trainer-tests", stage_id=self.stage_id,
-            camera=self.camera, render=self.render, max_episode_steps=self.max_episode_steps,
-            envs_per_worker=self.envs_per_worker, make_kwargs=self.make_kwargs,
+            self.name,
+            self.tasks,
+            generation=self.generation,
+            job_id="trainer-tests",
+            stage_id=self.stage_id,
+            camera=self.camera,
+            render=self.render,
+            max_episode_steps=self.max_episode_steps,
+            envs_per_worker=self.envs_per_worker,
+            make_kwargs=self.make_kwargs,
         )
 
 
@@ -309,8 +322,19 @@ class RunningPod(Server):
         path = workdir / f"{name}.json"
         path.write_text(self.assignment.model_dump_json())
         port = free_port()
-        argv = ["pod", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
-                "--assignment", str(path), "--name", name]
+        argv = [
+            "pod",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+            "--assignment",
+            str(path),
+            "--name",
+            name,
+        ]
         super().__init__(name, argv, port, clean_env(POD_NAME=name), workdir / f"{name}.log", wrap=wrap)
 
 
@@ -344,9 +368,7 @@ def standalone_pods(
             pod.stop()
 
 
-def job_config(
-    job: Mapping[str, Any], replicas: int, *, max_envs: int = 16, heartbeat_ttl_s: float = 3.0
-) -> JobConfig:
+def job_config(job: Mapping[str, Any], replicas: int, *, max_envs: int = 16, heartbeat_ttl_s: float = 3.0) -> JobConfig:
     """A JobConfig for ``job`` with ``replicas`` pods, every port free, heartbeats quick."""
     controller_port = free_port()
     return JobConfig.model_validate(

@@ -13,7 +13,9 @@ from support.service_procs import post_wire
 from vecsim import wire
 
 
-def wire_answer(url: str, op: str, body: dict[str, Any], token: str | None = None, timeout: float = 60) -> dict[str, Any]:
+def wire_answer(
+    url: str, op: str, body: dict[str, Any], token: str | None = None, timeout: float = 60
+) -> dict[str, Any]:
     """``POST url/v1/<op>`` with ``body`` as wire; assert it was answered 200 and return the decoded answer."""
     response = post_wire(url, op, body, token, timeout=timeout)
     assert response.status_code == 200, response.text

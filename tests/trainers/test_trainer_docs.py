@@ -35,11 +35,22 @@ NUM_ENVS, K, SIZE = 2, 4, 32
 # The rest of a user's RLinf LIBERO env config (keys RLinf's LiberoEnv reads), beside the
 # documented block: one task of the suite, a GRPO group of both envs on a fixed reset id.
 USER_KEYS = {
-    "total_num_envs": NUM_ENVS, "seed": 0, "group_size": NUM_ENVS, "use_fixed_reset_state_ids": True,
-    "use_ordered_reset_state_ids": False, "task_id_filter": [0], "ignore_terminations": False,
-    "auto_reset": False, "use_rel_reward": True, "reward_coef": 5.0, "max_episode_steps": 20,
-    "max_steps_per_rollout_epoch": 5 * K, "rollout_epoch": 1, "reset_gripper_open": True,
-    "video_cfg": {"save_video": False}, "init_params": {"camera_heights": SIZE, "camera_widths": SIZE},
+    "total_num_envs": NUM_ENVS,
+    "seed": 0,
+    "group_size": NUM_ENVS,
+    "use_fixed_reset_state_ids": True,
+    "use_ordered_reset_state_ids": False,
+    "task_id_filter": [0],
+    "ignore_terminations": False,
+    "auto_reset": False,
+    "use_rel_reward": True,
+    "reward_coef": 5.0,
+    "max_episode_steps": 20,
+    "max_steps_per_rollout_epoch": 5 * K,
+    "rollout_epoch": 1,
+    "reset_gripper_open": True,
+    "video_cfg": {"save_video": False},
+    "init_params": {"camera_heights": SIZE, "camera_widths": SIZE},
 }
 
 
@@ -62,7 +73,11 @@ def documented_train(pod_url: str | None = None) -> object:
 def pod_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     suite = documented_train().task_suite_name
     spec = assignment(
-        "docs-pod", [(f"{suite}/0", NUM_ENVS)], job_id="rlinf-docs", render="lean", max_episode_steps=None,
+        "docs-pod",
+        [(f"{suite}/0", NUM_ENVS)],
+        job_id="rlinf-docs",
+        render="lean",
+        max_episode_steps=None,
         camera=CameraConfig(names=("agentview", "robot0_eye_in_hand"), height=SIZE, width=SIZE),
     )
     with standalone_pods([spec], tmp_path_factory.mktemp("docs-pod")) as pods:

@@ -117,7 +117,9 @@ class ScriptedPolicy(PreTrainedPolicy):
         self._t = 0
 
     def select_action(self, batch: dict, **kwargs: object) -> torch.Tensor:
-        self.seen.append({key: value.clone() if isinstance(value, torch.Tensor) else value for key, value in batch.items()})
+        self.seen.append(
+            {key: value.clone() if isinstance(value, torch.Tensor) else value for key, value in batch.items()}
+        )
         action = torch.from_numpy(ACTIONS[self._t % EPISODE]).expand(batch["observation.state"].shape[0], -1)
         self._t += 1
         return action.clone()
@@ -138,35 +140,65 @@ def _processors(suite: str) -> tuple[ScriptedPolicy, dict]:
     env_pre, env_post = make_env_pre_post_processors(LiberoEnvConfig(task=suite), policy.config)
     # The policy's own processors are identities, built as lerobot.policies.factory builds them.
     pre = PolicyProcessorPipeline(steps=[])
-    post = PolicyProcessorPipeline(steps=[], to_transition=policy_action_to_transition, to_output=transition_to_policy_action)
-    return policy, {"env_preprocessor": env_pre, "env_postprocessor": env_post, "preprocessor": pre, "postprocessor": post}
+    post = PolicyProcessorPipeline(
+        steps=[], to_transition=policy_action_to_transition, to_output=transition_to_policy_action
+    )
+    return policy, {
+        "env_preprocessor": env_pre,
+        "env_postprocessor": env_post,
+        "preprocessor": pre,
+        "postprocessor": post,
+    }
 
 
 def _vecsim_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
     """docs/trainers.md's LeRobot lines, as pasted, on a pod serving the documented job."""
     spec = assignment(
-        "sim-0", [(f"{suite}/{index}", N_ENVS)], job_id="lerobot", camera=CameraConfig(height=SIZE, width=SIZE),
-        render=None, max_episode_steps=EPISODE, libero=LiberoProtocol(**documented_job()["libero"]),
+        "sim-0",
+        [(f"{suite}/{index}", N_ENVS)],
+        job_id="lerobot",
+        camera=CameraConfig(height=SIZE, width=SIZE),
+        render=None,
+        max_episode_steps=EPISODE,
+        libero=LiberoProtocol(**documented_job()["libero"]),
     )
     policy, processors = _processors(suite)
     with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as pods:
-        names = {"pod_urls": [pods[0].url], "policy": policy, **processors, "n_episodes": N_ENVS * EPISODES_PER_ENV,
-                 "videos_dir": tmp_path_factory.mktemp("vecsim-videos")}
+        names = {
+            "pod_urls": [pods[0].url],
+            "policy": policy,
+            **processors,
+            "n_episodes": N_ENVS * EPISODES_PER_ENV,
+            "videos_dir": tmp_path_factory.mktemp("vecsim-videos"),
+        }
         exec(compile(_documented("python"), str(DOCS), "exec"), names)
     return names["info"], policy
 
 
 def _lerobot_run(suite: str, index: int, tmp_path_factory) -> tuple[dict, ScriptedPolicy]:
     envs = create_libero_envs(
-        task=suite, n_envs=N_ENVS, env_cls=SyncVectorEnv, episode_length=EPISODE,
-        gym_kwargs={"task_ids": [index], "obs_type": "pixels_agent_pos", "observation_width": SIZE, "observation_height": SIZE},
+        task=suite,
+        n_envs=N_ENVS,
+        env_cls=SyncVectorEnv,
+        episode_length=EPISODE,
+        gym_kwargs={
+            "task_ids": [index],
+            "obs_type": "pixels_agent_pos",
+            "observation_width": SIZE,
+            "observation_height": SIZE,
+        },
     )
     env = envs[suite][index]
     policy, processors = _processors(suite)
     try:
         info = lerobot_eval.eval_policy(
-            env, policy, **processors, n_episodes=N_ENVS * EPISODES_PER_ENV, max_episodes_rendered=1,
-            videos_dir=tmp_path_factory.mktemp("lerobot-videos"), start_seed=START_SEED,
+            env,
+            policy,
+            **processors,
+            n_episodes=N_ENVS * EPISODES_PER_ENV,
+            max_episodes_rendered=1,
+            videos_dir=tmp_path_factory.mktemp("lerobot-videos"),
+            start_seed=START_SEED,
         )
     finally:
         env.close()

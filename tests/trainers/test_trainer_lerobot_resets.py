@@ -48,13 +48,24 @@ SEEDS = [4_000_000_000, 17, 123_456]  # one per reset; the first near numpy's 2*
 def envs(tmp_path_factory):
     """(vecsim's HTTPVectorEnv over a real pod, LeRobot's LiberoEnv) of the task."""
     spec = assignment(
-        "sim-0", [(f"{SUITE}/{INDEX}", 1)], job_id="lerobot-resets", camera=CameraConfig(height=SIZE, width=SIZE),
-        render=None, max_episode_steps=520, libero=LiberoProtocol(image_orientation="raw", fixture_rule="first_reset"),
+        "sim-0",
+        [(f"{SUITE}/{INDEX}", 1)],
+        job_id="lerobot-resets",
+        camera=CameraConfig(height=SIZE, width=SIZE),
+        render=None,
+        max_episode_steps=520,
+        libero=LiberoProtocol(image_orientation="raw", fixture_rule="first_reset"),
     )
     with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as pods:
         theirs = lerobot_libero.LiberoEnv(
-            libero_benchmark(SUITE), INDEX, SUITE, obs_type="pixels_agent_pos", observation_width=SIZE,
-            observation_height=SIZE, episode_index=EPISODE_INDEX, n_envs=N_ENVS,
+            libero_benchmark(SUITE),
+            INDEX,
+            SUITE,
+            obs_type="pixels_agent_pos",
+            observation_width=SIZE,
+            observation_height=SIZE,
+            episode_index=EPISODE_INDEX,
+            n_envs=N_ENVS,
         )
         ours = HTTPVectorEnv(pod_urls=[pods[0].url], timeout_s=120)
         yield ours, theirs
@@ -77,7 +88,10 @@ def test_each_reset_is_lerobots_for_its_seed_and_count(envs):
         own, _ = theirs.reset(seed=seed)
         batch, errors = _lerobot_reset(ours, seed, {str(seed): {"state_id": state_id, "resets_before": r}})
         assert errors == []
-        mine = {"images": {camera: image[0] for camera, image in batch["images"].items()}, "proprio": batch["proprio"][0]}
+        mine = {
+            "images": {camera: image[0] for camera, image in batch["images"].items()},
+            "proprio": batch["proprio"][0],
+        }
         for camera, key in (("agentview", "image"), ("robot0_eye_in_hand", "image2")):
             assert np.array_equal(mine["images"][camera], own["pixels"][key]), (r, camera)
         state = own["robot_state"]
@@ -117,7 +131,11 @@ def robot_pod(tmp_path_factory) -> Iterator[str]:
 
 @pytest.mark.parametrize(
     ("seed", "named"),
-    [([2**32, 1], "seed for env 0 is 4294967296"), ([1, None], "envs [1] have no seed"), ([5, 5], "seed 5 is given to envs")],
+    [
+        ([2**32, 1], "seed for env 0 is 4294967296"),
+        ([1, None], "envs [1] have no seed"),
+        ([5, 5], "seed 5 is given to envs"),
+    ],
 )
 def test_lerobot_vector_env_refuses_seeds_it_cannot_place_before_sending(robot_pod, seed, named):
     env = LeRobotVectorEnv(pod_urls=[robot_pod])

@@ -331,13 +331,22 @@ def rlinf_job(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     from support.service_procs import job_config
 
     job = {
-        "job_id": "rlinf-faults", "tasks": [TASK], "group_size": NUM_ENVS, "num_stages": 1, "pods_per_stage": 1,
+        "job_id": "rlinf-faults",
+        "tasks": [TASK],
+        "group_size": NUM_ENVS,
+        "num_stages": 1,
+        "pods_per_stage": 1,
         "camera": {"names": ["agentview", "robot0_eye_in_hand"], "height": SIZE, "width": SIZE},
-        "max_episode_steps": None, "envs_per_worker": 0,
+        "max_episode_steps": None,
+        "envs_per_worker": 0,
         "libero": {"settle_steps": 15, "fixture_seed": FIXTURE_SEED, "fixture_rule": "first_reset"},
     }
-    local = LocalJob(job_config(job, replicas=1), log_dir=tmp_path_factory.mktemp("rlinf-job"), grace_s=10,
-                     backoff=Backoff(initial_s=0.2))
+    local = LocalJob(
+        job_config(job, replicas=1),
+        log_dir=tmp_path_factory.mktemp("rlinf-job"),
+        grace_s=10,
+        backoff=Backoff(initial_s=0.2),
+    )
     with local:
         local.wait_ready(timeout=600)
         yield local

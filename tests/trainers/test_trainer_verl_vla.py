@@ -33,7 +33,11 @@ from vecsim.config import CameraConfig, LiberoProtocol
 pytestmark = pytest.mark.libero
 
 verl_vla_code = pytest.importorskip("verl_vla_code", reason="needs hydra-core (test extras)")
-EnvWorker, EnvWorkerConfig, SimulatorConfig = verl_vla_code.EnvWorker, verl_vla_code.EnvWorkerConfig, verl_vla_code.SimulatorConfig
+EnvWorker, EnvWorkerConfig, SimulatorConfig = (
+    verl_vla_code.EnvWorker,
+    verl_vla_code.EnvWorkerConfig,
+    verl_vla_code.SimulatorConfig,
+)
 
 LIMIT = 20  # the train envs' episode limit: the third chunk of 8 ends every episode at its 4th action
 K = 8
@@ -63,16 +67,25 @@ def verl_vla() -> Iterator[None]:
 
 @pytest.fixture(scope="module")
 def pods(tmp_path_factory) -> Iterator[list[RunningPod]]:
-    train = [PodSpec(f"sim-{i}", 0, [(task, 1)], camera=CAMERA, max_episode_steps=LIMIT) for i, task in enumerate(TASKS)]
+    train = [
+        PodSpec(f"sim-{i}", 0, [(task, 1)], camera=CAMERA, max_episode_steps=LIMIT) for i, task in enumerate(TASKS)
+    ]
     evaluation = assignment(
-        "sim-2", [(task, 1) for task in TASKS], job_id="trainer-tests", camera=CAMERA, render="lean",
-        max_episode_steps=1, libero=LiberoProtocol(settle_steps=0),
+        "sim-2",
+        [(task, 1) for task in TASKS],
+        job_id="trainer-tests",
+        camera=CAMERA,
+        render="lean",
+        max_episode_steps=1,
+        libero=LiberoProtocol(settle_steps=0),
     )
     with standalone_pods([*train, evaluation], tmp_path_factory.mktemp("pods")) as running:
         yield running
 
 
-def worker_config(pods, *, modes=("train",), auto_reset: bool = False, whole_chunks: bool = True, vecsim: bool = True) -> Any:
+def worker_config(
+    pods, *, modes=("train",), auto_reset: bool = False, whole_chunks: bool = True, vecsim: bool = True
+) -> Any:
     """verl-vla's typed env worker config from docs/trainers.md's yaml, the job's pods in place of
     its controller, built as verl-vla builds it (train_cluster/config.py:139-141)."""
     documented = yaml.safe_load(_doc_blocks("yaml")[0])["env"]["env_worker"]
@@ -83,13 +96,18 @@ def worker_config(pods, *, modes=("train",), auto_reset: bool = False, whole_chu
         simulator["vecsim"] = settings
     else:
         simulator["_target_"] = "verl_vla.workers.env.config.SimulatorConfig"  # verl-vla's own, unchanged
-    return verl_vla_code.env_worker_config({
-        "_target_": "verl_vla.workers.env.config.EnvWorkerConfig",
-        "auto_reset": auto_reset, "num_envs": 2, "modes": list(modes), "simulator": simulator,
-        "action_execution": {"_target_": "verl_vla.envs.action_executor.ActionExecutionConfig", "mode": "serial"},
-        "teleop": {"_target_": "verl_vla.teleop.config.TeleopConfig", "enable": False},
-        "recorder": {"_target_": "verl_vla.recorder.config.RecorderConfig", "enable": False},
-    })
+    return verl_vla_code.env_worker_config(
+        {
+            "_target_": "verl_vla.workers.env.config.EnvWorkerConfig",
+            "auto_reset": auto_reset,
+            "num_envs": 2,
+            "modes": list(modes),
+            "simulator": simulator,
+            "action_execution": {"_target_": "verl_vla.envs.action_executor.ActionExecutionConfig", "mode": "serial"},
+            "teleop": {"_target_": "verl_vla.teleop.config.TeleopConfig", "enable": False},
+            "recorder": {"_target_": "verl_vla.recorder.config.RecorderConfig", "enable": False},
+        }
+    )
 
 
 def make_worker(pods, **kwargs: Any) -> Any:
@@ -128,7 +146,9 @@ def chunks(n: int, seed: int = 0, k: int = K) -> list[torch.Tensor]:
 
 def _reset_to(env: Any, global_ids: list[int]) -> dict[str, Any]:
     """A reset of both envs to chosen states, through the hook verl-vla's replay uses (extra)."""
-    obs = [env.env_reset(env_ids=[i], extra={"info.reset_state_id": np.array([gid])}) for i, gid in enumerate(global_ids)]
+    obs = [
+        env.env_reset(env_ids=[i], extra={"info.reset_state_id": np.array([gid])}) for i, gid in enumerate(global_ids)
+    ]
     return {key: [item for o in obs for item in o[key]] for key in obs[0]}
 
 
@@ -243,7 +263,10 @@ def test_observations_have_verl_vlas_keys_and_dtypes(pods):
         step = worker.env_interact_step(chunks(1)[0])
     finally:
         worker.close()
-    assert batch["observation.images.image"].shape == (2, 32, 32, 3) and batch["observation.images.image"].dtype == torch.uint8
+    assert (
+        batch["observation.images.image"].shape == (2, 32, 32, 3)
+        and batch["observation.images.image"].dtype == torch.uint8
+    )
     assert batch["observation.images.wrist_image"].shape == (2, 32, 32, 3)
     # LIBERO's 8-float state, float64 as verl-vla's env builds it (libero_env.py:292-298).
     assert batch["observation.state"].shape == (2, 8) and batch["observation.state"].dtype == torch.float64
@@ -339,7 +362,9 @@ def test_base_env_steps_a_subset_of_envs_through_the_one_action_hook(env, pods):
     env._latest_obs = _reset_to(env, [7, 159])
     before_state = np.stack([o["observation.state"] for o in env._latest_obs["observation"]])
     sent = step_requests(pods)
-    result = env.mask_step(np.full((2, 7), 0.2, np.float32), np.array([False, True]), np.zeros(2, bool), np.zeros(2, np.float32))
+    result = env.mask_step(
+        np.full((2, 7), 0.2, np.float32), np.array([False, True]), np.zeros(2, bool), np.zeros(2, np.float32)
+    )
     assert [a - b for a, b in zip(step_requests(pods), sent)] == [0, 1, 0]  # env 0's pod got nothing
     assert result["task_id"].tolist() == [3] and len(result["observation"]) == 1
     after_state = np.stack([o["observation.state"] for o in env._latest_obs["observation"]])
@@ -363,13 +388,31 @@ def test_a_replayed_reset_names_its_benchmark_episode(env):
         (lambda e: e.step([[1.0], [1.0, 2.0]]), r"action must be an array of numbers"),
         (lambda e: e.env_step(np.zeros((1, 7)), env_ids=[5]), r"env_ids must be distinct env indices 0..1"),
         (lambda e: e.env_step(np.zeros((2, 7)), env_ids=[1]), r"action must have shape \[1, 7\]"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([150])}), r"env 0 runs libero_spatial/0"),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([150])}),
+            r"env 0 runs libero_spatial/0",
+        ),
         (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([200])}), r"outside 0..199"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([1.7])}), r"extra\['info.reset_state_id'\] must hold one integer state id, got 1.7"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": ["x"]}), r"extra\['info.reset_state_id'\] must hold one integer"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([np.nan])}), r"extra\['info.reset_state_id'\] must hold one integer"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([True])}), r"extra\['info.reset_state_id'\] must hold one integer"),
-        (lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([1, 2])}), r"extra\['info.reset_state_id'\] must hold one integer"),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([1.7])}),
+            r"extra\['info.reset_state_id'\] must hold one integer state id, got 1.7",
+        ),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": ["x"]}),
+            r"extra\['info.reset_state_id'\] must hold one integer",
+        ),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([np.nan])}),
+            r"extra\['info.reset_state_id'\] must hold one integer",
+        ),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([True])}),
+            r"extra\['info.reset_state_id'\] must hold one integer",
+        ),
+        (
+            lambda e: e.env_reset(env_ids=[0], extra={"info.reset_state_id": np.array([1, 2])}),
+            r"extra\['info.reset_state_id'\] must hold one integer",
+        ),
         (lambda e: e.env_reset(env_ids=[0], extra={}), r"extra\['info.reset_state_id'\] must hold one integer"),
         (lambda e: e.load_state(b"{}"), r"state_buffer: not a vecsim verl-vla env state"),
     ],
@@ -391,5 +434,8 @@ def test_stepping_after_close_is_refused(pods):
 
 
 def test_a_process_beyond_the_jobs_envs_is_refused(pods):
-    with pytest.raises(ValueError, match=r"num_envs: train process 2 takes job envs 4..5 \(train simulators take 0..5\), but the job has 4"):
+    with pytest.raises(
+        ValueError,
+        match=r"num_envs: train process 2 takes job envs 4..5 \(train simulators take 0..5\), but the job has 4",
+    ):
         make_env(pods, rank=2, world_size=3)

@@ -231,7 +231,6 @@ def env_worker_config(env_worker: dict[str, Any]) -> EnvWorkerConfig:
     return instantiate(OmegaConf.create(env_worker), _recursive_=False)
 
 
-
 # -- envs/base.py (BaseEnv) -------------------------------------------------------------------------------
 
 
@@ -262,7 +261,10 @@ class BaseEnv:
         # without smoothing or interpolation.
         action = self._to_numpy(action, copy=True)
         assert action.ndim == 3 and action.shape[1] > 0  # action_executor.py:317-320
-        steps = [self._execute_action_step(action[:, k].copy(), np.zeros(self.num_envs, np.float32), k == 0) for k in range(action.shape[1])]
+        steps = [
+            self._execute_action_step(action[:, k].copy(), np.zeros(self.num_envs, np.float32), k == 0)
+            for k in range(action.shape[1])
+        ]
         result, _reset_mask = self._finish_execution_slice(steps)
         return result
 
@@ -287,13 +289,21 @@ class BaseEnv:
         # base.py:254-280
         if chunk_started:
             self._execution_chunk_intervened.fill(False)
-        self._execution_merged_step_result, restart_episode, self._execution_chunk_intervened = self.step_with_teleop_and_recording(
-            action, critic_value=critic_value, chunk_intervened=self._execution_chunk_intervened, merged_step_result=self._execution_merged_step_result
+        self._execution_merged_step_result, restart_episode, self._execution_chunk_intervened = (
+            self.step_with_teleop_and_recording(
+                action,
+                critic_value=critic_value,
+                chunk_intervened=self._execution_chunk_intervened,
+                merged_step_result=self._execution_merged_step_result,
+            )
         )
         self._execution_restart_episode |= restart_episode
         self._execution_done |= np.asarray(self._execution_merged_step_result["next.terminated"], dtype=bool)
         self._execution_done |= np.asarray(self._execution_merged_step_result["next.truncated"], dtype=bool)
-        feedback = {key: np.asarray(self._execution_merged_step_result[key]).copy() for key in ("next.reward", "next.terminated", "next.truncated", "next.success")}
+        feedback = {
+            key: np.asarray(self._execution_merged_step_result[key]).copy()
+            for key in ("next.reward", "next.terminated", "next.truncated", "next.success")
+        }
         return SimpleNamespace(feedback=feedback)
 
     def _finish_execution_slice(self, steps):
@@ -304,10 +314,16 @@ class BaseEnv:
         success_steps = torch.stack([torch.as_tensor(step.feedback["next.success"]) for step in steps], dim=1)
         done_mask = (terminated_steps.bool() | truncated_steps.bool()).any(dim=1).numpy()
         reset_mask = done_mask | self._execution_restart_episode
-        merged_step_result = self._reset_done_envs(self._execution_merged_step_result, np.arange(self.num_envs), done_mask=reset_mask)
+        merged_step_result = self._reset_done_envs(
+            self._execution_merged_step_result, np.arange(self.num_envs), done_mask=reset_mask
+        )
         if not self.auto_reset_enabled:
             reset_mask.fill(False)
-        obs = {"observation": merged_step_result["observation"], "task": merged_step_result["task"], "task_id": merged_step_result["task_id"]}
+        obs = {
+            "observation": merged_step_result["observation"],
+            "task": merged_step_result["task"],
+            "task_id": merged_step_result["task_id"],
+        }
         if "eval_episode_id" in merged_step_result:
             obs["eval_episode_id"] = merged_step_result["eval_episode_id"]
         self._latest_obs = obs
@@ -336,7 +352,9 @@ class BaseEnv:
         env_ids = np.flatnonzero(execute_mask)
         action = action[env_ids]
         result = self.env_step(action, env_ids=env_ids)
-        result = self._apply_manual_step_overrides(result, env_ids=env_ids, manual_reward=manual_reward, force_truncated=force_truncated)
+        result = self._apply_manual_step_overrides(
+            result, env_ids=env_ids, manual_reward=manual_reward, force_truncated=force_truncated
+        )
         self._update_latest_obs(env_ids, result)
         return result
 
@@ -375,8 +393,12 @@ class BaseEnv:
         execute_mask = ~done & (~chunk_intervened_before_step | is_intervened)
         if execute_mask.any():
             step_result = self.mask_step(
-                action, execute_mask, is_intervention=is_intervened, critic_value=critic_value,
-                manual_reward=manual_reward, force_truncated=force_truncated,
+                action,
+                execute_mask,
+                is_intervention=is_intervened,
+                critic_value=critic_value,
+                manual_reward=manual_reward,
+                force_truncated=force_truncated,
             )
             merged_step_result = self._update_step_result(merged_step_result, np.flatnonzero(execute_mask), step_result)
         return merged_step_result, restart_episode, chunk_intervened
@@ -449,15 +471,15 @@ class BaseEnv:
         return value.copy() if copy else value
 
 
-
-
 # -- workers/env/env_worker.py -----------------------------------------------------------------------
 
 
 class EnvWorker:
     """The env worker of one rank, as its LIBERO path builds and drives simulators."""
 
-    def __init__(self, env_worker_cfg: EnvWorkerConfig, pipeline_stage_num: int, rank: int = 0, world_size: int = 1) -> None:
+    def __init__(
+        self, env_worker_cfg: EnvWorkerConfig, pipeline_stage_num: int, rank: int = 0, world_size: int = 1
+    ) -> None:
         # env_worker.py:119-130 (the device and profiler setup left out: a CPU worker)
         self.env_worker_cfg = env_worker_cfg
         self.simulator_type = self.env_worker_cfg.simulator.simulator_type
@@ -496,13 +518,26 @@ class EnvWorker:
         for stage_id in range(self.stage_num):
             if "train" in modes:
                 self.simulator_list.append(
-                    EnvManager(self.simulator_cfg, rank=self._rank, world_size=self._world_size, env_cls=LiberoEnv,
-                               stage_id=stage_id, stage_num=self.stage_num)
+                    EnvManager(
+                        self.simulator_cfg,
+                        rank=self._rank,
+                        world_size=self._world_size,
+                        env_cls=LiberoEnv,
+                        stage_id=stage_id,
+                        stage_num=self.stage_num,
+                    )
                 )
             if eval_cfg is not None:
                 self.eval_simulator_list.append(
-                    EnvManager(eval_cfg, rank=self._rank, world_size=self._world_size, env_cls=LiberoEnv,
-                               stage_id=stage_id, stage_num=self.stage_num, only_eval=True)
+                    EnvManager(
+                        eval_cfg,
+                        rank=self._rank,
+                        world_size=self._world_size,
+                        env_cls=LiberoEnv,
+                        stage_id=stage_id,
+                        stage_num=self.stage_num,
+                        only_eval=True,
+                    )
                 )
         for simulator in self.simulator_list + self.eval_simulator_list:
             simulator.start_simulator()
@@ -526,7 +561,9 @@ class EnvWorker:
         for key in observations[0]:
             output[key] = torch.as_tensor(np.stack([observation[key] for observation in observations]))
         output["task"] = [task for obs, _info in result_list for task in obs["task"]]
-        output["task_id"] = np.asarray([t for obs, _info in result_list for t in obs.get("task_id", [])], dtype=np.int64)
+        output["task_id"] = np.asarray(
+            [t for obs, _info in result_list for t in obs.get("task_id", [])], dtype=np.int64
+        )
         eval_episode_ids = [e for obs, _info in result_list for e in obs.get("eval_episode_id", [])]
         if eval_episode_ids:
             output["eval_episode_id"] = np.asarray(eval_episode_ids, dtype=np.int64)
@@ -537,8 +574,18 @@ class EnvWorker:
         simulators = self._simulators(mode)
         step_output = simulators[stage_id].step(chunk_actions, chunk_values=None)
         extracted_obs, chunk_rewards, chunk_terminations, chunk_truncations, chunk_successes = step_output
-        batch = {f"obs.{key}": torch.as_tensor(np.stack([o[key] for o in extracted_obs["observation"]])) for key in extracted_obs["observation"][0]}
-        batch.update({"next.reward": chunk_rewards, "next.terminated": chunk_terminations, "next.truncated": chunk_truncations, "next.success": chunk_successes})
+        batch = {
+            f"obs.{key}": torch.as_tensor(np.stack([o[key] for o in extracted_obs["observation"]]))
+            for key in extracted_obs["observation"][0]
+        }
+        batch.update(
+            {
+                "next.reward": chunk_rewards,
+                "next.terminated": chunk_terminations,
+                "next.truncated": chunk_truncations,
+                "next.success": chunk_successes,
+            }
+        )
         batch["obs.task"] = extracted_obs["task"]
         batch["obs.task_id"] = np.asarray(extracted_obs["task_id"], dtype=np.int64)
         if extracted_obs.get("eval_episode_id") is not None:
@@ -557,7 +604,9 @@ class EnvManager:
     """The env manager: its command protocol and stop/start, with the simulator in this process
     (env_manager.py:151-331, and ``_simulator_worker``'s loop, 334-411, as one call per command)."""
 
-    def __init__(self, cfg, rank, world_size, env_cls, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False) -> None:
+    def __init__(
+        self, cfg, rank, world_size, env_cls, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False
+    ) -> None:
         # env_manager.py:152-175
         self.cfg, self.rank, self.world_size = cfg, rank, world_size
         self.stage_id, self.stage_num, self.only_eval = stage_id, stage_num, only_eval
@@ -569,7 +618,14 @@ class EnvManager:
     def start_simulator(self) -> None:
         # _simulator_worker, env_manager.py:358-367
         try:
-            env = self.env_cls(self.cfg, self.rank, self.world_size, stage_id=self.stage_id, stage_num=self.stage_num, only_eval=self.only_eval)
+            env = self.env_cls(
+                self.cfg,
+                self.rank,
+                self.world_size,
+                stage_id=self.stage_id,
+                stage_num=self.stage_num,
+                only_eval=self.only_eval,
+            )
         except TypeError:
             env = self.env_cls(self.cfg, self.rank, self.world_size)
         if self.state_buffer:
@@ -612,8 +668,19 @@ class EnvManager:
         return method_proxy
 
 
-def _simulator_worker(cfg, rank, world_size, stage_id, stage_num, env_cls, only_eval, command_queue, result_queue,
-                      state_buffer, bind_numa=True) -> None:
+def _simulator_worker(
+    cfg,
+    rank,
+    world_size,
+    stage_id,
+    stage_num,
+    env_cls,
+    only_eval,
+    command_queue,
+    result_queue,
+    state_buffer,
+    bind_numa=True,
+) -> None:
     """The spawned simulator process's body (env_manager.py:334-411); NUMA binding (356) only
     where verl-vla asks it (``torch.cuda.is_available()``, 200), never here."""
     import logging
@@ -667,8 +734,17 @@ class SpawnedEnvManager:
     ``spawn`` context, ``cfg`` and ``env_cls`` pickled into it (env_manager.py:151-331, without
     ``recursive_to_own``'s shared-tensor copies, 138-148: nothing here is in shared memory)."""
 
-    def __init__(self, cfg, rank, world_size, env_cls, stage_id: int = 0, stage_num: int = 1, only_eval: bool = False,
-                 start_timeout_s: int = 180) -> None:
+    def __init__(
+        self,
+        cfg,
+        rank,
+        world_size,
+        env_cls,
+        stage_id: int = 0,
+        stage_num: int = 1,
+        only_eval: bool = False,
+        start_timeout_s: int = 180,
+    ) -> None:
         # env_manager.py:152-175
         self.cfg, self.rank, self.world_size = cfg, rank, world_size
         self.stage_id, self.stage_num, self.only_eval = stage_id, stage_num, only_eval
@@ -691,8 +767,19 @@ class SpawnedEnvManager:
         self.result_queue = self.context.Queue()
         self.process = self.context.Process(
             target=_simulator_worker,
-            args=(self.cfg, self.rank, self.world_size, self.stage_id, self.stage_num, self.env_cls, self.only_eval,
-                  self.command_queue, self.result_queue, self.state_buffer, torch.cuda.is_available()),
+            args=(
+                self.cfg,
+                self.rank,
+                self.world_size,
+                self.stage_id,
+                self.stage_num,
+                self.env_cls,
+                self.only_eval,
+                self.command_queue,
+                self.result_queue,
+                self.state_buffer,
+                torch.cuda.is_available(),
+            ),
         )
         self.process.start()
         deadline = time.monotonic() + self.start_timeout_s
@@ -705,7 +792,9 @@ class SpawnedEnvManager:
                 break
             except queue.Empty:
                 if not self.process.is_alive():
-                    raise RuntimeError(f"Simulator initialization process exited (exitcode={self.process.exitcode})") from None
+                    raise RuntimeError(
+                        f"Simulator initialization process exited (exitcode={self.process.exitcode})"
+                    ) from None
         if result["status"] != "ready":
             raise RuntimeError(f"Simulator initialization failed: {result}")
 
@@ -755,10 +844,24 @@ class SpawnedEnvManager:
 
 
 # env_manager.py:298-311, and the exit code kept for the tests.
-_MANAGER_NAMES = frozenset({
-    "cfg", "rank", "world_size", "stage_id", "stage_num", "only_eval", "process", "command_queue", "result_queue",
-    "state_buffer", "env_cls", "context", "start_timeout_s", "exitcode",
-})
+_MANAGER_NAMES = frozenset(
+    {
+        "cfg",
+        "rank",
+        "world_size",
+        "stage_id",
+        "stage_num",
+        "only_eval",
+        "process",
+        "command_queue",
+        "result_queue",
+        "state_buffer",
+        "env_cls",
+        "context",
+        "start_timeout_s",
+        "exitcode",
+    }
+)
 
 
 # -- train_cluster/cluster.py ---------------------------------------------------------------------------
@@ -785,18 +888,22 @@ def collect_non_auto_reset_records(batches: list[dict[str, Any]]) -> list[dict[s
         done_indices = torch.nonzero(done_row, as_tuple=False).flatten().tolist()
         done_idx = int(done_indices[0]) if done_indices else int(done_row.numel()) - 1
         segment = slice(0, done_idx + 1)
-        records.append({
-            "length": int(done_idx + 1),
-            "chunk_length": int(done_idx // chunk_steps + 1),
-            "return": float(reward_row[segment].sum().item()),
-            "success": bool(success_row[segment].any().item()),
-            "task_id": int(task_id_steps[batch_idx, 0]),
-            "eval_episode_id": int(eval_episode_id_steps[batch_idx, 0]),
-        })
+        records.append(
+            {
+                "length": int(done_idx + 1),
+                "chunk_length": int(done_idx // chunk_steps + 1),
+                "return": float(reward_row[segment].sum().item()),
+                "success": bool(success_row[segment].any().item()),
+                "task_id": int(task_id_steps[batch_idx, 0]),
+                "eval_episode_id": int(eval_episode_id_steps[batch_idx, 0]),
+            }
+        )
     return records
 
 
-def train_cluster_eval(worker: EnvWorker, rollout, max_episodes: Optional[int] = None, max_rollouts: int = 1_000) -> tuple[list[dict[str, Any]], int]:
+def train_cluster_eval(
+    worker: EnvWorker, rollout, max_episodes: Optional[int] = None, max_rollouts: int = 1_000
+) -> tuple[list[dict[str, Any]], int]:
     """``TrainCluster.eval``'s loop and acceptance rule (cluster.py:550-589) without auto-reset;
     ``rollout(reset_output)`` stands for ``env_loop.generate_sequences(..., eval=True)`` and
     returns the rollout's chunk batches. Bounded by ``max_rollouts`` (verl-vla's loop is not):
@@ -875,4 +982,6 @@ def write_packages(root: Path) -> None:
             package = root.joinpath(*parts[:depth])
             package.mkdir(parents=True, exist_ok=True)
             (package / "__init__.py").touch()
-        (root.joinpath(*parts[:-1]) / f"{parts[-1]}.py").write_text(f"from verl_vla_code import {', '.join(provided)}\n")
+        (root.joinpath(*parts[:-1]) / f"{parts[-1]}.py").write_text(
+            f"from verl_vla_code import {', '.join(provided)}\n"
+        )

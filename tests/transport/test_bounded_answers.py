@@ -272,7 +272,6 @@ def test_an_early_413_reaches_the_client_as_a_refusal_not_an_outage() -> None:
     assert caught.value.status == 413
 
 
-
 # ------------------------------------------------------------------ the controller's side
 
 
@@ -315,7 +314,9 @@ def test_a_pod_answering_pushes_with_endless_framing_never_stalls_the_controller
         beats = threading.Thread(target=pods.heartbeat, args=(controller.url,), daemon=True)
         beats.start()
         try:
-            wait_until(lambda: len(httpx.get(f"{controller.url}/v1/pods", timeout=5).json()) == 2, "pods to register", 30)
+            wait_until(
+                lambda: len(httpx.get(f"{controller.url}/v1/pods", timeout=5).json()) == 2, "pods to register", 30
+            )
             assert httpx.put(f"{controller.url}/v1/job", json=JOB, timeout=10).status_code == 200
 
             def failed_pushes() -> float:

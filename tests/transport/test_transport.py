@@ -462,7 +462,9 @@ def test_a_gzip_body_cut_short_is_a_decoding_error(kind: str) -> None:
 # ---------------------------------------------------- httptools' lean path (the client's to a pod)
 
 
-def fetch_with(url: str, method: str = "GET", headers: tuple[tuple[str, str], ...] = (), body: bytes = b"", times: int = 1) -> list[tuple[int, bytes]]:
+def fetch_with(
+    url: str, method: str = "GET", headers: tuple[tuple[str, str], ...] = (), body: bytes = b"", times: int = 1
+) -> list[tuple[int, bytes]]:
     """``times`` requests through one httptools transport's lean path; their (status, body)."""
 
     async def main() -> list[tuple[int, bytes]]:
@@ -589,7 +591,10 @@ def test_a_new_connection_closed_before_its_answer_is_not_retried() -> None:
 @pytest.mark.parametrize("lean", [True, False], ids=["lean", "httpx"])
 def test_an_answer_head_larger_than_the_cap_is_refused_naming_it(lean: bool) -> None:
     reply = b"HTTP/1.1 200 OK\r\nX-Big: " + b"a" * (MAX_HEAD_BYTES + 1) + b"\r\nContent-Length: 2\r\n\r\nok"
-    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"):
+    with (
+        raw_server(reply) as url,
+        pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"),
+    ):
         if lean:
             fetch_with(f"{url}/")
         else:
@@ -598,7 +603,10 @@ def test_an_answer_head_larger_than_the_cap_is_refused_naming_it(lean: bool) -> 
 
 def test_an_answer_head_that_never_ends_is_refused_at_the_cap() -> None:
     reply = b"HTTP/1.1 200 OK\r\nX-Big: " + b"a" * (4 * MAX_HEAD_BYTES)  # and the server closes
-    with raw_server(reply) as url, pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"):
+    with (
+        raw_server(reply) as url,
+        pytest.raises(httpx.RemoteProtocolError, match=f"head is larger than {MAX_HEAD_BYTES} bytes"),
+    ):
         fetch_with(f"{url}/")
 
 
@@ -635,9 +643,27 @@ def tls_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, 
     folder = tmp_path_factory.mktemp("tls")
     key, cert = folder / "key.pem", folder / "cert.pem"
     subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
-         "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True, timeout=60,
+        [
+            "openssl",
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-addext",
+            "subjectAltName=IP:127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=60,
     )
     with uvicorn_server(ssl_keyfile=str(key), ssl_certfile=str(cert)) as served:
         yield served.url.replace("http://", "https://"), cert

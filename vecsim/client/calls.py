@@ -241,9 +241,13 @@ def ended_rows(batch: StageBatch) -> dict[str, Ended]:
     """The rows of a step answer whose env terminated or truncated (at any action), as :class:`Ended`."""
     # The flags where the env ended: its last applied action (num_steps of K; the last action
     # for an env stepped past its end).
-    terminated, truncated, success = (batch.last(values) for values in (batch.terminated, batch.truncated, batch.success))
+    terminated, truncated, success = (
+        batch.last(values) for values in (batch.terminated, batch.truncated, batch.success)
+    )
     return {
-        batch.traj_keys[j]: Ended(trees.row(batch.obs, int(j)), bool(terminated[j]), bool(truncated[j]), bool(success[j]))
+        batch.traj_keys[j]: Ended(
+            trees.row(batch.obs, int(j)), bool(terminated[j]), bool(truncated[j]), bool(success[j])
+        )
         for j in np.flatnonzero(batch.ended())
     }
 
@@ -280,6 +284,7 @@ def empty_batch(
         num_steps=np.zeros(n, dtype=np.int32),
         chunk=chunk,
     )
+
 
 def fill_batch(
     batch: StageBatch,
@@ -328,6 +333,7 @@ def _fill_answer(
             batch.num_steps[rows] = 1
         else:
             trees.fill_rows(batch.num_steps, answer.get("num_steps"), rows, "num_steps")
+
 
 def step_actions(space: Space | None, traj_keys: Sequence[str], actions: Any) -> StepActions:
     """Say what a call's actions are, once for every layer: ``actions`` (row ``j`` for
@@ -468,7 +474,9 @@ def check_call(
             f"traj_keys {stepped_ended} ended (terminated or truncated) and were not reset; reset them, or "
             "make the client with ended_envs='step' (step them on) or 'freeze' (answer them unstepped)"
         )
-    state_ids = np.array([new_ids[k] if new_ids is not None else routes[k].state_id for k in reset_keys], dtype=np.int64)
+    state_ids = np.array(
+        [new_ids[k] if new_ids is not None else routes[k].state_id for k in reset_keys], dtype=np.int64
+    )
     if new_ids is not None:
         for key, sid in zip(reset_keys, state_ids):
             if sid < 0:
@@ -508,7 +516,13 @@ async def run_call(
     """
     submitted = time.perf_counter()
     book, info = pods.book, pods.info
-    reset_keys, state_ids, recorded, seeded, frozen = args.reset_keys, args.state_ids, args.recorded, args.seeded, args.frozen
+    reset_keys, state_ids, recorded, seeded, frozen = (
+        args.reset_keys,
+        args.state_ids,
+        args.recorded,
+        args.seeded,
+        args.frozen,
+    )
     routes = book.routes()
     space = info.observation_space
     reset_batch = empty_batch(space, reset_keys, routes)
@@ -530,8 +544,16 @@ async def run_call(
     def env_ids(keys: Sequence[str]) -> np.ndarray:
         return np.array([routes[k].env_index for k in keys], dtype=np.int64)
 
-    async def send(pod: str, op: str, row_list: list[int], all_keys: Sequence[str], field: str,
-                   values: np.ndarray, batch: StageBatch, refill: list[int] | None = None) -> None:
+    async def send(
+        pod: str,
+        op: str,
+        row_list: list[int],
+        all_keys: Sequence[str],
+        field: str,
+        values: np.ndarray,
+        batch: StageBatch,
+        refill: list[int] | None = None,
+    ) -> None:
         """One request; a step with ``refill`` (reset rows) also resets those envs in it."""
         rows = np.asarray(row_list)
         keys = [all_keys[r] for r in rows]
@@ -559,7 +581,9 @@ async def run_call(
                 reset = answer.get("reset")
                 said = np.asarray(reset.get("env_indices", ())) if isinstance(reset, dict) else None
                 if said is None or not np.array_equal(said, body["reset_env_indices"]):
-                    raise PodRequestError(pod, None, f"answer's reset is not for env ids {body['reset_env_indices'].tolist()}")
+                    raise PodRequestError(
+                        pod, None, f"answer's reset is not for env ids {body['reset_env_indices'].tolist()}"
+                    )
                 fill_batch(reset_batch, reset, reset_rows, pod, check_tasks=True)
             fill_batch(batch, answer, rows, pod, check_tasks=op == "reset", chunk=chunk if op == "step" else None)
         except PodRequestError as exc:
@@ -574,7 +598,9 @@ async def run_call(
         try:
             if todo.reset_rows and todo.step_rows and seeded is None and actions is not None and actions.array.size:
                 # A refill: the resets ride in the step's request, and run beside its steps.
-                await send(pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch, todo.reset_rows)
+                await send(
+                    pod, "step", todo.step_rows, step_keys, "actions", actions.array, step_batch, todo.reset_rows
+                )
                 answered.reset_rows.extend(todo.reset_rows)
                 answered.step_rows.extend(todo.step_rows)
                 return
@@ -617,7 +643,6 @@ async def run_call(
         raise call_error(errors, partial if pick is None else partial[pick])
     _note_ended(book, reset_batch, step_batch)
     return reset_batch, step_batch
-
 
 
 def check_attr(book: RouteBook, op: str, keys: Sequence[str]) -> dict[str, TrajRoute]:
@@ -672,7 +697,6 @@ async def run_attr(
     return results, errors
 
 
-
 def _put_frozen(batch: StageBatch, row: int, ended: Ended) -> None:
     """Row ``row`` of a step answer as a frozen env's: its ended observation and held flags."""
     trees.put_rows(batch.obs, trees.map_leaves(lambda leaf: np.asarray(leaf)[None], ended.obs), np.array([row]))
@@ -681,4 +705,3 @@ def _put_frozen(batch: StageBatch, row: int, ended: Ended) -> None:
     batch.truncated[row] = ended.truncated
     batch.success[row] = ended.success
     batch.num_steps[row] = 0
-

@@ -153,7 +153,9 @@ class EventLoopThread:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self.thread.join(timeout)
             if self.thread.is_alive():
-                logger.warning("the client's event loop did not stop within %s s; leaving it to its daemon thread", timeout)
+                logger.warning(
+                    "the client's event loop did not stop within %s s; leaving it to its daemon thread", timeout
+                )
                 return
         self.loop.close()
 

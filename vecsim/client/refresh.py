@@ -100,7 +100,9 @@ def fetch_routing(controller_url: str, timeout_s: float = 10.0, wait_ready_s: fl
         level = logging.INFO if now >= next_info else logging.DEBUG
         if level == logging.INFO:
             next_info = now + _WAIT_LOG_EVERY_S
-        logger.log(level, "waiting for the controller at %s (%.0f s of %s s): %s", url, now - started, wait_ready_s, seen)
+        logger.log(
+            level, "waiting for the controller at %s (%.0f s of %s s): %s", url, now - started, wait_ready_s, seen
+        )
         time.sleep(min(pause, left))
         pause = min(pause * 2, _WAIT_MAX_S)
 

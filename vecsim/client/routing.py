@@ -281,7 +281,9 @@ def _read_pod_info(url: str, info: Any) -> tuple[dict[int, RoutedPod], int | Non
                 unstaged = True
                 break
             by_stage.setdefault(int(stage), []).append(
-                TaskBlock(task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"], stage_id=t.get("stage_id"))
+                TaskBlock(
+                    task_id=t["task_id"], env_start=t["env_start"], num_envs=t["num_envs"], stage_id=t.get("stage_id")
+                )
             )
         if not by_stage and pod_stage is None:
             unstaged = True
@@ -293,7 +295,9 @@ def _read_pod_info(url: str, info: Any) -> tuple[dict[int, RoutedPod], int | Non
         }
         if len(routed) == 1 and pod_stage is not None:
             # One stage: the pod's num_envs, as it reports it.
-            routed = {stage: pod.model_copy(update={"num_envs": int(info["num_envs"])}) for stage, pod in routed.items()}
+            routed = {
+                stage: pod.model_copy(update={"num_envs": int(info["num_envs"])}) for stage, pod in routed.items()
+            }
         generation = info.get("generation")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         what = f"no {exc} field" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"

@@ -142,8 +142,12 @@ class StageClient(JobClient):
     ) -> None:
         self.ended_envs = check_ended_envs(ended_envs)
         super().__init__(
-            routing, controller_url=controller_url, timeout_s=timeout_s, transport=transport,
-            max_answer_bytes=max_answer_bytes, token=token,
+            routing,
+            controller_url=controller_url,
+            timeout_s=timeout_s,
+            transport=transport,
+            max_answer_bytes=max_answer_bytes,
+            token=token,
         )
         self._states = StageStates()
         self._batches = itertools.count()
@@ -169,8 +173,13 @@ class StageClient(JobClient):
         """
         table = fetch_routing(controller_url, timeout_s=timeout_s, wait_ready_s=wait_ready_s)
         return cls(
-            table, controller_url=controller_url, timeout_s=timeout_s, transport=transport,
-            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
+            table,
+            controller_url=controller_url,
+            timeout_s=timeout_s,
+            transport=transport,
+            max_answer_bytes=max_answer_bytes,
+            token=token,
+            ended_envs=ended_envs,
         )
 
     @classmethod
@@ -194,8 +203,12 @@ class StageClient(JobClient):
 
         infos = [read_pod_info(u, timeout_s) for u in urls]
         client = cls(
-            routing_from_pod_infos(infos), timeout_s=timeout_s, transport=transport,
-            max_answer_bytes=max_answer_bytes, token=token, ended_envs=ended_envs,
+            routing_from_pod_infos(infos),
+            timeout_s=timeout_s,
+            transport=transport,
+            max_answer_bytes=max_answer_bytes,
+            token=token,
+            ended_envs=ended_envs,
         )
         try:
             client._adopt_info({i["pod"]: i for _, i in infos if i.get("num_envs")})
@@ -463,7 +476,9 @@ class StageClient(JobClient):
         if actions is None or not actions.traj_keys:
             if not args.reset_keys:
                 space = self._info.observation_space
-                return completed((empty_batch(space), empty_batch(space, chunk=None if actions is None else actions.chunk)), pick)
+                return completed(
+                    (empty_batch(space), empty_batch(space, chunk=None if actions is None else actions.chunk)), pick
+                )
         resetting = {args.routes[k].stage_id for k in args.reset_keys}
         stepping = {args.routes[k].stage_id for k in (actions.traj_keys if actions is not None else ())}
         states = {

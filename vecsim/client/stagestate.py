@@ -138,7 +138,9 @@ class StageStates:
         with self._lock:
             busy = self._busy(None)
             if busy:
-                raise AlreadyPendingCallError(f"stages {busy} have calls in flight; wait for them before {what}", "reset")
+                raise AlreadyPendingCallError(
+                    f"stages {busy} have calls in flight; wait for them before {what}", "reset"
+                )
             return fn()
 
     def end_all(self) -> list[Any]:

@@ -37,7 +37,9 @@ class Autoresets:
         self.client, self.keys, self.draws, self.native, self.mode = client, keys, draws, native, mode
         self._key_index = {key: i for i, key in enumerate(keys)}
 
-    def step(self, actions: np.ndarray, envs: np.ndarray, ended: np.ndarray) -> PendingCall[tuple[StageBatch, StageBatch]]:
+    def step(
+        self, actions: np.ndarray, envs: np.ndarray, ended: np.ndarray
+    ) -> PendingCall[tuple[StageBatch, StageBatch]]:
         """Send the step of the envs ``envs`` marks (``actions``: a row per env of the vector env)
         and the autoresets of the envs ``ended`` marks; the call's answer is ``(reset_batch,
         step_batch)``."""

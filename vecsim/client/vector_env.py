@@ -159,7 +159,10 @@ class HTTPVectorEnv(VectorEnv):
         self.ended_envs = check_ended_envs(ended_envs)
         # StageClient's own arguments, the same whatever the source.
         options: dict[str, Any] = {
-            "timeout_s": timeout_s, "transport": transport, "max_answer_bytes": max_answer_bytes, "token": token,
+            "timeout_s": timeout_s,
+            "transport": transport,
+            "max_answer_bytes": max_answer_bytes,
+            "token": token,
             "ended_envs": self.ended_envs,
         }
         if job_config is not None:
@@ -354,7 +357,9 @@ class HTTPVectorEnv(VectorEnv):
             as :meth:`step_async`; ``ValueError`` for a chunk of the wrong shape or bad ``env_ids``.
         """
         if not isinstance(self.single_action_space, Box):
-            raise TypeError(f"chunk_step takes chunks of Box actions; this job's action space is {self.single_action_space}")
+            raise TypeError(
+                f"chunk_step takes chunks of Box actions; this job's action space is {self.single_action_space}"
+            )
         envs = _env_mask(env_ids, self.num_envs)
         actions = np.asarray(actions, dtype=self.single_action_space.dtype)
         n = int(envs.sum())
@@ -394,7 +399,9 @@ class HTTPVectorEnv(VectorEnv):
                 f"Calling `step_async` while waiting for a pending call to `{self._state.value}` to complete.",
                 str(self._state.value),
             )
-        ended = self._results.steppable(envs, refuse_ended=self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise")
+        ended = self._results.steppable(
+            envs, refuse_ended=self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise"
+        )
         self._pending = self._autoresets.step(actions, envs, ended)
         self._state = AsyncState.WAITING_STEP
 

@@ -76,7 +76,9 @@ class EnvResults:
                 ``refuse_ended``) ended.
         """
         if not self.ever_reset[envs].all():
-            raise ResetNeeded(f"envs {np.flatnonzero(envs & ~self.ever_reset).tolist()} were never reset; call reset() first")
+            raise ResetNeeded(
+                f"envs {np.flatnonzero(envs & ~self.ever_reset).tolist()} were never reset; call reset() first"
+            )
         if (self.failed & envs).any():
             failed = np.flatnonzero(self.failed & envs).tolist()
             raise ResetNeeded(
@@ -167,7 +169,9 @@ class EnvResults:
             final_obs = np.full(self.num_envs, None, dtype=object)
             rows_of = {k: j for j, k in enumerate(step_batch.traj_keys)}
             for i in reset:
-                final_obs[i] = env_observation(self.single_observation_space, trees.row(step_batch.obs, rows_of[self.keys[i]]))
+                final_obs[i] = env_observation(
+                    self.single_observation_space, trees.row(step_batch.obs, rows_of[self.keys[i]])
+                )
             final_info: dict[str, Any] = {}
             ended_rows = np.array([rows_of[self.keys[i]] for i in reset], dtype=np.int64)
             ended_mask = np.zeros(step_batch.n, dtype=bool)
@@ -222,7 +226,9 @@ class EnvResults:
         self.failed[failed] = True
         self.autoreset[failed] = False
         key, type_name, message = errors[0]
-        logger.warning("envs %s raised (first: env %d %s: %s); they must be reset", failed, self.key_index[key], type_name, message)
+        logger.warning(
+            "envs %s raised (first: env %d %s: %s); they must be reset", failed, self.key_index[key], type_name, message
+        )
         raise builtin_exception(type_name, message)
 
     def _add_batch_info(

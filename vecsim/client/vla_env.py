@@ -128,7 +128,9 @@ class VLAEnv:
         self.num_states = {task: self.vector_env.client.num_states[task] for task in set(self.task_ids)}
         self.action_dim = int(np.prod(self.vector_env.single_action_space.shape))
         # The policy's state vector: LIBERO's 8-float state where the job serves it.
-        self.state_key = "state" if "state" in getattr(self.vector_env.single_observation_space, "spaces", {}) else "proprio"
+        self.state_key = (
+            "state" if "state" in getattr(self.vector_env.single_observation_space, "spaces", {}) else "proprio"
+        )
         self._obs: Any = None
 
     @property
@@ -267,7 +269,10 @@ class VLAEnv:
         """The observation's arrays under this env's key names (batched or one env's)."""
         images = obs.get("images", {})
         if self.keys == "vecsim":
-            named = {"images": {self.camera_keys.get(c, c): image for c, image in images.items()}, "proprio": obs["proprio"]}
+            named = {
+                "images": {self.camera_keys.get(c, c): image for c, image in images.items()},
+                "proprio": obs["proprio"],
+            }
             if "state" in obs:
                 named["state"] = obs["state"]
             return named

@@ -163,8 +163,7 @@ def same_render_assets(first: mujoco.MjModel, second: mujoco.MjModel) -> bool:
         return False
     ours, theirs = _render_assets(first), _render_assets(second)
     return len(ours) == len(theirs) and all(
-        name == other and _same_bytes(value, other_value)
-        for (name, value), (other, other_value) in zip(ours, theirs)
+        name == other and _same_bytes(value, other_value) for (name, value), (other, other_value) in zip(ours, theirs)
     )
 
 
@@ -205,8 +204,12 @@ class _GL:
                 cls.context, cls.priority = _egl_context(priority)
             elif backend in ("osmesa", "glfw"):
                 if priority != "medium":
-                    log.warning("%s=%s applies to EGL only; MUJOCO_GL=%s renders at its default priority",
-                                RENDER_PRIORITY_ENV, priority, backend)
+                    log.warning(
+                        "%s=%s applies to EGL only; MUJOCO_GL=%s renders at its default priority",
+                        RENDER_PRIORITY_ENV,
+                        priority,
+                        backend,
+                    )
                 if backend == "osmesa":
                     from mujoco.osmesa import GLContext
                 else:
@@ -343,9 +346,7 @@ class BatchRenderer:
         if height < 1 or width < 1:
             raise ValueError(f"camera size must be positive, got height {height} and width {width}")
         if 2 * height > MAX_BUFFER_SIDE or 2 * width > MAX_BUFFER_SIDE:
-            raise ValueError(
-                f"camera size must be at most {MAX_BUFFER_SIDE // 2} a side, got {height}x{width}"
-            )
+            raise ValueError(f"camera size must be at most {MAX_BUFFER_SIDE // 2} a side, got {height}x{width}")
         self.settings = render_presets.settings(preset)
         self.preset = preset if isinstance(preset, str) else "custom"
         self.height = height
@@ -496,7 +497,9 @@ class BatchRenderer:
             shared.simplified = mesh_lod.simplify_meshes(shared.model, cell)
             log.debug(
                 "meshes simplified on a %.4g m grid: %d of %d triangles kept",
-                cell, shared.simplified.faces_after, shared.simplified.faces_before,
+                cell,
+                shared.simplified.faces_after,
+                shared.simplified.faces_before,
             )
         return mesh_lod.drawn_with(shared.model, shared.simplified)
 

@@ -55,7 +55,10 @@ def assignment_spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasiu
         if first is None:
             first = (block.task_id, observation_space, action_space)
         else:
-            for what, space, reference in (("observation", observation_space, first[1]), ("action", action_space, first[2])):
+            for what, space, reference in (
+                ("observation", observation_space, first[1]),
+                ("action", action_space, first[2]),
+            ):
                 if space != reference:
                     raise SpacesDifferError(
                         f"tasks: {block.task_id!r} and {first[0]!r} have different {what} spaces ({space} and "
@@ -200,9 +203,7 @@ def _finite(chunk: np.ndarray, ids: np.ndarray, space: gymnasium.Space) -> np.nd
     if not finite.all():
         row, k = (int(i[0]) for i in np.nonzero(~finite))
         where = f"action {k} of the chunk" if chunk.shape[1] > 1 else "the action"
-        raise InvalidRequestError(
-            f"actions: {where} for env {int(ids[row])} is not finite (NaN, inf or too large)"
-        )
+        raise InvalidRequestError(f"actions: {where} for env {int(ids[row])} is not finite (NaN, inf or too large)")
     return in_kind_of(chunk, space.dtype)
 
 

@@ -168,7 +168,11 @@ def drawn_with(model: mujoco.MjModel, simplified: SimplifiedMeshes) -> Iterator[
     ]
     try:
         for (mesh, start, _, normal_start), face, facenormal, facetexcoord, normal_indices, normal in zip(
-            saved, simplified.face, simplified.facenormal, simplified.facetexcoord, simplified.normal_index,
+            saved,
+            simplified.face,
+            simplified.facenormal,
+            simplified.facetexcoord,
+            simplified.normal_index,
             simplified.normal,
         ):
             end = start + len(face)
@@ -260,8 +264,10 @@ def _simplify(
 
     new_face = kept_vert[vert_cell[face]]
     face_cells = vert_cell[face]
-    keep = (face_cells[:, 0] != face_cells[:, 1]) & (face_cells[:, 1] != face_cells[:, 2]) & (
-        face_cells[:, 0] != face_cells[:, 2]
+    keep = (
+        (face_cells[:, 0] != face_cells[:, 1])
+        & (face_cells[:, 1] != face_cells[:, 2])
+        & (face_cells[:, 0] != face_cells[:, 2])
     )
     moved = vert[new_face]
     new_cross = np.cross(moved[:, 1] - moved[:, 0], moved[:, 2] - moved[:, 0])
@@ -322,9 +328,7 @@ def _boundary_quadrics(
     plane = np.concatenate([normal, -(normal * vert[first]).sum(axis=1, keepdims=True)], axis=1)
     terms = plane[:, rows] * plane[:, cols] * (along**2).sum(axis=1)[:, None]
     cell_of = np.concatenate([vert_cell[first], vert_cell[second]])
-    return np.stack(
-        [np.bincount(cell_of, np.tile(terms[:, k], 2), minlength=cells) for k in range(len(rows))], axis=1
-    )
+    return np.stack([np.bincount(cell_of, np.tile(terms[:, k], 2), minlength=cells) for k in range(len(rows))], axis=1)
 
 
 def _corners(

@@ -78,7 +78,20 @@ _RUN_HEAD = struct.Struct("<BBBBIQ")
 # The dtypes actions travel in (those of the wire, vecsim.wire).
 _ACTION_DTYPES = tuple(
     np.dtype(name)
-    for name in ("bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64", "float16", "float32", "float64")
+    for name in (
+        "bool",
+        "int8",
+        "int16",
+        "int32",
+        "int64",
+        "uint8",
+        "uint16",
+        "uint32",
+        "uint64",
+        "float16",
+        "float32",
+        "float64",
+    )
 )
 _DTYPE_CODES = {dtype: code for code, dtype in enumerate(_ACTION_DTYPES)}
 _STEP, _STATE, _SEED = 0, 1, 2

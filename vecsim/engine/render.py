@@ -146,8 +146,7 @@ def apply_to_gymnasium(env: Any, preset: RenderPreset | str) -> Any:
     renderer = getattr(base, "mujoco_renderer", None)
     if renderer is None or base.render_mode != "rgb_array":
         raise ValueError(
-            f"render: {base.spec.id if base.spec else type(base).__name__} is not a MuJoCo env "
-            "rendering rgb arrays"
+            f"render: {base.spec.id if base.spec else type(base).__name__} is not a MuJoCo env rendering rgb arrays"
         )
     apply_to_model(base.model, preset)
     with _meshes(base.model, settings(preset).mesh_cell):

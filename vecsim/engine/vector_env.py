@@ -257,7 +257,11 @@ class TaskGroupedVectorEnv:
         both = np.intersect1d(reset_ids, ids)
         if both.size:
             raise InvalidRequestError(f"reset_env_indices: env {int(both[0])} is also stepped (env_indices)")
-        chunk = checks.chunk(actions, ids, self.single_action_space, self.max_chunk) if chunked else checks.actions(actions, ids, self.single_action_space)
+        chunk = (
+            checks.chunk(actions, ids, self.single_action_space, self.max_chunk)
+            if chunked
+            else checks.actions(actions, ids, self.single_action_space)
+        )
         recorded = checks.record(record_env_indices, ids)
         if reset_ids.size and ids.size and chunk.shape[1]:
             return self._step_chunks(ids, chunk, recorded, bool(step_past_end), (reset_ids, states))
@@ -295,7 +299,10 @@ class TaskGroupedVectorEnv:
             all_ids = np.concatenate([ids, reset[0]])
         for worker, rows in self._by_worker(workers[:n], local_indices[:n]):
             step = Order(
-                local_indices[rows], actions=chunk[rows], record=record[rows] if recorded.size else None, past_end=past_end
+                local_indices[rows],
+                actions=chunk[rows],
+                record=record[rows] if recorded.size else None,
+                past_end=past_end,
             )
             # A worker with envs of both runs its resets, then its steps, in one order.
             orders[worker] = (orders[worker], step) if worker in orders else step
@@ -386,7 +393,11 @@ class TaskGroupedVectorEnv:
         return [(int(ordered[first]), rows[first:last]) for first, last in itertools.pairwise(bounds) if last > first]
 
     def _run(
-        self, orders: dict[int, Order | tuple[Order, ...]], workers: np.ndarray, local_indices: np.ndarray, ids: np.ndarray
+        self,
+        orders: dict[int, Order | tuple[Order, ...]],
+        workers: np.ndarray,
+        local_indices: np.ndarray,
+        ids: np.ndarray,
     ) -> tuple[answers.EnvRows, dict[int, Reply]]:
         """Send each worker of ``orders`` its order (no other worker hears of the call); return what
         they left for envs ``ids`` (at ``workers``, ``local_indices``) row by row, and their replies."""

@@ -319,7 +319,12 @@ class Worker:
         return last
 
     def _reset_env(
-        self, local: int, state_id: int, seed: int | None = None, seeded: bool = False, options: dict[str, Any] | None = None
+        self,
+        local: int,
+        state_id: int,
+        seed: int | None = None,
+        seeded: bool = False,
+        options: dict[str, Any] | None = None,
     ) -> None:
         """Reset one env: to fixed state ``state_id``, or (``seeded``) the env's own reset with
         ``seed`` and ``options``."""
@@ -401,7 +406,9 @@ class Worker:
         physics_s = stepped - started - render_s
         self._render(touched)
         render_s += time.perf_counter() - stepped
-        renders = sum(len(frames) for _, frames in recorded) + (len(touched) if self._envs and self._envs[0].renderer else 0)
+        renders = sum(len(frames) for _, frames in recorded) + (
+            len(touched) if self._envs and self._envs[0].renderer else 0
+        )
         return Reply(physics_s, render_s, renders, recorded, self._infos, self._errors)
 
     def env_attr(self, requests: dict[int, tuple[str, str, Any]]) -> list[tuple[int, bool, Any]]:
@@ -433,7 +440,10 @@ class Worker:
         names = self._envs[0].image_names
         views = [self._envs[local].camera_views[camera] for camera in range(len(names)) for local in local_indices]
         frames = self._envs[0].renderer.render(views)
-        return {name: frames[index * len(local_indices) : (index + 1) * len(local_indices)] for index, name in enumerate(names)}
+        return {
+            name: frames[index * len(local_indices) : (index + 1) * len(local_indices)]
+            for index, name in enumerate(names)
+        }
 
     def _render(self, local_indices: list[int]) -> None:
         if not local_indices or self._envs[0].renderer is None:
@@ -457,7 +467,9 @@ def _index_tree(tree: Any, index: int) -> Any:
     return tree[index]
 
 
-def worker_process(index: int, spec: WorkerSpec, pipe: multiprocessing.connection.Connection, shared: Any, workers: int) -> None:
+def worker_process(
+    index: int, spec: WorkerSpec, pipe: multiprocessing.connection.Connection, shared: Any, workers: int
+) -> None:
     """A worker process: build a :class:`Worker` writing into its part of ``shared``, then answer
     orders until the pipe closes: a binary run order (:func:`~vecsim.engine.protocol.decode_run`) or an ``(order, args)``
     object, each with ``(True, result)``; a failure answers ``(False, (type name, message,

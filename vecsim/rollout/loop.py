@@ -29,7 +29,6 @@ the rollout: its trajectories are reported lost by traj_key (:attr:`RolloutResul
 their route, to resample), no waiting request starts on it, and every other trajectory runs on.
 """
 
-
 from __future__ import annotations
 
 import logging
@@ -174,7 +173,9 @@ class EnvLoop:
             raise ValueError(f"horizons: need one per request ({len(requests)}), got {len(caps)}")
         bad = [i for i, h in enumerate(caps) if not 1 <= h <= self.horizon]
         if bad:
-            raise ValueError(f"horizons[{bad[0]}] is {caps[bad[0]]}: each must be 1..{self.horizon} (the loop's horizon)")
+            raise ValueError(
+                f"horizons[{bad[0]}] is {caps[bad[0]]}: each must be 1..{self.horizon} (the loop's horizon)"
+            )
         cap_of = dict(zip(keys, caps))
         stages = [stage_of(i, self.client.num_stages) for i in range(len(requests))] if requests else []
         first = _first_wave(self.client.routing, requests, stages)
@@ -184,8 +185,9 @@ class EnvLoop:
         if not routes:
             return RolloutResult({}, RolloutStats())
         placed = set(first)
-        waiting = {stage: [i for i in range(len(requests)) if i not in placed and stages[i] == stage]
-                   for stage in set(stages)}
+        waiting = {
+            stage: [i for i in range(len(requests)) if i not in placed and stages[i] == stage] for stage in set(stages)
+        }
         instructions = self.client.instructions
         buffers = {key: _Buffer(key, route, self.keep_obs, cap_of[key]) for key, route in routes.items()}
         recorded = self._recorded_keys(keys)
@@ -193,8 +195,10 @@ class EnvLoop:
         clock = Clock(started, self.log_every_s)
         # A lane is one stage's envs on one pod, (stage, pod): the unit a call goes to. A pod of
         # the 'slices' layout is in a lane of every stage, each with a call of its own.
-        stage_pods = {stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
-                      for stage in self.client.routing.stages}
+        stage_pods = {
+            stage.stage_id: [(stage.stage_id, routed.pod) for routed in stage.pods]
+            for stage in self.client.routing.stages
+        }
         inflight = _InFlight()
         lost: dict[str, LostTrajectory] = {}
         failed: set[str] = set()  # pods that failed a call: no request is started on them any more
@@ -202,8 +206,15 @@ class EnvLoop:
         try:
             # Reset every lane at once; then serve whichever stage is next in line, lane by lane.
             for lane in (lane for lanes in stage_pods.values() for lane in lanes):
-                self._send(lane, [key for key, route in routes.items() if (route.stage_id, route.pod) == lane], None,
-                           inflight, buffers, lost, recorded)
+                self._send(
+                    lane,
+                    [key for key, route in routes.items() if (route.stage_id, route.pod) == lane],
+                    None,
+                    inflight,
+                    buffers,
+                    lost,
+                    recorded,
+                )
             turn = -1  # the stage served last
             while inflight.calls:
                 stage = clock.next_ready(inflight, turn)  # the next stage in turn with a pod's answer in
@@ -224,7 +235,9 @@ class EnvLoop:
                 # Refill: the waiting requests of this stage start on the envs free now, on pods
                 # without a call in flight (the ones just landed first).
                 idle = landed + [pod for pod in stage_pods[stage] if pod not in inflight.calls and pod not in landed]
-                resets = self._refill(stage, waiting.get(stage, []), ended, requests, keys, cap_of, idle, failed, buffers)
+                resets = self._refill(
+                    stage, waiting.get(stage, []), ended, requests, keys, cap_of, idle, failed, buffers
+                )
                 stepped = list(dict.fromkeys(pod for pod, _, _ in live))
                 for pod in resets:
                     if pod not in stepped:  # nothing to step there: reset at once, before the policy
@@ -503,8 +516,10 @@ class _Buffer:
             self.observations.append(_take_row(batch.obs, row, self.keep_obs))
         if self.sent is not None:  # a step answer
             applied = int(batch.num_steps[row])
-            per_action = [np.reshape(values[row], -1)[:applied] for values in
-                          (batch.reward, batch.terminated, batch.truncated, batch.success)]
+            per_action = [
+                np.reshape(values[row], -1)[:applied]
+                for values in (batch.reward, batch.terminated, batch.truncated, batch.success)
+            ]
             reward, terminated, truncated, success = per_action
             self.actions.extend(self.sent[:applied])
             self.rewards.extend(float(r) for r in reward)
@@ -539,7 +554,9 @@ class _Buffer:
         return Trajectory(
             traj_key=self.key,
             route=self.route,
-            observations=trees.map_leaves(torch.from_numpy, trees.stack(self.observations)) if self.observations else {},
+            observations=trees.map_leaves(torch.from_numpy, trees.stack(self.observations))
+            if self.observations
+            else {},
             actions=torch.from_numpy(np.stack(self.actions)) if self.actions else torch.zeros((0, *action_dim)),
             rewards=torch.tensor(self.rewards, dtype=torch.float32),
             dones=dones,
@@ -632,8 +649,10 @@ class Clock:
         self.timeline.append(("sim", stage, batch.submitted_at - self.started, batch.finished_at - self.started))
 
     def in_policy(self, stage: int) -> Interval:
-        return Interval(self.policy, lambda begin, end: self.timeline.append(
-            ("policy", stage, begin - self.started, end - self.started)))
+        return Interval(
+            self.policy,
+            lambda begin, end: self.timeline.append(("policy", stage, begin - self.started, end - self.started)),
+        )
 
     def maybe_log(self, buffers: Mapping[str, _Buffer]) -> None:
         now = time.perf_counter()

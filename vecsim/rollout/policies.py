@@ -15,7 +15,6 @@ from gymnasium import spaces
 from torch import nn
 
 
-
 def _hash_bucket(text: str, buckets: int) -> int:
     # crc32, not hash(): Python salts str hashes per process.
     return zlib.crc32(text.encode()) % buckets

@@ -31,8 +31,6 @@ class Recorder:
             self.frames[key].append(np.array(batch.obs["images"][self.camera][row]))
 
 
-
-
 def write_video(path: str | Path, frames: Sequence[np.ndarray], fps: int = 10) -> Path:
     """Write uint8 ``HxWx3`` frames to ``path``: ``.gif`` with Pillow, anything else with ffmpeg.
 

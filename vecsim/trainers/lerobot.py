@@ -169,7 +169,10 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
         self.observation_space = spaces.Dict(
             {
                 "pixels": spaces.Dict(
-                    {key: spaces.Box(0, 255, (self.num_envs, *served["images"][name].shape), np.uint8) for name, key in self.camera_keys.items()}
+                    {
+                        key: spaces.Box(0, 255, (self.num_envs, *served["images"][name].shape), np.uint8)
+                        for name, key in self.camera_keys.items()
+                    }
                 ),
                 "robot_state": _batched(_robot_state_space(), self.num_envs),
             }
@@ -181,7 +184,9 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
 
     # -- resets as LeRobot's LiberoEnv makes them ------------------------------------------------
 
-    def reset_async(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None) -> None:
+    def reset_async(
+        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> None:
         """:meth:`HTTPVectorEnv.reset_async`; with seeds, each env's reset is LeRobot's under its
         seed (see the class docstring).
 
@@ -222,7 +227,9 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
                 raise ValueError(f"seed for env {i} is {seeds[i]}; LIBERO's env.seed takes 0..{_MAX_LIBERO_SEED}")
             entry = {"state_id": self._draws.next_state(i), "resets_before": int(self._draws.resets[i])}
             if plan.setdefault(str(seeds[i]), entry) != entry:
-                raise ValueError(f"seed {seeds[i]} is given to envs of different init states; give each env its own seed")
+                raise ValueError(
+                    f"seed {seeds[i]} is given to envs of different init states; give each env its own seed"
+                )
         return plan
 
     def _state_draws(self, task_ids: list[str], num_states: dict[str, int]) -> StateDraws:
@@ -309,7 +316,9 @@ class LeRobotVectorEnv(HTTPVectorEnv, AsyncVectorEnv):
 def _batched(space: spaces.Dict, n: int) -> spaces.Dict:
     return spaces.Dict(
         {
-            key: _batched(sub, n) if isinstance(sub, spaces.Dict) else spaces.Box(-np.inf, np.inf, (n, *sub.shape), sub.dtype)
+            key: _batched(sub, n)
+            if isinstance(sub, spaces.Dict)
+            else spaces.Box(-np.inf, np.inf, (n, *sub.shape), sub.dtype)
             for key, sub in space.spaces.items()
         }
     )

@@ -158,7 +158,11 @@ class VecsimLiberoEnv(LiberoBookkeeping):
             raise ValueError(f"vecsim.settle_steps must be a non-negative int or unset, got {self._settle_steps!r}")
         self._camera_keys = camera_key_map(_opt(vcfg, "camera_keys", "rlinf"))
         self._heal_wait_s = _opt(vcfg, "heal_wait_s", 600.0)
-        if isinstance(self._heal_wait_s, bool) or not isinstance(self._heal_wait_s, (int, float)) or self._heal_wait_s < 0:
+        if (
+            isinstance(self._heal_wait_s, bool)
+            or not isinstance(self._heal_wait_s, (int, float))
+            or self._heal_wait_s < 0
+        ):
             raise ValueError(f"vecsim.heal_wait_s must be a number of seconds >= 0, got {self._heal_wait_s!r}")
         self._closed = False
 

@@ -147,8 +147,12 @@ def __getattr__(name: str) -> Any:
     if name == "LiberoEnv":
         from verl_vla.envs.base import BaseEnv
 
-        made: type = types.new_class(name, (VecsimLiberoEnv, BaseEnv), exec_body=lambda ns: ns.update(__module__=__name__))
-        made.__doc__ = "verl-vla's LIBERO env on a vecsim job: :class:`VecsimLiberoEnv` ahead of verl-vla's ``BaseEnv``."
+        made: type = types.new_class(
+            name, (VecsimLiberoEnv, BaseEnv), exec_body=lambda ns: ns.update(__module__=__name__)
+        )
+        made.__doc__ = (
+            "verl-vla's LIBERO env on a vecsim job: :class:`VecsimLiberoEnv` ahead of verl-vla's ``BaseEnv``."
+        )
     elif name == "VecsimSimulatorConfig":
         from verl_vla.workers.env.config import SimulatorConfig
 
@@ -241,7 +245,9 @@ class VecsimLiberoEnv:
         # Eval simulators come after every train simulator's envs when the worker runs both.
         modes = [str(mode) for mode in _get(self.cfg, "modes", ["train"])]
         first_process = self.global_process_count if self.only_eval and "train" in modes else 0
-        role_envs = np.arange(first_process * self.num_envs, (first_process + self.global_process_count) * self.num_envs)
+        role_envs = np.arange(
+            first_process * self.num_envs, (first_process + self.global_process_count) * self.num_envs
+        )
         start = (first_process + self.global_process_id) * self.num_envs
         if role_envs[-1] >= self.vla.num_envs:
             self.vla.close()
@@ -273,7 +279,9 @@ class VecsimLiberoEnv:
         (eval, or train where the worker runs no eval) serve, once."""
         return int(sum(self.vla.num_states[task] for task in self._benchmark_first))
 
-    def env_reset(self, *, env_ids: Any, reset_eval: bool = False, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    def env_reset(
+        self, *, env_ids: Any, reset_eval: bool = False, extra: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
         """Reset this process's envs ``env_ids`` to states of their own tasks (train: drawn;
         eval: each env's next state of its eval queue; ``extra["info.reset_state_id"]``: that
         suite-global id) and return verl-vla's reset observation (libero_env.py:320-376).
@@ -295,7 +303,9 @@ class VecsimLiberoEnv:
         if reset_eval:
             self._eval_cursor[:] = 0
         self.reset_state_ids[ids] = gids
-        self.eval_episode_ids[ids] = [self._episode_id(i, g) for i, g in zip(ids, gids)] if self.only_eval or extra is not None else -1
+        self.eval_episode_ids[ids] = (
+            [self._episode_id(i, g) for i, g in zip(ids, gids)] if self.only_eval or extra is not None else -1
+        )
         if self.only_eval and extra is None:
             self._eval_cursor[ids] += 1
         return self._observations(obs, self.job_env_ids[ids], ids)
@@ -316,7 +326,9 @@ class VecsimLiberoEnv:
                 f"action must have shape [{ids.size}, {self.vla.action_dim}] for env_ids {ids.tolist()}, "
                 f"got {list(action.shape)}"
             )
-        obs, rewards, terminations, truncations, _ = self.vla.chunk_step(action[:, None, :], env_ids=self.job_env_ids[ids])
+        obs, rewards, terminations, truncations, _ = self.vla.chunk_step(
+            action[:, None, :], env_ids=self.job_env_ids[ids]
+        )
         return self._step_result(obs, ids, rewards[:, 0], terminations[:, 0], truncations[:, 0])
 
     def env_close(self) -> None:
@@ -353,8 +365,15 @@ class VecsimLiberoEnv:
         if not self.whole_chunks():
             return super().step(action, **kwargs)  # type: ignore[misc]
         action = _numpy(action)
-        if action.ndim != 3 or action.shape[0] != self.num_envs or action.shape[1] < 1 or action.shape[2] != self.vla.action_dim:
-            raise ValueError(f"action must have shape [{self.num_envs}, T >= 1, {self.vla.action_dim}], got {list(action.shape)}")
+        if (
+            action.ndim != 3
+            or action.shape[0] != self.num_envs
+            or action.shape[1] < 1
+            or action.shape[2] != self.vla.action_dim
+        ):
+            raise ValueError(
+                f"action must have shape [{self.num_envs}, T >= 1, {self.vla.action_dim}], got {list(action.shape)}"
+            )
         every = np.arange(self.num_envs)
         obs, rewards, terminations, truncations, _ = self.vla.chunk_step(action, env_ids=self.job_env_ids)
         # What the executor leaves after T one-action steps (base.py:254-280): the merged result
@@ -364,12 +383,14 @@ class VecsimLiberoEnv:
         self._execution_merged_step_result = {key: value for key, value in last.items() if key != "extra"}
         self._execution_done |= (terminations | truncations).any(axis=1)
         steps = [
-            _Executed({
-                "next.reward": rewards[:, k].copy(),
-                "next.terminated": terminations[:, k].copy(),
-                "next.truncated": truncations[:, k].copy(),
-                "next.success": terminations[:, k].copy(),
-            })
+            _Executed(
+                {
+                    "next.reward": rewards[:, k].copy(),
+                    "next.terminated": terminations[:, k].copy(),
+                    "next.truncated": truncations[:, k].copy(),
+                    "next.success": terminations[:, k].copy(),
+                }
+            )
             for k in range(action.shape[1])
         ]
         result, _reset_mask = self._finish_execution_slice(steps)  # type: ignore[attr-defined]
@@ -393,7 +414,9 @@ class VecsimLiberoEnv:
             sharing = by_task[task]
             rows = np.arange(sharing.index(job_env), self.vla.num_states[task], len(sharing))
             numbering = self._numbering[suite_of(task)]
-            queues.append(np.array([numbering.global_state_id(suite_task_index(task), r) for r in rows], dtype=np.int64))
+            queues.append(
+                np.array([numbering.global_state_id(suite_task_index(task), r) for r in rows], dtype=np.int64)
+            )
         return queues
 
     def _eval_state(self, i: int, cursor: int) -> int:
@@ -475,7 +498,9 @@ def _reset_state_id(extra: Any) -> int:
     """
     field = "extra['info.reset_state_id']"
     if not hasattr(extra, "get") or extra.get("info.reset_state_id") is None:
-        raise ValueError(f"{field} must hold one integer state id; extra has {sorted(extra) if hasattr(extra, 'keys') else extra!r}")
+        raise ValueError(
+            f"{field} must hold one integer state id; extra has {sorted(extra) if hasattr(extra, 'keys') else extra!r}"
+        )
     value = extra.get("info.reset_state_id")
     values = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value).reshape(-1)
     if values.size != 1 or values.dtype.kind not in "iuf":

@@ -36,7 +36,14 @@ from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
 from .errors import BrokenAnswer, ConnectTimedOut, ReadTimedOut, UnsendableRequest, UnsupportedURL, failure_of, mapped
 
-__all__ = ["IDEMPOTENCY_KEY", "MAX_CHUNKS", "MAX_FRAMING_BYTES", "MAX_HEAD_BYTES", "HttptoolsTransport", "MayHaveBeenAppliedError"]
+__all__ = [
+    "IDEMPOTENCY_KEY",
+    "MAX_CHUNKS",
+    "MAX_FRAMING_BYTES",
+    "MAX_HEAD_BYTES",
+    "HttptoolsTransport",
+    "MayHaveBeenAppliedError",
+]
 
 # An answer's head (status line and headers) larger than this is refused: llhttp sets no bound,
 # and httptools gathers a header's pieces in memory until it ends. A pod's head is ~200 bytes.
@@ -330,7 +337,9 @@ class _Body(httpx.AsyncByteStream):
     """An answer's body for httpx's interface: its pieces as they arrive; the connection goes
     back to its transport once the body ended, and is closed if the reader stops before."""
 
-    def __init__(self, owner: HttptoolsTransport, connection: _Connection, request: httpx.Request, read_s: float | None) -> None:
+    def __init__(
+        self, owner: HttptoolsTransport, connection: _Connection, request: httpx.Request, read_s: float | None
+    ) -> None:
         self._owner = owner
         self._connection = connection
         self._request = request
@@ -371,7 +380,9 @@ class HttptoolsTransport(Transport):
     the server's certificate and host name checked).
     """
 
-    def __init__(self, *, ssl_context: ssl.SSLContext | None = None, max_idle_per_origin: int = MAX_IDLE_PER_ORIGIN) -> None:
+    def __init__(
+        self, *, ssl_context: ssl.SSLContext | None = None, max_idle_per_origin: int = MAX_IDLE_PER_ORIGIN
+    ) -> None:
         if max_idle_per_origin < 0:
             raise ValueError(f"max_idle_per_origin must be >= 0, got {max_idle_per_origin}")
         self._max_idle = max_idle_per_origin
@@ -383,7 +394,9 @@ class HttptoolsTransport(Transport):
 
     # connections
 
-    async def _connection(self, origin: tuple[str, str, int], connect_s: float | None, fresh: bool = False) -> _Connection:
+    async def _connection(
+        self, origin: tuple[str, str, int], connect_s: float | None, fresh: bool = False
+    ) -> _Connection:
         if self._closed:
             raise RuntimeError("the transport is closed")
         idle = None if fresh else self._idle.get(origin)
@@ -527,7 +540,9 @@ class HttptoolsTransport(Transport):
             extensions={"http_version": b"HTTP/1.1", "reason_phrase": connection.reason},
         )
 
-    def _cached_head(self, method: str, url: str, headers: tuple[tuple[str, str], ...]) -> tuple[tuple[str, str, int], bytes]:
+    def _cached_head(
+        self, method: str, url: str, headers: tuple[tuple[str, str], ...]
+    ) -> tuple[tuple[str, str, int], bytes]:
         """The origin and the head (without its Content-Length) of a request, made once per kind."""
         key = (method, url, headers)
         cached = self._heads.get(key)
@@ -563,7 +578,9 @@ class HttptoolsTransport(Transport):
             origin, head = self._cached_head(method, url, headers)
             keyed = b"".join(b"%s: %s\r\n" % (IDEMPOTENCY_KEY.encode(), _header_value(v)) for v in key)
             data = b"%s%sContent-Length: %d\r\n\r\n%s" % (head, keyed, len(body), body)
-            connection = await self._send(origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS)
+            connection = await self._send(
+                origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS
+            )
             try:
                 reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
                 while True:
@@ -592,4 +609,3 @@ class HttptoolsTransport(Transport):
 
 def _text_headers(headers: Sequence[tuple[bytes, bytes]]) -> list[tuple[str, str]]:
     return [(name.decode("latin-1"), value.decode("latin-1")) for name, value in headers]
-

@@ -14,9 +14,7 @@ from ..state import ControllerState
 
 router = APIRouter(prefix="/v1/pods", tags=["pods"])
 
-POD_NAME = Path(
-    min_length=1, max_length=63, pattern=POD_NAME_PATTERN, description="stable pod name, e.g. sim-0"
-)
+POD_NAME = Path(min_length=1, max_length=63, pattern=POD_NAME_PATTERN, description="stable pod name, e.g. sim-0")
 
 
 @router.post("", response_model=PodRecord, summary="Register a pod (again, after a restart)")

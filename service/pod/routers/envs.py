@@ -71,7 +71,9 @@ def _answer_doc(model: type[Any]) -> dict[int | str, dict[str, Any]]:
     }
 
 
-def _own(answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]], errors: list[EnvError]) -> dict[str, Any]:
+def _own(
+    answer: dict[str, Any], ids: np.ndarray, env_info: list[dict[str, Any]], errors: list[EnvError]
+) -> dict[str, Any]:
     """Add the envs' own info and the envs that raised to ``answer``; return it."""
     batched = batch_infos(env_info)
     if batched:
@@ -233,12 +235,22 @@ async def _step(state: PodState, request: Request, req: StepRequest) -> Response
         reset: tuple[Any, dict[str, Any]] | None = None
         if resetting:
             reset, result = env.reset_and_step_envs(
-                req.reset_env_indices, req.reset_state_ids, req.env_indices, req.actions, chunked=is_chunk,
-                record_env_indices=req.record_env_indices, step_past_end=req.step_past_end,
+                req.reset_env_indices,
+                req.reset_state_ids,
+                req.env_indices,
+                req.actions,
+                chunked=is_chunk,
+                record_env_indices=req.record_env_indices,
+                step_past_end=req.step_past_end,
             )
             if not is_chunk:  # one action per env: the answer's arrays are [n]
-                result = (result.obs, result.reward[:, 0], result.terminated[:, 0], result.truncated[:, 0],
-                          {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors})
+                result = (
+                    result.obs,
+                    result.reward[:, 0],
+                    result.terminated[:, 0],
+                    result.truncated[:, 0],
+                    {"success": result.success[:, 0], "env_info": result.env_info, "errors": result.errors},
+                )
         elif is_chunk:
             result = env.chunk_step_envs(req.env_indices, req.actions, req.record_env_indices, req.step_past_end)
         else:

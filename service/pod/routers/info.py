@@ -44,7 +44,9 @@ async def info(state: PodState = Depends(get_state)) -> InfoResponse:
         tasks=tasks,
         observation_space=None if env is None else space_to_json(env.single_observation_space),
         # The envs' own action space (a Dict or Tuple one travels flattened as single_action_space).
-        action_space=None if env is None else space_to_json(getattr(env, "served_action_space", env.single_action_space)),
+        action_space=None
+        if env is None
+        else space_to_json(getattr(env, "served_action_space", env.single_action_space)),
         max_chunk=state.settings.max_chunk,
         instance=state.instance,
     )

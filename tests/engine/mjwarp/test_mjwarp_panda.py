@@ -114,8 +114,15 @@ def _controller(index: PandaIndex, start: dict[str, np.ndarray], nworld: int) ->
 def _apply(ctl: PandaController, actions: np.ndarray, data: dict[str, wp.array], mass: str = "M") -> None:
     ctl.apply(
         wp.array(actions.astype(np.float32), device=CPU),
-        data["qpos"], data["qvel"], data[mass], data["qfrc_bias"], data["site_xpos"], data["site_xmat"],
-        data["xanchor"], data["xaxis"], data["ctrl"],
+        data["qpos"],
+        data["qvel"],
+        data[mass],
+        data["qfrc_bias"],
+        data["site_xpos"],
+        data["site_xmat"],
+        data["xanchor"],
+        data["xaxis"],
+        data["ctrl"],
     )
 
 
@@ -217,6 +224,7 @@ def test_state_and_proprio_match_what_libero_returns(recorded):
     assert (proprio[:, 20] < 0).any() and (proprio[:, 20] > 0).any()
     np.testing.assert_allclose(obs.state.numpy(), state, rtol=0, atol=ANGLE_ATOL)
     np.testing.assert_allclose(obs.proprio.numpy(), proprio, rtol=0, atol=POSE_ATOL)
+
 
 def _eef_trajectory(recorded: Recorded, actions: np.ndarray, kernels: bool) -> np.ndarray:
     """The grip site after each action from the recording's start, robosuite's torques replaced

@@ -132,6 +132,7 @@ def scene(request):
 
 def _evaluate(table: GoalTable, frames: list[dict], live: int | None = None) -> GoalEvaluator:
     """Each frame as one world, contacts concatenated with their world ids (MuJoCo Warp's layout)."""
+
     def stack(name: str, dtype) -> wp.array:
         return wp.array(np.stack([f[name] for f in frames]).astype(np.float32), dtype=dtype, device=CPU)
 
@@ -139,7 +140,10 @@ def _evaluate(table: GoalTable, frames: list[dict], live: int | None = None) -> 
     worlds = np.concatenate([np.full(len(f["contacts"]), w, np.int32) for w, f in enumerate(frames)])
     goal = GoalEvaluator(table, len(frames), CPU)
     goal.evaluate(
-        stack("qpos", wp.float32), stack("xpos", wp.vec3), stack("site_xpos", wp.vec3), stack("site_xmat", wp.mat33),
+        stack("qpos", wp.float32),
+        stack("xpos", wp.vec3),
+        stack("site_xpos", wp.vec3),
+        stack("site_xmat", wp.mat33),
         wp.array([len(geoms) if live is None else live], dtype=wp.int32, device=CPU),
         wp.array(geoms, dtype=wp.vec2i, device=CPU),
         wp.array(worlds, dtype=wp.int32, device=CPU),
@@ -202,12 +206,19 @@ def test_joint_thresholds_follow_libero_objects(category):
         threshold = end(obj.object_properties["articulation"][ranges])
         values = values[np.abs(values - threshold) > 1e-6]
         table = GoalTable(
-            atoms=(f"({predicate} {category})",), kind=np.array([JOINTS], np.int32),
-            body=np.zeros(1, np.int32), other_body=np.zeros(1, np.int32), site=np.zeros(1, np.int32),
-            size=np.zeros((1, 3), np.float32), needs_contact=np.zeros(1, np.int32),
-            geom_side=np.zeros((1, 1), np.int32), joint_qpos=np.zeros((1, MAX_JOINTS), np.int32),
-            joint_count=np.ones(1, np.int32), any_joint=np.array([predicate in ("open", "turnon")], np.int32),
-            compare=np.array([compare], np.int32), threshold=np.array([threshold], np.float32),
+            atoms=(f"({predicate} {category})",),
+            kind=np.array([JOINTS], np.int32),
+            body=np.zeros(1, np.int32),
+            other_body=np.zeros(1, np.int32),
+            site=np.zeros(1, np.int32),
+            size=np.zeros((1, 3), np.float32),
+            needs_contact=np.zeros(1, np.int32),
+            geom_side=np.zeros((1, 1), np.int32),
+            joint_qpos=np.zeros((1, MAX_JOINTS), np.int32),
+            joint_count=np.ones(1, np.int32),
+            any_joint=np.array([predicate in ("open", "turnon")], np.int32),
+            compare=np.array([compare], np.int32),
+            threshold=np.array([threshold], np.float32),
         )
         method = getattr(obj, LIBERO_METHODS[predicate])
         expected = np.array([bool(method(v)) for v in values], dtype=np.int32)
@@ -217,7 +228,8 @@ def test_joint_thresholds_follow_libero_objects(category):
             wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU),
             wp.zeros((len(values), 1), dtype=wp.vec3, device=CPU),
             wp.zeros((len(values), 1), dtype=wp.mat33, device=CPU),
-            wp.zeros(1, dtype=wp.int32, device=CPU), wp.zeros(0, dtype=wp.vec2i, device=CPU),
+            wp.zeros(1, dtype=wp.int32, device=CPU),
+            wp.zeros(0, dtype=wp.vec2i, device=CPU),
             wp.zeros(0, dtype=wp.int32, device=CPU),
         )
         np.testing.assert_array_equal(goal.holds.numpy()[:, 0], expected, err_msg=f"{category} {predicate}")

@@ -433,7 +433,9 @@ class PandaController:
     def reset(self, mask: wp.array, initial_joint: wp.array, goal_pos: wp.array, goal_ori: wp.array) -> None:
         """Set the worlds where ``mask`` is 1 to a fresh controller: target joints and goal pose."""
         wp.launch(
-            controller_reset, dim=self.nworld, device=self.device,
+            controller_reset,
+            dim=self.nworld,
+            device=self.device,
             inputs=[mask, initial_joint, goal_pos, goal_ori],
             outputs=[self.initial_joint, self.goal_pos, self.goal_ori, self.gripper_command],
         )
@@ -442,9 +444,19 @@ class PandaController:
         """Take a new env action's arm goal from the current pose (its first substep only)."""
         cfg = self.config
         wp.launch(
-            osc_goal_from_action, dim=self.nworld, device=self.device,
-            inputs=[action, site_xpos, site_xmat, self.index.eef_site, cfg.input_min, cfg.input_max,
-                    self._action_scale, self._action_offset],
+            osc_goal_from_action,
+            dim=self.nworld,
+            device=self.device,
+            inputs=[
+                action,
+                site_xpos,
+                site_xmat,
+                self.index.eef_site,
+                cfg.input_min,
+                cfg.input_max,
+                self._action_scale,
+                self._action_offset,
+            ],
             outputs=[self.goal_pos, self.goal_ori],
         )
 
@@ -465,15 +477,39 @@ class PandaController:
         cfg = self.config
         kd = 2.0 * np.sqrt(cfg.kp) * cfg.damping_ratio
         wp.launch(
-            osc_pose_torques, dim=self.nworld, device=self.device,
-            inputs=[qpos, qvel, mass, qfrc_bias, site_xpos, site_xmat, xanchor, xaxis, self.index.eef_site,
-                    self._arm_joints, self._arm_qpos, self._arm_dofs, self._arm_actuators, self._mass_index,
-                    cfg.kp, float(kd), cfg.nullspace_kp, self._torque_low, self._torque_high,
-                    self.goal_pos, self.goal_ori, self.initial_joint],
+            osc_pose_torques,
+            dim=self.nworld,
+            device=self.device,
+            inputs=[
+                qpos,
+                qvel,
+                mass,
+                qfrc_bias,
+                site_xpos,
+                site_xmat,
+                xanchor,
+                xaxis,
+                self.index.eef_site,
+                self._arm_joints,
+                self._arm_qpos,
+                self._arm_dofs,
+                self._arm_actuators,
+                self._mass_index,
+                cfg.kp,
+                float(kd),
+                cfg.nullspace_kp,
+                self._torque_low,
+                self._torque_high,
+                self.goal_pos,
+                self.goal_ori,
+                self.initial_joint,
+            ],
             outputs=[ctrl],
         )
         wp.launch(
-            panda_gripper_ctrl, dim=self.nworld, device=self.device,
+            panda_gripper_ctrl,
+            dim=self.nworld,
+            device=self.device,
             inputs=[action, cfg.gripper_speed, self._gripper_actuators, self._gripper_low, self._gripper_high],
             outputs=[self.gripper_command, ctrl],
         )

@@ -84,7 +84,9 @@ def check_scene(assignment: Assignment, block: TaskBlock) -> Scene:
     """
     task_id = block.task_id
     if _suite(task_id) not in LIBERO_SUITES:
-        raise InvalidRequestError(f"tasks: {task_id!r} is not a LIBERO task; the mjwarp engine serves LIBERO tasks only")
+        raise InvalidRequestError(
+            f"tasks: {task_id!r} is not a LIBERO task; the mjwarp engine serves LIBERO tasks only"
+        )
     path = scene_dir(task_id, assignment.libero)
     try:
         scene = load_scene(path)
@@ -92,7 +94,9 @@ def check_scene(assignment: Assignment, block: TaskBlock) -> Scene:
         raise InvalidRequestError(f"tasks: {task_id}: {exc}") from None
     goal = scene.manifest["goal"]
     if goal["atoms"] is None:
-        raise InvalidRequestError(f"tasks: {task_id}: the mjwarp engine has no batched success predicate for it: {goal['unsupported']}")
+        raise InvalidRequestError(
+            f"tasks: {task_id}: the mjwarp engine has no batched success predicate for it: {goal['unsupported']}"
+        )
     if scene.manifest["fixtures_vary"]:
         raise InvalidRequestError(
             f"tasks: {task_id}: its fixtures move from one init state to the next, and the mjwarp engine holds "
@@ -119,7 +123,9 @@ def spaces(assignment: Assignment) -> tuple[gymnasium.Space, gymnasium.Space]:
                 f"engine: the mjwarp engine needs the mjwarp extra (pip install 'vecsim[mjwarp]'); missing {missing}"
             )
     if assignment.render not in (None, "full"):
-        raise InvalidRequestError(f"render: the mjwarp engine draws with MuJoCo Warp's ray tracer only; {assignment.render!r} is a CPU preset")
+        raise InvalidRequestError(
+            f"render: the mjwarp engine draws with MuJoCo Warp's ray tracer only; {assignment.render!r} is a CPU preset"
+        )
     if assignment.make_kwargs:
         raise InvalidRequestError("make_kwargs: the mjwarp engine serves LIBERO tasks, which take none")
     for block in assignment.tasks:
@@ -199,7 +205,9 @@ class MjwarpEngine:
             for block in assignment.tasks:
                 if block.num_envs:
                     self._batches.append(self._build(block))
-                    self._num_states[block.env_start : block.env_start + block.num_envs] = self._batches[-1].scene.num_states
+                    self._num_states[block.env_start : block.env_start + block.num_envs] = self._batches[
+                        -1
+                    ].scene.num_states
             log.info("mjwarp: compiling the step, controller, predicates and renderer kernels (first run: minutes)")
             self.reset_envs(np.arange(self.num_envs), np.zeros(self.num_envs, dtype=np.int64))
             actions = np.zeros((self.num_envs, 1, *self.single_action_space.shape), dtype=np.float32)
@@ -210,8 +218,12 @@ class MjwarpEngine:
             raise
         except Exception as exc:
             raise SimBuildError(f"mjwarp: building {self.num_envs} worlds failed: {type(exc).__name__}: {exc}") from exc
-        log.info("mjwarp: %d worlds in %d batches ready in %.1f s (kernels compiled, one chunk run)",
-                 self.num_envs, len(self._batches), time.monotonic() - started)
+        log.info(
+            "mjwarp: %d worlds in %d batches ready in %.1f s (kernels compiled, one chunk run)",
+            self.num_envs,
+            len(self._batches),
+            time.monotonic() - started,
+        )
 
     def _build(self, block: TaskBlock) -> _Batch:
         import mujoco
@@ -242,11 +254,18 @@ class MjwarpEngine:
         camera = self.assignment.camera
         if camera.names:
             render = mjw.create_render_context(
-                mjm, nworld=nworld, cam_res=(camera.width, camera.height), render_rgb=True, render_depth=False,
-                cam_active=list(camera.names), enabled_geom_groups=GEOM_GROUPS,
+                mjm,
+                nworld=nworld,
+                cam_res=(camera.width, camera.height),
+                render_rgb=True,
+                render_depth=False,
+                cam_active=list(camera.names),
+                enabled_geom_groups=GEOM_GROUPS,
             )
         limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
-        log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
+        log.info(
+            "mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv
+        )
         action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
         batch = _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action)
         if render is not None:
@@ -281,7 +300,12 @@ class MjwarpEngine:
             self.last_timing = CallTiming(physics_s=physics, render_s=render_s, renders=renders)
             obs = self._gather(ids)
             success = self._last_success[ids].copy()
-        info = {"success": success, "task_id": [self.task_ids[e] for e in ids], "env_info": [{} for _ in ids], "errors": []}
+        info = {
+            "success": success,
+            "task_id": [self.task_ids[e] for e in ids],
+            "env_info": [{} for _ in ids],
+            "errors": [],
+        }
         return obs, info
 
     def step_envs(self, env_indices: Any, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
@@ -308,7 +332,9 @@ class MjwarpEngine:
         num_steps = np.zeros(n, dtype=np.int32)
         errors: list[EnvError] = []
         if n == 0 or k == 0:
-            return ChunkResult(self._gather(ids), reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], [])
+            return ChunkResult(
+                self._gather(ids), reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], []
+            )
         with self._lock:
             self._check_open()
             started = time.perf_counter()
@@ -318,7 +344,19 @@ class MjwarpEngine:
                     errors.append(EnvError(int(r), "SimStateError", self._broken[int(ids[r])]))
                 live = np.array([r for r in rows if r not in broken], dtype=np.int64)
                 if live.size:
-                    self._step_batch(batch, ids, live, chunk, reward, terminated, truncated, success, num_steps, step_past_end, errors)
+                    self._step_batch(
+                        batch,
+                        ids,
+                        live,
+                        chunk,
+                        reward,
+                        terminated,
+                        truncated,
+                        success,
+                        num_steps,
+                        step_past_end,
+                        errors,
+                    )
             physics = time.perf_counter() - started
             moved = ids[num_steps > 0]
             render_s, renders = self._render(moved)
@@ -416,8 +454,10 @@ class MjwarpEngine:
         goal_ori[worlds] = recorded["goal_ori"][states]
         device = batch.controller.device
         batch.controller.reset(
-            wp.array(mask, dtype=wp.int32, device=device), wp.array(full, dtype=wp.float32, device=device),
-            wp.array(goal_pos, dtype=wp.vec3, device=device), wp.array(goal_ori, dtype=wp.mat33, device=device),
+            wp.array(mask, dtype=wp.int32, device=device),
+            wp.array(full, dtype=wp.float32, device=device),
+            wp.array(goal_pos, dtype=wp.vec3, device=device),
+            wp.array(goal_ori, dtype=wp.mat33, device=device),
         )
         command = batch.controller.gripper_command.numpy()
         command[worlds] = recorded["gripper_action"][states]
@@ -594,15 +634,26 @@ def _action_substeps(batch: _Batch) -> None:
         mjw.step1(model, data)
         if substep == 0:
             controller.set_goal(action, data.site_xpos, data.site_xmat)
-        controller.apply(action, data.qpos, data.qvel, data.M, data.qfrc_bias, data.site_xpos,
-                         data.site_xmat, data.xanchor, data.xaxis, data.ctrl)
+        controller.apply(
+            action,
+            data.qpos,
+            data.qvel,
+            data.M,
+            data.qfrc_bias,
+            data.site_xpos,
+            data.site_xmat,
+            data.xanchor,
+            data.xaxis,
+            data.ctrl,
+        )
         mjw.step2(model, data)
         if substep == sample:
             batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
             for name, view in (batch.view or {}).items():
                 wp.copy(view, getattr(data, name))
-    batch.goal.evaluate(data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon,
-                        data.contact.geom, data.contact.worldid)
+    batch.goal.evaluate(
+        data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon, data.contact.geom, data.contact.worldid
+    )
 
 
 def _apply_action(batch: _Batch) -> None:
@@ -627,10 +678,15 @@ def _apply_action(batch: _Batch) -> None:
 
 # Overflows that make a world's trajectory wrong (MuJoCo Warp's OverflowType bits); an iteration
 # limit reached is not one of them.
-_OVERFLOWS = {1 << 0: "ran out of constraint rows (njmax)", 1 << 1: "ran out of constraint nonzeros",
-              1 << 2: "overflowed its broadphase", 1 << 3: "ran out of contacts (nconmax)",
-              1 << 4: "overflowed its collision buffers (CCD)", 1 << 7: "overflowed its island buffers",
-              1 << 8: "overflowed its EPA buffers"}
+_OVERFLOWS = {
+    1 << 0: "ran out of constraint rows (njmax)",
+    1 << 1: "ran out of constraint nonzeros",
+    1 << 2: "overflowed its broadphase",
+    1 << 3: "ran out of contacts (nconmax)",
+    1 << 4: "overflowed its collision buffers (CCD)",
+    1 << 7: "overflowed its island buffers",
+    1 << 8: "overflowed its EPA buffers",
+}
 
 
 _OVERFLOW_BITS = sum(_OVERFLOWS)

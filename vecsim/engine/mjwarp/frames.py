@@ -41,6 +41,9 @@ def unpack(packed: wp.array, first: int, height: int, width: int, orientation: s
     """Write the camera whose pixels start at ``first`` in ``packed`` into ``out``."""
     flip_rows, flip_cols = FLIPS[orientation]
     wp.launch(
-        _unpack_rgb, dim=(packed.shape[0], height * width), device=packed.device,
-        inputs=[packed, int(first), height, width, flip_rows, flip_cols], outputs=[out],
+        _unpack_rgb,
+        dim=(packed.shape[0], height * width),
+        device=packed.device,
+        inputs=[packed, int(first), height, width, flip_rows, flip_cols],
+        outputs=[out],
     )

@@ -121,8 +121,17 @@ class PandaObservables:
     def compute(self, qpos: wp.array, site_xpos: wp.array, xquat: wp.array) -> None:
         """Fill :attr:`state` and :attr:`proprio` from the worlds' current kinematics."""
         wp.launch(
-            libero_robot_state, dim=self.nworld, device=self.device,
-            inputs=[qpos, site_xpos, xquat, self.index.eef_site, self.index.eef_body,
-                    self._arm_qpos, self._gripper_qpos],
+            libero_robot_state,
+            dim=self.nworld,
+            device=self.device,
+            inputs=[
+                qpos,
+                site_xpos,
+                xquat,
+                self.index.eef_site,
+                self.index.eef_body,
+                self._arm_qpos,
+                self._gripper_qpos,
+            ],
             outputs=[self.state, self.proprio],
         )

@@ -100,11 +100,18 @@ def compile_goal(env: Any) -> GoalTable:
     goal = env.parsed_problem["goal_state"]
     n = len(goal)
     rows: dict[str, Any] = {
-        "kind": np.zeros(n, np.int32), "body": np.zeros(n, np.int32), "other_body": np.zeros(n, np.int32),
-        "site": np.zeros(n, np.int32), "size": np.zeros((n, 3), np.float32),
-        "needs_contact": np.zeros(n, np.int32), "geom_side": np.zeros((n, model.ngeom), np.int32),
-        "joint_qpos": np.zeros((n, MAX_JOINTS), np.int32), "joint_count": np.zeros(n, np.int32),
-        "any_joint": np.zeros(n, np.int32), "compare": np.zeros(n, np.int32), "threshold": np.zeros(n, np.float32),
+        "kind": np.zeros(n, np.int32),
+        "body": np.zeros(n, np.int32),
+        "other_body": np.zeros(n, np.int32),
+        "site": np.zeros(n, np.int32),
+        "size": np.zeros((n, 3), np.float32),
+        "needs_contact": np.zeros(n, np.int32),
+        "geom_side": np.zeros((n, model.ngeom), np.int32),
+        "joint_qpos": np.zeros((n, MAX_JOINTS), np.int32),
+        "joint_count": np.zeros(n, np.int32),
+        "any_joint": np.zeros(n, np.int32),
+        "compare": np.zeros(n, np.int32),
+        "threshold": np.zeros(n, np.float32),
     }
     sites = env.object_sites_dict
 
@@ -313,10 +320,17 @@ class GoalEvaluator:
             return wp.array(values, dtype=dtype, device=self.device)
 
         self._arrays = [
-            put(table.kind, wp.int32), put(table.body, wp.int32), put(table.other_body, wp.int32),
-            put(table.site, wp.int32), put(table.size, wp.vec3), put(table.needs_contact, wp.int32),
-            put(table.joint_qpos, wp.int32), put(table.joint_count, wp.int32), put(table.any_joint, wp.int32),
-            put(table.compare, wp.int32), put(table.threshold, wp.float32),
+            put(table.kind, wp.int32),
+            put(table.body, wp.int32),
+            put(table.other_body, wp.int32),
+            put(table.site, wp.int32),
+            put(table.size, wp.vec3),
+            put(table.needs_contact, wp.int32),
+            put(table.joint_qpos, wp.int32),
+            put(table.joint_count, wp.int32),
+            put(table.any_joint, wp.int32),
+            put(table.compare, wp.int32),
+            put(table.threshold, wp.float32),
         ]
         self._geom_side = put(table.geom_side, wp.int32)
         self.touching = wp.zeros((nworld, self.natoms), dtype=wp.int32, device=self.device)
@@ -337,12 +351,18 @@ class GoalEvaluator:
         self.touching.zero_()
         if contact_geom.shape[0]:
             wp.launch(
-                goal_contacts, dim=(contact_geom.shape[0], self.natoms), device=self.device,
-                inputs=[nacon, contact_geom, contact_worldid, self._geom_side], outputs=[self.touching],
+                goal_contacts,
+                dim=(contact_geom.shape[0], self.natoms),
+                device=self.device,
+                inputs=[nacon, contact_geom, contact_worldid, self._geom_side],
+                outputs=[self.touching],
             )
         wp.launch(
-            goal_atoms, dim=(self.nworld, self.natoms), device=self.device,
-            inputs=[qpos, xpos, site_xpos, site_xmat, self.touching, *self._arrays], outputs=[self.holds],
+            goal_atoms,
+            dim=(self.nworld, self.natoms),
+            device=self.device,
+            inputs=[qpos, xpos, site_xpos, site_xmat, self.touching, *self._arrays],
+            outputs=[self.holds],
         )
         wp.launch(
             goal_success, dim=self.nworld, device=self.device, inputs=[self.holds, self.natoms], outputs=[self.success]

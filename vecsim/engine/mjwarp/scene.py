@@ -63,7 +63,18 @@ RTOL = 2e-5
 ATOL = 1e-6
 # Not physics: where each asset's file name sits in the model's string table (the export renames
 # the files on purpose), and the bounding-volume tree, rebuilt from the same geoms.
-UNCHECKED_FIELDS = frozenset({"mesh_pathadr", "tex_pathadr", "hfield_pathadr", "skin_pathadr", "bvh_nodeid", "bvh_child", "bvh_aabb", "bvh_depth"})
+UNCHECKED_FIELDS = frozenset(
+    {
+        "mesh_pathadr",
+        "tex_pathadr",
+        "hfield_pathadr",
+        "skin_pathadr",
+        "bvh_nodeid",
+        "bvh_child",
+        "bvh_aabb",
+        "bvh_depth",
+    }
+)
 
 
 def default_root() -> Path:
@@ -133,7 +144,16 @@ def model_differences(reference: Any, exported: Any) -> dict[str, str]:
                 found[name] = f"up to {np.nanmax(np.abs(have - want)):.3g} off"
         elif not np.array_equal(have, want):
             found[name] = f"{int(np.sum(have != want))} entries differ"
-    for name in ("timestep", "impratio", "cone", "solver", "iterations", "tolerance", "integrator", "noslip_iterations"):
+    for name in (
+        "timestep",
+        "impratio",
+        "cone",
+        "solver",
+        "iterations",
+        "tolerance",
+        "integrator",
+        "noslip_iterations",
+    ):
         if getattr(reference.opt, name) != getattr(exported.opt, name):
             found[f"opt.{name}"] = f"{getattr(exported.opt, name)}, LIBERO's {getattr(reference.opt, name)}"
     return found
@@ -278,7 +298,9 @@ def load_tables(scene: Scene) -> dict[str, dict[str, np.ndarray]]:
     return grouped
 
 
-def export_scene(task_id: str, protocol: LiberoProtocol | None = None, root: Path | None = None, force: bool = False) -> Path:
+def export_scene(
+    task_id: str, protocol: LiberoProtocol | None = None, root: Path | None = None, force: bool = False
+) -> Path:
     """Export ``task_id``'s scene (the CPU stack: robosuite, LIBERO), unless it is cached.
 
     Returns:
@@ -329,7 +351,9 @@ def export_scene(task_id: str, protocol: LiberoProtocol | None = None, root: Pat
                 "max_episode_steps": task.max_episode_steps,
                 "protocol": protocol.model_dump(),
                 "exported_with": {"mujoco": mujoco.__version__, "robosuite": robosuite.__version__},
-                "fixtures_vary": bool(np.ptp(states["body_pos"], axis=0).max() > 0 or np.ptp(states["body_quat"], axis=0).max() > 0),
+                "fixtures_vary": bool(
+                    np.ptp(states["body_pos"], axis=0).max() > 0 or np.ptp(states["body_quat"], axis=0).max() > 0
+                ),
                 "sizes": {"nq": model.nq, "nv": model.nv, "nu": model.nu, "na": model.na, "nbody": model.nbody},
                 "robot": _robot_manifest(inner),
                 "goal": goal,
@@ -349,7 +373,9 @@ def export_scene(task_id: str, protocol: LiberoProtocol | None = None, root: Pat
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vecsim.engine.mjwarp.scene", description=__doc__.split("\n\n")[0])
     parser.add_argument("tasks", nargs="+", help="LIBERO task ids (libero_10/0 ...)")
-    parser.add_argument("--root", type=Path, default=None, help=f"cache folder (default ${ROOT_ENV} or ~/.cache/vecsim/mjwarp-scenes)")
+    parser.add_argument(
+        "--root", type=Path, default=None, help=f"cache folder (default ${ROOT_ENV} or ~/.cache/vecsim/mjwarp-scenes)"
+    )
     parser.add_argument("--force", action="store_true", help="export again even when cached")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -154,9 +154,7 @@ class TaskEnv(gymnasium.Env):
         if isinstance(state_id, (bool, np.bool_)) or not isinstance(state_id, (int, np.integer)):
             raise ValueError(f"{self.task.task_id}: state_id must be an int, got {state_id!r}")
         if not 0 <= state_id < self.task.num_states:
-            raise ValueError(
-                f"{self.task.task_id}: state_id {state_id} out of range 0..{self.task.num_states - 1}"
-            )
+            raise ValueError(f"{self.task.task_id}: state_id {state_id} out of range 0..{self.task.num_states - 1}")
         return int(state_id)
 
     def _reset_to(self, state_id: int) -> tuple[dict[str, Any], bool]:

@@ -107,9 +107,7 @@ class _Arm:
         # Gathered transposed and viewed back: the block comes out Fortran-ordered, the layout
         # robosuite's fancy indexing gives (its numba kernels are compiled per layout).
         self.mass_gather_t = np.ascontiguousarray((block - 1).T)
-        self.gripper_ids = np.asarray(
-            [model.actuator(name).id for name in robot.gripper.actuators], dtype=np.intp
-        )
+        self.gripper_ids = np.asarray([model.actuator(name).id for name in robot.gripper.actuators], dtype=np.intp)
         self.arm_ids = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
         self.control_dim = controller.control_dim
         self.action_dim = robot.action_dim
@@ -151,8 +149,11 @@ def _fused_controller_available() -> bool:
     try:
         return bool(osc_kernel().available())
     except Exception as exc:  # noqa: BLE001 - the controller from Python is the same arithmetic
-        log.warning("the compiled OSC controller cannot be loaded (%s: %s): the controller runs from Python",
-                    type(exc).__name__, exc)
+        log.warning(
+            "the compiled OSC controller cannot be loaded (%s: %s): the controller runs from Python",
+            type(exc).__name__,
+            exc,
+        )
         return False
 
 
@@ -208,9 +209,7 @@ class ExactStep:
         self.arms = [_Arm(robot, self.model, self.data) for robot in inner.robots]
         data = self.data
         # MjData's arrays for osc_substep (views of buffers MuJoCo never moves).
-        self.data_arrays = (
-            data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat
-        )
+        self.data_arrays = (data.qpos, data.qvel, data.qM, data.qfrc_bias, data.ctrl, data.site_xpos, data.site_xmat)
         # The warning counters mj_checkPos/mj_checkVel raise (views of MjData's, as the arrays).
         self.bad_qpos, self.bad_qvel = data.warning[_BADQPOS], data.warning[_BADQVEL]
         # False: the non-policy substeps' controller runs from Python (bench/bench_controller_parts.py).
@@ -249,7 +248,10 @@ class ExactStep:
         if model.nplugin:
             return "MuJoCo plugins"
         energy_sensors = (int(mujoco.mjtSensor.mjSENS_E_POTENTIAL), int(mujoco.mjtSensor.mjSENS_E_KINETIC))
-        if model.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_ENERGY) or np.isin(model.sensor_type, energy_sensors).any():
+        if (
+            model.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+            or np.isin(model.sensor_type, energy_sensors).any()
+        ):
             return "energy computation (mj_forward's energy stages)"
         if mujoco.get_mjcb_sensor() is not None:
             return "a MuJoCo sensor callback"
@@ -325,9 +327,7 @@ class ExactStep:
         env.cur_time += env.control_timestep
         reward, _, _ = env._post_action(action)
         success = bool(env._check_success())
-        observations = {
-            name: obs.obs for name, obs in env._observables.items() if obs._enabled and obs._active
-        }
+        observations = {name: obs.obs for name, obs in env._observables.items() if obs._enabled and obs._active}
         return observations, float(reward), success
 
     def _fused_substeps(self, fused: list[ArmStep], substeps: int, plan: _ObservablePlan | None) -> None:
@@ -473,13 +473,39 @@ class ArmStep:
             controller.set_goal(self.action[: arm.control_dim])
         arm.gripper_action[:] = current
         self.kernel_args = (
-            arm.site, *data_arrays, arm.jacp, arm.jacr,
-            arm.qpos_index, arm.qvel_index, arm.mass_gather_t, arm.arm_ids, arm.gripper_ids,
-            np.array(controller.goal_pos), np.array(controller.goal_ori), controller.kp, controller.kd,
-            controller.initial_joint, self.torque_low, self.torque_high, self.uncoupling,
-            self.gripper_step, self.gripper_bias, self.gripper_weight,
-            arm.ee_pos, arm.ee_ori_mat, arm.ee_pos_vel, arm.ee_ori_vel, arm.joint_pos, arm.joint_vel,
-            arm.j_pos, arm.j_ori, arm.j_full, arm.mass_matrix, arm.torques, arm.clipped, arm.gripper_action,
+            arm.site,
+            *data_arrays,
+            arm.jacp,
+            arm.jacr,
+            arm.qpos_index,
+            arm.qvel_index,
+            arm.mass_gather_t,
+            arm.arm_ids,
+            arm.gripper_ids,
+            np.array(controller.goal_pos),
+            np.array(controller.goal_ori),
+            controller.kp,
+            controller.kd,
+            controller.initial_joint,
+            self.torque_low,
+            self.torque_high,
+            self.uncoupling,
+            self.gripper_step,
+            self.gripper_bias,
+            self.gripper_weight,
+            arm.ee_pos,
+            arm.ee_ori_mat,
+            arm.ee_pos_vel,
+            arm.ee_ori_vel,
+            arm.joint_pos,
+            arm.joint_vel,
+            arm.j_pos,
+            arm.j_ori,
+            arm.j_full,
+            arm.mass_matrix,
+            arm.torques,
+            arm.clipped,
+            arm.gripper_action,
             arm.wrench,
         )
         self.fused = True
@@ -634,4 +660,3 @@ def _observable_plan(env: Any, substeps: int) -> _ObservablePlan | None:
     if any(obs._enabled and obs._delayer is not NO_DELAY for obs in env._observables.values()):
         return None
     return _ObservablePlan(env, substeps)
-

@@ -187,8 +187,7 @@ def gymnasium_camera(env: gymnasium.Env) -> CameraView:
     renderer = getattr(base, "mujoco_renderer", None)
     if renderer is None or base.render_mode != "rgb_array":
         raise ValueError(
-            f"render: {base.spec.id if base.spec else type(base).__name__} is not a MuJoCo env "
-            "rendering rgb arrays"
+            f"render: {base.spec.id if base.spec else type(base).__name__} is not a MuJoCo env rendering rgb arrays"
         )
     model, data = base.model, base.data
     camera = mujoco.MjvCamera()
@@ -255,7 +254,9 @@ class GymTaskEnv(TaskEnv):
         try:
             self.observation_space, self.action_space = _spaces(task, self.inner, camera)
             # A Dict or Tuple action space travels flattened; the env takes its actions unflattened.
-            self._composite_actions = None if self.action_space is wire_action_space(self.action_space) else self.action_space
+            self._composite_actions = (
+                None if self.action_space is wire_action_space(self.action_space) else self.action_space
+            )
             self.action_space = wire_action_space(self.action_space)
             if camera.names:
                 self.camera_views = [gymnasium_camera(self.inner)]
@@ -271,9 +272,7 @@ class GymTaskEnv(TaskEnv):
             return {}
         return dict(zip(self.image_names, self.renderer.render(self.camera_views)))
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[Any, dict[str, Any]]:
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         """Reset the env: to fixed initial state ``options["state_id"]``, or (native) as the env's
         own ``reset(seed=seed, options=options)``.
 

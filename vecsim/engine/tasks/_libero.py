@@ -60,10 +60,30 @@ SETTLE_ACTION = np.array([0.0] * 6 + [-1.0])
 # What mjv_updateScene reads of an MjData (MuJoCo's bindings offer no mj_copyData): a copy of
 # these draws the scene as it was when they were copied.
 _DRAWN_FIELDS = (
-    "qpos", "mocap_pos", "mocap_quat", "xpos", "xquat", "xmat", "xipos", "ximat",
-    "geom_xpos", "geom_xmat", "site_xpos", "site_xmat", "cam_xpos", "cam_xmat", "light_xpos",
-    "light_xdir", "subtree_com", "ten_wrapadr", "ten_wrapnum", "wrap_obj", "wrap_xpos",
-    "flexvert_xpos", "actuator_length", "ctrl",
+    "qpos",
+    "mocap_pos",
+    "mocap_quat",
+    "xpos",
+    "xquat",
+    "xmat",
+    "xipos",
+    "ximat",
+    "geom_xpos",
+    "geom_xmat",
+    "site_xpos",
+    "site_xmat",
+    "cam_xpos",
+    "cam_xmat",
+    "light_xpos",
+    "light_xdir",
+    "subtree_com",
+    "ten_wrapadr",
+    "ten_wrapnum",
+    "wrap_obj",
+    "wrap_xpos",
+    "flexvert_xpos",
+    "actuator_length",
+    "ctrl",
 )
 # LIBERO's own reset retries placements that fail; it gives up after this many.
 _PLACEMENT_ATTEMPTS = 100
@@ -565,7 +585,11 @@ def episode_fixtures(task: TaskSpec, inner: Any, seed: int, rule: str) -> tuple[
             _save_fixtures(path, fixtures)
             log.info(
                 "replayed %d LIBERO resets of %s (seed %d) in %.2f s into %s",
-                task.num_states - 1, task.task_id, seed, time.perf_counter() - started, path,
+                task.num_states - 1,
+                task.task_id,
+                seed,
+                time.perf_counter() - started,
+                path,
             )
             return fixtures, replay
 

@@ -45,8 +45,18 @@ _ROW_MAJOR, _COL_MAJOR, _NO_TRANS = 101, 102, 111
 _dgemv = types.ExternalFunction(
     _DGEMV_SYMBOL,
     types.void(
-        types.int32, types.int32, types.int64, types.int64, types.float64, types.intp, types.int64,
-        types.intp, types.int64, types.float64, types.intp, types.int64,
+        types.int32,
+        types.int32,
+        types.int64,
+        types.int64,
+        types.float64,
+        types.intp,
+        types.int64,
+        types.intp,
+        types.int64,
+        types.float64,
+        types.intp,
+        types.int64,
     ),
 )
 
@@ -77,8 +87,10 @@ def available() -> bool:
     """
     kernels = (opspace_matrices, nullspace_torques, orientation_error)
     if numba.config.DISABLE_JIT or not all(isinstance(f, numba.core.dispatcher.Dispatcher) for f in kernels):
-        log.info("robosuite's control kernels are not numba-compiled (macros.ENABLE_NUMBA, NUMBA_DISABLE_JIT): "
-                 "no fused OSC kernel")
+        log.info(
+            "robosuite's control kernels are not numba-compiled (macros.ENABLE_NUMBA, NUMBA_DISABLE_JIT): "
+            "no fused OSC kernel"
+        )
         return False
     path = numpy_dgemv_library()
     if path is None:
@@ -99,8 +111,20 @@ def _numpy_dot(matrix: Any, vector: Any, out: Any) -> None:
     else:
         order, lda = _COL_MAJOR, max(rows, 1)
     out[:] = 0.0
-    _dgemv(order, _NO_TRANS, rows, cols, 1.0, matrix.ctypes.data, lda,
-           vector.ctypes.data, vector.strides[0] // 8, 0.0, out.ctypes.data, 1)
+    _dgemv(
+        order,
+        _NO_TRANS,
+        rows,
+        cols,
+        1.0,
+        matrix.ctypes.data,
+        lda,
+        vector.ctypes.data,
+        vector.strides[0] // 8,
+        0.0,
+        out.ctypes.data,
+        1,
+    )
 
 
 @numba.njit(cache=True)
@@ -115,12 +139,46 @@ def _clip(value: float, low: float, high: float) -> float:
 
 @numba.njit(cache=True)
 def osc_substep(
-    site, qpos, qvel, qM, qfrc_bias, ctrl, site_xpos, site_xmat, jacp, jacr,
-    qpos_index, qvel_index, mass_gather_t, arm_ids, gripper_ids,
-    goal_pos, goal_ori, kp, kd, initial_joint, torque_low, torque_high, uncoupling,
-    gripper_step, gripper_bias, gripper_weight,
-    ee_pos, ee_ori_mat, ee_pos_vel, ee_ori_vel, joint_pos, joint_vel,
-    j_pos, j_ori, j_full, mass_matrix, torques, clipped, gripper_action, wrench,
+    site,
+    qpos,
+    qvel,
+    qM,
+    qfrc_bias,
+    ctrl,
+    site_xpos,
+    site_xmat,
+    jacp,
+    jacr,
+    qpos_index,
+    qvel_index,
+    mass_gather_t,
+    arm_ids,
+    gripper_ids,
+    goal_pos,
+    goal_ori,
+    kp,
+    kd,
+    initial_joint,
+    torque_low,
+    torque_high,
+    uncoupling,
+    gripper_step,
+    gripper_bias,
+    gripper_weight,
+    ee_pos,
+    ee_ori_mat,
+    ee_pos_vel,
+    ee_ori_vel,
+    joint_pos,
+    joint_vel,
+    j_pos,
+    j_ori,
+    j_full,
+    mass_matrix,
+    torques,
+    clipped,
+    gripper_action,
+    wrench,
 ):
     """One arm's OSC update and control for a non-policy substep, after ``mj_jacSite``.
 

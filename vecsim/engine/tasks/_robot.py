@@ -71,10 +71,7 @@ def robot_observation_space(camera: CameraConfig) -> gymnasium.spaces.Dict:
     spaces: dict[str, gymnasium.Space] = {}
     if camera.names:
         spaces["images"] = gymnasium.spaces.Dict(
-            {
-                name: gymnasium.spaces.Box(0, 255, (camera.height, camera.width, 3), np.uint8)
-                for name in camera.names
-            }
+            {name: gymnasium.spaces.Box(0, 255, (camera.height, camera.width, 3), np.uint8) for name in camera.names}
         )
     spaces["proprio"] = gymnasium.spaces.Box(-np.inf, np.inf, (PROPRIO_DIM,), np.float32)
     return gymnasium.spaces.Dict(spaces)
@@ -378,9 +375,7 @@ def robosuite_env_name(task: TaskSpec) -> str:
     return TINY_TASKS[name] if task.suite == "tiny" else ROBOSUITE_TASKS[name][0]
 
 
-def make_robosuite_env(
-    task: TaskSpec, camera: CameraConfig, render: str, max_episode_steps: int
-) -> RobotTaskEnv:
+def make_robosuite_env(task: TaskSpec, camera: CameraConfig, render: str, max_episode_steps: int) -> RobotTaskEnv:
     """Build a robosuite task env (Panda, OSC_POSE, no hard reset, never done by itself).
 
     Raises:
