@@ -331,7 +331,7 @@ class PodsConfig(_Model):
         "auto",
         description=(
             "how pods share the machine's CPUs, as CPU limits share a Kubernetes node: 'auto' gives "
-            "each pod (its env workers too) an equal share of the CPUs the runner may use (more pods "
+            "each pod (its env workers too) an equal share of the machine's CPUs (its cpuset; more pods "
             "than CPUs: one CPU each, in turn); CPU lists (taskset -c syntax) pin pod i to "
             "cpu_affinity[i % len]; 'off' or an empty list leaves pods unpinned"
         ),
@@ -356,7 +356,7 @@ class PodsConfig(_Model):
     def cpus_of(self, ordinal: int, usable: Collection[int]) -> list[int] | None:
         """Return the CPUs pod ``ordinal`` runs on, or None when pods are not pinned.
 
-        ``usable``: the CPUs the pods may share (the runner's own affinity), which ``auto``
+        ``usable``: the CPUs the pods may share (the machine's cpuset), which ``auto``
         splits into ``replicas`` contiguous shares of equal size (the first ones one CPU larger
         when they do not divide); with more pods than CPUs, pod ``i`` gets CPU ``i % len``.
         """

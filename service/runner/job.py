@@ -51,6 +51,17 @@ class JobRejectedError(RuntimeError):
     The message lists what to change."""
 
 
+def machine_cpus() -> set[int]:
+    """The CPUs a pod may be pinned to: the container's cpuset where cgroup v2 names it, else every
+    CPU of the machine. Not the runner's own affinity: a trainer that pins itself to one core
+    still starts pods on the others."""
+    cpuset = Path("/sys/fs/cgroup/cpuset.cpus.effective")
+    try:
+        return parse_cpu_list(cpuset.read_text().strip())
+    except (OSError, ValueError):
+        return set(range(os.cpu_count() or 1))
+
+
 class LocalJob:
     """The controller and ``config.pods.replicas`` pods of one job, as supervised processes.
 
@@ -182,20 +193,21 @@ class LocalJob:
         lists = self.config.pods.cpu_affinity
         if isinstance(lists, str):
             return []
-        usable = os.sched_getaffinity(0)
+        usable = machine_cpus()
         problems = []
         for text in lists:
             missing = sorted(parse_cpu_list(text) - usable)
             if missing:
                 problems.append(
-                    f"pods.cpu_affinity: {text!r} names CPUs {missing}, but this runner may use CPUs {sorted(usable)}"
+                    f"pods.cpu_affinity: {text!r} names CPUs {missing}, but this machine's pods may run on "
+                    f"CPUs {sorted(usable)}"
                 )
         return problems
 
     def pod_cpus(self, name: str) -> list[int] | None:
         """Returns the CPUs pod ``name`` and its env workers run on (``pods.cpu_affinity``), or
         None when pods are not pinned."""
-        return self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]), os.sched_getaffinity(0))
+        return self.config.pods.cpus_of(int(name.rsplit("-", 1)[1]), machine_cpus())
 
     def start(self) -> LocalJob:
         """Starts the controller and every pod. Returns at once; see :meth:`wait_ready`.

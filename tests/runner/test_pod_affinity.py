@@ -106,7 +106,7 @@ def test_a_job_pinned_to_cpus_the_machine_lacks_is_refused_before_anything_start
     missing = str(os.cpu_count() or 1)
     job = LocalJob(cheetah_config((missing,)), log_dir=tmp_path)
     with pytest.raises(
-        JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\], but this runner"
+        JobRejectedError, match=rf"pods\.cpu_affinity: '{missing}' names CPUs \[{missing}\], but this machine"
     ):
         job.start()
     assert job.processes == {}
