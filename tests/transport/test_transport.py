@@ -34,6 +34,7 @@ from vecsim import wire
 from vecsim.transport import (
     DEFAULT_KIND,
     MAX_HEAD_BYTES,
+    AnswerReader,
     AnswerTooLargeError,
     HttptoolsTransport,
     HttpxTransport,
@@ -485,6 +486,40 @@ def test_the_lean_path_takes_an_answer_larger_than_its_read_buffer_whole(server:
     # 16 MiB: reading pauses at 4 MiB not yet taken and goes on once the reader takes them.
     [(status, body)] = fetch_with(f"{server}/bytes/{16 << 20}")
     assert status == 200 and body == pattern(16 << 20)
+
+
+@app.get("/wire/{n}")
+def get_wire(n: int) -> Response:
+    return Response(content=pattern(n), media_type=wire.CONTENT_TYPE)
+
+
+def test_the_lean_path_reads_a_big_wire_answer_into_one_buffer_byte_for_byte(server: str) -> None:
+    # 5 MiB: over the reader's BUFFER_BYTES, and past the 4 MiB at which reading pauses.
+    [(status, body), (again, small)] = fetch_with(f"{server}/wire/{5 << 20}") + fetch_with(f"{server}/wire/1000")
+    assert status == 200 and isinstance(body, memoryview) and body == pattern(5 << 20)
+    assert again == 200 and small == pattern(1000)
+
+
+def test_a_big_wire_answer_cut_short_of_its_length_is_a_remote_protocol_error() -> None:
+    reply = b"HTTP/1.1 200 OK\r\nContent-Type: %s\r\nContent-Length: %d\r\n\r\n" % (
+        wire.CONTENT_TYPE.encode(),
+        2 << 20,
+    )
+    with (
+        raw_server(reply + pattern(1 << 20)) as url,
+        pytest.raises(httpx.RemoteProtocolError, match="inside the answer's body"),
+    ):
+        fetch_with(f"{url}/")
+
+
+@pytest.mark.parametrize("extra", [1, -1], ids=["longer", "shorter"])
+def test_a_body_read_into_one_buffer_must_be_its_content_length(extra: int) -> None:
+    n = 1 << 20
+    reader = AnswerReader("http://pod/", [("Content-Length", str(n))], 2 * n, into_buffer=True)
+    with pytest.raises(httpx.DecodingError, match="Content-Length"):
+        for _ in reader.feed(pattern(n + extra)):
+            pass
+        reader.finish()
 
 
 def test_the_lean_path_reuses_one_keep_alive_connection(server: str) -> None:

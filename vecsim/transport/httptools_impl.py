@@ -32,6 +32,8 @@ from collections.abc import AsyncIterator, Iterable, Sequence
 import httptools
 import httpx
 
+from vecsim import wire
+
 from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
 from .errors import BrokenAnswer, ConnectTimedOut, ReadTimedOut, UnsendableRequest, UnsupportedURL, failure_of, mapped
@@ -557,13 +559,15 @@ class HttptoolsTransport(Transport):
 
     async def fetch(
         self, method: str, url: str, headers: tuple[tuple[str, str], ...], body: bytes, max_bytes: int
-    ) -> tuple[int, bytes]:
+    ) -> tuple[int, bytes | memoryview]:
         """Send one request and read its answer whole under the cap ``max_bytes``, decoding a
         gzip or deflate Content-Encoding, as ``vecsim.transport.read_answer`` does; no httpx
         objects on the way. The caller bounds it in time (``asyncio.timeout``).
 
         Returns:
-            the answer's status code and its decoded body.
+            the answer's status code and its decoded body: a ``memoryview`` for a big wire
+            answer of status 200, read into one buffer
+            (:class:`~vecsim.transport.answers.AnswerReader`), else ``bytes``.
 
         Raises:
             vecsim.transport.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
@@ -582,7 +586,10 @@ class HttptoolsTransport(Transport):
                 origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS
             )
             try:
-                reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
+                headers = _text_headers(connection.headers)
+                # Into one buffer: a big wire answer, which the caller only decodes (views into it).
+                wired = connection.status == 200 and _wire_typed(headers)
+                reader = AnswerReader(url, headers, max_bytes, into_buffer=wired)
                 while True:
                     for piece in connection.take():
                         for _ in reader.feed(piece):
@@ -609,3 +616,8 @@ class HttptoolsTransport(Transport):
 
 def _text_headers(headers: Sequence[tuple[bytes, bytes]]) -> list[tuple[str, str]]:
     return [(name.decode("latin-1"), value.decode("latin-1")) for name, value in headers]
+
+
+def _wire_typed(headers: list[tuple[str, str]]) -> bool:
+    types = [value.split(";", 1)[0].strip().lower() for name, value in headers if name.lower() == "content-type"]
+    return types == [wire.CONTENT_TYPE]
