@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from typing import Any
 
 import httpx
-import numpy as np
 
 from .errors import AnswerTooLargeError, UndecodableAnswer, mapped
 
@@ -34,11 +33,6 @@ MAX_CONTROL_ANSWER_BYTES = 16 << 20
 
 # Decoded output per step of a Content-Encoding: a piece the event loop can afford between yields.
 _DECODE_STEP = 1 << 20
-# A body of at least this many bytes, of a known length and not encoded, is copied into one
-# buffer of that length as its pieces arrive (``into_buffer``): each piece's memory is free for
-# the next read at once, where keeping the pieces to join them at the end costs twice the body.
-# The buffer's pages are taken as they are written, so an answer still costs what was read.
-BUFFER_BYTES = 1 << 20
 
 
 def _decoder(encoding: str, url: str, request: httpx.Request | None) -> Any:
@@ -62,9 +56,7 @@ class AnswerReader:
     body a piece at a time (:meth:`feed`) and gives the decoded body (:meth:`finish`).
 
     ``url`` names the answer in errors; ``headers`` are its (name, value) pairs; ``request``, when
-    there is one, goes with the errors raised. With ``into_buffer``, a body of at least
-    :data:`BUFFER_BYTES` whose length is declared and which is not encoded is read into one
-    buffer of that length, which :meth:`finish` gives as a writable ``memoryview``.
+    there is one, goes with the errors raised.
 
     Raises (from any method):
         AnswerTooLargeError: Content-Length, the bytes received or the decoded bytes exceed
@@ -73,13 +65,7 @@ class AnswerReader:
     """
 
     def __init__(
-        self,
-        url: str,
-        headers: list[tuple[str, str]],
-        max_bytes: int,
-        request: httpx.Request | None = None,
-        *,
-        into_buffer: bool = False,
+        self, url: str, headers: list[tuple[str, str]], max_bytes: int, request: httpx.Request | None = None
     ) -> None:
         self._url = url
         self._request = request
@@ -100,9 +86,6 @@ class AnswerReader:
         self._decoder = _decoder(self._encoding, url, request)
         self._pieces: list[bytes] = []
         self._received = self._size = 0
-        self._buffer: memoryview | None = None
-        if into_buffer and declared and not self._encoding and int(declared[0]) >= BUFFER_BYTES:
-            self._buffer = memoryview(np.empty(int(declared[0]), dtype=np.uint8))
 
     @classmethod
     def of(cls, response: httpx.Response, max_bytes: int) -> AnswerReader:
@@ -117,13 +100,6 @@ class AnswerReader:
         self._received += len(piece)
         if self._received > self._max:
             raise self._too_large("answer")
-        if self._buffer is not None:
-            if self._received > len(self._buffer):
-                raise UndecodableAnswer(
-                    f"{self._url}: more body than its Content-Length of {len(self._buffer)}", request=self._request
-                )
-            self._buffer[self._received - len(piece) : self._received] = piece
-            return
         if self._decoder is None:
             self._pieces.append(piece)
             return
@@ -138,15 +114,8 @@ class AnswerReader:
             if piece:
                 yield
 
-    def finish(self) -> bytes | memoryview:
+    def finish(self) -> bytes:
         """The whole decoded body, once the raw body has ended."""
-        if self._buffer is not None:
-            if self._received != len(self._buffer):
-                raise UndecodableAnswer(
-                    f"{self._url}: {self._received} bytes of body, its Content-Length says {len(self._buffer)}",
-                    request=self._request,
-                )
-            return self._buffer
         if self._decoder is not None:
             if not self._decoder.eof:
                 raise UndecodableAnswer(f"{self._url}: truncated {self._encoding} body", request=self._request)
