@@ -108,13 +108,14 @@ def serve(fd: int) -> None:
         return await run_in_threadpool(encode_answer, answers[envs], False)
 
     limits = ServerSettings.model_fields
+    # The pod's limits, but a keep-alive of a minute: the old path's answer ends for uvicorn once
+    # it is buffered, seconds before the client has read it, and its 5 s would close connections
+    # the client is about to reuse between rounds.
     config = uvicorn.Config(
         app,
         log_level="warning",
         access_log=False,
-        **uvicorn_limits(
-            limits["header_timeout_s"].default, limits["keep_alive_s"].default, limits["max_connections"].default
-        ),
+        **uvicorn_limits(limits["header_timeout_s"].default, 60.0, limits["max_connections"].default),
     )
     uvicorn.Server(config).run(sockets=[socket.socket(fileno=fd)])
 

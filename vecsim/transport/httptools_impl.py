@@ -25,13 +25,13 @@ client uses it.
 from __future__ import annotations
 
 import asyncio
+import mmap
 import ssl
 import time
 from collections.abc import AsyncIterator, Iterable, Sequence
 
 import httptools
 import httpx
-import numpy as np
 
 from vecsim import wire
 
@@ -69,8 +69,9 @@ MAX_IDLE_PER_ORIGIN = 64
 _HIGH_WATER = 4 << 20
 # A 200 wire answer to fetch of at least this many bytes (its length declared, not encoded) is
 # read past the parser, straight into one buffer of its length: the socket's bytes land where the
-# caller decodes them, no piece kept or joined. The buffer's pages are taken as they are written,
-# so such an answer too costs what was read.
+# caller decodes them, no piece kept or joined. The buffer is an anonymous mapping, whose pages
+# are taken as they are written (so such an answer too costs what was read) and are not asked to
+# be huge ones (numpy's large arrays are: on a busy machine the kernel then stalls compacting).
 DIRECT_BYTES = 1 << 20
 # What the socket is read into while an answer is parsed.
 _READ_BYTES = 256 << 10
@@ -261,7 +262,7 @@ class _Connection(asyncio.BufferedProtocol):
             length = _direct_length(status, self.headers, self._direct_cap)
             if length is not None:
                 self.keep_alive = self._parser.should_keep_alive()
-                self._room = memoryview(np.empty(length + 1, dtype=np.uint8))
+                self._room = memoryview(mmap.mmap(-1, length + 1))
                 self.body = self._room[:length]
         self._wake()
 
