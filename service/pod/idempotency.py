@@ -23,11 +23,13 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 import numpy as np
-from fastapi import Request, Response
+from fastapi import Request
 from pydantic import BaseModel
 
 from vecsim.engine import InvalidRequestError
 from vecsim.transport.httptools_impl import IDEMPOTENCY_KEY
+
+from .bodies import Answer
 
 __all__ = ["IDEMPOTENCY_KEY_DOC", "AnswerMemory"]
 
@@ -45,10 +47,9 @@ IDEMPOTENCY_KEY_DOC = {
 
 
 @dataclass
-class _Answer:
+class _Held:
     digest: bytes
-    body: bytes
-    media_type: str | None
+    answer: Answer  # its parts are never written again: it is sent again as it was
     envs: int  # envs whose last keyed call this is; the answer is dropped at 0
 
 
@@ -56,19 +57,19 @@ class AnswerMemory:
     """The answers of one build of a pod's envs, by ``Idempotency-Key``; see the module's text."""
 
     def __init__(self, num_envs: int) -> None:
-        self._answers: dict[str, _Answer] = {}
+        self._answers: dict[str, _Held] = {}
         self._last_key: dict[int, str] = {}  # env index -> the key of its last keyed call
         self._superseded: OrderedDict[str, bytes] = OrderedDict()
         self._max_superseded = max(_MIN_SUPERSEDED, _SUPERSEDED_PER_ENV * num_envs)
-        self._in_flight: dict[str, tuple[bytes, asyncio.Future[Response]]] = {}
+        self._in_flight: dict[str, tuple[bytes, asyncio.Future[Answer]]] = {}
 
     def __len__(self) -> int:
         """The answers held now (at most one per env)."""
         return len(self._answers)
 
     async def once(
-        self, request: Request, req: BaseModel, apply: Callable[[], Awaitable[tuple[Response, np.ndarray]]]
-    ) -> tuple[Response, bool]:
+        self, request: Request, req: BaseModel, apply: Callable[[], Awaitable[tuple[Answer, np.ndarray]]]
+    ) -> tuple[Answer, bool]:
         """Answer ``request`` (its body parsed: ``req``) exactly once per key: run ``apply`` (which
         returns the answer and the env ids it changed) the first time, the remembered answer after.
 
@@ -94,7 +95,7 @@ class AnswerMemory:
         held = self._answers.get(key)
         if held is not None:
             self._check_same(key, held.digest, digest)
-            return Response(held.body, media_type=held.media_type), True
+            return held.answer.again(), True
         if key in self._superseded:
             self._check_same(key, self._superseded[key], digest)
             raise InvalidRequestError(
@@ -104,8 +105,8 @@ class AnswerMemory:
         if running is not None:
             self._check_same(key, running[0], digest)
             response = await asyncio.shield(running[1])
-            return Response(response.body, media_type=response.media_type), True
-        future: asyncio.Future[Response] = asyncio.get_running_loop().create_future()
+            return response.again(), True
+        future: asyncio.Future[Answer] = asyncio.get_running_loop().create_future()
         self._in_flight[key] = (digest, future)
         try:
             response, env_ids = await apply()
@@ -126,11 +127,11 @@ class AnswerMemory:
                 f"{IDEMPOTENCY_KEY}: {key!r} was used for another request; a repeat must be the same request byte for byte"
             )
 
-    def _remember(self, key: str, digest: bytes, response: Response, env_ids: np.ndarray) -> None:
+    def _remember(self, key: str, digest: bytes, response: Answer, env_ids: np.ndarray) -> None:
         envs = [int(e) for e in np.asarray(env_ids).ravel()]
         if not envs:
             return  # a no-op changed nothing: its repeat may run again
-        self._answers[key] = _Answer(digest, bytes(response.body), response.media_type, len(envs))
+        self._answers[key] = _Held(digest, response, len(envs))
         for env in envs:
             before = self._last_key.get(env)
             self._last_key[env] = key

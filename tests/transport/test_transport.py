@@ -487,6 +487,47 @@ def test_the_lean_path_takes_an_answer_larger_than_its_read_buffer_whole(server:
     assert status == 200 and body == pattern(16 << 20)
 
 
+@app.get("/wire/{n}")
+def get_wire(n: int) -> Response:
+    return Response(content=pattern(n), media_type=wire.CONTENT_TYPE)
+
+
+def test_the_lean_path_reads_a_big_wire_answer_into_one_buffer_byte_for_byte(server: str) -> None:
+    # 5 MiB: read past the parser (over DIRECT_BYTES); a small wire answer is parsed, as any.
+    [(status, body), (again, small)] = fetch_with(f"{server}/wire/{5 << 20}") + fetch_with(f"{server}/wire/1000")
+    assert status == 200 and isinstance(body, memoryview) and body == pattern(5 << 20)
+    assert again == 200 and small == pattern(1000)
+
+
+def test_a_big_wire_answer_cut_short_of_its_length_is_a_remote_protocol_error() -> None:
+    reply = b"HTTP/1.1 200 OK\r\nContent-Type: %s\r\nContent-Length: %d\r\n\r\n" % (
+        wire.CONTENT_TYPE.encode(),
+        2 << 20,
+    )
+    with (
+        raw_server(reply + pattern(1 << 20)) as url,
+        pytest.raises(httpx.RemoteProtocolError, match="inside the answer's body"),
+    ):
+        fetch_with(f"{url}/")
+
+
+def test_bytes_after_a_big_wire_answer_leave_the_answer_and_drop_the_connection() -> None:
+    head = b"HTTP/1.1 200 OK\r\nContent-Type: %s\r\nContent-Length: %d\r\n\r\n" % (wire.CONTENT_TYPE.encode(), 2 << 20)
+    reply = head + pattern(2 << 20) + b"HTTP/1.1 500 No\r\nContent-Length: 3\r\n\r\nbad"
+    with raw_server(reply) as url:
+        answers = fetch_with(f"{url}/", times=2)
+    assert [(status, bytes(body)) for status, body in answers] == [(200, pattern(2 << 20))] * 2
+
+
+def test_a_big_wire_answer_over_the_cap_is_refused_before_its_body_is_read() -> None:
+    reply = b"HTTP/1.1 200 OK\r\nContent-Type: %s\r\nContent-Length: %d\r\n\r\n" % (
+        wire.CONTENT_TYPE.encode(),
+        80 << 20,
+    )
+    with raw_server(reply + bytes(1000)) as url, pytest.raises(AnswerTooLargeError, match="Content-Length"):
+        fetch_with(f"{url}/")
+
+
 def test_the_lean_path_reuses_one_keep_alive_connection(server: str) -> None:
     peers = {body for _, body in fetch_with(f"{server}/peer", times=5)}
     assert len(peers) == 1

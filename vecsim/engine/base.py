@@ -87,7 +87,9 @@ class PodEngine(Protocol):
     raises :class:`~vecsim.engine.errors.UnknownEnvError` or
     :class:`~vecsim.engine.errors.InvalidRequestError` naming the field); an empty call is a
     no-op; an env that fails is named in the answer's ``errors`` while every other env goes on;
-    :class:`~vecsim.engine.errors.SimCrashedError` means the whole engine must be rebuilt.
+    :class:`~vecsim.engine.errors.SimCrashedError` means the whole engine must be rebuilt. The
+    arrays a call returns are the caller's: the engine never writes them again (the pod sends an
+    answer's arrays while the next call runs, and keeps them for a repeated request).
     :class:`~vecsim.engine.vector_env.TaskGroupedVectorEnv` documents each call in full.
     """
 

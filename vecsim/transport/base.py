@@ -28,12 +28,13 @@ class Transport(httpx.AsyncBaseTransport, abc.ABC):
     @abc.abstractmethod
     async def fetch(
         self, method: str, url: str, headers: tuple[tuple[str, str], ...], body: bytes, max_bytes: int
-    ) -> tuple[int, bytes]:
+    ) -> tuple[int, bytes | memoryview]:
         """Send one request and read its answer whole under the cap ``max_bytes``, decoding a gzip
         or deflate Content-Encoding. The caller bounds it in time (``asyncio.timeout``).
 
         Returns:
-            the answer's status code and its decoded body.
+            the answer's status code and its decoded body (bytes-like: a big wire answer may
+            come as a ``memoryview`` of the buffer it was read into).
 
         Raises:
             vecsim.transport.AnswerTooLargeError, httpx.DecodingError: the answer is over the cap

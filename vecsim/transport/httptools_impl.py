@@ -25,12 +25,15 @@ client uses it.
 from __future__ import annotations
 
 import asyncio
+import mmap
 import ssl
 import time
 from collections.abc import AsyncIterator, Iterable, Sequence
 
 import httptools
 import httpx
+
+from vecsim import wire
 
 from .answers import AnswerReader
 from .base import KEEPALIVE_S, Transport
@@ -64,6 +67,14 @@ MAX_IDLE_PER_ORIGIN = 64
 # Reading stops while this much of an answer's body waits to be taken (a reader slower than
 # the socket); it goes on once the reader has taken it.
 _HIGH_WATER = 4 << 20
+# A 200 wire answer to fetch of at least this many bytes (its length declared, not encoded) is
+# read past the parser, straight into one buffer of its length: the socket's bytes land where the
+# caller decodes them, no piece kept or joined. The buffer is an anonymous mapping, whose pages
+# are taken as they are written (so such an answer too costs what was read) and are not asked to
+# be huge ones (numpy's large arrays are: on a busy machine the kernel then stalls compacting).
+DIRECT_BYTES = 1 << 20
+# What the socket is read into while an answer is parsed.
+_READ_BYTES = 256 << 10
 # Request heads kept encoded, by method, URL and headers: a client sends a few kinds to a few pods.
 _CACHED_HEADS = 1024
 # The header that makes a request safe to send again (the IETF httpapi draft's name): the server
@@ -91,8 +102,9 @@ class MayHaveBeenAppliedError(httpx.RemoteProtocolError):
     send again (see :meth:`HttptoolsTransport._send`): the server may have applied it."""
 
 
-class _Connection(asyncio.Protocol):
-    """One keep-alive connection: one request at a time, its answer parsed as it arrives."""
+class _Connection(asyncio.BufferedProtocol):
+    """One keep-alive connection: one request at a time, its answer parsed as it arrives (a big
+    wire answer's body read past the parser, see :data:`DIRECT_BYTES`)."""
 
     def __init__(self, origin: tuple[str, str, int]) -> None:
         self.origin = origin
@@ -120,13 +132,46 @@ class _Connection(asyncio.Protocol):
         self.chunks = 0  # chunks of the current answer begun
         self.exchanges = 0  # requests sent on this connection
         self.written = False  # whether the current exchange's request was handed to the socket
+        self._scratch = memoryview(bytearray(_READ_BYTES))
+        self._direct_cap: int | None = None  # fetch's cap: a big wire answer may be read direct
+        self.body: memoryview | None = None  # the body of an answer read direct
+        self._room: memoryview | None = None  # its buffer, one byte longer: bytes after it show
+        self._filled = 0  # bytes of it in place
+        self._direct = False  # reading past the parser, into self.body
 
-    # asyncio.Protocol
+    # asyncio.BufferedProtocol
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
 
-    def data_received(self, data: bytes) -> None:
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self._room[self._filled :] if self._direct else self._scratch  # type: ignore[index]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        if not self._direct:
+            self.data_received(self._scratch[:nbytes])
+            return
+        assert self.body is not None
+        self._filled += nbytes
+        self.received += nbytes
+        if self._filled > len(self.body):
+            # Bytes after the body in the same read, as the parser would have seen them: the
+            # answer stands, the connection goes.
+            self._filled = len(self.body)
+            self.keep_alive = False
+        self.body_received = self._filled
+        if self._filled == len(self.body):
+            self._direct = False
+            self.done = True
+            self._wake()
+
+    def data_received(self, data: bytes | memoryview) -> None:
+        if self.done and self.body is not None:
+            # Bytes after an answer read direct: the parser, which saw only part of its body,
+            # cannot judge them; the answer stands, the connection goes.
+            self.keep_alive = False
+            self.close()
+            return
         if not self._active or self._parser is None or self.error is not None:
             # Bytes nobody asked for (after an answer ended, or after it failed): the connection
             # cannot be trusted.
@@ -157,6 +202,8 @@ class _Connection(asyncio.Protocol):
                 )
             )
             self.close()
+        elif self.body is not None and not self.done and not self.closed:
+            self._direct = True  # the rest of the body goes straight into its buffer
 
     def eof_received(self) -> bool | None:
         return None  # close the transport; connection_lost says the rest
@@ -211,6 +258,12 @@ class _Connection(asyncio.Protocol):
             # connection with it (bytes after the head would be read as the next answer's).
             self.done = True
             self.keep_alive = False
+        elif self._direct_cap is not None:
+            length = _direct_length(status, self.headers, self._direct_cap)
+            if length is not None:
+                self.keep_alive = self._parser.should_keep_alive()
+                self._room = memoryview(mmap.mmap(-1, length + 1))
+                self.body = self._room[:length]
         self._wake()
 
     def on_chunk_header(self) -> None:
@@ -224,6 +277,10 @@ class _Connection(asyncio.Protocol):
                 f"the answer has more than {MAX_CHUNKS} chunks ({self.body_received} bytes of body in them)"
             )
         self.body_received += len(body)
+        if self.body is not None:
+            self.body[self._filled : self._filled + len(body)] = body
+            self._filled += len(body)
+            return
         self._pieces.append(body)
         self._buffered += len(body)
         if self._buffered > _HIGH_WATER and not self._paused and self.transport is not None:
@@ -252,8 +309,9 @@ class _Connection(asyncio.Protocol):
         names = {name.lower() for name, _ in self.headers}
         return b"content-length" not in names and b"transfer-encoding" not in names
 
-    async def send(self, data: bytes, head_only: bool, read_s: float | None) -> None:
-        """Send one request (head and body in ``data``) and wait for its answer's head.
+    async def send(self, data: bytes, head_only: bool, read_s: float | None, direct_cap: int | None = None) -> None:
+        """Send one request (head and body in ``data``) and wait for its answer's head; with
+        ``direct_cap``, a big wire answer up to that size is read into :attr:`body`.
 
         Raises:
             ReadTimedOut, BrokenAnswer: as :meth:`wait`.
@@ -265,6 +323,7 @@ class _Connection(asyncio.Protocol):
         self.headers_done = self.done = self.keep_alive = self._informational = False
         self.error = None
         self._pieces, self._buffered = [], 0
+        self._direct_cap, self.body, self._room, self._filled, self._direct = direct_cap, None, None, 0, False
         self.received = self._head_bytes = self.body_received = self.chunks = 0
         self.written = False
         self.exchanges += 1
@@ -441,6 +500,7 @@ class HttptoolsTransport(Transport):
         connect_s: float | None,
         read_s: float | None,
         resendable: bool,
+        direct_cap: int | None = None,
     ) -> _Connection:
         """Send one request on a connection to ``origin`` and wait for its answer's head; return
         the connection, which the caller releases once the answer is read.
@@ -460,7 +520,7 @@ class HttptoolsTransport(Transport):
         """
         connection = await self._connection(origin, connect_s)
         try:
-            await connection.send(data, head_only, read_s)
+            await connection.send(data, head_only, read_s, direct_cap)
             return connection
         except httpx.RemoteProtocolError as exc:
             closed_idle = connection.exchanges > 1 and connection.received == 0 and connection.closed
@@ -478,7 +538,7 @@ class HttptoolsTransport(Transport):
             raise
         connection = await self._connection(origin, connect_s, fresh=True)
         try:
-            await connection.send(data, head_only, read_s)
+            await connection.send(data, head_only, read_s, direct_cap)
         except BaseException:
             self.release(connection)
             raise
@@ -557,13 +617,15 @@ class HttptoolsTransport(Transport):
 
     async def fetch(
         self, method: str, url: str, headers: tuple[tuple[str, str], ...], body: bytes, max_bytes: int
-    ) -> tuple[int, bytes]:
+    ) -> tuple[int, bytes | memoryview]:
         """Send one request and read its answer whole under the cap ``max_bytes``, decoding a
         gzip or deflate Content-Encoding, as ``vecsim.transport.read_answer`` does; no httpx
         objects on the way. The caller bounds it in time (``asyncio.timeout``).
 
         Returns:
-            the answer's status code and its decoded body.
+            the answer's status code and its decoded body: for a 200 wire answer of
+            :data:`DIRECT_BYTES` or more, a ``memoryview`` of the buffer it was read into; else
+            ``bytes``.
 
         Raises:
             vecsim.transport.AnswerTooLargeError, httpx.DecodingError: as ``read_answer``.
@@ -579,9 +641,13 @@ class HttptoolsTransport(Transport):
             keyed = b"".join(b"%s: %s\r\n" % (IDEMPOTENCY_KEY.encode(), _header_value(v)) for v in key)
             data = b"%s%sContent-Length: %d\r\n\r\n%s" % (head, keyed, len(body), body)
             connection = await self._send(
-                origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS
+                origin, data, method == "HEAD", None, None, bool(key) or method in _IDEMPOTENT_METHODS, max_bytes
             )
             try:
+                if connection.body is not None:
+                    while not connection.done:
+                        await connection.wait(None)
+                    return connection.status, connection.body
                 reader = AnswerReader(url, _text_headers(connection.headers), max_bytes)
                 while True:
                     for piece in connection.take():
@@ -609,3 +675,26 @@ class HttptoolsTransport(Transport):
 
 def _text_headers(headers: Sequence[tuple[bytes, bytes]]) -> list[tuple[str, str]]:
     return [(name.decode("latin-1"), value.decode("latin-1")) for name, value in headers]
+
+
+_WIRE_TYPE = wire.CONTENT_TYPE.encode()
+
+
+def _direct_length(status: int, headers: list[tuple[bytes, bytes]], cap: int) -> int | None:
+    """The body's length, when an answer with this head is read past the parser
+    (:data:`DIRECT_BYTES`); None when it is parsed (and its reader checks it)."""
+    if status != 200:
+        return None
+    lengths, types = [], []
+    for name, value in headers:
+        lower = name.lower()
+        if lower in (b"transfer-encoding", b"content-encoding"):
+            return None
+        if lower == b"content-length":
+            lengths.append(value.strip())
+        elif lower == b"content-type":
+            types.append(value.split(b";", 1)[0].strip().lower())
+    if types != [_WIRE_TYPE] or len(lengths) != 1 or not lengths[0].isdigit() or len(lengths[0]) > 18:
+        return None
+    length = int(lengths[0])
+    return length if DIRECT_BYTES <= length <= cap else None

@@ -19,7 +19,7 @@ from vecsim.info import batch_infos
 from vecsim.spaces import tuples_as_dicts
 
 from ...models import Problem
-from ..bodies import JSON_TYPE, encode_answer, parse_body, wants_json
+from ..bodies import JSON_TYPE, Answer, encode_answer, parse_body, wants_json
 from ..deps import get_state
 from ..models import (
     AttrRequest,
@@ -200,7 +200,7 @@ async def step(
     return await _once(state, request, req, apply)
 
 
-Apply = Callable[[], Awaitable[tuple[Response, np.ndarray]]]
+Apply = Callable[[], Awaitable[tuple[Answer, np.ndarray]]]
 
 
 async def _once(state: PodState, request: Request, req: ResetRequest | StepRequest, apply: Apply) -> Response:

@@ -194,6 +194,8 @@ class MjwarpEngine:
         self._num_states = np.zeros(self.num_envs, dtype=np.int64)
         # The envs' last observation and success, answered for envs a call does not move.
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
+        # Whether an answer may hold a view of the arrays in self._obs["images"] (see _gather).
+        self._images_lent = False
         self._steps = np.zeros(self.num_envs, dtype=np.int64)
         self._last_success = np.zeros(self.num_envs, dtype=bool)
         self._broken: dict[int, str] = {}
@@ -585,6 +587,10 @@ class MjwarpEngine:
         renders = 0
         camera = self.assignment.camera
         orientation = self.assignment.libero.image_orientation
+        images = self._obs["images"]
+        if self._images_lent:
+            unlend(images, every=ids.size == self.num_envs)
+            self._images_lent = False
         for batch, rows, worlds in self._split(ids):
             rc = batch.render
             # The cameras see the kinematics LIBERO sampled; the data's own are recomputed by the
@@ -601,20 +607,48 @@ class MjwarpEngine:
                 wp.synchronize_device(batch.pixels.device)
                 host = batch.host.numpy()
                 if worlds.size == count:
-                    self._obs["images"][name][start : start + count] = host
+                    images[name][start : start + count] = host
                 else:
                     # Only the named worlds: the others were put back, their pixels are stale.
-                    self._obs["images"][name][worlds + start] = host[worlds]
+                    images[name][worlds + start] = host[worlds]
             renders += len(worlds)
         return time.perf_counter() - started, renders
 
     def _gather(self, ids: np.ndarray) -> dict[str, Any]:
+        """The observations of ``ids``, the caller's to keep. The images of a contiguous run of
+        envs (the usual call: every env, in order) are views, not copies, lent until the next
+        render (which then writes new arrays); the rest is copied."""
+        run = contiguous_run(ids)
+
         def pick(tree: Any) -> Any:
             if isinstance(tree, dict):
                 return {key: pick(sub) for key, sub in tree.items()}
             return tree[ids]
 
-        return pick(self._obs)
+        obs = {}
+        for key, sub in self._obs.items():
+            if key == "images" and run is not None:
+                obs[key] = {name: pixels[run] for name, pixels in sub.items()}
+                self._images_lent = True
+            else:
+                obs[key] = pick(sub)
+        return obs
+
+
+def contiguous_run(ids: np.ndarray) -> slice | None:
+    """``ids`` as a slice when they are ``a, a + 1, ..., b - 1`` (at least one), else None."""
+    if ids.size == 0 or int(ids[-1]) - int(ids[0]) + 1 != ids.size:
+        return None
+    first = int(ids[0])
+    return slice(first, first + ids.size) if np.array_equal(ids, np.arange(first, first + ids.size)) else None
+
+
+def unlend(images: dict[str, np.ndarray], every: bool) -> None:
+    """Give each camera of ``images`` a new array to render into, leaving the old one to the
+    answers that hold views of it (the pod may still be sending one, or keep it for a repeated
+    request): a copy of it, or (``every``: the render writes every env) an uninitialised one."""
+    for name, pixels in images.items():
+        images[name] = np.empty_like(pixels) if every else pixels.copy()
 
 
 def _action_substeps(batch: _Batch) -> None:
