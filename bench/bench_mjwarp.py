@@ -426,31 +426,44 @@ def layout_spec(text: str) -> tuple[int, int, int | None]:
 
 def drive(url: str, envs: int, chunk: int, calls: int, seed: int) -> dict[str, Any]:
     """Step every env of the pod at ``url`` ``calls`` times, back to back (in a process of its
-    own, so that decoding one pod's answers does not wait on another's): env-steps, the span,
-    and the seconds spent waiting for answers and decoding them."""
-    import httpx
+    own, so that decoding one pod's answers does not wait on another's), through the trainer's
+    transport (``vecsim.transport.make_transport``): env-steps, the span, and the seconds spent
+    waiting for answers and decoding them."""
+    import asyncio
 
     from vecsim import wire
+    from vecsim.transport import make_transport
 
-    headers = {"Content-Type": wire.CONTENT_TYPE, "Accept": wire.CONTENT_TYPE}
+    headers = (("Content-Type", wire.CONTENT_TYPE), ("Accept", wire.CONTENT_TYPE))
+    # Far above any answer here (1,024 worlds of two 256x256 cameras are 403 MB).
+    cap = 1 << 32
     rng = np.random.default_rng(seed)
     ids = np.arange(envs)
-    steps, waiting, decoding, size = 0, 0.0, 0.0, 0
-    with httpx.Client(timeout=600) as client:
-        begun = time.perf_counter()
-        for _ in range(calls):
-            actions = rng.uniform(-0.3, 0.3, (envs, chunk, 7)).astype(np.float32)
-            body = wire.encode({"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
-            sent = time.perf_counter()
-            answer = client.post(f"{url}/v1/step", content=body, headers=headers)
-            answer.raise_for_status()
-            received = time.perf_counter()
-            steps += int(np.asarray(wire.decode(answer.content)["num_steps"]).sum())
-            waiting += received - sent
-            decoding += time.perf_counter() - received
-            size = len(answer.content)
-        ended = time.perf_counter()
-    return {"steps": steps, "begun": begun, "ended": ended, "waiting": waiting, "decoding": decoding, "bytes": size}
+
+    async def loop() -> dict[str, Any]:
+        transport = make_transport()
+        steps, waiting, decoding, size = 0, 0.0, 0.0, 0
+        try:
+            begun = time.perf_counter()
+            for _ in range(calls):
+                actions = rng.uniform(-0.3, 0.3, (envs, chunk, 7)).astype(np.float32)
+                body = wire.encode({"generation": 0, "env_indices": ids, "actions": actions, "step_past_end": True})
+                sent = time.perf_counter()
+                async with asyncio.timeout(600):
+                    status, answer = await transport.fetch("POST", f"{url}/v1/step", headers, body, cap)
+                if status != 200:
+                    raise RuntimeError(f"{url}/v1/step answered {status}: {bytes(answer[:300])!r}")
+                received = time.perf_counter()
+                steps += int(np.asarray(wire.decode(answer)["num_steps"]).sum())
+                waiting += received - sent
+                decoding += time.perf_counter() - received
+                size = len(answer)
+            ended = time.perf_counter()
+        finally:
+            await transport.aclose()
+        return {"steps": steps, "begun": begun, "ended": ended, "waiting": waiting, "decoding": decoding, "bytes": size}
+
+    return asyncio.run(loop())
 
 
 def run_layout(
