@@ -19,7 +19,8 @@ time the ``mjwarp`` pod alone, and the summary sets its best rate beside RLinf's
 Slot ``i`` runs task ``i % n`` of the ``n`` tasks (reset id ``task * 50 + (i // n) % 50``), so
 both see the same task mix. Each round (the order alternating) resets every slot (not timed) and
 times ``--chunks`` calls of ``chunk_step`` with K actions a slot; env-steps/s = slots * K *
-chunks / that time. Settle: RLinf's (15 steps, gripper open), the pods' ``settle_steps: 15``.
+chunks / that time. Settle: RLinf's (15 steps, gripper open), the pods' ``settle_steps: 15``, and
+``fixture_rule: first_reset`` (RLinf's placement).
 
 Commands::
 
@@ -91,9 +92,11 @@ stand_in_for_rlinf_scheduler()
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 STATES_PER_TASK = 50
 SETTLE_STEPS = 15  # RLinf's, inside its reset()
-# The pods' LIBERO protocol: RLinf's settle (its reset_gripper_open: true opens the gripper, as
-# vecsim's settle action does); an mjwarp pod needs scenes exported under it.
-PROTOCOL = LiberoProtocol(settle_steps=SETTLE_STEPS)
+# The pods' LIBERO protocol, RLinf's (docs/trainers.md): its settle (reset_gripper_open: true opens
+# the gripper, as vecsim's settle action does), and its fixtures, placed as a fresh env's first
+# reset places them (RLinf seeds an env before every reset). An mjwarp pod needs scenes exported
+# under it.
+PROTOCOL = LiberoProtocol(settle_steps=SETTLE_STEPS, fixture_rule="first_reset")
 READY_TIMEOUT_S = 900.0
 TARGET = 4.0  # issue 26: vecsim's RLinf env at least 4x RLinf's own (the largest slot count's paired median)
 
