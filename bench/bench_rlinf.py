@@ -342,22 +342,20 @@ def run_size(
         filtered = None
     with_rlinf = not args.mjwarp or num_envs <= args.rlinf_max_envs
     rates: dict[str, list[float]] = {"rlinf": [], "vecsim": []} if with_rlinf else {"vecsim": []}
-    with pods as urls:
-        theirs = None
+    with pods as urls, contextlib.ExitStack() as closing:
+        contenders = []
         if with_rlinf:
             cfg = rlinf_config(args.suite, num_envs, args.size, None, filtered)
             theirs = build_rlinf(cfg, num_envs, sim_cores, set(driver))
+            closing.callback(theirs.env.close)
+            contenders.append(("rlinf", theirs))
         ours = build_vecsim(rlinf_config(args.suite, num_envs, args.size, urls, filtered), num_envs)
-        contenders = [("rlinf", theirs), ("vecsim", ours)] if theirs is not None else [("vecsim", ours)]
-        try:
-            for r in range(args.rounds):
-                for name, env in contenders[:: 1 if r % 2 == 0 else -1]:
-                    rates[name].append(measure(env, ids, chunks))
-                    log.info("%d slots, round %d, %s: %.1f env-steps/s", num_envs, r, name, rates[name][-1])
-        finally:
-            ours.close()
-            if theirs is not None:
-                theirs.env.close()
+        closing.callback(ours.close)
+        contenders.append(("vecsim", ours))
+        for r in range(args.rounds):
+            for name, env in contenders[:: 1 if r % 2 == 0 else -1]:
+                rates[name].append(measure(env, ids, chunks))
+                log.info("%d slots, round %d, %s: %.1f env-steps/s", num_envs, r, name, rates[name][-1])
     row = {
         "slots": num_envs,
         "pods": len(urls),
