@@ -1,13 +1,14 @@
 """Pack exported ``mjwarp`` scenes for the GPU machine: one ``tar.xz`` a scene, textures reduced.
 
 Each (task, protocol) is exported first when it is not cached (:func:`vecsim.engine.mjwarp.scene.export_scene`,
-the CPU stack), then its folder is packed as ``<out>/<folder>.tar.xz``, to be unpacked into the
-device's ``$VECSIM_MJWARP_SCENES`` (``tar xJf X.tar.xz -C /tmp/scenes``). Textures wider or higher
-than ``--max-texture`` are halved as the device bundle halves the CPU engine's
-(``scripts/build_device_bundle.py``), so both engines draw the same texels. ``<out>/index.json``
-lists every archive: task, protocol, bytes, and whether the ``mjwarp`` engine serves the task
-(or why not). A device call carries at most 64 MiB in all: ``--together NAME.tar.xz`` also
-packs every scene into one archive that holds each shared mesh and texture once (hard links).
+the CPU stack); a scene the ``mjwarp`` engine would refuse is left out; the others are packed
+as ``<out>/<folder>.tar.xz``, to be unpacked into the device's ``$VECSIM_MJWARP_SCENES``
+(``tar xJf X.tar.xz -C /tmp/scenes``). Textures wider or higher than ``--max-texture`` are
+halved as the device bundle halves the CPU engine's (``scripts/build_device_bundle.py``), so
+both engines draw the same texels. ``<out>/index.json`` lists every archive with its bytes, and
+every scene left out with the reason. A device call carries at most 64 MiB in all:
+``--together NAME.tar.xz`` packs every scene into one archive instead, each mesh and texture
+they share held once (hard links).
 
     python scripts/pack_mjwarp_scenes.py libero_10/0 libero_10/1 --libero '{}' '{"settle_steps": 15}' \\
         --together scenes.tar.xz
@@ -58,7 +59,7 @@ class Packer:
         """Write ``archive`` holding ``folders`` under their names; a file whose content another
         already holds is stored as a hard link to it (scenes share most meshes and textures)."""
         first: dict[str, str] = {}
-        with tarfile.open(archive, "w:xz", preset=9) as tar:
+        with tarfile.open(archive, "w:xz") as tar:
             for folder in folders:
                 for name, reduced, path, digest in self.files(folder):
                     if digest in first:
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--root", type=Path, default=None, help="the scenes' cache (default: the engine's)")
     parser.add_argument("--out", type=Path, default=Path(".whl/scenes"), help="where the archives go")
-    parser.add_argument("--together", help="also one archive of that name holding every scene, shared files once")
+    parser.add_argument("--together", help="one archive of that name holding every scene (shared files once) instead")
     parser.add_argument("--max-texture", type=int, default=512, help="largest texture side packed, in pixels")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -98,29 +99,31 @@ def main(argv: list[str] | None = None) -> int:
     packer, folders = Packer(args.max_texture), []
     for protocol in args.libero:
         for task_id in args.tasks:
+            key = f"{task_id} {protocol.model_dump_json()}"
             try:
                 folder = export_scene(task_id, protocol, root=args.root)
             except ValueError as exc:
                 log.error("%s: not exported: %s", task_id, exc)
-                index[f"{task_id} {protocol.model_dump_json()}"] = {"task": task_id, "error": str(exc)}
+                index[key] = {"task": task_id, "error": str(exc)}
+                continue
+            refused = refusal(load_scene(folder).manifest)
+            if refused:
+                # The engine would refuse it: not worth carrying.
+                log.info("%s: not packed: %s", folder.name, refused)
+                index[key] = {"task": task_id, "libero": protocol.model_dump(), "refused": refused}
                 continue
             folders.append(folder)
+            if args.together:
+                continue
             archive = packer.pack([folder], args.out / f"{folder.name}.tar.xz")
-            refused = refusal(load_scene(folder).manifest)
-            index[archive.name] = {
-                "task": task_id,
-                "libero": protocol.model_dump(),
-                "bytes": archive.stat().st_size,
-                "served": refused is None,
-                "refused": refused,
-            }
-            log.info("%s %.1f MB %s", archive.name, archive.stat().st_size / 1e6, refused or "served")
+            index[archive.name] = {"task": task_id, "libero": protocol.model_dump(), "bytes": archive.stat().st_size}
+            log.info("%s %.1f MB", archive.name, archive.stat().st_size / 1e6)
             index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
     if args.together and folders:
         archive = packer.pack(folders, args.out / args.together)
         index[archive.name] = {"scenes": [f.name for f in folders], "bytes": archive.stat().st_size}
         log.info("%s %.1f MB: %d scenes", archive.name, archive.stat().st_size / 1e6, len(folders))
-        index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+    index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
     return 0
 
 

@@ -13,8 +13,10 @@ as files, one folder per task and LIBERO protocol (:func:`scene_dir`):
   leaves after its settle steps (``qpos``, ``qvel``, ``act``, ``ctrl``, ``qacc_warmstart``,
   ``time``), that reset's fixture placement (``body_pos``, ``body_quat``: fixtures live in the
   model), the arm controller's nullspace target (``initial_joint``) and goal, the gripper's
-  command, and the observation and success the CPU pod answered (``obs_state``, ``obs_proprio``,
-  ``success``): an ``mjwarp`` reset to ``k`` starts exactly where a CPU reset ends;
+  command, the observation and success the CPU pod answered (``obs_state``, ``obs_proprio``,
+  ``success``), and the kinematics its cameras drew them from (``view.*``, :data:`VIEW_FIELDS`,
+  at LIBERO's last observable sample): an ``mjwarp`` reset to ``k`` starts exactly where a CPU
+  reset ends and shows what it showed;
 - ``tables.npz``: what the batched controller, observables and success predicates read of the
   model (``panda.*``: :class:`~vecsim.engine.mjwarp.controller.PandaIndex`, ``obs.*``:
   :class:`~vecsim.engine.mjwarp.observables.ObservableIndex`, ``goal.*``:
@@ -26,7 +28,7 @@ as files, one folder per task and LIBERO protocol (:func:`scene_dir`):
 
 Export (the CPU stack)::
 
-    python -m vecsim.engine.mjwarp.scene libero_10/0 libero_10/1 [--root DIR]
+    python -m vecsim.engine.mjwarp.scene libero_10/0 libero_10/1 [--root DIR] [--libero '{"settle_steps": 15}']
 
 :func:`load_scene` reads a folder with numpy and json alone.
 """
