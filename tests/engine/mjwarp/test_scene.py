@@ -11,10 +11,14 @@ one physics substep before the settled end).
 from __future__ import annotations
 
 import json
+import sys
+import tarfile
 
 import mujoco
 import numpy as np
 import pytest
+from PIL import Image
+from support import ROOT
 
 from vecsim.config import Assignment, CameraConfig, LiberoProtocol
 from vecsim.engine.mjwarp.engine import check_scene
@@ -197,3 +201,25 @@ def test_camera_centres_of_mass_are_checked_only_where_a_camera_tracks_one(liber
     assert model_differences(reference, other) == {}
     reference.cam_mode[0] = other.cam_mode[0] = mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM
     assert set(model_differences(reference, other)) == {"cam_poscom0"}
+
+
+def test_packed_scenes_unpack_to_loadable_scenes_sharing_their_files(scene, rlinf_scene, tmp_path):
+    """``scripts/pack_mjwarp_scenes.py --together``: both scenes in one archive, the files they
+    share held once (hard links), textures reduced, each scene loadable where it is unpacked."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        from pack_mjwarp_scenes import Packer
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    archive = Packer(max_texture=64).pack([scene.path, rlinf_scene.path], tmp_path / "both.tar.xz")
+    with tarfile.open(archive) as tar:
+        links = [m for m in tar.getmembers() if m.islnk()]
+        assert links and all(m.name.startswith(rlinf_scene.path.name) for m in links)
+        tar.extractall(tmp_path / "unpacked", filter="tar")
+    for original in (scene, rlinf_scene):
+        unpacked = load_scene(tmp_path / "unpacked" / original.path.name)
+        np.testing.assert_array_equal(unpacked.states["qpos"], original.states["qpos"])
+        textures = list((unpacked.path / "assets").glob("*.png"))
+        assert textures and all(max(Image.open(path).size) <= 64 for path in textures)
+        model = mujoco.MjModel.from_xml_path(str(unpacked.xml))
+        np.testing.assert_array_equal(model.body_mass, mujoco.MjModel.from_xml_path(str(original.xml)).body_mass)
