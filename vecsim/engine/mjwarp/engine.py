@@ -15,7 +15,7 @@ What a call guarantees, as on the CPU engine:
 - arguments are checked before anything moves (a refused call changes nothing);
 - a reset to ``(task, k)`` starts every world exactly where a CPU pod's reset to ``k`` ended,
   settle steps included (the state was recorded at export), and answers that reset's own
-  observation;
+  observation, its images drawn from the kinematics the CPU pod's cameras saw;
 - only the named envs move: MuJoCo Warp steps every world of a batch, so the state of each
   world that is not stepping (not named, or ended earlier in the chunk) is put back after each
   action;
@@ -45,7 +45,7 @@ from vecsim.config import Assignment, TaskBlock
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
-from vecsim.engine.mjwarp.scene import Scene, load_scene, load_tables, scene_dir
+from vecsim.engine.mjwarp.scene import VIEW_FIELDS, Scene, load_scene, load_tables, refusal, scene_dir
 from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
 from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
 
@@ -64,8 +64,9 @@ GEOM_GROUPS = [1, 2]
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
 _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
-# The kinematics MuJoCo Warp's renderer reads (render.py, bvh.py), copied where LIBERO samples.
-_VIEW = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat", "light_xpos", "light_xdir")
+# The kinematics MuJoCo Warp's renderer reads, copied where LIBERO samples (recorded at export
+# for resets).
+_VIEW = VIEW_FIELDS
 
 
 def _missing_packages() -> list[str]:
@@ -92,16 +93,9 @@ def check_scene(assignment: Assignment, block: TaskBlock) -> Scene:
         scene = load_scene(path)
     except (FileNotFoundError, ValueError) as exc:
         raise InvalidRequestError(f"tasks: {task_id}: {exc}") from None
-    goal = scene.manifest["goal"]
-    if goal["atoms"] is None:
-        raise InvalidRequestError(
-            f"tasks: {task_id}: the mjwarp engine has no batched success predicate for it: {goal['unsupported']}"
-        )
-    if scene.manifest["fixtures_vary"]:
-        raise InvalidRequestError(
-            f"tasks: {task_id}: its fixtures move from one init state to the next, and the mjwarp engine holds "
-            "one model per task; serve it on the cpu engine, or with libero.fixture_rule 'first_reset'"
-        )
+    refused = refusal(scene.manifest)
+    if refused:
+        raise InvalidRequestError(f"tasks: {task_id}: {refused}")
     missing = [name for name in assignment.camera.names if name not in scene.manifest["robot"]["cameras"]]
     if missing:
         raise InvalidRequestError(f"camera: {task_id} has no camera {missing[0]!r}")
@@ -437,7 +431,6 @@ class MjwarpEngine:
         return out
 
     def _reset_worlds(self, batch: _Batch, worlds: np.ndarray, states: np.ndarray) -> None:
-        import mujoco_warp as mjw
         import warp as wp
 
         recorded = batch.scene.states
@@ -465,13 +458,13 @@ class MjwarpEngine:
         command[worlds] = recorded["gripper_action"][states]
         batch.controller.gripper_command.assign(command)
         data.overflow.zero_()
-        # Derived quantities at the restored state, for the camera; the observation is the one
-        # the CPU pod answered for this reset.
-        mjw.forward(batch.model, data)
+        # The cameras see what a CPU pod's cameras drew for this reset: the kinematics at LIBERO's
+        # last sample (substep 24 of the last settle step), not at the settled end state. The
+        # next step1 computes the end state's own.
         if batch.view is not None:
             for name, view in batch.view.items():
                 values = view.numpy()
-                values[worlds] = getattr(data, name).numpy()[worlds]
+                values[worlds] = recorded[f"view.{name}"][states].reshape(values[worlds].shape)
                 view.assign(values)
         envs = worlds + batch.block.env_start
         self._obs["state"][envs] = recorded["obs_state"][states]

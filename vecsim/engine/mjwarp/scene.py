@@ -13,8 +13,10 @@ as files, one folder per task and LIBERO protocol (:func:`scene_dir`):
   leaves after its settle steps (``qpos``, ``qvel``, ``act``, ``ctrl``, ``qacc_warmstart``,
   ``time``), that reset's fixture placement (``body_pos``, ``body_quat``: fixtures live in the
   model), the arm controller's nullspace target (``initial_joint``) and goal, the gripper's
-  command, and the observation and success the CPU pod answered (``obs_state``, ``obs_proprio``,
-  ``success``): an ``mjwarp`` reset to ``k`` starts exactly where a CPU reset ends;
+  command, the observation and success the CPU pod answered (``obs_state``, ``obs_proprio``,
+  ``success``), and the kinematics its cameras drew them from (``view.*``, :data:`VIEW_FIELDS`,
+  at LIBERO's last observable sample): an ``mjwarp`` reset to ``k`` starts exactly where a CPU
+  reset ends and shows what it showed;
 - ``tables.npz``: what the batched controller, observables and success predicates read of the
   model (``panda.*``: :class:`~vecsim.engine.mjwarp.controller.PandaIndex`, ``obs.*``:
   :class:`~vecsim.engine.mjwarp.observables.ObservableIndex`, ``goal.*``:
@@ -26,7 +28,7 @@ as files, one folder per task and LIBERO protocol (:func:`scene_dir`):
 
 Export (the CPU stack)::
 
-    python -m vecsim.engine.mjwarp.scene libero_10/0 libero_10/1 [--root DIR]
+    python -m vecsim.engine.mjwarp.scene libero_10/0 libero_10/1 [--root DIR] [--libero '{"settle_steps": 15}']
 
 :func:`load_scene` reads a folder with numpy and json alone.
 """
@@ -54,8 +56,13 @@ from vecsim.config import LiberoProtocol
 log = logging.getLogger(__name__)
 
 # Bumped whenever what a scene folder holds changes, so a stale cache is never read.
-SCENE_FORMAT = 3  # 3: the recorded obs_state and obs_proprio are float64, as the CPU pod serves them
+SCENE_FORMAT = 4  # 4: what the cameras see at each reset (``view.*``); the digest drops the orientation
 ROOT_ENV = "VECSIM_MJWARP_SCENES"
+# The kinematics MuJoCo Warp's ray tracer reads (its render.py and bvh.py); at a reset they are
+# recorded where LIBERO's observables last sampled, which is what a CPU pod's cameras draw.
+VIEW_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat", "light_xpos", "light_xdir")
+# What a scene's content depends on: the image orientation is applied when frames are unpacked.
+_PROTOCOL_KEY = ("settle_steps", "fixture_seed", "fixture_rule")
 # Model fields allowed to differ after the round trip through MJCF, and by how much: MJCF holds
 # six significant digits, so values read back carry relative errors near 1e-6; fields derived
 # from them (inverse weights, the bounding volumes) carry the same, relatively.
@@ -75,6 +82,10 @@ UNCHECKED_FIELDS = frozenset(
         "bvh_depth",
     }
 )
+# Read only for cameras and lights that track their subtree's centre of mass (mjCAMLIGHT_TRACKCOM):
+# compiled from the placement the model was built with, which the export's moved fixtures change.
+_TRACKCOM_FIELDS = {"cam_poscom0": "cam_mode", "light_poscom0": "light_mode"}
+_TRACKCOM = 2
 
 
 def default_root() -> Path:
@@ -84,7 +95,8 @@ def default_root() -> Path:
 
 def scene_dir(task_id: str, protocol: LiberoProtocol, root: Path | None = None) -> Path:
     """The folder of ``task_id``'s scene under ``protocol`` (its settle steps and fixtures)."""
-    key = json.dumps({"format": SCENE_FORMAT, **protocol.model_dump()}, sort_keys=True)
+    fields = {name: getattr(protocol, name) for name in _PROTOCOL_KEY}
+    key = json.dumps({"format": SCENE_FORMAT, **fields}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:12]
     return (root or default_root()) / f"{task_id.replace('/', '-')}-{digest}"
 
@@ -128,6 +140,19 @@ def load_scene(path: Path) -> Scene:
     return Scene(path=path, manifest=manifest, states=states)
 
 
+def refusal(manifest: dict[str, Any]) -> str | None:
+    """Why the ``mjwarp`` engine cannot serve the scene of ``manifest``, or None when it can."""
+    goal = manifest["goal"]
+    if goal["atoms"] is None:
+        return f"the mjwarp engine has no batched success predicate for it: {goal['unsupported']}"
+    if manifest["fixtures_vary"]:
+        return (
+            "its fixtures move from one init state to the next, and the mjwarp engine holds one model per task; "
+            "serve it on the cpu engine, or with libero.fixture_rule 'first_reset'"
+        )
+    return None
+
+
 def model_differences(reference: Any, exported: Any) -> dict[str, str]:
     """Every numeric field of two ``MjModel`` that differs beyond :data:`RTOL`/:data:`ATOL`
     (fields in :data:`UNCHECKED_FIELDS` aside): field -> what differs. Empty when they agree."""
@@ -137,6 +162,9 @@ def model_differences(reference: Any, exported: Any) -> dict[str, str]:
         if name.startswith("_") or name in UNCHECKED_FIELDS or not isinstance(want, np.ndarray):
             continue
         have = getattr(exported, name)
+        if name in _TRACKCOM_FIELDS and want.shape == have.shape:
+            tracking = getattr(reference, _TRACKCOM_FIELDS[name]) == _TRACKCOM
+            want, have = want[tracking], have[tracking]
         if want.shape != have.shape:
             found[name] = f"shape {have.shape}, LIBERO's {want.shape}"
         elif want.dtype.kind == "f":
@@ -212,14 +240,36 @@ def write_model(model: Any, out: Path) -> None:
     tree.write(out / "scene.xml")
 
 
+def _watch_view(inner: Any) -> dict[str, np.ndarray]:
+    """Copy :data:`VIEW_FIELDS` of ``inner``'s data into the returned dict whenever LIBERO's
+    observables sample (an observable of their rate, as a CPU pod's cameras take their copy)."""
+    from robosuite.utils.observables import Observable, sensor
+
+    data = inner.sim.data._data
+    seen: dict[str, np.ndarray] = {}
+
+    @sensor(modality="vecsim")
+    def view(obs_cache: dict[str, Any]) -> float:
+        seen.update({name: np.array(getattr(data, name), copy=True) for name in VIEW_FIELDS})
+        return 0.0
+
+    inner.add_observable(Observable(name="vecsim_export_view", sensor=view, sampling_rate=inner.control_freq))
+    return seen
+
+
 def _settled_states(env: Any, num_states: int) -> dict[str, np.ndarray]:
-    """Reset ``env`` (a vecsim LIBERO env, no cameras) to each init state; what each leaves."""
+    """Reset ``env`` (a vecsim LIBERO env, no cameras) to each init state; what each leaves, and
+    (``view.*``) the kinematics its cameras would draw, taken at the observables' last sample."""
     inner = env.inner
     model, data = inner.sim.model._model, inner.sim.data._data
     robot = inner.robots[0]
+    seen = _watch_view(inner)
     rows: dict[str, list[np.ndarray]] = {}
     for state_id in range(num_states):
+        seen.clear()
         obs, info = env.reset(options={"state_id": state_id})
+        if set(seen) != set(VIEW_FIELDS):
+            raise RuntimeError(f"state {state_id}: LIBERO's observables did not sample during the reset")
         controller = robot.controller
         row = {
             "time": np.array(data.time),
@@ -237,6 +287,7 @@ def _settled_states(env: Any, num_states: int) -> dict[str, np.ndarray]:
             "obs_state": obs["state"],
             "obs_proprio": obs["proprio"],
             "success": np.array(info["success"]),
+            **{f"view.{name}": value for name, value in seen.items()},
         }
         for name, value in row.items():
             rows.setdefault(name, []).append(np.array(value, copy=True))
@@ -376,11 +427,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--root", type=Path, default=None, help=f"cache folder (default ${ROOT_ENV} or ~/.cache/vecsim/mjwarp-scenes)"
     )
+    parser.add_argument(
+        "--libero",
+        type=LiberoProtocol.model_validate_json,
+        default=LiberoProtocol(),
+        help="the job's libero block as JSON (default: LIBERO's published protocol), e.g. '{\"settle_steps\": 15}'",
+    )
     parser.add_argument("--force", action="store_true", help="export again even when cached")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for task_id in args.tasks:
-        print(export_scene(task_id, root=args.root, force=args.force))
+        path = export_scene(task_id, args.libero, root=args.root, force=args.force)
+        refused = refusal(load_scene(path).manifest)
+        print(f"{task_id}\t{path}\t{'refused: ' + refused if refused else 'served'}")
     return 0
 
 
