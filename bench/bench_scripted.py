@@ -27,6 +27,7 @@ path works, no figure).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 import os
@@ -237,7 +238,7 @@ def run(args: argparse.Namespace) -> None:
         "command": command_line(),
         "machine": {**machine_info(), "name": args.machine},
         "policy": asdict(gains),
-        "table": str(args.table.name),
+        "table": {"file": args.table.name, "sha256": hashlib.sha256(args.table.read_bytes()).hexdigest()},
         "tasks": {},
         "complete": False,
     }
@@ -268,7 +269,9 @@ def run(args: argparse.Namespace) -> None:
                 }
                 log.info("%s on %s: %d/%d", task, engine, entry[engine]["successes"], entry[engine]["states"])
             if all("per_state" in entry.get(e, {}) for e in ("cpu", "mjwarp")):
-                first, second = ({int(k): v["success"] for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp"))
+                first, second = (
+                    {int(k): v["success"] for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp")
+                )
                 entry["agreement"] = agreement(first, second)
             write(record, args.out)
         if "cut_short" in record:

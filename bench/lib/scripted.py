@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -44,10 +45,11 @@ class Gains:
     move_timeout: int = 50  # steps after which a waypoint not reached is given up on
 
 
-def wilson(successes: int, trials: int, z: float = 1.959964) -> tuple[float, float]:
-    """The Wilson score interval of a success rate (95% for the default ``z``); (0, 1) for no trials."""
+def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
+    """The Wilson score interval of a success rate; (0, 1) for no trials."""
     if trials <= 0:
         return 0.0, 1.0
+    z = NormalDist().inv_cdf((1 + confidence) / 2)
     p = successes / trials
     denominator = 1.0 + z * z / trials
     centre = (p + z * z / (2 * trials)) / denominator
@@ -85,7 +87,11 @@ def matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
     cos = np.clip((np.trace(matrix, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
     angle = np.arccos(cos)
     skew = np.stack(
-        [matrix[..., 2, 1] - matrix[..., 1, 2], matrix[..., 0, 2] - matrix[..., 2, 0], matrix[..., 1, 0] - matrix[..., 0, 1]],
+        [
+            matrix[..., 2, 1] - matrix[..., 1, 2],
+            matrix[..., 0, 2] - matrix[..., 2, 0],
+            matrix[..., 1, 0] - matrix[..., 0, 1],
+        ],
         axis=-1,
     )
     sin = np.sin(angle)
