@@ -77,9 +77,10 @@ def scene_row(inner: Any) -> dict[str, Any]:
 
     model, data = inner.sim.model._model, inner.sim.data._data
     pairs = []
-    for predicate, obj, goal in inner.parsed_problem["goal_state"]:
-        if predicate.lower() not in ("in", "on"):
-            raise ValueError(f"task goal {predicate!r}: the script only places objects (in, on)")
+    for term in inner.parsed_problem["goal_state"]:
+        if len(term) != 3 or term[0].lower() not in ("in", "on"):
+            raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
+        _, obj, goal = term
         body = inner.obj_body_id[obj]
         corners = body_corners(model, data, body)
         spread = corners[:, :2] - corners[:, :2].mean(axis=0)
