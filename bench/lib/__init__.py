@@ -9,6 +9,8 @@ from here, never from another script.
   scripted and chunked policies.
 - :mod:`lib.measure`: timed stage calls, pod counters, rollouts, interleaved contenders.
 - :mod:`lib.stats`: figures from measured rollouts.
+- :mod:`lib.scripted`: a scripted pick-and-place policy for LIBERO, Wilson intervals, the
+  agreement of two engines per init state.
 - :mod:`lib.plots`: the GPU benches' plots.
 - :mod:`lib.ceiling`: the node's simulation alone in pinned processes (physics-only, the
   ceiling with cameras), the baselines of ``bench_chunks.py``.

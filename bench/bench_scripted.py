@@ -1,0 +1,326 @@
+"""Success rates of a scripted pick-and-place policy over LIBERO init states, on the ``cpu`` and
+``mjwarp`` engines, through real pods and ``HTTPVectorEnv``.
+
+The policy (``lib/scripted.py``) is closed loop on the end effector and open loop on the
+objects: ``table`` (the CPU stack: robosuite, LIBERO) measures, for each init state of each
+task, where the goal's objects and regions are after a CPU pod's reset (settle steps included),
+and writes ``bench/lib/scripted_table.json``, which the bench carries::
+
+    python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/7
+
+``run`` starts one real pod (``vecsim pod``, uvicorn, loopback) per task and engine, resets its
+envs to the init states (all 50 by default, ``--envs`` at a time) and runs the policy to each
+episode's end (LIBERO's success, or the suite's step limit): per task and engine, successes,
+the rate with its Wilson 95% interval, the mean episode length of the successes, and with both
+engines the agreement per init state. Each engine's pods run under their own ``PYTHONPATH``
+(the two stacks pin different mujoco versions); this process needs only the client. The record
+is written after every task and engine, so a run cut short keeps what it did::
+
+    python bench/bench_scripted.py run --engines cpu mjwarp --tasks libero_10/0 \\
+        --cpu-pythonpath /tmp/site --mjwarp-pythonpath /tmp/site-mjw:/tmp/site \\
+        --out out/bench/bench_scripted.json
+
+``--smoke`` runs two init states of one task on the ``cpu`` engine (a test's check that the
+path works, no figure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lib.records import command_line, machine_info
+from lib.scripted import Gains, PickPlace, agreement, closing_yaw, wilson
+
+from vecsim.config import Assignment, CameraConfig, TaskBlock
+
+log = logging.getLogger("bench_scripted")
+
+TABLE = Path(__file__).resolve().parent / "lib" / "scripted_table.json"
+CODE = Path(__file__).resolve().parents[1]
+
+
+# -- the table (CPU stack) ---------------------------------------------------------------------
+
+
+def body_corners(model: Any, data: Any, body: int) -> np.ndarray:
+    """The world corners ``[8 * geoms, 3]`` of the bounding boxes of every geom of ``body``'s tree."""
+    corners = []
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    for geom in np.flatnonzero(model.body_rootid[model.geom_bodyid] == body):
+        centre, half = model.geom_aabb[geom, :3], model.geom_aabb[geom, 3:]
+        local = centre + signs * half
+        corners.append(data.geom_xpos[geom] + local @ data.geom_xmat[geom].reshape(3, 3).T)
+    return np.concatenate(corners)
+
+
+def scene_row(inner: Any) -> dict[str, Any]:
+    """Where the goal's objects and goals are in ``inner`` (a LIBERO env, now): for each of the
+    goal's ``in``/``on`` predicates, in order, the object's centre, top, bottom and grasp yaw (its
+    narrowest horizontal direction), and the goal's centre and top (a region site, or an
+    object's bounding box)."""
+    import mujoco
+
+    model, data = inner.sim.model._model, inner.sim.data._data
+    pairs = []
+    for term in inner.parsed_problem["goal_state"]:
+        if len(term) != 3 or term[0].lower() not in ("in", "on"):
+            raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
+        _, obj, goal = term
+        body = inner.obj_body_id[obj]
+        corners = body_corners(model, data, body)
+        spread = corners[:, :2] - corners[:, :2].mean(axis=0)
+        narrowest = np.linalg.eigh(spread.T @ spread)[1][:, 0]
+        site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, goal)
+        if site >= 0:
+            place = data.site_xpos[site].copy()
+            place_top = float(place[2] + model.site_size[site, 2])
+        else:
+            around = body_corners(model, data, inner.obj_body_id[goal])
+            place_top = float(around[:, 2].max())
+            place = np.array([*around[:, :2].mean(axis=0), place_top])
+        pairs.append(
+            {
+                "object": obj,
+                "goal": goal,
+                "pick": [round(float(v), 5) for v in data.xpos[body]],
+                "top": round(float(corners[:, 2].max()), 5),
+                "bottom": round(float(corners[:, 2].min()), 5),
+                "yaw": round(closing_yaw(narrowest), 4),
+                "place": [round(float(v), 5) for v in place],
+                "place_top": round(place_top, 5),
+            }
+        )
+    return {"pairs": pairs}
+
+
+def table(args: argparse.Namespace) -> None:
+    """Measure the table's rows for ``--tasks`` (all of each task's init states) on the CPU stack."""
+    from vecsim.engine.tasks import make_env
+
+    rows: dict[str, list[dict[str, Any]]] = json.loads(args.out.read_text()) if args.out.exists() else {}
+    for task in args.tasks:
+        env = make_env(task, CameraConfig(names=(), height=128, width=128))
+        try:
+            rows[task] = []
+            for k in range(env.task.num_states):
+                env.reset(options={"state_id": k})
+                rows[task].append(scene_row(env.inner))
+        finally:
+            env.close()
+        log.info("%s: %d init states", task, len(rows[task]))
+    # One init state a line: the file is read by people too.
+    lines = ",\n".join(
+        f"{json.dumps(task)}: [\n" + ",\n".join(json.dumps(row) for row in task_rows) + "\n]"
+        for task, task_rows in sorted(rows.items())
+    )
+    args.out.write_text("{\n" + lines + "\n}\n")
+
+
+# -- the runs (any stack with the client) --------------------------------------------------------
+
+
+@contextmanager
+def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, ready_s: float) -> Iterator[str]:
+    """One real pod (``vecsim pod``) of ``envs`` envs of ``task`` on ``engine``, no cameras; its URL."""
+    import httpx
+
+    spec = Assignment(
+        generation=0,
+        pod="sim-0",
+        stage_id=0,
+        engine=engine,
+        camera=CameraConfig(names=()),
+        tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
+    )
+    env = {**os.environ, "VECSIM_MAX_ENVS": str(envs), "VECSIM_BUILD_TIMEOUT_S": str(int(ready_s))}
+    env["PYTHONPATH"] = ":".join(p for p in (str(CODE), pythonpath or env.get("PYTHONPATH")) if p)
+    url = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "assignment.json"
+        path.write_text(spec.model_dump_json())
+        command = [sys.executable, "-m", "service.cli", "pod", "--assignment", str(path), "--port", str(port)]
+        process = subprocess.Popen(command, env=env, cwd=CODE)
+        try:
+            started = time.monotonic()
+            with httpx.Client(timeout=30) as client:
+                while True:
+                    try:
+                        if client.get(f"{url}/readyz").status_code == 200:
+                            break
+                    except httpx.TransportError:
+                        pass  # not listening yet
+                    if process.poll() is not None:
+                        raise RuntimeError(f"{engine} pod for {task} exited with {process.returncode} before ready")
+                    if time.monotonic() - started > ready_s:
+                        raise RuntimeError(f"{engine} pod for {task} not ready after {ready_s:.0f} s")
+                    time.sleep(1.0)
+            log.info("%s pod for %s ready in %.0f s", engine, task, time.monotonic() - started)
+            yield url
+        finally:
+            process.terminate()
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=30)
+
+
+def episodes(url: str, rows: Sequence[dict[str, Any]], state_ids: Sequence[int], gains: Gains) -> dict[int, dict]:
+    """Run the policy from each of ``state_ids`` to its episode's end through ``HTTPVectorEnv``,
+    as many at a time as the pod has envs; each state id's success and episode length."""
+    from vecsim.client.vector_env import HTTPVectorEnv
+
+    outcome: dict[int, dict[str, Any]] = {}
+    env = HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled", ended_envs="freeze", timeout_s=600)
+    try:
+        width = env.num_envs
+        for start in range(0, len(state_ids), width):
+            batch = list(state_ids[start : start + width])
+            n = len(batch)
+            mask = np.arange(width) < n
+            padded = np.array(batch + [0] * (width - n))
+            obs, _ = env.reset(options={"state_ids": padded, "reset_mask": mask})
+            policy = PickPlace([rows[k] for k in batch], gains)
+            running = np.ones(n, dtype=bool)
+            steps = np.zeros(n, dtype=np.int64)
+            success = np.zeros(n, dtype=bool)
+            while running.any():
+                actions = np.zeros((width, 7), dtype=np.float32)
+                actions[:n] = policy.act(obs["state"][:n])
+                obs, _, terminated, truncated, _ = env.step(actions)
+                steps += running
+                success |= running & terminated[:n]  # LIBERO ends an episode on success alone
+                running &= ~(terminated[:n] | truncated[:n])
+            for i, k in enumerate(batch):
+                outcome[k] = {"success": bool(success[i]), "steps": int(steps[i])}
+            log.info("states %d-%d: %d of %d succeeded", batch[0], batch[-1], int(success.sum()), n)
+    finally:
+        env.close()
+    return outcome
+
+
+def summary(outcome: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """Successes, rate, Wilson 95% interval and mean steps to success of one task on one engine."""
+    wins = [o["steps"] for o in outcome.values() if o["success"]]
+    low, high = wilson(len(wins), len(outcome))
+    return {
+        "states": len(outcome),
+        "successes": len(wins),
+        "rate": len(wins) / len(outcome) if outcome else None,
+        "wilson95": [round(low, 4), round(high, 4)],
+        "mean_steps_to_success": float(np.mean(wins)) if wins else None,
+    }
+
+
+def run(args: argparse.Namespace) -> None:
+    """Every task of ``--tasks`` on every engine of ``--engines``, a record after each."""
+    import httpx
+
+    rows = json.loads(args.table.read_text())
+    gains = Gains()
+    deadline = time.monotonic() + args.budget_s
+    record: dict[str, Any] = {
+        "name": "bench_scripted",
+        "command": command_line(),
+        "machine": {**machine_info(), "name": args.machine},
+        "policy": asdict(gains),
+        "table": {"file": args.table.name, "sha256": hashlib.sha256(args.table.read_bytes()).hexdigest()},
+        "tasks": {},
+        "complete": False,
+    }
+    for index, task in enumerate(args.tasks):
+        if task not in rows:
+            raise SystemExit(f"--tasks: {task} has no row in {args.table}; run `table --tasks {task}` first")
+        entry = record["tasks"].setdefault(task, {})
+        state_ids = list(range(min(args.states, len(rows[task]))))
+        for offset, engine in enumerate(args.engines):
+            if time.monotonic() > deadline:
+                record["cut_short"] = f"budget of {args.budget_s} s spent before {task} on {engine}"
+                break
+            pythonpath = {"cpu": args.cpu_pythonpath, "mjwarp": args.mjwarp_pythonpath}[engine]
+            began = time.monotonic()
+            try:
+                envs = min(args.envs, len(state_ids))
+                port = args.port + 2 * index + offset
+                with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s) as url:
+                    outcome = episodes(url, rows[task], state_ids, gains)
+            except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
+                entry[engine] = {"error": str(exc)}
+                log.error("%s on %s failed: %s", task, engine, exc)
+            else:
+                entry[engine] = {
+                    **summary(outcome),
+                    "seconds": round(time.monotonic() - began, 1),
+                    "per_state": {str(k): v for k, v in outcome.items()},
+                }
+                log.info("%s on %s: %d/%d", task, engine, entry[engine]["successes"], entry[engine]["states"])
+            if all("per_state" in entry.get(e, {}) for e in ("cpu", "mjwarp")):
+                first, second = (
+                    {int(k): v["success"] for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp")
+                )
+                entry["agreement"] = agreement(first, second)
+            write(record, args.out)
+        if "cut_short" in record:
+            break
+    else:
+        record["complete"] = True
+    write(record, args.out)
+    brief = {
+        task: {e: {k: v for k, v in r.items() if k != "per_state"} if isinstance(r, dict) else r for e, r in t.items()}
+        for task, t in record["tasks"].items()
+    }
+    print("RESULT", json.dumps({"name": record["name"], "complete": record["complete"], "tasks": brief}), flush=True)
+
+
+def write(record: dict[str, Any], out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1) + "\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    measure = sub.add_parser("table", help="where each init state's objects are (the CPU stack)")
+    measure.add_argument("--tasks", nargs="+", default=["libero_10/0"])
+    measure.add_argument("--out", type=Path, default=TABLE)
+    go = sub.add_parser("run", help="the policy's success over the init states, per task and engine")
+    go.add_argument("--tasks", nargs="+", default=["libero_10/0"])
+    go.add_argument("--engines", nargs="+", choices=["cpu", "mjwarp"], default=["cpu"])
+    go.add_argument("--states", type=int, default=50, help="init states 0..N-1 of each task")
+    go.add_argument("--envs", type=int, default=50, help="envs of each pod (states run this many at a time)")
+    go.add_argument("--table", type=Path, default=TABLE)
+    go.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
+    go.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
+    go.add_argument("--port", type=int, default=8300)
+    go.add_argument("--ready-timeout-s", type=float, default=600.0)
+    go.add_argument("--budget-s", type=float, default=3600.0, help="no new task or engine is started after this")
+    go.add_argument("--machine", default=os.uname().nodename, help="names the machine in the record")
+    go.add_argument("--out", type=Path, default=Path("out/bench/bench_scripted.json"))
+    go.add_argument("--smoke", action="store_true", help="two init states of the first task, cpu only")
+    args = parser.parse_args()
+    if args.command == "run" and args.smoke:
+        args.tasks, args.engines, args.states, args.envs = args.tasks[:1], ["cpu"], 2, 2
+    # `timeout` ends a run with SIGTERM: exit through the pods' `finally`, never orphaning one.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    {"table": table, "run": run}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()

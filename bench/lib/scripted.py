@@ -1,0 +1,207 @@
+"""A scripted pick-and-place policy for LIBERO's "put X (and Y) in/on Z" tasks, and the figures of
+its success rates: Wilson intervals and the agreement of two engines per init state.
+
+The policy is closed loop on the end effector (LIBERO's 8-float ``state``: eef position,
+axis-angle, gripper) and open loop on the objects: where each object and its goal are, for each
+init state, comes from a table measured once on the CPU engine (:func:`scene_row`). For every
+(object, goal) pair it visits eight waypoints: above the object, down to it, close, up, above
+the goal, down, open, up. Actions are robosuite's OSC_POSE deltas (position up to 5 cm and
+rotation up to 0.5 rad per unit, clipped to [-1, 1]) and the gripper (-1 open, 1 closed)::
+
+    policy = PickPlace([table[k] for k in state_ids])
+    while not done:
+        actions = policy.act(obs["state"])
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from statistics import NormalDist
+from typing import Any
+
+import numpy as np
+
+# robosuite's OSC_POSE output limits: an action of 1 asks for this much per step.
+POS_LIMIT_M = 0.05
+ROT_LIMIT_RAD = 0.5
+OPEN, CLOSED = -1.0, 1.0
+
+
+@dataclass(frozen=True)
+class Gains:
+    """How the script moves; the defaults are what was tuned on the CPU engine (libero_10/0)."""
+
+    hover_m: float = 0.12  # height above the goal's region top (and above objects) for transport
+    grasp_below_top_m: float = 0.03  # grip this far under the object's top,
+    floor_clearance_m: float = 0.015  # but the fingertips' centre this far above its bottom at least
+    release_above_m: float = 0.07  # release the object this far above the goal's region centre
+    reach_tol_m: float = 0.008  # a waypoint is reached within this distance (and yaw tolerance)
+    yaw_tol_rad: float = 0.08
+    position_gain: float = 1.0  # action per POS_LIMIT_M of error
+    rotation_gain: float = 1.0  # action per ROT_LIMIT_RAD of error
+    grip_steps: int = 15  # steps spent closing or opening the gripper
+    move_timeout: int = 50  # steps after which a waypoint not reached is given up on
+
+
+def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
+    """The Wilson score interval of a success rate; (0, 1) for no trials."""
+    if trials <= 0:
+        return 0.0, 1.0
+    z = NormalDist().inv_cdf((1 + confidence) / 2)
+    p = successes / trials
+    denominator = 1.0 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def agreement(first: Mapping[int, bool], second: Mapping[int, bool]) -> dict[str, Any]:
+    """Per init state (the ids both mappings hold), whether two engines' successes agree."""
+    common = sorted(set(first) & set(second))
+    differ = [k for k in common if bool(first[k]) != bool(second[k])]
+    return {
+        "states": len(common),
+        "both_succeed": sum(1 for k in common if first[k] and second[k]),
+        "both_fail": sum(1 for k in common if not first[k] and not second[k]),
+        "differ": len(differ),
+        "differing_state_ids": differ,
+    }
+
+
+def axis_angle_to_matrix(vector: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``[n, 3, 3]`` of axis-angle vectors ``[n, 3]`` (Rodrigues)."""
+    vector = np.asarray(vector, dtype=np.float64)
+    angle = np.linalg.norm(vector, axis=-1, keepdims=True)
+    axis = np.divide(vector, angle, out=np.zeros_like(vector), where=angle > 1e-12)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = np.zeros_like(x)
+    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*axis.shape[:-1], 3, 3)
+    s, c = np.sin(angle)[..., None], np.cos(angle)[..., None]
+    return np.eye(3) + s * k + (1 - c) * (k @ k)
+
+
+def matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
+    """Axis-angle vectors ``[n, 3]`` of rotation matrices ``[n, 3, 3]`` (angles in [0, pi])."""
+    cos = np.clip((np.trace(matrix, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    angle = np.arccos(cos)
+    skew = np.stack(
+        [
+            matrix[..., 2, 1] - matrix[..., 1, 2],
+            matrix[..., 0, 2] - matrix[..., 2, 0],
+            matrix[..., 1, 0] - matrix[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    sin = np.sin(angle)
+    out = np.zeros(matrix.shape[:-2] + (3,))
+    regular = sin > 1e-6
+    out[regular] = skew[regular] / (2 * sin[regular, None]) * angle[regular, None]
+    # Near pi the skew part vanishes: the axis is the column of (R + I) / 2 of largest norm.
+    flipped = ~regular & (angle > 1.0)
+    if flipped.any():
+        half = (matrix[flipped] + np.eye(3)) / 2
+        column = np.argmax(np.linalg.norm(half, axis=-2), axis=-1)
+        axis = half[np.arange(len(column)), :, column]
+        out[flipped] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * angle[flipped, None]
+    return out
+
+
+def top_down(yaw: np.ndarray) -> np.ndarray:
+    """The gripper pointing down, turned by ``yaw`` about the world's z: ``Rz(yaw) Rx(pi)``.
+    Its fingers close along ``(sin yaw, -cos yaw, 0)``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    rz = np.stack([c, -s, zero, s, c, zero, zero, zero, one], axis=-1).reshape(*np.shape(yaw), 3, 3)
+    return rz @ np.diag([1.0, -1.0, -1.0])
+
+
+def closing_yaw(direction_xy: Sequence[float], current_yaw: float = 0.0) -> float:
+    """The yaw at which the fingers close along ``direction_xy``, the one of the two (yaw and
+    yaw + pi close alike) nearest ``current_yaw``."""
+    yaw = math.atan2(direction_xy[0], -direction_xy[1])
+    return float(current_yaw + (yaw - current_yaw + math.pi / 2) % math.pi - math.pi / 2)
+
+
+def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The script for one init state: ``positions [W, 3]``, ``yaws [W]``, ``grips [W]`` and
+    ``holds [W]`` (steps to stay in place, 0: move until reached).
+
+    ``row["pairs"]`` lists, in order, each object to move: ``pick`` (its centre), ``top`` and ``bottom`` (its
+    heights), ``yaw`` (the grasp's) and ``place`` (the goal region's centre) and
+    ``place_top`` (the region's top, the height to carry it over).
+    """
+    positions, yaws, grips, holds = [], [], [], []
+
+    def add(position: Sequence[float], yaw: float, grip: float, hold: int = 0) -> None:
+        positions.append(position)
+        yaws.append(yaw)
+        grips.append(grip)
+        holds.append(hold)
+
+    for pair in row["pairs"]:
+        x, y, _ = pair["pick"]
+        px, py, pz = pair["place"]
+        yaw = pair["yaw"]
+        carry = max(pair["place_top"], pair["top"]) + gains.hover_m
+        grasp = max(pair["top"] - gains.grasp_below_top_m, pair["bottom"] + gains.floor_clearance_m)
+        add((x, y, carry), yaw, OPEN)
+        add((x, y, grasp), yaw, OPEN)
+        add((x, y, grasp), yaw, CLOSED, gains.grip_steps)
+        add((x, y, carry), yaw, CLOSED)
+        add((px, py, carry), yaw, CLOSED)
+        add((px, py, pz + gains.release_above_m), yaw, CLOSED)
+        add((px, py, pz + gains.release_above_m), yaw, OPEN, gains.grip_steps)
+        add((px, py, carry), yaw, OPEN)
+    return np.array(positions), np.array(yaws), np.array(grips), np.array(holds, dtype=np.int64)
+
+
+class PickPlace:
+    """The script for a batch of envs, one init state's table row each; :meth:`act` takes their
+    8-float states and returns their next actions ``[n, 7]``, advancing each env's waypoint."""
+
+    def __init__(self, rows: Sequence[Mapping[str, Any]], gains: Gains = Gains()) -> None:
+        scripts = [waypoints(row, gains) for row in rows]
+        self.gains = gains
+        self.positions = np.stack([s[0] for s in scripts])
+        self.yaws = np.stack([s[1] for s in scripts])
+        self.grips = np.stack([s[2] for s in scripts])
+        self.holds = np.stack([s[3] for s in scripts])
+        self.index = np.zeros(len(rows), dtype=np.int64)  # each env's current waypoint
+        self.spent = np.zeros(len(rows), dtype=np.int64)  # steps spent on it
+
+    @property
+    def finished(self) -> np.ndarray:
+        """The envs that went through every waypoint."""
+        return self.index >= self.positions.shape[1]
+
+    def act(self, states: np.ndarray) -> np.ndarray:
+        """The next action of every env from its ``state`` row (``[n, 8]``)."""
+        states = np.asarray(states, dtype=np.float64)
+        n, last = len(states), self.positions.shape[1] - 1
+        rows = np.arange(n)
+        at = np.minimum(self.index, last)
+        position = states[:, :3]
+        rotation = axis_angle_to_matrix(states[:, 3:6])
+        target = top_down(self.yaws[rows, at])
+        position_error = self.positions[rows, at] - position
+        rotation_error = matrix_to_axis_angle(target @ np.swapaxes(rotation, -1, -2))
+        hold = self.holds[rows, at]
+        reached = np.where(
+            hold > 0,
+            self.spent >= hold,
+            (np.linalg.norm(position_error, axis=-1) < self.gains.reach_tol_m)
+            & (np.linalg.norm(rotation_error, axis=-1) < self.gains.yaw_tol_rad),
+        )
+        advance = ~self.finished & (reached | (self.spent >= self.gains.move_timeout))
+        self.index = np.where(advance, self.index + 1, self.index)
+        self.spent = np.where(advance, 0, self.spent + 1)
+        at = np.minimum(self.index, last)
+        position_error = self.positions[rows, at] - position
+        rotation_error = matrix_to_axis_angle(top_down(self.yaws[rows, at]) @ np.swapaxes(rotation, -1, -2))
+        actions = np.zeros((n, 7))
+        actions[:, :3] = self.gains.position_gain * position_error / POS_LIMIT_M
+        actions[:, 3:6] = self.gains.rotation_gain * rotation_error / ROT_LIMIT_RAD
+        actions[:, 6] = self.grips[rows, at]
+        return np.clip(actions, -1.0, 1.0).astype(np.float32)

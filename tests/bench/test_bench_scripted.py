@@ -1,0 +1,234 @@
+"""The scripted pick-and-place bench (``bench/bench_scripted.py``, ``bench/lib/scripted.py``).
+
+Its pure parts against references: the Wilson interval against scipy's, rotations against
+scipy's, the waypoints and how the policy walks them. Then the bench's ``--smoke`` path (a real
+CPU pod, ``HTTPVectorEnv``) against LIBERO itself: the same policy on LIBERO's own
+``OffScreenRenderEnv``, reset as the published evaluations do, ends each episode at the same
+step with the same success, and the carried table holds where LIBERO puts the objects.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import binomtest
+from support import ROOT
+
+BENCH = ROOT / "bench"
+
+
+@pytest.fixture(scope="module")
+def scripted():
+    sys.path.insert(0, str(BENCH))
+    try:
+        from lib import scripted
+
+        yield scripted
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+ROW = {
+    "pairs": [
+        {
+            "object": "can",
+            "goal": "basket_region",
+            "pick": [0.1, -0.2, 0.47],
+            "top": 0.51,
+            "bottom": 0.43,
+            "yaw": 0.3,
+            "place": [0.0, 0.27, 0.5],
+            "place_top": 0.57,
+        }
+    ]
+}
+
+
+@pytest.mark.parametrize(("successes", "trials"), [(0, 50), (1, 50), (25, 50), (37, 50), (50, 50), (3, 7)])
+def test_wilson_interval_is_scipys(scripted, successes: int, trials: int) -> None:
+    expected = binomtest(successes, trials).proportion_ci(0.95, method="wilson")
+    assert scripted.wilson(successes, trials) == pytest.approx((expected.low, expected.high), abs=1e-9)
+
+
+def test_wilson_interval_of_no_trials_says_nothing(scripted) -> None:
+    assert scripted.wilson(0, 0) == (0.0, 1.0)
+
+
+def test_agreement_compares_the_states_both_engines_ran(scripted) -> None:
+    cpu = {0: True, 1: True, 2: False, 3: False, 4: True}
+    gpu = {0: True, 1: False, 2: False, 3: True}  # state 4 not run
+    assert scripted.agreement(cpu, gpu) == {
+        "states": 4,
+        "both_succeed": 1,
+        "both_fail": 1,
+        "differ": 2,
+        "differing_state_ids": [1, 3],
+    }
+
+
+def test_rotations_are_scipys(scripted) -> None:
+    rotations = Rotation.random(64, random_state=0)
+    vectors = rotations.as_rotvec()
+    # The Panda points down: angles near pi, where axis-angle is ill-conditioned.
+    near_pi = Rotation.from_rotvec(np.array([[np.pi - 1e-7, 0, 0], [0, 0.3, np.pi], [3.1406, -0.0024, -0.0907]]))
+    vectors = np.concatenate([vectors, near_pi.as_rotvec()])
+    matrices = scripted.axis_angle_to_matrix(vectors)
+    np.testing.assert_allclose(matrices, Rotation.from_rotvec(vectors).as_matrix(), atol=1e-9)
+    back = scripted.matrix_to_axis_angle(matrices)
+    np.testing.assert_allclose(Rotation.from_rotvec(back).as_matrix(), matrices, atol=1e-6)
+
+
+def test_top_down_gripper_closes_along_the_asked_direction(scripted) -> None:
+    for direction in ([1.0, 0.0], [0.0, 1.0], [0.6, -0.8]):
+        yaw = scripted.closing_yaw(direction, current_yaw=0.2)
+        assert abs(yaw - 0.2) <= np.pi / 2
+        frame = scripted.top_down(np.array(yaw))
+        assert frame[:, 2] == pytest.approx([0, 0, -1])  # the hand points down
+        assert abs(frame[:2, 1] @ np.array(direction)) == pytest.approx(1.0)  # fingers close along it
+
+
+def test_waypoints_pick_above_down_close_up_carry_down_open_up(scripted) -> None:
+    gains = scripted.Gains()
+    positions, yaws, grips, holds = scripted.waypoints(ROW, gains)
+    carry = 0.57 + gains.hover_m
+    grasp = 0.51 - gains.grasp_below_top_m
+    release = 0.5 + gains.release_above_m
+    expected = [
+        (0.1, -0.2, carry),
+        (0.1, -0.2, grasp),
+        (0.1, -0.2, grasp),
+        (0.1, -0.2, carry),
+        (0.0, 0.27, carry),
+        (0.0, 0.27, release),
+        (0.0, 0.27, release),
+        (0.0, 0.27, carry),
+    ]
+    np.testing.assert_allclose(positions, expected)
+    assert grips.tolist() == [-1, -1, 1, 1, 1, 1, -1, -1]
+    assert holds.tolist() == [0, 0, gains.grip_steps, 0, 0, 0, gains.grip_steps, 0]
+    assert (yaws == 0.3).all()
+
+
+def test_a_flat_object_is_gripped_clear_of_the_table(scripted) -> None:
+    gains = scripted.Gains()
+    flat = {"pairs": [{**ROW["pairs"][0], "top": 0.455, "bottom": 0.435}]}
+    assert scripted.waypoints(flat, gains)[0][1, 2] == pytest.approx(0.435 + gains.floor_clearance_m)
+
+
+def state_at(scripted, position, yaw: float) -> np.ndarray:
+    rotvec = Rotation.from_matrix(scripted.top_down(np.array(yaw))).as_rotvec()
+    return np.concatenate([position, rotvec, [0.04, -0.04]])[None]
+
+
+def test_policy_steers_towards_its_waypoint_within_the_action_range(scripted) -> None:
+    policy = scripted.PickPlace([ROW])
+    action = policy.act(state_at(scripted, [0.1, -0.2, 0.67], 0.3))[0]
+    target = policy.positions[0, 0]
+    assert action[:3] == pytest.approx((target - [0.1, -0.2, 0.67]) / scripted.POS_LIMIT_M, abs=1e-6)
+    assert action[3:6] == pytest.approx(0, abs=1e-6) and action[6] == -1
+    far = policy.act(state_at(scripted, [-0.5, 0.5, 0.6], -1.2))[0]
+    assert np.abs(far).max() == 1.0  # clipped to robosuite's range
+    assert far[0] == 1.0 and far[1] == -1.0 and far[5] > 0  # towards the waypoint, turning the yaw up
+
+
+def test_policy_advances_on_reaching_and_after_holding(scripted) -> None:
+    gains = scripted.Gains()
+    policy = scripted.PickPlace([ROW, ROW], gains)
+    positions = policy.positions[0]
+    far = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
+    policy.act(np.concatenate([state_at(scripted, positions[0], 0.3), far]))
+    assert policy.index.tolist() == [1, 0]  # env 0 reached waypoint 0; env 1 is far
+    policy.act(np.concatenate([state_at(scripted, positions[1], 0.3), far]))
+    assert policy.index.tolist() == [2, 0]
+    for _ in range(gains.grip_steps):  # closing: it stays at the object
+        assert policy.act(np.concatenate([state_at(scripted, positions[2], 0.3), far]))[0, 6] == 1
+        assert policy.index[0] == 2
+    policy.act(np.concatenate([state_at(scripted, positions[2], 0.3), far]))
+    assert policy.index.tolist() == [3, 0] and not policy.finished.any()
+
+
+def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
+    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=5))
+    blocked = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
+    for _ in range(5):
+        policy.act(blocked)
+    assert policy.index[0] == 0
+    policy.act(blocked)
+    assert policy.index[0] == 1
+
+
+def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
+    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
+    for _ in range(len(policy.positions[0])):
+        policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))
+    assert policy.finished.all()
+    action = policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))[0]
+    assert action[6] == -1  # it stays over the goal, open
+
+
+@pytest.mark.libero
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_smoke_run_through_a_pod_ends_as_on_libero_itself(tmp_path: Path, scripted) -> None:
+    from support.bench_scripts import bench_result
+    from support.service_procs import loopback_socket
+
+    from vecsim.engine.tasks import get_task
+    from vecsim.engine.tasks._libero import (
+        SETTLE_ACTION,
+        ensure_config,
+        init_states,
+        libero_benchmark,
+        quat_to_axis_angle,
+    )
+
+    with loopback_socket() as sock:
+        port = sock.getsockname()[1]
+    result = bench_result(tmp_path, "bench_scripted.py", "run", "--smoke", "--port", str(port), timeout=280)
+    assert result["complete"] and set(result["tasks"]) == {"libero_10/0"}
+    record = json.loads((tmp_path / "out" / "bench" / "bench_scripted.json").read_text())
+    served = record["tasks"]["libero_10/0"]["cpu"]["per_state"]
+    assert set(served) == {"0", "1"}
+    table = json.loads((BENCH / "lib" / "scripted_table.json").read_text())["libero_10/0"]
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        from bench_scripted import scene_row
+    finally:
+        sys.path.remove(str(BENCH))
+    # LIBERO's published loop: one env, seeded once, reset and set_init_state per episode, 10
+    # settle steps, then the policy until `done` (success) or the suite's 520 steps. No camera
+    # observations: the policy reads none.
+    ensure_config()
+    from libero.libero.envs import OffScreenRenderEnv
+
+    bddl = libero_benchmark("libero_10").get_task_bddl_file_path(0)
+    env = OffScreenRenderEnv(bddl_file_name=bddl, use_camera_obs=False)
+    try:
+        env.seed(0)
+        states = init_states(get_task("libero_10/0"))
+        for k in (0, 1):
+            env.reset()
+            env.set_init_state(states[k])
+            for _ in range(10):
+                obs, _, _, _ = env.step(SETTLE_ACTION.tolist())
+            row = scene_row(env.env)
+            for mine, carried in zip(row["pairs"], table[k]["pairs"]):
+                for key in ("pick", "top", "bottom", "place", "place_top", "yaw"):
+                    np.testing.assert_allclose(mine[key], carried[key], atol=1e-4, err_msg=f"state {k} {key}")
+            policy = scripted.PickPlace([table[k]])
+            done, steps = False, 0
+            while not done and steps < 520:
+                state = np.concatenate(
+                    [obs["robot0_eef_pos"], quat_to_axis_angle(obs["robot0_eef_quat"]), obs["robot0_gripper_qpos"]]
+                )
+                obs, _, done, _ = env.step(policy.act(state[None])[0].tolist())
+                steps += 1
+            assert served[str(k)] == {"success": bool(done), "steps": steps}
+    finally:
+        env.close()
