@@ -114,11 +114,15 @@ ENV VECSIM_MJWARP_VENV=/opt/vecsim/mjwarp \
 COPY --from=mjwarp-packages --chown=10001:10001 /opt/vecsim/mjwarp /opt/vecsim/mjwarp
 RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
     "$VECSIM_MJWARP_VENV/bin/pip" install --no-deps -e /app
-# The export's own caches (LIBERO's config, init states, matplotlib's) go to a folder it then removes.
+# The export writes the batched controller's index tables, whose module needs warp: the mjwarp
+# venv's warp package alone goes on its path (the CPU venv stays the CPU image's). What else it
+# writes (LIBERO's config, init states, Mesa's and matplotlib's caches, robosuite's log) goes.
 RUN cache="$(mktemp -d)" \
- && VECSIM_CACHE_DIR="$cache" MPLCONFIGDIR="$cache/matplotlib" \
+ && mkdir "$cache/warp-only" \
+ && ln -s "$VECSIM_MJWARP_VENV/lib/python3.11/site-packages/warp" "$cache/warp-only/warp" \
+ && VECSIM_CACHE_DIR="$cache" XDG_CACHE_HOME="$cache" MPLCONFIGDIR="$cache/matplotlib" PYTHONPATH="$cache/warp-only" \
     "$VECSIM_VENV/bin/python" -m vecsim.engine.mjwarp.scene $MJWARP_TASKS --root "$VECSIM_MJWARP_SCENES" \
- && rm -rf "$cache"
+ && rm -rf "$cache" /tmp/robosuite.log
 ENV PATH=$VECSIM_MJWARP_VENV/bin:$PATH
 
 # The default target (`docker build .` without --target): the CPU image.
