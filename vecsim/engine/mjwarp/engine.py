@@ -86,7 +86,9 @@ def _require_cuda() -> None:
     if driver is None:
         why = "no NVIDIA driver (libcuda.so.1) was found"
     elif needed is not None and driver[0] < needed[0]:
-        why = f"the NVIDIA driver supports CUDA {driver[0]}.{driver[1]}; warp {wp.config.version} needs CUDA {needed[0]}"
+        why = (
+            f"the NVIDIA driver supports CUDA {driver[0]}.{driver[1]}; warp {wp.config.version} needs CUDA {needed[0]}"
+        )
     else:
         why = "the NVIDIA driver sees no GPU"
     raise SimBuildError(
