@@ -1,11 +1,14 @@
 # syntax=docker/dockerfile:1
-# One image for sim pods and the controller: `vecsim pod` (the default command) or
-# `vecsim controller --config ...`. Build from the repository root:
-#   docker build -t vecsim:0.1.0 .
-# or, on a machine without a registry, scripts/build_image.sh (makes this base with debootstrap,
-# then builds this same file with buildah). The tag is the version in pyproject.toml; the
-# Kubernetes manifests pin it.
-FROM debian:bookworm-slim
+# The pod images, one per engine. Build from the repository root:
+#   docker build -t vecsim:0.1.0 .                          the CPU image (the default target)
+#   docker build --target mjwarp -t vecsim-mjwarp:0.1.0 .   the mjwarp engine's image
+# or, on a machine without a registry, scripts/build_image.sh [--engine mjwarp] (makes the base
+# with debootstrap, then builds this same file with buildah). The tag is the version in
+# pyproject.toml; the Kubernetes manifests pin it.
+#
+# The CPU image serves sim pods and the controller: `vecsim pod` (the default command) or
+# `vecsim controller --config ...`.
+FROM debian:bookworm-slim AS cpu
 
 ARG DEBIAN_FRONTEND=noninteractive
 # Where the CPU build of torch comes from. PyPI's torch for Linux is the CUDA build (GBs the pod
@@ -59,7 +62,7 @@ RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
  && "$VECSIM_VENV/bin/python" -c "import importlib.metadata as m, sys; cuda = [r for r in m.requires('torch') or [] if r.startswith('nvidia-')]; sys.exit(f'torch is a CUDA build: it needs {cuda}' if cuda else 0)"
 
 # The README's install, step for step: a venv at $VECSIM_VENV with the pod's pinned dependencies
-# (the `pod` extra: no plotting, video or test packages), LIBERO --no-deps and its assets, and
+# (the `pod` extra: no video or test packages), LIBERO --no-deps and its assets, and
 # the link to them. It runs twice: first with only what decides the dependencies (so this slow
 # layer is rebuilt only when they change), then with the source, when it finds every dependency
 # in place and only points the editable install at the packages. The pip cache survives builds.
@@ -83,3 +86,44 @@ HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
 
 ENTRYPOINT ["tini", "--", "vecsim"]
 CMD ["pod"]
+
+# The mjwarp engine's packages (docs/mjwarp.md): MuJoCo Warp needs mujoco 4, which the CPU venv's
+# robosuite and LIBERO exclude, so they get a venv of their own. It is installed in a stage of its
+# own, from pyproject.toml alone (the editable install finds no source yet, as setup.sh's first
+# run does), so that a change to the source does not install them again.
+FROM debian:bookworm-slim AS mjwarp-packages
+ARG DEBIAN_FRONTEND=noninteractive
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends ca-certificates python3.11 python3.11-venv \
+ && rm -rf /var/lib/apt/lists/*
+COPY pyproject.toml README.md /app/
+RUN --mount=type=cache,target=/root/.cache/pip \
+    python3.11 -m venv /opt/vecsim/mjwarp \
+ && /opt/vecsim/mjwarp/bin/pip install -e "/app[mjwarp]"
+
+# The mjwarp image: the CPU image (its layers reused) plus the mjwarp venv, which runs `vecsim pod`,
+# and the LIBERO scenes of MJWARP_TASKS, exported at build time by the CPU venv. A job still picks
+# its engine (`engine: mjwarp`). On a GPU node warp needs only the driver's libcuda.so.1, which
+# the NVIDIA container runtime mounts (`compute` capability); its kernels compile on the first
+# build of a pod into WARP_CACHE_PATH, on the cache volume (the root filesystem is read-only).
+FROM cpu AS mjwarp
+ARG MJWARP_TASKS="libero_10/0"
+ENV VECSIM_MJWARP_VENV=/opt/vecsim/mjwarp \
+    VECSIM_MJWARP_SCENES=/opt/vecsim/mjwarp-scenes \
+    WARP_CACHE_PATH=/home/vecsim/.cache/warp
+COPY --from=mjwarp-packages --chown=10001:10001 /opt/vecsim/mjwarp /opt/vecsim/mjwarp
+RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
+    "$VECSIM_MJWARP_VENV/bin/pip" install --no-deps -e /app
+# The export writes the batched controller's index tables, whose module needs warp: the mjwarp
+# venv's warp package alone goes on its path (the CPU venv stays the CPU image's). What else it
+# writes (LIBERO's config, init states, Mesa's and matplotlib's caches, robosuite's log) goes.
+RUN cache="$(mktemp -d)" \
+ && mkdir "$cache/warp-only" \
+ && ln -s "$VECSIM_MJWARP_VENV/lib/python3.11/site-packages/warp" "$cache/warp-only/warp" \
+ && VECSIM_CACHE_DIR="$cache" XDG_CACHE_HOME="$cache" MPLCONFIGDIR="$cache/matplotlib" PYTHONPATH="$cache/warp-only" \
+    "$VECSIM_VENV/bin/python" -m vecsim.engine.mjwarp.scene $MJWARP_TASKS --root "$VECSIM_MJWARP_SCENES" \
+ && rm -rf "$cache" /tmp/robosuite.log
+ENV PATH=$VECSIM_MJWARP_VENV/bin:$PATH
+
+# The default target (`docker build .` without --target): the CPU image.
+FROM cpu

@@ -1,12 +1,17 @@
 #!/usr/bin/env bash
-# Builds the pod image from the repository's Dockerfile, unchanged, on a machine without a
+# Builds a pod image from the repository's Dockerfile, unchanged, on a machine without a
 # registry or a Docker daemon (run as root):
 #   1. makes the Dockerfile's base (`FROM debian:bookworm-slim`) with debootstrap from Debian's
 #      own mirror and tags it under that name in buildah's store;
-#   2. `buildah bud`s the Dockerfile with torch's CPU wheel taken from a local directory.
-# Users with a registry run `docker build -t vecsim:<version> .` instead (docs/kubernetes.md).
+#   2. `buildah bud`s the Dockerfile's target for the engine with torch's CPU wheel taken from a
+#      local directory.
+# Users with a registry run `docker build [--target mjwarp] -t <tag> .` instead (docs/kubernetes.md).
 #
-#   scripts/build_image.sh [TAG]          TAG defaults to vecsim:<version in pyproject.toml>
+#   scripts/build_image.sh [--engine cpu|mjwarp] [TAG]
+#
+#   --engine   cpu (default): the CPU image, TAG defaults to vecsim:<version in pyproject.toml>;
+#              mjwarp: the mjwarp engine's image (the CPU image's layers plus its own venv and
+#              scenes), TAG defaults to vecsim-mjwarp:<version>
 #
 # Environment:
 #   VECSIM_IMAGE_CACHE   where the base's root tarball, buildah's store and the pip cache live
@@ -15,6 +20,8 @@
 #                        pip's find-links on this machine (PIP_FIND_LINKS or /opt/wheels). Empty:
 #                        take torch from the Dockerfile's default, PyTorch's CPU index, online
 #   DEBIAN_MIRROR        the Debian mirror debootstrap and the build's apt use (default deb.debian.org)
+#   VECSIM_MJWARP_TASKS  the LIBERO tasks whose scenes the mjwarp image holds, space-separated
+#                        (default: the Dockerfile's MJWARP_TASKS, libero_10/0)
 # Prints the tag it built. The store is not Docker's: export the image with, for example,
 #   CONTAINERS_STORAGE_CONF=~/.cache/vecsim/image/storage.conf buildah push vecsim:0.1.0 docker-archive:vecsim.tar
 set -euo pipefail
@@ -22,7 +29,16 @@ here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cache="${VECSIM_IMAGE_CACHE:-$HOME/.cache/vecsim/image}"
 mirror="${DEBIAN_MIRROR:-http://deb.debian.org/debian}"
 version="$(sed -n 's/^version *= *"\(.*\)"/\1/p' "$here/pyproject.toml" | head -1)"
-tag="${1:-vecsim:$version}"
+engine=cpu
+if [ "${1:-}" = --engine ]; then
+  engine="${2:-}"
+  shift 2 || { echo "build_image: --engine needs a value: cpu or mjwarp" >&2; exit 2; }
+fi
+case "$engine" in
+  cpu) tag="${1:-vecsim:$version}" ;;
+  mjwarp) tag="${1:-vecsim-mjwarp:$version}" ;;
+  *) echo "build_image: --engine $engine: the images are cpu and mjwarp" >&2; exit 2 ;;
+esac
 wheels="${VECSIM_TORCH_WHEELS-${PIP_FIND_LINKS:-/opt/wheels}}"
 
 if [ "$(id -u)" != 0 ]; then
@@ -107,7 +123,10 @@ fi
 #    - this machine's CA bundle for pip, through a pip config: where HTTPS goes through a proxy
 #      with its own CA, pip inside the build must trust what the host trusts.
 # Docker's image format: OCI's has no HEALTHCHECK, and buildah would drop the Dockerfile's.
-args=(--format docker --isolation chroot --layers --pull-never -t "$tag" -f "$here/Dockerfile")
+args=(--format docker --isolation chroot --layers --pull-never --target "$engine" -t "$tag" -f "$here/Dockerfile")
+if [ "$engine" = mjwarp ] && [ -n "${VECSIM_MJWARP_TASKS:-}" ]; then
+  args+=(--build-arg "MJWARP_TASKS=$VECSIM_MJWARP_TASKS")
+fi
 if [ -n "$wheels" ]; then
   args+=(-v "$wheels:/mnt/torch-wheels:ro" --build-arg TORCH_FIND_LINKS=/mnt/torch-wheels)
 fi

@@ -1,7 +1,8 @@
 """The Dockerfile's text: a Debian base the offline build can make, torch's CPU build, a non-root
 user, the README's install script, the ``vecsim`` console script as entrypoint, a health check,
-EGL, and a build context that holds everything it copies. tests/deploy/test_image.py builds the image
-from this same file and runs it."""
+EGL, and a build context that holds everything it copies; and the mjwarp engine's image, a later
+target built on the CPU image. tests/deploy/test_image.py and tests/deploy/test_image_mjwarp.py
+build the images from this same file and run them."""
 
 from __future__ import annotations
 
@@ -48,20 +49,48 @@ def parse_dockerfile(text: str) -> list[Instruction]:
 INSTRUCTIONS = parse_dockerfile((ROOT / "Dockerfile").read_text())
 
 
-def only(keyword: str) -> list[Instruction]:
-    return [i for i in INSTRUCTIONS if i.keyword == keyword]
+def stages() -> dict[str | None, list[Instruction]]:
+    """Each build stage's instructions, its FROM first, by the stage's name (``FROM x AS name``;
+    None for an unnamed one). Insertion order is the file's."""
+    found: dict[str | None, list[Instruction]] = {}
+    for instruction in INSTRUCTIONS:
+        if instruction.keyword == "FROM":
+            words = instruction.value.split()
+            current: list[Instruction] = []
+            found[words[2] if len(words) == 3 and words[1].upper() == "AS" else None] = current
+        current.append(instruction)
+    return found
 
 
-def env() -> dict[str, str]:
-    """Variables ENV sets (``KEY=value`` form), later ones winning."""
+def image(target: str | None) -> list[Instruction]:
+    """The instructions that make the image of ``target`` (None: the default, the last stage):
+    the stages it builds on, from the base image's, then its own."""
+    by_name = stages()
+    own = by_name[target] if target is not None else list(by_name.values())[-1]
+    base = own[0].value.split()[0]
+    return (image(base) if base in by_name else []) + own
+
+
+def only(keyword: str, target: str | None = "cpu") -> list[Instruction]:
+    return [i for i in image(target) if i.keyword == keyword]
+
+
+def env(target: str | None = "cpu") -> dict[str, str]:
+    """Variables ENV sets in ``target``'s image (``KEY=value`` form), later ones winning, with
+    ``$NAME`` expanded as Docker does: from what earlier instructions set."""
     values: dict[str, str] = {}
-    for instruction in only("ENV"):
-        values.update(part.split("=", 1) for part in shlex.split(instruction.value))
+    for instruction in only("ENV", target):
+        before = dict(values)
+        for part in shlex.split(instruction.value):
+            key, _, value = part.partition("=")
+            values[key] = re.sub(r"\$(\w+)", lambda m: before.get(m.group(1), m.group(0)), value)
     return values
 
 
 def test_base_image_is_a_debian_slim_release_the_offline_build_can_make() -> None:
     (base,) = only("FROM")
+    # Every stage that starts from an image (not from another stage) starts from this one.
+    assert {i[0].value.split()[0] for i in stages().values()} - set(stages()) == {base.value.split()[0]}
     image = base.value.split()[0]
     name, _, tag = image.rpartition(":")
     assert name == "debian" and tag.endswith("-slim") and tag != "latest", image
@@ -162,7 +191,8 @@ def test_build_context_holds_everything_the_dockerfile_copies() -> None:
         for line in (ROOT / ".dockerignore").read_text().splitlines()
         if line.strip() and not line.startswith("#")
     ]
-    sources = [s for i in only("COPY") for s in i.exec_form()[:-1]]
+    copies = [i for i in INSTRUCTIONS if i.keyword == "COPY" and "--from=" not in i.value]
+    sources = [s for i in copies for s in i.exec_form()[:-1]]
     assert sources
     for source in sources:
         assert (ROOT / source).exists(), f"COPY {source}: not in the repository"
@@ -179,7 +209,7 @@ def test_build_context_leaves_out_git_and_tests() -> None:
         assert _ignored(path, patterns), path
 
 
-def test_the_image_installs_the_pod_extra_and_no_plotting_or_video_packages() -> None:
+def test_the_image_installs_the_pod_extra_and_no_video_or_test_packages() -> None:
     import tomllib
 
     runs = [i.value for i in only("RUN") if "scripts/setup.sh" in i.value]
@@ -187,7 +217,67 @@ def test_the_image_installs_the_pod_extra_and_no_plotting_or_video_packages() ->
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     pod = project["optional-dependencies"]["pod"] + project["dependencies"]
     names = {re.split(r"[\[<>=!~ ]", requirement, maxsplit=1)[0].lower() for requirement in pod}
-    assert not names & {"matplotlib", "imageio", "imageio-ffmpeg", "pytest", "vecsim"}
+    # matplotlib is there: LIBERO's env module imports it (test_image.py builds a LIBERO env).
+    assert not names & {"imageio", "imageio-ffmpeg", "pytest", "vecsim"}
     # The trainer's install (the base) has no simulator and no torch.
     base = {re.split(r"[\[<>=!~ ]", r, maxsplit=1)[0].lower() for r in project["dependencies"]}
     assert not base & {"mujoco", "robosuite", "torch", "fastapi", "uvicorn", "libero"}
+
+
+# -- the mjwarp engine's image -------------------------------------------------------------------
+
+
+def test_the_default_target_is_the_cpu_image() -> None:
+    # `docker build .` without --target builds the last stage: nothing but the CPU image.
+    last = list(stages().values())[-1]
+    assert [i.keyword for i in last] == ["FROM"] and last[0].value == "cpu"
+
+
+def test_the_mjwarp_image_is_built_on_the_cpu_image() -> None:
+    assert stages()["mjwarp"][0].value.split()[0] == "cpu"
+    # ... so the pod's user, entrypoint, command and health check are the CPU image's.
+    for keyword in ("USER", "ENTRYPOINT", "CMD", "HEALTHCHECK"):
+        assert only(keyword, "mjwarp") == only(keyword, "cpu"), keyword
+
+
+def test_the_mjwarp_packages_are_installed_from_pyproject_alone() -> None:
+    # A stage of their own, copying nothing but what decides the dependencies: a change to the
+    # source does not install them again.
+    packages = stages()["mjwarp-packages"]
+    copied = [s for i in packages if i.keyword == "COPY" for s in i.exec_form()[:-1]]
+    assert sorted(copied) == ["README.md", "pyproject.toml"]
+    (install,) = [i.value for i in packages if i.keyword == "RUN" and "pip install" in i.value]
+    assert '"/app[mjwarp]"' in install and "torch" not in install
+    copies = [i.value for i in stages()["mjwarp"] if i.keyword == "COPY"]
+    venv = env("mjwarp")["VECSIM_MJWARP_VENV"]
+    assert copies == [f"--from=mjwarp-packages --chown=10001:10001 {venv} {venv}"]
+
+
+def test_the_mjwarp_image_runs_the_pod_from_the_mjwarp_venv() -> None:
+    variables = env("mjwarp")
+    assert variables["PATH"].split(":")[:2] == [
+        f"{variables['VECSIM_MJWARP_VENV']}/bin",
+        f"{variables['VECSIM_VENV']}/bin",
+    ]
+
+
+def test_the_mjwarp_image_exports_its_scenes_with_the_cpu_venv_where_the_engine_reads_them() -> None:
+    from vecsim.engine.mjwarp.scene import ROOT_ENV
+
+    (export,) = [i.value for i in only("RUN", "mjwarp") if "vecsim.engine.mjwarp.scene" in i.value]
+    assert '"$VECSIM_VENV/bin/python" -m vecsim.engine.mjwarp.scene $MJWARP_TASKS' in export
+    assert f'--root "${ROOT_ENV}"' in export and ROOT_ENV in env("mjwarp")
+    args = dict(i.value.split("=", 1) for i in only("ARG", "mjwarp") if "=" in i.value)
+    assert "libero_10/0" in args["MJWARP_TASKS"].strip('"').split()
+
+
+def test_warps_kernel_cache_is_under_the_cache_the_manifests_mount_writable() -> None:
+    variables = env("mjwarp")
+    assert variables["WARP_CACHE_PATH"].startswith(variables["XDG_CACHE_HOME"] + "/")
+
+
+def test_the_offline_build_builds_either_target_under_an_engine_named_tag() -> None:
+    script = (ROOT / "scripts" / "build_image.sh").read_text()
+    assert '--target "$engine"' in script
+    for target, tag in (("cpu", "vecsim:$version"), ("mjwarp", "vecsim-mjwarp:$version")):
+        assert target in stages() and f'{target}) tag="${{1:-{tag}}}"' in script

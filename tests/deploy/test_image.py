@@ -12,37 +12,38 @@ from __future__ import annotations
 
 import contextlib
 import json
-import logging
 import os
-import signal
-import subprocess
-import time
-import tomllib
-from collections.abc import Iterator, Mapping, Sequence
-from pathlib import Path
-from typing import Any
+from collections.abc import Iterator
 
 import httpx
 import numpy as np
-import psutil
 import pytest
 import yaml
 from support import ROOT
-from support.service_procs import free_port, log_tail, wait_until
+from support.images import (
+    BUILD_TIMEOUT_S,
+    READY_TIMEOUT_S,
+    START_TIMEOUT_S,
+    VERSION,
+    InContainer,
+    build_image,
+    buildah,
+    failed_detail,
+    image_env,
+    image_uid,
+    owned_dir,
+    pod_argv,
+    run_once,
+    running,
+    working_container,
+    writable_volumes,
+)
+from support.service_procs import free_port, wait_until
 from support.wire_http import wire_answer
 
 
-log = logging.getLogger(__name__)
-
-CACHE = Path(os.environ.get("VECSIM_IMAGE_CACHE", Path.home() / ".cache" / "vecsim" / "image"))
-VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
 TAG = f"vecsim:{VERSION}"
 IMAGE_TOKEN = "image-test-token"  # the token the image tests start the pod and controller with
-# The store scripts/build_image.sh builds into (it writes the storage config on its first run).
-BUILDAH = ("env", f"CONTAINERS_STORAGE_CONF={CACHE / 'storage.conf'}", "buildah")
-BUILD_TIMEOUT_S = 1800
-START_TIMEOUT_S = 120
-READY_TIMEOUT_S = 300
 TASK = "tiny/lift"
 ENVS = 2
 
@@ -54,126 +55,17 @@ pytestmark = [
 ]
 
 
-def _buildah(*args: str, timeout: float = 600) -> str:
-    done = subprocess.run([*BUILDAH, *args], capture_output=True, text=True, timeout=timeout)
-    assert done.returncode == 0, f"buildah {' '.join(args)}: {done.stderr[-2000:]}"
-    return done.stdout
-
-
 @pytest.fixture(scope="module")
-def image() -> dict[str, Any]:
+def image() -> dict:
     """Build the image (or find every layer cached) and return its Docker config."""
-    started = time.monotonic()
-    done = subprocess.run(
-        [str(ROOT / "scripts" / "build_image.sh"), TAG],
-        capture_output=True,
-        text=True,
-        timeout=BUILD_TIMEOUT_S,
-    )
-    assert done.returncode == 0, f"scripts/build_image.sh failed:\n{done.stderr[-4000:]}"
-    assert done.stdout.strip().splitlines()[-1] == TAG
-    log.info("scripts/build_image.sh took %.0f s", time.monotonic() - started)
-    return json.loads(_buildah("inspect", "--type", "image", TAG))["Docker"]["config"]
+    return build_image(TAG)
 
 
 @pytest.fixture(scope="module")
 def container(image) -> Iterator[str]:
     """One working container of the image; every command below runs in it."""
-    name = f"vecsim-test-{os.getpid()}"
-    if _exists(name):  # left by a run that was killed
-        _buildah("rm", name, timeout=120)
-    _buildah("from", "--pull-never", "--name", name, TAG)
-    try:
+    with working_container(TAG, f"vecsim-test-{os.getpid()}") as name:
         yield name
-    finally:
-        _buildah("rm", name, timeout=300)
-
-
-def _exists(name: str) -> bool:
-    return subprocess.run([*BUILDAH, "inspect", "--type", "container", name], capture_output=True).returncode == 0
-
-
-def _owned_dir(path: Path, uid: int, mode: int = 0o755) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    os.chown(path, uid, uid)
-    path.chmod(mode)
-    return path
-
-
-def _image_uid(image: Mapping[str, Any]) -> int:
-    return int(image["User"].split(":")[0])
-
-
-class InContainer:
-    """One command running in the container under ``buildah run`` (its own session, so that
-    stopping it ends buildah and everything it started)."""
-
-    def __init__(
-        self, container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path
-    ):
-        flags = [f for k, v in env.items() for f in ("--env", f"{k}={v}")]
-        flags += [f for host, inside in volumes.items() for f in ("--volume", f"{host}:{inside}")]
-        self.log_path = log_path
-        with log_path.open("ab") as out:
-            self.proc = subprocess.Popen(
-                [*BUILDAH, "run", "--isolation", "chroot", *flags, container, "--", *argv],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-
-    def processes(self) -> list[psutil.Process]:
-        with contextlib.suppress(psutil.NoSuchProcess):
-            return psutil.Process(self.proc.pid).children(recursive=True)
-        return []
-
-    def stop(self) -> None:
-        survivors = self.processes()
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.proc.pid, signal.SIGTERM)
-        try:
-            self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait(timeout=30)
-        for process in survivors:  # started in a session of their own by the chroot runtime
-            with contextlib.suppress(psutil.NoSuchProcess):
-                process.kill()
-
-    def log_text(self) -> str:
-        return log_tail(self.log_path, 6000)
-
-
-@contextlib.contextmanager
-def running(
-    container: str, argv: Sequence[str], env: Mapping[str, str], volumes: Mapping[Path, str], log_path: Path
-) -> Iterator[InContainer]:
-    proc = InContainer(container, argv, env, volumes, log_path)
-    try:
-        yield proc
-    finally:
-        proc.stop()
-
-
-def _writable_volumes(base: Path, image: Mapping[str, Any]) -> dict[Path, str]:
-    """What the manifests mount writable for the pod: /tmp and the cache (emptyDirs)."""
-    uid = _image_uid(image)
-    return {
-        _owned_dir(base / "tmp", uid, 0o1777): "/tmp",
-        _owned_dir(base / "cache", uid): _image_env(image)["XDG_CACHE_HOME"],
-    }
-
-
-def _image_env(image: Mapping[str, Any]) -> dict[str, str]:
-    """The variables the image's ENV sets."""
-    return dict(item.split("=", 1) for item in image["Env"])
-
-
-def _pod_argv(image: Mapping[str, Any], *extra: str) -> list[str]:
-    """The image's entrypoint and command (`vecsim pod`), standalone flags after it."""
-    assert image["Cmd"] == ["pod"]
-    return [*image["Entrypoint"], *image["Cmd"], *extra]
 
 
 def _standalone(port: int) -> tuple[str, ...]:
@@ -187,7 +79,7 @@ def pod(container, image, tmp_path_factory) -> Iterator[tuple[str, InContainer]]
     env = {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
     url = f"http://127.0.0.1:{port}"
     with running(
-        container, _pod_argv(image, *_standalone(port)), env, _writable_volumes(base, image), base / "pod.log"
+        container, pod_argv(image, *_standalone(port)), env, writable_volumes(base, image), base / "pod.log"
     ) as proc:
         wait_until(
             lambda: _ready(url, proc), f"the pod in the image to be ready\n{proc.log_text()}", READY_TIMEOUT_S, 1.0
@@ -202,18 +94,6 @@ def _ready(url: str, proc: InContainer) -> bool:
     return False
 
 
-def _run_once(
-    container: str, argv: Sequence[str], env: Mapping[str, str] = {}, timeout: float = 120
-) -> subprocess.CompletedProcess[str]:
-    flags = [f for k, v in env.items() for f in ("--env", f"{k}={v}")]
-    return subprocess.run(
-        [*BUILDAH, "run", "--isolation", "chroot", *flags, container, "--", *argv],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-
-
 # -- what the image is ---------------------------------------------------------------------------
 
 
@@ -221,21 +101,35 @@ def test_manifests_name_the_tag_the_build_produces(image):
     kustomization = yaml.safe_load((ROOT / "k8s" / "base" / "kustomization.yaml").read_text())
     (pinned,) = [entry for entry in kustomization["images"] if entry["name"] == "vecsim"]
     assert f"vecsim:{pinned['newTag']}" == TAG
-    names = _buildah("images", "--format", "{{.Name}}:{{.Tag}}").split()
+    names = buildah("images", "--format", "{{.Name}}:{{.Tag}}").split()
     assert any(name.rsplit("/", 1)[-1] == TAG for name in names), names
 
 
 def test_image_holds_the_cpu_torch_and_no_cuda_packages(container):
-    done = _run_once(container, ["python", "-c", "import torch; print(torch.__version__, torch.version.cuda)"])
+    done = run_once(container, ["python", "-c", "import torch; print(torch.__version__, torch.version.cuda)"])
     assert done.returncode == 0, done.stderr
     version, cuda = done.stdout.split()
     assert version.startswith("2.13.0") and cuda == "None", done.stdout
-    listed = _run_once(container, ["python", "-m", "pip", "list", "--format", "json"])
+    listed = run_once(container, ["python", "-m", "pip", "list", "--format", "json"])
     names = {entry["name"].lower() for entry in json.loads(listed.stdout)}
     assert not {name for name in names if name.startswith("nvidia-")}, names
     assert {"mujoco", "robosuite", "libero", "vecsim"} <= names
-    # No plotting or video packages (pytest is there: bddl declares it).
-    assert not names & {"matplotlib", "imageio", "imageio-ffmpeg"}
+    # No video packages (pytest is there: bddl declares it; matplotlib: LIBERO's env imports it).
+    assert not names & {"imageio", "imageio-ffmpeg"}
+
+
+def test_image_holds_what_a_libero_env_imports_and_reads(container):
+    # What a pod of the job k8s/ deploys (configs/libero_10.yaml) imports to build a LIBERO env,
+    # and a task file it reads. (The mjwarp image's build, tests/deploy/test_image_mjwarp.py, runs
+    # whole LIBERO envs in this same venv when it exports their scenes.)
+    script = (
+        "import os; from vecsim.engine.tasks._libero import libero_benchmark; "
+        "bddl = libero_benchmark('libero_10').get_task_bddl_file_path(0); "
+        "from libero.libero.envs import OffScreenRenderEnv; print(os.path.isfile(bddl))"
+    )
+    done = run_once(container, ["python", "-c", script], timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().splitlines()[-1] == "True", done.stdout[-2000:]
 
 
 # -- a pod in the image --------------------------------------------------------------------------
@@ -243,7 +137,7 @@ def test_image_holds_the_cpu_torch_and_no_cuda_packages(container):
 
 def test_pod_runs_as_the_images_non_root_uid(pod, image):
     _, proc = pod
-    uid = _image_uid(image)
+    uid = image_uid(image)
     assert uid != 0
     servers = [p for p in proc.processes() if "vecsim" in " ".join(p.cmdline()) and "buildah" not in p.name()]
     assert servers, [p.cmdline() for p in proc.processes()]
@@ -292,9 +186,9 @@ def test_images_healthcheck_command_succeeds_against_the_pod(pod, image, contain
     test = image["Healthcheck"]["Test"]
     assert test[0] == "CMD"
     port = url.rsplit(":", 1)[1]
-    assert _run_once(container, test[1:], {"VECSIM_PORT": port}).returncode == 0
+    assert run_once(container, test[1:], {"VECSIM_PORT": port}).returncode == 0
     # ... and fails where nothing answers: the check means something.
-    assert _run_once(container, test[1:], {"VECSIM_PORT": str(free_port())}).returncode != 0
+    assert run_once(container, test[1:], {"VECSIM_PORT": str(free_port())}).returncode != 0
 
 
 # -- the controller in the image -----------------------------------------------------------------
@@ -313,7 +207,7 @@ def test_controller_command_starts_and_passes_the_healthcheck(container, image, 
         str(port),
     ]
     env = {"VECSIM_PORT": str(port), "VECSIM_TOKEN": IMAGE_TOKEN}
-    with running(container, argv, env, _writable_volumes(tmp_path, image), tmp_path / "controller.log") as proc:
+    with running(container, argv, env, writable_volumes(tmp_path, image), tmp_path / "controller.log") as proc:
 
         def healthy() -> bool:
             assert proc.proc.poll() is None, f"the controller exited:\n{proc.log_text()}"
@@ -322,7 +216,7 @@ def test_controller_command_starts_and_passes_the_healthcheck(container, image, 
             return False
 
         wait_until(healthy, "the controller in the image to answer /healthz", START_TIMEOUT_S, 1.0)
-        assert _run_once(container, image["Healthcheck"]["Test"][1:], {"VECSIM_PORT": str(port)}).returncode == 0
+        assert run_once(container, image["Healthcheck"]["Test"][1:], {"VECSIM_PORT": str(port)}).returncode == 0
 
 
 # -- bad configuration in the container: the pod exits, or answers not-ready, naming the cause ----
@@ -332,29 +226,16 @@ def _pod_env(port: int, **extra: str) -> dict[str, str]:
     return {"VECSIM_HOST": "127.0.0.1", "VECSIM_PORT": str(port), **extra}
 
 
-def _failed_detail(url: str, proc: InContainer) -> str | None:
-    """The pod's /readyz detail once its build has failed (None before)."""
-    assert proc.proc.poll() is None, f"the pod exited with {proc.proc.returncode}:\n{proc.log_text()}"
-    with contextlib.suppress(httpx.HTTPError):
-        response = httpx.get(f"{url}/readyz", timeout=5)
-        assert response.status_code == 503, f"the pod turned ready: {response.text}"
-        detail = response.json()["detail"]
-        return detail if "failed" in detail else None
-    return None
-
-
 def test_pod_with_an_unwritable_cache_answers_not_ready_naming_the_cache(container, image, tmp_path):
     port = free_port()
-    cache = _image_env(image)["XDG_CACHE_HOME"]
+    cache = image_env(image)["XDG_CACHE_HOME"]
     volumes = {
-        _owned_dir(tmp_path / "tmp", _image_uid(image), 0o1777): "/tmp",
-        _owned_dir(tmp_path / "cache", 0, 0o755): cache,  # root's: the pod's uid cannot write it
+        owned_dir(tmp_path / "tmp", image_uid(image), 0o1777): "/tmp",
+        owned_dir(tmp_path / "cache", 0, 0o755): cache,  # root's: the pod's uid cannot write it
     }
     url = f"http://127.0.0.1:{port}"
-    with running(
-        container, _pod_argv(image, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log"
-    ) as proc:
-        detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
+    with running(container, pod_argv(image, *_standalone(port)), _pod_env(port), volumes, tmp_path / "pod.log") as proc:
+        detail = wait_until(lambda: failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "Permission denied" in detail and cache in detail, detail
         # Alive, so that the readiness probe (not liveness) keeps it out of service.
         assert httpx.get(f"{url}/healthz", timeout=5).status_code == 200
@@ -368,11 +249,11 @@ def test_pod_set_up_for_a_gpu_on_a_node_without_one_answers_not_ready_naming_egl
     assert "__EGL_VENDOR_LIBRARY_FILENAMES" in gpu_env
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    volumes = _writable_volumes(tmp_path, image)
+    volumes = writable_volumes(tmp_path, image)
     with running(
-        container, _pod_argv(image, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log"
+        container, pod_argv(image, *_standalone(port)), _pod_env(port, **gpu_env), volumes, tmp_path / "pod.log"
     ) as proc:
-        detail = wait_until(lambda: _failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
+        detail = wait_until(lambda: failed_detail(url, proc), "the pod's build to fail", READY_TIMEOUT_S, 1.0)
         assert "EGL" in detail, detail
 
 
@@ -382,7 +263,7 @@ def test_pod_without_the_token_secret_serves_and_warns_naming_vecsim_token(conta
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     log_path = tmp_path / "pod.log"
-    with running(container, _pod_argv(image), _pod_env(port), _writable_volumes(tmp_path, image), log_path) as proc:
+    with running(container, pod_argv(image), _pod_env(port), writable_volumes(tmp_path, image), log_path) as proc:
 
         def answering() -> bool:
             assert proc.proc.poll() is None, f"the pod exited:\n{proc.log_text()}"
@@ -400,7 +281,7 @@ def test_pod_given_a_token_secret_with_a_trailing_newline_exits_naming_vecsim_to
     # What `kubectl create secret --from-file` of a file ending in a newline hands the container.
     port = free_port()
     env = _pod_env(port, VECSIM_TOKEN="s3cret\n")
-    with running(container, _pod_argv(image), env, _writable_volumes(tmp_path, image), tmp_path / "pod.log") as proc:
+    with running(container, pod_argv(image), env, writable_volumes(tmp_path, image), tmp_path / "pod.log") as proc:
         returncode = proc.proc.wait(timeout=START_TIMEOUT_S)
         assert returncode == 2, proc.log_text()
         assert "VECSIM_TOKEN" in proc.log_text()

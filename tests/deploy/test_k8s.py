@@ -528,6 +528,32 @@ def test_gpu_overlay_runs_more_sim_pods_than_the_base() -> None:
     assert replicas["gpu-cluster"] > replicas["base"]
 
 
+def test_gpu_mjwarp_overlay_runs_an_mjwarp_job_on_gpu_sim_pods_of_the_mjwarp_image(tmp_path: Path) -> None:
+    objects = build("gpu-mjwarp")
+    name, text = controller_job(objects)
+    config = tmp_path / name
+    config.write_text(text)
+    assert load_job_config(config).job.engine == "mjwarp"
+    sim = container(the(objects, "StatefulSet"), "sim")
+    assert int(sim["resources"]["limits"]["nvidia.com/gpu"]) == 1
+    assert the(objects, "StatefulSet")["spec"]["template"]["spec"]["nodeSelector"]
+    # warp needs the driver's libcuda.so.1, which the container runtime mounts for `compute`.
+    assert "compute" in sim_env(objects, "sim-0")["NVIDIA_DRIVER_CAPABILITIES"].split(",")
+    # The sims run the mjwarp image (scripts/build_image.sh --engine mjwarp); the controller,
+    # which needs no simulator, the CPU image.
+    assert sim["image"].rsplit("/", 1)[-1].partition(":")[0] == "vecsim-mjwarp"
+    controller = container(the(objects, "Deployment"), "controller")
+    assert controller["image"].rsplit("/", 1)[-1].partition(":")[0] == "vecsim"
+
+
+def test_gpu_mjwarp_job_asks_only_for_scenes_the_mjwarp_image_exports(tmp_path: Path) -> None:
+    name, text = controller_job(build("gpu-mjwarp"))
+    config = tmp_path / name
+    config.write_text(text)
+    exported = re.search(r'^ARG MJWARP_TASKS="([^"]*)"', (ROOT / "Dockerfile").read_text(), re.M).group(1).split()
+    assert set(load_job_config(config).job.tasks) <= set(exported)
+
+
 def test_dev_cpu_overlay_requests_no_gpus_and_renders_in_software() -> None:
     objects = build("dev-cpu")
     for _, c in all_containers(objects):
@@ -544,16 +570,17 @@ def test_dev_cpu_overlay_runs_the_tiny_suite(tmp_path: Path) -> None:
 
 def test_overlays_deploy_into_their_own_namespaces() -> None:
     namespaces = {}
-    for target in ("gpu-cluster", "dev-cpu"):
+    for target in ("gpu-cluster", "gpu-mjwarp", "dev-cpu"):
         objects = build(target)
         (namespace,) = [o["metadata"]["name"] for o in objects if o["kind"] == "Namespace"]
         assert {o["metadata"].get("namespace") for o in objects if o["kind"] != "Namespace"} == {namespace}
         namespaces[target] = namespace
-    assert namespaces["gpu-cluster"] != namespaces["dev-cpu"]
+    # ... so that a CPU deployment and an mjwarp one run side by side (train on one, evaluate on the other).
+    assert len(set(namespaces.values())) == len(namespaces), namespaces
 
 
 def test_overlay_namespaces_enforce_the_restricted_pod_security_standard() -> None:
-    for target in ("gpu-cluster", "dev-cpu"):
+    for target in ("gpu-cluster", "gpu-mjwarp", "dev-cpu"):
         namespace = the(build(target), "Namespace")
         assert namespace["metadata"]["labels"]["pod-security.kubernetes.io/enforce"] == "restricted", target
 

@@ -15,7 +15,7 @@ from support.network_policy import Cluster, Pod, selects
 
 DOCS = ROOT / "docs" / "kubernetes.md"
 RAY_EGRESS = K8S / "examples" / "ray-trainer-egress.yaml"
-OVERLAYS = ("gpu-cluster", "dev-cpu", "jobset")
+OVERLAYS = ("gpu-cluster", "gpu-mjwarp", "dev-cpu", "jobset")
 TRUSTED, ELSEWHERE, MONITORING = "rl", "elsewhere", "monitoring"
 VECSIM = {"app.kubernetes.io/name": "vecsim", "app.kubernetes.io/part-of": "vecsim"}
 TRAINER = {"vecsim/trainer": "true"}

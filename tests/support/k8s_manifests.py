@@ -22,6 +22,8 @@ TARGETS = {
     "base": K8S / "base",
     "gpu-cluster": K8S / "overlays" / "gpu-cluster",
     "dev-cpu": K8S / "overlays" / "dev-cpu",
+    # gpu-cluster's sims on the mjwarp image, running an `engine: mjwarp` job.
+    "gpu-mjwarp": K8S / "overlays" / "gpu-mjwarp",
 }
 # The JobSet overlay (a trainer, the controller and the sims as one JobSet): no StatefulSet.
 JOBSET = K8S / "overlays" / "jobset"
@@ -31,6 +33,7 @@ JOB_CONFIGS = {
     "base": ROOT / "configs" / "libero_10.yaml",
     "gpu-cluster": ROOT / "configs" / "libero_10.yaml",
     "dev-cpu": ROOT / "configs" / "tiny.yaml",
+    "gpu-mjwarp": ROOT / "configs" / "libero_10_mjwarp.yaml",
 }
 
 

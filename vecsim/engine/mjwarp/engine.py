@@ -58,6 +58,9 @@ NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
 # "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics). On
 # LIBERO-10 task 0 it shrank, not removed, the run-to-run spread (docs/mjwarp.md, Determinism).
 DETERMINISTIC_ENV = "VECSIM_MJWARP_DETERMINISTIC"
+# "1" lets the engine build on warp's CPU device where it sees no CUDA GPU (debugging only: the
+# first build compiles for many minutes); without it such a pod fails its build, saying why.
+ALLOW_CPU_ENV = "VECSIM_MJWARP_ALLOW_CPU"
 # The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
 # render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
 GEOM_GROUPS = [1, 2]
@@ -71,6 +74,28 @@ _VIEW = VIEW_FIELDS
 
 def _missing_packages() -> list[str]:
     return [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
+
+
+def _require_cuda() -> None:
+    """Raise :class:`SimBuildError` naming the cause unless warp sees a CUDA GPU (or
+    ``VECSIM_MJWARP_ALLOW_CPU`` is "1")."""
+    import warp as wp
+
+    if wp.is_cuda_available() or os.environ.get(ALLOW_CPU_ENV) == "1":
+        return
+    driver, needed = wp.get_cuda_driver_version(), wp.get_cuda_toolkit_version()
+    if driver is None:
+        why = "no NVIDIA driver (libcuda.so.1) was found"
+    elif needed is not None and driver[0] < needed[0]:
+        why = (
+            f"the NVIDIA driver supports CUDA {driver[0]}.{driver[1]}; warp {wp.config.version} needs CUDA {needed[0]}"
+        )
+    else:
+        why = "the NVIDIA driver sees no GPU"
+    raise SimBuildError(
+        f"mjwarp: the engine runs on a CUDA GPU and warp found none: {why}; "
+        f"{ALLOW_CPU_ENV}=1 builds on warp's CPU device instead (minutes of compiling)"
+    )
 
 
 def _suite(task_id: str) -> str:
@@ -164,7 +189,7 @@ class MjwarpEngine:
 
     Raises:
         InvalidRequestError: what :func:`spaces` refuses.
-        SimBuildError: a scene failed to load or MuJoCo Warp failed to build.
+        SimBuildError: no CUDA GPU, a scene failed to load, or MuJoCo Warp failed to build.
     """
 
     def __init__(
@@ -196,6 +221,7 @@ class MjwarpEngine:
         self._batches: list[_Batch] = []
         if not assignment.tasks:
             return
+        _require_cuda()
         started = time.monotonic()
         try:
             for block in assignment.tasks:
