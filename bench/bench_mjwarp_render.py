@@ -6,10 +6,11 @@ render, not physics, bounds the engine (docs/mjwarp.md). This bench takes one ex
 (``vecsim.engine.mjwarp.scene``), puts ``--worlds`` worlds at its recorded init states, and times
 ``refit_bvh`` + ``render`` of both cameras, all worlds, for each variant:
 
-- ``default``: the engine's settings (textures, vertex normals, specular, emission, per-light
-  ambient, back-face culling; no shadows);
+- ``default``: MuJoCo Warp's own settings (textures, vertex normals, specular, emission,
+  per-light ambient, back-face culling; no shadows);
+- ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.engine.RENDER_SETTINGS``);
 - one of those shading terms off at a time, and ``plain`` with all of them off;
-- ``lowpoly``: the engine's settings, drawn from meshes simplified on a 5 mm grid
+- ``lowpoly``: MuJoCo Warp's settings, drawn from meshes simplified on a 5 mm grid
   (``vecsim.engine.mesh_lod``, the CPU engine's ``lowpoly`` preset), physics untouched.
 
 With ``--reference`` (the CPU engine's trajectories and images from ``bench_mjwarp.py
@@ -58,7 +59,9 @@ LOWPOLY_CELL_M = 0.005
 
 def variants() -> dict[str, dict[str, Any]]:
     """Each variant's render-context keywords; ``lowpoly`` is marked by a key of its own."""
-    out: dict[str, dict[str, Any]] = {"default": {}}
+    from vecsim.engine.mjwarp.engine import RENDER_SETTINGS
+
+    out: dict[str, dict[str, Any]] = {"default": {}, "engine": dict(RENDER_SETTINGS)}
     for term in SHADING:
         out["no_" + term.removeprefix("enable_")] = {term: False}
     out["no_backface_culling"] = {"enable_backface_culling": False}

@@ -26,6 +26,7 @@ def bench():
 def test_each_shading_variant_turns_off_only_its_term(bench):
     variants = bench.variants()
     assert variants["default"] == {}
+    assert variants["engine"] == {"enable_backface_culling": False, "enable_specular": False}
     for term in bench.SHADING:
         assert variants["no_" + term.removeprefix("enable_")] == {term: False}
     assert variants["plain"] == {term: False for term in bench.SHADING} | {"enable_backface_culling": False}
