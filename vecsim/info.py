@@ -86,7 +86,8 @@ def _numbers(infos: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
     The same arrays and masks as :func:`_add` builds row by row, at a fraction of its cost: a pod
     batches the info of every env it steps, on every step."""
     keys = list(infos[0])
-    if not all(type(key) is str for key in keys) or any(len(info) != len(keys) for info in infos):
+    # map() over builtins, not generators: this check runs on every step.
+    if set(map(type, keys)) != {str} or set(map(len, infos)) != {len(keys)}:
         return None
     out: dict[str, Any] = {}
     for key in keys:
@@ -94,8 +95,9 @@ def _numbers(infos: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
             column = [info[key] for info in infos]
         except KeyError:
             return None
-        kind = type(column[0])
-        if not (kind in (int, float, bool) or issubclass(kind, np.number)) or any(type(v) is not kind for v in column):
+        kinds = set(map(type, column))
+        kind = kinds.pop()
+        if kinds or not (kind in (int, float, bool) or issubclass(kind, np.number)):
             return None
         out[key], out[f"_{key}"] = np.array(column, dtype=kind), np.ones(len(infos), dtype=bool)
     return out

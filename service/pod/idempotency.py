@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
@@ -139,15 +139,17 @@ class AnswerMemory:
         if not envs:
             return  # a no-op changed nothing: its repeat may run again
         self._answers[key] = _Answer(digest, bytes(response.body), response.media_type, len(envs))
-        for env in envs:
-            before = self._last_key.get(env)
-            self._last_key[env] = key
+        # The keys these envs had, counted, released once each (most often one: the envs' last call).
+        left = Counter(map(self._last_key.get, envs))
+        self._last_key.update(dict.fromkeys(envs, key))
+        for before, count in left.items():
             if before is not None and before != key:
-                self._release(before)
+                self._release(before, count)
 
-    def _release(self, key: str) -> None:
+    def _release(self, key: str, envs: int) -> None:
+        """``envs`` of the envs whose last keyed call was ``key`` had another since."""
         answer = self._answers[key]
-        answer.envs -= 1
+        answer.envs -= envs
         if answer.envs:
             return
         del self._answers[key]
