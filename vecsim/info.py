@@ -79,12 +79,38 @@ def _add(out: dict[str, Any], info: dict[str, Any], row: int, n: int, where: str
     return out
 
 
+def _numbers(infos: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """The batch of ``infos`` when every env gave the same keys, each a number of one type in all
+    of them (a gym env's own info, say), column by column; None for any other batch.
+
+    The same arrays and masks as :func:`_add` builds row by row, at a fraction of its cost: a pod
+    batches the info of every env it steps, on every step."""
+    keys = list(infos[0])
+    # map() over builtins, not generators: this check runs on every step.
+    if set(map(type, keys)) != {str} or set(map(len, infos)) != {len(keys)}:
+        return None
+    out: dict[str, Any] = {}
+    for key in keys:
+        try:
+            column = [info[key] for info in infos]
+        except KeyError:
+            return None
+        kinds = set(map(type, column))
+        kind = kinds.pop()
+        if kinds or not (kind in (int, float, bool) or issubclass(kind, np.number)):
+            return None
+        out[key], out[f"_{key}"] = np.array(column, dtype=kind), np.ones(len(infos), dtype=bool)
+    return out
+
+
 def batch_infos(infos: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Batch one own info per env (``infos[i]`` of the call's row i) as gymnasium does, with masks.
 
     Returns:
         the batched dict (empty when no env gave anything): arrays, lists and nested dicts.
     """
+    if infos and infos[0] and (columns := _numbers(infos)) is not None:
+        return columns
     out: dict[str, Any] = {}
     for row, info in enumerate(infos):
         if info:

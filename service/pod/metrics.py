@@ -104,7 +104,8 @@ class PodMetrics:
         if n == 0:
             return
         ended = np.asarray(terminated, bool).reshape(n, -1).any(1) | np.asarray(truncated, bool).reshape(n, -1).any(1)
-        self._in_episode = self._in_episode - {int(i) for i in np.asarray(env_indices)[ended]}
+        if ended.any():  # most steps end no episode: no new set then
+            self._in_episode = self._in_episode - set(np.asarray(env_indices)[ended].tolist())
 
     def queued(self) -> QueuedCall:
         """A call now counted in :attr:`queued_calls`, until its :meth:`QueuedCall.started`."""

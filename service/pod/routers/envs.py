@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 
 import gymnasium
 import numpy as np
-from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from PIL import Image
 
 from vecsim import wire
@@ -30,7 +30,7 @@ from ..models import (
     StepRequest,
     StepResponse,
 )
-from ..idempotency import IDEMPOTENCY_KEY_DOC
+from ..idempotency import IDEMPOTENCY_KEY_PARAMETER
 from ..state import PodState
 
 router = APIRouter(tags=["envs"])
@@ -47,9 +47,10 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _body_doc(model: type[Any]) -> dict[str, Any]:
-    """OpenAPI request body for a route that reads its body itself (JSON or wire)."""
-    return {
+def _body_doc(model: type[Any], keyed: bool = False) -> dict[str, Any]:
+    """OpenAPI request body for a route that reads its body itself (JSON or wire); ``keyed``: the
+    route also takes an ``Idempotency-Key`` header."""
+    doc: dict[str, Any] = {
         "requestBody": {
             "required": True,
             "content": {
@@ -58,6 +59,9 @@ def _body_doc(model: type[Any]) -> dict[str, Any]:
             },
         }
     }
+    if keyed:
+        doc["parameters"] = [IDEMPOTENCY_KEY_PARAMETER]
+    return doc
 
 
 def _answer_doc(model: type[Any]) -> dict[int | str, dict[str, Any]]:
@@ -131,12 +135,10 @@ async def _simulate(state: PodState, env: PodEngine, work: Callable[[], T]) -> T
     "/v1/reset",
     response_class=Response,
     responses=_answer_doc(ResetResponse),
-    openapi_extra=_body_doc(ResetRequest),
+    openapi_extra=_body_doc(ResetRequest, keyed=True),
     summary="Reset envs to fixed initial states",
 )
-async def reset(
-    request: Request, state: PodState = Depends(get_state), _key: str | None = Header(None, **IDEMPOTENCY_KEY_DOC)
-) -> Response:
+async def reset(request: Request, state: PodState = Depends(get_state)) -> Response:
     """Put ``env_indices[i]`` in fixed initial state ``state_ids[i]`` of its task, or (``seeds``
     instead) reset it as the env's own ``reset(seed=seeds[i], options=options)``; answers their
     observations, success, the envs' own info (``env_info``) and the envs that raised
@@ -176,12 +178,10 @@ async def reset(
             },
         },
     },
-    openapi_extra=_body_doc(StepRequest),
+    openapi_extra=_body_doc(StepRequest, keyed=True),
     summary="Step some envs one action or one chunk of actions each",
 )
-async def step(
-    request: Request, state: PodState = Depends(get_state), _key: str | None = Header(None, **IDEMPOTENCY_KEY_DOC)
-) -> Response:
+async def step(request: Request, state: PodState = Depends(get_state)) -> Response:
     """Apply ``actions[i]`` to ``env_indices[i]``; answers their observations, rewards, termination
     and truncation flags and success. A chunk (``actions`` ``[n, K, action dim]``) is applied in
     order, each env stopping at its first termination or truncation (``step_past_end``: applying
