@@ -186,6 +186,9 @@ def test_ctrl_c_while_waiting_on_a_stage_call_frees_the_stage_at_once(slow_pod, 
 
 SCRIPT = """
 import faulthandler, signal, sys, threading
+# Ctrl-C as in a terminal: a shell that started the tests in the background left SIGINT ignored,
+# and Python then installs no KeyboardInterrupt handler for its children.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 # A hang shows where: every thread's stack on stderr, and the script ends, before the test's timeout.
 faulthandler.dump_traceback_later(90, exit=True)
 import numpy as np
