@@ -31,16 +31,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import socket
-import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import httpx
 import numpy as np
 import psutil
+from lib.served import server_process
 from lib.records import spread, write_result
 
 from vecsim import wire
@@ -118,37 +116,6 @@ def serve(fd: int) -> None:
         **uvicorn_limits(limits["header_timeout_s"].default, 60.0, limits["max_connections"].default),
     )
     uvicorn.Server(config).run(sockets=[socket.socket(fileno=fd)])
-
-
-@contextmanager
-def server_process() -> Iterator[tuple[str, psutil.Process]]:
-    """Start the server in a child process on a free loopback port; yield its URL and process."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    child = subprocess.Popen([sys.executable, __file__, "--serve-fd", str(sock.fileno())], pass_fds=[sock.fileno()])
-    try:
-        with httpx.Client(timeout=5) as probe:
-            for _ in range(300):
-                if child.poll() is not None:
-                    raise SystemExit(f"answer server exited with {child.returncode}")
-                try:
-                    if probe.post(f"{url}/new/1").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    time.sleep(0.1)
-            else:
-                raise SystemExit("answer server did not answer within 30 s")
-        yield url, psutil.Process(child.pid)
-    finally:
-        child.terminate()
-        try:
-            child.wait(10)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
-        sock.close()
 
 
 def check(body: bytes, envs: int, expected: dict[str, Any]) -> None:
@@ -230,7 +197,7 @@ def main() -> None:
         serve(args.serve_fd)
         return
     clients = ["vecsim", "httpx"] if args.httpx else ["vecsim"]
-    with server_process() as (url, server):
+    with server_process(__file__, "POST", "/new/1", "answer server") as (url, server):
         gbps, server_ms, client_ms, nbytes = asyncio.run(measure(url, server, args.envs, args.rounds, clients))
 
     def label(n: int) -> str:

@@ -34,16 +34,15 @@ import math
 import pstats
 import socket
 import statistics
-import subprocess
 import sys
 import time
-from collections.abc import Awaitable, Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Awaitable, Callable
 
 import aiohttp
 import httpx
 import numpy as np
 import psutil
+from lib.served import server_process
 from lib.records import img_dir, machine_info, out_dir, spread, write_result
 
 from vecsim.transport import DEFAULT_KIND, HttpxTransport, make_transport
@@ -87,37 +86,6 @@ def serve(fd: int) -> None:
     # TCP_NODELAY and small answers stall on Nagle + delayed ACK (40 ms each).
     config = uvicorn.Config(app, log_level="warning", access_log=False)
     uvicorn.Server(config).run(sockets=[socket.socket(fileno=fd)])
-
-
-@contextmanager
-def server_process() -> Iterator[tuple[str, psutil.Process]]:
-    """Start the server in a child process on a free loopback port; yield its URL and process."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    child = subprocess.Popen([sys.executable, __file__, "--serve-fd", str(sock.fileno())], pass_fds=[sock.fileno()])
-    try:
-        with httpx.Client(timeout=2) as probe:
-            for _ in range(300):
-                if child.poll() is not None:
-                    raise SystemExit(f"benchmark server exited with {child.returncode}")
-                try:
-                    if probe.get(f"{url}/bytes/1").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    time.sleep(0.1)
-            else:
-                raise SystemExit("benchmark server did not answer within 30 s")
-        yield url, psutil.Process(child.pid)
-    finally:
-        child.terminate()
-        try:
-            child.wait(10)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
-        sock.close()
 
 
 Table = dict[str, dict[int, list[float]]]
@@ -276,7 +244,7 @@ def main() -> None:
     name = "bench_transport" if args.loop == "asyncio" else f"bench_transport_{args.loop}"
 
     sizes = tuple(round(n * MIB) for n in args.sizes_mib)
-    with server_process() as (url, server):
+    with server_process(__file__, "GET", "/bytes/1", "benchmark server") as (url, server):
         old = load_old_transport(args.old_transport) if args.old_transport else None
         gbps, client_ms, server_ms = runner(measure(url, server, sizes, args.rounds, args.min_mib * MIB, old))
         profile = runner(profile_fast(url, sizes, 6)) if args.profile else None
