@@ -21,7 +21,7 @@ import pytest
 import yaml
 from support import ROOT
 from support.images import (
-    BUILD_TIMEOUT_S,
+    IMAGE_MARKS,
     READY_TIMEOUT_S,
     START_TIMEOUT_S,
     VERSION,
@@ -47,12 +47,7 @@ IMAGE_TOKEN = "image-test-token"  # the token the image tests start the pod and 
 TASK = "tiny/lift"
 ENVS = 2
 
-pytestmark = [
-    pytest.mark.image,
-    pytest.mark.slow,
-    pytest.mark.timeout(BUILD_TIMEOUT_S + 600),
-    pytest.mark.skipif(os.geteuid() != 0, reason="building the image needs root (debootstrap, buildah chroot)"),
-]
+pytestmark = IMAGE_MARKS
 
 
 @pytest.fixture(scope="module")

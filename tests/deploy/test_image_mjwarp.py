@@ -24,7 +24,7 @@ import pytest
 import yaml
 from support import ROOT
 from support.images import (
-    BUILD_TIMEOUT_S,
+    IMAGE_MARKS,
     READY_TIMEOUT_S,
     VERSION,
     build_image,
@@ -45,12 +45,7 @@ TAG = f"vecsim-mjwarp:{VERSION}"
 JOB = "/app/configs/libero_10_mjwarp.yaml"
 ENVS = 2
 
-pytestmark = [
-    pytest.mark.image,
-    pytest.mark.slow,
-    pytest.mark.timeout(BUILD_TIMEOUT_S + 600),
-    pytest.mark.skipif(os.geteuid() != 0, reason="building the image needs root (debootstrap, buildah chroot)"),
-]
+pytestmark = IMAGE_MARKS
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ from typing import Any
 
 import httpx
 import psutil
+import pytest
 
 from . import ROOT
 from .service_procs import log_tail
@@ -30,6 +31,13 @@ VERSION = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["versi
 # The store scripts/build_image.sh builds into (it writes the storage config on its first run).
 BUILDAH = ("env", f"CONTAINERS_STORAGE_CONF={CACHE / 'storage.conf'}", "buildah")
 BUILD_TIMEOUT_S = 1800
+# The marks of every module that builds an image: slow, root only, the build's own time bound.
+IMAGE_MARKS = [
+    pytest.mark.image,
+    pytest.mark.slow,
+    pytest.mark.timeout(BUILD_TIMEOUT_S + 600),
+    pytest.mark.skipif(os.geteuid() != 0, reason="building the image needs root (debootstrap, buildah chroot)"),
+]
 START_TIMEOUT_S = 120
 READY_TIMEOUT_S = 300
 
