@@ -8,8 +8,9 @@ its dtype, a dict a dict batched the same way, anything else a list of ``n`` JSO
 where absent), which the client turns into an object array. Each key ``k`` has its mask ``_k``
 (bool ``[n]``: which envs gave it). A value JSON cannot hold is left out (logged once per key).
 
-:func:`merge_rows` puts such a batch into the info of a vector env of ``num_envs`` envs at the
-rows of the envs it belongs to, as gymnasium would have added each env's info itself. Pure.
+:func:`take_rows` keeps some rows of such a batch; :func:`merge_rows` puts one into the info of
+a vector env of ``num_envs`` envs at the rows of the envs it belongs to, as gymnasium would have
+added each env's info itself. Pure.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from vecsim import wire
 
-__all__ = ["batch_infos", "merge_rows"]
+__all__ = ["batch_infos", "merge_rows", "take_rows"]
 
 log = logging.getLogger("vecsim.info")
 _warned: set[str] = set()
@@ -147,3 +148,18 @@ def merge_rows(
             for row in rows:
                 info[key][envs[row]] = value[row]
     return info
+
+
+def take_rows(batched: dict[str, Any], rows: Sequence[int] | np.ndarray) -> dict[str, Any]:
+    """The batch of rows ``rows`` of ``batched`` (in that order): arrays, masks and lists alike,
+    nested dicts too. A key none of those rows gave stays, its mask all false."""
+    index = np.asarray(rows, dtype=np.int64)
+    out: dict[str, Any] = {}
+    for key, value in batched.items():
+        if isinstance(value, dict):
+            out[key] = take_rows(value, index)
+        elif isinstance(value, np.ndarray):
+            out[key] = value[index]
+        else:
+            out[key] = [value[int(i)] for i in index]
+    return out

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import multiprocessing
 
-from support import gym_custom_env
 import gymnasium
 import numpy as np
 import pytest
-from gymnasium.error import ClosedEnvironmentError, NoAsyncCallError, ResetNeeded
+from gymnasium.error import ClosedEnvironmentError, NoAsyncCallError
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from gymnasium.wrappers import vector as vw
+from support.gym_compare import assert_same
 from support.service_procs import PodSpec, standalone_pods
 
 from vecsim.client import HTTPVectorEnv, PodRequestError
@@ -75,30 +75,6 @@ def served(pods):
     yield factory
     for env in made:
         env.close()
-
-
-def assert_same(served, local, path: str = "") -> None:
-    """Equal structure, dtypes, shapes and values (object arrays element by element)."""
-    if isinstance(local, dict):
-        assert isinstance(served, dict) and set(served) == set(local), (
-            f"{path}: keys {sorted(served)} != {sorted(local)}"
-        )
-        for key in local:
-            assert_same(served[key], local[key], f"{path}.{key}")
-    elif isinstance(local, tuple):
-        assert isinstance(served, tuple) and len(served) == len(local), path
-        for i, (a, b) in enumerate(zip(served, local)):
-            assert_same(a, b, f"{path}.{i}")
-    elif isinstance(local, np.ndarray) and local.dtype == object:
-        assert served.dtype == object and served.shape == local.shape, path
-        for a, b in zip(served, local):
-            assert_same(a, b, path)
-    elif local is None:
-        assert served is None, path
-    else:
-        a, b = np.asarray(served), np.asarray(local)
-        assert (a.dtype, a.shape) == (b.dtype, b.shape), f"{path}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
-        assert np.array_equal(a, b), f"{path}: {a} != {b}"
 
 
 @pytest.mark.parametrize("mode", list(AutoresetMode), ids=lambda m: m.name.lower())
@@ -158,20 +134,6 @@ def test_fixed_initial_states_stay_available_for_gym_tasks(served):
         np.array_equal(first, again) and np.array_equal(first[0], first[1]) and not np.array_equal(first[0], first[2])
     )
     assert info["state_id"].tolist() == [4, 4, 5]
-
-
-def test_an_env_that_raises_raises_its_own_exception_and_the_pod_keeps_its_envs(served):
-    remote = served(CUSTOM)
-    remote.reset(seed=0)
-    actions = np.zeros((NUM_ENVS, 2, 1))
-    actions[1, 0, 0] = gym_custom_env.BOOM
-    with pytest.raises(ValueError, match="the custom env refuses 42"):
-        remote.step(actions)
-    with pytest.raises(ResetNeeded, match=r"\[1\]"):
-        remote.step(np.zeros((NUM_ENVS, 2, 1)))
-    remote.reset(options={"reset_mask": np.array([False, True, False])})
-    obs, reward, *_ = remote.step(np.zeros((NUM_ENVS, 2, 1)))
-    assert remote.observation_space.contains(obs) and reward.shape == (NUM_ENVS,)
 
 
 def test_get_attr_call_and_set_attr_reach_the_envs(served):

@@ -4,8 +4,9 @@
 Its spaces are of every kind a vector env batches: a Dict observation holding a 0-d float64
 Box, a Discrete, and a Tuple of a MultiBinary and a MultiDiscrete; a float64 Box action of
 shape (2, 1). Its info has numbers, an array, a string and a nested dict; reset takes an
-``options["offset"]``; an action of 42 raises ``ValueError``; ``gain`` can be set and
-``scaled(x)`` called.
+``options["offset"]``; an action of 42 raises ``ValueError`` in a step, and so does a reset with
+seed 4242, or any reset while ``refuse_resets`` (settable) counts down to 0; ``gain`` can be set
+and ``scaled(x)`` called.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from gymnasium import spaces
 
 ENV_ID = "Custom-v0"
 BOOM = 42.0
+BOOM_SEED = 4242
 
 
 class CustomEnv(gymnasium.Env):
@@ -26,6 +28,7 @@ class CustomEnv(gymnasium.Env):
     def __init__(self, size: int = 5) -> None:
         self.size = size
         self.gain = 1.0
+        self.refuse_resets = 0
         self.observation_space = spaces.Dict(
             {
                 "level": spaces.Box(-np.inf, np.inf, (), np.float64),
@@ -44,6 +47,11 @@ class CustomEnv(gymnasium.Env):
         return {"level": np.array(self._level), "cell": self._cell, "bits": (bits, pair)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        if seed == BOOM_SEED:
+            raise ValueError(f"the custom env refuses seed {BOOM_SEED}")
+        if self.refuse_resets > 0:
+            self.refuse_resets -= 1
+            raise ValueError("the custom env refuses this reset")
         super().reset(seed=seed)
         offset = float((options or {}).get("offset", 0.0))
         self._level = float(self.np_random.normal()) + offset

@@ -28,6 +28,7 @@ from vecsim.client.errors import PodRequestError, PodUnavailableError, call_erro
 from vecsim.client.pods import EventLoopThread, PodSet
 from vecsim.client.routebook import RouteBook
 from vecsim.client.routing import TrajRoute
+from vecsim.info import take_rows as info_rows
 from vecsim.spaces import in_kind_of
 
 __all__ = [
@@ -200,11 +201,12 @@ def take_rows(batch: StageBatch, rows: list[int]) -> StageBatch:
     index = np.asarray(rows, dtype=np.int64)
 
     new_row = {int(r): j for j, r in enumerate(rows)}
-    env_info = [
-        (np.array([new_row[int(r)] for r in pod_rows], dtype=np.int64), batched)
-        for pod_rows, batched in batch.env_info
-        if all(int(r) in new_row for r in pod_rows)
-    ]
+    env_info: list[tuple[np.ndarray, dict[str, Any]]] = []
+    for pod_rows, batched in batch.env_info:
+        at = [j for j, r in enumerate(pod_rows) if int(r) in new_row]
+        if at:  # all or some of this pod's rows: their part of its info
+            part = batched if len(at) == len(pod_rows) else info_rows(batched, at)
+            env_info.append((np.array([new_row[int(pod_rows[j])] for j in at], dtype=np.int64), part))
     kept = {batch.traj_keys[r] for r in rows}
 
     return StageBatch(

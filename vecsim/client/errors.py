@@ -27,7 +27,8 @@ class ClientError(Exception):
 
     ``failed_envs`` and ``result`` are set by ``HTTPVectorEnv`` on an error that ends its reset or
     step: the indices of the envs that got no answer, and the call's result for the others (see
-    its docstring). ``None`` for errors raised anywhere else.
+    its docstring). ``None`` for errors raised anywhere else. An env's own exception, which
+    ``HTTPVectorEnv`` gives the same two attributes, is never a ``ClientError``.
     """
 
     failed_envs: list[int] | None = None

@@ -72,7 +72,10 @@ class Autoresets:
                 return error.answered[pick]
 
         stepped = await answered(1, step=step)
-        ended = [self._key_index[key] for key, end in zip(stepped.traj_keys, stepped.ended()) if end]
+        raised = {key for key, _, _ in stepped.errors}  # to be reset by the caller, not here
+        ended = [
+            self._key_index[key] for key, end in zip(stepped.traj_keys, stepped.ended()) if end and key not in raised
+        ]
         again = await answered(0, **self.requests(ended))
         if errors:
             raise call_error(errors, (again, stepped))

@@ -31,7 +31,7 @@ from vecsim.client.routing import TrajRoute
 from vecsim.client.stage import PendingCall, StageBatch, StageClient, check_ended_envs
 from vecsim.client.vector_autoreset import Autoresets
 from vecsim.client.vector_resets import StateDraws, autoreset_mode_of, env_seeds, reset_mask
-from vecsim.client.vector_results import EnvResults
+from vecsim.client.vector_results import EnvResults, without_errors
 from vecsim.client.vector_routes import EnvRoutes
 from vecsim.config import JobConfig, RoutingTable, load_job_config
 
@@ -100,9 +100,8 @@ class HTTPVectorEnv(VectorEnv):
 
     An env that raises (in its reset, step or an attribute call) raises its exception here, its
     type rebuilt when it is a builtin one (``ValueError``, ...; any other comes as a
-    ``RuntimeError`` naming the type), after the other envs' rows of the call were taken; the env
-    that raised must be reset before the next step. :meth:`get_attr`, :meth:`call` and
-    :meth:`set_attr` reach the envs' attributes as JSON values.
+    ``RuntimeError`` naming the type). :meth:`get_attr`, :meth:`call` and :meth:`set_attr` reach
+    the envs' attributes as JSON values.
 
     :meth:`chunk_step` takes a chunk of K actions per env (``[num_envs, K, action dim]``), the
     contract of VLA trainers: each env applies its actions in order and stops at its first
@@ -112,13 +111,23 @@ class HTTPVectorEnv(VectorEnv):
     Autoreset works on chunks as on single steps (an env reset in place of its chunk applies none).
 
     A step or reset answers every env or raises. When pods of the call fail alone
-    (``PodUnavailableError``, ``RoutingChangedError``), the envs of the pods that answered did
-    step or reset: their rows go into the vector env's observation buffer and autoreset
-    bookkeeping before the error is raised, and the error carries ``failed_envs`` (the sorted
-    indices of the envs without an answer) and ``result`` (what the call would have returned,
-    with only the answered envs' rows meaningful and only theirs marked in the info's ``_key``
-    masks). The failed envs must then be reset (``reset(options={"reset_mask": m})`` with ``m``
-    covering them) before the next step; the others go on as they are.
+    (``PodUnavailableError``, ``RoutingChangedError``) or envs raise, the other envs did step or
+    reset: their rows go into the vector env's observation buffer and autoreset bookkeeping
+    before the error is raised, and the error carries ``failed_envs`` (the sorted indices of the
+    envs without an answer: those of the failed pods, or those that raised) and ``result`` (what
+    the call would have returned, with only the answered envs' rows meaningful and only theirs
+    marked in the info's ``_key`` masks). When several envs raise in one call, the first one's
+    exception is raised, ``failed_envs`` names them all and a note gives the others' messages.
+    The failed envs must then be reset (``reset(options={"reset_mask": m})`` with ``m``
+    covering them) before the next step; the others go on as they are::
+
+        try:
+            obs, reward, terminated, truncated, info = env.step(actions)
+        except Exception as exc:
+            if getattr(exc, "failed_envs", None) is None:
+                raise  # the call failed whole
+            obs, reward, terminated, truncated, info = exc.result
+            env.reset(options={"reset_mask": np.isin(np.arange(env.num_envs), exc.failed_envs)})
 
     ``ended_envs`` (as :class:`StageClient`'s) says what stepping an env that terminated or
     truncated and was not reset does when nothing autoresets it (``autoreset_mode`` DISABLED):
@@ -287,6 +296,8 @@ class HTTPVectorEnv(VectorEnv):
             PodUnavailableError, PodRequestError, RoutingChangedError: from the client. The first
                 and last carry ``failed_envs`` and ``result`` (see the class docstring); the
                 envs that answered are reset.
+            the exception an env raised in its reset (see the class docstring), carrying
+                ``failed_envs`` and ``result`` too; the other envs are reset.
         """
         self._assert_open()
         if self._state != AsyncState.WAITING_RESET:
@@ -298,12 +309,15 @@ class HTTPVectorEnv(VectorEnv):
             batch, _ = self._take(timeout)
         except _PARTIAL as error:
             answered = error.answered[0] if error.answered is not None else None
-            result, done = self._results.take_reset(answered, self._pending_fixed)
-            self._results.fail(error, mask & ~done, result)
+            raised = answered.errors if answered is not None else []
+            result, done = self._results.take_reset(
+                None if answered is None else without_errors(answered), self._pending_fixed
+            )
+            self._results.fail(error, mask & ~done, result, raised)
             raise
         with self._results.failing_if_interrupted(mask):
-            result = self._results.take_reset(batch, self._pending_fixed)[0]
-        self._results.raise_env_errors(batch)
+            result = self._results.take_reset(without_errors(batch), self._pending_fixed)[0]
+        self._results.raise_env_errors(batch.errors, result)
         return result
 
     @property
@@ -403,6 +417,7 @@ class HTTPVectorEnv(VectorEnv):
             envs, refuse_ended=self.autoreset_mode == AutoresetMode.DISABLED and self.ended_envs == "raise"
         )
         self._pending = self._autoresets.step(actions, envs, ended)
+        self._pending_mask = envs
         self._state = AsyncState.WAITING_STEP
 
     def step_wait(self, timeout: float | None = None) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -415,24 +430,28 @@ class HTTPVectorEnv(VectorEnv):
             PodUnavailableError, PodRequestError, RoutingChangedError: from the client. The first
                 and last carry ``failed_envs`` and ``result`` (see the class docstring); the
                 envs that answered have stepped (or autoreset) and go on from there.
+            the exception an env raised in its step or autoreset (see the class docstring),
+                carrying ``failed_envs`` and ``result`` too; the other envs go on.
         """
         self._assert_open()
         if self._state != AsyncState.WAITING_STEP:
             raise NoAsyncCallError(
                 "Calling `step_wait` without any prior call to `step_async`.", AsyncState.WAITING_STEP.value
             )
+        sent = self._pending_mask
         try:
             reset_batch, step_batch = self._take(timeout)
         except _PARTIAL as error:
             if error.answered is None:
-                result, done = None, np.zeros(self.num_envs, dtype=bool)
+                result, done, raised = None, np.zeros(self.num_envs, dtype=bool), []
             else:
-                result, done = self._results.take_step(*error.answered)
-            self._results.fail(error, ~done, result)
+                raised = error.answered[1].errors + error.answered[0].errors
+                result, done = self._results.take_step(*map(without_errors, error.answered))
+            self._results.fail(error, sent & ~done, result, raised)
             raise
-        with self._results.failing_if_interrupted(np.ones(self.num_envs, dtype=bool)):
-            result = self._results.take_step(reset_batch, step_batch)[0]
-        self._results.raise_env_errors(step_batch, reset_batch)
+        with self._results.failing_if_interrupted(sent):
+            result = self._results.take_step(without_errors(reset_batch), without_errors(step_batch))[0]
+        self._results.raise_env_errors(step_batch.errors + reset_batch.errors, result)
         return result
 
     # -- shared ---------------------------------------------------------------------------------
@@ -449,7 +468,7 @@ class HTTPVectorEnv(VectorEnv):
                 # Interrupted (Ctrl-C; the call is cancelled): whether its envs reset or stepped
                 # is unknown, so they must be reset before the next step.
                 results = self._results
-                results.failed |= self._pending_mask if self._state == AsyncState.WAITING_RESET else True
+                results.failed |= self._pending_mask
                 results.autoreset[results.failed] = False
             self._state, self._pending = AsyncState.DEFAULT, None
             raise

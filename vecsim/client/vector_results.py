@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -22,14 +22,22 @@ from gymnasium.vector.utils import create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode
 
 from vecsim import trees
-from vecsim.client.calls import StageBatch
+from vecsim.client.calls import StageBatch, take_rows
 from vecsim.client.errors import ClientError, builtin_exception
 from vecsim.client.gym_values import env_observation
 from vecsim.info import merge_rows
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EnvResults"]
+__all__ = ["EnvResults", "without_errors"]
+
+
+def without_errors(batch: StageBatch) -> StageBatch:
+    """``batch`` without the rows whose env raised (``batch`` itself when none did)."""
+    if not batch.errors:
+        return batch
+    raised = {key for key, _, _ in batch.errors}
+    return take_rows(batch, [j for j, key in enumerate(batch.traj_keys) if key not in raised])
 
 
 def _row_success(batch: StageBatch) -> np.ndarray:
@@ -82,8 +90,8 @@ class EnvResults:
         if (self.failed & envs).any():
             failed = np.flatnonzero(self.failed & envs).tolist()
             raise ResetNeeded(
-                f"envs {failed} got no answer in their last call (their pod failed, or the call was "
-                "interrupted); reset them with "
+                f"envs {failed} got no answer in their last call (the env raised, its pod failed, or the "
+                "call was interrupted); reset them with "
                 "reset(options={'reset_mask': mask}) before stepping"
             )
         ended = self.autoreset & envs
@@ -112,13 +120,24 @@ class EnvResults:
             done[rows] = True
         return (copy.deepcopy(self.obs), info), done
 
-    def fail(self, error: ClientError, failed: np.ndarray, result: tuple[Any, ...] | None) -> None:
-        """Mark the envs of a call that got no answer and tell the caller through ``error``."""
+    def fail(
+        self,
+        error: ClientError,
+        failed: np.ndarray,
+        result: tuple[Any, ...] | None,
+        raised: Sequence[tuple[str, str, str]] = (),
+    ) -> None:
+        """Mark the envs of a call that got no answer and tell the caller through ``error``;
+        ``raised``: the envs of answering pods that raised (among ``failed``, named in a note)."""
         self.failed |= failed
         self.autoreset[failed] = False
         envs = np.flatnonzero(failed).tolist()
         error.failed_envs = envs
         error.result = result
+        if raised:
+            error.add_note(
+                "envs that raised: " + "; ".join(f"env {self.key_index[k]} {kind}: {text}" for k, kind, text in raised)
+            )
         logger.warning("envs %s got no answer and must be reset: %s", envs, error)
 
     @contextlib.contextmanager
@@ -217,9 +236,10 @@ class EnvResults:
         for rows, batched in batch.env_info:
             merge_rows(info, batched, env_of_row[rows], self.num_envs, None if keep is None else keep[rows])
 
-    def raise_env_errors(self, *batches: StageBatch) -> None:
-        """Raise the first exception an env of the call raised (its envs must be reset)."""
-        errors = [error for batch in batches for error in batch.errors]
+    def raise_env_errors(self, errors: list[tuple[str, str, str]], result: tuple[Any, ...]) -> None:
+        """Raise the first of ``errors`` (``(traj_key, type name, message)`` of the envs of a call
+        that raised), carrying ``failed_envs`` and ``result`` (the call's answer without their
+        rows, taken already); mark those envs to be reset. Nothing when none raised."""
         if not errors:
             return
         failed = sorted({self.key_index[key] for key, _, _ in errors})
@@ -229,7 +249,13 @@ class EnvResults:
         logger.warning(
             "envs %s raised (first: env %d %s: %s); they must be reset", failed, self.key_index[key], type_name, message
         )
-        raise builtin_exception(type_name, message)
+        error = builtin_exception(type_name, message)
+        error.failed_envs = failed
+        error.result = result
+        if len(failed) > 1:
+            others = "; ".join(f"env {self.key_index[k]} {kind}: {text}" for k, kind, text in errors[1:])
+            error.add_note(f"envs {failed} raised; the others: {others}")
+        raise error
 
     def _add_batch_info(
         self, info: dict[str, Any], batch: StageBatch, envs: np.ndarray, with_state_ids: bool = False
