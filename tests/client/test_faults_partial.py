@@ -117,6 +117,25 @@ def test_a_rollout_loses_only_the_killed_pods_trajectories_and_finishes_the_rest
 
 
 @pytest.mark.slow
+def test_a_chunk_of_some_envs_fails_for_the_killed_pods_envs_alone(pods):
+    _, doomed = pods
+    env = HTTPVectorEnv(pod_urls=[p.url for p in pods], timeout_s=10, token=TOKEN)
+    try:
+        env.reset(seed=0)
+        on_sim_0 = sorted(i for i, route in env.routes.items() if route.pod == "sim-0")
+        on_sim_1 = sorted(i for i, route in env.routes.items() if route.pod == "sim-1")
+        sent = [on_sim_0[0], *on_sim_1]  # sim-0's other env is left out of the call
+        doomed.signal_group(signal.SIGKILL)
+        with pytest.raises(PodUnavailableError) as caught:
+            env.chunk_step(np.zeros((len(sent), 2, 1), np.float32), env_ids=sent)
+        assert caught.value.failed_envs == on_sim_1
+        assert caught.value.result[4]["num_steps"][on_sim_0].tolist() == [2, 0]
+        _, reward, *_ = env.chunk_step(np.zeros((len(on_sim_0), 2, 1), np.float32), env_ids=on_sim_0)
+    finally:
+        env.close()
+    assert reward.shape == (env.num_envs, 2)
+
+
 def test_the_vector_env_raises_for_a_killed_pod_and_hands_over_the_other_pods_envs(pods):
     _, doomed = pods
     env = HTTPVectorEnv(pod_urls=[p.url for p in pods], timeout_s=10, token=TOKEN)
