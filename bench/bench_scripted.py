@@ -9,10 +9,14 @@ and writes ``bench/lib/scripted_table.json``, which the bench carries::
     python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/7
 
 ``run`` starts one real pod (``vecsim pod``, uvicorn, loopback) per task and engine, resets its
-envs to the init states (all 50 by default, ``--envs`` at a time) and runs the policy to each
-episode's end (LIBERO's success, or the suite's step limit): per task and engine, successes,
-the rate with its Wilson 95% interval, the mean episode length of the successes, and with both
-engines the agreement per init state. Each engine's pods run under their own ``PYTHONPATH``
+envs to the init states (all 50 by default, ``--envs`` at a time, an env taking the next state
+when its episode ends) and runs the policy to each episode's end (LIBERO's success, or the
+suite's step limit). An env that raises (a world no longer finite, say) ends only its own
+episode: the state is recorded as an error (``per_state[k]["error"]``, the exception's text) and
+the env takes the next state. Per task and engine: successes, errors and their state ids, the
+rate with its Wilson 95% interval over the episodes that ended without an error, the mean
+episode length of the successes, and with both engines the agreement per init state (states
+that errored on either engine counted apart). Each engine's pods run under their own ``PYTHONPATH``
 (the two stacks pin different mujoco versions); this process needs only the client. The record
 is written after every task and engine, so a run cut short keeps what it did::
 
@@ -36,16 +40,17 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from lib.records import command_line, machine_info
-from lib.scripted import Gains, PickPlace, agreement, closing_yaw, wilson
+from lib.scripted import Episodes, Gains, PickPlace, agreement, closing_yaw, summary
 
+from vecsim.client.errors import ClientError
 from vecsim.config import Assignment, CameraConfig, TaskBlock
 
 log = logging.getLogger("bench_scripted")
@@ -180,51 +185,106 @@ def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, re
                 process.wait(timeout=30)
 
 
+class Policy(Protocol):
+    """What :func:`run_episodes` drives: a policy per env, told which init state each env starts."""
+
+    def restart(self, env_index: int, state_id: int) -> None: ...
+
+    def act(self, obs: Any) -> np.ndarray: ...
+
+
+class Scripted:
+    """The scripted policy over ``rows`` (the table's rows of one task) for ``num_envs`` envs."""
+
+    def __init__(self, rows: Sequence[dict[str, Any]], num_envs: int, gains: Gains) -> None:
+        self.rows = rows
+        self.script = PickPlace([rows[0]] * num_envs, gains)
+
+    def restart(self, env_index: int, state_id: int) -> None:
+        self.script.restart(env_index, self.rows[state_id])
+
+    def act(self, obs: Any) -> np.ndarray:
+        return self.script.act(obs["state"])
+
+
+def env_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is an env's own exception (its episode's), not a failure of the call or pod."""
+    return not isinstance(exc, ClientError) and getattr(exc, "failed_envs", None) is not None
+
+
+def error_text(exc: BaseException) -> str:
+    """The exception's type and message, and its notes (the other envs' messages)."""
+    return "; ".join([f"{type(exc).__name__}: {exc}", *getattr(exc, "__notes__", ())])
+
+
+def run_episodes(env: Any, state_ids: Sequence[int], policy: Policy) -> dict[int, dict[str, Any]]:
+    """Run ``policy`` from each of ``state_ids`` to its episode's end on ``env`` (an
+    ``HTTPVectorEnv``, autoreset disabled), as many at a time as it has envs, an env taking the
+    next state when its episode ends. An env that raises ends only its own episode (an error,
+    with the exception's text) and takes the next state. Returns :class:`Episodes`'s ``outcome``."""
+    book = Episodes(state_ids, env.num_envs)
+    obs = start(env, book, policy, range(env.num_envs))
+    while book.running.any():
+        active = np.flatnonzero(book.running)
+        actions = policy.act(obs)[active, None]  # a chunk of one action per running env
+        failed: list[int] = []
+        try:
+            obs, _, terminated, truncated, _ = env.chunk_step(actions, env_ids=active)
+        except Exception as exc:
+            if not env_error(exc):
+                raise
+            obs, _, terminated, truncated, _ = exc.result
+            failed = list(exc.failed_envs)
+            book.fail(failed, error_text(exc))
+            log.warning("envs %s raised; their episodes are errors: %s", failed, error_text(exc))
+        stepped = [int(i) for i in active if i not in failed]
+        ended = book.step(stepped, terminated[stepped, 0], truncated[stepped, 0])
+        if ended or failed:
+            obs = start(env, book, policy, ended + failed, obs)
+    return book.outcome
+
+
+def start(env: Any, book: Episodes, policy: Policy, envs: Iterable[int], obs: Any = None) -> Any:
+    """Reset ``envs`` to the next states not yet run (an env none is left for idles); a state whose
+    reset raises is an error and its env takes the next. Returns the observations."""
+    envs = list(envs)
+    while envs:
+        given = book.assign(envs)
+        if not given:
+            break
+        mask = np.zeros(env.num_envs, dtype=bool)
+        state_ids = np.zeros(env.num_envs, dtype=np.int64)
+        mask[list(given)], state_ids[list(given)] = True, list(given.values())
+        try:
+            obs, _ = env.reset(options={"state_ids": state_ids, "reset_mask": mask})
+            envs = []
+        except Exception as exc:
+            if not env_error(exc):
+                raise
+            obs, envs = exc.result[0], list(exc.failed_envs)
+            book.fail(envs, error_text(exc))
+            log.warning("envs %s raised in their reset; their episodes are errors: %s", envs, error_text(exc))
+        for i, k in given.items():
+            if i not in envs:
+                policy.restart(i, k)
+    return obs
+
+
 def episodes(url: str, rows: Sequence[dict[str, Any]], state_ids: Sequence[int], gains: Gains) -> dict[int, dict]:
-    """Run the policy from each of ``state_ids`` to its episode's end through ``HTTPVectorEnv``,
-    as many at a time as the pod has envs; each state id's success and episode length."""
+    """The scripted policy from each of ``state_ids`` through ``HTTPVectorEnv`` on the pod at
+    ``url``: :func:`run_episodes`'s outcome."""
     from vecsim.client.vector_env import HTTPVectorEnv
 
-    outcome: dict[int, dict[str, Any]] = {}
-    env = HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled", ended_envs="freeze", timeout_s=600)
+    env = HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled", timeout_s=600)
     try:
-        width = env.num_envs
-        for start in range(0, len(state_ids), width):
-            batch = list(state_ids[start : start + width])
-            n = len(batch)
-            mask = np.arange(width) < n
-            padded = np.array(batch + [0] * (width - n))
-            obs, _ = env.reset(options={"state_ids": padded, "reset_mask": mask})
-            policy = PickPlace([rows[k] for k in batch], gains)
-            running = np.ones(n, dtype=bool)
-            steps = np.zeros(n, dtype=np.int64)
-            success = np.zeros(n, dtype=bool)
-            while running.any():
-                actions = np.zeros((width, 7), dtype=np.float32)
-                actions[:n] = policy.act(obs["state"][:n])
-                obs, _, terminated, truncated, _ = env.step(actions)
-                steps += running
-                success |= running & terminated[:n]  # LIBERO ends an episode on success alone
-                running &= ~(terminated[:n] | truncated[:n])
-            for i, k in enumerate(batch):
-                outcome[k] = {"success": bool(success[i]), "steps": int(steps[i])}
-            log.info("states %d-%d: %d of %d succeeded", batch[0], batch[-1], int(success.sum()), n)
+        outcome = run_episodes(env, state_ids, Scripted(rows, env.num_envs, gains))
     finally:
         env.close()
+    done = summary(outcome)
+    log.info(
+        "%d of %d succeeded, %d errors %s", done["successes"], done["states"], done["errors"], done["error_state_ids"]
+    )
     return outcome
-
-
-def summary(outcome: dict[int, dict[str, Any]]) -> dict[str, Any]:
-    """Successes, rate, Wilson 95% interval and mean steps to success of one task on one engine."""
-    wins = [o["steps"] for o in outcome.values() if o["success"]]
-    low, high = wilson(len(wins), len(outcome))
-    return {
-        "states": len(outcome),
-        "successes": len(wins),
-        "rate": len(wins) / len(outcome) if outcome else None,
-        "wilson95": [round(low, 4), round(high, 4)],
-        "mean_steps_to_success": float(np.mean(wins)) if wins else None,
-    }
 
 
 def run(args: argparse.Namespace) -> None:
@@ -259,7 +319,7 @@ def run(args: argparse.Namespace) -> None:
                 port = args.port + 2 * index + offset
                 with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s) as url:
                     outcome = episodes(url, rows[task], state_ids, gains)
-            except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
+            except (RuntimeError, OSError, ValueError, httpx.HTTPError, ClientError) as exc:
                 entry[engine] = {"error": str(exc)}
                 log.error("%s on %s failed: %s", task, engine, exc)
             else:
@@ -268,10 +328,11 @@ def run(args: argparse.Namespace) -> None:
                     "seconds": round(time.monotonic() - began, 1),
                     "per_state": {str(k): v for k, v in outcome.items()},
                 }
-                log.info("%s on %s: %d/%d", task, engine, entry[engine]["successes"], entry[engine]["states"])
+                done = entry[engine]
+                log.info("%s on %s: %d/%d, %d errors", task, engine, done["successes"], done["states"], done["errors"])
             if all("per_state" in entry.get(e, {}) for e in ("cpu", "mjwarp")):
                 first, second = (
-                    {int(k): v["success"] for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp")
+                    {int(k): v.get("success") for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp")
                 )
                 entry["agreement"] = agreement(first, second)
             write(record, args.out)

@@ -1,5 +1,7 @@
 """A scripted pick-and-place policy for LIBERO's "put X (and Y) in/on Z" tasks, and the figures of
-its success rates: Wilson intervals and the agreement of two engines per init state.
+its success rates: which init state each env runs and how each episode ended (an env's error
+included), Wilson intervals over the episodes that ended without one, and the agreement of two
+engines per init state.
 
 The policy is closed loop on the end effector (LIBERO's 8-float ``state``: eef position,
 axis-angle, gripper) and open loop on the objects: where each object and its goal are, for each
@@ -16,7 +18,8 @@ rotation up to 0.5 rad per unit, clipped to [-1, 1]) and the gripper (-1 open, 1
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from statistics import NormalDist
 from typing import Any
@@ -57,16 +60,89 @@ def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def agreement(first: Mapping[int, bool], second: Mapping[int, bool]) -> dict[str, Any]:
-    """Per init state (the ids both mappings hold), whether two engines' successes agree."""
+class Episodes:
+    """Which init state each of ``num_envs`` envs runs, and how each state's episode ended.
+
+    Envs take the states in order as they come free (at the start, when an episode ends, when an
+    env raised); an env with no state left idles. ``outcome[k]`` is ``{"success", "steps"}`` for
+    an episode that ended (LIBERO ends one on success alone, or at the step limit), and
+    ``{"error", "steps"}`` for one whose env raised (the exception's text, the steps it took).
+    """
+
+    def __init__(self, state_ids: Sequence[int], num_envs: int) -> None:
+        self.pending = deque(int(k) for k in state_ids)
+        self.state = np.full(num_envs, -1, dtype=np.int64)  # each env's state id; -1: idle
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+        self.outcome: dict[int, dict[str, Any]] = {}
+
+    @property
+    def running(self) -> np.ndarray:
+        """The envs running an episode."""
+        return self.state >= 0
+
+    def assign(self, envs: Iterable[int]) -> dict[int, int]:
+        """Give each of ``envs`` the next state not yet run, while any is left (the others
+        idle); return ``{env: state id}`` of those given one."""
+        given = {}
+        for i in envs:
+            self.state[i], self.steps[i] = -1, 0
+            if self.pending:
+                self.state[i] = given[int(i)] = self.pending.popleft()
+        return given
+
+    def step(self, envs: Sequence[int], terminated: np.ndarray, truncated: np.ndarray) -> list[int]:
+        """Count a step of ``envs`` (running ones) with their flags; end the episodes of those that
+        terminated (a success) or truncated; return those envs, free now."""
+        ended = []
+        for i, term, trunc in zip(envs, terminated, truncated):
+            self.steps[i] += 1
+            if term or trunc:
+                self.outcome[int(self.state[i])] = {"success": bool(term), "steps": int(self.steps[i])}
+                self.state[i] = -1
+                ended.append(int(i))
+        return ended
+
+    def fail(self, envs: Iterable[int], error: str) -> None:
+        """The episodes of ``envs`` ended with ``error`` (their env raised); the envs are free."""
+        for i in envs:
+            if self.state[i] >= 0:
+                self.outcome[int(self.state[i])] = {"error": error, "steps": int(self.steps[i])}
+                self.state[i] = -1
+
+
+def summary(outcome: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    """Successes, errors (their state ids), the rate with its Wilson 95% interval over the
+    episodes that ended without an error, and the mean steps to success of one task on one engine."""
+    errored = sorted(k for k, o in outcome.items() if "error" in o)
+    ended = [o for o in outcome.values() if "error" not in o]
+    wins = [o["steps"] for o in ended if o["success"]]
+    low, high = wilson(len(wins), len(ended))
+    return {
+        "states": len(outcome),
+        "successes": len(wins),
+        "errors": len(errored),
+        "error_state_ids": errored,
+        "rate": len(wins) / len(ended) if ended else None,
+        "wilson95": [round(low, 4), round(high, 4)],
+        "mean_steps_to_success": float(np.mean(wins)) if wins else None,
+    }
+
+
+def agreement(first: Mapping[int, bool | None], second: Mapping[int, bool | None]) -> dict[str, Any]:
+    """Per init state (the ids both mappings hold), whether two engines' successes agree; a state
+    whose episode errored on either (None) is counted apart, in ``errored``."""
     common = sorted(set(first) & set(second))
-    differ = [k for k in common if bool(first[k]) != bool(second[k])]
+    errored = [k for k in common if first[k] is None or second[k] is None]
+    compared = [k for k in common if k not in errored]
+    differ = [k for k in compared if bool(first[k]) != bool(second[k])]
     return {
         "states": len(common),
-        "both_succeed": sum(1 for k in common if first[k] and second[k]),
-        "both_fail": sum(1 for k in common if not first[k] and not second[k]),
+        "both_succeed": sum(1 for k in compared if first[k] and second[k]),
+        "both_fail": sum(1 for k in compared if not first[k] and not second[k]),
         "differ": len(differ),
         "differing_state_ids": differ,
+        "errored": len(errored),
+        "errored_state_ids": errored,
     }
 
 
@@ -170,6 +246,11 @@ class PickPlace:
         self.holds = np.stack([s[3] for s in scripts])
         self.index = np.zeros(len(rows), dtype=np.int64)  # each env's current waypoint
         self.spent = np.zeros(len(rows), dtype=np.int64)  # steps spent on it
+
+    def restart(self, i: int, row: Mapping[str, Any]) -> None:
+        """Env ``i`` starts over on the script of ``row`` (an init state of the same task)."""
+        self.positions[i], self.yaws[i], self.grips[i], self.holds[i] = waypoints(row, self.gains)
+        self.index[i] = self.spent[i] = 0
 
     @property
     def finished(self) -> np.ndarray:

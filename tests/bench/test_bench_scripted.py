@@ -1,14 +1,17 @@
 """The scripted pick-and-place bench (``bench/bench_scripted.py``, ``bench/lib/scripted.py``).
 
 Its pure parts against references: the Wilson interval against scipy's, rotations against
-scipy's, the waypoints and how the policy walks them. Then the bench's ``--smoke`` path (a real
-CPU pod, ``HTTPVectorEnv``) against LIBERO itself: the same policy on LIBERO's own
+scipy's, the waypoints and how the policy walks them, the bookkeeping of episodes and of the
+envs' errors. Its episode loop through real pods of the tests' custom gymnasium env: an env that
+raises costs only its own episode. Then the bench's ``--smoke`` path (a real CPU pod,
+``HTTPVectorEnv``) against LIBERO itself: the same policy on LIBERO's own
 ``OffScreenRenderEnv``, reset as the published evaluations do, ends each episode at the same
 step with the same success, and the carried table holds where LIBERO puts the objects.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -17,9 +20,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import binomtest
-from support import ROOT
+from support import ROOT, gym_custom_env
 
 BENCH = ROOT / "bench"
+CUSTOM = f"{gym_custom_env.__name__}:{gym_custom_env.ENV_ID}"
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +72,69 @@ def test_agreement_compares_the_states_both_engines_ran(scripted) -> None:
         "both_fail": 1,
         "differ": 2,
         "differing_state_ids": [1, 3],
+        "errored": 0,
+        "errored_state_ids": [],
     }
+
+
+def test_agreement_counts_states_that_errored_on_either_engine_apart(scripted) -> None:
+    cpu = {0: True, 1: None, 2: False, 3: True, 4: None}
+    gpu = {0: True, 1: True, 2: None, 3: False, 4: None}
+    assert scripted.agreement(cpu, gpu) == {
+        "states": 5,
+        "both_succeed": 1,
+        "both_fail": 0,
+        "differ": 1,
+        "differing_state_ids": [3],
+        "errored": 3,
+        "errored_state_ids": [1, 2, 4],
+    }
+
+
+def test_episodes_give_envs_the_states_in_order_and_idle_them_when_none_is_left(scripted) -> None:
+    book = scripted.Episodes([5, 6, 7], num_envs=2)
+    assert book.assign([0, 1]) == {0: 5, 1: 6} and book.running.tolist() == [True, True]
+    assert book.step([0, 1], np.array([False, True]), np.array([False, False])) == [1]
+    assert book.outcome == {6: {"success": True, "steps": 1}}
+    assert book.assign([1]) == {1: 7}
+    assert book.step([0, 1], np.array([False, False]), np.array([True, False])) == [0]
+    assert book.assign([0]) == {} and book.running.tolist() == [False, True]  # nothing left: env 0 idles
+    assert book.outcome[5] == {"success": False, "steps": 2}
+
+
+def test_an_env_error_ends_only_its_episode_and_frees_its_env(scripted) -> None:
+    book = scripted.Episodes(range(4), num_envs=3)
+    book.assign([0, 1, 2])
+    book.step([0, 1, 2], np.zeros(3, dtype=bool), np.zeros(3, dtype=bool))
+    book.fail([1], "RuntimeError: SimStateError: env 1: not finite")
+    assert book.outcome == {1: {"error": "RuntimeError: SimStateError: env 1: not finite", "steps": 1}}
+    assert book.running.tolist() == [True, False, True]
+    assert book.assign([1]) == {1: 3} and book.steps[1] == 0  # the next state not yet run
+    book.fail([1], "ValueError: in its reset")  # a reset that raised: no step taken
+    assert book.outcome[3] == {"error": "ValueError: in its reset", "steps": 0}
+    assert book.assign([1]) == {} and book.running.tolist() == [True, False, True]
+
+
+def test_the_rate_and_its_interval_leave_errored_episodes_out(scripted) -> None:
+    outcome = {
+        0: {"success": True, "steps": 100},
+        1: {"error": "ValueError: boom", "steps": 3},
+        2: {"success": False, "steps": 520},
+        3: {"success": True, "steps": 200},
+        4: {"error": "ValueError: boom", "steps": 0},
+    }
+    done = scripted.summary(outcome)
+    assert done == {
+        "states": 5,
+        "successes": 2,
+        "errors": 2,
+        "error_state_ids": [1, 4],
+        "rate": 2 / 3,
+        "wilson95": [round(v, 4) for v in scripted.wilson(2, 3)],
+        "mean_steps_to_success": 150.0,
+    }
+    errored_only = scripted.summary({7: {"error": "x", "steps": 1}})
+    assert errored_only["rate"] is None and errored_only["wilson95"] == [0.0, 1.0]
 
 
 def test_rotations_are_scipys(scripted) -> None:
@@ -162,6 +228,18 @@ def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
     assert policy.index[0] == 1
 
 
+def test_a_restarted_env_walks_its_new_script_from_the_start(scripted) -> None:
+    other = {"pairs": [{**ROW["pairs"][0], "pick": [0.2, 0.1, 0.47], "yaw": -0.4}]}
+    policy = scripted.PickPlace([ROW, ROW], scripted.Gains(move_timeout=0))
+    far = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
+    for _ in range(3):
+        policy.act(np.concatenate([far, far]))
+    policy.restart(1, other)
+    fresh = scripted.PickPlace([other], scripted.Gains(move_timeout=0))
+    assert policy.index.tolist() == [3, 0]
+    np.testing.assert_array_equal(policy.act(np.concatenate([far, far]))[1], fresh.act(far)[0])
+
+
 def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
     policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
     for _ in range(len(policy.positions[0])):
@@ -169,6 +247,60 @@ def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
     assert policy.finished.all()
     action = policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))[0]
     assert action[6] == -1  # it stays over the goal, open
+
+
+class Push:
+    """A policy for the custom env: every action 0.2, so its level climbs to an ending; the env
+    running ``boom_state`` gets the action the env refuses (42) at its second step."""
+
+    def __init__(self, num_envs: int, boom_state: int | None = None) -> None:
+        self.boom_state = boom_state
+        self.state = np.full(num_envs, -1)
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+
+    def restart(self, env_index: int, state_id: int) -> None:
+        self.state[env_index], self.steps[env_index] = state_id, 0
+
+    def act(self, obs) -> np.ndarray:
+        actions = np.full((len(self.state), 2, 1), 0.2)
+        actions[(self.state == self.boom_state) & (self.steps == 1), 0, 0] = gym_custom_env.BOOM
+        self.steps += 1
+        return actions
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    from support.service_procs import PodSpec, standalone_pods
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_scripted
+
+        spec = PodSpec("sim-0", 0, [(f"gym/{CUSTOM}", 2)], max_episode_steps=None, envs_per_worker=2)
+        with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as running:
+            yield bench_scripted, running[0].url
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def test_an_env_error_costs_the_bench_only_its_episode(bench) -> None:
+    from vecsim.client import HTTPVectorEnv
+
+    bench_scripted, url = bench
+    states = list(range(6))
+    with contextlib.closing(HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled")) as env:
+        reference = bench_scripted.run_episodes(env, states, Push(env.num_envs))
+    with contextlib.closing(HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled")) as env:
+        env.set_attr("refuse_resets", [0, 1])  # env 1's first reset raises
+        outcome = bench_scripted.run_episodes(env, states, Push(env.num_envs, boom_state=2))
+    assert {o["success"] for o in reference.values()} == {True, False}  # both endings happen
+    assert set(outcome) == set(states)
+    # State 1 was env 1's first: its reset raised; env 1 took state 2, whose second step raised.
+    assert outcome[1] == {"error": "ValueError: the custom env refuses this reset", "steps": 0}
+    assert outcome[2] == {"error": "ValueError: the custom env refuses 42", "steps": 1}
+    assert {k: outcome[k] for k in (0, 3, 4, 5)} == {k: reference[k] for k in (0, 3, 4, 5)}
+    summary = bench_scripted.summary(outcome)
+    assert (summary["states"], summary["errors"], summary["error_state_ids"]) == (6, 2, [1, 2])
 
 
 @pytest.mark.libero
