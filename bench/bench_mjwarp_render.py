@@ -11,7 +11,10 @@ render, not physics, bounds the engine (docs/mjwarp.md). This bench takes one ex
 - ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.engine.RENDER_SETTINGS``);
 - one of those shading terms off at a time, and ``plain`` with all of them off;
 - ``lowpoly``: MuJoCo Warp's settings, drawn from meshes simplified on a 5 mm grid
-  (``vecsim.engine.mesh_lod``, the CPU engine's ``lowpoly`` preset), physics untouched.
+  (``vecsim.engine.mesh_lod``, the CPU engine's ``lowpoly`` preset), physics untouched;
+- ``mesh_sah``, ``mesh_sah_leaf1``, ``mesh_sah_leaf4``, ``mesh_lbvh``: the engine's settings, each
+  mesh's BVH built again by warp's SAH (leaf sizes 2, 1, 4) or LBVH constructor in place of the
+  one MuJoCo Warp 4.0.0 builds (``cubql``, leaf size 2): the same triangles, other trees.
 
 With ``--reference`` (the CPU engine's trajectories and images from ``bench_mjwarp.py
 reference``), each variant also draws the reference's recorded poses at its image marks, at the
@@ -67,7 +70,38 @@ def variants() -> dict[str, dict[str, Any]]:
     out["no_backface_culling"] = {"enable_backface_culling": False}
     out["plain"] = {term: False for term in SHADING} | {"enable_backface_culling": False}
     out["lowpoly"] = {"lowpoly": LOWPOLY_CELL_M}
+    for name, constructor, leaf in (("mesh_sah", "sah", 2), ("mesh_sah_leaf1", "sah", 1), ("mesh_sah_leaf4", "sah", 4)):
+        out[name] = dict(RENDER_SETTINGS) | {"mesh_bvh": (constructor, leaf)}
+    out["mesh_lbvh"] = dict(RENDER_SETTINGS) | {"mesh_bvh": ("lbvh", 2)}
     return out
+
+
+def rebuild_mesh_bvhs(mjm: Any, rc: Any, constructor: str, leaf_size: int) -> None:
+    """Give every mesh of ``rc`` a BVH built by ``constructor`` with ``leaf_size`` triangles a
+    leaf; the render kernels read ``rc.mesh_bvh_id`` at each launch."""
+    import warp as wp
+    from mujoco_warp._src import bvh
+
+    registry, ids = {}, []
+    for mesh_id in range(mjm.nmesh):
+        mesh, _ = bvh.build_mesh_bvh(mjm, mesh_id, constructor=constructor, leaf_size=leaf_size)
+        registry[mesh.id] = mesh
+        ids.append(mesh.id)
+    rc.mesh_registry = registry
+    rc.mesh_bvh_id = wp.array(ids, dtype=wp.uint64)
+
+
+def mesh_stats(mjm: Any) -> dict[str, Any]:
+    """Triangles of the scene's meshes drawn by the engine's geom groups."""
+    from vecsim.engine.mjwarp.engine import GEOM_GROUPS
+
+    drawn = {
+        int(mjm.geom_dataid[g])
+        for g in range(mjm.ngeom)
+        if mjm.geom_type[g] == 7 and int(mjm.geom_group[g]) in GEOM_GROUPS and mjm.geom_rgba[g][3] > 0
+    }
+    faces = sorted((int(mjm.mesh_facenum[m]) for m in drawn), reverse=True)
+    return {"meshes_drawn": len(faces), "faces_drawn": int(sum(faces)), "largest": faces[:8]}
 
 
 def image_scores(got: np.ndarray, want: np.ndarray) -> dict[str, float]:
@@ -115,6 +149,7 @@ class Scene:
 
         options = dict(options)
         cell = options.pop("lowpoly", None)
+        mesh_bvh = options.pop("mesh_bvh", None)
 
         def make() -> Any:
             return mjw.create_render_context(
@@ -129,7 +164,10 @@ class Scene:
             )
 
         if cell is None:
-            return make(), self.model
+            rc = make()
+            if mesh_bvh is not None:
+                rebuild_mesh_bvhs(self.mjm, rc, *mesh_bvh)
+            return rc, self.model
         simplified = mesh_lod.simplify_meshes(self.mjm, cell)
         with mesh_lod.drawn_with(self.mjm, simplified):
             # The mesh arrays the render kernels read must be the simplified ones as well.
@@ -256,6 +294,7 @@ def main() -> None:
         "cameras": list(CAMERAS),
         "reps": args.reps,
         "reference": str(args.reference) if args.reference else None,
+        "meshes": mesh_stats(scene.mjm),
         "variants": {},
     }
     for name in chosen:
@@ -268,6 +307,10 @@ def main() -> None:
                 "render_s": render_s,
                 "world_renders_per_s": args.worlds / render_s,
             }
+            if name == "engine":
+                import mujoco_warp as mjw
+
+                entry["refit_s"] = seconds(functools.partial(mjw.refit_bvh, model, data, rc), args.reps)
             if ref is not None:
                 entry["vs_cpu_images"] = against_reference(scene, known[name], ref)
             if name == "default" and not args.no_overlap:
