@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from vecsim.engine.mjwarp.predicates import (
+from vecsim.engine.mjwarp.predicates import GoalEvaluator
+from vecsim.engine.mjwarp.tables import (
     GREATER,
     JOINT_RULES,
     JOINTS,
     MAX_JOINTS,
-    GoalEvaluator,
     GoalTable,
     UnsupportedGoal,
     compile_goal,

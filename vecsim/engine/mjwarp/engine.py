@@ -258,9 +258,10 @@ class MjwarpEngine:
         import mujoco_warp as mjw
         import warp as wp
 
-        from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
-        from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
-        from vecsim.engine.mjwarp.predicates import GoalEvaluator, GoalTable
+        from vecsim.engine.mjwarp.controller import PandaController
+        from vecsim.engine.mjwarp.observables import PandaObservables
+        from vecsim.engine.mjwarp.predicates import GoalEvaluator
+        from vecsim.engine.mjwarp.tables import GoalTable, ObservableIndex, PandaIndex, mass_index
 
         scene = check_scene(self.assignment, block)
         tables = load_tables(scene)
