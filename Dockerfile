@@ -114,13 +114,10 @@ ENV VECSIM_MJWARP_VENV=/opt/vecsim/mjwarp \
 COPY --from=mjwarp-packages --chown=10001:10001 /opt/vecsim/mjwarp /opt/vecsim/mjwarp
 RUN --mount=type=cache,target=/home/vecsim/.cache/pip,uid=10001,gid=10001 \
     "$VECSIM_MJWARP_VENV/bin/pip" install --no-deps -e /app
-# The export writes the batched controller's index tables, whose module needs warp: the mjwarp
-# venv's warp package alone goes on its path (the CPU venv stays the CPU image's). What else it
+# The export needs the CPU stack alone (its index tables are read without warp). What else it
 # writes (LIBERO's config, init states, Mesa's and matplotlib's caches, robosuite's log) goes.
 RUN cache="$(mktemp -d)" \
- && mkdir "$cache/warp-only" \
- && ln -s "$VECSIM_MJWARP_VENV/lib/python3.11/site-packages/warp" "$cache/warp-only/warp" \
- && VECSIM_CACHE_DIR="$cache" XDG_CACHE_HOME="$cache" MPLCONFIGDIR="$cache/matplotlib" PYTHONPATH="$cache/warp-only" \
+ && VECSIM_CACHE_DIR="$cache" XDG_CACHE_HOME="$cache" MPLCONFIGDIR="$cache/matplotlib" \
     "$VECSIM_VENV/bin/python" -m vecsim.engine.mjwarp.scene $MJWARP_TASKS --root "$VECSIM_MJWARP_SCENES" \
  && rm -rf "$cache" /tmp/robosuite.log
 ENV PATH=$VECSIM_MJWARP_VENV/bin:$PATH

@@ -108,6 +108,25 @@ case ",$extras," in
     ;;
 esac
 
+# The mjwarp engine's pod runs MuJoCo Warp on warp's CPU device in the tests
+# (tests/engine/mjwarp/test_mjwarp_pod.py): the `mjwarp` extra (mujoco 4, which the CPU stack's
+# robosuite and LIBERO exclude) in a venv of its own beside this one, as the mjwarp image has it.
+# No torch: the extra asks for none.
+case ",$extras," in
+  *,test,*)
+    mjwarp_venv="$venv-mjwarp"
+    mjwarp_stamp="$mjwarp_venv/.vecsim-setup-$stamp_src"
+    if [ ! -f "$mjwarp_stamp" ]; then
+      echo "[setup] installing the mjwarp extra into $mjwarp_venv" >&2
+      rm -rf "$mjwarp_venv"
+      "$py" -m venv "$mjwarp_venv"
+      "$mjwarp_venv/bin/python" -m pip install -q --upgrade pip
+      "$mjwarp_venv/bin/python" -m pip install -q -e "$here[mjwarp]"
+      touch "$mjwarp_stamp"
+    fi
+    ;;
+esac
+
 # The editable install points at one checkout; a clone elsewhere (CI) re-points it, cheaply.
 # (asked from / so that the current directory's own vecsim/ cannot answer for the venv)
 if [ "$(cd / && "$venv/bin/python" -c 'import pathlib, vecsim; print(pathlib.Path(vecsim.__file__).resolve().parents[1])' 2>/dev/null)" != "$here" ]; then

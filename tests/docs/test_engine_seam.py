@@ -6,14 +6,17 @@
 - the engines the registry knows are the names a job may set, and each engine's module builds
   the engine of its name;
 - each engine has every call the pod makes of a :class:`PodEngine`, with the same parameters;
-- an engine name no registry knows is a config error naming ``job.engine``.
+- an engine name no registry knows is a config error naming ``job.engine``;
+- exporting an ``mjwarp`` scene (the CPU stack's job) loads no warp.
 """
 
 from __future__ import annotations
 
+import ast
 import importlib.util
 import inspect
 import typing
+from pathlib import Path
 
 import pytest
 from docs.test_layering import ROOT, loaded_after_importing, offenders, python_files
@@ -112,3 +115,17 @@ def test_a_pod_without_the_mjwarp_extra_refuses_an_mjwarp_assignment_naming_the_
     )
     with pytest.raises(InvalidRequestError, match=r"^engine: the mjwarp engine needs the mjwarp extra"):
         check_assignment(settings, assignment)
+
+
+def test_exporting_a_scene_loads_no_warp():
+    """The CPU pod's install (the ``pod`` extra: the image's CPU venv, which exports the scenes at
+    build time) has no warp: every vecsim module the export imports, at any depth of
+    ``vecsim/engine/mjwarp/scene.py``, loads none."""
+    scene = ROOT / "vecsim" / "engine" / "mjwarp" / "scene.py"
+    imported = {scene}
+    for node in ast.walk(ast.parse(scene.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("vecsim"):
+            path = ROOT / Path(*node.module.split("."))
+            imported.add(path / "__init__.py" if path.is_dir() else path.with_suffix(".py"))
+    assert ROOT / "vecsim" / "engine" / "mjwarp" / "tables.py" in imported
+    assert loaded_after_importing(sorted(imported), "warp") == []

@@ -314,9 +314,18 @@ class PodSpec:
 
 class RunningPod(Server):
     """A standalone ``vecsim pod`` process serving ``spec``'s assignment (``spec`` itself, when
-    it is one), through ``wrap`` if given (``taskset -c <cpus>``)."""
+    it is one), through ``wrap`` if given (``taskset -c <cpus>``), run by ``program`` (another
+    venv's ``python -m service.cli``) with ``env`` added to its environment."""
 
-    def __init__(self, spec: PodSpec | Assignment, workdir: Path, wrap: Sequence[str] = ()) -> None:
+    def __init__(
+        self,
+        spec: PodSpec | Assignment,
+        workdir: Path,
+        wrap: Sequence[str] = (),
+        *,
+        program: Sequence[str] = VECSIM_CLI,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
         self.assignment = spec.assignment() if isinstance(spec, PodSpec) else spec
         name = self.assignment.pod
         path = workdir / f"{name}.json"
@@ -335,7 +344,8 @@ class RunningPod(Server):
             "--name",
             name,
         ]
-        super().__init__(name, argv, port, clean_env(POD_NAME=name), workdir / f"{name}.log", wrap=wrap)
+        environment = clean_env(POD_NAME=name, **(env or {}))
+        super().__init__(name, argv, port, environment, workdir / f"{name}.log", wrap=wrap, program=program)
 
 
 @contextlib.contextmanager

@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
-from vecsim.engine.mjwarp.observables import LIBERO_SAMPLE_SUBSTEP, ObservableIndex, PandaObservables
+from vecsim.engine.mjwarp.controller import PandaController
+from vecsim.engine.mjwarp.observables import LIBERO_SAMPLE_SUBSTEP, PandaObservables
+from vecsim.engine.mjwarp.tables import ObservableIndex, PandaIndex, mass_index
 from vecsim.engine.tasks._libero import quat_to_axis_angle
 from vecsim.engine.tasks._robot import PROPRIO_KEYS
 

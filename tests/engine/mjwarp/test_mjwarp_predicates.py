@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 import warp as wp
 
-from vecsim.engine.mjwarp.predicates import (
+from vecsim.engine.mjwarp.predicates import GoalEvaluator
+from vecsim.engine.mjwarp.tables import (
     GREATER,
     IN_REGION,
     JOINT_RULES,
     JOINTS,
     MAX_JOINTS,
     ON_OBJECT,
-    GoalEvaluator,
     GoalTable,
     UnsupportedGoal,
     compile_goal,

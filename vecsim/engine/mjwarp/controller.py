@@ -6,7 +6,8 @@ command moves by ``0.01 * sign(a)`` per physics substep. An env action sets the 
 the state at its first substep; torques are recomputed from the current state at each of the 25
 substeps. This module is that math, written from robosuite's equations, for many worlds at once:
 
-- :class:`PandaIndex`: where the arm lives in one model (site, joints, dofs, actuators, mass matrix);
+- :class:`~vecsim.engine.mjwarp.tables.PandaIndex`: where the arm lives in one model (site, joints,
+  dofs, actuators, mass matrix), read without warp (:mod:`vecsim.engine.mjwarp.tables`);
 - :class:`PandaController`: per-world goal, nullspace target and gripper command, and the calls
   ``reset(mask, initial_joint, goal_pos, goal_ori)`` (where ``mask`` is 1), ``set_goal(action,
   site_xpos, site_xmat)`` (first substep of an env action) and ``apply(action, ..., ctrl)``
@@ -32,7 +33,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-ARM_DOF = 7
+from vecsim.engine.mjwarp.tables import ARM_DOF, PandaIndex
+
 GRIPPER_ACTUATORS = 2
 ACTION_DIM = 7
 
@@ -57,102 +59,6 @@ class OscPoseConfig:
     nullspace_kp: float = 10.0
     # The Panda gripper's command step per substep (``PandaGripper.speed``).
     gripper_speed: float = 0.01
-
-
-@dataclasses.dataclass(frozen=True)
-class PandaIndex:
-    """Where one Panda arm and gripper sit in a compiled model (ids, not names).
-
-    ``mass_index`` is ``[7, 7]``: the flat index in one world's mass matrix of each entry of the
-    arm's (:func:`mass_index`; MuJoCo Warp 4's CSR ``M`` unless built for another layout).
-    """
-
-    eef_site: int
-    arm_joints: np.ndarray
-    arm_qpos: np.ndarray
-    arm_dofs: np.ndarray
-    arm_actuators: np.ndarray
-    gripper_actuators: np.ndarray
-    mass_index: np.ndarray
-    torque_low: np.ndarray
-    torque_high: np.ndarray
-    gripper_ctrl_low: np.ndarray
-    gripper_ctrl_high: np.ndarray
-
-    @classmethod
-    def from_robosuite(cls, env: Any, field: str = "M") -> PandaIndex:
-        """Read the index from a robosuite (LIBERO) env's first robot and its compiled model,
-        with ``mass_index`` into ``field`` (:func:`mass_index`).
-
-        Raises:
-            ValueError: the arm is not 7 hinges that are the grip site's only moving ancestors
-                (the kernel's Jacobian and end-effector velocity assume a fixed base).
-        """
-        import mujoco
-
-        robot = env.robots[0]
-        ctl = robot.controller
-        model = env.sim.model._model
-        dofs = np.asarray(ctl.qvel_index, dtype=np.int32)
-        site = int(model.site(ctl.eef_name).id)
-        ancestors, body = [], int(model.site_bodyid[site])
-        while body > 0:
-            start = int(model.body_dofadr[body])
-            ancestors += range(start, start + int(model.body_dofnum[body]))
-            body = int(model.body_parentid[body])
-        hinges = model.jnt_type[model.dof_jntid[dofs]] == mujoco.mjtJoint.mjJNT_HINGE
-        if len(dofs) != ARM_DOF or sorted(ancestors) != sorted(dofs.tolist()) or not hinges.all():
-            raise ValueError(f"{ctl.eef_name}: the arm's dofs {dofs.tolist()} are not the site's {ARM_DOF} hinges")
-        gripper = np.array([model.actuator(name).id for name in robot.gripper.actuators], dtype=np.int32)
-        arm_act = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.int32)
-        return cls(
-            eef_site=site,
-            arm_joints=np.asarray(model.dof_jntid[dofs], dtype=np.int32),
-            arm_qpos=np.asarray(ctl.qpos_index, dtype=np.int32),
-            arm_dofs=dofs,
-            arm_actuators=arm_act,
-            gripper_actuators=gripper,
-            mass_index=mass_index(model, dofs, field),
-            torque_low=model.actuator_ctrlrange[arm_act, 0].copy(),
-            torque_high=model.actuator_ctrlrange[arm_act, 1].copy(),
-            gripper_ctrl_low=model.actuator_ctrlrange[gripper, 0].copy(),
-            gripper_ctrl_high=model.actuator_ctrlrange[gripper, 1].copy(),
-        )
-
-
-def mass_index(model: Any, dofs: np.ndarray, field: str = "M", dense_stride: int | None = None) -> np.ndarray:
-    """Return the ``[len(dofs)]^2`` flat indexes of the dofs' mass-matrix block in one world's
-    ``field``: ``"M"``, MuJoCo's CSR lower triangle (``M_rowadr``, ``M_colind``, what MuJoCo Warp
-    4 holds); ``"qM"``, MuJoCo's legacy sparse layout (``dof_Madr`` walking ``dof_parentid``), or
-    with ``dense_stride``, a dense ``qM`` of that row stride.
-
-    Raises:
-        ValueError: two dofs whose entry is structurally zero (not on one kinematic chain).
-    """
-    n = len(dofs)
-    index = np.empty((n, n), dtype=np.int32)
-    for a, i in enumerate(dofs):
-        for b, j in enumerate(dofs):
-            row, col = (int(i), int(j)) if i >= j else (int(j), int(i))
-            if dense_stride is not None:
-                index[a, b] = i * dense_stride + j
-            elif field == "M":
-                start = model.M_rowadr[row]
-                where = np.flatnonzero(model.M_colind[start : start + model.M_rownnz[row]] == col)
-                if where.size != 1:
-                    raise ValueError(f"dofs {row} and {col} are not on one kinematic chain")
-                index[a, b] = start + where[0]
-            elif field == "qM":
-                adr, k = model.dof_Madr[row], row
-                while k != col:
-                    k = model.dof_parentid[k]
-                    adr += 1
-                    if k < 0:
-                        raise ValueError(f"dofs {row} and {col} are not on one kinematic chain")
-                index[a, b] = adr
-            else:
-                raise ValueError(f"field must be 'M' or 'qM', not {field!r}")
-    return index
 
 
 @wp.func

@@ -58,9 +58,15 @@ NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
 # "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics). On
 # LIBERO-10 task 0 it shrank, not removed, the run-to-run spread (docs/mjwarp.md, Determinism).
 DETERMINISTIC_ENV = "VECSIM_MJWARP_DETERMINISTIC"
-# "1" lets the engine build on warp's CPU device where it sees no CUDA GPU (debugging only: the
-# first build compiles for many minutes); without it such a pod fails its build, saying why.
+# "1" lets the engine build on warp's CPU device where it sees no CUDA GPU (tests and debugging:
+# the first build compiles for minutes); without it such a pod fails its build, saying why.
 ALLOW_CPU_ENV = "VECSIM_MJWARP_ALLOW_CPU"
+# warp's compile settings on its CPU device (the engine there is for tests and debugging): LLVM
+# -O1 and no adjoint kernels, in place of warp's -O2 with raised inlining thresholds and adjoints
+# the engine never runs. The first build of 2 worlds of libero_10/0 on 2 busy cores: 171 s, 612 s
+# with warp's settings (docs/mjwarp.md). Set only where warp has no CUDA device, so every kernel
+# it compiles is a CPU one: nothing compiled for a GPU changes.
+CPU_WARP_CONFIG = {"optimization_level": 1, "enable_backward": False}
 # The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
 # render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
 GEOM_GROUPS = [1, 2]
@@ -84,10 +90,15 @@ def _missing_packages() -> list[str]:
 
 def _require_cuda() -> None:
     """Raise :class:`SimBuildError` naming the cause unless warp sees a CUDA GPU (or
-    ``VECSIM_MJWARP_ALLOW_CPU`` is "1")."""
+    ``VECSIM_MJWARP_ALLOW_CPU`` is "1": then set :data:`CPU_WARP_CONFIG` for warp's CPU device)."""
     import warp as wp
 
-    if wp.is_cuda_available() or os.environ.get(ALLOW_CPU_ENV) == "1":
+    if wp.is_cuda_available():
+        return
+    if os.environ.get(ALLOW_CPU_ENV) == "1":
+        for name, value in CPU_WARP_CONFIG.items():
+            setattr(wp.config, name, value)
+        log.warning("mjwarp: no CUDA GPU; building on warp's CPU device (%s)", ALLOW_CPU_ENV)
         return
     driver, needed = wp.get_cuda_driver_version(), wp.get_cuda_toolkit_version()
     if driver is None:
@@ -258,9 +269,10 @@ class MjwarpEngine:
         import mujoco_warp as mjw
         import warp as wp
 
-        from vecsim.engine.mjwarp.controller import PandaController, PandaIndex, mass_index
-        from vecsim.engine.mjwarp.observables import ObservableIndex, PandaObservables
-        from vecsim.engine.mjwarp.predicates import GoalEvaluator, GoalTable
+        from vecsim.engine.mjwarp.controller import PandaController
+        from vecsim.engine.mjwarp.observables import PandaObservables
+        from vecsim.engine.mjwarp.predicates import GoalEvaluator
+        from vecsim.engine.mjwarp.tables import GoalTable, ObservableIndex, PandaIndex, mass_index
 
         scene = check_scene(self.assignment, block)
         tables = load_tables(scene)

@@ -20,11 +20,12 @@ what robosuite's observables read. Example::
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
 import warp as wp
+
+from vecsim.engine.mjwarp.tables import ObservableIndex
 
 STATE_DIM = 8
 # After LIBERO's reset and set_init_state each force a sample, robosuite's observable clock
@@ -32,28 +33,6 @@ STATE_DIM = 8
 LIBERO_SAMPLE_SUBSTEP = 23
 PROPRIO_DIM = 7 + 7 + 3 + 4 + 2
 ARM_DOF = 7
-
-
-@dataclasses.dataclass(frozen=True)
-class ObservableIndex:
-    """Ids of what the observables read in one compiled model."""
-
-    eef_site: int
-    eef_body: int
-    arm_qpos: np.ndarray
-    gripper_qpos: np.ndarray
-
-    @classmethod
-    def from_robosuite(cls, env: Any) -> ObservableIndex:
-        """Read the ids from a robosuite (LIBERO) env's first robot."""
-        robot = env.robots[0]
-        model = env.sim.model._model
-        return cls(
-            eef_site=int(robot.eef_site_id),
-            eef_body=int(model.body(robot.robot_model.eef_name).id),
-            arm_qpos=np.asarray(robot._ref_joint_pos_indexes, dtype=np.int32),
-            gripper_qpos=np.asarray(robot._ref_gripper_joint_pos_indexes, dtype=np.int32),
-        )
 
 
 @wp.func

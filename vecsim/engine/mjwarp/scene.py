@@ -322,9 +322,7 @@ def _robot_manifest(inner: Any) -> dict[str, Any]:
 def _tables(inner: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The batched modules' index tables of ``inner`` (prefixed ``panda.``, ``obs.``, ``goal.``)
     and the manifest's ``goal``: its atoms, or why it has no batched form."""
-    from vecsim.engine.mjwarp.controller import PandaIndex
-    from vecsim.engine.mjwarp.observables import ObservableIndex
-    from vecsim.engine.mjwarp.predicates import UnsupportedGoal, compile_goal
+    from vecsim.engine.mjwarp.tables import ObservableIndex, PandaIndex, UnsupportedGoal, compile_goal
 
     tables: dict[str, np.ndarray] = {}
     for prefix, value in (("panda", PandaIndex.from_robosuite(inner)), ("obs", ObservableIndex.from_robosuite(inner))):
