@@ -91,39 +91,29 @@ case ",$extras," in
     ;;
 esac
 
-# The tests also check the trainer's install, `pip install vecsim` without extras (no simulator,
-# no torch), in a venv of its own beside this one (tests/client/test_light_client.py).
-case ",$extras," in
-  *,test,*)
-    client_venv="$venv-client"
-    client_stamp="$client_venv/.vecsim-setup-$stamp_src"
-    if [ ! -f "$client_stamp" ]; then
-      echo "[setup] installing the client alone into $client_venv" >&2
-      rm -rf "$client_venv"
-      "$py" -m venv "$client_venv"
-      "$client_venv/bin/python" -m pip install -q --upgrade pip
-      "$client_venv/bin/python" -m pip install -q -e "$here"
-      touch "$client_stamp"
-    fi
-    ;;
-esac
+# side_venv NAME SPEC: a venv of its own beside this one ($venv-NAME) holding `pip install -e SPEC`,
+# rebuilt when this file, pyproject.toml or the extras change (the same stamp as the main venv's).
+side_venv() {
+  local side="$venv-$1" side_stamp="$venv-$1/.vecsim-setup-$stamp_src"
+  if [ ! -f "$side_stamp" ]; then
+    echo "[setup] installing $2 into $side" >&2
+    rm -rf "$side"
+    "$py" -m venv "$side"
+    "$side/bin/python" -m pip install -q --upgrade pip
+    "$side/bin/python" -m pip install -q -e "$2"
+    touch "$side_stamp"
+  fi
+}
 
-# The mjwarp engine's pod runs MuJoCo Warp on warp's CPU device in the tests
-# (tests/engine/mjwarp/test_mjwarp_pod.py): the `mjwarp` extra (mujoco 4, which the CPU stack's
-# robosuite and LIBERO exclude) in a venv of its own beside this one, as the mjwarp image has it.
-# No torch: the extra asks for none.
 case ",$extras," in
   *,test,*)
-    mjwarp_venv="$venv-mjwarp"
-    mjwarp_stamp="$mjwarp_venv/.vecsim-setup-$stamp_src"
-    if [ ! -f "$mjwarp_stamp" ]; then
-      echo "[setup] installing the mjwarp extra into $mjwarp_venv" >&2
-      rm -rf "$mjwarp_venv"
-      "$py" -m venv "$mjwarp_venv"
-      "$mjwarp_venv/bin/python" -m pip install -q --upgrade pip
-      "$mjwarp_venv/bin/python" -m pip install -q -e "$here[mjwarp]"
-      touch "$mjwarp_stamp"
-    fi
+    # The trainer's install, `pip install vecsim` without extras (no simulator, no torch):
+    # tests/client/test_light_client.py.
+    side_venv client "$here"
+    # The mjwarp engine's pod on warp's CPU device (tests/engine/mjwarp/test_mjwarp_pod.py): the
+    # `mjwarp` extra (mujoco 4, which the CPU stack's robosuite and LIBERO exclude), as the mjwarp
+    # image has it. No torch: the extra asks for none.
+    side_venv mjwarp "$here[mjwarp]"
     ;;
 esac
 
