@@ -359,7 +359,7 @@ def main(argv: list[str]) -> int:
                 lost.reason,
             )
         print(
-            f"FAILED: {len(result.lost)} of {len(requests)} trajectories were lost (their pods failed them; "
+            f"FAILED: {len(result.lost)} of {len(requests)} trajectories were lost (their pods or envs failed them; "
             f"see the errors above and the logs in {out / 'logs'})"
         )
         return 1

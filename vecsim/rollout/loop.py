@@ -27,6 +27,9 @@ trajectories only. An empty batch is a no-op, and a pod without trajectories is 
 A pod that dies, hangs past the client's timeout or rebuilds its envs mid-episode does not fail
 the rollout: its trajectories are reported lost by traj_key (:attr:`RolloutResult.lost`, with
 their route, to resample), no waiting request starts on it, and every other trajectory runs on.
+An env that raises in a reset or step (its own exception, or an engine's ``SimStateError``) costs
+only its trajectory: lost, naming the exception, never stepped again, and its env is freed as an
+ended trajectory's, so a waiting request starts there with a reset (which clears the failure).
 """
 
 from __future__ import annotations
@@ -156,6 +159,11 @@ class EnvLoop:
         up in the result's ``lost``, not in its ``trajectories``; the trajectories of the other
         pods go on. Waiting requests that no env was left for (their task's envs on their stage
         all on failed pods) are lost too, with ``steps`` 0 and a route of pod ``""``, env -1.
+        A trajectory whose env raised in its reset or a step (``StageBatch.errors``: that row did
+        nothing) is lost as well, its ``reason`` naming the env, the exception's type and message,
+        its ``steps`` the actions applied before; it is not stepped again, and its env takes a
+        waiting request of its task as an ended trajectory's does. Other trajectories go on as if
+        nothing happened.
 
         Raises:
             CapacityError: a stage has no env of a request's task at all.
@@ -224,7 +232,12 @@ class EnvLoop:
                 ended: list[str] = []
                 for pod in landed:
                     for batch in self._take(pod, stage, inflight, clock, buffers, lost, failed):
+                        raised = self._env_raised(batch, buffers)  # lost; their envs are freed as ended
+                        lost.update(raised)
+                        ended.extend(raised)
                         for row, key in enumerate(batch.traj_keys):
+                            if key in raised:
+                                continue
                             buffers[key].add(batch, row)
                             recorder.add(key, batch, row)
                             if buffers[key].ended():
@@ -360,6 +373,19 @@ class EnvLoop:
                 buffers[key].act(step.array[j] if step.chunk is not None else step.array[j : j + 1])  # type: ignore[union-attr]
             inflight.add(pod, call, [*reset, *stepped])
             return
+
+    @staticmethod
+    def _env_raised(batch: StageBatch, buffers: Mapping[str, _Buffer]) -> dict[str, LostTrajectory]:
+        """The trajectories of ``batch`` (a reset or step answer) whose env raised, as lost: their
+        rows did nothing, and ``steps`` counts the actions applied before."""
+        lost: dict[str, LostTrajectory] = {}
+        for key, kind, message in batch.errors:
+            buffer = buffers[key]
+            route, call = buffer.route, "reset" if buffer.sent is None else "step"
+            reason = f"env {route.env_index} of pod {route.pod!r} raised {kind} in its {call}: {message}"
+            logger.warning("rollout: trajectory %s lost: %s", key, reason)
+            lost[key] = LostTrajectory(traj_key=key, route=route, steps=len(buffer.actions), reason=reason)
+        return lost
 
     @staticmethod
     def _lose(

@@ -71,9 +71,10 @@ class RolloutStats:
 
 @dataclass(frozen=True)
 class LostTrajectory:
-    """A trajectory whose env went away mid-episode: its pod died, did not answer within the
-    client's timeout, or rebuilt its envs. ``route`` names what to resample (its task and state
-    id); ``steps`` is how many actions it had taken; ``reason`` is the client's error."""
+    """A trajectory that did not finish: its pod died, did not answer within the client's
+    timeout or rebuilt its envs, or its env raised in a reset or step. ``route`` names what to
+    resample (its task and state id); ``steps`` is how many actions it had taken; ``reason`` is
+    the client's error, or the env's exception (type and message)."""
 
     traj_key: str
     route: TrajRoute
