@@ -16,6 +16,8 @@ docs/mjwarp.md cites the record.
 - Worlds left out of a call keep their whole state (physics, controller, the cameras' poses) and
   their images bit for bit, though the graph stepped them.
 - Empty calls change nothing.
+- Recorded envs (``record_env_indices``) get a frame after each action they applied, the last one
+  the chunk's observation, zeros after they stopped.
 
 The GPU does not give bit-identical outputs run to run (docs/mjwarp.md, Determinism), so a
 world's trajectory is compared with another run's within :data:`ATOL`, and "changes nothing" is
@@ -59,7 +61,7 @@ def _actions(n: int) -> np.ndarray:
     return actions
 
 
-def _engine(num_envs: int) -> Any:
+def _engine(num_envs: int, **fields: Any) -> Any:
     return engine_kind("mjwarp").build(
         Assignment(
             generation=0,
@@ -68,6 +70,7 @@ def _engine(num_envs: int) -> Any:
             engine="mjwarp",
             camera=CameraConfig(names=CAMERAS, height=128, width=128),
             tasks=(TaskBlock(task_id=TASK, env_start=0, num_envs=num_envs),),
+            **fields,
         )
     )
 
@@ -137,3 +140,30 @@ def test_a_world_out_of_constraint_rows_fails_alone(engine, monkeypatch):
         np.testing.assert_allclose(stepped.obs["state"][0], reference.obs["state"][0], atol=ATOL)
     finally:
         tight.close()
+
+
+def test_recorded_envs_get_a_frame_after_each_applied_action(engine):
+    ids = np.arange(len(STATES))
+    engine.reset_envs(ids, np.array(STATES))
+    actions = _actions(len(STATES))
+    result = engine.chunk_step_envs(ids, actions, record_env_indices=[2, 0])
+    assert set(result.frames) == set(CAMERAS)
+    for name in CAMERAS:
+        frames = result.frames[name]
+        assert frames.shape == (2, CHUNK, 128, 128, 3)
+        # The last frame is the observation after the chunk (the same poses drawn again); the
+        # arm moves, so each action's frame is its own.
+        np.testing.assert_array_equal(frames[0, -1], result.obs["images"][name][2])
+        np.testing.assert_array_equal(frames[1, -1], result.obs["images"][name][0])
+        assert all(not np.array_equal(frames[0, j], frames[0, j + 1]) for j in range(CHUNK - 1))
+
+    # An env that stops inside the chunk (its episode's limit, 2 actions) gets no frames after it.
+    short = _engine(2, max_episode_steps=2)
+    try:
+        short.reset_envs([0, 1], [0, 5])
+        stopped = short.chunk_step_envs([0, 1], actions[:2], record_env_indices=[1])
+    finally:
+        short.close()
+    assert stopped.num_steps.tolist() == [2, 2] and stopped.truncated[:, 1].all()
+    for name in CAMERAS:
+        assert stopped.frames[name][0, :2].any() and not stopped.frames[name][0, 2:].any()

@@ -45,6 +45,7 @@ from vecsim.config import Assignment, TaskBlock
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
+from vecsim.engine.mjwarp import stepping
 from vecsim.engine.mjwarp.scene import VIEW_FIELDS, Scene, load_scene, load_tables, refusal, scene_dir
 from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
 from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
@@ -232,6 +233,7 @@ class MjwarpEngine:
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
         # Whether an answer may hold a view of the arrays in self._obs["images"] (see _gather).
         self._images_lent = False
+        self._frames_s = 0.0  # this call's per-action frames, seconds (counted as render time)
         self._steps = np.zeros(self.num_envs, dtype=np.int64)
         self._last_success = np.zeros(self.num_envs, dtype=bool)
         self._broken: dict[int, str] = {}
@@ -334,6 +336,7 @@ class MjwarpEngine:
         with self._lock:
             self._check_open()
             started = time.perf_counter()
+            self._frames_s = 0.0
             for batch, rows, worlds in self._split(ids):
                 self._reset_worlds(batch, worlds, states[rows])
             physics = time.perf_counter() - started
@@ -360,12 +363,19 @@ class MjwarpEngine:
         self, env_indices: Any, actions: Any, record_env_indices: Any = (), step_past_end: bool = False
     ) -> ChunkResult:
         """Apply ``chunk`` (``[n, K, 7]``) to the named envs in order, each stopping at its first
-        termination or truncation unless ``step_past_end``; cameras drawn once, after the chunk."""
+        termination or truncation unless ``step_past_end``; cameras drawn once, after the chunk,
+        and after each action that an env of ``record_env_indices`` applied."""
         ids = checks.env_indices(env_indices, self.num_envs)
         chunk = checks.chunk(actions, ids, self.single_action_space, self.max_chunk).astype(np.float32)
-        if checks.record(record_env_indices, ids).size:
-            raise InvalidRequestError("record_env_indices: the mjwarp engine does not record per-action frames yet")
+        recorded = checks.record(record_env_indices, ids)
         n, k = chunk.shape[:2]
+        camera = self.assignment.camera
+        # The recorded envs' frame after each applied action (zeros after an env stopped), as on
+        # the CPU engine: a render of the whole batch after each action that a recorded env applied.
+        frames = {
+            name: np.zeros((recorded.size, k, camera.height, camera.width, 3), dtype=np.uint8)
+            for name in (camera.names if recorded.size else ())
+        }
         reward = np.zeros((n, k), dtype=np.float64)
         terminated = np.zeros((n, k), dtype=bool)
         truncated = np.zeros((n, k), dtype=bool)
@@ -374,16 +384,19 @@ class MjwarpEngine:
         errors: list[EnvError] = []
         if n == 0 or k == 0:
             return ChunkResult(
-                self._gather(ids), reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], []
+                self._gather(ids), reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], []
             )
         with self._lock:
             self._check_open()
             started = time.perf_counter()
+            self._frames_s = 0.0
             for batch, rows, worlds in self._split(ids):
                 broken = [r for r, e in zip(rows, ids[rows]) if int(e) in self._broken]
                 for r in broken:
                     errors.append(EnvError(int(r), "SimStateError", self._broken[int(ids[r])]))
                 live = np.array([r for r in rows if r not in broken], dtype=np.int64)
+                # The recorded envs of this batch: world -> their row in ``frames``.
+                shots = {int(ids[r]) - batch.block.env_start: m for m, r in enumerate(recorded) if r in live}
                 if live.size:
                     self._step_batch(
                         batch,
@@ -397,14 +410,15 @@ class MjwarpEngine:
                         num_steps,
                         step_past_end,
                         errors,
+                        (shots, frames),
                     )
-            physics = time.perf_counter() - started
+            physics = time.perf_counter() - started - self._frames_s
             moved = ids[num_steps > 0]
             render_s, renders = self._render(moved)
-            self.last_timing = CallTiming(physics_s=physics, render_s=render_s, renders=renders)
+            self.last_timing = CallTiming(physics_s=physics, render_s=render_s + self._frames_s, renders=renders)
             obs = self._gather(ids)
         errors.sort(key=lambda e: e.row)
-        return ChunkResult(obs, reward, terminated, truncated, success, num_steps, {}, [{} for _ in ids], errors)
+        return ChunkResult(obs, reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], errors)
 
     def reset_and_step_envs(
         self,
@@ -550,7 +564,9 @@ class MjwarpEngine:
         num_steps: np.ndarray,
         step_past_end: bool,
         errors: list[EnvError],
+        recording: tuple[dict[int, int], dict[str, np.ndarray]] = ({}, {}),
     ) -> None:
+        shots, frames = recording
         nworld = batch.block.num_envs
         worlds = ids[rows] - batch.block.env_start
         running = np.zeros(nworld, dtype=bool)
@@ -569,7 +585,7 @@ class MjwarpEngine:
             world_action[:] = 0.0
             world_action[worlds] = actions[rows, k]
             batch.action.assign(world_action)
-            _apply_action(batch)
+            stepping.apply_action(batch)
             overflow = data.overflow.numpy()
             qpos, qvel = data.qpos.numpy(), data.qvel.numpy()
             state, proprio = batch.observables.state.numpy(), batch.observables.proprio.numpy()
@@ -577,17 +593,19 @@ class MjwarpEngine:
             frozen = ~running
             # Every running world's outcome of this action, as arrays over worlds.
             finite = np.isfinite(qpos).all(axis=1) & np.isfinite(qvel).all(axis=1)
-            failed = running & (((overflow & _OVERFLOW_BITS) != 0) | ~finite)
+            failed = running & (((overflow & stepping.OVERFLOW_BITS) != 0) | ~finite)
             for world in np.flatnonzero(failed):
                 row = row_of_world[int(world)]
                 env = int(ids[row])
-                reason = _overflow_reason(int(overflow[world])) or "the state is no longer finite"
+                reason = stepping.overflow_reason(int(overflow[world])) or "the state is no longer finite"
                 message = f"env {env}: MuJoCo Warp {reason} at action {k}; reset it"
                 self._broken[env] = message
                 errors.append(EnvError(row, "SimStateError", message))
             running &= ~failed
             frozen |= failed
             stepped = np.flatnonzero(running)
+            if frames and any(running[w] for w in shots):
+                self._shoot(batch, k, [(m, w) for w, m in shots.items() if running[w]], frames)
             rows_now = world_rows[stepped]
             envs_now = ids[rows_now]
             num_steps[rows_now] += 1
@@ -616,41 +634,43 @@ class MjwarpEngine:
         batch); copy the named envs' images. Returns seconds and env renders."""
         if not self.assignment.camera.names or ids.size == 0:
             return 0.0, 0
-        import mujoco_warp as mjw
-        import warp as wp
-
-        from vecsim.engine.mjwarp import frames
-
         started = time.perf_counter()
         renders = 0
-        camera = self.assignment.camera
-        orientation = self.assignment.libero.image_orientation
         images = self._obs["images"]
         if self._images_lent:
             unlend(images, every=ids.size == self.num_envs)
             self._images_lent = False
-        for batch, rows, worlds in self._split(ids):
-            rc = batch.render
-            # The cameras see the kinematics LIBERO sampled; the data's own are recomputed by the
-            # next step1 or reset, so they may be overwritten here.
-            for name, view in batch.view.items():
-                wp.copy(getattr(batch.data, name), view)
-            mjw.refit_bvh(batch.model, batch.data, rc)
-            mjw.render(batch.model, batch.data, rc)
-            first = rc.rgb_adr.numpy()
+        for batch, _rows, worlds in self._split(ids):
             start, count = batch.block.env_start, batch.block.num_envs
-            for index, name in enumerate(camera.names):
-                frames.unpack(rc.rgb_data, first[index], camera.height, camera.width, orientation, batch.pixels)
-                wp.copy(batch.host, batch.pixels)
-                wp.synchronize_device(batch.pixels.device)
-                host = batch.host.numpy()
+
+            def take(name: str, host: np.ndarray, start: int = start, count: int = count, worlds: Any = worlds) -> None:
                 if worlds.size == count:
                     images[name][start : start + count] = host
                 else:
                     # Only the named worlds: the others were put back, their pixels are stale.
                     images[name][worlds + start] = host[worlds]
+
+            self._draw(batch, take)
             renders += len(worlds)
         return time.perf_counter() - started, renders
+
+    def _shoot(self, batch: _Batch, k: int, shots: list[tuple[int, int]], frames: dict[str, np.ndarray]) -> None:
+        """Put action ``k``'s frame of each recorded world (``(frame row, world)``) into ``frames``."""
+        started = time.perf_counter()
+
+        def take(name: str, host: np.ndarray) -> None:
+            for m, world in shots:
+                frames[name][m, k] = host[world]
+
+        self._draw(batch, take)
+        self._frames_s += time.perf_counter() - started
+
+    def _draw(self, batch: _Batch, take: Any) -> None:
+        from vecsim.engine.mjwarp import frames
+
+        camera = self.assignment.camera
+        orientation = self.assignment.libero.image_orientation
+        frames.draw(batch, camera.names, camera.height, camera.width, orientation, take)
 
     def _gather(self, ids: np.ndarray) -> dict[str, Any]:
         """The observations of ``ids``, the caller's to keep. The images of a contiguous run of
@@ -687,88 +707,6 @@ def unlend(images: dict[str, np.ndarray], every: bool) -> None:
     request): a copy of it, or (``every``: the render writes every env) an uninitialised one."""
     for name, pixels in images.items():
         images[name] = np.empty_like(pixels) if every else pixels.copy()
-
-
-def _action_substeps(batch: _Batch) -> None:
-    """One env action in every world of ``batch``: its physics substeps as robosuite runs them
-    (controller between ``step1`` and ``step2``); the observables and the cameras' kinematics
-    where LIBERO samples them, the goal after the last substep."""
-    import mujoco_warp as mjw
-    import warp as wp
-
-    from vecsim.engine.mjwarp.observables import LIBERO_SAMPLE_SUBSTEP
-
-    data, model, controller, action = batch.data, batch.model, batch.controller, batch.action
-    data.overflow.zero_()
-    substeps = int(batch.scene.manifest["robot"]["substeps"])
-    sample = min(LIBERO_SAMPLE_SUBSTEP, substeps - 1)
-    for substep in range(substeps):
-        mjw.step1(model, data)
-        if substep == 0:
-            controller.set_goal(action, data.site_xpos, data.site_xmat)
-        controller.apply(
-            action,
-            data.qpos,
-            data.qvel,
-            data.M,
-            data.qfrc_bias,
-            data.site_xpos,
-            data.site_xmat,
-            data.xanchor,
-            data.xaxis,
-            data.ctrl,
-        )
-        mjw.step2(model, data)
-        if substep == sample:
-            batch.observables.compute(data.qpos, data.site_xpos, data.xquat)
-            for name, view in (batch.view or {}).items():
-                wp.copy(view, getattr(data, name))
-    batch.goal.evaluate(
-        data.qpos, data.xpos, data.site_xpos, data.site_xmat, data.nacon, data.contact.geom, data.contact.worldid
-    )
-
-
-def _apply_action(batch: _Batch) -> None:
-    """Run :func:`_action_substeps` on ``batch``: on a GPU as one CUDA graph, captured the first
-    time (a few hundred kernel launches an action otherwise cost more than the kernels)."""
-    import warp as wp
-
-    device = batch.controller.device
-    if not device.is_cuda:
-        _action_substeps(batch)
-        return
-    if batch.graph is None:
-        # The first action runs as it is, which compiles and loads every kernel it launches;
-        # a capture records launches without running them.
-        _action_substeps(batch)
-        with wp.ScopedCapture(device=device) as capture:
-            _action_substeps(batch)
-        batch.graph = capture.graph
-        return
-    wp.capture_launch(batch.graph)
-
-
-# Overflows that make a world's trajectory wrong (MuJoCo Warp's OverflowType bits); an iteration
-# limit reached is not one of them.
-_OVERFLOWS = {
-    1 << 0: "ran out of constraint rows (njmax)",
-    1 << 1: "ran out of constraint nonzeros",
-    1 << 2: "overflowed its broadphase",
-    1 << 3: "ran out of contacts (nconmax)",
-    1 << 4: "overflowed its collision buffers (CCD)",
-    1 << 7: "overflowed its island buffers",
-    1 << 8: "overflowed its EPA buffers",
-}
-
-
-_OVERFLOW_BITS = sum(_OVERFLOWS)
-
-
-def _overflow_reason(bits: int) -> str | None:
-    for bit, reason in _OVERFLOWS.items():
-        if bits & bit:
-            return reason
-    return None
 
 
 def build(

@@ -9,6 +9,9 @@ that one contiguous copy brings them to the host.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import Any
+
 import warp as wp
 
 FLIPS = {"upright": (0, 0), "raw": (1, 0), "rotate180": (0, 1)}
@@ -47,3 +50,24 @@ def unpack(packed: wp.array, first: int, height: int, width: int, orientation: s
         inputs=[packed, int(first), height, width, flip_rows, flip_cols],
         outputs=[out],
     )
+
+
+def draw(batch: Any, cameras: Sequence[str], height: int, width: int, orientation: str, take: Callable) -> None:
+    """Draw every world of ``batch`` (MuJoCo Warp has no world mask) from the kinematics its
+    cameras see (``batch.view``, copied where LIBERO samples), and hand each camera's images of
+    every world, ``uint8 [nworld, H, W, 3]`` on the host, to ``take(camera, images)``. ``take``
+    copies what it keeps: the next camera is written into the same pinned buffer."""
+    import mujoco_warp as mjw
+
+    # The data's own kinematics are recomputed by the next step1 or reset: they may be overwritten.
+    for name, view in batch.view.items():
+        wp.copy(getattr(batch.data, name), view)
+    rc = batch.render
+    mjw.refit_bvh(batch.model, batch.data, rc)
+    mjw.render(batch.model, batch.data, rc)
+    first = rc.rgb_adr.numpy()
+    for index, camera in enumerate(cameras):
+        unpack(rc.rgb_data, first[index], height, width, orientation, batch.pixels)
+        wp.copy(batch.host, batch.pixels)
+        wp.synchronize_device(batch.pixels.device)
+        take(camera, batch.host.numpy())
