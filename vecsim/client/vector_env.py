@@ -116,7 +116,7 @@ class HTTPVectorEnv(VectorEnv):
     before the error is raised, and the error carries ``failed_envs`` (the sorted indices of the
     envs without an answer: those of the failed pods, or those that raised) and ``result`` (what
     the call would have returned, with only the answered envs' rows meaningful and only theirs
-    marked in the info's ``_key`` masks). When several envs raise in one call, the first one's
+    marked in the info's ``_key`` masks). When several envs raise in one call, the lowest env's
     exception is raised, ``failed_envs`` names them all and a note gives the others' messages.
     The failed envs must then be reset (``reset(options={"reset_mask": m})`` with ``m``
     covering them) before the next step; the others go on as they are::

@@ -237,11 +237,13 @@ class EnvResults:
             merge_rows(info, batched, env_of_row[rows], self.num_envs, None if keep is None else keep[rows])
 
     def raise_env_errors(self, errors: list[tuple[str, str, str]], result: tuple[Any, ...]) -> None:
-        """Raise the first of ``errors`` (``(traj_key, type name, message)`` of the envs of a call
-        that raised), carrying ``failed_envs`` and ``result`` (the call's answer without their
-        rows, taken already); mark those envs to be reset. Nothing when none raised."""
+        """Raise the error of the lowest env of ``errors`` (``(traj_key, type name, message)`` of
+        the envs of a call that raised), carrying ``failed_envs`` and ``result`` (the call's answer
+        without their rows, taken already); mark those envs to be reset. Nothing when none raised.
+        The envs' order, not the order their pods answered in, decides which error is raised."""
         if not errors:
             return
+        errors = sorted(errors, key=lambda error: self.key_index[error[0]])
         failed = sorted({self.key_index[key] for key, _, _ in errors})
         self.failed[failed] = True
         self.autoreset[failed] = False
