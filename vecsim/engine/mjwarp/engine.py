@@ -233,7 +233,6 @@ class MjwarpEngine:
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
         # Whether an answer may hold a view of the arrays in self._obs["images"] (see _gather).
         self._images_lent = False
-        self._frames_s = 0.0  # this call's per-action frames, seconds (counted as render time)
         self._steps = np.zeros(self.num_envs, dtype=np.int64)
         self._last_success = np.zeros(self.num_envs, dtype=bool)
         self._broken: dict[int, str] = {}
@@ -336,7 +335,6 @@ class MjwarpEngine:
         with self._lock:
             self._check_open()
             started = time.perf_counter()
-            self._frames_s = 0.0
             for batch, rows, worlds in self._split(ids):
                 self._reset_worlds(batch, worlds, states[rows])
             physics = time.perf_counter() - started
@@ -389,7 +387,7 @@ class MjwarpEngine:
         with self._lock:
             self._check_open()
             started = time.perf_counter()
-            self._frames_s = 0.0
+            frames_s = 0.0  # the per-action frames' renders, counted as render time
             for batch, rows, worlds in self._split(ids):
                 broken = [r for r, e in zip(rows, ids[rows]) if int(e) in self._broken]
                 for r in broken:
@@ -398,7 +396,7 @@ class MjwarpEngine:
                 # The recorded envs of this batch: world -> their row in ``frames``.
                 shots = {int(ids[r]) - batch.block.env_start: m for m, r in enumerate(recorded) if r in live}
                 if live.size:
-                    self._step_batch(
+                    frames_s += self._step_batch(
                         batch,
                         ids,
                         live,
@@ -412,10 +410,10 @@ class MjwarpEngine:
                         errors,
                         (shots, frames),
                     )
-            physics = time.perf_counter() - started - self._frames_s
+            physics = time.perf_counter() - started - frames_s
             moved = ids[num_steps > 0]
             render_s, renders = self._render(moved)
-            self.last_timing = CallTiming(physics_s=physics, render_s=render_s + self._frames_s, renders=renders)
+            self.last_timing = CallTiming(physics_s=physics, render_s=render_s + frames_s, renders=renders)
             obs = self._gather(ids)
         errors.sort(key=lambda e: e.row)
         return ChunkResult(obs, reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], errors)
@@ -565,8 +563,12 @@ class MjwarpEngine:
         step_past_end: bool,
         errors: list[EnvError],
         recording: tuple[dict[int, int], dict[str, np.ndarray]] = ({}, {}),
-    ) -> None:
+    ) -> float:
+        """Step ``rows`` of ``ids`` (envs of ``batch``) through ``actions``, writing the outcome
+        arrays in place; ``recording`` (world -> row of ``frames``) takes the recorded worlds'
+        frame after each action. Returns the seconds those frames took to draw."""
         shots, frames = recording
+        frames_s = 0.0
         nworld = batch.block.num_envs
         worlds = ids[rows] - batch.block.env_start
         running = np.zeros(nworld, dtype=bool)
@@ -605,7 +607,7 @@ class MjwarpEngine:
             frozen |= failed
             stepped = np.flatnonzero(running)
             if frames and any(running[w] for w in shots):
-                self._shoot(batch, k, [(m, w) for w, m in shots.items() if running[w]], frames)
+                frames_s += self._shoot(batch, k, [(m, w) for w, m in shots.items() if running[w]], frames)
             rows_now = world_rows[stepped]
             envs_now = ids[rows_now]
             num_steps[rows_now] += 1
@@ -628,6 +630,7 @@ class MjwarpEngine:
                     saved[key][ended] = values[ended]
             if frozen.any() and saved is not None:
                 self._put_back(batch, saved, frozen)
+        return frames_s
 
     def _render(self, ids: np.ndarray) -> tuple[float, int]:
         """Draw every camera of the batches holding ``ids`` (MuJoCo Warp draws every world of a
@@ -654,8 +657,9 @@ class MjwarpEngine:
             renders += len(worlds)
         return time.perf_counter() - started, renders
 
-    def _shoot(self, batch: _Batch, k: int, shots: list[tuple[int, int]], frames: dict[str, np.ndarray]) -> None:
-        """Put action ``k``'s frame of each recorded world (``(frame row, world)``) into ``frames``."""
+    def _shoot(self, batch: _Batch, k: int, shots: list[tuple[int, int]], frames: dict[str, np.ndarray]) -> float:
+        """Put action ``k``'s frame of each recorded world (``(frame row, world)``) into ``frames``;
+        return the seconds it took."""
         started = time.perf_counter()
 
         def take(name: str, host: np.ndarray) -> None:
@@ -663,7 +667,7 @@ class MjwarpEngine:
                 frames[name][m, k] = host[world]
 
         self._draw(batch, take)
-        self._frames_s += time.perf_counter() - started
+        return time.perf_counter() - started
 
     def _draw(self, batch: _Batch, take: Any) -> None:
         from vecsim.engine.mjwarp import frames
