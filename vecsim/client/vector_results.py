@@ -135,10 +135,12 @@ class EnvResults:
         error.failed_envs = envs
         error.result = result
         if raised:
-            error.add_note(
-                "envs that raised: " + "; ".join(f"env {self.key_index[k]} {kind}: {text}" for k, kind, text in raised)
-            )
+            error.add_note("envs that raised: " + self._describe(raised))
         logger.warning("envs %s got no answer and must be reset: %s", envs, error)
+
+    def _describe(self, errors: Sequence[tuple[str, str, str]]) -> str:
+        """``errors`` (``(traj_key, type name, message)``) as "env i Type: message; ..."."""
+        return "; ".join(f"env {self.key_index[key]} {kind}: {text}" for key, kind, text in errors)
 
     @contextlib.contextmanager
     def failing_if_interrupted(self, envs: np.ndarray) -> Iterator[None]:
@@ -255,8 +257,7 @@ class EnvResults:
         error.failed_envs = failed
         error.result = result
         if len(failed) > 1:
-            others = "; ".join(f"env {self.key_index[k]} {kind}: {text}" for k, kind, text in errors[1:])
-            error.add_note(f"envs {failed} raised; the others: {others}")
+            error.add_note(f"envs {failed} raised; the others: {self._describe(errors[1:])}")
         raise error
 
     def _add_batch_info(
