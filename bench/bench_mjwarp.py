@@ -417,11 +417,15 @@ def scrape(urls: list[str]) -> dict[str, float]:
 POD_COUNTERS = ("vecsim_pod_step_seconds_sum", "vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
 
 
-def layout_spec(text: str) -> tuple[int, int, int | None]:
-    """``PODSxENVS`` or ``PODSxENVS@SIZE`` (the cameras' size for this layout, 0: none)."""
+def layout_spec(text: str) -> tuple[int, int, int | None, bool]:
+    """``PODSxENVS[@SIZE][/turns]``: SIZE the cameras' size for this layout (0: none); ``/turns``:
+    the layout's ``mjwarp`` pods take turns at the GPU (``VECSIM_MJWARP_TURNS``, else off)."""
+    text, slash, option = text.partition("/")
+    if slash and option != "turns":
+        raise argparse.ArgumentTypeError(f"{text}/{option}: the only option is /turns")
     layout, _, size = text.partition("@")
     pods, _, envs = layout.partition("x")
-    return int(pods), int(envs), int(size) if size else None
+    return int(pods), int(envs), int(size) if size else None, bool(slash)
 
 
 def drive(url: str, envs: int, chunk: int, calls: int, seed: int) -> dict[str, Any]:
@@ -467,7 +471,14 @@ def drive(url: str, envs: int, chunk: int, calls: int, seed: int) -> dict[str, A
 
 
 def run_layout(
-    args: argparse.Namespace, engine: str, pods: int, envs: int, size: int, pythonpath: str | None, port: int
+    args: argparse.Namespace,
+    engine: str,
+    pods: int,
+    envs: int,
+    size: int,
+    pythonpath: str | None,
+    port: int,
+    turns: bool = False,
 ) -> dict[str, Any]:
     """Start ``pods`` real pods (``vecsim pod``, uvicorn, loopback) of ``envs`` envs each on
     ``engine``; reset every env; step every pod ``--calls`` times with chunks of random actions
@@ -501,6 +512,7 @@ def run_layout(
         "cores_per_pod": share if engine == "cpu" else len(cores),
         "size": size,
         "chunk": args.chunk,
+        "turns": turns,
     }
     processes: list[subprocess.Popen] = []
     started = time.monotonic()
@@ -519,6 +531,7 @@ def run_layout(
 
     try:
         with tempfile.TemporaryDirectory() as folder:
+            env["VECSIM_MJWARP_TURNS"] = str(Path(folder) / "turns") if turns else "off"
             for i in range(pods):
                 spec = assignment(args.task, envs, size, engine).model_copy(update={"pod": f"sim-{i}"})
                 path = Path(folder) / f"pod{i}.json"
@@ -610,13 +623,14 @@ def side(args: argparse.Namespace) -> None:
     write(record, args.out)
     plan = [("cpu", *layout, args.cpu_pythonpath) for layout in args.cpu_layouts]
     plan += [("mjwarp", *layout, args.mjwarp_pythonpath) for layout in args.mjwarp_layouts]
-    for index, (engine, pods, envs, size, pythonpath) in enumerate(plan):
+    for index, (engine, pods, envs, size, turns, pythonpath) in enumerate(plan):
         size = args.size if size is None else size
         if time.monotonic() > deadline:
             record["cut_short"] = f"budget of {args.budget_s} s spent before {engine} {pods}x{envs}@{size}"
             break
         try:
-            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, args.port + 32 * index))
+            port = args.port + 32 * index
+            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, port, turns))
         except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
             record["layouts"].append(
                 {"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)}
@@ -702,7 +716,7 @@ def main() -> None:
         type=layout_spec,
         nargs="*",
         default=[layout_spec("1x1024")],
-        help="PODSxENVS[@SIZE], in order",
+        help="PODSxENVS[@SIZE][/turns], in order (/turns: the pods take turns at the GPU)",
     )
     both.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
     both.add_argument(

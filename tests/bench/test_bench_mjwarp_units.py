@@ -4,6 +4,8 @@ quaternions (against scipy's rotations); and its layouts' syntax."""
 
 from __future__ import annotations
 
+import argparse
+
 import sys
 
 import numpy as np
@@ -62,8 +64,12 @@ def test_rotation_between_is_scipys_relative_rotation(bench):
     np.testing.assert_allclose(bench.rotation_between(wxyz[0], -wxyz[0]), 0.0, atol=1e-12)
 
 
-def test_layouts_name_pods_envs_and_an_optional_size(bench):
-    assert bench.layout_spec("2x512") == (2, 512, None)
-    assert bench.layout_spec("1x1024@0") == (1, 1024, 0)
+def test_layouts_name_pods_envs_an_optional_size_and_turns(bench):
+    assert bench.layout_spec("2x512") == (2, 512, None, False)
+    assert bench.layout_spec("1x1024@0") == (1, 1024, 0, False)
+    assert bench.layout_spec("2x2048/turns") == (2, 2048, None, True)
+    assert bench.layout_spec("2x1024@128/turns") == (2, 1024, 128, True)
     with pytest.raises(ValueError):
         bench.layout_spec("2x")
+    with pytest.raises(argparse.ArgumentTypeError, match="the only option is /turns"):
+        bench.layout_spec("2x512/fast")

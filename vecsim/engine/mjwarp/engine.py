@@ -45,7 +45,8 @@ from vecsim.config import Assignment, TaskBlock
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
-from vecsim.engine.mjwarp import stepping
+from vecsim.engine.mjwarp import host, stepping
+from vecsim.engine.mjwarp.host import GpuTurn, HostImages
 from vecsim.engine.mjwarp.scene import VIEW_FIELDS, Scene, load_scene, load_tables, refusal, scene_dir
 from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
 from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
@@ -231,8 +232,8 @@ class MjwarpEngine:
         self._num_states = np.zeros(self.num_envs, dtype=np.int64)
         # The envs' last observation and success, answered for envs a call does not move.
         self._obs = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
-        # Whether an answer may hold a view of the arrays in self._obs["images"] (see _gather).
-        self._images_lent = False
+        self._images: HostImages | None = None  # self._obs["images"], once the device is known
+        self._turn = GpuTurn(None, "none")
         self._steps = np.zeros(self.num_envs, dtype=np.int64)
         self._last_success = np.zeros(self.num_envs, dtype=bool)
         self._broken: dict[int, str] = {}
@@ -240,6 +241,9 @@ class MjwarpEngine:
         if not assignment.tasks:
             return
         _require_cuda()
+        self._turn, self._images = host.for_engine(assignment.camera, self.num_envs)
+        if assignment.camera.names:
+            self._obs["images"] = self._images.current
         started = time.monotonic()
         try:
             for block in assignment.tasks:
@@ -332,7 +336,7 @@ class MjwarpEngine:
         states = checks.state_ids(state_ids, ids, self._num_states, self.task_ids)
         if options:
             raise InvalidRequestError("options: go with seeds (the envs' own reset), not with state_ids")
-        with self._lock:
+        with self._lock, self._turn:
             self._check_open()
             started = time.perf_counter()
             for batch, rows, worlds in self._split(ids):
@@ -384,7 +388,7 @@ class MjwarpEngine:
             return ChunkResult(
                 self._gather(ids), reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], []
             )
-        with self._lock:
+        with self._lock, self._turn:
             self._check_open()
             started = time.perf_counter()
             frames_s = 0.0  # the per-action frames' renders, counted as render time
@@ -464,6 +468,7 @@ class MjwarpEngine:
         with self._lock:
             self._closed = True
             self._batches = []
+            self._turn.close()
 
     def __enter__(self) -> MjwarpEngine:
         return self
@@ -639,21 +644,25 @@ class MjwarpEngine:
             return 0.0, 0
         started = time.perf_counter()
         renders = 0
-        images = self._obs["images"]
-        if self._images_lent:
-            unlend(images, every=ids.size == self.num_envs)
-            self._images_lent = False
+        assert self._images is not None
+        self._images.renew(every=ids.size == self.num_envs)
+        images = self._images.current
         for batch, _rows, worlds in self._split(ids):
             start, count = batch.block.env_start, batch.block.num_envs
+            # Every world named: the GPU copies straight into the images; else only the named
+            # worlds are taken from the batch's buffer (the others were put back, their pixels stale).
+            every = worlds.size == count
 
-            def take(name: str, host: np.ndarray, start: int = start, count: int = count, worlds: Any = worlds) -> None:
-                if worlds.size == count:
-                    images[name][start : start + count] = host
-                else:
-                    # Only the named worlds: the others were put back, their pixels are stale.
-                    images[name][worlds + start] = host[worlds]
+            def into(name: str, start: int = start, count: int = count, every: bool = every) -> np.ndarray | None:
+                return images[name][start : start + count] if every else None
 
-            self._draw(batch, take)
+            def take(
+                name: str, pixels: np.ndarray, start: int = start, worlds: Any = worlds, every: bool = every
+            ) -> None:
+                if not every:
+                    images[name][worlds + start] = pixels[worlds]
+
+            self._draw(batch, take, into)
             renders += len(worlds)
         return time.perf_counter() - started, renders
 
@@ -669,12 +678,12 @@ class MjwarpEngine:
         self._draw(batch, take)
         return time.perf_counter() - started
 
-    def _draw(self, batch: _Batch, take: Any) -> None:
+    def _draw(self, batch: _Batch, take: Any, into: Any = None) -> None:
         from vecsim.engine.mjwarp import frames
 
         camera = self.assignment.camera
         orientation = self.assignment.libero.image_orientation
-        frames.draw(batch, camera.names, camera.height, camera.width, orientation, take)
+        frames.draw(batch, camera.names, camera.height, camera.width, orientation, take, into)
 
     def _gather(self, ids: np.ndarray) -> dict[str, Any]:
         """The observations of ``ids``, the caller's to keep. The images of a contiguous run of
@@ -689,9 +698,8 @@ class MjwarpEngine:
 
         obs = {}
         for key, sub in self._obs.items():
-            if key == "images" and run is not None:
-                obs[key] = {name: pixels[run] for name, pixels in sub.items()}
-                self._images_lent = True
+            if key == "images" and run is not None and self._images is not None:
+                obs[key] = {name: self._images.lend(name, run) for name in sub}
             else:
                 obs[key] = pick(sub)
         return obs
@@ -703,14 +711,6 @@ def contiguous_run(ids: np.ndarray) -> slice | None:
         return None
     first = int(ids[0])
     return slice(first, first + ids.size) if np.array_equal(ids, np.arange(first, first + ids.size)) else None
-
-
-def unlend(images: dict[str, np.ndarray], every: bool) -> None:
-    """Give each camera of ``images`` a new array to render into, leaving the old one to the
-    answers that hold views of it (the pod may still be sending one, or keep it for a repeated
-    request): a copy of it, or (``every``: the render writes every env) an uninitialised one."""
-    for name, pixels in images.items():
-        images[name] = np.empty_like(pixels) if every else pixels.copy()
 
 
 def build(

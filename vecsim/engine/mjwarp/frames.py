@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import warp as wp
 
 FLIPS = {"upright": (0, 0), "raw": (1, 0), "rotate180": (0, 1)}
@@ -52,11 +53,21 @@ def unpack(packed: wp.array, first: int, height: int, width: int, orientation: s
     )
 
 
-def draw(batch: Any, cameras: Sequence[str], height: int, width: int, orientation: str, take: Callable) -> None:
+def draw(
+    batch: Any,
+    cameras: Sequence[str],
+    height: int,
+    width: int,
+    orientation: str,
+    take: Callable,
+    into: Callable | None = None,
+) -> None:
     """Draw every world of ``batch`` (MuJoCo Warp has no world mask) from the kinematics its
-    cameras see (``batch.view``, copied where LIBERO samples), and hand each camera's images of
-    every world, ``uint8 [nworld, H, W, 3]`` on the host, to ``take(camera, images)``. ``take``
-    copies what it keeps: the next camera is written into the same pinned buffer."""
+    cameras see (``batch.view``, copied where LIBERO samples), and bring each camera's images of
+    every world, ``uint8 [nworld, H, W, 3]``, to the host: into ``into(camera)`` where that gives
+    a C-contiguous array of that shape (page-locked host memory makes it one copy from the GPU),
+    else into the batch's pinned buffer, which the next camera overwrites. Then
+    ``take(camera, images)`` is called with the array they landed in."""
     import mujoco_warp as mjw
 
     # The data's own kinematics are recomputed by the next step1 or reset: they may be overwritten.
@@ -68,6 +79,14 @@ def draw(batch: Any, cameras: Sequence[str], height: int, width: int, orientatio
     first = rc.rgb_adr.numpy()
     for index, camera in enumerate(cameras):
         unpack(rc.rgb_data, first[index], height, width, orientation, batch.pixels)
-        wp.copy(batch.host, batch.pixels)
+        target = into(camera) if into is not None else None
+        if target is None:
+            wp.copy(batch.host, batch.pixels)
+        else:
+            if target.shape != tuple(batch.pixels.shape) or target.dtype != np.uint8 or not target.flags.c_contiguous:
+                raise ValueError(
+                    f"into({camera!r}): want a C-contiguous uint8 {tuple(batch.pixels.shape)}, got {target.shape}"
+                )
+            wp.copy(wp.array(target, dtype=wp.uint8, device="cpu", copy=False), batch.pixels)
         wp.synchronize_device(batch.pixels.device)
-        take(camera, batch.host.numpy())
+        take(camera, batch.host.numpy() if target is None else target)
