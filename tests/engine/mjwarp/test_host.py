@@ -15,12 +15,13 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from vecsim.engine.mjwarp.engine import contiguous_run
-from vecsim.engine.mjwarp.host import SPARES, GpuTurn, HostImages
+from vecsim.engine.mjwarp.host import DEFAULT_TURNS_DIR, SPARES, TURNS_ENV, GpuTurn, HostImages
 
 NAMES = ("agentview", "wrist")
 SHAPE = (8, 4, 6, 3)
@@ -258,3 +259,13 @@ def test_a_directory_that_cannot_hold_the_lock_means_no_turns_with_a_warning(
 def test_the_lock_file_is_named_after_the_gpu_with_nothing_unsafe(tmp_path: Path) -> None:
     turn = GpuTurn(str(tmp_path), "GPU-1/../x y")
     assert turn.path == tmp_path / "vecsim-gpu-GPU-1_.._x_y.lock"
+
+
+def test_pods_on_a_gpu_take_turns_by_default_and_the_setting_turns_them_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    gpu = SimpleNamespace(is_cuda=True, uuid="GPU-0a1b")  # what the engine reads of a warp device
+    monkeypatch.delenv(TURNS_ENV, raising=False)
+    assert GpuTurn.for_device(gpu).path == Path(DEFAULT_TURNS_DIR) / "vecsim-gpu-GPU-0a1b.lock"
+    monkeypatch.setenv(TURNS_ENV, "off")
+    assert GpuTurn.for_device(gpu).path is None
+    monkeypatch.delenv(TURNS_ENV)
+    assert GpuTurn.for_device(SimpleNamespace(is_cuda=False, uuid=None)).path is None  # warp's CPU device

@@ -642,27 +642,15 @@ class MjwarpEngine:
         batch); copy the named envs' images. Returns seconds and env renders."""
         if not self.assignment.camera.names or ids.size == 0:
             return 0.0, 0
+        from vecsim.engine.mjwarp import frames
+
         started = time.perf_counter()
         renders = 0
         assert self._images is not None
         self._images.renew(every=ids.size == self.num_envs)
         images = self._images.current
         for batch, _rows, worlds in self._split(ids):
-            start, count = batch.block.env_start, batch.block.num_envs
-            # Every world named: the GPU copies straight into the images; else only the named
-            # worlds are taken from the batch's buffer (the others were put back, their pixels stale).
-            every = worlds.size == count
-
-            def into(name: str, start: int = start, count: int = count, every: bool = every) -> np.ndarray | None:
-                return images[name][start : start + count] if every else None
-
-            def take(
-                name: str, pixels: np.ndarray, start: int = start, worlds: Any = worlds, every: bool = every
-            ) -> None:
-                if not every:
-                    images[name][worlds + start] = pixels[worlds]
-
-            self._draw(batch, take, into)
+            self._draw(batch, *frames.writers(images, batch.block.env_start, batch.block.num_envs, worlds))
             renders += len(worlds)
         return time.perf_counter() - started, renders
 
@@ -688,7 +676,7 @@ class MjwarpEngine:
     def _gather(self, ids: np.ndarray) -> dict[str, Any]:
         """The observations of ``ids``, the caller's to keep. The images of a contiguous run of
         envs (the usual call: every env, in order) are views, not copies, lent until the next
-        render (which then writes new arrays); the rest is copied."""
+        render (which then writes into another set, see :class:`HostImages`); the rest is copied."""
         run = contiguous_run(ids)
 
         def pick(tree: Any) -> Any:

@@ -53,6 +53,23 @@ def unpack(packed: wp.array, first: int, height: int, width: int, orientation: s
     )
 
 
+def writers(images: dict[str, np.ndarray], start: int, count: int, worlds: np.ndarray) -> tuple[Callable, Callable]:
+    """``(take, into)`` for :func:`draw` that put the named ``worlds`` of a batch (envs ``start``
+    to ``start + count`` of ``images``, each camera's ``uint8 [num_envs, H, W, 3]``) into
+    ``images``: straight from the GPU when every world is named; else only the named worlds, from
+    the batch's buffer (the others were put back, their pixels are stale)."""
+    every = worlds.size == count
+
+    def into(name: str) -> np.ndarray | None:
+        return images[name][start : start + count] if every else None
+
+    def take(name: str, pixels: np.ndarray) -> None:
+        if not every:
+            images[name][worlds + start] = pixels[worlds]
+
+    return take, into
+
+
 def draw(
     batch: Any,
     cameras: Sequence[str],
