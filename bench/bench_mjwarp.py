@@ -479,12 +479,13 @@ def run_layout(
     pythonpath: str | None,
     port: int,
     turns: bool = False,
+    calls: int | None = None,
 ) -> dict[str, Any]:
     """Start ``pods`` real pods (``vecsim pod``, uvicorn, loopback) of ``envs`` envs each on
     ``engine``; reset every env; step every pod ``--calls`` times with chunks of random actions
     through ``/v1/step`` (wire format), one client process a pod (:func:`drive`); stop them.
     CPU pods are pinned to equal shares of this process's cores; ``mjwarp`` pods start one
-    after the other."""
+    after the other. ``calls`` (default ``--calls``) per pod."""
     import multiprocessing
     import subprocess
     import sys
@@ -495,6 +496,7 @@ def run_layout(
 
     from vecsim import wire
 
+    calls = args.calls if calls is None else calls
     cores = sorted(os.sched_getaffinity(0))
     share = len(cores) // pods
     if engine == "cpu" and share < 1:
@@ -570,14 +572,14 @@ def run_layout(
                 client.post(f"{url}/v1/reset", content=body, headers=headers).raise_for_status()
         before = scrape(urls)
         with ProcessPoolExecutor(pods, mp_context=multiprocessing.get_context("fork")) as pool:
-            driven = list(pool.map(drive, urls, [envs] * pods, [args.chunk] * pods, [args.calls] * pods, range(pods)))
+            driven = list(pool.map(drive, urls, [envs] * pods, [args.chunk] * pods, [calls] * pods, range(pods)))
         after = scrape(urls)
         elapsed = max(d["ended"] for d in driven) - min(d["begun"] for d in driven)
         steps = sum(d["steps"] for d in driven)
-        calls = pods * args.calls
+        total = pods * calls
         counters = {name.removeprefix("vecsim_pod_"): after[name] - before[name] for name in after}
         record.update(
-            calls_per_pod=args.calls,
+            calls_per_pod=calls,
             env_steps=steps,
             seconds=elapsed,
             env_steps_per_s=steps / elapsed,
@@ -585,12 +587,12 @@ def run_layout(
             # Per call: the client's wall time, its wait for the answer and its decoding; the pod's
             # engine call, its physics and render (summed over a CPU pod's workers).
             per_call_s={
-                "client": sum(d["ended"] - d["begun"] for d in driven) / calls,
-                "client_waiting": sum(d["waiting"] for d in driven) / calls,
-                "client_decoding": sum(d["decoding"] for d in driven) / calls,
-                "engine": counters["step_seconds_sum"] / calls,
-                "physics": counters["physics_seconds_total"] / calls,
-                "render": counters["render_seconds_total"] / calls,
+                "client": sum(d["ended"] - d["begun"] for d in driven) / total,
+                "client_waiting": sum(d["waiting"] for d in driven) / total,
+                "client_decoding": sum(d["decoding"] for d in driven) / total,
+                "engine": counters["step_seconds_sum"] / total,
+                "physics": counters["physics_seconds_total"] / total,
+                "render": counters["render_seconds_total"] / total,
             },
         )
     finally:
@@ -630,7 +632,8 @@ def side(args: argparse.Namespace) -> None:
             break
         try:
             port = args.port + 32 * index
-            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, port, turns))
+            calls = args.cpu_calls if engine == "cpu" and args.cpu_calls else args.calls
+            record["layouts"].append(run_layout(args, engine, pods, envs, size, pythonpath, port, turns, calls))
         except (RuntimeError, OSError, ValueError, httpx.HTTPError) as exc:
             record["layouts"].append(
                 {"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)}
@@ -704,6 +707,12 @@ def main() -> None:
     both.add_argument("--size", type=int, default=256)
     both.add_argument("--chunk", type=int, default=8)
     both.add_argument("--calls", type=int, default=10)
+    both.add_argument(
+        "--cpu-calls",
+        type=int,
+        default=None,
+        help="calls per CPU pod (default --calls): a CPU pod's call is short, so its rate needs more",
+    )
     both.add_argument(
         "--cpu-layouts",
         type=layout_spec,
