@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from vecsim.engine.mjwarp.engine import contiguous_run
-from vecsim.engine.mjwarp.host import DEFAULT_TURNS_DIR, SPARES, TURNS_ENV, GpuTurn, HostImages
+from vecsim.engine.mjwarp.host import DEFAULT_TURNS_DIR, LOCKED_SETS, SPARES, TURNS_ENV, GpuTurn, HostImages
 
 NAMES = ("agentview", "wrist")
 SHAPE = (8, 4, 6, 3)
@@ -115,18 +115,16 @@ def test_a_set_no_answer_holds_is_written_again_and_no_new_one_is_made() -> None
 
 
 def test_sets_still_held_are_never_written_and_spares_are_bounded() -> None:
-    allocate = Allocator()
-    images = HostImages(NAMES, SHAPE, allocate)
+    images = HostImages(NAMES, SHAPE, Allocator())
     answers = []
     for seed in range(SPARES + 3):
         render(images, seed=seed)
         answers.append((seed, lend_all(images)))
     render(images, seed=99)
-    # Every render after a lent one needed a set nobody holds: a new one each time.
-    assert allocate.made == (SPARES + 4) * len(NAMES)
     for seed, answer in answers:
         for name in NAMES:
             np.testing.assert_array_equal(answer[name], rendered(seed)[name])
+            assert not np.shares_memory(answer[name], images.current[name])
     assert all(len(spare) <= SPARES for spare in images._spare.values())
 
 
@@ -269,3 +267,21 @@ def test_pods_on_a_gpu_take_turns_by_default_and_the_setting_turns_them_off(monk
     assert GpuTurn.for_device(gpu).path is None
     monkeypatch.delenv(TURNS_ENV)
     assert GpuTurn.for_device(SimpleNamespace(is_cuda=False, uuid=None)).path is None  # warp's CPU device
+
+
+def test_past_the_locked_sets_held_by_answers_new_sets_are_plain_arrays() -> None:
+    allocate = Allocator()
+    images = HostImages(NAMES, SHAPE, allocate)
+    answers = []
+    for seed in range(LOCKED_SETS + 3):
+        render(images, seed=seed)
+        answers.append((seed, lend_all(images)))
+    assert allocate.made == LOCKED_SETS * len(NAMES)
+    for seed, answer in answers:
+        for name in NAMES:
+            np.testing.assert_array_equal(answer[name], rendered(seed)[name])
+    answers.clear()  # every answer let go: the allocator's arrays are written again, no new ones
+    for seed in range(LOCKED_SETS + 3):
+        render(images, seed=seed)
+        lend_all(images)
+    assert allocate.made == LOCKED_SETS * len(NAMES)

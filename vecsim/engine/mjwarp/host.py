@@ -21,6 +21,7 @@ import logging
 import os
 import sys
 import time
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -40,17 +41,23 @@ DEFAULT_TURNS_DIR = "/dev/shm/vecsim-turns"
 TURN_WAIT_S = float(os.environ.get("VECSIM_MJWARP_TURN_WAIT_S", "120"))
 # Spare sets of image arrays kept per camera beyond the current one.
 SPARES = 2
+# At most this many arrays a camera from the (page-locked) allocator alive at once; past it, while
+# answers still hold the older ones, plain arrays: page-locked memory is not for an unbounded pile.
+LOCKED_SETS = SPARES + 2
 
 
 class HostImages:
     """Each camera's images of every env, ``uint8 [num_envs, H, W, 3]``, in arrays made by
-    ``allocate(shape)`` (page-locked ones on a CUDA GPU)."""
+    ``allocate(shape)`` (page-locked ones on a CUDA GPU), at most :data:`LOCKED_SETS` of them a
+    camera alive at once (then plain numpy arrays)."""
 
     def __init__(
         self, names: tuple[str, ...], shape: tuple[int, ...], allocate: Callable[[tuple[int, ...]], np.ndarray]
     ):
         self._shape = tuple(shape)
         self._allocate = allocate
+        self._allocated: list[weakref.ref] = []  # the allocator's arrays, alive or not
+        self._limit = LOCKED_SETS * len(names)
         self.current: dict[str, np.ndarray] = {name: self._new() for name in names}
         self._spare: dict[str, list[np.ndarray]] = {name: [] for name in names}
         # Whether an answer may hold views of the current arrays (see :meth:`lend`).
@@ -88,7 +95,11 @@ class HostImages:
         return self._new()
 
     def _new(self) -> np.ndarray:
+        self._allocated = [ref for ref in self._allocated if ref() is not None]
+        if len(self._allocated) >= self._limit:
+            return np.empty(self._shape, dtype=np.uint8)
         array = self._allocate(self._shape)
+        self._allocated.append(weakref.ref(array))
         if array.shape != self._shape or array.dtype != np.uint8 or not array.flags.c_contiguous:
             raise ValueError(f"allocate: got {array.dtype} {array.shape}, want a C-contiguous uint8 {self._shape}")
         return array
