@@ -414,7 +414,12 @@ def scrape(urls: list[str]) -> dict[str, float]:
     return totals
 
 
-POD_COUNTERS = ("vecsim_pod_step_seconds_sum", "vecsim_pod_physics_seconds_total", "vecsim_pod_render_seconds_total")
+POD_COUNTERS = (
+    "vecsim_pod_step_seconds_sum",
+    "vecsim_pod_physics_seconds_total",
+    "vecsim_pod_render_seconds_total",
+    "vecsim_pod_gpu_turn_wait_seconds_total",
+)
 
 
 def layout_spec(text: str) -> tuple[int, int, int | None, bool]:
@@ -585,7 +590,8 @@ def run_layout(
             env_steps_per_s=steps / elapsed,
             answer_bytes=driven[0]["bytes"],
             # Per call: the client's wall time, its wait for the answer and its decoding; the pod's
-            # engine call, its physics and render (summed over a CPU pod's workers).
+            # engine call, its physics and render (summed over a CPU pod's workers) and its wait
+            # for the GPU's turn.
             per_call_s={
                 "client": sum(d["ended"] - d["begun"] for d in driven) / total,
                 "client_waiting": sum(d["waiting"] for d in driven) / total,
@@ -593,6 +599,7 @@ def run_layout(
                 "engine": counters["step_seconds_sum"] / total,
                 "physics": counters["physics_seconds_total"] / total,
                 "render": counters["render_seconds_total"] / total,
+                "turn_wait": counters["gpu_turn_wait_seconds_total"] / total,
             },
         )
     finally:

@@ -45,6 +45,12 @@ class PodMetrics:
             "Worker seconds of step requests spent rendering cameras, summed over the pod's workers.",
             registry=self.registry,
         )
+        self.gpu_turn_wait_seconds = Counter(
+            "vecsim_pod_gpu_turn_wait_seconds",
+            "Seconds of step requests spent waiting for this pod's turn at a GPU that other pods share "
+            "(mjwarp; VECSIM_MJWARP_TURNS).",
+            registry=self.registry,
+        )
         self.env_renders = Counter(
             "vecsim_pod_env_renders",
             "Env renders of step requests (all of one env's cameras drawn once): one per env per "

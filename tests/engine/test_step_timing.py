@@ -55,3 +55,5 @@ def test_the_pod_counts_physics_and_render_seconds_of_its_steps(pod_url):
     assert response.status_code == 200
     for name, value in before.items():
         assert counter(pod_url, name) > value, name
+    # A CPU pod shares no GPU: it never waits for a turn at one.
+    assert counter(pod_url, "vecsim_pod_gpu_turn_wait_seconds_total") == 0.0

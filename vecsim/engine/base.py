@@ -46,12 +46,14 @@ assert set(ENGINES) == set(get_args(EngineName)), "ENGINES and vecsim.config.Eng
 @dataclass(frozen=True)
 class CallTiming:
     """Seconds of one reset or step call: ``physics_s`` in the scenes' resets and steps,
-    ``render_s`` rendering their cameras (summed over the CPU engine's workers); and ``renders``,
-    how many env renders (all of one env's cameras drawn once) the call made."""
+    ``render_s`` rendering their cameras (summed over the CPU engine's workers); ``renders``,
+    how many env renders (all of one env's cameras drawn once) the call made; and
+    ``turn_wait_s``, waiting for its turn at a GPU that other pods share (``mjwarp``)."""
 
     physics_s: float = 0.0
     render_s: float = 0.0
     renders: int = 0
+    turn_wait_s: float = 0.0
 
 
 @dataclass(frozen=True)

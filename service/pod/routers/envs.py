@@ -289,6 +289,7 @@ async def _step(state: PodState, request: Request, req: StepRequest) -> Response
     state.metrics.step_seconds.observe(elapsed)
     state.metrics.physics_seconds.inc(timing.physics_s)
     state.metrics.render_seconds.inc(timing.render_s)
+    state.metrics.gpu_turn_wait_seconds.inc(timing.turn_wait_s)
     return response
 
 

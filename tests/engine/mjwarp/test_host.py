@@ -204,6 +204,7 @@ def test_a_pod_waits_for_the_turn_another_process_holds(tmp_path: Path) -> None:
     finally:
         holder.kill()
         turn.close()
+    assert turn.waited_s >= 0.5  # what the pod's metric vecsim_pod_gpu_turn_wait_seconds adds up
     assert [p.name for p in tmp_path.iterdir()] == ["vecsim-gpu-GPU-test.lock"]
 
 

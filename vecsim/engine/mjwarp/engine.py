@@ -343,7 +343,7 @@ class MjwarpEngine:
                 self._reset_worlds(batch, worlds, states[rows])
             physics = time.perf_counter() - started
             render_s, renders = self._render(ids)
-            self.last_timing = CallTiming(physics_s=physics, render_s=render_s, renders=renders)
+            self.last_timing = CallTiming(physics, render_s, renders, self._turn.waited_s)
             obs = self._gather(ids)
             success = self._last_success[ids].copy()
         info = {
@@ -417,7 +417,7 @@ class MjwarpEngine:
             physics = time.perf_counter() - started - frames_s
             moved = ids[num_steps > 0]
             render_s, renders = self._render(moved)
-            self.last_timing = CallTiming(physics_s=physics, render_s=render_s + frames_s, renders=renders)
+            self.last_timing = CallTiming(physics, render_s + frames_s, renders, self._turn.waited_s)
             obs = self._gather(ids)
         errors.sort(key=lambda e: e.row)
         return ChunkResult(obs, reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], errors)

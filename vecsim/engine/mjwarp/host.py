@@ -133,6 +133,8 @@ class GpuTurn:
     def __init__(self, directory: str | None, gpu: str, wait_s: float = TURN_WAIT_S):
         self.path: Path | None = None
         self.wait_s = wait_s
+        # Seconds the last __enter__ waited for the turn.
+        self.waited_s = 0.0
         self._fd: int | None = None
         if directory and directory != "off":
             name = "".join(c if c.isalnum() or c in "-_." else "_" for c in gpu) or "gpu"
@@ -148,12 +150,12 @@ class GpuTurn:
         return cls(directory, getattr(device, "uuid", None) or str(device))
 
     def __enter__(self) -> GpuTurn:
-        if self.path is None:
-            return self
-        if self._fd is None:
+        started = time.monotonic()
+        if self.path is not None and self._fd is None:
             self._fd = self._open()
         if self._fd is not None:
             self._acquire(self._fd)
+        self.waited_s = time.monotonic() - started
         return self
 
     def __exit__(self, *exc_info: object) -> None:
