@@ -191,13 +191,16 @@ def enter_in_thread(turn: GpuTurn) -> tuple[threading.Thread, threading.Event, t
     return thread, entered, leave
 
 
-def test_a_pod_waits_for_the_turn_another_process_holds(tmp_path: Path) -> None:
+@pytest.mark.parametrize("let_go", ["release", "kill"])
+def test_a_pod_waits_for_the_turn_another_process_holds_until_it_lets_go_or_dies(
+    let_go: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     holder = Holder(tmp_path)
     turn = GpuTurn(str(tmp_path), "GPU-test", wait_s=60)
     try:
         thread, entered, leave = enter_in_thread(turn)
         assert not entered.wait(timeout=0.5)
-        holder.release()
+        getattr(holder, let_go)()  # "kill": the kernel frees a dead holder's lock
         assert entered.wait(timeout=30)
         leave.set()
         thread.join(timeout=30)
@@ -205,22 +208,8 @@ def test_a_pod_waits_for_the_turn_another_process_holds(tmp_path: Path) -> None:
         holder.kill()
         turn.close()
     assert turn.waited_s >= 0.5  # what the pod's metric vecsim_pod_gpu_turn_wait_seconds adds up
-    assert [p.name for p in tmp_path.iterdir()] == ["vecsim-gpu-GPU-test.lock"]
-
-
-def test_a_dead_holder_frees_the_turn(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    holder = Holder(tmp_path)
-    turn = GpuTurn(str(tmp_path), "GPU-test", wait_s=60)
-    try:
-        thread, entered, leave = enter_in_thread(turn)
-        assert not entered.wait(timeout=0.5)
-        holder.kill()
-        assert entered.wait(timeout=30)
-        leave.set()
-        thread.join(timeout=30)
-    finally:
-        turn.close()
     assert "going on without it" not in caplog.text
+    assert [p.name for p in tmp_path.iterdir()] == ["vecsim-gpu-GPU-test.lock"]
 
 
 def test_a_wait_that_runs_out_goes_on_with_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
