@@ -73,3 +73,28 @@ def test_layouts_name_pods_envs_an_optional_size_and_turns(bench):
         bench.layout_spec("2x")
     with pytest.raises(argparse.ArgumentTypeError, match="the only option is /turns"):
         bench.layout_spec("2x512/fast")
+
+
+def test_a_rounds_ratio_is_its_best_mjwarp_over_its_best_cpu_at_the_size(bench):
+    layouts = [
+        {"engine": "cpu", "size": 256, "env_steps_per_s": 1200.0, "round": 0},
+        {"engine": "cpu", "size": 256, "env_steps_per_s": 1500.0, "round": 0},
+        {"engine": "mjwarp", "size": 256, "env_steps_per_s": 13800.0, "round": 0},
+        # Another size, a failed layout and another round's figures are not this round's ratio.
+        {"engine": "mjwarp", "size": 128, "env_steps_per_s": 26000.0, "round": 0},
+        {"engine": "mjwarp", "size": 256, "error": "pod 1 never ready", "round": 0},
+        {"engine": "cpu", "size": 256, "env_steps_per_s": 1000.0, "round": 1},
+        {"engine": "mjwarp", "size": 256, "env_steps_per_s": 12000.0, "round": 1},
+    ]
+    assert bench.round_ratio(layouts, 0, 256) == pytest.approx(13800.0 / 1500.0)
+    assert bench.round_ratio(layouts, 1, 256) == pytest.approx(12.0)
+    # A round with one engine measured has no ratio.
+    assert bench.round_ratio(layouts[:2], 0, 256) is None
+    assert bench.round_ratio(layouts, 2, 256) is None
+
+
+def test_rounds_are_a_whole_number_of_at_least_one(bench):
+    assert bench.rounds_spec("3") == 3
+    for bad in ("0", "-1", "1.5", "two", ""):
+        with pytest.raises(argparse.ArgumentTypeError, match="at least 1"):
+            bench.rounds_spec(bad)
