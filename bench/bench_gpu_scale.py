@@ -84,43 +84,16 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import psutil
-import torch
-from lib.pods import paired_ratio, setup_logging
-from lib.records import img_dir, write_result
+# Only what checking the options needs loads here: a refused option exits at once, not after
+# seconds of torch, MuJoCo and the service's code, which the functions that run import.
+from lib.jobs import STAGE_LAYOUTS, Plan, parse_stage_layouts
 
-from vecsim.config import RoutingTable
-from lib.policies import VisionPolicy, calibrate_vit, forward_ms, GraphedPolicy, pod_multiples, parameters_m
-from lib.machine import (
-    gl_probe,
-    gpu_name,
-    gpu_process_table,
-    cpu_topology,
-    cores_first,
-    split_cores,
-    memory_gib,
-    MemoryWatch,
-    physical_core_of,
-)
-from lib.jobs import (
-    STAGE_LAYOUTS,
-    Plan,
-    parse_stage_layouts,
-    camera,
-    job_config,
-    running_job,
-    wait_for_job,
-    pod_processes,
-    regroup,
-    regroup_slices,
-    requests_for,
-)
-from lib.measure import TimedStageClient, Measured, Chunked, loop_rollout, service_rollout, Deadline, interleave
-from lib.stats import PIPELINE_TARGET, SCALING_TARGET, breakdown, core_overlap, summarise, waiting
-from lib.render_compare import render_compare
-from lib.plots import plot_scaling, plot_pipeline
+if TYPE_CHECKING:
+    from lib.measure import Deadline, Measured
+
+    from vecsim.config import RoutingTable
 
 log = logging.getLogger("bench.gpu_scale")
 
@@ -138,6 +111,12 @@ def measure_scaling(plan: Plan, job: Any, table: RoutingTable, deadline: Deadlin
     """For each pod count P, the first P pods in one stage: the service alone (scripted actions)
     and the EnvLoop with the graphed ResNet-18 policy; and the EnvLoop with a stage per pod (P
     stages of one pod: a slow pod holds up its own stage only). Interleaved rounds."""
+    from lib.jobs import regroup, requests_for
+    from lib.measure import TimedStageClient, interleave, loop_rollout, service_rollout
+    from lib.pods import paired_ratio
+    from lib.policies import GraphedPolicy, VisionPolicy, forward_ms, parameters_m
+    from lib.stats import summarise
+
     names = [f"sim-{i}" for i in range(plan.pods)]
     clients: dict[int, TimedStageClient] = {}
     per_pod: dict[int, TimedStageClient] = {}
@@ -219,6 +198,12 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
     each 2-stage layout also runs waiting that long for more of a stage's pods (:func:`waiting`).
     For each of ``plan.compare_stages``, ``slices`` also runs in that many stages, at
     ``plan.batch_wait_s`` and each compared wait: a third stage's slack against the slowest pod."""
+    from lib.jobs import regroup, regroup_slices
+    from lib.measure import Chunked, TimedStageClient, interleave, loop_rollout, service_rollout
+    from lib.pods import paired_ratio
+    from lib.policies import calibrate_vit, pod_multiples
+    from lib.stats import breakdown, core_overlap, summarise, waiting
+
     names = [f"sim-{i}" for i in range(plan.pods)]
     half = plan.pods // 2
     core_of = {pod: i % plan.pipeline_cores for i, pod in enumerate(names)}
@@ -357,15 +342,20 @@ def measure_pipeline(plan: Plan, job: Any, table: RoutingTable, deadline: Deadli
 
 def make_plan(args: argparse.Namespace) -> Plan:
     """The run's sizes: ``--gpu``, ``--cpu-small`` or ``--quick`` defaults, ``--dry`` shrinks,
-    then overrides."""
-    from vecsim.engine.tasks import suite_tasks
+    then overrides. Every size is checked before torch loads (last, for the device); without
+    ``--tasks``, LIBERO-10's task list loads MuJoCo and LIBERO first.
 
+    Raises:
+        SystemExit: sizes the run cannot lay out (the message names the option).
+    """
     gpu, dry, quick = args.gpu, args.dry, args.quick
     if args.tasks:
         tasks = tuple(t for t in args.tasks.split(",") if t)
     elif quick:
         tasks = QUICK_TASKS
     else:
+        from vecsim.engine.tasks import suite_tasks
+
         every = tuple(t.task_id for t in suite_tasks("libero_10"))
         tasks = every if gpu else every[:2]
     # 2C pods of ten LIBERO tasks each (~5 GiB a pod, estimated) would crowd 125 GiB: pipelining
@@ -383,13 +373,15 @@ def make_plan(args: argparse.Namespace) -> Plan:
         counts = (pods,)
     else:
         pods = 1 if dry else args.pods or (12 if gpu else 2)
-        given = (
-            tuple(int(c) for c in args.pod_counts.split(","))
-            if args.pod_counts
-            else ((1, 2, 4, 8, 12) if gpu else (1, 2))
-        )
+        try:
+            given = (
+                tuple(int(c) for c in args.pod_counts.split(","))
+                if args.pod_counts
+                else ((1, 2, 4, 8, 12) if gpu else (1, 2))
+            )
+        except ValueError:
+            raise SystemExit(f"--pod-counts takes pod counts, comma-separated: got {args.pod_counts!r}") from None
         counts = tuple(sorted({c for c in given if 1 <= c <= pods} | {1, pods}))
-    cuda = torch.cuda.is_available()
     max_depth = args.vit_max_depth or (512 if gpu else 256)
     chunk = args.chunk
     if chunk < 1:
@@ -397,11 +389,23 @@ def make_plan(args: argparse.Namespace) -> Plan:
     layouts = parse_stage_layouts(args.stage_layout)
     # The horizon counts actions: by default as many calls at K as at K=1.
     horizon = 2 * chunk if dry else args.horizon or (30 if gpu else 6 if quick else 3) * chunk
-    plan = Plan(
+    envs_per_task = args.envs_per_task or (QUICK_ENVS_PER_TASK if quick else 1)
+    envs = pods * per_pod * envs_per_task
+    for n in args.compare_stages:
+        # The loop gives request i to stage i % n: the stages must be of one size.
+        if envs % n:
+            raise SystemExit(
+                f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
+                "(change --tasks-per-pod, --envs-per-task or the pods)"
+            )
+    import torch  # after every check: seconds to load
+
+    cuda = torch.cuda.is_available()
+    return Plan(
         mode=args.only,
         tasks=tasks[:per_pod],
         size=args.size or (256 if gpu else 16 if quick else 64),
-        envs_per_task=args.envs_per_task or (QUICK_ENVS_PER_TASK if quick else 1),
+        envs_per_task=envs_per_task,
         pods=pods,
         pod_counts=counts,
         pipeline_cores=cores,
@@ -423,21 +427,30 @@ def make_plan(args: argparse.Namespace) -> Plan:
         pods_per_core=args.pods_per_core,
         compare_stages=args.compare_stages,
     )
-    envs = plan.pods * plan.envs_per_pod
-    for n in plan.compare_stages:
-        # The loop gives request i to stage i % n: the stages must be of one size.
-        if envs % n:
-            raise SystemExit(
-                f"--compare-stages {n}: the job's {envs} envs do not split into {n} equal stages "
-                "(change --tasks-per-pod, --envs-per-task or the pods)"
-            )
-    return plan
 
 
-def run_mode(args: argparse.Namespace) -> int:
+def run_mode(args: argparse.Namespace, plan: Plan) -> int:
     """``--only scaling`` or ``--only pipeline`` (with ``--gpu``, ``--cpu-small``, ``--dry``)."""
+    import psutil
+    import torch
+    from lib.jobs import camera, job_config, pod_processes, running_job, wait_for_job
+    from lib.machine import (
+        MemoryWatch,
+        cores_first,
+        cpu_topology,
+        gl_probe,
+        gpu_name,
+        gpu_process_table,
+        memory_gib,
+        physical_core_of,
+        split_cores,
+    )
+    from lib.measure import Deadline
+    from lib.plots import plot_pipeline, plot_scaling
+    from lib.records import img_dir, write_result
+    from lib.stats import PIPELINE_TARGET, SCALING_TARGET
+
     deadline = Deadline(args.deadline)
-    plan = make_plan(args)
     tag = ("_dry" if args.dry else "" if args.gpu else "_quick" if args.quick else "_cpu") + (
         f"_{args.tag}" if args.tag else ""
     )
@@ -578,7 +591,13 @@ def run_mode(args: argparse.Namespace) -> int:
     return 0
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, every option checked alone and against the others (``--only``, the
+    waits, ``--compare-stages``); :func:`make_plan` checks the sizes they lay out.
+
+    Raises:
+        SystemExit: argparse's usage error (2), naming the option.
+    """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--gpu", action="store_true", help="LIBERO-10 at 256x256 with its defaults; GL must be NVIDIA's")
@@ -679,18 +698,9 @@ def main() -> int:
     parser.add_argument("--deadline", type=float, default=480.0, help="seconds: stop adding rounds after this")
     parser.add_argument("--soft-rounds", type=int, default=1, help="--render-compare: rollouts with Mesa")
     parser.add_argument("--copy-to", type=Path, help="also copy the JSON and plots (and a failed job's logs) here")
-    args = parser.parse_args()
-    setup_logging()
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    if args.gpu and not torch.cuda.is_available():
-        # Before anything starts (GL probe, pods): a machine without a GPU fails at once.
-        log.error(
-            "--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
-            torch.__version__,
-        )
-        return 2
+    args = parser.parse_args(argv)
     if args.render_compare:
-        return render_compare(args)
+        return args
     if args.quick:
         if args.only not in (None, "pipeline"):
             parser.error("--quick measures the pipeline only: leave --only out or say --only pipeline")
@@ -724,7 +734,31 @@ def main() -> int:
             "--compare-stages runs the 'slices' layout in more stages: "
             "say --only pipeline with slices in --stage-layout"
         )
-    return run_mode(args)
+    return args
+
+
+def main() -> int:
+    args = parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo loads (LIBERO-10's task list)
+    plan = None if args.render_compare else make_plan(args)
+    # Every option is checked: what runs from here loads torch, MuJoCo and the service's code.
+    from lib.pods import setup_logging
+
+    setup_logging()
+    if plan is None:
+        from lib.render_compare import render_compare
+
+        return render_compare(args)
+    if args.gpu and plan.device != "cuda":
+        import torch
+
+        # Before anything starts (GL probe, pods): a machine without a GPU fails at once.
+        log.error(
+            "--gpu: torch sees no CUDA device on this machine (torch %s); run --quick or --cpu-small here",
+            torch.__version__,
+        )
+        return 2
+    return run_mode(args, plan)
 
 
 if __name__ == "__main__":

@@ -132,9 +132,10 @@ class Scene:
         import mujoco_warp as mjw
         import warp as wp
 
-        from vecsim.engine.mjwarp.engine import NCONMAX, NJMAX
+        from vecsim.engine.mjwarp.settings import MjwarpSettings
 
-        data = mjw.make_data(self.mjm, nworld=len(qpos), nconmax=NCONMAX, njmax=NJMAX)
+        settings = MjwarpSettings.from_env()  # the engine's contact and constraint rows
+        data = mjw.make_data(self.mjm, nworld=len(qpos), nconmax=settings.nconmax, njmax=settings.njmax)
         data.qpos.assign(qpos.astype(np.float32))
         mjw.forward(self.model, data)
         wp.synchronize()

@@ -1,5 +1,9 @@
 """Building a bench's local job: what one run builds (:class:`Plan`), its job config, starting it,
 waiting for its routing table, and regrouping the table's pods into the trainer's stages.
+
+Light to import (no torch, no pods' code at the top): a bench checks its options with
+:class:`Plan` and :func:`parse_stage_layouts` before its heavy imports, so a refused option exits
+at once.
 """
 
 from __future__ import annotations
@@ -12,14 +16,15 @@ import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import psutil
-import torch
-from .pods import free_port, free_port_block
 
 from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
+
+if TYPE_CHECKING:
+    import torch
 
 ROBOT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 MAX_EPISODE_STEPS = 520
@@ -63,6 +68,8 @@ class Plan:
 
     @property
     def torch_dtype(self) -> torch.dtype:
+        import torch
+
         return torch.bfloat16 if self.dtype == "bfloat16" else torch.float32
 
 
@@ -76,6 +83,8 @@ def job_config(plan: Plan, pins: Sequence[str], job_id: str, replicas: int) -> J
     """``replicas`` pods, each serving the plan's whole task mix (``envs_per_task`` envs of each
     task) in one worker process: one job stage per pod, since the controller gives every stage
     every task. Pod ``i`` is pinned to ``pins[i % len(pins)]``."""
+    from .pods import free_port, free_port_block  # the service's code, loaded only here: see above
+
     return JobConfig.model_validate(
         {
             "job": {

@@ -24,10 +24,11 @@ from service.probes import quiet_probe_logs
 from service.serving import uvicorn_limits
 from vecsim.config import Assignment, ConfigError, JobSpec, load_job_config
 from vecsim.engine.tasks import normalize_task_id, suite_tasks
+from vecsim.envsettings import SettingsError
 from vecsim.plan import Plan, slot_contents
 
 from .app import create_app
-from .settings import PodSettings, SettingsError
+from .settings import PodSettings
 from .state import check_assignment
 
 log = logging.getLogger(__name__)

@@ -6,15 +6,15 @@ Kubernetes (set by the downward API); command-line flags override them (see ``ma
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from vecsim.config import POD_NAME_PATTERN, Assignment
 from vecsim.engine.base import DEFAULT_MAX_CHUNK
+from vecsim.envsettings import from_environ
 
 from ..settings import ServerSettings
 
@@ -43,10 +43,6 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_KEEP_ALIVE_S": "keep_alive_s",
     "VECSIM_MAX_CONNECTIONS": "max_connections",
 }
-
-
-class SettingsError(ValueError):
-    """Settings that cannot be used; the message names the variable or flag at fault."""
 
 
 class PodSettings(ServerSettings):
@@ -109,25 +105,7 @@ class PodSettings(ServerSettings):
             The validated settings.
 
         Raises:
-            SettingsError: a variable or override has a wrong value (named in the message).
+            vecsim.envsettings.SettingsError: a variable or override has a wrong value (named in
+                the message with the value, the token's excepted).
         """
-        environ = os.environ if environ is None else environ
-        values: dict[str, Any] = {}
-        source: dict[str, str] = {}
-        for var, field in ENV_VARS.items():
-            raw = environ.get(var)
-            if raw is not None and raw != "":
-                values[field] = raw
-                source[field] = f"environment variable {var}"
-        for field, value in overrides.items():
-            if value is not None:
-                values[field] = value
-                source[field] = f"setting {field!r}"
-        try:
-            return cls.model_validate(values)
-        except ValidationError as exc:
-            problems = "; ".join(
-                f"{source.get(str(err['loc'][0]), str(err['loc'][0])) if err['loc'] else '<root>'}: {err['msg']}"
-                for err in exc.errors()
-            )
-            raise SettingsError(problems) from exc
+        return from_environ(cls, ENV_VARS, environ, overrides)

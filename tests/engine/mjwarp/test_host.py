@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from vecsim.engine.mjwarp.engine import contiguous_run
-from vecsim.engine.mjwarp.host import DEFAULT_TURNS_DIR, LOCKED_SETS, SPARES, TURNS_ENV, GpuTurn, HostImages
+from vecsim.engine.mjwarp.host import LOCKED_SETS, SPARES, GpuTurn, HostImages
+from vecsim.engine.mjwarp.settings import DEFAULT_TURNS_DIR, TURNS_ENV, MjwarpSettings
 
 NAMES = ("agentview", "wrist")
 SHAPE = (8, 4, 6, 3)
@@ -249,14 +250,21 @@ def test_the_lock_file_is_named_after_the_gpu_with_nothing_unsafe(tmp_path: Path
     assert turn.path == tmp_path / "vecsim-gpu-GPU-1_.._x_y.lock"
 
 
-def test_pods_on_a_gpu_take_turns_by_default_and_the_setting_turns_them_off(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_pods_on_a_gpu_take_turns_by_default_and_the_setting_turns_them_off() -> None:
     gpu = SimpleNamespace(is_cuda=True, uuid="GPU-0a1b")  # what the engine reads of a warp device
-    monkeypatch.delenv(TURNS_ENV, raising=False)
-    assert GpuTurn.for_device(gpu).path == Path(DEFAULT_TURNS_DIR) / "vecsim-gpu-GPU-0a1b.lock"
-    monkeypatch.setenv(TURNS_ENV, "off")
-    assert GpuTurn.for_device(gpu).path is None
-    monkeypatch.delenv(TURNS_ENV)
-    assert GpuTurn.for_device(SimpleNamespace(is_cuda=False, uuid=None)).path is None  # warp's CPU device
+    default = GpuTurn.for_device(gpu, MjwarpSettings.from_env({}))
+    assert default.path == Path(DEFAULT_TURNS_DIR) / "vecsim-gpu-GPU-0a1b.lock" and default.wait_s == 120
+    for off in ("off", ""):
+        assert GpuTurn.for_device(gpu, MjwarpSettings.from_env({TURNS_ENV: off})).path is None
+    # warp's CPU device
+    assert GpuTurn.for_device(SimpleNamespace(is_cuda=False, uuid=None), MjwarpSettings()).path is None
+
+
+def test_the_turn_settings_reach_the_turn(tmp_path: Path) -> None:
+    gpu = SimpleNamespace(is_cuda=True, uuid="GPU-0a1b")
+    settings = MjwarpSettings.from_env({TURNS_ENV: str(tmp_path), "VECSIM_MJWARP_TURN_WAIT_S": "2.5"})
+    turn = GpuTurn.for_device(gpu, settings)
+    assert turn.path == tmp_path / "vecsim-gpu-GPU-0a1b.lock" and turn.wait_s == 2.5
 
 
 def test_past_the_locked_sets_held_by_answers_new_sets_are_plain_arrays() -> None:

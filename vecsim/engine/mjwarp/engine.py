@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import importlib.util
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -48,21 +47,13 @@ from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
 from vecsim.engine.mjwarp import host, stepping
 from vecsim.engine.mjwarp.host import GpuTurn, HostImages
 from vecsim.engine.mjwarp.scene import VIEW_FIELDS, Scene, load_scene, load_tables, refusal, scene_dir
+from vecsim.engine.mjwarp.settings import ALLOW_CPU_ENV, MjwarpSettings
 from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
 from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
+from vecsim.envsettings import SettingsError
 
 log = logging.getLogger(__name__)
 
-# Contact and constraint rows per world. CPU MuJoCo holds about 99 constraint rows on LIBERO-10
-# task 0; MuJoCo Warp's defaults overflowed there, these did not.
-NCONMAX = int(os.environ.get("VECSIM_MJWARP_NCONMAX", "96"))
-NJMAX = int(os.environ.get("VECSIM_MJWARP_NJMAX", "600"))
-# "1" turns MuJoCo Warp's deterministic mode on (contact order, constraint rows, atomics). On
-# LIBERO-10 task 0 it shrank, not removed, the run-to-run spread (docs/mjwarp.md, Determinism).
-DETERMINISTIC_ENV = "VECSIM_MJWARP_DETERMINISTIC"
-# "1" lets the engine build on warp's CPU device where it sees no CUDA GPU (tests and debugging:
-# the first build compiles for minutes); without it such a pod fails its build, saying why.
-ALLOW_CPU_ENV = "VECSIM_MJWARP_ALLOW_CPU"
 # warp's compile settings on its CPU device (the engine there is for tests and debugging): LLVM
 # -O1 and no adjoint kernels, in place of warp's -O2 with raised inlining thresholds and adjoints
 # the engine never runs. The first build of 2 worlds of libero_10/0 on 2 busy cores: 171 s, 612 s
@@ -90,14 +81,27 @@ def _missing_packages() -> list[str]:
     return [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
 
 
-def _require_cuda() -> None:
+def read_settings() -> MjwarpSettings:
+    """The engine's settings in the pod's environment, read when an engine is built.
+
+    Raises:
+        SimBuildError: a variable the engine cannot use, named with its value.
+    """
+    try:
+        return MjwarpSettings.from_env()
+    except SettingsError as exc:
+        raise SimBuildError(f"mjwarp: {exc}") from None
+
+
+def _require_cuda(allow_cpu: bool) -> None:
     """Raise :class:`SimBuildError` naming the cause unless warp sees a CUDA GPU (or
-    ``VECSIM_MJWARP_ALLOW_CPU`` is "1": then set :data:`CPU_WARP_CONFIG` for warp's CPU device)."""
+    ``allow_cpu``, ``VECSIM_MJWARP_ALLOW_CPU=1``: then set :data:`CPU_WARP_CONFIG` for warp's CPU
+    device)."""
     import warp as wp
 
     if wp.is_cuda_available():
         return
-    if os.environ.get(ALLOW_CPU_ENV) == "1":
+    if allow_cpu:
         for name, value in CPU_WARP_CONFIG.items():
             setattr(wp.config, name, value)
         log.warning("mjwarp: no CUDA GPU; building on warp's CPU device (%s)", ALLOW_CPU_ENV)
@@ -208,7 +212,8 @@ class MjwarpEngine:
 
     Raises:
         InvalidRequestError: what :func:`spaces` refuses.
-        SimBuildError: no CUDA GPU, a scene failed to load, or MuJoCo Warp failed to build.
+        SimBuildError: a ``VECSIM_MJWARP_*`` variable it cannot use (:mod:`.settings`), no
+            CUDA GPU, a scene failed to load, or MuJoCo Warp failed to build.
     """
 
     def __init__(
@@ -223,6 +228,7 @@ class MjwarpEngine:
             raise ValueError(f"max_chunk: must be at least 1, got {max_chunk}")
         self.assignment = assignment
         self.max_chunk = max_chunk
+        self.settings = read_settings()
         self.single_observation_space, self.single_action_space = spaces(assignment)
         self.num_envs = assignment.num_envs
         self.task_ids: list[str] = [b.task_id for b in assignment.tasks for _ in range(b.num_envs)]
@@ -240,8 +246,8 @@ class MjwarpEngine:
         self._batches: list[_Batch] = []
         if not assignment.tasks:
             return
-        _require_cuda()
-        self._turn, self._images = host.for_engine(assignment.camera, self.num_envs)
+        _require_cuda(self.settings.allow_cpu)
+        self._turn, self._images = host.for_engine(assignment.camera, self.num_envs, self.settings)
         if assignment.camera.names:
             self._obs["images"] = self._images.current
         started = time.monotonic()
@@ -286,9 +292,9 @@ class MjwarpEngine:
         mjm.body_pos[:], mjm.body_quat[:] = states["body_pos"][0], states["body_quat"][0]
         nworld = block.num_envs
         model = mjw.put_model(mjm)
-        if os.environ.get(DETERMINISTIC_ENV, "0") == "1":
+        if self.settings.deterministic:
             model.opt.deterministic = int(mjw.DeterminismType.ALL)
-        data = mjw.make_data(mjm, nworld=nworld, nconmax=NCONMAX, njmax=NJMAX)
+        data = mjw.make_data(mjm, nworld=nworld, nconmax=self.settings.nconmax, njmax=self.settings.njmax)
         panda = dict(tables["panda"])
         # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
         panda["mass_index"] = mass_index(mjm, panda["arm_dofs"])

@@ -28,17 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from vecsim.engine.mjwarp.settings import DEFAULT_TURN_WAIT_S, MjwarpSettings
+
 log = logging.getLogger(__name__)
 
-# The directory of the GPUs' lock files ("" or "off": no turns). Pods that share a GPU take turns
-# only if they see the same directory: on one machine the default does; Kubernetes pods that
-# share a GPU need a hostPath volume there. Two pods of 2,048 worlds on one H200 ran 1.38x
-# faster with turns than time-sliced (docs/mjwarp.md).
-TURNS_ENV = "VECSIM_MJWARP_TURNS"
-DEFAULT_TURNS_DIR = "/dev/shm/vecsim-turns"
-# A turn waited for longer than this is taken anyway, with a warning: a pod stuck in a GPU call
-# slows the others down to time-slicing, it never stops them.
-TURN_WAIT_S = float(os.environ.get("VECSIM_MJWARP_TURN_WAIT_S", "120"))
 # Spare sets of image arrays kept per camera beyond the current one.
 SPARES = 2
 # At most this many arrays a camera from the (page-locked) allocator alive at once; past it, while
@@ -116,21 +109,23 @@ def pinned_allocator(device: object) -> Callable[[tuple[int, ...]], np.ndarray]:
     return lambda shape: wp.zeros(shape, dtype=wp.uint8, device="cpu", pinned=True).numpy()
 
 
-def for_engine(camera: Any, num_envs: int) -> tuple[GpuTurn, HostImages]:
-    """The turn and the image arrays of an engine on warp's default device, for ``camera``
-    (a :class:`vecsim.config.CameraConfig`) and ``num_envs`` envs."""
+def for_engine(camera: Any, num_envs: int, settings: MjwarpSettings) -> tuple[GpuTurn, HostImages]:
+    """The turn (as ``settings`` say) and the image arrays of an engine on warp's default device,
+    for ``camera`` (a :class:`vecsim.config.CameraConfig`) and ``num_envs`` envs."""
     import warp as wp
 
     device = wp.get_device()
     shape = (num_envs, camera.height, camera.width, 3)
-    return GpuTurn.for_device(device), HostImages(tuple(camera.names), shape, pinned_allocator(device))
+    return GpuTurn.for_device(device, settings), HostImages(tuple(camera.names), shape, pinned_allocator(device))
 
 
 class GpuTurn:
     """``with turn:`` holds this GPU's turn for one engine call (a no-op without a lock
-    directory); the engine's own lock keeps its calls one at a time."""
+    directory: ``None``, ``""`` or ``"off"``); the engine's own lock keeps its calls one at a
+    time. Two pods of 2,048 worlds on one H200 ran 1.38x faster with turns than time-sliced
+    (docs/mjwarp.md)."""
 
-    def __init__(self, directory: str | None, gpu: str, wait_s: float = TURN_WAIT_S):
+    def __init__(self, directory: str | None, gpu: str, wait_s: float = DEFAULT_TURN_WAIT_S):
         self.path: Path | None = None
         self.wait_s = wait_s
         # Seconds the last __enter__ waited for the turn.
@@ -141,13 +136,12 @@ class GpuTurn:
             self.path = Path(directory) / f"vecsim-gpu-{name}.lock"
 
     @classmethod
-    def for_device(cls, device: object) -> GpuTurn:
-        """The turn of a warp device, in ``VECSIM_MJWARP_TURNS`` (default :data:`DEFAULT_TURNS_DIR`);
-        none on warp's CPU device."""
-        directory = os.environ.get(TURNS_ENV, DEFAULT_TURNS_DIR)
+    def for_device(cls, device: object, settings: MjwarpSettings) -> GpuTurn:
+        """The turn of a warp device in ``settings.turns`` (``VECSIM_MJWARP_TURNS``), waited for
+        at most ``settings.turn_wait_s``; none on warp's CPU device."""
         if not getattr(device, "is_cuda", False):
             return cls(None, "cpu")
-        return cls(directory, getattr(device, "uuid", None) or str(device))
+        return cls(settings.turns_dir, getattr(device, "uuid", None) or str(device), settings.turn_wait_s)
 
     def __enter__(self) -> GpuTurn:
         started = time.monotonic()
