@@ -42,7 +42,7 @@ import tempfile
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -51,39 +51,85 @@ from lib.records import command_line, machine_info
 from lib.scripted import Episodes, Gains, PickPlace, agreement, closing_yaw, summary
 
 from vecsim.client.errors import ClientError
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
 
 log = logging.getLogger("bench_scripted")
 
 TABLE = Path(__file__).resolve().parent / "lib" / "scripted_table.json"
 CODE = Path(__file__).resolve().parents[1]
+# The LIBERO protocols a table and a run can take (``--libero``): LIBERO's published evaluation,
+# and RLinf's (15 settle steps, every init state on a fresh env's first fixture placement), the
+# one under which the ``mjwarp`` engine serves every LIBERO-10 task (docs/mjwarp.md).
+PROTOCOLS = {
+    "published": LiberoProtocol(),
+    "rlinf": LiberoProtocol(settle_steps=15, fixture_rule="first_reset"),
+}
+
+
+def row_key(task: str, protocol: LiberoProtocol) -> str:
+    """The table's key of ``task``'s rows measured under ``protocol``: the task id under the
+    default (published) protocol, else the task id and every setting that differs from it
+    (``libero_10/5@fixture_rule=first_reset,settle_steps=15``), so rows measured under one
+    protocol are never read for another."""
+    default = LiberoProtocol().model_dump()
+    changed = sorted((k, v) for k, v in protocol.model_dump().items() if v != default[k])
+    return task if not changed else f"{task}@" + ",".join(f"{k}={v}" for k, v in changed)
 
 
 # -- the table (CPU stack) ---------------------------------------------------------------------
 
 
-def body_corners(model: Any, data: Any, body: int) -> np.ndarray:
-    """The world corners ``[8 * geoms, 3]`` of the bounding boxes of every geom of ``body``'s tree."""
+def body_corners(model: Any, data: Any, body: int, colliding: bool = False) -> np.ndarray:
+    """The world corners ``[8 * geoms, 3]`` of the bounding boxes of every geom of ``body``'s tree
+    (with ``colliding``, of its geoms that collide only: visual meshes left out)."""
     corners = []
     signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    for geom in np.flatnonzero(model.body_rootid[model.geom_bodyid] == body):
+    geoms = model.body_rootid[model.geom_bodyid] == body
+    if colliding:
+        geoms &= (model.geom_contype != 0) | (model.geom_conaffinity != 0)
+    for geom in np.flatnonzero(geoms):
         centre, half = model.geom_aabb[geom, :3], model.geom_aabb[geom, 3:]
         local = centre + signs * half
         corners.append(data.geom_xpos[geom] + local @ data.geom_xmat[geom].reshape(3, 3).T)
     return np.concatenate(corners)
 
 
+@dataclass(frozen=True)
+class RimGrasp:
+    """How the script holds a mug, whose body is too wide for the Panda's 8 cm: by its rim, the
+    fingers astride the wall on the side away from the handle, closing along the radius. Points
+    are in the mug's body frame (x, y), read off the collision geoms of LIBERO's model (the mean
+    of the wall boxes' centres, and the wall box across from the handle)."""
+
+    centre: tuple[float, float]  # the cup's axis
+    rim: tuple[float, float]  # the middle of the wall where the fingers close
+    depth_m: float = 0.02  # the fingertips' centre this far under the wall's top
+    clearance_m: float = 0.012  # the mug's bottom this far above the goal's top when let go
+
+
+# Mugs by LIBERO object category (the object's name without its ``_<n>`` suffix).
+RIM_GRASPS = {
+    "porcelain_mug": RimGrasp(centre=(0.0157, 0.0), rim=(0.0568, -0.0015)),
+    "white_yellow_mug": RimGrasp(centre=(-0.018, 0.0), rim=(-0.0604, -0.0045)),
+}
+
+
 def scene_row(inner: Any) -> dict[str, Any]:
     """Where the goal's objects and goals are in ``inner`` (a LIBERO env, now): for each of the
     goal's ``in``/``on`` predicates, in order, the object's centre, top, bottom and grasp yaw (its
     narrowest horizontal direction), and the goal's centre and top (a region site, or an
-    object's bounding box)."""
+    object's bounding box). A goal's other terms (a stove that is on) must hold already: the
+    script leaves them be. A mug (:data:`RIM_GRASPS`) is held by its rim: its pair adds ``grip``
+    (where the fingertips close) and ``release`` (where they open: the mug's body over the goal
+    object's body, or over the region site, as LIBERO's ``On`` checks), and its yaw is the rim's."""
     import mujoco
 
     model, data = inner.sim.model._model, inner.sim.data._data
     pairs = []
     for term in inner.parsed_problem["goal_state"]:
         if len(term) != 3 or term[0].lower() not in ("in", "on"):
+            if inner._eval_predicate(term):
+                continue
             raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
         _, obj, goal = term
         body = inner.obj_body_id[obj]
@@ -94,40 +140,65 @@ def scene_row(inner: Any) -> dict[str, Any]:
         if site >= 0:
             place = data.site_xpos[site].copy()
             place_top = float(place[2] + model.site_size[site, 2])
+            goal_xy = place[:2]
         else:
             around = body_corners(model, data, inner.obj_body_id[goal])
             place_top = float(around[:, 2].max())
             place = np.array([*around[:, :2].mean(axis=0), place_top])
-        pairs.append(
-            {
-                "object": obj,
-                "goal": goal,
-                "pick": [round(float(v), 5) for v in data.xpos[body]],
-                "top": round(float(corners[:, 2].max()), 5),
-                "bottom": round(float(corners[:, 2].min()), 5),
-                "yaw": round(closing_yaw(narrowest), 4),
-                "place": [round(float(v), 5) for v in place],
-                "place_top": round(place_top, 5),
-            }
-        )
+            goal_xy = data.xpos[inner.obj_body_id[goal]][:2]
+        pair = {
+            "object": obj,
+            "goal": goal,
+            "pick": [round(float(v), 5) for v in data.xpos[body]],
+            "top": round(float(corners[:, 2].max()), 5),
+            "bottom": round(float(corners[:, 2].min()), 5),
+            "yaw": round(closing_yaw(narrowest), 4),
+            "place": [round(float(v), 5) for v in place],
+            "place_top": round(place_top, 5),
+        }
+        rim = RIM_GRASPS.get(obj.rsplit("_", 1)[0])
+        if rim is not None:
+            pair.update(rim_pair(model, data, body, rim, goal_xy, place_top))
+        pairs.append(pair)
     return {"pairs": pairs}
 
 
+def rim_pair(model: Any, data: Any, body: int, rim: RimGrasp, goal_xy: np.ndarray, goal_top: float) -> dict[str, Any]:
+    """A mug's ``grip``, ``release`` and ``yaw`` (:class:`RimGrasp`) where it stands now."""
+    frame = data.xmat[body].reshape(3, 3)[:2, :2]
+    origin = data.xpos[body]
+    solid = body_corners(model, data, body, colliding=True)
+    grip_xy = origin[:2] + frame @ np.array(rim.rim)
+    radius = frame @ (np.array(rim.rim) - np.array(rim.centre))
+    grip_z = float(solid[:, 2].max()) - rim.depth_m
+    # Carried without turning: the mug's body goes where its grip point's offset puts it.
+    release_xy = goal_xy + grip_xy - origin[:2]
+    release_z = goal_top + rim.clearance_m + grip_z - float(solid[:, 2].min())
+    return {
+        "yaw": round(closing_yaw(radius), 4),
+        "grip": [round(float(v), 5) for v in (*grip_xy, grip_z)],
+        "release": [round(float(v), 5) for v in (*release_xy, release_z)],
+    }
+
+
 def table(args: argparse.Namespace) -> None:
-    """Measure the table's rows for ``--tasks`` (all of each task's init states) on the CPU stack."""
+    """Measure the table's rows for ``--tasks`` (all of each task's init states) on the CPU stack,
+    under the ``--libero`` protocol (keyed by :func:`row_key`); other rows are kept as they are."""
     from vecsim.engine.tasks import make_env
 
+    protocol = PROTOCOLS[args.libero]
     rows: dict[str, list[dict[str, Any]]] = json.loads(args.out.read_text()) if args.out.exists() else {}
     for task in args.tasks:
-        env = make_env(task, CameraConfig(names=(), height=128, width=128))
+        key = row_key(task, protocol)
+        env = make_env(task, CameraConfig(names=(), height=128, width=128), libero=protocol)
         try:
-            rows[task] = []
+            rows[key] = []
             for k in range(env.task.num_states):
                 env.reset(options={"state_id": k})
-                rows[task].append(scene_row(env.inner))
+                rows[key].append(scene_row(env.inner))
         finally:
             env.close()
-        log.info("%s: %d init states", task, len(rows[task]))
+        log.info("%s: %d init states", key, len(rows[key]))
     # One init state a line: the file is read by people too.
     lines = ",\n".join(
         f"{json.dumps(task)}: [\n" + ",\n".join(json.dumps(row) for row in task_rows) + "\n]"
@@ -140,8 +211,17 @@ def table(args: argparse.Namespace) -> None:
 
 
 @contextmanager
-def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, ready_s: float) -> Iterator[str]:
-    """One real pod (``vecsim pod``) of ``envs`` envs of ``task`` on ``engine``, no cameras; its URL."""
+def pod(
+    engine: str,
+    task: str,
+    envs: int,
+    pythonpath: str | None,
+    port: int,
+    ready_s: float,
+    protocol: LiberoProtocol = PROTOCOLS["published"],
+) -> Iterator[str]:
+    """One real pod (``vecsim pod``) of ``envs`` envs of ``task`` on ``engine`` under the LIBERO
+    ``protocol``, no cameras; its URL."""
     import httpx
 
     spec = Assignment(
@@ -150,6 +230,7 @@ def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, re
         stage_id=0,
         engine=engine,
         camera=CameraConfig(names=()),
+        libero=protocol,
         tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
     )
     env = {**os.environ, "VECSIM_MAX_ENVS": str(envs), "VECSIM_BUILD_TIMEOUT_S": str(int(ready_s))}
@@ -186,7 +267,8 @@ def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, re
 
 
 class Policy(Protocol):
-    """What :func:`run_episodes` drives: a policy per env, told which init state each env starts."""
+    """What :func:`run_episodes` drives: a policy per env, told which init state each env starts.
+    A policy that has ``progress(env_index) -> dict`` too has it recorded with each episode's end."""
 
     def restart(self, env_index: int, state_id: int) -> None: ...
 
@@ -206,6 +288,10 @@ class Scripted:
     def act(self, obs: Any) -> np.ndarray:
         return self.script.act(obs["state"])
 
+    def progress(self, env_index: int) -> dict[str, Any]:
+        """The env's waypoint and phase (:meth:`PickPlace.progress`)."""
+        return self.script.progress(env_index)
+
 
 def env_error(exc: BaseException) -> bool:
     """Whether ``exc`` is an env's own exception (its episode's), not a failure of the call or pod."""
@@ -221,8 +307,10 @@ def run_episodes(env: Any, state_ids: Sequence[int], policy: Policy) -> dict[int
     """Run ``policy`` from each of ``state_ids`` to its episode's end on ``env`` (an
     ``HTTPVectorEnv``, autoreset disabled), as many at a time as it has envs, an env taking the
     next state when its episode ends. An env that raises ends only its own episode (an error,
-    with the exception's text) and takes the next state. Returns :class:`Episodes`'s ``outcome``."""
+    with the exception's text) and takes the next state. Returns :class:`Episodes`'s ``outcome``,
+    each episode's with the policy's ``progress`` at its end if the policy has one."""
     book = Episodes(state_ids, env.num_envs)
+    progress = getattr(policy, "progress", None)
     obs = start(env, book, policy, range(env.num_envs))
     while book.running.any():
         active = np.flatnonzero(book.running)
@@ -235,13 +323,19 @@ def run_episodes(env: Any, state_ids: Sequence[int], policy: Policy) -> dict[int
                 raise
             obs, _, terminated, truncated, _ = exc.result
             failed = list(exc.failed_envs)
-            book.fail(failed, error_text(exc))
+            book.fail(failed, error_text(exc), notes(progress, failed))
             log.warning("envs %s raised; their episodes are errors: %s", failed, error_text(exc))
         stepped = [int(i) for i in active if i not in failed]
-        ended = book.step(stepped, terminated[stepped, 0], truncated[stepped, 0])
+        over = [i for i in stepped if terminated[i, 0] or truncated[i, 0]]
+        ended = book.step(stepped, terminated[stepped, 0], truncated[stepped, 0], notes(progress, over))
         if ended or failed:
             obs = start(env, book, policy, ended + failed, obs)
     return book.outcome
+
+
+def notes(progress: Any, envs: Iterable[int]) -> dict[int, dict[str, Any]] | None:
+    """``progress(env)`` of each of ``envs`` (a policy's, before it restarts them); None without one."""
+    return None if progress is None else {int(i): progress(int(i)) for i in envs}
 
 
 def start(env: Any, book: Episodes, policy: Policy, envs: Iterable[int], obs: Any = None) -> Any:
@@ -288,26 +382,34 @@ def episodes(url: str, rows: Sequence[dict[str, Any]], state_ids: Sequence[int],
 
 
 def run(args: argparse.Namespace) -> None:
-    """Every task of ``--tasks`` on every engine of ``--engines``, a record after each."""
+    """Every task of ``--tasks`` on every engine of ``--engines`` under the ``--libero``
+    protocol (the table's rows measured under it), a record after each."""
     import httpx
 
     rows = json.loads(args.table.read_text())
+    protocol = PROTOCOLS[args.libero]
     gains = Gains()
     deadline = time.monotonic() + args.budget_s
     record: dict[str, Any] = {
         "name": "bench_scripted",
         "command": command_line(),
         "machine": {**machine_info(), "name": args.machine},
+        "libero": {"name": args.libero, **protocol.model_dump()},
         "policy": asdict(gains),
         "table": {"file": args.table.name, "sha256": hashlib.sha256(args.table.read_bytes()).hexdigest()},
         "tasks": {},
         "complete": False,
     }
+    for task in args.tasks:
+        if row_key(task, protocol) not in rows:
+            raise SystemExit(
+                f"--tasks: {task} has no row under --libero {args.libero} ({row_key(task, protocol)}) in "
+                f"{args.table}; run `table --tasks {task} --libero {args.libero}` first"
+            )
     for index, task in enumerate(args.tasks):
-        if task not in rows:
-            raise SystemExit(f"--tasks: {task} has no row in {args.table}; run `table --tasks {task}` first")
+        task_rows = rows[row_key(task, protocol)]
         entry = record["tasks"].setdefault(task, {})
-        state_ids = list(range(min(args.states, len(rows[task]))))
+        state_ids = list(range(min(args.states, len(task_rows))))
         for offset, engine in enumerate(args.engines):
             if time.monotonic() > deadline:
                 record["cut_short"] = f"budget of {args.budget_s} s spent before {task} on {engine}"
@@ -317,8 +419,8 @@ def run(args: argparse.Namespace) -> None:
             try:
                 envs = min(args.envs, len(state_ids))
                 port = args.port + 2 * index + offset
-                with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s) as url:
-                    outcome = episodes(url, rows[task], state_ids, gains)
+                with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s, protocol) as url:
+                    outcome = episodes(url, task_rows, state_ids, gains)
             except (RuntimeError, OSError, ValueError, httpx.HTTPError, ClientError) as exc:
                 entry[engine] = {"error": str(exc)}
                 log.error("%s on %s failed: %s", task, engine, exc)
@@ -353,18 +455,23 @@ def write(record: dict[str, Any], out: Path) -> None:
     out.write_text(json.dumps(record, indent=1) + "\n")
 
 
+LIBERO_HELP = "the LIBERO protocol: published (LIBERO's evaluation) or rlinf (15 settle steps, first_reset fixtures)"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     measure = sub.add_parser("table", help="where each init state's objects are (the CPU stack)")
     measure.add_argument("--tasks", nargs="+", default=["libero_10/0"])
     measure.add_argument("--out", type=Path, default=TABLE)
+    measure.add_argument("--libero", choices=sorted(PROTOCOLS), default="published", help=LIBERO_HELP)
     go = sub.add_parser("run", help="the policy's success over the init states, per task and engine")
     go.add_argument("--tasks", nargs="+", default=["libero_10/0"])
     go.add_argument("--engines", nargs="+", choices=["cpu", "mjwarp"], default=["cpu"])
     go.add_argument("--states", type=int, default=50, help="init states 0..N-1 of each task")
     go.add_argument("--envs", type=int, default=50, help="envs of each pod (states run this many at a time)")
     go.add_argument("--table", type=Path, default=TABLE)
+    go.add_argument("--libero", choices=sorted(PROTOCOLS), default="published", help=LIBERO_HELP)
     go.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
     go.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
     go.add_argument("--port", type=int, default=8300)

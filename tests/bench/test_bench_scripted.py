@@ -132,9 +132,45 @@ def test_the_rate_and_its_interval_leave_errored_episodes_out(scripted) -> None:
         "rate": 2 / 3,
         "wilson95": [round(v, 4) for v in scripted.wilson(2, 3)],
         "mean_steps_to_success": 150.0,
+        "failures_by_phase": {},
     }
     errored_only = scripted.summary({7: {"error": "x", "steps": 1}})
     assert errored_only["rate"] is None and errored_only["wilson95"] == [0.0, 1.0]
+
+
+def test_episodes_record_the_notes_given_at_their_end(scripted) -> None:
+    book = scripted.Episodes(range(3), num_envs=3)
+    book.assign([0, 1, 2])
+    notes = {0: {"waypoint": 4, "phase": "0:carry"}, 2: {"waypoint": 16, "phase": "done"}}
+    assert book.step([0, 1, 2], np.array([False, False, True]), np.array([True, False, False]), notes) == [0, 2]
+    book.fail([1], "ValueError: boom", {1: {"waypoint": 9, "phase": "1:reach"}})
+    assert book.outcome == {
+        0: {"success": False, "steps": 1, "waypoint": 4, "phase": "0:carry"},
+        1: {"error": "ValueError: boom", "steps": 1, "waypoint": 9, "phase": "1:reach"},
+        2: {"success": True, "steps": 1, "waypoint": 16, "phase": "done"},
+    }
+
+
+def test_failures_are_counted_by_the_phase_they_ended_in(scripted) -> None:
+    outcome = {
+        0: {"success": False, "steps": 520, "waypoint": 4, "phase": "0:carry"},
+        1: {"success": True, "steps": 250, "waypoint": 14, "phase": "1:release"},
+        2: {"success": False, "steps": 520, "waypoint": 4, "phase": "0:carry"},
+        3: {"success": False, "steps": 520, "waypoint": 16, "phase": "done"},
+        4: {"error": "ValueError: boom", "steps": 3, "waypoint": 0, "phase": "0:reach"},
+        5: {"success": False, "steps": 520, "waypoint": 10, "phase": "1:grasp"},
+    }
+    assert scripted.summary(outcome)["failures_by_phase"] == {"0:carry": 2, "1:grasp": 1, "done": 1}
+
+
+def test_phases_name_each_pairs_waypoints(scripted) -> None:
+    names = [scripted.phase(w, 16) for w in range(17)]
+    assert names[:8] == ["0:reach", "0:reach", "0:grasp", "0:lift", "0:carry", "0:lower", "0:release", "0:retreat"]
+    assert names[8:16] == [f"1:{name[2:]}" for name in names[:8]] and names[16] == "done"
+    with pytest.raises(ValueError, match="waypoint -1 of 16"):
+        scripted.phase(-1, 16)
+    with pytest.raises(ValueError, match="waypoint 2 of 7"):
+        scripted.phase(2, 7)
 
 
 def test_rotations_are_scipys(scripted) -> None:
@@ -180,6 +216,19 @@ def test_waypoints_pick_above_down_close_up_carry_down_open_up(scripted) -> None
     assert (yaws == 0.3).all()
 
 
+def test_a_pair_with_a_grip_and_a_release_is_held_and_let_go_there(scripted) -> None:
+    gains = scripted.Gains()
+    mug = {"pairs": [{**ROW["pairs"][0], "grip": [0.12, -0.15, 0.52], "release": [0.03, 0.31, 0.55]}]}
+    positions = scripted.waypoints(mug, gains)[0]
+    carry = 0.57 + gains.hover_m
+    np.testing.assert_allclose(
+        positions[:4], [(0.12, -0.15, carry), (0.12, -0.15, 0.52), (0.12, -0.15, 0.52), (0.12, -0.15, carry)]
+    )
+    np.testing.assert_allclose(
+        positions[4:], [(0.03, 0.31, carry), (0.03, 0.31, 0.55), (0.03, 0.31, 0.55), (0.03, 0.31, carry)]
+    )
+
+
 def test_a_flat_object_is_gripped_clear_of_the_table(scripted) -> None:
     gains = scripted.Gains()
     flat = {"pairs": [{**ROW["pairs"][0], "top": 0.455, "bottom": 0.435}]}
@@ -216,6 +265,8 @@ def test_policy_advances_on_reaching_and_after_holding(scripted) -> None:
         assert policy.index[0] == 2
     policy.act(np.concatenate([state_at(scripted, positions[2], 0.3), far]))
     assert policy.index.tolist() == [3, 0] and not policy.finished.any()
+    assert policy.progress(0) == {"waypoint": 3, "phase": "0:lift"}
+    assert policy.progress(1) == {"waypoint": 0, "phase": "0:reach"}
 
 
 def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
@@ -244,7 +295,7 @@ def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
     policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
     for _ in range(len(policy.positions[0])):
         policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))
-    assert policy.finished.all()
+    assert policy.finished.all() and policy.progress(0) == {"waypoint": 8, "phase": "done"}
     action = policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))[0]
     assert action[6] == -1  # it stays over the goal, open
 
@@ -266,6 +317,13 @@ class Push:
         actions[(self.state == self.boom_state) & (self.steps == 1), 0, 0] = gym_custom_env.BOOM
         self.steps += 1
         return actions
+
+
+class Counted(Push):
+    """:class:`Push` that tells where each env is: its state and the actions it was given."""
+
+    def progress(self, env_index: int) -> dict[str, int]:
+        return {"state": int(self.state[env_index]), "acted": int(self.steps[env_index])}
 
 
 @pytest.fixture(scope="module")
@@ -361,6 +419,20 @@ def test_smoke_run_through_a_pod_ends_as_on_libero_itself(tmp_path: Path, script
                 )
                 obs, _, done, _ = env.step(policy.act(state[None])[0].tolist())
                 steps += 1
-            assert served[str(k)] == {"success": bool(done), "steps": steps}
+            assert served[str(k)] == {"success": bool(done), "steps": steps, **policy.progress(0)}
     finally:
         env.close()
+
+
+def test_the_bench_records_the_policys_progress_at_each_episodes_end(bench) -> None:
+    from vecsim.client import HTTPVectorEnv
+
+    bench_scripted, url = bench
+    states = list(range(6))
+    with contextlib.closing(HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled")) as env:
+        env.set_attr("refuse_resets", [0, 1])  # env 1's first reset raises
+        outcome = bench_scripted.run_episodes(env, states, Counted(env.num_envs, boom_state=2))
+    assert "acted" not in outcome[1]  # its reset raised: no episode to tell of
+    assert outcome[2]["error"] and outcome[2]["state"] == 2 and outcome[2]["acted"] == 2  # raised on its 2nd
+    for k in (0, 3, 4, 5):  # read before the env took its next state: its own episode's
+        assert outcome[k]["state"] == k and outcome[k]["acted"] == outcome[k]["steps"]
