@@ -4,9 +4,16 @@
 The policy (``lib/scripted.py``) is closed loop on the end effector and open loop on the
 objects: ``table`` (the CPU stack: robosuite, LIBERO) measures, for each init state of each
 task, where the goal's objects and regions are after a CPU pod's reset (settle steps included),
-and writes ``bench/lib/scripted_table.json``, which the bench carries::
+and writes ``bench/lib/scripted_table.json``, which the bench carries (rows of other tasks kept)::
 
-    python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/7
+    python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/4 libero_10/6 libero_10/7
+    python bench/bench_scripted.py table --libero rlinf --tasks libero_10/5 libero_10/8
+
+``--libero`` (both commands) names the LIBERO protocol: ``published`` (LIBERO's evaluation, the
+default) or ``rlinf`` (RLinf's: 15 settle steps, ``first_reset`` fixtures, under which the
+``mjwarp`` engine serves the tasks whose fixtures move between init states, 5 and 8 among
+them). Rows are keyed by task and protocol (:func:`row_key`): a run reads only rows measured
+under its own protocol, and its pods run under it.
 
 ``run`` starts one real pod (``vecsim pod``, uvicorn, loopback) per task and engine, resets its
 envs to the init states (all 50 by default, ``--envs`` at a time, an env taking the next state
@@ -16,7 +23,10 @@ episode: the state is recorded as an error (``per_state[k]["error"]``, the excep
 the env takes the next state. Per task and engine: successes, errors and their state ids, the
 rate with its Wilson 95% interval over the episodes that ended without an error, the mean
 episode length of the successes, and with both engines the agreement per init state (states
-that errored on either engine counted apart). Each engine's pods run under their own ``PYTHONPATH``
+that errored on either engine counted apart). Each episode's record names the waypoint and
+phase the policy was at when it ended and where its closed fingers were first found empty
+(``per_state[k]``: ``waypoint``, ``phase``, ``empty_grip``); the summary counts the failures by
+both. Each engine's pods run under their own ``PYTHONPATH``
 (the two stacks pin different mujoco versions); this process needs only the client. The record
 is written after every task and engine, so a run cut short keeps what it did::
 
@@ -66,6 +76,17 @@ PROTOCOLS = {
 }
 
 
+# Tasks whose script moves otherwise than :class:`Gains`'s defaults (tuned on libero_10/0):
+# libero_10/5's book hangs 11 cm under the fingers, so it is carried higher, clear of the
+# caddy's walls (at the default height it catches on them and turns in the grasp).
+TASK_GAINS = {"libero_10/5": Gains(hover_m=0.2)}
+
+
+def task_gains(task: str) -> Gains:
+    """The script's gains for ``task``: its own (:data:`TASK_GAINS`) or the defaults."""
+    return TASK_GAINS.get(task, Gains())
+
+
 def row_key(task: str, protocol: LiberoProtocol) -> str:
     """The table's key of ``task``'s rows measured under ``protocol``: the task id under the
     default (published) protocol, else the task id and every setting that differs from it
@@ -95,57 +116,76 @@ def body_corners(model: Any, data: Any, body: int, colliding: bool = False) -> n
 
 
 @dataclass(frozen=True)
-class RimGrasp:
-    """How the script holds a mug, whose body is too wide for the Panda's 8 cm: by its rim, the
-    fingers astride the wall on the side away from the handle, closing along the radius. Points
-    are in the mug's body frame (x, y), read off the collision geoms of LIBERO's model (the mean
-    of the wall boxes' centres, and the wall box across from the handle)."""
+class Grasp:
+    """How the script holds an object that its centre and narrowest side do not suit. Points are
+    in the object's body frame (x, y), read off the collision geoms of LIBERO's model."""
 
-    centre: tuple[float, float]  # the cup's axis
-    rim: tuple[float, float]  # the middle of the wall where the fingers close
-    depth_m: float = 0.02  # the fingertips' centre this far under the wall's top
-    clearance_m: float = 0.012  # the mug's bottom this far above the goal's top when let go
+    at: tuple[float, float]  # where the fingers close
+    centre: tuple[float, float] | None = None  # given: the fingers close along ``at - centre``
+    depth_m: float = 0.02  # the fingertips' centre this far under the top of its collision geoms
+    clearance_m: float = 0.012  # its bottom this far above the goal's top when let go
 
 
-# Mugs by LIBERO object category (the object's name without its ``_<n>`` suffix).
-RIM_GRASPS = {
-    "porcelain_mug": RimGrasp(centre=(0.0157, 0.0), rim=(0.0568, -0.0015)),
-    "white_yellow_mug": RimGrasp(centre=(-0.018, 0.0), rim=(-0.0604, -0.0045)),
+# By LIBERO object category (the object's name without its ``_<n>`` suffix). A mug is too wide
+# for the Panda's 8 cm: it is held by the rim, the fingers astride the wall across from the
+# handle and closing along the radius (``centre``: the mean of the wall boxes' centres; ``at``:
+# the wall box across from the handle). A moka pot is held round its 6.8 cm body, across its
+# narrowest side, 5 cm under its lid's knob (its visual mesh reaches 3 cm above its collision
+# geoms, where the default grasp would close on air); it is let go 3.5 cm over its region's site,
+# which lies 2.3 cm under the stove's burner.
+GRASPS = {
+    "porcelain_mug": Grasp(at=(0.0568, -0.0015), centre=(0.0157, 0.0)),
+    "white_yellow_mug": Grasp(at=(-0.0604, -0.0045), centre=(-0.018, 0.0)),
+    "moka_pot": Grasp(at=(0.0, 0.07), depth_m=0.046, clearance_m=0.035),
 }
+# Tasks whose objects share one goal region, and how far apart (metres, along the region's x
+# axis) their places are set, in the goal's order: libero_10/8's two moka pots on one burner.
+SHARED_GOAL_SPACING_M = {"libero_10/8": 0.084}
 
 
-def scene_row(inner: Any) -> dict[str, Any]:
+def scene_row(inner: Any, spacing_m: float = 0.0) -> dict[str, Any]:
     """Where the goal's objects and goals are in ``inner`` (a LIBERO env, now): for each of the
     goal's ``in``/``on`` predicates, in order, the object's centre, top, bottom and grasp yaw (its
     narrowest horizontal direction), and the goal's centre and top (a region site, or an
     object's bounding box). A goal's other terms (a stove that is on) must hold already: the
-    script leaves them be. A mug (:data:`RIM_GRASPS`) is held by its rim: its pair adds ``grip``
-    (where the fingertips close) and ``release`` (where they open: the mug's body over the goal
-    object's body, or over the region site, as LIBERO's ``On`` checks), and its yaw is the rim's."""
+    script leaves them be. With ``spacing_m``, objects that share a goal get places that far
+    apart along the goal's x axis, centred on it. A region site at least twice as long as wide
+    (a slot) adds ``place_yaw``, turning the object's narrowest side across it. An object of
+    :data:`GRASPS` adds ``grip`` (where the fingertips close) and ``release`` (where they open:
+    its body over the goal object's body, or over the region site, as LIBERO's ``On`` checks)."""
     import mujoco
 
     model, data = inner.sim.model._model, inner.sim.data._data
-    pairs = []
+    terms = []
     for term in inner.parsed_problem["goal_state"]:
-        if len(term) != 3 or term[0].lower() not in ("in", "on"):
-            if inner._eval_predicate(term):
-                continue
+        if len(term) == 3 and term[0].lower() in ("in", "on"):
+            terms.append(term)
+        elif not inner._eval_predicate(term):
             raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
-        _, obj, goal = term
+    sharing = [sum(1 for t in terms if t[2] == term[2]) for term in terms]
+    pairs = []
+    for index, (_, obj, goal) in enumerate(terms):
         body = inner.obj_body_id[obj]
         corners = body_corners(model, data, body)
         spread = corners[:, :2] - corners[:, :2].mean(axis=0)
         narrowest = np.linalg.eigh(spread.T @ spread)[1][:, 0]
         site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, goal)
+        slot = None
         if site >= 0:
             place = data.site_xpos[site].copy()
             place_top = float(place[2] + model.site_size[site, 2])
-            goal_xy = place[:2]
+            goal_xy, x_axis = place[:2], data.site_xmat[site].reshape(3, 3)[:2, 0]
+            slot = slot_axis(model, data, site)
         else:
             around = body_corners(model, data, inner.obj_body_id[goal])
             place_top = float(around[:, 2].max())
             place = np.array([*around[:, :2].mean(axis=0), place_top])
-            goal_xy = data.xpos[inner.obj_body_id[goal]][:2]
+            goal_body = inner.obj_body_id[goal]
+            goal_xy, x_axis = data.xpos[goal_body][:2], data.xmat[goal_body].reshape(3, 3)[:2, 0]
+        if spacing_m and sharing[index] > 1:
+            rank = sum(1 for t in terms[:index] if t[2] == goal)
+            shift = (rank - (sharing[index] - 1) / 2) * spacing_m * x_axis
+            goal_xy, place = goal_xy + shift, place + [*shift, 0.0]
         pair = {
             "object": obj,
             "goal": goal,
@@ -156,29 +196,43 @@ def scene_row(inner: Any) -> dict[str, Any]:
             "place": [round(float(v), 5) for v in place],
             "place_top": round(place_top, 5),
         }
-        rim = RIM_GRASPS.get(obj.rsplit("_", 1)[0])
-        if rim is not None:
-            pair.update(rim_pair(model, data, body, rim, goal_xy, place_top))
+        if slot is not None:
+            pair["place_yaw"] = round(closing_yaw(slot, pair["yaw"]), 4)
+        grasp = GRASPS.get(obj.rsplit("_", 1)[0])
+        if grasp is not None:
+            pair.update(held_pair(model, data, body, grasp, goal_xy, place_top))
         pairs.append(pair)
     return {"pairs": pairs}
 
 
-def rim_pair(model: Any, data: Any, body: int, rim: RimGrasp, goal_xy: np.ndarray, goal_top: float) -> dict[str, Any]:
-    """A mug's ``grip``, ``release`` and ``yaw`` (:class:`RimGrasp`) where it stands now."""
+def slot_axis(model: Any, data: Any, site: int, ratio: float = 2.0) -> np.ndarray | None:
+    """The horizontal direction along which a region site is narrow, if it is ``ratio`` times
+    narrower one way than the other (a caddy's back compartment); None for a squarer one."""
+    half = model.site_size[site, :2]
+    axes = data.site_xmat[site].reshape(3, 3)[:2, :2]
+    if half.max() < ratio * half.min():
+        return None
+    return axes[:, int(np.argmin(half))]
+
+
+def held_pair(model: Any, data: Any, body: int, grasp: Grasp, goal_xy: np.ndarray, goal_top: float) -> dict[str, Any]:
+    """An object's ``grip`` and ``release`` (and ``yaw``, with a ``centre``) under ``grasp``,
+    where it stands now."""
     frame = data.xmat[body].reshape(3, 3)[:2, :2]
     origin = data.xpos[body]
     solid = body_corners(model, data, body, colliding=True)
-    grip_xy = origin[:2] + frame @ np.array(rim.rim)
-    radius = frame @ (np.array(rim.rim) - np.array(rim.centre))
-    grip_z = float(solid[:, 2].max()) - rim.depth_m
-    # Carried without turning: the mug's body goes where its grip point's offset puts it.
+    grip_xy = origin[:2] + frame @ np.array(grasp.at)
+    grip_z = float(solid[:, 2].max()) - grasp.depth_m
+    # Carried without turning: the body goes where its grip point's offset puts it.
     release_xy = goal_xy + grip_xy - origin[:2]
-    release_z = goal_top + rim.clearance_m + grip_z - float(solid[:, 2].min())
-    return {
-        "yaw": round(closing_yaw(radius), 4),
+    release_z = goal_top + grasp.clearance_m + grip_z - float(solid[:, 2].min())
+    held = {
         "grip": [round(float(v), 5) for v in (*grip_xy, grip_z)],
         "release": [round(float(v), 5) for v in (*release_xy, release_z)],
     }
+    if grasp.centre is not None:
+        held["yaw"] = round(closing_yaw(frame @ (np.array(grasp.at) - np.array(grasp.centre))), 4)
+    return held
 
 
 def table(args: argparse.Namespace) -> None:
@@ -195,7 +249,7 @@ def table(args: argparse.Namespace) -> None:
             rows[key] = []
             for k in range(env.task.num_states):
                 env.reset(options={"state_id": k})
-                rows[key].append(scene_row(env.inner))
+                rows[key].append(scene_row(env.inner, SHARED_GOAL_SPACING_M.get(task, 0.0)))
         finally:
             env.close()
         log.info("%s: %d init states", key, len(rows[key]))
@@ -388,14 +442,13 @@ def run(args: argparse.Namespace) -> None:
 
     rows = json.loads(args.table.read_text())
     protocol = PROTOCOLS[args.libero]
-    gains = Gains()
     deadline = time.monotonic() + args.budget_s
     record: dict[str, Any] = {
         "name": "bench_scripted",
         "command": command_line(),
         "machine": {**machine_info(), "name": args.machine},
         "libero": {"name": args.libero, **protocol.model_dump()},
-        "policy": asdict(gains),
+        "policy": asdict(Gains()),
         "table": {"file": args.table.name, "sha256": hashlib.sha256(args.table.read_bytes()).hexdigest()},
         "tasks": {},
         "complete": False,
@@ -408,7 +461,10 @@ def run(args: argparse.Namespace) -> None:
             )
     for index, task in enumerate(args.tasks):
         task_rows = rows[row_key(task, protocol)]
+        gains = task_gains(task)
         entry = record["tasks"].setdefault(task, {})
+        if gains != Gains():
+            entry["policy"] = asdict(gains)  # the task's own, in place of the record's
         state_ids = list(range(min(args.states, len(task_rows))))
         for offset, engine in enumerate(args.engines):
             if time.monotonic() > deadline:

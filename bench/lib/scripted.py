@@ -59,6 +59,7 @@ class Gains:
     rotation_gain: float = 1.0  # action per ROT_LIMIT_RAD of error
     grip_steps: int = 15  # steps spent closing or opening the gripper
     move_timeout: int = 50  # steps after which a waypoint not reached is given up on
+    empty_grip_m: float = 0.005  # closed fingers nearer than this hold nothing (recorded, not acted on)
 
 
 def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -137,11 +138,13 @@ def summary(outcome: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     """Successes, errors (their state ids), the rate with its Wilson 95% interval over the
     episodes that ended without an error, the mean steps to success of one task on one engine,
     and the failures (episodes ended without success or error) counted by the ``phase`` they
-    ended in, those whose outcome names one."""
+    ended in and by the phase their grip was first found empty in (``empty_grip``; ``"never"``
+    if it was not), those whose outcome names them."""
     errored = sorted(k for k, o in outcome.items() if "error" in o)
     ended = [o for o in outcome.values() if "error" not in o]
     wins = [o["steps"] for o in ended if o["success"]]
     lost = Counter(o["phase"] for o in ended if not o["success"] and "phase" in o)
+    dropped = Counter(o["empty_grip"] or "never" for o in ended if not o["success"] and "empty_grip" in o)
     low, high = wilson(len(wins), len(ended))
     return {
         "states": len(outcome),
@@ -152,6 +155,7 @@ def summary(outcome: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
         "wilson95": [round(low, 4), round(high, 4)],
         "mean_steps_to_success": float(np.mean(wins)) if wins else None,
         "failures_by_phase": dict(sorted(lost.items())),
+        "failures_by_empty_grip": dict(sorted(dropped.items())),
     }
 
 
@@ -233,7 +237,10 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarra
 
     ``row["pairs"]`` lists, in order, each object to move: ``pick`` (its centre), ``top`` and ``bottom`` (its
     heights), ``yaw`` (the grasp's) and ``place`` (the goal region's centre) and
-    ``place_top`` (the region's top, the height to carry it over).
+    ``place_top`` (the region's top, the height to carry it over). Optional: ``grip`` and
+    ``release``, where the fingertips close and open when that is not over the object's centre
+    and goal (a mug held by its rim); ``place_yaw``, the yaw to carry and let go at when it is
+    not the grasp's (a book turned to fit a slot).
     """
     positions, yaws, grips, holds = [], [], [], []
 
@@ -247,6 +254,7 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarra
         x, y, _ = pair["pick"]
         px, py, pz = pair["place"]
         yaw = pair["yaw"]
+        turned = pair.get("place_yaw", yaw)
         carry = max(pair["place_top"], pair["top"]) + gains.hover_m
         grasp = max(pair["top"] - gains.grasp_below_top_m, pair["bottom"] + gains.floor_clearance_m)
         release = pz + gains.release_above_m
@@ -258,10 +266,10 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarra
         add((x, y, grasp), yaw, OPEN)
         add((x, y, grasp), yaw, CLOSED, gains.grip_steps)
         add((x, y, carry), yaw, CLOSED)
-        add((px, py, carry), yaw, CLOSED)
-        add((px, py, release), yaw, CLOSED)
-        add((px, py, release), yaw, OPEN, gains.grip_steps)
-        add((px, py, carry), yaw, OPEN)
+        add((px, py, carry), turned, CLOSED)
+        add((px, py, release), turned, CLOSED)
+        add((px, py, release), turned, OPEN, gains.grip_steps)
+        add((px, py, carry), turned, OPEN)
     return np.array(positions), np.array(yaws), np.array(grips), np.array(holds, dtype=np.int64)
 
 
@@ -278,16 +286,24 @@ class PickPlace:
         self.holds = np.stack([s[3] for s in scripts])
         self.index = np.zeros(len(rows), dtype=np.int64)  # each env's current waypoint
         self.spent = np.zeros(len(rows), dtype=np.int64)  # steps spent on it
+        self.empty = np.full(len(rows), -1, dtype=np.int64)  # the waypoint its grip was first found empty at
 
     def restart(self, i: int, row: Mapping[str, Any]) -> None:
         """Env ``i`` starts over on the script of ``row`` (an init state of the same task)."""
         self.positions[i], self.yaws[i], self.grips[i], self.holds[i] = waypoints(row, self.gains)
         self.index[i] = self.spent[i] = 0
+        self.empty[i] = -1
 
     def progress(self, i: int) -> dict[str, Any]:
-        """Where env ``i`` is in its script: its waypoint's index and :func:`phase`."""
-        waypoint = int(self.index[i])
-        return {"waypoint": waypoint, "phase": phase(waypoint, self.positions.shape[1])}
+        """Where env ``i`` is in its script: its waypoint's index and :func:`phase`, and the
+        phase in which its closed fingers were first found holding nothing (``empty_grip``: the
+        object slipped out, or was never caught), None if they never were."""
+        waypoint, empty, total = int(self.index[i]), int(self.empty[i]), self.positions.shape[1]
+        return {
+            "waypoint": waypoint,
+            "phase": phase(waypoint, total),
+            "empty_grip": phase(empty, total) if empty >= 0 else None,
+        }
 
     @property
     def finished(self) -> np.ndarray:
@@ -322,4 +338,8 @@ class PickPlace:
         actions[:, :3] = self.gains.position_gain * position_error / POS_LIMIT_M
         actions[:, 3:6] = self.gains.rotation_gain * rotation_error / ROT_LIMIT_RAD
         actions[:, 6] = self.grips[rows, at]
+        # Moving with the fingers closed (the grasp's hold done) and nothing between them.
+        carrying = (self.grips[rows, at] == CLOSED) & (self.holds[rows, at] == 0) & ~self.finished
+        empty = carrying & (states[:, 6] - states[:, 7] < self.gains.empty_grip_m) & (self.empty < 0)
+        self.empty = np.where(empty, self.index, self.empty)
         return np.clip(actions, -1.0, 1.0).astype(np.float32)
