@@ -4,9 +4,16 @@
 The policy (``lib/scripted.py``) is closed loop on the end effector and open loop on the
 objects: ``table`` (the CPU stack: robosuite, LIBERO) measures, for each init state of each
 task, where the goal's objects and regions are after a CPU pod's reset (settle steps included),
-and writes ``bench/lib/scripted_table.json``, which the bench carries::
+and writes ``bench/lib/scripted_table.json``, which the bench carries (rows of other tasks kept)::
 
-    python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/7
+    python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/4 libero_10/6 libero_10/7
+    python bench/bench_scripted.py table --libero rlinf --tasks libero_10/5 libero_10/8
+
+``--libero`` (both commands) names the LIBERO protocol: ``published`` (LIBERO's evaluation, the
+default) or ``rlinf`` (RLinf's: 15 settle steps, ``first_reset`` fixtures, under which the
+``mjwarp`` engine serves the tasks whose fixtures move between init states, 5 and 8 among
+them). Rows are keyed by task and protocol (:func:`row_key`): a run reads only rows measured
+under its own protocol, and its pods run under it.
 
 ``run`` starts one real pod (``vecsim pod``, uvicorn, loopback) per task and engine, resets its
 envs to the init states (all 50 by default, ``--envs`` at a time, an env taking the next state
@@ -16,7 +23,10 @@ episode: the state is recorded as an error (``per_state[k]["error"]``, the excep
 the env takes the next state. Per task and engine: successes, errors and their state ids, the
 rate with its Wilson 95% interval over the episodes that ended without an error, the mean
 episode length of the successes, and with both engines the agreement per init state (states
-that errored on either engine counted apart). Each engine's pods run under their own ``PYTHONPATH``
+that errored on either engine counted apart). Each episode's record names the waypoint and
+phase the policy was at when it ended and where its closed fingers were first found empty
+(``per_state[k]``: ``waypoint``, ``phase``, ``empty_grip``); the summary counts the failures by
+both. Each engine's pods run under their own ``PYTHONPATH``
 (the two stacks pin different mujoco versions); this process needs only the client. The record
 is written after every task and engine, so a run cut short keeps what it did::
 
@@ -42,7 +52,7 @@ import tempfile
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -51,83 +61,198 @@ from lib.records import command_line, machine_info
 from lib.scripted import Episodes, Gains, PickPlace, agreement, closing_yaw, summary
 
 from vecsim.client.errors import ClientError
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
 
 log = logging.getLogger("bench_scripted")
 
 TABLE = Path(__file__).resolve().parent / "lib" / "scripted_table.json"
 CODE = Path(__file__).resolve().parents[1]
+# The LIBERO protocols a table and a run can take (``--libero``): LIBERO's published evaluation,
+# and RLinf's (15 settle steps, every init state on a fresh env's first fixture placement), the
+# one under which the ``mjwarp`` engine serves every LIBERO-10 task (docs/mjwarp.md).
+PROTOCOLS = {
+    "published": LiberoProtocol(),
+    "rlinf": LiberoProtocol(settle_steps=15, fixture_rule="first_reset"),
+}
+
+
+# Tasks whose script moves otherwise than :class:`Gains`'s defaults (tuned on libero_10/0):
+# libero_10/5's book hangs 11 cm under the fingers, so it is carried higher, clear of the
+# caddy's walls (at the default height it catches on them and turns in the grasp).
+TASK_GAINS = {"libero_10/5": Gains(hover_m=0.2)}
+
+
+def task_gains(task: str) -> Gains:
+    """The script's gains for ``task``: its own (:data:`TASK_GAINS`) or the defaults."""
+    return TASK_GAINS.get(task, Gains())
+
+
+def row_key(task: str, protocol: LiberoProtocol) -> str:
+    """The table's key of ``task``'s rows measured under ``protocol``: the task id under the
+    default (published) protocol, else the task id and every setting that differs from it
+    (``libero_10/5@fixture_rule=first_reset,settle_steps=15``), so rows measured under one
+    protocol are never read for another."""
+    default = LiberoProtocol().model_dump()
+    changed = sorted((k, v) for k, v in protocol.model_dump().items() if v != default[k])
+    return task if not changed else f"{task}@" + ",".join(f"{k}={v}" for k, v in changed)
 
 
 # -- the table (CPU stack) ---------------------------------------------------------------------
 
 
-def body_corners(model: Any, data: Any, body: int) -> np.ndarray:
-    """The world corners ``[8 * geoms, 3]`` of the bounding boxes of every geom of ``body``'s tree."""
+def body_corners(model: Any, data: Any, body: int, colliding: bool = False) -> np.ndarray:
+    """The world corners ``[8 * geoms, 3]`` of the bounding boxes of every geom of ``body``'s tree
+    (with ``colliding``, of its geoms that collide only: visual meshes left out)."""
     corners = []
     signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    for geom in np.flatnonzero(model.body_rootid[model.geom_bodyid] == body):
+    geoms = model.body_rootid[model.geom_bodyid] == body
+    if colliding:
+        geoms &= (model.geom_contype != 0) | (model.geom_conaffinity != 0)
+    for geom in np.flatnonzero(geoms):
         centre, half = model.geom_aabb[geom, :3], model.geom_aabb[geom, 3:]
         local = centre + signs * half
         corners.append(data.geom_xpos[geom] + local @ data.geom_xmat[geom].reshape(3, 3).T)
     return np.concatenate(corners)
 
 
-def scene_row(inner: Any) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Grasp:
+    """How the script holds an object that its centre and narrowest side do not suit. Points are
+    in the object's body frame (x, y), read off the collision geoms of LIBERO's model."""
+
+    at: tuple[float, float]  # where the fingers close
+    centre: tuple[float, float] | None = None  # given: the fingers close along ``at - centre``
+    depth_m: float = 0.02  # the fingertips' centre this far under the top of its collision geoms
+    clearance_m: float = 0.012  # its bottom this far above the goal's top when let go
+
+
+# By LIBERO object category (the object's name without its ``_<n>`` suffix). A mug is too wide
+# for the Panda's 8 cm: it is held by the rim, the fingers astride the wall across from the
+# handle and closing along the radius (``centre``: the mean of the wall boxes' centres; ``at``:
+# the wall box across from the handle). A moka pot is held round its 6.8 cm body, across its
+# narrowest side, 5 cm under its lid's knob (its visual mesh reaches 3 cm above its collision
+# geoms, where the default grasp would close on air); it is let go 3.5 cm over its region's site,
+# which lies 2.3 cm under the stove's burner.
+GRASPS = {
+    "porcelain_mug": Grasp(at=(0.0568, -0.0015), centre=(0.0157, 0.0)),
+    "white_yellow_mug": Grasp(at=(-0.0604, -0.0045), centre=(-0.018, 0.0)),
+    "moka_pot": Grasp(at=(0.0, 0.07), depth_m=0.046, clearance_m=0.035),
+}
+# Tasks whose objects share one goal region, and how far apart (metres, along the region's x
+# axis) their places are set, in the goal's order: libero_10/8's two moka pots on one burner.
+SHARED_GOAL_SPACING_M = {"libero_10/8": 0.084}
+
+
+def scene_row(inner: Any, spacing_m: float = 0.0) -> dict[str, Any]:
     """Where the goal's objects and goals are in ``inner`` (a LIBERO env, now): for each of the
     goal's ``in``/``on`` predicates, in order, the object's centre, top, bottom and grasp yaw (its
     narrowest horizontal direction), and the goal's centre and top (a region site, or an
-    object's bounding box)."""
+    object's bounding box). A goal's other terms (a stove that is on) must hold already: the
+    script leaves them be. With ``spacing_m``, objects that share a goal get places that far
+    apart along the goal's x axis, centred on it. A region site at least twice as long as wide
+    (a slot) adds ``place_yaw``, turning the object's narrowest side across it. An object of
+    :data:`GRASPS` adds ``grip`` (where the fingertips close) and ``release`` (where they open:
+    its body over the goal object's body, or over the region site, as LIBERO's ``On`` checks)."""
     import mujoco
 
     model, data = inner.sim.model._model, inner.sim.data._data
-    pairs = []
+    terms = []
     for term in inner.parsed_problem["goal_state"]:
-        if len(term) != 3 or term[0].lower() not in ("in", "on"):
+        if len(term) == 3 and term[0].lower() in ("in", "on"):
+            terms.append(term)
+        elif not inner._eval_predicate(term):
             raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
-        _, obj, goal = term
+    sharing = [sum(1 for t in terms if t[2] == term[2]) for term in terms]
+    pairs = []
+    for index, (_, obj, goal) in enumerate(terms):
         body = inner.obj_body_id[obj]
         corners = body_corners(model, data, body)
         spread = corners[:, :2] - corners[:, :2].mean(axis=0)
         narrowest = np.linalg.eigh(spread.T @ spread)[1][:, 0]
         site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, goal)
+        slot = None
         if site >= 0:
             place = data.site_xpos[site].copy()
             place_top = float(place[2] + model.site_size[site, 2])
+            goal_xy, x_axis = place[:2], data.site_xmat[site].reshape(3, 3)[:2, 0]
+            slot = slot_axis(model, data, site)
         else:
             around = body_corners(model, data, inner.obj_body_id[goal])
             place_top = float(around[:, 2].max())
             place = np.array([*around[:, :2].mean(axis=0), place_top])
-        pairs.append(
-            {
-                "object": obj,
-                "goal": goal,
-                "pick": [round(float(v), 5) for v in data.xpos[body]],
-                "top": round(float(corners[:, 2].max()), 5),
-                "bottom": round(float(corners[:, 2].min()), 5),
-                "yaw": round(closing_yaw(narrowest), 4),
-                "place": [round(float(v), 5) for v in place],
-                "place_top": round(place_top, 5),
-            }
-        )
+            goal_body = inner.obj_body_id[goal]
+            goal_xy, x_axis = data.xpos[goal_body][:2], data.xmat[goal_body].reshape(3, 3)[:2, 0]
+        if spacing_m and sharing[index] > 1:
+            rank = sum(1 for t in terms[:index] if t[2] == goal)
+            shift = (rank - (sharing[index] - 1) / 2) * spacing_m * x_axis
+            goal_xy, place = goal_xy + shift, place + [*shift, 0.0]
+        pair = {
+            "object": obj,
+            "goal": goal,
+            "pick": [round(float(v), 5) for v in data.xpos[body]],
+            "top": round(float(corners[:, 2].max()), 5),
+            "bottom": round(float(corners[:, 2].min()), 5),
+            "yaw": round(closing_yaw(narrowest), 4),
+            "place": [round(float(v), 5) for v in place],
+            "place_top": round(place_top, 5),
+        }
+        if slot is not None:
+            pair["place_yaw"] = round(closing_yaw(slot, pair["yaw"]), 4)
+        grasp = GRASPS.get(obj.rsplit("_", 1)[0])
+        if grasp is not None:
+            pair.update(held_pair(model, data, body, grasp, goal_xy, place_top))
+        pairs.append(pair)
     return {"pairs": pairs}
 
 
+def slot_axis(model: Any, data: Any, site: int, ratio: float = 2.0) -> np.ndarray | None:
+    """The horizontal direction along which a region site is narrow, if it is ``ratio`` times
+    narrower one way than the other (a caddy's back compartment); None for a squarer one."""
+    half = model.site_size[site, :2]
+    axes = data.site_xmat[site].reshape(3, 3)[:2, :2]
+    if half.max() < ratio * half.min():
+        return None
+    return axes[:, int(np.argmin(half))]
+
+
+def held_pair(model: Any, data: Any, body: int, grasp: Grasp, goal_xy: np.ndarray, goal_top: float) -> dict[str, Any]:
+    """An object's ``grip`` and ``release`` (and ``yaw``, with a ``centre``) under ``grasp``,
+    where it stands now."""
+    frame = data.xmat[body].reshape(3, 3)[:2, :2]
+    origin = data.xpos[body]
+    solid = body_corners(model, data, body, colliding=True)
+    grip_xy = origin[:2] + frame @ np.array(grasp.at)
+    grip_z = float(solid[:, 2].max()) - grasp.depth_m
+    # Carried without turning: the body goes where its grip point's offset puts it.
+    release_xy = goal_xy + grip_xy - origin[:2]
+    release_z = goal_top + grasp.clearance_m + grip_z - float(solid[:, 2].min())
+    held = {
+        "grip": [round(float(v), 5) for v in (*grip_xy, grip_z)],
+        "release": [round(float(v), 5) for v in (*release_xy, release_z)],
+    }
+    if grasp.centre is not None:
+        held["yaw"] = round(closing_yaw(frame @ (np.array(grasp.at) - np.array(grasp.centre))), 4)
+    return held
+
+
 def table(args: argparse.Namespace) -> None:
-    """Measure the table's rows for ``--tasks`` (all of each task's init states) on the CPU stack."""
+    """Measure the table's rows for ``--tasks`` (all of each task's init states) on the CPU stack,
+    under the ``--libero`` protocol (keyed by :func:`row_key`); other rows are kept as they are."""
     from vecsim.engine.tasks import make_env
 
+    protocol = PROTOCOLS[args.libero]
     rows: dict[str, list[dict[str, Any]]] = json.loads(args.out.read_text()) if args.out.exists() else {}
     for task in args.tasks:
-        env = make_env(task, CameraConfig(names=(), height=128, width=128))
+        key = row_key(task, protocol)
+        env = make_env(task, CameraConfig(names=(), height=128, width=128), libero=protocol)
         try:
-            rows[task] = []
+            rows[key] = []
             for k in range(env.task.num_states):
                 env.reset(options={"state_id": k})
-                rows[task].append(scene_row(env.inner))
+                rows[key].append(scene_row(env.inner, SHARED_GOAL_SPACING_M.get(task, 0.0)))
         finally:
             env.close()
-        log.info("%s: %d init states", task, len(rows[task]))
+        log.info("%s: %d init states", key, len(rows[key]))
     # One init state a line: the file is read by people too.
     lines = ",\n".join(
         f"{json.dumps(task)}: [\n" + ",\n".join(json.dumps(row) for row in task_rows) + "\n]"
@@ -140,8 +265,17 @@ def table(args: argparse.Namespace) -> None:
 
 
 @contextmanager
-def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, ready_s: float) -> Iterator[str]:
-    """One real pod (``vecsim pod``) of ``envs`` envs of ``task`` on ``engine``, no cameras; its URL."""
+def pod(
+    engine: str,
+    task: str,
+    envs: int,
+    pythonpath: str | None,
+    port: int,
+    ready_s: float,
+    protocol: LiberoProtocol = PROTOCOLS["published"],
+) -> Iterator[str]:
+    """One real pod (``vecsim pod``) of ``envs`` envs of ``task`` on ``engine`` under the LIBERO
+    ``protocol``, no cameras; its URL."""
     import httpx
 
     spec = Assignment(
@@ -150,6 +284,7 @@ def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, re
         stage_id=0,
         engine=engine,
         camera=CameraConfig(names=()),
+        libero=protocol,
         tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
     )
     env = {**os.environ, "VECSIM_MAX_ENVS": str(envs), "VECSIM_BUILD_TIMEOUT_S": str(int(ready_s))}
@@ -186,7 +321,8 @@ def pod(engine: str, task: str, envs: int, pythonpath: str | None, port: int, re
 
 
 class Policy(Protocol):
-    """What :func:`run_episodes` drives: a policy per env, told which init state each env starts."""
+    """What :func:`run_episodes` drives: a policy per env, told which init state each env starts.
+    A policy that has ``progress(env_index) -> dict`` too has it recorded with each episode's end."""
 
     def restart(self, env_index: int, state_id: int) -> None: ...
 
@@ -206,6 +342,10 @@ class Scripted:
     def act(self, obs: Any) -> np.ndarray:
         return self.script.act(obs["state"])
 
+    def progress(self, env_index: int) -> dict[str, Any]:
+        """The env's waypoint and phase (:meth:`PickPlace.progress`)."""
+        return self.script.progress(env_index)
+
 
 def env_error(exc: BaseException) -> bool:
     """Whether ``exc`` is an env's own exception (its episode's), not a failure of the call or pod."""
@@ -221,8 +361,10 @@ def run_episodes(env: Any, state_ids: Sequence[int], policy: Policy) -> dict[int
     """Run ``policy`` from each of ``state_ids`` to its episode's end on ``env`` (an
     ``HTTPVectorEnv``, autoreset disabled), as many at a time as it has envs, an env taking the
     next state when its episode ends. An env that raises ends only its own episode (an error,
-    with the exception's text) and takes the next state. Returns :class:`Episodes`'s ``outcome``."""
+    with the exception's text) and takes the next state. Returns :class:`Episodes`'s ``outcome``,
+    each episode's with the policy's ``progress`` at its end if the policy has one."""
     book = Episodes(state_ids, env.num_envs)
+    progress = getattr(policy, "progress", None)
     obs = start(env, book, policy, range(env.num_envs))
     while book.running.any():
         active = np.flatnonzero(book.running)
@@ -235,13 +377,19 @@ def run_episodes(env: Any, state_ids: Sequence[int], policy: Policy) -> dict[int
                 raise
             obs, _, terminated, truncated, _ = exc.result
             failed = list(exc.failed_envs)
-            book.fail(failed, error_text(exc))
+            book.fail(failed, error_text(exc), notes(progress, failed))
             log.warning("envs %s raised; their episodes are errors: %s", failed, error_text(exc))
         stepped = [int(i) for i in active if i not in failed]
-        ended = book.step(stepped, terminated[stepped, 0], truncated[stepped, 0])
+        over = [i for i in stepped if terminated[i, 0] or truncated[i, 0]]
+        ended = book.step(stepped, terminated[stepped, 0], truncated[stepped, 0], notes(progress, over))
         if ended or failed:
             obs = start(env, book, policy, ended + failed, obs)
     return book.outcome
+
+
+def notes(progress: Any, envs: Iterable[int]) -> dict[int, dict[str, Any]] | None:
+    """``progress(env)`` of each of ``envs`` (a policy's, before it restarts them); None without one."""
+    return None if progress is None else {int(i): progress(int(i)) for i in envs}
 
 
 def start(env: Any, book: Episodes, policy: Policy, envs: Iterable[int], obs: Any = None) -> Any:
@@ -288,26 +436,36 @@ def episodes(url: str, rows: Sequence[dict[str, Any]], state_ids: Sequence[int],
 
 
 def run(args: argparse.Namespace) -> None:
-    """Every task of ``--tasks`` on every engine of ``--engines``, a record after each."""
+    """Every task of ``--tasks`` on every engine of ``--engines`` under the ``--libero``
+    protocol (the table's rows measured under it), a record after each."""
     import httpx
 
     rows = json.loads(args.table.read_text())
-    gains = Gains()
+    protocol = PROTOCOLS[args.libero]
     deadline = time.monotonic() + args.budget_s
     record: dict[str, Any] = {
         "name": "bench_scripted",
         "command": command_line(),
         "machine": {**machine_info(), "name": args.machine},
-        "policy": asdict(gains),
+        "libero": {"name": args.libero, **protocol.model_dump()},
+        "policy": asdict(Gains()),
         "table": {"file": args.table.name, "sha256": hashlib.sha256(args.table.read_bytes()).hexdigest()},
         "tasks": {},
         "complete": False,
     }
+    for task in args.tasks:
+        if row_key(task, protocol) not in rows:
+            raise SystemExit(
+                f"--tasks: {task} has no row under --libero {args.libero} ({row_key(task, protocol)}) in "
+                f"{args.table}; run `table --tasks {task} --libero {args.libero}` first"
+            )
     for index, task in enumerate(args.tasks):
-        if task not in rows:
-            raise SystemExit(f"--tasks: {task} has no row in {args.table}; run `table --tasks {task}` first")
+        task_rows = rows[row_key(task, protocol)]
+        gains = task_gains(task)
         entry = record["tasks"].setdefault(task, {})
-        state_ids = list(range(min(args.states, len(rows[task]))))
+        if gains != Gains():
+            entry["policy"] = asdict(gains)  # the task's own, in place of the record's
+        state_ids = list(range(min(args.states, len(task_rows))))
         for offset, engine in enumerate(args.engines):
             if time.monotonic() > deadline:
                 record["cut_short"] = f"budget of {args.budget_s} s spent before {task} on {engine}"
@@ -317,8 +475,8 @@ def run(args: argparse.Namespace) -> None:
             try:
                 envs = min(args.envs, len(state_ids))
                 port = args.port + 2 * index + offset
-                with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s) as url:
-                    outcome = episodes(url, rows[task], state_ids, gains)
+                with pod(engine, task, envs, pythonpath, port, args.ready_timeout_s, protocol) as url:
+                    outcome = episodes(url, task_rows, state_ids, gains)
             except (RuntimeError, OSError, ValueError, httpx.HTTPError, ClientError) as exc:
                 entry[engine] = {"error": str(exc)}
                 log.error("%s on %s failed: %s", task, engine, exc)
@@ -353,18 +511,23 @@ def write(record: dict[str, Any], out: Path) -> None:
     out.write_text(json.dumps(record, indent=1) + "\n")
 
 
+LIBERO_HELP = "the LIBERO protocol: published (LIBERO's evaluation) or rlinf (15 settle steps, first_reset fixtures)"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     measure = sub.add_parser("table", help="where each init state's objects are (the CPU stack)")
     measure.add_argument("--tasks", nargs="+", default=["libero_10/0"])
     measure.add_argument("--out", type=Path, default=TABLE)
+    measure.add_argument("--libero", choices=sorted(PROTOCOLS), default="published", help=LIBERO_HELP)
     go = sub.add_parser("run", help="the policy's success over the init states, per task and engine")
     go.add_argument("--tasks", nargs="+", default=["libero_10/0"])
     go.add_argument("--engines", nargs="+", choices=["cpu", "mjwarp"], default=["cpu"])
     go.add_argument("--states", type=int, default=50, help="init states 0..N-1 of each task")
     go.add_argument("--envs", type=int, default=50, help="envs of each pod (states run this many at a time)")
     go.add_argument("--table", type=Path, default=TABLE)
+    go.add_argument("--libero", choices=sorted(PROTOCOLS), default="published", help=LIBERO_HELP)
     go.add_argument("--cpu-pythonpath", default=None, help="the CPU stack's PYTHONPATH (default: this process's)")
     go.add_argument("--mjwarp-pythonpath", default=None, help="the mjwarp stack's PYTHONPATH (default: this process's)")
     go.add_argument("--port", type=int, default=8300)

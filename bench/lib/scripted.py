@@ -7,7 +7,7 @@ The policy is closed loop on the end effector (LIBERO's 8-float ``state``: eef p
 axis-angle, gripper) and open loop on the objects: where each object and its goal are, for each
 init state, comes from a table measured once on the CPU engine (:func:`scene_row`). For every
 (object, goal) pair it visits eight waypoints: above the object, down to it, close, up, above
-the goal, down, open, up. Actions are robosuite's OSC_POSE deltas (position up to 5 cm and
+the goal, down, open, up (its phases, :data:`PHASES`). Actions are robosuite's OSC_POSE deltas (position up to 5 cm and
 rotation up to 0.5 rad per unit, clipped to [-1, 1]) and the gripper (-1 open, 1 closed)::
 
     policy = PickPlace([table[k] for k in state_ids])
@@ -18,7 +18,7 @@ rotation up to 0.5 rad per unit, clipped to [-1, 1]) and the gripper (-1 open, 1
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from statistics import NormalDist
@@ -30,6 +30,19 @@ import numpy as np
 POS_LIMIT_M = 0.05
 ROT_LIMIT_RAD = 0.5
 OPEN, CLOSED = -1.0, 1.0
+# The phase of each of a pair's eight waypoints (above the object and down to it are both the
+# reach); an env past the last waypoint of the last pair is ``done``.
+PHASES = ("reach", "reach", "grasp", "lift", "carry", "lower", "release", "retreat")
+
+
+def phase(waypoint: int, waypoints: int) -> str:
+    """The phase of ``waypoint`` in a script of ``waypoints``: ``"<pair>:<phase>"`` (the pair's
+    index in the row, from 0), or ``"done"`` past the last waypoint."""
+    if waypoint < 0 or waypoints % len(PHASES):
+        raise ValueError(f"waypoint {waypoint} of {waypoints}: not a pick-and-place script's")
+    if waypoint >= waypoints:
+        return "done"
+    return f"{waypoint // len(PHASES)}:{PHASES[waypoint % len(PHASES)]}"
 
 
 @dataclass(frozen=True)
@@ -46,6 +59,7 @@ class Gains:
     rotation_gain: float = 1.0  # action per ROT_LIMIT_RAD of error
     grip_steps: int = 15  # steps spent closing or opening the gripper
     move_timeout: int = 50  # steps after which a waypoint not reached is given up on
+    empty_grip_m: float = 0.005  # closed fingers nearer than this hold nothing (recorded, not acted on)
 
 
 def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -66,7 +80,8 @@ class Episodes:
     Envs take the states in order as they come free (at the start, when an episode ends, when an
     env raised); an env with no state left idles. ``outcome[k]`` is ``{"success", "steps"}`` for
     an episode that ended (LIBERO ends one on success alone, or at the step limit), and
-    ``{"error", "steps"}`` for one whose env raised (the exception's text, the steps it took).
+    ``{"error", "steps"}`` for one whose env raised (the exception's text, the steps it took),
+    each with the ``notes`` given for its env when it ended (the policy's progress, say).
     """
 
     def __init__(self, state_ids: Sequence[int], num_envs: int) -> None:
@@ -90,32 +105,46 @@ class Episodes:
                 self.state[i] = given[int(i)] = self.pending.popleft()
         return given
 
-    def step(self, envs: Sequence[int], terminated: np.ndarray, truncated: np.ndarray) -> list[int]:
+    def step(
+        self,
+        envs: Sequence[int],
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        notes: Mapping[int, Mapping[str, Any]] | None = None,
+    ) -> list[int]:
         """Count a step of ``envs`` (running ones) with their flags; end the episodes of those that
-        terminated (a success) or truncated; return those envs, free now."""
+        terminated (a success) or truncated, with ``notes[env]`` if given; return those envs, free now."""
         ended = []
         for i, term, trunc in zip(envs, terminated, truncated):
             self.steps[i] += 1
             if term or trunc:
-                self.outcome[int(self.state[i])] = {"success": bool(term), "steps": int(self.steps[i])}
+                ending = {"success": bool(term), "steps": int(self.steps[i])}
+                self.outcome[int(self.state[i])] = {**ending, **(notes or {}).get(int(i), {})}
                 self.state[i] = -1
                 ended.append(int(i))
         return ended
 
-    def fail(self, envs: Iterable[int], error: str) -> None:
-        """The episodes of ``envs`` ended with ``error`` (their env raised); the envs are free."""
+    def fail(self, envs: Iterable[int], error: str, notes: Mapping[int, Mapping[str, Any]] | None = None) -> None:
+        """The episodes of ``envs`` ended with ``error`` (their env raised), with ``notes[env]`` if
+        given; the envs are free."""
         for i in envs:
             if self.state[i] >= 0:
-                self.outcome[int(self.state[i])] = {"error": error, "steps": int(self.steps[i])}
+                ending = {"error": error, "steps": int(self.steps[i])}
+                self.outcome[int(self.state[i])] = {**ending, **(notes or {}).get(int(i), {})}
                 self.state[i] = -1
 
 
 def summary(outcome: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     """Successes, errors (their state ids), the rate with its Wilson 95% interval over the
-    episodes that ended without an error, and the mean steps to success of one task on one engine."""
+    episodes that ended without an error, the mean steps to success of one task on one engine,
+    and the failures (episodes ended without success or error) counted by the ``phase`` they
+    ended in and by the phase their grip was first found empty in (``empty_grip``; ``"never"``
+    if it was not), those whose outcome names them."""
     errored = sorted(k for k, o in outcome.items() if "error" in o)
     ended = [o for o in outcome.values() if "error" not in o]
     wins = [o["steps"] for o in ended if o["success"]]
+    lost = Counter(o["phase"] for o in ended if not o["success"] and "phase" in o)
+    dropped = Counter(o["empty_grip"] or "never" for o in ended if not o["success"] and "empty_grip" in o)
     low, high = wilson(len(wins), len(ended))
     return {
         "states": len(outcome),
@@ -125,6 +154,8 @@ def summary(outcome: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
         "rate": len(wins) / len(ended) if ended else None,
         "wilson95": [round(low, 4), round(high, 4)],
         "mean_steps_to_success": float(np.mean(wins)) if wins else None,
+        "failures_by_phase": dict(sorted(lost.items())),
+        "failures_by_empty_grip": dict(sorted(dropped.items())),
     }
 
 
@@ -206,7 +237,10 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarra
 
     ``row["pairs"]`` lists, in order, each object to move: ``pick`` (its centre), ``top`` and ``bottom`` (its
     heights), ``yaw`` (the grasp's) and ``place`` (the goal region's centre) and
-    ``place_top`` (the region's top, the height to carry it over).
+    ``place_top`` (the region's top, the height to carry it over). Optional: ``grip`` and
+    ``release``, where the fingertips close and open when that is not over the object's centre
+    and goal (a mug held by its rim); ``place_yaw``, the yaw to carry and let go at when it is
+    not the grasp's (a book turned to fit a slot).
     """
     positions, yaws, grips, holds = [], [], [], []
 
@@ -220,16 +254,22 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarra
         x, y, _ = pair["pick"]
         px, py, pz = pair["place"]
         yaw = pair["yaw"]
+        turned = pair.get("place_yaw", yaw)
         carry = max(pair["place_top"], pair["top"]) + gains.hover_m
         grasp = max(pair["top"] - gains.grasp_below_top_m, pair["bottom"] + gains.floor_clearance_m)
+        release = pz + gains.release_above_m
+        if "grip" in pair:  # an object held elsewhere than over its centre (a mug by its rim)
+            x, y, grasp = pair["grip"]
+        if "release" in pair:
+            px, py, release = pair["release"]
         add((x, y, carry), yaw, OPEN)
         add((x, y, grasp), yaw, OPEN)
         add((x, y, grasp), yaw, CLOSED, gains.grip_steps)
         add((x, y, carry), yaw, CLOSED)
-        add((px, py, carry), yaw, CLOSED)
-        add((px, py, pz + gains.release_above_m), yaw, CLOSED)
-        add((px, py, pz + gains.release_above_m), yaw, OPEN, gains.grip_steps)
-        add((px, py, carry), yaw, OPEN)
+        add((px, py, carry), turned, CLOSED)
+        add((px, py, release), turned, CLOSED)
+        add((px, py, release), turned, OPEN, gains.grip_steps)
+        add((px, py, carry), turned, OPEN)
     return np.array(positions), np.array(yaws), np.array(grips), np.array(holds, dtype=np.int64)
 
 
@@ -246,11 +286,24 @@ class PickPlace:
         self.holds = np.stack([s[3] for s in scripts])
         self.index = np.zeros(len(rows), dtype=np.int64)  # each env's current waypoint
         self.spent = np.zeros(len(rows), dtype=np.int64)  # steps spent on it
+        self.empty = np.full(len(rows), -1, dtype=np.int64)  # the waypoint its grip was first found empty at
 
     def restart(self, i: int, row: Mapping[str, Any]) -> None:
         """Env ``i`` starts over on the script of ``row`` (an init state of the same task)."""
         self.positions[i], self.yaws[i], self.grips[i], self.holds[i] = waypoints(row, self.gains)
         self.index[i] = self.spent[i] = 0
+        self.empty[i] = -1
+
+    def progress(self, i: int) -> dict[str, Any]:
+        """Where env ``i`` is in its script: its waypoint's index and :func:`phase`, and the
+        phase in which its closed fingers were first found holding nothing (``empty_grip``: the
+        object slipped out, or was never caught), None if they never were."""
+        waypoint, empty, total = int(self.index[i]), int(self.empty[i]), self.positions.shape[1]
+        return {
+            "waypoint": waypoint,
+            "phase": phase(waypoint, total),
+            "empty_grip": phase(empty, total) if empty >= 0 else None,
+        }
 
     @property
     def finished(self) -> np.ndarray:
@@ -285,4 +338,8 @@ class PickPlace:
         actions[:, :3] = self.gains.position_gain * position_error / POS_LIMIT_M
         actions[:, 3:6] = self.gains.rotation_gain * rotation_error / ROT_LIMIT_RAD
         actions[:, 6] = self.grips[rows, at]
+        # Moving with the fingers closed (the grasp's hold done) and nothing between them.
+        carrying = (self.grips[rows, at] == CLOSED) & (self.holds[rows, at] == 0) & ~self.finished
+        empty = carrying & (states[:, 6] - states[:, 7] < self.gains.empty_grip_m) & (self.empty < 0)
+        self.empty = np.where(empty, self.index, self.empty)
         return np.clip(actions, -1.0, 1.0).astype(np.float32)

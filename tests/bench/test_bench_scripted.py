@@ -37,6 +37,17 @@ def scripted():
         sys.path.remove(str(BENCH))
 
 
+@pytest.fixture(scope="module")
+def bench_module():
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bench_scripted
+
+        yield bench_scripted
+    finally:
+        sys.path.remove(str(BENCH))
+
+
 ROW = {
     "pairs": [
         {
@@ -132,9 +143,90 @@ def test_the_rate_and_its_interval_leave_errored_episodes_out(scripted) -> None:
         "rate": 2 / 3,
         "wilson95": [round(v, 4) for v in scripted.wilson(2, 3)],
         "mean_steps_to_success": 150.0,
+        "failures_by_phase": {},
+        "failures_by_empty_grip": {},
     }
     errored_only = scripted.summary({7: {"error": "x", "steps": 1}})
     assert errored_only["rate"] is None and errored_only["wilson95"] == [0.0, 1.0]
+
+
+def test_episodes_record_the_notes_given_at_their_end(scripted) -> None:
+    book = scripted.Episodes(range(3), num_envs=3)
+    book.assign([0, 1, 2])
+    notes = {0: {"waypoint": 4, "phase": "0:carry"}, 2: {"waypoint": 16, "phase": "done"}}
+    assert book.step([0, 1, 2], np.array([False, False, True]), np.array([True, False, False]), notes) == [0, 2]
+    book.fail([1], "ValueError: boom", {1: {"waypoint": 9, "phase": "1:reach"}})
+    assert book.outcome == {
+        0: {"success": False, "steps": 1, "waypoint": 4, "phase": "0:carry"},
+        1: {"error": "ValueError: boom", "steps": 1, "waypoint": 9, "phase": "1:reach"},
+        2: {"success": True, "steps": 1, "waypoint": 16, "phase": "done"},
+    }
+
+
+def test_failures_are_counted_by_the_phase_they_ended_in(scripted) -> None:
+    outcome = {
+        0: {"success": False, "steps": 520, "waypoint": 4, "phase": "0:carry"},
+        1: {"success": True, "steps": 250, "waypoint": 14, "phase": "1:release"},
+        2: {"success": False, "steps": 520, "waypoint": 4, "phase": "0:carry"},
+        3: {"success": False, "steps": 520, "waypoint": 16, "phase": "done"},
+        4: {"error": "ValueError: boom", "steps": 3, "waypoint": 0, "phase": "0:reach"},
+        5: {"success": False, "steps": 520, "waypoint": 10, "phase": "1:grasp"},
+    }
+    assert scripted.summary(outcome)["failures_by_phase"] == {"0:carry": 2, "1:grasp": 1, "done": 1}
+
+
+def test_failures_are_counted_by_where_their_grip_was_first_found_empty(scripted) -> None:
+    outcome = {
+        0: {"success": False, "steps": 520, "phase": "done", "empty_grip": "0:lift"},
+        1: {"success": False, "steps": 520, "phase": "done", "empty_grip": None},
+        2: {"success": True, "steps": 250, "phase": "1:lower", "empty_grip": None},
+        3: {"success": False, "steps": 520, "phase": "1:carry", "empty_grip": "0:lift"},
+        4: {"success": False, "steps": 520, "phase": "done", "empty_grip": "1:carry"},
+    }
+    assert scripted.summary(outcome)["failures_by_empty_grip"] == {"0:lift": 2, "1:carry": 1, "never": 1}
+
+
+def test_policy_records_where_its_closed_fingers_first_held_nothing(scripted) -> None:
+    gains = scripted.Gains()
+    policy = scripted.PickPlace([ROW], gains)
+    positions = policy.positions[0]
+
+    def at(waypoint: int, gap: float) -> np.ndarray:
+        state = state_at(scripted, positions[waypoint], 0.3)
+        state[0, 6:8] = gap / 2, -gap / 2
+        return state
+
+    policy.act(at(0, 0.08))
+    policy.act(at(1, 0.08))
+    for _ in range(gains.grip_steps + 1):  # closing on nothing: not counted while it closes
+        policy.act(at(2, 0.0))
+    assert policy.index[0] == 3 and policy.progress(0)["empty_grip"] == "0:lift"  # lifting, empty
+    policy.act(at(3, 0.03))  # reached; then fingers apart again: the first finding stays
+    policy.act(at(4, 0.0))
+    assert policy.progress(0) == {"waypoint": 5, "phase": "0:lower", "empty_grip": "0:lift"}
+    policy.restart(0, ROW)
+    assert policy.progress(0)["empty_grip"] is None
+
+
+def test_policy_holding_something_is_not_found_empty(scripted) -> None:
+    gains = scripted.Gains()
+    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
+    held = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
+    held[0, 6:8] = 0.01, -0.01  # a 2 cm object between the fingers
+    for _ in range(len(policy.positions[0])):
+        policy.act(held)
+    assert policy.finished.all() and policy.progress(0)["empty_grip"] is None
+    assert gains.empty_grip_m < 0.02
+
+
+def test_phases_name_each_pairs_waypoints(scripted) -> None:
+    names = [scripted.phase(w, 16) for w in range(17)]
+    assert names[:8] == ["0:reach", "0:reach", "0:grasp", "0:lift", "0:carry", "0:lower", "0:release", "0:retreat"]
+    assert names[8:16] == [f"1:{name[2:]}" for name in names[:8]] and names[16] == "done"
+    with pytest.raises(ValueError, match="waypoint -1 of 16"):
+        scripted.phase(-1, 16)
+    with pytest.raises(ValueError, match="waypoint 2 of 7"):
+        scripted.phase(2, 7)
 
 
 def test_rotations_are_scipys(scripted) -> None:
@@ -180,6 +272,25 @@ def test_waypoints_pick_above_down_close_up_carry_down_open_up(scripted) -> None
     assert (yaws == 0.3).all()
 
 
+def test_a_pair_with_a_grip_and_a_release_is_held_and_let_go_there(scripted) -> None:
+    gains = scripted.Gains()
+    mug = {"pairs": [{**ROW["pairs"][0], "grip": [0.12, -0.15, 0.52], "release": [0.03, 0.31, 0.55]}]}
+    positions = scripted.waypoints(mug, gains)[0]
+    carry = 0.57 + gains.hover_m
+    np.testing.assert_allclose(
+        positions[:4], [(0.12, -0.15, carry), (0.12, -0.15, 0.52), (0.12, -0.15, 0.52), (0.12, -0.15, carry)]
+    )
+    np.testing.assert_allclose(
+        positions[4:], [(0.03, 0.31, carry), (0.03, 0.31, 0.55), (0.03, 0.31, 0.55), (0.03, 0.31, carry)]
+    )
+
+
+def test_a_pair_with_a_place_yaw_turns_while_carried(scripted) -> None:
+    book = {"pairs": [{**ROW["pairs"][0], "place_yaw": -1.2}]}
+    yaws = scripted.waypoints(book, scripted.Gains())[1]
+    assert yaws.tolist() == [0.3] * 4 + [-1.2] * 4  # grasped at its yaw, carried and let go turned
+
+
 def test_a_flat_object_is_gripped_clear_of_the_table(scripted) -> None:
     gains = scripted.Gains()
     flat = {"pairs": [{**ROW["pairs"][0], "top": 0.455, "bottom": 0.435}]}
@@ -216,6 +327,8 @@ def test_policy_advances_on_reaching_and_after_holding(scripted) -> None:
         assert policy.index[0] == 2
     policy.act(np.concatenate([state_at(scripted, positions[2], 0.3), far]))
     assert policy.index.tolist() == [3, 0] and not policy.finished.any()
+    assert policy.progress(0) == {"waypoint": 3, "phase": "0:lift", "empty_grip": None}
+    assert policy.progress(1) == {"waypoint": 0, "phase": "0:reach", "empty_grip": None}
 
 
 def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
@@ -244,7 +357,7 @@ def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
     policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
     for _ in range(len(policy.positions[0])):
         policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))
-    assert policy.finished.all()
+    assert policy.finished.all() and policy.progress(0) == {"waypoint": 8, "phase": "done", "empty_grip": None}
     action = policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))[0]
     assert action[6] == -1  # it stays over the goal, open
 
@@ -266,6 +379,13 @@ class Push:
         actions[(self.state == self.boom_state) & (self.steps == 1), 0, 0] = gym_custom_env.BOOM
         self.steps += 1
         return actions
+
+
+class Counted(Push):
+    """:class:`Push` that tells where each env is: its state and the actions it was given."""
+
+    def progress(self, env_index: int) -> dict[str, int]:
+        return {"state": int(self.state[env_index]), "acted": int(self.steps[env_index])}
 
 
 @pytest.fixture(scope="module")
@@ -361,6 +481,70 @@ def test_smoke_run_through_a_pod_ends_as_on_libero_itself(tmp_path: Path, script
                 )
                 obs, _, done, _ = env.step(policy.act(state[None])[0].tolist())
                 steps += 1
-            assert served[str(k)] == {"success": bool(done), "steps": steps}
+            assert served[str(k)] == {"success": bool(done), "steps": steps, **policy.progress(0)}
     finally:
         env.close()
+
+
+def test_the_bench_records_the_policys_progress_at_each_episodes_end(bench) -> None:
+    from vecsim.client import HTTPVectorEnv
+
+    bench_scripted, url = bench
+    states = list(range(6))
+    with contextlib.closing(HTTPVectorEnv(pod_urls=[url], autoreset_mode="disabled")) as env:
+        env.set_attr("refuse_resets", [0, 1])  # env 1's first reset raises
+        outcome = bench_scripted.run_episodes(env, states, Counted(env.num_envs, boom_state=2))
+    assert "acted" not in outcome[1]  # its reset raised: no episode to tell of
+    assert outcome[2]["error"] and outcome[2]["state"] == 2 and outcome[2]["acted"] == 2  # raised on its 2nd
+    for k in (0, 3, 4, 5):  # read before the env took its next state: its own episode's
+        assert outcome[k]["state"] == k and outcome[k]["acted"] == outcome[k]["steps"]
+
+
+def test_rows_of_each_protocol_have_their_own_key(bench_module) -> None:
+    from vecsim.config import LiberoProtocol
+
+    protocols = bench_module.PROTOCOLS
+    assert bench_module.row_key("libero_10/0", protocols["published"]) == "libero_10/0"
+    rlinf = bench_module.row_key("libero_10/5", protocols["rlinf"])
+    assert rlinf == "libero_10/5@fixture_rule=first_reset,settle_steps=15"
+    seeded = bench_module.row_key("libero_10/5", LiberoProtocol(fixture_seed=7))
+    assert len({rlinf, seeded, "libero_10/5"}) == 3
+
+
+def test_a_run_refuses_a_task_without_rows_under_its_protocol(bench_module, tmp_path: Path) -> None:
+    import argparse
+
+    table = tmp_path / "table.json"
+    table.write_text(json.dumps({"libero_10/5": [ROW]}))  # published rows only
+    args = argparse.Namespace(
+        table=table, libero="rlinf", budget_s=60.0, machine="test", tasks=["libero_10/5"], out=tmp_path / "out.json"
+    )
+    with pytest.raises(SystemExit, match=r"libero_10/5 has no row under --libero rlinf \(libero_10/5@fixture_rule"):
+        bench_module.run(args)
+    assert not args.out.exists()  # refused before any pod
+
+
+@pytest.mark.libero
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(("task", "libero"), [("libero_10/4", "published"), ("libero_10/8", "rlinf")])
+def test_carried_rows_are_what_the_table_measures(bench_module, task: str, libero: str) -> None:
+    from vecsim.config import CameraConfig
+    from vecsim.engine.tasks import make_env
+
+    protocol = bench_module.PROTOCOLS[libero]
+    carried = json.loads((BENCH / "lib" / "scripted_table.json").read_text())[bench_module.row_key(task, protocol)]
+    env = make_env(task, CameraConfig(names=()), libero=protocol)
+    try:
+        env.reset(options={"state_id": 3})
+        row = bench_module.scene_row(env.inner, bench_module.SHARED_GOAL_SPACING_M.get(task, 0.0))
+    finally:
+        env.close()
+    assert [set(pair) for pair in row["pairs"]] == [set(pair) for pair in carried[3]["pairs"]]
+    assert all("grip" in pair and "release" in pair for pair in row["pairs"])  # mugs, moka pots: held
+    for mine, theirs in zip(row["pairs"], carried[3]["pairs"]):
+        for key, value in theirs.items():
+            if isinstance(value, str):
+                assert mine[key] == value
+            else:
+                np.testing.assert_allclose(mine[key], value, atol=1e-4, err_msg=f"{task} {key}")
