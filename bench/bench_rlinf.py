@@ -61,9 +61,10 @@ for _threads in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # after the thread settings, which BLAS reads as it loads
 from lib.pods import paired_ratio, rate_spread, setup_logging
 from lib.machine import cores_first, cpu_topology, gl_probe, split_cores
+from lib.jobs import RLINF_PROTOCOL
 from lib.records import write_result
 
-from vecsim.config import Assignment, LiberoProtocol, TaskBlock
+from vecsim.config import Assignment, TaskBlock
 from vecsim.suites import LIBERO_SUITES
 
 log = logging.getLogger("bench.rlinf")
@@ -91,12 +92,8 @@ stand_in_for_rlinf_scheduler()
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 STATES_PER_TASK = 50
-SETTLE_STEPS = 15  # RLinf's, inside its reset()
-# The pods' LIBERO protocol, RLinf's (docs/trainers.md): its settle (reset_gripper_open: true opens
-# the gripper, as vecsim's settle action does), and its fixtures, placed as a fresh env's first
-# reset places them (RLinf seeds an env before every reset). An mjwarp pod needs scenes exported
-# under it.
-PROTOCOL = LiberoProtocol(settle_steps=SETTLE_STEPS, fixture_rule="first_reset")
+# The pods' LIBERO protocol: RLinf's (lib.jobs.RLINF_PROTOCOL).
+PROTOCOL = RLINF_PROTOCOL
 READY_TIMEOUT_S = 900.0
 TARGET = 4.0  # issue 26: vecsim's RLinf env at least 4x RLinf's own (the largest slot count's paired median)
 

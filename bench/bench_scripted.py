@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from lib.jobs import RLINF_PROTOCOL
 from lib.records import command_line, machine_info
 from lib.scripted import Episodes, Gains, PickPlace, agreement, closing_yaw, summary
 
@@ -72,7 +73,7 @@ CODE = Path(__file__).resolve().parents[1]
 # one under which the ``mjwarp`` engine serves every LIBERO-10 task (docs/mjwarp.md).
 PROTOCOLS = {
     "published": LiberoProtocol(),
-    "rlinf": LiberoProtocol(settle_steps=15, fixture_rule="first_reset"),
+    "rlinf": RLINF_PROTOCOL,
 }
 
 

@@ -21,13 +21,18 @@ from typing import TYPE_CHECKING, Any
 import httpx
 import psutil
 
-from vecsim.config import JobConfig, RoutedPod, RoutedStage, RoutingTable, TaskBlock
+from vecsim.config import JobConfig, LiberoProtocol, RoutedPod, RoutedStage, RoutingTable, TaskBlock
 
 if TYPE_CHECKING:
     import torch
 
 ROBOT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 MAX_EPISODE_STEPS = 520
+# RLinf's LIBERO protocol (docs/trainers.md): 15 settle steps inside its reset(), with the
+# gripper opening (reset_gripper_open: true, as vecsim's settle action does), and its fixtures
+# placed as a fresh env's first reset places them (RLinf seeds an env before every reset). The
+# mjwarp engine serves every LIBERO-10 task under it; its scenes are exported under it.
+RLINF_PROTOCOL = LiberoProtocol(settle_steps=15, fixture_rule="first_reset")
 STAGE_LAYOUTS = ("slices", "pods")  # vecsim.config.StageLayout's values, in --stage-layout's default order
 
 

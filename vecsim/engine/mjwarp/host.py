@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from vecsim.engine.mjwarp.settings import DEFAULT_TURN_WAIT_S, MjwarpSettings
+from vecsim.engine.mjwarp.settings import DEFAULT_TURN_WAIT_S, MjwarpSettings, turns_directory
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +131,8 @@ class GpuTurn:
         # Seconds the last __enter__ waited for the turn.
         self.waited_s = 0.0
         self._fd: int | None = None
-        if directory and directory != "off":
+        directory = turns_directory(directory)
+        if directory is not None:
             name = "".join(c if c.isalnum() or c in "-_." else "_" for c in gpu) or "gpu"
             self.path = Path(directory) / f"vecsim-gpu-{name}.lock"
 

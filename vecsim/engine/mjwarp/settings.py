@@ -23,6 +23,13 @@ TURNS_ENV = "VECSIM_MJWARP_TURNS"
 DEFAULT_TURNS_DIR = "/dev/shm/vecsim-turns"
 DEFAULT_TURN_WAIT_S = 120.0
 
+
+def turns_directory(value: str | None) -> str | None:
+    """The GPUs' lock files' directory that a ``VECSIM_MJWARP_TURNS`` value names, or None for
+    no turns (``None``, ``""`` or ``"off"``)."""
+    return None if value in (None, "", "off") else value
+
+
 # environment variable -> settings field
 ENV_VARS: dict[str, str] = {
     "VECSIM_MJWARP_NCONMAX": "nconmax",
@@ -74,7 +81,7 @@ class MjwarpSettings(BaseModel):
     @property
     def turns_dir(self) -> str | None:
         """The lock files' directory, or None where turns are off."""
-        return None if self.turns in ("", "off") else self.turns
+        return turns_directory(self.turns)
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> MjwarpSettings:
