@@ -8,13 +8,23 @@ render, not physics, bounds the engine (docs/mjwarp.md). This bench takes one ex
 
 - ``default``: MuJoCo Warp's own settings (textures, vertex normals, specular, emission,
   per-light ambient, back-face culling; no shadows);
-- ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.engine.RENDER_SETTINGS``);
+- ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.engine.RENDER_SETTINGS``, its rays
+  in ``RAY_TILE`` tiles, its meshes' trees ``MESH_TREES``); ``rows``: the same settings, rays in
+  MuJoCo Warp's row order and its trees (the engine before tiles);
 - one of those shading terms off at a time, and ``plain`` with all of them off;
 - ``lowpoly``: MuJoCo Warp's settings, drawn from meshes simplified on a 5 mm grid
   (``vecsim.engine.mesh_lod``, the CPU engine's ``lowpoly`` preset), physics untouched;
 - ``mesh_sah``, ``mesh_sah_leaf1``, ``mesh_sah_leaf4``, ``mesh_lbvh``: the engine's settings, each
   mesh's BVH built again by warp's SAH (leaf sizes 2, 1, 4) or LBVH constructor in place of the
-  one MuJoCo Warp 4.0.0 builds (``cubql``, leaf size 2): the same triangles, other trees.
+  one MuJoCo Warp 4.0.0 builds (``cubql``, leaf size 2): the same triangles, other trees;
+  ``mesh_cubql_leaf1``, ``mesh_cubql_leaf4``: ``cubql`` trees of other leaf sizes;
+- ``tile4x4``, ``tile8x4``, ``tile8x8``, ``tile16x16``: the engine's settings with each camera's
+  rays drawn in tiles of that many rows x columns (``vecsim.engine.mjwarp.frames.ray_order``)
+  in place of row order; ``block32``, ``block128``, ``block256``: the engine's settings with the
+  ray tracer launched in blocks of that many threads (MuJoCo Warp's ``block_dim.render``, 64).
+  These change the order of the work only: each also reports whether its images of the first
+  ``--compare`` worlds are bit for bit the ``engine`` variant's (``same_as_engine``);
+- several of the above joined by ``+`` (``tile8x8+block32``): their options together.
 
 With ``--reference`` (the CPU engine's trajectories and images from ``bench_mjwarp.py
 reference``), each variant also draws the reference's recorded poses at its image marks, at the
@@ -58,13 +68,19 @@ CAMERAS = ("agentview", "robot0_eye_in_hand")
 # The shading terms MuJoCo Warp's render context can leave out at compile time (4.0.0).
 SHADING = ("enable_vertex_normals", "enable_specular", "enable_emission", "enable_per_light_ambient")
 LOWPOLY_CELL_M = 0.005
+TILES = ((4, 4), (8, 4), (8, 8), (16, 16))
+BLOCK_DIMS = (32, 128, 256)
+# Variants that reorder the work only: their images must be the engine's bit for bit.
+SAME_IMAGES = ("rows", "tile", "block", "mesh_")
 
 
 def variants() -> dict[str, dict[str, Any]]:
     """Each variant's render-context keywords; ``lowpoly`` is marked by a key of its own."""
-    from vecsim.engine.mjwarp.engine import RENDER_SETTINGS
+    from vecsim.engine.mjwarp.engine import MESH_TREES, RAY_TILE, RENDER_SETTINGS
 
-    out: dict[str, dict[str, Any]] = {"default": {}, "engine": dict(RENDER_SETTINGS)}
+    engine = dict(RENDER_SETTINGS) | {"ray_tile": RAY_TILE} | ({"mesh_bvh": MESH_TREES} if MESH_TREES else {})
+    out: dict[str, dict[str, Any]] = {"default": {}, "engine": engine}
+    out["rows"] = dict(RENDER_SETTINGS)
     for term in SHADING:
         out["no_" + term.removeprefix("enable_")] = {term: False}
     out["no_backface_culling"] = {"enable_backface_culling": False}
@@ -73,22 +89,29 @@ def variants() -> dict[str, dict[str, Any]]:
     for name, constructor, leaf in (("mesh_sah", "sah", 2), ("mesh_sah_leaf1", "sah", 1), ("mesh_sah_leaf4", "sah", 4)):
         out[name] = dict(RENDER_SETTINGS) | {"mesh_bvh": (constructor, leaf)}
     out["mesh_lbvh"] = dict(RENDER_SETTINGS) | {"mesh_bvh": ("lbvh", 2)}
+    for leaf in (1, 4):
+        out[f"mesh_cubql_leaf{leaf}"] = dict(RENDER_SETTINGS) | {"mesh_bvh": ("cubql", leaf)}
+    for rows, cols in TILES:
+        out[f"tile{rows}x{cols}"] = dict(RENDER_SETTINGS) | {"ray_tile": (rows, cols)}
+    for threads in BLOCK_DIMS:
+        out[f"block{threads}"] = dict(RENDER_SETTINGS) | {"block_dim": threads}
     return out
 
 
-def rebuild_mesh_bvhs(mjm: Any, rc: Any, constructor: str, leaf_size: int) -> None:
-    """Give every mesh of ``rc`` a BVH built by ``constructor`` with ``leaf_size`` triangles a
-    leaf; the render kernels read ``rc.mesh_bvh_id`` at each launch."""
-    import warp as wp
-    from mujoco_warp._src import bvh
+def combined(known: dict[str, dict[str, Any]], name: str) -> dict[str, Any]:
+    """The options of ``a+b+...``: those of each named variant, later ones over earlier ones.
 
-    registry, ids = {}, []
-    for mesh_id in range(mjm.nmesh):
-        mesh, _ = bvh.build_mesh_bvh(mjm, mesh_id, constructor=constructor, leaf_size=leaf_size)
-        registry[mesh.id] = mesh
-        ids.append(mesh.id)
-    rc.mesh_registry = registry
-    rc.mesh_bvh_id = wp.array(ids, dtype=wp.uint64)
+    Raises:
+        ValueError: a part that is not a known variant.
+    """
+    parts = name.split("+")
+    unknown = [part for part in parts if part not in known]
+    if unknown:
+        raise ValueError(f"{name!r}: unknown {unknown}")
+    out: dict[str, Any] = {}
+    for part in parts:
+        out |= known[part]
+    return out
 
 
 def mesh_stats(mjm: Any) -> dict[str, Any]:
@@ -141,16 +164,20 @@ class Scene:
         wp.synchronize()
         return data
 
-    def context(self, nworld: int, size: int, options: dict[str, Any]) -> tuple[Any, Any]:
-        """A render context for ``nworld`` worlds and the device model to draw with."""
+    def context(self, nworld: int, size: int, options: dict[str, Any]) -> tuple[Any, Any, Any]:
+        """A render context for ``nworld`` worlds, the device model to draw with and the order
+        its rays draw each camera's pixels in (``frames.order_rays``)."""
         import mujoco_warp as mjw
 
         from vecsim.engine import mesh_lod
+        from vecsim.engine.mjwarp import frames
         from vecsim.engine.mjwarp.engine import GEOM_GROUPS
 
         options = dict(options)
         cell = options.pop("lowpoly", None)
         mesh_bvh = options.pop("mesh_bvh", None)
+        tile = options.pop("ray_tile", None)
+        threads = options.pop("block_dim", None)
 
         def make() -> Any:
             return mjw.create_render_context(
@@ -167,12 +194,17 @@ class Scene:
         if cell is None:
             rc = make()
             if mesh_bvh is not None:
-                rebuild_mesh_bvhs(self.mjm, rc, *mesh_bvh)
-            return rc, self.model
+                frames.build_mesh_trees(self.mjm, rc, *mesh_bvh)
+            model = self.model
+            if threads is not None:
+                model = mjw.put_model(self.mjm)  # its own launch settings, the shared model's untouched
+                model.block_dim.render = threads
+            return rc, model, frames.order_rays(rc, size, size, tile)
         simplified = mesh_lod.simplify_meshes(self.mjm, cell)
         with mesh_lod.drawn_with(self.mjm, simplified):
             # The mesh arrays the render kernels read must be the simplified ones as well.
-            return make(), mjw.put_model(self.mjm)
+            rc = make()
+            return rc, mjw.put_model(self.mjm), frames.order_rays(rc, size, size, None)
 
 
 def draw(model: Any, data: Any, rc: Any) -> None:
@@ -195,8 +227,9 @@ def seconds(launch: Callable[[], None], reps: int) -> float:
     return (time.perf_counter() - started) / reps
 
 
-def images(rc: Any, size: int) -> dict[str, np.ndarray]:
-    """Each camera's images of every world of ``rc``, as the engine serves them."""
+def images(rc: Any, order: Any, size: int, worlds: int | None = None) -> dict[str, np.ndarray]:
+    """Each camera's images of the first ``worlds`` worlds of ``rc`` (every world: ``None``), as
+    the engine serves them."""
     import warp as wp
 
     from vecsim.engine.mjwarp import frames
@@ -206,8 +239,22 @@ def images(rc: Any, size: int) -> dict[str, np.ndarray]:
     out = {}
     for index, name in enumerate(CAMERAS):
         pixels = wp.zeros((rc.rgb_data.shape[0], size, size, 3), dtype=wp.uint8, device=rc.rgb_data.device)
-        frames.unpack(rc.rgb_data, first[index], size, size, orientation, pixels)
-        out[name] = pixels.numpy()
+        frames.unpack(rc.rgb_data, first[index], order, size, size, orientation, pixels)
+        out[name] = pixels[:worlds].numpy() if worlds is not None else pixels.numpy()
+    return out
+
+
+def same_images(got: dict[str, np.ndarray], want: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Whether each camera's images are ``want``'s bit for bit, and the largest difference."""
+    out: dict[str, Any] = {}
+    for name, image in want.items():
+        diff = np.abs(got[name].astype(np.int16) - image.astype(np.int16))
+        out[name] = {
+            "equal": bool(not diff.any()),
+            "max_levels": int(diff.max()),
+            "pixels_differ": int((diff > 0).any(-1).sum()),
+        }
+    out["equal"] = all(entry["equal"] for entry in out.values())
     return out
 
 
@@ -217,9 +264,9 @@ def against_reference(scene: Scene, options: dict[str, Any], ref: Any) -> dict[s
     size = int(ref[f"image.{CAMERAS[0]}"].shape[2])
     qpos = ref["qpos"][:, marks].reshape(-1, ref["qpos"].shape[-1])
     data = scene.worlds(qpos)
-    rc, model = scene.context(len(qpos), size, options)
+    rc, model, order = scene.context(len(qpos), size, options)
     draw(model, data, rc)
-    got = images(rc, size)
+    got = images(rc, order, size)
     return {name: image_scores(got[name], ref[f"image.{name}"].reshape(got[name].shape)) for name in CAMERAS}
 
 
@@ -269,15 +316,20 @@ def main() -> None:
     parser.add_argument("--variants", default=",".join(variants()), help="comma-separated, of: " + ",".join(variants()))
     parser.add_argument("--reference", type=Path, help="the CPU engine's record (bench_mjwarp.py reference)")
     parser.add_argument("--no-overlap", action="store_true")
+    parser.add_argument("--compare", type=int, default=64, help="worlds whose images are checked against engine's")
     parser.add_argument("--machine", default=platform.node())
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     known = variants()
     chosen = [name.strip() for name in args.variants.split(",") if name.strip()]
+    try:
+        known |= {name: combined(known, name) for name in chosen if "+" in name}
+    except ValueError as exc:
+        parser.error(f"--variants: {exc}")
     unknown = [name for name in chosen if name not in known]
     if unknown:
-        parser.error(f"--variants: unknown {unknown}; known: {sorted(known)}")
+        parser.error(f"--variants: unknown {unknown}; known: {sorted(known)}, or several joined by '+'")
 
     import warp as wp
 
@@ -298,16 +350,22 @@ def main() -> None:
         "meshes": mesh_stats(scene.mjm),
         "variants": {},
     }
+    engine_images = None
     for name in chosen:
         started = time.perf_counter()
         try:
-            rc, model = scene.context(args.worlds, args.size, known[name])
+            rc, model, order = scene.context(args.worlds, args.size, known[name])
             render_s = seconds(functools.partial(draw, model, data, rc), args.reps)
             entry: dict[str, Any] = {
                 "options": known[name],
                 "render_s": render_s,
                 "world_renders_per_s": args.worlds / render_s,
             }
+            compare = min(args.compare, args.worlds)
+            if name == "engine":
+                engine_images = images(rc, order, args.size, compare)
+            elif all(part.startswith(SAME_IMAGES) for part in name.split("+")) and engine_images is not None:
+                entry["same_as_engine"] = same_images(images(rc, order, args.size, compare), engine_images)
             if name == "engine":
                 import mujoco_warp as mjw
 
@@ -320,8 +378,9 @@ def main() -> None:
             entry = {"options": known[name], "error": f"{type(exc).__name__}: {exc}"}
         entry["wall_s"] = time.perf_counter() - started
         record["variants"][name] = entry
-        if "render_s" in record["variants"].get("default", {}) and "render_s" in entry:
-            entry["speedup_vs_default"] = record["variants"]["default"]["render_s"] / entry["render_s"]
+        for base in ("default", "engine"):
+            if "render_s" in record["variants"].get(base, {}) and "render_s" in entry:
+                entry[f"speedup_vs_{base}"] = record["variants"][base]["render_s"] / entry["render_s"]
         log.info("%s: %s", name, {k: v for k, v in entry.items() if k != "options"})
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(record, indent=1))

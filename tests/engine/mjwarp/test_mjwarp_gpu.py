@@ -18,6 +18,8 @@ docs/mjwarp.md cites the record.
 - Empty calls change nothing.
 - Recorded envs (``record_env_indices``) get a frame after each action they applied, the last one
   the chunk's observation, zeros after they stopped.
+- Rays reordered into tiles (``frames.order_rays``) and meshes given other trees
+  (``frames.build_mesh_trees``) draw the images the engine served, bit for bit.
 
 The GPU does not give bit-identical outputs run to run (docs/mjwarp.md, Determinism), so a
 world's trajectory is compared with another run's within :data:`ATOL`, and "changes nothing" is
@@ -166,3 +168,39 @@ def test_recorded_envs_get_a_frame_after_each_applied_action(engine):
     assert stopped.num_steps.tolist() == [2, 2] and stopped.truncated[:, 1].all()
     for name in CAMERAS:
         assert stopped.frames[name][0, :2].any() and not stopped.frames[name][0, 2:].any()
+
+
+@pytest.mark.parametrize(
+    ("tile", "trees"), [(None, None), ((8, 4), None), ((8, 8), ("cubql", 2)), ((16, 16), ("sah", 1))]
+)
+def test_any_ray_order_and_mesh_trees_draw_the_engines_images_bit_for_bit(engine, tile, trees):
+    """The ray tracer draws the same pixels whatever order its rays are in
+    (``frames.order_rays``) and whichever trees its meshes have (``frames.build_mesh_trees``;
+    ``None``: MuJoCo Warp's): a context of each draws the images the engine served."""
+    from types import SimpleNamespace
+
+    from vecsim.engine.mjwarp import frames
+    from vecsim.engine.mjwarp.engine import render_context
+
+    ids = np.arange(len(STATES))
+    engine.reset_envs(ids, np.array(STATES))
+    served = {name: engine._obs["images"][name].copy() for name in CAMERAS}
+    (batch,) = engine._batches
+    camera = engine.assignment.camera
+    rc, order = render_context(batch.mjm, len(STATES), camera, tile=tile, mesh_trees=trees)
+    probe = SimpleNamespace(
+        view=batch.view,
+        data=batch.data,
+        model=batch.model,
+        render=rc,
+        ray_order=order,
+        pixels=batch.pixels,
+        host=batch.host,
+    )
+    drawn: dict[str, np.ndarray] = {}
+    orientation = engine.assignment.libero.image_orientation
+    frames.draw(
+        probe, CAMERAS, camera.height, camera.width, orientation, lambda name, px: drawn.update({name: px.copy()})
+    )
+    for name in CAMERAS:
+        np.testing.assert_array_equal(drawn[name], served[name], err_msg=f"{name}, tile {tile}, trees {trees}")

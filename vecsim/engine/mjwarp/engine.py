@@ -40,7 +40,7 @@ import gymnasium
 import numpy as np
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim.config import Assignment, TaskBlock
+from vecsim.config import Assignment, CameraConfig, TaskBlock
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
@@ -69,6 +69,16 @@ GEOM_GROUPS = [1, 2]
 # images (mean difference 9.9 levels against 16.3, SSIM 0.89 against 0.85), which have none to
 # speak of, and agentview moves by 0.7 levels.
 RENDER_SETTINGS = {"enable_backface_culling": False, "enable_specular": False}
+# The order the ray tracer draws each camera's pixels in (frames.ray_order): tiles of (rows,
+# cols), or None for MuJoCo Warp's row order. The images are the same bit for bit either way; 8x8
+# tiles drew 4,096 worlds of LIBERO-10/0 at 2x256x256 1.37x faster than rows on an H200 (4x4
+# 1.33x, 8x4 1.34x, 16x16 1.30x; bench/bench_mjwarp_render.py, docs/mjwarp.md).
+RAY_TILE: tuple[int, int] | None = (8, 8)
+# The BVH of each mesh the ray tracer walks: warp's constructor and triangles a leaf (frames.
+# build_mesh_trees), or None for MuJoCo Warp's own (cubql, 2). The same hits, other trees: cubql
+# with 4 a leaf drew 1.065x faster than 2 with 8x8 tiles (1 a leaf: 0.88x; sah and lbvh, any
+# leaf size: 8-17% slower; bench/bench_mjwarp_render.py).
+MESH_TREES: tuple[str, int] | None = ("cubql", 4)
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
 _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
@@ -79,6 +89,35 @@ _VIEW = VIEW_FIELDS
 
 def _missing_packages() -> list[str]:
     return [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
+
+
+def render_context(
+    mjm: Any,
+    nworld: int,
+    camera: CameraConfig,
+    tile: tuple[int, int] | None = RAY_TILE,
+    mesh_trees: tuple[str, int] | None = MESH_TREES,
+) -> tuple[Any, Any]:
+    """MuJoCo Warp's render context for ``nworld`` worlds of ``mjm`` drawn by ``camera``, as the
+    engine draws (``GEOM_GROUPS``, ``RENDER_SETTINGS``, rays in ``tile`` order, ``mesh_trees``),
+    and the order its rays draw each camera's pixels in (for ``frames.unpack``)."""
+    import mujoco_warp as mjw
+
+    from vecsim.engine.mjwarp import frames
+
+    rc = mjw.create_render_context(
+        mjm,
+        nworld=nworld,
+        cam_res=(camera.width, camera.height),
+        render_rgb=True,
+        render_depth=False,
+        cam_active=list(camera.names),
+        enabled_geom_groups=GEOM_GROUPS,
+        **RENDER_SETTINGS,
+    )
+    if mesh_trees is not None:
+        frames.build_mesh_trees(mjm, rc, *mesh_trees)
+    return rc, frames.order_rays(rc, camera.height, camera.width, tile)
 
 
 def read_settings() -> MjwarpSettings:
@@ -202,6 +241,8 @@ class _Batch:
     view: dict[str, Any] | None = None
     # One action's substeps as a CUDA graph, captured at the first action (None on a CPU device).
     graph: Any = None
+    # The pixel each of a camera's rays draws (frames.order_rays; None without cameras).
+    ray_order: Any = None
 
 
 class MjwarpEngine:
@@ -301,19 +342,10 @@ class MjwarpEngine:
         controller = PandaController(PandaIndex(**panda), nworld)
         observables = PandaObservables(ObservableIndex(**tables["obs"]), nworld)
         goal = GoalEvaluator(GoalTable(atoms=tuple(scene.manifest["goal"]["atoms"]), **tables["goal"]), nworld)
-        render = None
+        render = order = None
         camera = self.assignment.camera
         if camera.names:
-            render = mjw.create_render_context(
-                mjm,
-                nworld=nworld,
-                cam_res=(camera.width, camera.height),
-                render_rgb=True,
-                render_depth=False,
-                cam_active=list(camera.names),
-                enabled_geom_groups=GEOM_GROUPS,
-                **RENDER_SETTINGS,
-            )
+            render, order = render_context(mjm, nworld, camera)
         limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
         log.info(
             "mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv
@@ -326,6 +358,7 @@ class MjwarpEngine:
             # Pinned: the copy to the host runs at the bus's rate, not through a staging buffer.
             batch.host = wp.zeros(shape, dtype=wp.uint8, device="cpu", pinned=controller.device.is_cuda)
             batch.view = {name: wp.clone(getattr(data, name)) for name in _VIEW}
+            batch.ray_order = order
         return batch
 
     # The PodEngine calls.
