@@ -76,8 +76,8 @@ RENDER_SETTINGS = {"enable_backface_culling": False, "enable_specular": False}
 RAY_TILE: tuple[int, int] | None = (8, 8)
 # The BVH of each mesh the ray tracer walks: warp's constructor and triangles a leaf (frames.
 # build_mesh_trees), or None for MuJoCo Warp's own (cubql, 2). The same hits, other trees: cubql
-# with 4 a leaf drew 1.065x faster than 2 with 8x8 tiles (1 a leaf: 0.88x; sah and lbvh, any
-# leaf size: 8-17% slower; bench/bench_mjwarp_render.py).
+# with 4 a leaf drew 1.065x faster than 2 with 8x8 tiles (in row order: 1.04x; 1 a leaf: 0.88x;
+# bench/bench_mjwarp_render.py).
 MESH_TREES: tuple[str, int] | None = ("cubql", 4)
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
