@@ -342,7 +342,8 @@ class PodsConfig(_Model):
         description=(
             "GPUs (EGL device indices) pods render on: pod i renders on render_gpus[i % len] "
             "(MUJOCO_EGL_DEVICE_ID), so cameras can stay off the GPU a local trainer's policy uses; "
-            "empty: the default EGL device. Kubernetes gives each pod its own GPU instead"
+            "an mjwarp pod runs on the CUDA device of that number (VECSIM_MJWARP_GPU); "
+            "empty: the default device. Kubernetes gives each pod its own GPU instead"
         ),
     )
 

@@ -40,6 +40,9 @@ from .status import PodStatus, collect_status, format_status
 log = logging.getLogger(__name__)
 
 CONTROLLER_NAME = "controller"
+# The mjwarp engine's CUDA device (vecsim.engine.mjwarp.settings.GPU_ENV; named here, as nothing
+# above the engine imports one).
+MJWARP_GPU_ENV = "VECSIM_MJWARP_GPU"
 
 
 class CrashLoopError(RuntimeError):
@@ -127,8 +130,9 @@ class LocalJob:
         pods = self.config.pods
         url = self.pod_url(name)
         gpu = pods.render_gpu_of(int(name.rsplit("-", 1)[1]))
-        # MuJoCo's EGL context opens this device; unset, it takes the first one that works.
-        render = {} if gpu is None else {"MUJOCO_EGL_DEVICE_ID": str(gpu)}
+        # MuJoCo's EGL context opens this device (the CPU engine's cameras), the mjwarp engine
+        # runs on the CUDA device of this number; unset, each takes the first one that works.
+        render = {} if gpu is None else {"MUJOCO_EGL_DEVICE_ID": str(gpu), MJWARP_GPU_ENV: str(gpu)}
         return {
             "POD_NAME": name,
             "POD_NAMESPACE": self.namespace,

@@ -16,6 +16,7 @@ import pytest
 from support.service_procs import free_port_block
 
 from service.runner import JobRejectedError, LocalJob
+from service.runner.job import MJWARP_GPU_ENV
 from vecsim.config import (
     CameraConfig,
     ConfigError,
@@ -25,6 +26,7 @@ from vecsim.config import (
     PodsConfig,
     load_job_config,
 )
+from vecsim.engine.mjwarp.settings import GPU_ENV
 
 
 def cheetah_config(
@@ -95,7 +97,10 @@ def test_a_cpu_affinity_neither_a_list_nor_auto_nor_off_is_refused_naming_the_fi
 def test_pods_take_render_gpus_in_turn_and_a_negative_device_is_refused_naming_the_field(tmp_path):
     job = LocalJob(cheetah_config((), replicas=3, render_gpus=(1, 2)))
     assert [job.pod_env(f"sim-{i}").get("MUJOCO_EGL_DEVICE_ID") for i in range(3)] == ["1", "2", "1"]
-    assert "MUJOCO_EGL_DEVICE_ID" not in LocalJob(cheetah_config(())).pod_env("sim-0")
+    # The mjwarp engine's CUDA device, of the same number, by the variable the engine reads.
+    assert MJWARP_GPU_ENV == GPU_ENV
+    assert [job.pod_env(f"sim-{i}").get(GPU_ENV) for i in range(3)] == ["1", "2", "1"]
+    assert not {"MUJOCO_EGL_DEVICE_ID", GPU_ENV} & set(LocalJob(cheetah_config(())).pod_env("sim-0"))
     path = tmp_path / "job.yaml"
     path.write_text("job: {tasks: [gym/HalfCheetah-v5]}\npods: {render_gpus: [-1]}\n")
     with pytest.raises(ConfigError, match=r"pods\.render_gpus"):

@@ -17,13 +17,14 @@ from support.service_procs import RunningPod, assignment, running, wait_until
 
 from vecsim.config import Assignment
 from vecsim.engine.errors import SimBuildError
-from vecsim.engine.mjwarp.engine import MjwarpEngine
+from vecsim.engine.mjwarp.engine import MjwarpEngine, use_device
 from vecsim.engine.mjwarp.settings import DEFAULT_TURNS_DIR, ENV_VARS, TURNS_ENV, MjwarpSettings
 from vecsim.envsettings import SettingsError
 
 NCONMAX, NJMAX = "VECSIM_MJWARP_NCONMAX", "VECSIM_MJWARP_NJMAX"
 DETERMINISTIC, ALLOW_CPU = "VECSIM_MJWARP_DETERMINISTIC", "VECSIM_MJWARP_ALLOW_CPU"
 TURN_WAIT_S = "VECSIM_MJWARP_TURN_WAIT_S"
+GPU = "VECSIM_MJWARP_GPU"
 MALFORMED = [
     (NCONMAX, "lots"),
     (NCONMAX, "0"),
@@ -37,6 +38,9 @@ MALFORMED = [
     (TURN_WAIT_S, "2 min"),
     (TURN_WAIT_S, "0"),
     (TURN_WAIT_S, "nan"),
+    (GPU, "-1"),
+    (GPU, "cuda:1"),
+    (GPU, "0,1"),
 ]
 
 
@@ -46,7 +50,7 @@ def _spare() -> Assignment:
 
 
 def test_the_variables_are_the_engines_and_each_names_a_field() -> None:
-    assert set(ENV_VARS) == {NCONMAX, NJMAX, DETERMINISTIC, ALLOW_CPU, TURNS_ENV, TURN_WAIT_S}
+    assert set(ENV_VARS) == {NCONMAX, NJMAX, DETERMINISTIC, ALLOW_CPU, GPU, TURNS_ENV, TURN_WAIT_S}
     assert set(ENV_VARS.values()) == set(MjwarpSettings.model_fields)
 
 
@@ -57,6 +61,7 @@ def test_unset_or_empty_variables_keep_the_engines_defaults() -> None:
         assert settings.deterministic is False and settings.allow_cpu is False
         assert settings.turns_dir == DEFAULT_TURNS_DIR == "/dev/shm/vecsim-turns"
         assert settings.turn_wait_s == 120.0
+        assert settings.gpu is None  # warp's default device
 
 
 @pytest.mark.parametrize(
@@ -70,6 +75,8 @@ def test_unset_or_empty_variables_keep_the_engines_defaults() -> None:
         (ALLOW_CPU, "1", "allow_cpu", True),
         (ALLOW_CPU, "0", "allow_cpu", False),
         (TURN_WAIT_S, "2.5", "turn_wait_s", 2.5),
+        (GPU, "0", "gpu", 0),
+        (GPU, "3", "gpu", 3),
         (TURN_WAIT_S, "inf", "turn_wait_s", float("inf")),  # wait for the turn however long it takes
         (TURNS_ENV, "/tmp/turns", "turns_dir", "/tmp/turns"),
         (TURNS_ENV, "off", "turns_dir", None),
@@ -104,6 +111,22 @@ def test_an_engine_reads_its_settings_when_it_is_built(monkeypatch: pytest.Monke
     monkeypatch.setenv(NJMAX, "none")
     with pytest.raises(SimBuildError, match=f"mjwarp: environment variable {NJMAX} is 'none'"):
         MjwarpEngine(_spare())
+
+
+@pytest.mark.parametrize("allow_cpu", [False, True])
+def test_a_gpu_warp_does_not_see_fails_the_build_naming_it(allow_cpu: bool) -> None:
+    """The device an engine builds on (``use_device``, before any world): a GPU named where warp
+    sees none (this machine) fails, saying why, even where the CPU device is allowed; where warp
+    sees GPUs, one past the last is named with their count."""
+    import warp as wp
+
+    settings = MjwarpSettings.from_env({GPU: "7", ALLOW_CPU: str(int(allow_cpu))})
+    if wp.is_cuda_available():
+        expected = f"{GPU} is '7': warp sees {wp.get_cuda_device_count()} CUDA GPU"
+    else:
+        expected = "the engine runs on a CUDA GPU and warp found none"
+    with pytest.raises(SimBuildError, match=expected):
+        use_device(settings)
 
 
 @pytest.mark.timeout(120)

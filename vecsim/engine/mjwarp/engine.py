@@ -47,7 +47,7 @@ from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
 from vecsim.engine.mjwarp import host, stepping
 from vecsim.engine.mjwarp.host import GpuTurn, HostImages
 from vecsim.engine.mjwarp.scene import VIEW_FIELDS, Scene, load_scene, load_tables, refusal, scene_dir
-from vecsim.engine.mjwarp.settings import ALLOW_CPU_ENV, MjwarpSettings
+from vecsim.engine.mjwarp.settings import ALLOW_CPU_ENV, GPU_ENV, MjwarpSettings
 from vecsim.engine.tasks._libero import LIBERO_SUITES, libero_observation_space
 from vecsim.engine.tasks._robot import ACTION_DIM, robot_action_space
 from vecsim.envsettings import SettingsError
@@ -130,6 +130,28 @@ def read_settings() -> MjwarpSettings:
         return MjwarpSettings.from_env()
     except SettingsError as exc:
         raise SimBuildError(f"mjwarp: {exc}") from None
+
+
+def use_device(settings: MjwarpSettings) -> None:
+    """Make the device ``settings`` name warp's default for the engine's worlds: CUDA device
+    ``settings.gpu`` (``VECSIM_MJWARP_GPU``), else warp's default one (or its CPU device where
+    ``settings.allow_cpu`` and no GPU is seen; not when a GPU is named).
+
+    Raises:
+        SimBuildError: no CUDA GPU (why, as :func:`_require_cuda` says), or none of that number.
+    """
+    import warp as wp
+
+    _require_cuda(settings.allow_cpu and settings.gpu is None)
+    if settings.gpu is None:
+        return
+    count = wp.get_cuda_device_count()
+    if settings.gpu >= count:
+        raise SimBuildError(
+            f"mjwarp: environment variable {GPU_ENV} is '{settings.gpu}': warp sees {count} CUDA GPU(s), "
+            f"cuda:0 to cuda:{count - 1}"
+        )
+    wp.set_device(f"cuda:{settings.gpu}")
 
 
 def _require_cuda(allow_cpu: bool) -> None:
@@ -287,7 +309,7 @@ class MjwarpEngine:
         self._batches: list[_Batch] = []
         if not assignment.tasks:
             return
-        _require_cuda(self.settings.allow_cpu)
+        use_device(self.settings)
         self._turn, self._images = host.for_engine(assignment.camera, self.num_envs, self.settings)
         if assignment.camera.names:
             self._obs["images"] = self._images.current

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from vecsim.envsettings import from_environ
 
 ALLOW_CPU_ENV = "VECSIM_MJWARP_ALLOW_CPU"
+GPU_ENV = "VECSIM_MJWARP_GPU"
 TURNS_ENV = "VECSIM_MJWARP_TURNS"
 DEFAULT_TURNS_DIR = "/dev/shm/vecsim-turns"
 DEFAULT_TURN_WAIT_S = 120.0
@@ -36,6 +37,7 @@ ENV_VARS: dict[str, str] = {
     "VECSIM_MJWARP_NJMAX": "njmax",
     "VECSIM_MJWARP_DETERMINISTIC": "deterministic",
     ALLOW_CPU_ENV: "allow_cpu",
+    GPU_ENV: "gpu",
     TURNS_ENV: "turns",
     "VECSIM_MJWARP_TURN_WAIT_S": "turn_wait_s",
 }
@@ -60,6 +62,14 @@ class MjwarpSettings(BaseModel):
         False,
         description="1: build on warp's CPU device where warp sees no CUDA GPU (tests and debugging: the "
         "first build compiles for minutes); 0: such a pod fails its build, saying why",
+    )
+    # One pod a GPU or several: the local runner sets it from the job's pods.render_gpus (pod i on
+    # render_gpus[i % len]); Kubernetes gives a pod its GPU, the first it sees.
+    gpu: int | None = Field(
+        None,
+        ge=0,
+        description="the CUDA device (warp's cuda:N, N as CUDA_VISIBLE_DEVICES leaves them) the engine "
+        "runs on; unset: warp's default, the first one",
     )
     # Pods that share a GPU take turns only if they see the same directory: on one machine the
     # default does; Kubernetes pods that share a GPU need a hostPath volume there.
