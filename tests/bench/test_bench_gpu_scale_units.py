@@ -9,20 +9,16 @@ rounds and fail a run naming their error.
 
 from __future__ import annotations
 
-import sys
 
 import pytest
-from support import ROOT
+from support.bench_scripts import bench_importable
 
 from vecsim.rollout import RolloutStats
-
-BENCH = ROOT / "bench"
 
 
 @pytest.fixture(scope="module")
 def lib():
-    sys.path.insert(0, str(BENCH))
-    try:
+    with bench_importable():
         import lib.ceiling
         import lib.jobs
         import lib.machine
@@ -31,8 +27,6 @@ def lib():
         import lib.stats
 
         yield lib
-    finally:
-        sys.path.remove(str(BENCH))
 
 
 def topology(siblings: dict[int, int]) -> dict:

@@ -3,24 +3,16 @@ they name and nothing else, and its image scores are those of ``bench_mjwarp``."
 
 from __future__ import annotations
 
-import sys
 
 import numpy as np
 import pytest
-from support import ROOT
-
-BENCH = ROOT / "bench"
+from support.bench_scripts import bench_import
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_mjwarp_render
-
-        yield bench_mjwarp_render
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("bench_mjwarp_render") as module:
+        yield module
 
 
 def test_each_shading_variant_turns_off_only_its_term(bench):

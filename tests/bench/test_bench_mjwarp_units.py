@@ -6,25 +6,17 @@ from __future__ import annotations
 
 import argparse
 
-import sys
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from support import ROOT
-
-BENCH = ROOT / "bench"
+from support.bench_scripts import bench_import
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_mjwarp
-
-        yield bench_mjwarp
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("bench_mjwarp") as module:
+        yield module
 
 
 def windowed_ssim(x: np.ndarray, y: np.ndarray, window: int = 7) -> float:

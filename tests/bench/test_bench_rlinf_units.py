@@ -5,29 +5,23 @@ the best-over-best ratio, and the task list read from exported scenes."""
 
 from __future__ import annotations
 
-import sys
 
 import pytest
 from support import ROOT
+from support.bench_scripts import bench_import
 
 from vecsim.client.routing import RoutedEnv
 from vecsim.engine.mjwarp.scene import ROOT_ENV, export_scene
 from vecsim.trainers.rlinf import place_slots
 
-BENCH = ROOT / "bench"
 SUITE = "libero_10"
 TASKS = [0, 1, 4, 6, 7]
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_rlinf
-
-        yield bench_rlinf
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("bench_rlinf") as module:
+        yield module
 
 
 @pytest.mark.libero

@@ -13,39 +13,28 @@ from __future__ import annotations
 
 import contextlib
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import binomtest
-from support import ROOT, gym_custom_env
+from support import gym_custom_env
+from support.bench_scripts import BENCH, bench_import
 
-BENCH = ROOT / "bench"
 CUSTOM = f"{gym_custom_env.__name__}:{gym_custom_env.ENV_ID}"
 
 
 @pytest.fixture(scope="module")
 def scripted():
-    sys.path.insert(0, str(BENCH))
-    try:
-        from lib import scripted
-
-        yield scripted
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("lib.scripted") as module:
+        yield module
 
 
 @pytest.fixture(scope="module")
 def bench_module():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_scripted
-
-        yield bench_scripted
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("bench_scripted") as module:
+        yield module
 
 
 ROW = {
@@ -392,15 +381,9 @@ class Counted(Push):
 def bench(tmp_path_factory):
     from support.service_procs import PodSpec, standalone_pods
 
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_scripted
-
-        spec = PodSpec("sim-0", 0, [(f"gym/{CUSTOM}", 2)], max_episode_steps=None, envs_per_worker=2)
-        with standalone_pods([spec], tmp_path_factory.mktemp("pods")) as running:
-            yield bench_scripted, running[0].url
-    finally:
-        sys.path.remove(str(BENCH))
+    spec = PodSpec("sim-0", 0, [(f"gym/{CUSTOM}", 2)], max_episode_steps=None, envs_per_worker=2)
+    with bench_import("bench_scripted") as module, standalone_pods([spec], tmp_path_factory.mktemp("pods")) as running:
+        yield module, running[0].url
 
 
 def test_an_env_error_costs_the_bench_only_its_episode(bench) -> None:
@@ -448,11 +431,8 @@ def test_smoke_run_through_a_pod_ends_as_on_libero_itself(tmp_path: Path, script
     assert set(served) == {"0", "1"}
     table = json.loads((BENCH / "lib" / "scripted_table.json").read_text())["libero_10/0"]
 
-    sys.path.insert(0, str(BENCH))
-    try:
-        from bench_scripted import scene_row
-    finally:
-        sys.path.remove(str(BENCH))
+    with bench_import("bench_scripted") as module:
+        scene_row = module.scene_row
     # LIBERO's published loop: one env, seeded once, reset and set_init_state per episode, 10
     # settle steps, then the policy until `done` (success) or the suite's 520 steps. No camera
     # observations: the policy reads none.

@@ -1,5 +1,8 @@
 """Running a ``bench/`` script end to end, as a person would run it, for the benchmark smoke tests.
 
+A unit test imports a bench script or ``bench/lib`` as the scripts do, with ``bench/`` on
+``sys.path`` (:func:`bench_importable`, :func:`bench_import`).
+
 A smoke test copies ``bench/`` into a directory of its own (:func:`copy_bench`), so that the
 script's record (``out/bench/<name>.json``) and plots land under that directory and not over the
 recorded ones in the repository; runs the script from the copy with this interpreter
@@ -10,6 +13,8 @@ exited 0 and printed exactly one ``RESULT {json}`` line, which it parses (:func:
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import json
 import logging
 import os
@@ -18,8 +23,9 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from support import ROOT
@@ -30,6 +36,28 @@ RESULT_PREFIX = "RESULT "
 # How much of the script's stderr and stdout a failure message quotes.
 STDERR_TAIL = 3000
 STDOUT_TAIL = 2000
+
+
+BENCH = ROOT / "bench"
+
+
+@contextlib.contextmanager
+def bench_importable() -> Iterator[Path]:
+    """``bench/`` on ``sys.path`` within the block, as a bench script has it (its own modules and
+    ``lib`` import as the scripts import them); yields ``bench/``."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        yield BENCH
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+@contextlib.contextmanager
+def bench_import(name: str) -> Iterator[ModuleType]:
+    """The bench module ``name`` (``"bench_mjwarp"``, ``"lib.scripted"``), imported and used
+    within the block with ``bench/`` on ``sys.path`` (:func:`bench_importable`)."""
+    with bench_importable():
+        yield importlib.import_module(name)
 
 
 def copy_bench(root: Path) -> Path:
