@@ -204,3 +204,18 @@ def test_any_ray_order_and_mesh_trees_draw_the_engines_images_bit_for_bit(engine
     )
     for name in CAMERAS:
         np.testing.assert_array_equal(drawn[name], served[name], err_msg=f"{name}, tile {tile}, trees {trees}")
+
+
+def test_a_refill_draws_the_images_a_reset_alone_draws(engine):
+    """A refill draws its reset envs in the chunk's render, not in one of their own: their
+    images are the ones a reset alone answers, bit for bit, and it renders once."""
+    ids = np.arange(len(STATES))
+    alone, _ = engine.reset_envs([1], [45])
+    want = {name: alone["images"][name][0].copy() for name in CAMERAS}
+    engine.reset_envs(ids, np.array(STATES))
+    (reset, _info), chunk = engine.reset_and_step_envs([1], [45], [0, 2], _actions(2))
+    assert not chunk.errors and chunk.num_steps.tolist() == [CHUNK, CHUNK]
+    assert engine.last_timing.renders == len(STATES)  # one render of the batch's 3 worlds
+    for name in CAMERAS:
+        np.testing.assert_array_equal(reset["images"][name][0], want[name], err_msg=name)
+        np.testing.assert_array_equal(engine._obs["images"][name][1], want[name], err_msg=name)

@@ -231,6 +231,36 @@ def test_an_empty_step_and_an_empty_reset_are_no_ops(pods, runs):
     _assert_bit_equal(after, runs["mjwarp"])
 
 
+@pytest.mark.parametrize("chunked", [True, False])
+def test_a_refill_answers_what_a_reset_then_a_step_answer(pods, chunked):
+    """A refill (resets riding in a step's request) runs both in one turn and draws once; it
+    answers, bit for bit, what the reset and the step answer one after the other, on one
+    action per env as on chunks."""
+    pod = pods["mjwarp"]
+    actions = ACTIONS[[0, 2], :CHUNK] if chunked else ACTIONS[[0, 2], 0]
+
+    def start() -> None:
+        _call(pod, "reset", reset_body(0, [0, 1, 2], STATES))
+
+    start()
+    apart = [_call(pod, "reset", reset_body(0, [1], [45])), _call(pod, "step", step_body(0, [0, 2], actions))]
+    start()
+    refill = _call(
+        pod,
+        "step",
+        {**step_body(0, [0, 2], actions), "reset_env_indices": np.array([1]), "reset_state_ids": np.array([45])},
+    )
+    _assert_bit_equal([refill["reset"], refill], apart)
+    np.testing.assert_array_equal(refill["reset"]["env_indices"], [1])
+    np.testing.assert_array_equal(refill["reset"]["info"]["success"], apart[0]["info"]["success"])
+    # Every env is where the separate calls left it: the next chunk answers the same.
+    again = _call(pod, "step", step_body(0, [0, 1, 2], ACTIONS[:, CHUNK:]))
+    start()
+    _call(pod, "reset", reset_body(0, [1], [45]))
+    _call(pod, "step", step_body(0, [0, 2], actions))
+    _assert_bit_equal([again], [_call(pod, "step", step_body(0, [0, 1, 2], ACTIONS[:, CHUNK:]))])
+
+
 def test_a_world_out_of_constraint_rows_fails_alone(scenes, runs, tmp_path):
     """njmax 104 per world: init state 0 needs 99 rows at rest, state 5 111 (two objects touch)."""
     pod = _mjwarp_pod(_job("mjwarp-njmax", "mjwarp", 2), tmp_path, scenes, VECSIM_MJWARP_NJMAX="104")

@@ -85,6 +85,7 @@ _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
 # The kinematics MuJoCo Warp's renderer reads, copied where LIBERO samples (recorded at export
 # for resets).
 _VIEW = VIEW_FIELDS
+_NONE = np.zeros(0, dtype=np.int64)
 
 
 def _missing_packages() -> list[str]:
@@ -267,6 +268,52 @@ class _Batch:
     ray_order: Any = None
 
 
+def build_batch(assignment: Assignment, settings: MjwarpSettings, block: TaskBlock) -> _Batch:
+    """One task block's worlds, on warp's default device, as ``assignment`` and ``settings``
+    say: the model, data, controller, observables, goal and (with cameras) render context."""
+    import mujoco
+    import mujoco_warp as mjw
+    import warp as wp
+
+    from vecsim.engine.mjwarp.controller import PandaController
+    from vecsim.engine.mjwarp.observables import PandaObservables
+    from vecsim.engine.mjwarp.predicates import GoalEvaluator
+    from vecsim.engine.mjwarp.tables import GoalTable, ObservableIndex, PandaIndex, mass_index
+
+    scene = check_scene(assignment, block)
+    tables = load_tables(scene)
+    mjm = mujoco.MjModel.from_xml_path(str(scene.xml))
+    states = scene.states
+    mjm.body_pos[:], mjm.body_quat[:] = states["body_pos"][0], states["body_quat"][0]
+    nworld = block.num_envs
+    model = mjw.put_model(mjm)
+    if settings.deterministic:
+        model.opt.deterministic = int(mjw.DeterminismType.ALL)
+    data = mjw.make_data(mjm, nworld=nworld, nconmax=settings.nconmax, njmax=settings.njmax)
+    panda = dict(tables["panda"])
+    # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
+    panda["mass_index"] = mass_index(mjm, panda["arm_dofs"])
+    controller = PandaController(PandaIndex(**panda), nworld)
+    observables = PandaObservables(ObservableIndex(**tables["obs"]), nworld)
+    goal = GoalEvaluator(GoalTable(atoms=tuple(scene.manifest["goal"]["atoms"]), **tables["goal"]), nworld)
+    render = order = None
+    camera = assignment.camera
+    if camera.names:
+        render, order = render_context(mjm, nworld, camera)
+    limit = assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
+    log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
+    action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
+    batch = _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action)
+    if render is not None:
+        shape = (nworld, camera.height, camera.width, 3)
+        batch.pixels = wp.zeros(shape, dtype=wp.uint8, device=controller.device)
+        # Pinned: the copy to the host runs at the bus's rate, not through a staging buffer.
+        batch.host = wp.zeros(shape, dtype=wp.uint8, device="cpu", pinned=controller.device.is_cuda)
+        batch.view = {name: wp.clone(getattr(data, name)) for name in _VIEW}
+        batch.ray_order = order
+    return batch
+
+
 class MjwarpEngine:
     """The envs of one assignment as MuJoCo Warp worlds, addressed by env index (a
     :class:`~vecsim.engine.base.PodEngine`). Thread-safe: calls are serialised. ``timeout_s``
@@ -317,7 +364,7 @@ class MjwarpEngine:
         try:
             for block in assignment.tasks:
                 if block.num_envs:
-                    self._batches.append(self._build(block))
+                    self._batches.append(build_batch(self.assignment, self.settings, block))
                     self._num_states[block.env_start : block.env_start + block.num_envs] = self._batches[
                         -1
                     ].scene.num_states
@@ -338,51 +385,6 @@ class MjwarpEngine:
             time.monotonic() - started,
         )
 
-    def _build(self, block: TaskBlock) -> _Batch:
-        import mujoco
-        import mujoco_warp as mjw
-        import warp as wp
-
-        from vecsim.engine.mjwarp.controller import PandaController
-        from vecsim.engine.mjwarp.observables import PandaObservables
-        from vecsim.engine.mjwarp.predicates import GoalEvaluator
-        from vecsim.engine.mjwarp.tables import GoalTable, ObservableIndex, PandaIndex, mass_index
-
-        scene = check_scene(self.assignment, block)
-        tables = load_tables(scene)
-        mjm = mujoco.MjModel.from_xml_path(str(scene.xml))
-        states = scene.states
-        mjm.body_pos[:], mjm.body_quat[:] = states["body_pos"][0], states["body_quat"][0]
-        nworld = block.num_envs
-        model = mjw.put_model(mjm)
-        if self.settings.deterministic:
-            model.opt.deterministic = int(mjw.DeterminismType.ALL)
-        data = mjw.make_data(mjm, nworld=nworld, nconmax=self.settings.nconmax, njmax=self.settings.njmax)
-        panda = dict(tables["panda"])
-        # Indexed in this model's CSR mass matrix, the layout MuJoCo Warp holds.
-        panda["mass_index"] = mass_index(mjm, panda["arm_dofs"])
-        controller = PandaController(PandaIndex(**panda), nworld)
-        observables = PandaObservables(ObservableIndex(**tables["obs"]), nworld)
-        goal = GoalEvaluator(GoalTable(atoms=tuple(scene.manifest["goal"]["atoms"]), **tables["goal"]), nworld)
-        render = order = None
-        camera = self.assignment.camera
-        if camera.names:
-            render, order = render_context(mjm, nworld, camera)
-        limit = self.assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
-        log.info(
-            "mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv
-        )
-        action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)
-        batch = _Batch(block, scene, mjm, model, data, controller, observables, goal, render, limit, action)
-        if render is not None:
-            shape = (nworld, camera.height, camera.width, 3)
-            batch.pixels = wp.zeros(shape, dtype=wp.uint8, device=controller.device)
-            # Pinned: the copy to the host runs at the bus's rate, not through a staging buffer.
-            batch.host = wp.zeros(shape, dtype=wp.uint8, device="cpu", pinned=controller.device.is_cuda)
-            batch.view = {name: wp.clone(getattr(data, name)) for name in _VIEW}
-            batch.ray_order = order
-        return batch
-
     # The PodEngine calls.
 
     def reset_envs(
@@ -400,20 +402,11 @@ class MjwarpEngine:
         with self._lock, self._turn:
             self._check_open()
             started = time.perf_counter()
-            for batch, rows, worlds in self._split(ids):
-                self._reset_worlds(batch, worlds, states[rows])
+            self._reset(ids, states)
             physics = time.perf_counter() - started
             render_s, renders = self._render(ids)
             self.last_timing = CallTiming(physics, render_s, renders, self._turn.waited_s)
-            obs = self._gather(ids)
-            success = self._last_success[ids].copy()
-        info = {
-            "success": success,
-            "task_id": [self.task_ids[e] for e in ids],
-            "env_info": [{} for _ in ids],
-            "errors": [],
-        }
-        return obs, info
+            return self._reset_answer(ids)
 
     def step_envs(self, env_indices: Any, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
         """Step the named envs one action each (a chunk of one)."""
@@ -431,57 +424,11 @@ class MjwarpEngine:
         ids = checks.env_indices(env_indices, self.num_envs)
         chunk = checks.chunk(actions, ids, self.single_action_space, self.max_chunk).astype(np.float32)
         recorded = checks.record(record_env_indices, ids)
-        n, k = chunk.shape[:2]
-        camera = self.assignment.camera
-        # The recorded envs' frame after each applied action (zeros after an env stopped), as on
-        # the CPU engine: a render of the whole batch after each action that a recorded env applied.
-        frames = {
-            name: np.zeros((recorded.size, k, camera.height, camera.width, 3), dtype=np.uint8)
-            for name in (camera.names if recorded.size else ())
-        }
-        reward = np.zeros((n, k), dtype=np.float64)
-        terminated = np.zeros((n, k), dtype=bool)
-        truncated = np.zeros((n, k), dtype=bool)
-        success = np.zeros((n, k), dtype=bool)
-        num_steps = np.zeros(n, dtype=np.int32)
-        errors: list[EnvError] = []
-        if n == 0 or k == 0:
-            return ChunkResult(
-                self._gather(ids), reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], []
-            )
+        if ids.size == 0 or chunk.shape[1] == 0:
+            return self._unmoved(ids, chunk, recorded)
         with self._lock, self._turn:
             self._check_open()
-            started = time.perf_counter()
-            frames_s = 0.0  # the per-action frames' renders, counted as render time
-            for batch, rows, worlds in self._split(ids):
-                broken = [r for r, e in zip(rows, ids[rows]) if int(e) in self._broken]
-                for r in broken:
-                    errors.append(EnvError(int(r), "SimStateError", self._broken[int(ids[r])]))
-                live = np.array([r for r in rows if r not in broken], dtype=np.int64)
-                # The recorded envs of this batch: world -> their row in ``frames``.
-                shots = {int(ids[r]) - batch.block.env_start: m for m, r in enumerate(recorded) if r in live}
-                if live.size:
-                    frames_s += self._step_batch(
-                        batch,
-                        ids,
-                        live,
-                        chunk,
-                        reward,
-                        terminated,
-                        truncated,
-                        success,
-                        num_steps,
-                        step_past_end,
-                        errors,
-                        (shots, frames),
-                    )
-            physics = time.perf_counter() - started - frames_s
-            moved = ids[num_steps > 0]
-            render_s, renders = self._render(moved)
-            self.last_timing = CallTiming(physics, render_s + frames_s, renders, self._turn.waited_s)
-            obs = self._gather(ids)
-        errors.sort(key=lambda e: e.row)
-        return ChunkResult(obs, reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], errors)
+            return self._chunk(ids, chunk, recorded, step_past_end)
 
     def reset_and_step_envs(
         self,
@@ -494,7 +441,9 @@ class MjwarpEngine:
         record_env_indices: Any = (),
         step_past_end: bool = False,
     ) -> tuple[tuple[Any, dict[str, Any]], ChunkResult]:
-        """Reset some envs and step others in one call (a refill): the resets first."""
+        """Reset some envs and step others in one call (a refill), in one turn at the GPU: the
+        resets first, then the chunk; the reset envs are drawn by the chunk's render, so a
+        refill draws its batches once, as a chunk does (a reset alone draws them too)."""
         reset_ids = checks.env_indices(reset_env_indices, self.num_envs, "reset_env_indices")
         step_ids = checks.env_indices(env_indices, self.num_envs)
         if np.intersect1d(reset_ids, step_ids).size:
@@ -502,12 +451,23 @@ class MjwarpEngine:
         if chunked:
             chunk = checks.chunk(actions, step_ids, self.single_action_space, self.max_chunk)
         else:
-            chunk = checks.actions(actions, step_ids, self.single_action_space)
-        checks.record(record_env_indices, step_ids)
+            chunk = checks.actions(actions, step_ids, self.single_action_space)  # a chunk of one
+        recorded = checks.record(record_env_indices, step_ids)
         # Checked before the resets, so a refused call changes nothing.
         reset_states = checks.state_ids(state_ids, reset_ids, self._num_states, self.task_ids, "reset_state_ids")
-        reset = self.reset_envs(reset_ids, reset_states)
-        return reset, self.chunk_step_envs(step_ids, chunk, record_env_indices, step_past_end)
+        chunk = chunk.astype(np.float32)
+        if step_ids.size == 0 or chunk.shape[1] == 0:
+            return self.reset_envs(reset_ids, reset_states), self._unmoved(step_ids, chunk, recorded)
+        with self._lock, self._turn:
+            self._check_open()
+            started = time.perf_counter()
+            self._reset(reset_ids, reset_states)
+            try:
+                result = self._chunk(step_ids, chunk, recorded, step_past_end, reset_ids, time.perf_counter() - started)
+            except Exception:
+                self._render(reset_ids)  # the resets stand: so do their images
+                raise
+            return self._reset_answer(reset_ids), result
 
     def frame(self, env_index: int, camera: str) -> np.ndarray:
         """A copy of the uint8 HxWx3 image ``camera`` of env ``env_index`` saw last."""
@@ -542,6 +502,80 @@ class MjwarpEngine:
     def _check_open(self) -> None:
         if self._closed:
             raise InvalidRequestError("engine: the mjwarp engine is closed")
+
+    def _reset(self, ids: np.ndarray, states: np.ndarray) -> None:
+        for batch, rows, worlds in self._split(ids):
+            self._reset_worlds(batch, worlds, states[rows])
+
+    def _reset_answer(self, ids: np.ndarray) -> tuple[Any, dict[str, Any]]:
+        """A reset's answer for ``ids``, after their images were drawn."""
+        info = {
+            "success": self._last_success[ids].copy(),
+            "task_id": [self.task_ids[e] for e in ids],
+            "env_info": [{} for _ in ids],
+            "errors": [],
+        }
+        return self._gather(ids), info
+
+    def _outcome(self, n: int, k: int, recorded: np.ndarray) -> tuple[dict[str, np.ndarray], tuple[np.ndarray, ...]]:
+        """A chunk's empty frames (the recorded envs', zeros after an env stopped) and its reward,
+        terminated, truncated, success and num_steps arrays, for ``n`` envs of ``k`` actions."""
+        camera = self.assignment.camera
+        frames = {
+            name: np.zeros((recorded.size, k, camera.height, camera.width, 3), dtype=np.uint8)
+            for name in (camera.names if recorded.size else ())
+        }
+        flags = tuple(np.zeros((n, k), dtype=bool) for _ in range(3))
+        return frames, (np.zeros((n, k), dtype=np.float64), *flags, np.zeros(n, dtype=np.int32))
+
+    def _unmoved(self, ids: np.ndarray, chunk: np.ndarray, recorded: np.ndarray) -> ChunkResult:
+        """The answer of a chunk that moves nothing (no envs, or no actions)."""
+        frames, arrays = self._outcome(ids.size, chunk.shape[1], recorded)
+        return ChunkResult(self._gather(ids), *arrays, frames, [{} for _ in ids], [])
+
+    def _chunk(
+        self,
+        ids: np.ndarray,
+        chunk: np.ndarray,
+        recorded: np.ndarray,
+        step_past_end: bool,
+        drawn: np.ndarray = _NONE,
+        reset_s: float = 0.0,
+    ) -> ChunkResult:
+        """Step ``chunk`` (checked, ``[n >= 1, K >= 1, 7]``) under the lock and the GPU turn; the
+        render after it draws the moved envs and ``drawn`` (a refill's reset envs)."""
+        frames, (reward, terminated, truncated, success, num_steps) = self._outcome(*chunk.shape[:2], recorded)
+        errors: list[EnvError] = []
+        started = time.perf_counter()
+        frames_s = 0.0  # the per-action frames' renders, counted as render time
+        for batch, rows, _worlds in self._split(ids):
+            broken = [r for r, e in zip(rows, ids[rows]) if int(e) in self._broken]
+            for r in broken:
+                errors.append(EnvError(int(r), "SimStateError", self._broken[int(ids[r])]))
+            live = np.array([r for r in rows if r not in broken], dtype=np.int64)
+            # The recorded envs of this batch: world -> their row in ``frames``.
+            shots = {int(ids[r]) - batch.block.env_start: m for m, r in enumerate(recorded) if r in live}
+            if live.size:
+                frames_s += self._step_batch(
+                    batch,
+                    ids,
+                    live,
+                    chunk,
+                    reward,
+                    terminated,
+                    truncated,
+                    success,
+                    num_steps,
+                    step_past_end,
+                    errors,
+                    (shots, frames),
+                )
+        physics = time.perf_counter() - started - frames_s + reset_s
+        render_s, renders = self._render(np.union1d(ids[num_steps > 0], drawn))
+        self.last_timing = CallTiming(physics, render_s + frames_s, renders, self._turn.waited_s)
+        errors.sort(key=lambda e: e.row)
+        obs = self._gather(ids)
+        return ChunkResult(obs, reward, terminated, truncated, success, num_steps, frames, [{} for _ in ids], errors)
 
     def _split(self, ids: np.ndarray) -> list[tuple[_Batch, np.ndarray, np.ndarray]]:
         """The call's rows per batch: ``(batch, rows of ids, world indices)``."""
