@@ -8,7 +8,7 @@ render, not physics, bounds the engine (docs/mjwarp.md). This bench takes one ex
 
 - ``default``: MuJoCo Warp's own settings (textures, vertex normals, specular, emission,
   per-light ambient, back-face culling; no shadows);
-- ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.engine.RENDER_SETTINGS``, its rays
+- ``engine``: the ``mjwarp`` engine's (``vecsim.engine.mjwarp.frames.RENDER_SETTINGS``, its rays
   in ``RAY_TILE`` tiles, its meshes' trees ``MESH_TREES``); ``rows``: the same settings, rays in
   MuJoCo Warp's row order and its trees (the engine before tiles);
 - one of those shading terms off at a time, and ``plain`` with all of them off;
@@ -76,7 +76,7 @@ SAME_IMAGES = ("rows", "tile", "block", "mesh_")
 
 def variants() -> dict[str, dict[str, Any]]:
     """Each variant's render-context keywords; ``lowpoly`` is marked by a key of its own."""
-    from vecsim.engine.mjwarp.engine import MESH_TREES, RAY_TILE, RENDER_SETTINGS
+    from vecsim.engine.mjwarp.frames import MESH_TREES, RAY_TILE, RENDER_SETTINGS
 
     engine = dict(RENDER_SETTINGS) | {"ray_tile": RAY_TILE} | ({"mesh_bvh": MESH_TREES} if MESH_TREES else {})
     out: dict[str, dict[str, Any]] = {"default": {}, "engine": engine}
@@ -116,7 +116,7 @@ def combined(known: dict[str, dict[str, Any]], name: str) -> dict[str, Any]:
 
 def mesh_stats(mjm: Any) -> dict[str, Any]:
     """Triangles of the scene's meshes drawn by the engine's geom groups."""
-    from vecsim.engine.mjwarp.engine import GEOM_GROUPS
+    from vecsim.engine.mjwarp.frames import GEOM_GROUPS
 
     drawn = {
         int(mjm.geom_dataid[g])
@@ -171,7 +171,7 @@ class Scene:
 
         from vecsim.engine import mesh_lod
         from vecsim.engine.mjwarp import frames
-        from vecsim.engine.mjwarp.engine import GEOM_GROUPS
+        from vecsim.engine.mjwarp.frames import GEOM_GROUPS
 
         options = dict(options)
         cell = options.pop("lowpoly", None)

@@ -180,7 +180,7 @@ def test_any_ray_order_and_mesh_trees_draw_the_engines_images_bit_for_bit(engine
     from types import SimpleNamespace
 
     from vecsim.engine.mjwarp import frames
-    from vecsim.engine.mjwarp.engine import render_context
+    from vecsim.engine.mjwarp.frames import render_context
 
     ids = np.arange(len(STATES))
     engine.reset_envs(ids, np.array(STATES))

@@ -40,7 +40,7 @@ import gymnasium
 import numpy as np
 from gymnasium.vector.utils import create_empty_array
 
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from vecsim.config import Assignment, TaskBlock
 from vecsim.engine import checks
 from vecsim.engine.base import DEFAULT_MAX_CHUNK, CallTiming, ChunkResult, EngineKind
 from vecsim.engine.errors import EnvError, InvalidRequestError, SimBuildError
@@ -60,25 +60,6 @@ log = logging.getLogger(__name__)
 # with warp's settings (docs/mjwarp.md). Set only where warp has no CUDA device, so every kernel
 # it compiles is a CPU one: nothing compiled for a GPU changes.
 CPU_WARP_CONFIG = {"optimization_level": 1, "enable_backward": False}
-# The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
-# render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
-GEOM_GROUPS = [1, 2]
-# Measured on LIBERO-10/0 (bench/bench_mjwarp_render.py, docs/mjwarp.md): without back-face
-# culling the ray tracer draws 1.33x faster and the images are the same to 0.01 levels (no camera
-# sits inside a geom); without specular highlights the wrist camera is closer to the CPU engine's
-# images (mean difference 9.9 levels against 16.3, SSIM 0.89 against 0.85), which have none to
-# speak of, and agentview moves by 0.7 levels.
-RENDER_SETTINGS = {"enable_backface_culling": False, "enable_specular": False}
-# The order the ray tracer draws each camera's pixels in (frames.ray_order): tiles of (rows,
-# cols), or None for MuJoCo Warp's row order. The images are the same bit for bit either way; 8x8
-# tiles drew 4,096 worlds of LIBERO-10/0 at 2x256x256 1.37x faster than rows on an H200 (4x4
-# 1.33x, 8x4 1.34x, 16x16 1.30x; bench/bench_mjwarp_render.py, docs/mjwarp.md).
-RAY_TILE: tuple[int, int] | None = (8, 8)
-# The BVH of each mesh the ray tracer walks: warp's constructor and triangles a leaf (frames.
-# build_mesh_trees), or None for MuJoCo Warp's own (cubql, 2). The same hits, other trees: cubql
-# with 4 a leaf drew 1.065x faster than 2 with 8x8 tiles (in row order: 1.04x; 1 a leaf: 0.88x;
-# bench/bench_mjwarp_render.py).
-MESH_TREES: tuple[str, int] | None = ("cubql", 4)
 # State arrays that make up a world between actions: what is put back where a world does not step.
 _DATA_STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "time")
 _CONTROLLER_STATE = ("goal_pos", "goal_ori", "initial_joint", "gripper_command")
@@ -90,35 +71,6 @@ _NONE = np.zeros(0, dtype=np.int64)
 
 def _missing_packages() -> list[str]:
     return [name for name in ("warp", "mujoco_warp") if importlib.util.find_spec(name) is None]
-
-
-def render_context(
-    mjm: Any,
-    nworld: int,
-    camera: CameraConfig,
-    tile: tuple[int, int] | None = RAY_TILE,
-    mesh_trees: tuple[str, int] | None = MESH_TREES,
-) -> tuple[Any, Any]:
-    """MuJoCo Warp's render context for ``nworld`` worlds of ``mjm`` drawn by ``camera``, as the
-    engine draws (``GEOM_GROUPS``, ``RENDER_SETTINGS``, rays in ``tile`` order, ``mesh_trees``),
-    and the order its rays draw each camera's pixels in (for ``frames.unpack``)."""
-    import mujoco_warp as mjw
-
-    from vecsim.engine.mjwarp import frames
-
-    rc = mjw.create_render_context(
-        mjm,
-        nworld=nworld,
-        cam_res=(camera.width, camera.height),
-        render_rgb=True,
-        render_depth=False,
-        cam_active=list(camera.names),
-        enabled_geom_groups=GEOM_GROUPS,
-        **RENDER_SETTINGS,
-    )
-    if mesh_trees is not None:
-        frames.build_mesh_trees(mjm, rc, *mesh_trees)
-    return rc, frames.order_rays(rc, camera.height, camera.width, tile)
 
 
 def read_settings() -> MjwarpSettings:
@@ -275,6 +227,7 @@ def build_batch(assignment: Assignment, settings: MjwarpSettings, block: TaskBlo
     import mujoco_warp as mjw
     import warp as wp
 
+    from vecsim.engine.mjwarp import frames
     from vecsim.engine.mjwarp.controller import PandaController
     from vecsim.engine.mjwarp.observables import PandaObservables
     from vecsim.engine.mjwarp.predicates import GoalEvaluator
@@ -299,7 +252,7 @@ def build_batch(assignment: Assignment, settings: MjwarpSettings, block: TaskBlo
     render = order = None
     camera = assignment.camera
     if camera.names:
-        render, order = render_context(mjm, nworld, camera)
+        render, order = frames.render_context(mjm, nworld, camera)
     limit = assignment.max_episode_steps or int(scene.manifest["max_episode_steps"])
     log.info("mjwarp: %s x%d built (%d bodies, %d geoms, nv %d)", block.task_id, nworld, mjm.nbody, mjm.ngeom, mjm.nv)
     action = wp.zeros((nworld, ACTION_DIM), dtype=wp.float32, device=controller.device)

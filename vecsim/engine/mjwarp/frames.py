@@ -22,7 +22,27 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from vecsim.config import CameraConfig
+
 FLIPS = {"upright": (0, 0), "raw": (1, 0), "rotate180": (0, 1)}
+# The geom groups the CPU engine draws for LIBERO (robosuite's render_visual_mesh on,
+# render_collision_mesh off): group 0 holds the collision meshes, group 1 the visual ones.
+GEOM_GROUPS = [1, 2]
+# Measured on LIBERO-10/0 (bench/bench_mjwarp_render.py, docs/mjwarp.md): without back-face
+# culling the ray tracer draws 1.33x faster and the images are the same to 0.01 levels (no camera
+# sits inside a geom); without specular highlights the wrist camera is closer to the CPU engine's
+# images (mean difference 9.9 levels against 16.3, SSIM 0.89 against 0.85), which have none to
+# speak of, and agentview moves by 0.7 levels.
+RENDER_SETTINGS = {"enable_backface_culling": False, "enable_specular": False}
+# The order the ray tracer draws each camera's pixels in (:func:`ray_order`): tiles of (rows,
+# cols), or None for MuJoCo Warp's row order. The images are the same bit for bit either way; 8x8
+# tiles drew 4,096 worlds of LIBERO-10/0 at 2x256x256 1.37x faster than rows on an H200 (4x4
+# 1.33x, 8x4 1.34x, 16x16 1.30x; bench/bench_mjwarp_render.py, docs/mjwarp.md).
+RAY_TILE: tuple[int, int] | None = (8, 8)
+# The BVH of each mesh the ray tracer walks: warp's constructor and triangles a leaf (build_mesh_trees), or None for MuJoCo Warp's own (cubql, 2). The same hits, other trees: cubql
+# with 4 a leaf drew 1.065x faster than 2 with 8x8 tiles (in row order: 1.04x; 1 a leaf: 0.88x;
+# bench/bench_mjwarp_render.py).
+MESH_TREES: tuple[str, int] | None = ("cubql", 4)
 
 
 def ray_order(height: int, width: int, tile: tuple[int, int] | None) -> np.ndarray:
@@ -72,6 +92,33 @@ def order_rays(rc: Any, height: int, width: int, tile: tuple[int, int] | None) -
             rays = getattr(rc, name)
             rays.assign(rays.numpy()[index])
     return wp.array(order, dtype=wp.int32, device=rc.ray.device)
+
+
+def render_context(
+    mjm: Any,
+    nworld: int,
+    camera: CameraConfig,
+    tile: tuple[int, int] | None = RAY_TILE,
+    mesh_trees: tuple[str, int] | None = MESH_TREES,
+) -> tuple[Any, Any]:
+    """MuJoCo Warp's render context for ``nworld`` worlds of ``mjm`` drawn by ``camera``, as the
+    engine draws (``GEOM_GROUPS``, ``RENDER_SETTINGS``, rays in ``tile`` order, ``mesh_trees``),
+    and the order its rays draw each camera's pixels in (for :func:`unpack`)."""
+    import mujoco_warp as mjw
+
+    rc = mjw.create_render_context(
+        mjm,
+        nworld=nworld,
+        cam_res=(camera.width, camera.height),
+        render_rgb=True,
+        render_depth=False,
+        cam_active=list(camera.names),
+        enabled_geom_groups=GEOM_GROUPS,
+        **RENDER_SETTINGS,
+    )
+    if mesh_trees is not None:
+        build_mesh_trees(mjm, rc, *mesh_trees)
+    return rc, order_rays(rc, camera.height, camera.width, tile)
 
 
 def build_mesh_trees(mjm: Any, rc: Any, constructor: str, leaf_size: int) -> None:
