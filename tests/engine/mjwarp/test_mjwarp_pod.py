@@ -15,6 +15,8 @@ client drives them: the same resets to LIBERO state ids, the same fixed action c
   equal to the bit), unlike on the GPU (docs/mjwarp.md, Determinism). The guarantees below lean
   on it: "changes nothing" is checked as "the next call answers, bit for bit, what it answered
   before". A pod of another batch (2 worlds, another ``njmax``) parts in the last bits (7e-8 m).
+- Envs a step leaves out do not move (MuJoCo Warp steps every world; the engine puts them back),
+  and a refill (resets riding in a step) answers what a reset then a step answer.
 - Refused calls (wrong action shapes, NaN actions, unknown env ids, out-of-range state ids) get
   the CPU pod's 4xx, naming the field; empty steps and resets are no-ops.
 - A world that runs out of constraint rows (``VECSIM_MJWARP_NJMAX`` below what init state 5's
@@ -229,6 +231,19 @@ def test_an_empty_step_and_an_empty_reset_are_no_ops(pods, runs):
     assert empty_step["num_steps"].size == 0 and empty_step["reward"].shape == (0, CHUNK)
     after = [reset, *(_call(pod, "step", step_body(0, envs, ACTIONS[:, k : k + CHUNK])) for k in (0, CHUNK))]
     _assert_bit_equal(after, runs["mjwarp"])
+
+
+def test_envs_left_out_of_a_step_do_not_move(pods):
+    """MuJoCo Warp steps every world of a batch; the engine puts back the ones a call does not
+    name. Env 1, left out of a step of envs 0 and 2, answers its next chunk as it does right
+    after its reset, bit for bit."""
+    pod = pods["mjwarp"]
+    _call(pod, "reset", reset_body(0, [0, 1, 2], STATES))
+    _call(pod, "step", step_body(0, [0, 2], ACTIONS[[0, 2], :CHUNK]))
+    after_others = _call(pod, "step", step_body(0, [1], ACTIONS[[1], :CHUNK]))
+    _call(pod, "reset", reset_body(0, [0, 1, 2], STATES))
+    alone = _call(pod, "step", step_body(0, [1], ACTIONS[[1], :CHUNK]))
+    _assert_bit_equal([after_others], [alone])
 
 
 @pytest.mark.parametrize("chunked", [True, False])

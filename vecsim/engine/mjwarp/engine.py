@@ -593,7 +593,8 @@ class MjwarpEngine:
         return arrays
 
     def _snapshot(self, batch: _Batch) -> dict[str, np.ndarray]:
-        return {key: array.numpy() for key, array in self._state_arrays(batch).items()}
+        # A copy: on warp's CPU device numpy() is the array's own memory, which the step moves.
+        return {key: array.numpy().copy() for key, array in self._state_arrays(batch).items()}
 
     def _put_back(self, batch: _Batch, saved: dict[str, np.ndarray], frozen: np.ndarray) -> None:
         """Give the ``frozen`` worlds (bool per world) their ``saved`` state again."""
