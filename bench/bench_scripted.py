@@ -1,19 +1,21 @@
-"""Success rates of a scripted pick-and-place policy over LIBERO init states, on the ``cpu`` and
-``mjwarp`` engines, through real pods and ``HTTPVectorEnv``.
+"""Success rates of a scripted policy over LIBERO init states, on the ``cpu`` and ``mjwarp``
+engines, through real pods and ``HTTPVectorEnv``.
 
 The policy (``lib/scripted.py``) is closed loop on the end effector and open loop on the
-objects: ``table`` (the CPU stack: robosuite, LIBERO) measures, for each init state of each
-task, where the goal's objects and regions are after a CPU pod's reset (settle steps included),
-and writes ``bench/lib/scripted_table.json``, which the bench carries (rows of other tasks kept)::
+scene: ``table`` (the CPU stack: robosuite, LIBERO) measures, for each init state of each task,
+where the goal's objects and regions are after a CPU pod's reset (settle steps included), and
+the knobs to turn on and the doors or drawers to push shut (``lib/fixtures.py``), and writes
+``bench/lib/scripted_table.json``, which the bench carries (rows of other tasks kept)::
 
     python bench/bench_scripted.py table --tasks libero_10/0 libero_10/1 libero_10/4 libero_10/6 libero_10/7
     python bench/bench_scripted.py table --libero rlinf --tasks libero_10/5 libero_10/8
+    python bench/bench_scripted.py table --libero rlinf --tasks libero_10/2 libero_10/3 libero_10/9
 
 ``--libero`` (both commands) names the LIBERO protocol: ``published`` (LIBERO's evaluation, the
 default) or ``rlinf`` (RLinf's: 15 settle steps, ``first_reset`` fixtures, under which the
-``mjwarp`` engine serves the tasks whose fixtures move between init states, 5 and 8 among
-them). Rows are keyed by task and protocol (:func:`row_key`): a run reads only rows measured
-under its own protocol, and its pods run under it.
+``mjwarp`` engine serves the tasks whose fixtures move between init states, 2, 3, 5, 8 and 9
+among them). Rows are keyed by task and protocol (:func:`row_key`): a run reads only rows
+measured under its own protocol, and its pods run under it.
 
 ``run`` starts one real pod (``vecsim pod``, uvicorn, loopback) per task and engine, resets its
 envs to the init states (all 50 by default, ``--envs`` at a time, an env taking the next state
@@ -24,10 +26,10 @@ the env takes the next state. Per task and engine: successes, errors and their s
 rate with its Wilson 95% interval over the episodes that ended without an error, the mean
 episode length of the successes, and with both engines the agreement per init state (states
 that errored on either engine counted apart). Each episode's record names the waypoint and
-phase the policy was at when it ended and where its closed fingers were first found empty
-(``per_state[k]``: ``waypoint``, ``phase``, ``empty_grip``); the summary counts the failures by
-both. Each engine's pods run under their own ``PYTHONPATH``
-(the two stacks pin different mujoco versions); this process needs only the client. The record
+phase the policy was at when it ended (``<step>:<phase>``) and where its closed fingers were
+first found empty (``per_state[k]``: ``waypoint``, ``phase``, ``empty_grip``); the summary
+counts the failures by both. Each engine's pods run under their own ``PYTHONPATH`` (the two
+stacks pin different mujoco versions); this process needs only the client. The record
 is written after every task and engine, so a run cut short keeps what it did::
 
     python bench/bench_scripted.py run --engines cpu mjwarp --tasks libero_10/0 \\
@@ -59,7 +61,8 @@ from typing import Any, Protocol
 import numpy as np
 from lib.jobs import RLINF_PROTOCOL
 from lib.records import command_line, machine_info
-from lib.scripted import Episodes, Gains, PickPlace, agreement, closing_yaw, summary
+from lib.fixtures import SHUTS, knob_turn, shut_path
+from lib.scripted import Episodes, Gains, Script, agreement, closing_yaw, summary
 
 from vecsim.client.errors import ClientError
 from vecsim.config import Assignment, CameraConfig, LiberoProtocol, TaskBlock
@@ -80,7 +83,9 @@ PROTOCOLS = {
 # Tasks whose script moves otherwise than :class:`Gains`'s defaults (tuned on libero_10/0):
 # libero_10/5's book hangs 11 cm under the fingers, so it is carried higher, clear of the
 # caddy's walls (at the default height it catches on them and turns in the grasp).
-TASK_GAINS = {"libero_10/5": Gains(hover_m=0.2)}
+# libero_10/9's hand crosses the open microwave door's top (1.11 m) on its way to push it: it
+# moves 20 cm over what it carries or pushes, not 12.
+TASK_GAINS = {"libero_10/5": Gains(hover_m=0.2), "libero_10/9": Gains(hover_m=0.2)}
 
 
 def task_gains(task: str) -> Gains:
@@ -138,7 +143,17 @@ GRASPS = {
     "porcelain_mug": Grasp(at=(0.0568, -0.0015), centre=(0.0157, 0.0)),
     "white_yellow_mug": Grasp(at=(-0.0604, -0.0045), centre=(-0.018, 0.0)),
     "moka_pot": Grasp(at=(0.0, 0.07), depth_m=0.046, clearance_m=0.035),
+    # A bowl (10.5 cm) by its rim on its world -x side (its frame turned a quarter), the fingers closing along x: the hand, 21 cm
+    # along the fingers, then stays clear of the cabinet above an open drawer it goes into.
+    "akita_black_bowl": Grasp(at=(0.0, 0.0475), centre=(0.0, 0.0)),
 }
+
+# Fixtures whose regions reach far above the floor things stand on inside them (a cabinet's
+# drawer): an object is let go just over that floor (found under the region's centre), not over
+# the region's top, and its body this far off the region's centre (metres, in the fixture's
+# frame). A bowl goes 2.2 cm towards a drawer's open side: its far rim then passes the handles of
+# the drawers above, which overhang the open drawer's back, by 4 mm at most.
+INSIDE = {"white_cabinet": (0.0, -0.022)}
 # Tasks whose objects share one goal region, and how far apart (metres, along the region's x
 # axis) their places are set, in the goal's order: libero_10/8's two moka pots on one burner.
 SHARED_GOAL_SPACING_M = {"libero_10/8": 0.084}
@@ -148,21 +163,30 @@ def scene_row(inner: Any, spacing_m: float = 0.0) -> dict[str, Any]:
     """Where the goal's objects and goals are in ``inner`` (a LIBERO env, now): for each of the
     goal's ``in``/``on`` predicates, in order, the object's centre, top, bottom and grasp yaw (its
     narrowest horizontal direction), and the goal's centre and top (a region site, or an
-    object's bounding box). A goal's other terms (a stove that is on) must hold already: the
-    script leaves them be. With ``spacing_m``, objects that share a goal get places that far
+    object's bounding box). A goal's other terms must hold already (the script leaves them be),
+    but for knobs to turn on and doors or drawers to close. With ``spacing_m``, objects that share a goal get places that far
     apart along the goal's x axis, centred on it. A region site at least twice as long as wide
-    (a slot) adds ``place_yaw``, turning the object's narrowest side across it. An object of
-    :data:`GRASPS` adds ``grip`` (where the fingertips close) and ``release`` (where they open:
-    its body over the goal object's body, or over the region site, as LIBERO's ``On`` checks)."""
+    (a slot) adds ``place_yaw``, turning the object's narrowest side across it, unless it is of
+    :data:`GRASPS`: those add ``grip`` (where the fingertips close) and ``release`` (where they
+    open: its body over the goal object's body, or over the region site, as LIBERO's ``On``
+    checks; over the floor under it in an :data:`INSIDE` fixture). A ``turnon`` term adds a
+    ``turns`` entry (:func:`knob_turn`), a ``close`` term of a :data:`SHUTS` fixture a ``closes``
+    entry (:func:`shut_path`)."""
     import mujoco
 
     model, data = inner.sim.model._model, inner.sim.data._data
-    terms = []
+    terms, turns, closes = [], [], []
     for term in inner.parsed_problem["goal_state"]:
         if len(term) == 3 and term[0].lower() in ("in", "on"):
             terms.append(term)
-        elif not inner._eval_predicate(term):
-            raise ValueError(f"task goal {term}: the script only puts objects in or on goals")
+        elif inner._eval_predicate(term):
+            continue  # holds already (libero_10/8's stove is on): the script leaves it be
+        elif len(term) == 2 and term[0].lower() == "turnon":
+            turns.append(knob_turn(inner, term[1]))
+        elif len(term) == 2 and term[0].lower() == "close" and category(inner, term[1]) in SHUTS:
+            closes.append(shut_path(inner, term[1], SHUTS[category(inner, term[1])]))
+        else:
+            raise ValueError(f"task goal {term}: the script cannot make it hold")
     sharing = [sum(1 for t in terms if t[2] == term[2]) for term in terms]
     pairs = []
     for index, (_, obj, goal) in enumerate(terms):
@@ -176,10 +200,15 @@ def scene_row(inner: Any, spacing_m: float = 0.0) -> dict[str, Any]:
             place = data.site_xpos[site].copy()
             place_top = float(place[2] + model.site_size[site, 2])
             goal_xy, x_axis = place[:2], data.site_xmat[site].reshape(3, 3)[:2, 0]
+            release_top, shift = place_top, INSIDE.get(category(inner, goal))
+            if shift is not None:
+                release_top = floor_under(model, data, site, body)
+                frame = data.xmat[inner.obj_body_id[inner.object_states_dict[goal].parent_name]].reshape(3, 3)
+                goal_xy = goal_xy + frame[:2, :2] @ np.array(shift)
             slot = slot_axis(model, data, site)
         else:
             around = body_corners(model, data, inner.obj_body_id[goal])
-            place_top = float(around[:, 2].max())
+            place_top = release_top = float(around[:, 2].max())
             place = np.array([*around[:, :2].mean(axis=0), place_top])
             goal_body = inner.obj_body_id[goal]
             goal_xy, x_axis = data.xpos[goal_body][:2], data.xmat[goal_body].reshape(3, 3)[:2, 0]
@@ -197,13 +226,40 @@ def scene_row(inner: Any, spacing_m: float = 0.0) -> dict[str, Any]:
             "place": [round(float(v), 5) for v in place],
             "place_top": round(place_top, 5),
         }
-        if slot is not None:
-            pair["place_yaw"] = round(closing_yaw(slot, pair["yaw"]), 4)
         grasp = GRASPS.get(obj.rsplit("_", 1)[0])
+        if slot is not None and grasp is None:  # one held by a Grasp goes in as it was held
+            pair["place_yaw"] = round(closing_yaw(slot, pair["yaw"]), 4)
         if grasp is not None:
-            pair.update(held_pair(model, data, body, grasp, goal_xy, place_top))
+            pair.update(held_pair(model, data, body, grasp, goal_xy, release_top))
         pairs.append(pair)
-    return {"pairs": pairs}
+    row: dict[str, Any] = {"pairs": pairs}
+    if turns:
+        row["turns"] = turns
+    if closes:
+        row["closes"] = closes
+    return row
+
+
+def category(inner: Any, name: str) -> str:
+    """The LIBERO category of ``name``: an object's or fixture's name without its ``_<n>``
+    suffix, or a region site's fixture's (``white_cabinet_1_bottom_region``: ``white_cabinet``)."""
+    if name in inner.object_sites_dict:
+        name = inner.object_states_dict[name].parent_name
+    return name.rsplit("_", 1)[0]
+
+
+def floor_under(model: Any, data: Any, site: int, held: int) -> float:
+    """The height of the first colliding surface under region ``site``'s centre, ``held`` (the
+    object to put there) left out."""
+    import mujoco
+
+    found = np.zeros(1, dtype=np.int32)
+    collide = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # robosuite's collision geoms: group 0
+    centre = data.site_xpos[site]
+    distance = mujoco.mj_ray(model, data, centre, np.array([0.0, 0.0, -1.0]), collide, 1, held, found)
+    if found[0] < 0:
+        raise ValueError(f"region {model.site(site).name}: no floor under its centre")
+    return float(centre[2] - distance)
 
 
 def slot_axis(model: Any, data: Any, site: int, ratio: float = 2.0) -> np.ndarray | None:
@@ -335,7 +391,7 @@ class Scripted:
 
     def __init__(self, rows: Sequence[dict[str, Any]], num_envs: int, gains: Gains) -> None:
         self.rows = rows
-        self.script = PickPlace([rows[0]] * num_envs, gains)
+        self.script = Script([rows[0]] * num_envs, gains)
 
     def restart(self, env_index: int, state_id: int) -> None:
         self.script.restart(env_index, self.rows[state_id])
@@ -344,7 +400,7 @@ class Scripted:
         return self.script.act(obs["state"])
 
     def progress(self, env_index: int) -> dict[str, Any]:
-        """The env's waypoint and phase (:meth:`PickPlace.progress`)."""
+        """The env's waypoint and phase (:meth:`Script.progress`)."""
         return self.script.progress(env_index)
 
 

@@ -1,16 +1,18 @@
-"""A scripted pick-and-place policy for LIBERO's "put X (and Y) in/on Z" tasks, and the figures of
-its success rates: which init state each env runs and how each episode ended (an env's error
-included), Wilson intervals over the episodes that ended without one, and the agreement of two
-engines per init state.
+"""A scripted policy for LIBERO's tasks that put objects in or on goals, turn knobs and close
+doors or drawers, and the figures of its success rates: which init state each env runs and how
+each episode ended (an env's error included), Wilson intervals over the episodes that ended
+without one, and the agreement of two engines per init state.
 
 The policy is closed loop on the end effector (LIBERO's 8-float ``state``: eef position,
-axis-angle, gripper) and open loop on the objects: where each object and its goal are, for each
-init state, comes from a table measured once on the CPU engine (:func:`scene_row`). For every
-(object, goal) pair it visits eight waypoints: above the object, down to it, close, up, above
-the goal, down, open, up (its phases, :data:`PHASES`). Actions are robosuite's OSC_POSE deltas (position up to 5 cm and
-rotation up to 0.5 rad per unit, clipped to [-1, 1]) and the gripper (-1 open, 1 closed)::
+axis-angle, gripper) and open loop on the scene: where each object, goal, knob and handle is,
+for each init state, comes from a table measured once on the CPU engine (:func:`scene_row`). A
+script is a sequence of steps (:func:`steps`), each a few waypoints with named phases: a place
+(above the object, down, close, up, above the goal, down, open, up), a turn (onto a knob, close,
+turn the wrist, open, up) and a close (fingers closed, push along a path past shut, back off).
+Actions are robosuite's OSC_POSE deltas (position up to 5 cm and rotation up to 0.5 rad per
+unit, clipped to [-1, 1]) and the gripper (-1 open, 1 closed)::
 
-    policy = PickPlace([table[k] for k in state_ids])
+    policy = Script([table[k] for k in state_ids])
     while not done:
         actions = policy.act(obs["state"])
 """
@@ -22,7 +24,7 @@ from collections import Counter, deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from statistics import NormalDist
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -30,19 +32,6 @@ import numpy as np
 POS_LIMIT_M = 0.05
 ROT_LIMIT_RAD = 0.5
 OPEN, CLOSED = -1.0, 1.0
-# The phase of each of a pair's eight waypoints (above the object and down to it are both the
-# reach); an env past the last waypoint of the last pair is ``done``.
-PHASES = ("reach", "reach", "grasp", "lift", "carry", "lower", "release", "retreat")
-
-
-def phase(waypoint: int, waypoints: int) -> str:
-    """The phase of ``waypoint`` in a script of ``waypoints``: ``"<pair>:<phase>"`` (the pair's
-    index in the row, from 0), or ``"done"`` past the last waypoint."""
-    if waypoint < 0 or waypoints % len(PHASES):
-        raise ValueError(f"waypoint {waypoint} of {waypoints}: not a pick-and-place script's")
-    if waypoint >= waypoints:
-        return "done"
-    return f"{waypoint // len(PHASES)}:{PHASES[waypoint % len(PHASES)]}"
 
 
 @dataclass(frozen=True)
@@ -60,6 +49,8 @@ class Gains:
     grip_steps: int = 15  # steps spent closing or opening the gripper
     move_timeout: int = 50  # steps after which a waypoint not reached is given up on
     empty_grip_m: float = 0.005  # closed fingers nearer than this hold nothing (recorded, not acted on)
+    back_off_m: float = 0.04  # after pushing a door or drawer shut, back off this far before rising
+    push_timeout: int = 120  # steps after which a push's waypoint not reached is given up on (a drawer is slow)
 
 
 def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -224,6 +215,15 @@ def top_down(yaw: np.ndarray) -> np.ndarray:
     return rz @ np.diag([1.0, -1.0, -1.0])
 
 
+def gripper_frame(yaw: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """:func:`top_down` at ``yaw``, then turned by ``tilt`` about the fingers' closing axis: the
+    fingertips lean towards the hand's x, ``(cos yaw, sin yaw, 0)``, for a positive one."""
+    c, s = np.cos(tilt), np.sin(tilt)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    about_y = np.stack([c, zero, s, zero, one, zero, -s, zero, c], axis=-1).reshape(*np.shape(tilt), 3, 3)
+    return top_down(yaw) @ about_y
+
+
 def closing_yaw(direction_xy: Sequence[float], current_yaw: float = 0.0) -> float:
     """The yaw at which the fingers close along ``direction_xy``, the one of the two (yaw and
     yaw + pi close alike) nearest ``current_yaw``."""
@@ -231,78 +231,196 @@ def closing_yaw(direction_xy: Sequence[float], current_yaw: float = 0.0) -> floa
     return float(current_yaw + (yaw - current_yaw + math.pi / 2) % math.pi - math.pi / 2)
 
 
-def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The script for one init state: ``positions [W, 3]``, ``yaws [W]``, ``grips [W]`` and
-    ``holds [W]`` (steps to stay in place, 0: move until reached).
+# One waypoint of a step: position, yaw, tilt, grip, hold, carries, phase.
+Waypoint = tuple[Sequence[float], float, float, float, int, bool, str]
 
-    ``row["pairs"]`` lists, in order, each object to move: ``pick`` (its centre), ``top`` and ``bottom`` (its
-    heights), ``yaw`` (the grasp's) and ``place`` (the goal region's centre) and
+
+class Waypoints(NamedTuple):
+    """A script for one init state, one row per waypoint: where the gripper goes (``positions``
+    ``[W, 3]``; ``yaws`` and ``tilts`` ``[W]``, :func:`gripper_frame`'s), its fingers there (``grips``, :data:`OPEN` or :data:`CLOSED`),
+    steps to stay in place (``holds``, 0: move until reached), whether the closed fingers
+    should hold something there (``carries``: an object or a knob) and the waypoint's
+    ``phases`` (``"<step>:<phase>"``, the step's index in the script from 0)."""
+
+    positions: np.ndarray
+    yaws: np.ndarray
+    tilts: np.ndarray
+    grips: np.ndarray
+    holds: np.ndarray
+    carries: np.ndarray
+    phases: tuple[str, ...]
+
+
+def steps(row: Mapping[str, Any]) -> list[tuple[str, Mapping[str, Any]]]:
+    """The steps of ``row``'s script in order, each ``(kind, its row entry)``: every knob of
+    ``row["turns"]`` turned first, then every object of ``row["pairs"]`` put in or on its goal,
+    then every door or drawer of ``row["closes"]`` pushed shut (a closed door would bar its
+    region, an object put in a drawer goes in open)."""
+    return (
+        [("turn", turn) for turn in row.get("turns", ())]
+        + [("place", pair) for pair in row["pairs"]]
+        + [("close", close) for close in row.get("closes", ())]
+    )
+
+
+def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> Waypoints:
+    """The script for one init state: :func:`steps`'s waypoints one after the other.
+
+    A place (``row["pairs"]``) lists the object's ``pick`` (its centre), ``top`` and ``bottom``
+    (its heights), ``yaw`` (the grasp's) and ``place`` (the goal region's centre) and
     ``place_top`` (the region's top, the height to carry it over). Optional: ``grip`` and
     ``release``, where the fingertips close and open when that is not over the object's centre
     and goal (a mug held by its rim); ``place_yaw``, the yaw to carry and let go at when it is
-    not the grasp's (a book turned to fit a slot).
+    not the grasp's (a book turned to fit a slot). A turn (``row["turns"]``) lists where the
+    fingertips close on a knob (``grip``), its ``top``, the grasp's ``yaw`` and the ``turn`` to
+    give it (radians of yaw). A close (``row["closes"]``) lists the ``path`` the grip site
+    pushes along, from in front of the door or drawer to past where it is shut, and its ``yaws``.
     """
-    positions, yaws, grips, holds = [], [], [], []
-
-    def add(position: Sequence[float], yaw: float, grip: float, hold: int = 0) -> None:
-        positions.append(position)
-        yaws.append(yaw)
-        grips.append(grip)
-        holds.append(hold)
-
-    for pair in row["pairs"]:
-        x, y, _ = pair["pick"]
-        px, py, pz = pair["place"]
-        yaw = pair["yaw"]
-        turned = pair.get("place_yaw", yaw)
-        carry = max(pair["place_top"], pair["top"]) + gains.hover_m
-        grasp = max(pair["top"] - gains.grasp_below_top_m, pair["bottom"] + gains.floor_clearance_m)
-        release = pz + gains.release_above_m
-        if "grip" in pair:  # an object held elsewhere than over its centre (a mug by its rim)
-            x, y, grasp = pair["grip"]
-        if "release" in pair:
-            px, py, release = pair["release"]
-        add((x, y, carry), yaw, OPEN)
-        add((x, y, grasp), yaw, OPEN)
-        add((x, y, grasp), yaw, CLOSED, gains.grip_steps)
-        add((x, y, carry), yaw, CLOSED)
-        add((px, py, carry), turned, CLOSED)
-        add((px, py, release), turned, CLOSED)
-        add((px, py, release), turned, OPEN, gains.grip_steps)
-        add((px, py, carry), turned, OPEN)
-    return np.array(positions), np.array(yaws), np.array(grips), np.array(holds, dtype=np.int64)
+    script: list[Waypoint] = []
+    for index, (kind, entry) in enumerate(steps(row)):
+        made = {"turn": turn_waypoints, "place": place_waypoints, "close": close_waypoints}[kind](entry, gains)
+        if kind != "place" and script:  # fingers that close alike at yaw and yaw + pi: turn the least
+            shift = closing_yaw((math.sin(made[0][1]), -math.cos(made[0][1])), script[-1][1]) - made[0][1]
+            flip = -1.0 if round(shift / math.pi) % 2 else 1.0  # the hand's x turned about: the tilt too
+            made = [(position, yaw + shift, flip * tilt, *rest) for position, yaw, tilt, *rest in made]
+        script.extend((*waypoint[:6], f"{index}:{waypoint[6]}") for waypoint in made)
+    positions, yaws, tilts, grips, holds, carries, phases = zip(*script)
+    return Waypoints(
+        np.array(positions, dtype=np.float64),
+        np.array(yaws, dtype=np.float64),
+        np.array(tilts, dtype=np.float64),
+        np.array(grips, dtype=np.float64),
+        np.array(holds, dtype=np.int64),
+        np.array(carries, dtype=bool),
+        phases,
+    )
 
 
-class PickPlace:
-    """The script for a batch of envs, one init state's table row each; :meth:`act` takes their
-    8-float states and returns their next actions ``[n, 7]``, advancing each env's waypoint."""
+def place_waypoints(pair: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
+    """Put an object in or on its goal: above it, down, close, up, above the goal, down, open, up."""
+    x, y, _ = pair["pick"]
+    px, py, pz = pair["place"]
+    yaw = pair["yaw"]
+    turned = pair.get("place_yaw", yaw)
+    carry = max(pair["place_top"], pair["top"]) + gains.hover_m
+    grasp = max(pair["top"] - gains.grasp_below_top_m, pair["bottom"] + gains.floor_clearance_m)
+    release = pz + gains.release_above_m
+    if "grip" in pair:  # an object held elsewhere than over its centre (a mug by its rim)
+        x, y, grasp = pair["grip"]
+    if "release" in pair:
+        px, py, release = pair["release"]
+    return [
+        ((x, y, carry), yaw, 0.0, OPEN, 0, False, "reach"),
+        ((x, y, grasp), yaw, 0.0, OPEN, 0, False, "reach"),
+        ((x, y, grasp), yaw, 0.0, CLOSED, gains.grip_steps, False, "grasp"),
+        ((x, y, carry), yaw, 0.0, CLOSED, 0, True, "lift"),
+        ((px, py, carry), turned, 0.0, CLOSED, 0, True, "carry"),
+        ((px, py, release), turned, 0.0, CLOSED, 0, True, "lower"),
+        ((px, py, release), turned, 0.0, OPEN, gains.grip_steps, False, "release"),
+        ((px, py, carry), turned, 0.0, OPEN, 0, False, "retreat"),
+    ]
+
+
+def turn_waypoints(turn: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
+    """Turn a knob about the vertical through its grip: above it, down, close, turn the wrist by
+    ``turn``, open, up."""
+    x, y, z = turn["grip"]
+    above = turn["top"] + gains.hover_m
+    yaw, turned = turn["yaw"], turn["yaw"] + turn["turn"]
+    return [
+        ((x, y, above), yaw, 0.0, OPEN, 0, False, "reach"),
+        ((x, y, z), yaw, 0.0, OPEN, 0, False, "reach"),
+        ((x, y, z), yaw, 0.0, CLOSED, gains.grip_steps, False, "grasp"),
+        ((x, y, z), turned, 0.0, CLOSED, 0, True, "turn"),
+        ((x, y, z), turned, 0.0, OPEN, gains.grip_steps, False, "release"),
+        ((x, y, above), turned, 0.0, OPEN, 0, False, "retreat"),
+    ]
+
+
+def close_waypoints(close: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
+    """Push a door or drawer shut, the fingers closed: above the ``path``'s start, down to it,
+    along it (at each point its yaw of ``yaws``), back off from its end by ``gains.back_off_m``
+    the way it came, up. With ``lean`` (radians), the fingertips lean that far towards the
+    path's first stretch the whole way: the arm stays back, clear of what the pushed part goes
+    under (a cabinet's top over its drawers)."""
+    path = np.asarray(close["path"], dtype=np.float64)
+    yaws = [float(yaw) for yaw in close["yaws"]]
+    if path.ndim != 2 or path.shape[1] != 3 or len(path) < 2 or len(yaws) != len(path):
+        raise ValueError(
+            f"close path {close['path']} with yaws {close['yaws']}: not two or more points [x, y, z], a yaw each"
+        )
+    way = path[-1] - path[-2]
+    back = path[-1] - gains.back_off_m * way / max(float(np.linalg.norm(way)), 1e-9)
+    above = max(float(path[:, 2].max()), float(back[2])) + gains.hover_m
+    first = path[1] - path[0]
+
+    def tilt(yaw: float) -> float:  # about the fingers' axis; the hand's x is (cos yaw, sin yaw)
+        return float(close.get("lean", 0.0)) * (
+            1.0 if math.cos(yaw) * first[0] + math.sin(yaw) * first[1] >= 0 else -1.0
+        )
+
+    return [
+        ((path[0, 0], path[0, 1], above), yaws[0], tilt(yaws[0]), CLOSED, 0, False, "reach"),
+        (tuple(path[0]), yaws[0], tilt(yaws[0]), CLOSED, 0, False, "reach"),
+        *((tuple(point), yaw, tilt(yaw), CLOSED, 0, False, "push") for point, yaw in zip(path[1:], yaws[1:])),
+        (tuple(back), yaws[-1], tilt(yaws[-1]), CLOSED, 0, False, "retreat"),
+        ((back[0], back[1], above), yaws[-1], tilt(yaws[-1]), CLOSED, 0, False, "retreat"),
+    ]
+
+
+def pushing(phases: Sequence[str]) -> np.ndarray:
+    """Which of a script's waypoints (their ``phases``) push a door or drawer."""
+    return np.array([name.endswith(":push") for name in phases], dtype=bool)
+
+
+class Script:
+    """The scripts of a batch of envs, one init state's table row each (:func:`waypoints`; rows
+    of one task, whose scripts are alike in length); :meth:`act` takes their 8-float states and
+    returns their next actions ``[n, 7]``, advancing each env's waypoint."""
 
     def __init__(self, rows: Sequence[Mapping[str, Any]], gains: Gains = Gains()) -> None:
         scripts = [waypoints(row, gains) for row in rows]
+        if len({len(s.phases) for s in scripts}) > 1:
+            raise ValueError(f"rows of {sorted({len(s.phases) for s in scripts})} waypoints: not one task's")
         self.gains = gains
-        self.positions = np.stack([s[0] for s in scripts])
-        self.yaws = np.stack([s[1] for s in scripts])
-        self.grips = np.stack([s[2] for s in scripts])
-        self.holds = np.stack([s[3] for s in scripts])
+        self.positions = np.stack([s.positions for s in scripts])
+        self.yaws = np.stack([s.yaws for s in scripts])
+        self.tilts = np.stack([s.tilts for s in scripts])
+        self.grips = np.stack([s.grips for s in scripts])
+        self.holds = np.stack([s.holds for s in scripts])
+        self.carries = np.stack([s.carries for s in scripts])
+        self.pushes = np.stack([pushing(s.phases) for s in scripts])  # given ``push_timeout`` steps
+        self.phases = [s.phases for s in scripts]
         self.index = np.zeros(len(rows), dtype=np.int64)  # each env's current waypoint
         self.spent = np.zeros(len(rows), dtype=np.int64)  # steps spent on it
         self.empty = np.full(len(rows), -1, dtype=np.int64)  # the waypoint its grip was first found empty at
 
     def restart(self, i: int, row: Mapping[str, Any]) -> None:
         """Env ``i`` starts over on the script of ``row`` (an init state of the same task)."""
-        self.positions[i], self.yaws[i], self.grips[i], self.holds[i] = waypoints(row, self.gains)
+        script = waypoints(row, self.gains)
+        if len(script.phases) != self.positions.shape[1]:
+            raise ValueError(f"env {i}: a row of {len(script.phases)} waypoints, not {self.positions.shape[1]}")
+        self.positions[i], self.yaws[i], self.grips[i] = script.positions, script.yaws, script.grips
+        self.tilts[i] = script.tilts
+        self.holds[i], self.carries[i], self.phases[i] = script.holds, script.carries, script.phases
+        self.pushes[i] = pushing(script.phases)
         self.index[i] = self.spent[i] = 0
         self.empty[i] = -1
 
+    def phase(self, i: int, waypoint: int) -> str:
+        """The phase of env ``i``'s ``waypoint``: ``"<step>:<phase>"``, or ``"done"`` past its last."""
+        return self.phases[i][waypoint] if waypoint < len(self.phases[i]) else "done"
+
     def progress(self, i: int) -> dict[str, Any]:
-        """Where env ``i`` is in its script: its waypoint's index and :func:`phase`, and the
-        phase in which its closed fingers were first found holding nothing (``empty_grip``: the
-        object slipped out, or was never caught), None if they never were."""
-        waypoint, empty, total = int(self.index[i]), int(self.empty[i]), self.positions.shape[1]
+        """Where env ``i`` is in its script: its waypoint's index and :meth:`phase`, and the
+        phase in which its closed fingers were first found holding nothing where they should
+        hold something (``empty_grip``: the object or knob slipped out, or was never caught),
+        None if they never were."""
+        waypoint, empty = int(self.index[i]), int(self.empty[i])
         return {
             "waypoint": waypoint,
-            "phase": phase(waypoint, total),
-            "empty_grip": phase(empty, total) if empty >= 0 else None,
+            "phase": self.phase(i, waypoint),
+            "empty_grip": self.phase(i, empty) if empty >= 0 else None,
         }
 
     @property
@@ -318,7 +436,7 @@ class PickPlace:
         at = np.minimum(self.index, last)
         position = states[:, :3]
         rotation = axis_angle_to_matrix(states[:, 3:6])
-        target = top_down(self.yaws[rows, at])
+        target = gripper_frame(self.yaws[rows, at], self.tilts[rows, at])
         position_error = self.positions[rows, at] - position
         rotation_error = matrix_to_axis_angle(target @ np.swapaxes(rotation, -1, -2))
         hold = self.holds[rows, at]
@@ -328,18 +446,20 @@ class PickPlace:
             (np.linalg.norm(position_error, axis=-1) < self.gains.reach_tol_m)
             & (np.linalg.norm(rotation_error, axis=-1) < self.gains.yaw_tol_rad),
         )
-        advance = ~self.finished & (reached | (self.spent >= self.gains.move_timeout))
+        timeout = np.where(self.pushes[rows, at], self.gains.push_timeout, self.gains.move_timeout)
+        advance = ~self.finished & (reached | (self.spent >= timeout))
         self.index = np.where(advance, self.index + 1, self.index)
         self.spent = np.where(advance, 0, self.spent + 1)
         at = np.minimum(self.index, last)
         position_error = self.positions[rows, at] - position
-        rotation_error = matrix_to_axis_angle(top_down(self.yaws[rows, at]) @ np.swapaxes(rotation, -1, -2))
+        target = gripper_frame(self.yaws[rows, at], self.tilts[rows, at])
+        rotation_error = matrix_to_axis_angle(target @ np.swapaxes(rotation, -1, -2))
         actions = np.zeros((n, 7))
         actions[:, :3] = self.gains.position_gain * position_error / POS_LIMIT_M
         actions[:, 3:6] = self.gains.rotation_gain * rotation_error / ROT_LIMIT_RAD
         actions[:, 6] = self.grips[rows, at]
-        # Moving with the fingers closed (the grasp's hold done) and nothing between them.
-        carrying = (self.grips[rows, at] == CLOSED) & (self.holds[rows, at] == 0) & ~self.finished
-        empty = carrying & (states[:, 6] - states[:, 7] < self.gains.empty_grip_m) & (self.empty < 0)
+        # Moving with something held (the grasp's hold done) and nothing between the fingers.
+        holding = self.carries[rows, at] & ~self.finished
+        empty = holding & (states[:, 6] - states[:, 7] < self.gains.empty_grip_m) & (self.empty < 0)
         self.empty = np.where(empty, self.index, self.empty)
         return np.clip(actions, -1.0, 1.0).astype(np.float32)

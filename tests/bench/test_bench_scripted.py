@@ -177,7 +177,7 @@ def test_failures_are_counted_by_where_their_grip_was_first_found_empty(scripted
 
 def test_policy_records_where_its_closed_fingers_first_held_nothing(scripted) -> None:
     gains = scripted.Gains()
-    policy = scripted.PickPlace([ROW], gains)
+    policy = scripted.Script([ROW], gains)
     positions = policy.positions[0]
 
     def at(waypoint: int, gap: float) -> np.ndarray:
@@ -199,7 +199,7 @@ def test_policy_records_where_its_closed_fingers_first_held_nothing(scripted) ->
 
 def test_policy_holding_something_is_not_found_empty(scripted) -> None:
     gains = scripted.Gains()
-    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
+    policy = scripted.Script([ROW], scripted.Gains(move_timeout=0))
     held = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
     held[0, 6:8] = 0.01, -0.01  # a 2 cm object between the fingers
     for _ in range(len(policy.positions[0])):
@@ -208,14 +208,13 @@ def test_policy_holding_something_is_not_found_empty(scripted) -> None:
     assert gains.empty_grip_m < 0.02
 
 
-def test_phases_name_each_pairs_waypoints(scripted) -> None:
-    names = [scripted.phase(w, 16) for w in range(17)]
+def test_phases_name_each_steps_waypoints(scripted) -> None:
+    two = {"pairs": [ROW["pairs"][0], ROW["pairs"][0]]}
+    names = list(scripted.waypoints(two).phases)
     assert names[:8] == ["0:reach", "0:reach", "0:grasp", "0:lift", "0:carry", "0:lower", "0:release", "0:retreat"]
-    assert names[8:16] == [f"1:{name[2:]}" for name in names[:8]] and names[16] == "done"
-    with pytest.raises(ValueError, match="waypoint -1 of 16"):
-        scripted.phase(-1, 16)
-    with pytest.raises(ValueError, match="waypoint 2 of 7"):
-        scripted.phase(2, 7)
+    assert names[8:] == [f"1:{name[2:]}" for name in names[:8]]
+    policy = scripted.Script([two])
+    assert [policy.phase(0, w) for w in (0, 11, 15, 16)] == ["0:reach", "1:lift", "1:retreat", "done"]
 
 
 def test_rotations_are_scipys(scripted) -> None:
@@ -241,7 +240,7 @@ def test_top_down_gripper_closes_along_the_asked_direction(scripted) -> None:
 
 def test_waypoints_pick_above_down_close_up_carry_down_open_up(scripted) -> None:
     gains = scripted.Gains()
-    positions, yaws, grips, holds = scripted.waypoints(ROW, gains)
+    positions, yaws, tilts, grips, holds, carries, _ = scripted.waypoints(ROW, gains)
     carry = 0.57 + gains.hover_m
     grasp = 0.51 - gains.grasp_below_top_m
     release = 0.5 + gains.release_above_m
@@ -258,7 +257,8 @@ def test_waypoints_pick_above_down_close_up_carry_down_open_up(scripted) -> None
     np.testing.assert_allclose(positions, expected)
     assert grips.tolist() == [-1, -1, 1, 1, 1, 1, -1, -1]
     assert holds.tolist() == [0, 0, gains.grip_steps, 0, 0, 0, gains.grip_steps, 0]
-    assert (yaws == 0.3).all()
+    assert carries.tolist() == [False, False, False, True, True, True, False, False]  # lift, carry, lower
+    assert (yaws == 0.3).all() and (tilts == 0).all()
 
 
 def test_a_pair_with_a_grip_and_a_release_is_held_and_let_go_there(scripted) -> None:
@@ -292,7 +292,7 @@ def state_at(scripted, position, yaw: float) -> np.ndarray:
 
 
 def test_policy_steers_towards_its_waypoint_within_the_action_range(scripted) -> None:
-    policy = scripted.PickPlace([ROW])
+    policy = scripted.Script([ROW])
     action = policy.act(state_at(scripted, [0.1, -0.2, 0.67], 0.3))[0]
     target = policy.positions[0, 0]
     assert action[:3] == pytest.approx((target - [0.1, -0.2, 0.67]) / scripted.POS_LIMIT_M, abs=1e-6)
@@ -304,7 +304,7 @@ def test_policy_steers_towards_its_waypoint_within_the_action_range(scripted) ->
 
 def test_policy_advances_on_reaching_and_after_holding(scripted) -> None:
     gains = scripted.Gains()
-    policy = scripted.PickPlace([ROW, ROW], gains)
+    policy = scripted.Script([ROW, ROW], gains)
     positions = policy.positions[0]
     far = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
     policy.act(np.concatenate([state_at(scripted, positions[0], 0.3), far]))
@@ -321,7 +321,7 @@ def test_policy_advances_on_reaching_and_after_holding(scripted) -> None:
 
 
 def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
-    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=5))
+    policy = scripted.Script([ROW], scripted.Gains(move_timeout=5))
     blocked = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
     for _ in range(5):
         policy.act(blocked)
@@ -332,23 +332,121 @@ def test_policy_gives_up_on_a_waypoint_after_its_timeout(scripted) -> None:
 
 def test_a_restarted_env_walks_its_new_script_from_the_start(scripted) -> None:
     other = {"pairs": [{**ROW["pairs"][0], "pick": [0.2, 0.1, 0.47], "yaw": -0.4}]}
-    policy = scripted.PickPlace([ROW, ROW], scripted.Gains(move_timeout=0))
+    policy = scripted.Script([ROW, ROW], scripted.Gains(move_timeout=0))
     far = state_at(scripted, [0.4, 0.4, 0.9], 0.3)
     for _ in range(3):
         policy.act(np.concatenate([far, far]))
     policy.restart(1, other)
-    fresh = scripted.PickPlace([other], scripted.Gains(move_timeout=0))
+    fresh = scripted.Script([other], scripted.Gains(move_timeout=0))
     assert policy.index.tolist() == [3, 0]
     np.testing.assert_array_equal(policy.act(np.concatenate([far, far]))[1], fresh.act(far)[0])
 
 
 def test_policy_finishes_after_the_last_waypoint(scripted) -> None:
-    policy = scripted.PickPlace([ROW], scripted.Gains(move_timeout=0))
+    policy = scripted.Script([ROW], scripted.Gains(move_timeout=0))
     for _ in range(len(policy.positions[0])):
         policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))
     assert policy.finished.all() and policy.progress(0) == {"waypoint": 8, "phase": "done", "empty_grip": None}
     action = policy.act(state_at(scripted, [0.4, 0.4, 0.9], 0.3))[0]
     assert action[6] == -1  # it stays over the goal, open
+
+
+KNOB = {"joint": "stove_button", "grip": [-0.19, 0.2, 0.937], "top": 0.955, "yaw": 0.0, "turn": 1.3}
+DRAWER = {"joint": "drawer", "path": [[-0.01, 0.03, 0.946], [-0.01, 0.24, 0.946]], "yaws": [-np.pi / 2, -np.pi / 2]}
+
+
+def test_a_script_turns_knobs_then_places_objects_then_closes_doors(scripted) -> None:
+    row = {"closes": [DRAWER], "pairs": ROW["pairs"], "turns": [KNOB]}
+    assert [kind for kind, _ in scripted.steps(row)] == ["turn", "place", "close"]
+    phases = scripted.waypoints(row).phases
+    assert [p for p in phases if p.startswith("0:")] == [
+        "0:reach", "0:reach", "0:grasp", "0:turn", "0:release", "0:retreat"
+    ]  # fmt: skip
+    assert [p for p in phases if p.startswith("1:")][3] == "1:lift"
+    assert [p for p in phases if p.startswith("2:")] == ["2:reach", "2:reach", "2:push", "2:retreat", "2:retreat"]
+
+
+def test_a_turn_grips_the_knob_on_its_axis_and_turns_the_wrist(scripted) -> None:
+    gains = scripted.Gains()
+    turn = scripted.waypoints({"pairs": [], "turns": [KNOB]}, gains)
+    above = 0.955 + gains.hover_m
+    np.testing.assert_allclose(turn.positions[:, :2], [[-0.19, 0.2]] * 6)
+    np.testing.assert_allclose(turn.positions[:, 2], [above, 0.937, 0.937, 0.937, 0.937, above])
+    np.testing.assert_allclose(turn.yaws, [0.0, 0.0, 0.0, 1.3, 1.3, 1.3])  # turned while closed, let go turned
+    assert turn.grips.tolist() == [-1, -1, 1, 1, -1, -1]
+    assert turn.holds.tolist() == [0, 0, gains.grip_steps, 0, gains.grip_steps, 0]
+    assert turn.carries.tolist() == [False, False, False, True, False, False]  # the knob is held while it turns
+
+
+def test_a_close_pushes_along_its_path_then_backs_off_and_rises(scripted) -> None:
+    gains = scripted.Gains()
+    close = scripted.waypoints({"pairs": [], "closes": [DRAWER]}, gains)
+    above = 0.946 + gains.hover_m
+    back = 0.24 - gains.back_off_m  # the way it came, from the path's end
+    np.testing.assert_allclose(
+        close.positions,
+        [(-0.01, 0.03, above), (-0.01, 0.03, 0.946), (-0.01, 0.24, 0.946), (-0.01, back, 0.946), (-0.01, back, above)],
+    )
+    assert (close.grips == 1).all() and not close.carries.any()  # fingers closed, holding nothing
+    np.testing.assert_allclose(close.yaws, -np.pi / 2)
+    assert (close.tilts == 0).all()
+
+
+def test_a_hinged_close_turns_the_hand_with_the_door(scripted) -> None:
+    arc = {"path": [[0.0, 0.0, 1.0], [0.1, 0.02, 1.0], [0.18, 0.08, 1.0]], "yaws": [0.0, 0.2, 0.4]}
+    close = scripted.waypoints({"pairs": [], "closes": [arc]})
+    np.testing.assert_allclose(close.yaws, [0.0, 0.0, 0.2, 0.4, 0.4, 0.4])  # reach, reach, push, push, back, up
+    with pytest.raises(ValueError, match="a yaw each"):
+        scripted.waypoints({"pairs": [], "closes": [{**arc, "yaws": [0.0, 0.2]}]})
+    with pytest.raises(ValueError, match="two or more points"):
+        scripted.waypoints({"pairs": [], "closes": [{"path": [[0.0, 0.0, 1.0]], "yaws": [0.0]}]})
+
+
+def test_a_leaning_close_tilts_the_fingertips_into_the_push(scripted) -> None:
+    for yaw in (-np.pi / 2, np.pi / 2):  # the fingers close along x either way; the push is +y
+        close = scripted.waypoints({"pairs": [], "closes": [{**DRAWER, "yaws": [yaw, yaw], "lean": 0.35}]})
+        approach = scripted.gripper_frame(close.yaws, close.tilts)[:, :, 2]  # where the fingertips point
+        np.testing.assert_allclose(approach, [[0.0, np.sin(0.35), -np.cos(0.35)]] * 5, atol=1e-9)
+        np.testing.assert_allclose(scripted.gripper_frame(close.yaws, 0 * close.tilts), scripted.top_down(close.yaws))
+
+
+def test_a_step_after_another_turns_the_wrist_the_least(scripted) -> None:
+    pair = {**ROW["pairs"][0], "yaw": 1.5}
+    script = scripted.waypoints({"pairs": [pair], "closes": [{**DRAWER, "lean": 0.35}]})
+    closing = [i for i, p in enumerate(script.phases) if p.startswith("1:")]
+    np.testing.assert_allclose(script.yaws[closing], np.pi / 2)  # -pi/2 closes alike, a half turn away
+    approach = scripted.gripper_frame(script.yaws[closing], script.tilts[closing])[:, :, 2]
+    assert (approach[:, 1] > 0.3).all()  # still leaning along the push (+y)
+
+
+def test_pushing_closed_fingers_is_no_empty_grip_and_waits_longer(scripted) -> None:
+    gains = scripted.Gains(move_timeout=3, push_timeout=7)
+    policy = scripted.Script([{"pairs": [], "closes": [DRAWER]}], gains)
+    positions = policy.positions[0]
+    yaw = -np.pi / 2
+
+    def at(point) -> np.ndarray:
+        state = state_at(scripted, point, yaw)
+        state[0, 6:8] = 0.0, 0.0  # fingers shut on nothing
+        return state
+
+    policy.act(at(positions[0]))
+    policy.act(at(positions[1]))
+    assert policy.progress(0)["phase"] == "0:push"
+    blocked = at([-0.01, 0.15, 0.946])  # the drawer resists: the push's point is not reached
+    for _ in range(7):
+        policy.act(blocked)
+    assert policy.progress(0)["phase"] == "0:push"
+    policy.act(blocked)
+    assert policy.progress(0) == {"waypoint": 3, "phase": "0:retreat", "empty_grip": None}
+
+
+def test_rows_of_unlike_scripts_are_refused(scripted) -> None:
+    with pytest.raises(ValueError, match="not one task's"):
+        scripted.Script([ROW, {**ROW, "closes": [DRAWER]}])
+    policy = scripted.Script([ROW])
+    with pytest.raises(ValueError, match="env 0: a row of 13 waypoints, not 8"):
+        policy.restart(0, {**ROW, "closes": [DRAWER]})
 
 
 class Push:
@@ -453,7 +551,7 @@ def test_smoke_run_through_a_pod_ends_as_on_libero_itself(tmp_path: Path, script
             for mine, carried in zip(row["pairs"], table[k]["pairs"]):
                 for key in ("pick", "top", "bottom", "place", "place_top", "yaw"):
                     np.testing.assert_allclose(mine[key], carried[key], atol=1e-4, err_msg=f"state {k} {key}")
-            policy = scripted.PickPlace([table[k]])
+            policy = scripted.Script([table[k]])
             done, steps = False, 0
             while not done and steps < 520:
                 state = np.concatenate(
@@ -507,7 +605,16 @@ def test_a_run_refuses_a_task_without_rows_under_its_protocol(bench_module, tmp_
 @pytest.mark.libero
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize(("task", "libero"), [("libero_10/4", "published"), ("libero_10/8", "rlinf")])
+@pytest.mark.parametrize(
+    ("task", "libero"),
+    [
+        ("libero_10/4", "published"),
+        ("libero_10/8", "rlinf"),
+        ("libero_10/2", "rlinf"),
+        ("libero_10/3", "rlinf"),
+        ("libero_10/9", "rlinf"),
+    ],
+)
 def test_carried_rows_are_what_the_table_measures(bench_module, task: str, libero: str) -> None:
     from vecsim.config import CameraConfig
     from vecsim.engine.tasks import make_env
@@ -520,11 +627,13 @@ def test_carried_rows_are_what_the_table_measures(bench_module, task: str, liber
         row = bench_module.scene_row(env.inner, bench_module.SHARED_GOAL_SPACING_M.get(task, 0.0))
     finally:
         env.close()
-    assert [set(pair) for pair in row["pairs"]] == [set(pair) for pair in carried[3]["pairs"]]
-    assert all("grip" in pair and "release" in pair for pair in row["pairs"])  # mugs, moka pots: held
-    for mine, theirs in zip(row["pairs"], carried[3]["pairs"]):
-        for key, value in theirs.items():
-            if isinstance(value, str):
-                assert mine[key] == value
-            else:
-                np.testing.assert_allclose(mine[key], value, atol=1e-4, err_msg=f"{task} {key}")
+    assert set(row) == set(carried[3])  # a knob to turn (2), a drawer (3) or door (9) to close
+    assert all("grip" in pair and "release" in pair for pair in row["pairs"])  # mugs, moka pots, a bowl: held
+    for entries in row:
+        assert [set(entry) for entry in row[entries]] == [set(entry) for entry in carried[3][entries]]
+        for mine, theirs in zip(row[entries], carried[3][entries]):
+            for key, value in theirs.items():
+                if isinstance(value, str):
+                    assert mine[key] == value
+                else:
+                    np.testing.assert_allclose(mine[key], value, atol=1e-4, err_msg=f"{task} {entries} {key}")
