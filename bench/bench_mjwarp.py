@@ -64,7 +64,9 @@ from typing import Any
 import numpy as np
 from lib.images import ssim
 
-from vecsim.config import Assignment, CameraConfig, TaskBlock
+from lib.jobs import one_task_assignment as assignment
+
+from vecsim.config import CameraConfig
 
 log = logging.getLogger("bench_mjwarp")
 
@@ -82,18 +84,6 @@ def action_walk(num: int, steps: int, seed: int) -> np.ndarray:
     arm = np.cumsum(rng.normal(0.0, 0.08, (num, steps, 6)), axis=1).clip(-0.5, 0.5)
     gripper = np.where(np.arange(steps) < steps // 2, -1.0, 1.0)[None, :, None].repeat(num, 0)
     return np.concatenate([arm, gripper], axis=2).astype(np.float32)
-
-
-def assignment(task: str, envs: int, size: int, engine: str) -> Assignment:
-    camera = CameraConfig(names=CAMERAS if size else (), height=size or 128, width=size or 128)
-    return Assignment(
-        generation=0,
-        pod="sim-0",
-        stage_id=0,
-        engine=engine,
-        camera=camera,
-        tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
-    )
 
 
 def time_chunks(engine: Any, envs: int, chunk: int, calls: int, deadline: float) -> dict[str, Any]:

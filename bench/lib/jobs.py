@@ -21,7 +21,16 @@ from typing import TYPE_CHECKING, Any
 import httpx
 import psutil
 
-from vecsim.config import JobConfig, LiberoProtocol, RoutedPod, RoutedStage, RoutingTable, TaskBlock
+from vecsim.config import (
+    Assignment,
+    CameraConfig,
+    JobConfig,
+    LiberoProtocol,
+    RoutedPod,
+    RoutedStage,
+    RoutingTable,
+    TaskBlock,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -34,6 +43,20 @@ MAX_EPISODE_STEPS = 520
 # mjwarp engine serves every LIBERO-10 task under it; its scenes are exported under it.
 RLINF_PROTOCOL = LiberoProtocol(settle_steps=15, fixture_rule="first_reset")
 STAGE_LAYOUTS = ("slices", "pods")  # vecsim.config.StageLayout's values, in --stage-layout's default order
+
+
+def one_task_assignment(task: str, envs: int, size: int, engine: str) -> Assignment:
+    """Pod ``sim-0``'s assignment for an engine built in process: ``envs`` envs of one task on
+    ``engine``, both robot cameras at ``size`` x ``size`` (0: no camera)."""
+    camera = CameraConfig(names=ROBOT_CAMERAS if size else (), height=size or 128, width=size or 128)
+    return Assignment(
+        generation=0,
+        pod="sim-0",
+        stage_id=0,
+        engine=engine,
+        camera=camera,
+        tasks=(TaskBlock(task_id=task, env_start=0, num_envs=envs),),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
