@@ -86,8 +86,8 @@ PROTOCOLS = {
 # libero_10/9's hand crosses the open microwave door's top (1.11 m) on its way to push it: it
 # moves 20 cm over what it carries or pushes, not 12; and twice as fast towards its waypoints
 # (full speed until 2.5 cm from one, not 5): its three steps (the mug in, pushed deeper, the
-# door's ten-point arc) then take some 350-410 of the suite's 520 steps; at the default speed,
-# init state 0's door was still 0.1 rad open at the 520th.
+# door's ten-point arc) then take 363-420 of the suite's 520 steps; at the default speed, an
+# earlier version of the script left init state 0's door 0.1 rad open at the 520th.
 TASK_GAINS = {"libero_10/5": Gains(hover_m=0.2), "libero_10/9": Gains(hover_m=0.2, position_gain=2.0)}
 
 

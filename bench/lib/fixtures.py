@@ -201,8 +201,9 @@ class Insert:
     side_m: float  # the object let go this far along the fixture's x from its region's centre
     out_m: float  # the grip site let go this far in front of the region's front face (the hand clear of the top)
     approach_m: float  # lowered this far in front of where it is let go (all of it clear of the top)
+    approach_side_m: float  # and this far along the fixture's x from there (clear of an open door)
     clearance_m: float  # let go with its bottom this far over the floor
-    push_in_m: float  # pushed until the grip site is this far past the region's front face
+    push_in_m: float  # pushed until the grip site is this far past the region's front face (short of it: < 0)
     push_start_m: float  # the push starts this far in front of where the object was let go
     lean_rad: float  # the fingertips lean this far into the push
 
@@ -214,20 +215,24 @@ class Insert:
 # in front of the top, and the mug's centre 3.4 cm in front of the floor's edge. So it is held
 # by the handle's outer bar (turned towards the hand), fingers closing across the handle's
 # 1.8 cm, 5.5 cm over its bottom: let go with the grip site 5.8 cm in front of the region, its
-# body is on the floor, its handle outside. The fingertips, closed and leaning 45 degrees,
-# then push the handle until the grip site is 0.7 cm inside the region: the mug's handle is
-# then past the closed door's inner face, and the door's push (SHUTS) swings shut clear of it.
+# body is on the floor, its handle outside. It is lowered 12 cm in front of that and 4 cm to
+# the microwave's +x: the hand, 21 cm along x, then stays clear of the door's top on the -x side
+# (init state 37's door, open 76 degrees, not 90, stood in its way), and slides in diagonally.
+# The fingertips, closed and leaning 45 degrees, then push the handle until the grip site is
+# 0.5 cm short of the region (further, the hand's +x end meets the microwave's front panel): the
+# handle is then some 3 cm past the closed door's face, which the door's push (SHUTS) clears.
 INSERTS = {
     ("white_yellow_mug", "microwave"): Insert(
         at=(0.0641, 0.0),
         across=(0.0, 1.0),
         height_m=0.055,
         into=(0.0, 1.0),
-        side_m=-0.035,
+        side_m=-0.02,
         out_m=0.058,
         approach_m=0.12,
+        approach_side_m=0.04,
         clearance_m=0.008,
-        push_in_m=0.007,
+        push_in_m=-0.005,
         push_start_m=0.04,
         lean_rad=0.785,
     )
@@ -266,7 +271,7 @@ def inserted_pair(
         "grip": [round(float(v), 5) for v in (*grip_xy, bottom + insert.height_m)],
         "yaw": round(yaw, 4),
         "release": [round(float(v), 5) for v in (*release, height + insert.clearance_m)],
-        "approach": [round(float(v), 5) for v in insert.approach_m * into],
+        "approach": [round(float(v), 5) for v in insert.approach_m * into - insert.approach_side_m * axes[:, 0]],
     }
     push = {
         "path": [[round(float(v), 5) for v in (*point, height)] for point in (start, end)],
