@@ -1,5 +1,7 @@
-"""Where the scripted policy (``lib/scripted.py``) turns a knob on or pushes a door or drawer
-shut, read off a LIBERO env's model and state (the table's ``turns`` and ``closes``).
+"""Where the scripted policy (``lib/scripted.py``) turns a knob on, pushes a door or drawer
+shut, or puts an object into a fixture whose top the hand cannot pass under, read off a LIBERO
+env's model and state (the table's ``turns``, ``closes``, and a place's ``approach`` and its
+``pushes``: :data:`INSERTS`).
 
 LIBERO's predicates read one joint each: ``TurnOn`` holds once the knob's joint is at or past
 the low end of its fixture's ``default_turnon_ranges`` (the stove: 0.5 rad), ``Close`` once the
@@ -181,3 +183,99 @@ def shut_path(inner: Any, name: str, shut: Shut) -> dict[str, Any]:
     if shut.lean_rad:
         entry["lean"] = shut.lean_rad
     return entry
+
+
+@dataclass(frozen=True)
+class Insert:
+    """How the script puts an object into a fixture whose top the hand cannot pass under (a
+    microwave): held by a part that stays outside (a mug by its handle, the handle towards the
+    hand), lowered in front of the opening, slid in level and let go, then pushed deeper by the
+    closed fingertips leaning into the opening (their hand stays in front of the top) until all
+    of it is past where the door shuts. Points and directions of the object are in its body
+    frame (x, y), read off LIBERO's collision geoms; of the fixture, in the fixture's frame."""
+
+    at: tuple[float, float]  # the object's part the fingers close on
+    across: tuple[float, float]  # the direction they close along
+    height_m: float  # the fingertips' centre this far over the object's bottom (and over the floor when pushing)
+    into: tuple[float, float]  # the way into the fixture's opening
+    side_m: float  # the object let go this far along the fixture's x from its region's centre
+    out_m: float  # the grip site let go this far in front of the region's front face (the hand clear of the top)
+    approach_m: float  # lowered this far in front of where it is let go (all of it clear of the top)
+    approach_side_m: float  # and this far along the fixture's x from there (clear of an open door)
+    clearance_m: float  # let go with its bottom this far over the floor
+    push_in_m: float  # pushed until the grip site is this far past the region's front face (short of it: < 0)
+    push_start_m: float  # the push starts this far in front of where the object was let go
+    lean_rad: float  # the fingertips lean this far into the push
+
+
+# By (object category, fixture category). libero_10/9's mug (10.5 cm across, 10.3 cm tall, its
+# handle reaching 3.4 cm out) goes into the microwave (inside: 20.7 cm wide, 16.8 cm deep,
+# 14.4 cm under its top; its top's front edge 1.45 cm in front of the heating region). Held by
+# the rim, the hand (6.8 cm deep, its bottom 2.4 cm over the grip site, 10 cm tall) would stay
+# in front of the top, and the mug's centre 3.4 cm in front of the floor's edge. So it is held
+# by the handle's outer bar (turned towards the hand), fingers closing across the handle's
+# 1.8 cm, 5.5 cm over its bottom: let go with the grip site 5.8 cm in front of the region, its
+# body is on the floor, its handle outside. It is lowered 12 cm in front of that and 4 cm to
+# the microwave's +x: the hand, 21 cm along x, then stays clear of the door's top on the -x side
+# (init state 37's door, open 76 degrees, not 90, stood in its way), and slides in diagonally.
+# The fingertips, closed and leaning 45 degrees, then push the handle until the grip site is
+# 0.5 cm short of the region (further, the hand's +x end meets the microwave's front panel): the
+# handle is then some 3 cm past the closed door's face, which the door's push (SHUTS) clears.
+INSERTS = {
+    ("white_yellow_mug", "microwave"): Insert(
+        at=(0.0641, 0.0),
+        across=(0.0, 1.0),
+        height_m=0.055,
+        into=(0.0, 1.0),
+        side_m=-0.02,
+        out_m=0.058,
+        approach_m=0.12,
+        approach_side_m=0.04,
+        clearance_m=0.008,
+        push_in_m=-0.005,
+        push_start_m=0.04,
+        lean_rad=0.785,
+    )
+}
+
+
+def inserted_pair(
+    inner: Any, obj: str, goal: str, insert: Insert, floor_z: float, prefer_yaw: float = 0.0
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A place's ``grip``, ``yaw``, ``release`` and ``approach`` that put ``obj`` into region
+    site ``goal`` of its fixture under ``insert`` (``floor_z``: the height of the floor under the
+    region), and the ``pushes`` entry that takes it deeper. Of the two yaws that close the
+    fingers alike, the one nearer ``prefer_yaw`` (the door's push that follows)."""
+    import mujoco
+
+    model, data = inner.sim.model._model, inner.sim.data._data
+    body = inner.obj_body_id[obj]
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, goal)
+    if site < 0:
+        raise ValueError(f"{goal}: not a region site to put {obj} into")
+    fixture = inner.obj_body_id[inner.object_states_dict[goal].parent_name]
+    frame = data.xmat[body].reshape(3, 3)[:2, :2]
+    grip_xy = data.xpos[body][:2] + frame @ np.array(insert.at)
+    bottom = float(subtree_corners(model, data, body)[:, 2].min())
+    yaw = closing_yaw(frame @ np.array(insert.across), prefer_yaw)
+    axes = data.xmat[fixture].reshape(3, 3)[:2, :2]
+    into = axes @ np.array(insert.into)
+    site_axes = data.site_xmat[site].reshape(3, 3)[:2, :2]
+    depth = float(np.abs(into @ site_axes) @ model.site_size[site, :2])  # the region's half depth along ``into``
+    front = data.site_xpos[site][:2] - depth * into + insert.side_m * axes[:, 0]
+    release = front - insert.out_m * into
+    height = floor_z + insert.height_m
+    start = release - insert.push_start_m * into
+    end = front + insert.push_in_m * into
+    place = {
+        "grip": [round(float(v), 5) for v in (*grip_xy, bottom + insert.height_m)],
+        "yaw": round(yaw, 4),
+        "release": [round(float(v), 5) for v in (*release, height + insert.clearance_m)],
+        "approach": [round(float(v), 5) for v in insert.approach_m * into - insert.approach_side_m * axes[:, 0]],
+    }
+    push = {
+        "path": [[round(float(v), 5) for v in (*point, height)] for point in (start, end)],
+        "yaws": [round(yaw, 4)] * 2,
+        "lean": insert.lean_rad,
+    }
+    return place, push

@@ -7,8 +7,10 @@ The policy is closed loop on the end effector (LIBERO's 8-float ``state``: eef p
 axis-angle, gripper) and open loop on the scene: where each object, goal, knob and handle is,
 for each init state, comes from a table measured once on the CPU engine (:func:`scene_row`). A
 script is a sequence of steps (:func:`steps`), each a few waypoints with named phases: a place
-(above the object, down, close, up, above the goal, down, open, up), a turn (onto a knob, close,
-turn the wrist, open, up) and a close (fingers closed, push along a path past shut, back off).
+(above the object, down, close, up, above the goal, down, open, up; or, into a goal under a
+top, down in front of it and in level), a turn (onto a knob, close, turn the wrist, open, up), a
+push (fingers closed, along a path: an object put in pushed deeper) and a close (fingers closed,
+push along a path past shut, back off).
 Actions are robosuite's OSC_POSE deltas (position up to 5 cm and rotation up to 0.5 rad per
 unit, clipped to [-1, 1]) and the gripper (-1 open, 1 closed)::
 
@@ -254,11 +256,13 @@ class Waypoints(NamedTuple):
 def steps(row: Mapping[str, Any]) -> list[tuple[str, Mapping[str, Any]]]:
     """The steps of ``row``'s script in order, each ``(kind, its row entry)``: every knob of
     ``row["turns"]`` turned first, then every object of ``row["pairs"]`` put in or on its goal,
-    then every door or drawer of ``row["closes"]`` pushed shut (a closed door would bar its
-    region, an object put in a drawer goes in open)."""
+    then every push of ``row["pushes"]`` (an object put in, pushed deeper), then every door or
+    drawer of ``row["closes"]`` pushed shut (a closed door would bar its region, an object put in
+    a drawer goes in open)."""
     return (
         [("turn", turn) for turn in row.get("turns", ())]
         + [("place", pair) for pair in row["pairs"]]
+        + [("push", push) for push in row.get("pushes", ())]
         + [("close", close) for close in row.get("closes", ())]
     )
 
@@ -271,16 +275,27 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> Waypoints:
     ``place_top`` (the region's top, the height to carry it over). Optional: ``grip`` and
     ``release``, where the fingertips close and open when that is not over the object's centre
     and goal (a mug held by its rim); ``place_yaw``, the yaw to carry and let go at when it is
-    not the grasp's (a book turned to fit a slot). A turn (``row["turns"]``) lists where the
-    fingertips close on a knob (``grip``), its ``top``, the grasp's ``yaw`` and the ``turn`` to
-    give it (radians of yaw). A close (``row["closes"]``) lists the ``path`` the grip site
-    pushes along, from in front of the door or drawer to past where it is shut, and its ``yaws``.
+    not the grasp's (a book turned to fit a slot); ``approach`` (x, y), the way into a goal under
+    a top the hand cannot pass under (a microwave's): the object goes down this far short of its
+    release, in level to it, and the open hand backs out the same way before it rises. A turn
+    (``row["turns"]``) lists where the fingertips close on a knob (``grip``), its ``top``, the
+    grasp's ``yaw`` and the ``turn`` to give it (radians of yaw). A close (``row["closes"]``) lists the ``path`` the grip site
+    pushes along, from in front of the door or drawer to past where it is shut, and its ``yaws``;
+    a push (``row["pushes"]``) is alike, its path taking an object put in deeper. A step after
+    another takes whichever of its yaws and yaws + pi (the fingers close alike) is nearer the
+    last waypoint's yaw on average over the step: the wrist turns the least.
     """
     script: list[Waypoint] = []
     for index, (kind, entry) in enumerate(steps(row)):
-        made = {"turn": turn_waypoints, "place": place_waypoints, "close": close_waypoints}[kind](entry, gains)
-        if kind != "place" and script:  # fingers that close alike at yaw and yaw + pi: turn the least
-            shift = closing_yaw((math.sin(made[0][1]), -math.cos(made[0][1])), script[-1][1]) - made[0][1]
+        made = {
+            "turn": turn_waypoints,
+            "place": place_waypoints,
+            "push": close_waypoints,
+            "close": close_waypoints,
+        }[kind](entry, gains)
+        if kind != "place" and script:  # fingers that close alike at yaw and yaw + pi: turn the least, on average
+            mean = float(np.mean([waypoint[1] for waypoint in made]))
+            shift = closing_yaw((math.sin(mean), -math.cos(mean)), script[-1][1]) - mean
             flip = -1.0 if round(shift / math.pi) % 2 else 1.0  # the hand's x turned about: the tilt too
             made = [(position, yaw + shift, flip * tilt, *rest) for position, yaw, tilt, *rest in made]
         script.extend((*waypoint[:6], f"{index}:{waypoint[6]}") for waypoint in made)
@@ -297,7 +312,8 @@ def waypoints(row: Mapping[str, Any], gains: Gains = Gains()) -> Waypoints:
 
 
 def place_waypoints(pair: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
-    """Put an object in or on its goal: above it, down, close, up, above the goal, down, open, up."""
+    """Put an object in or on its goal: above it, down, close, up, above the goal, down, open, up;
+    with an ``approach``, above the goal short of it by that, down, in level, open, back out, up."""
     x, y, _ = pair["pick"]
     px, py, pz = pair["place"]
     yaw = pair["yaw"]
@@ -309,15 +325,29 @@ def place_waypoints(pair: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
         x, y, grasp = pair["grip"]
     if "release" in pair:
         px, py, release = pair["release"]
-    return [
+    reach = [
         ((x, y, carry), yaw, 0.0, OPEN, 0, False, "reach"),
         ((x, y, grasp), yaw, 0.0, OPEN, 0, False, "reach"),
         ((x, y, grasp), yaw, 0.0, CLOSED, gains.grip_steps, False, "grasp"),
         ((x, y, carry), yaw, 0.0, CLOSED, 0, True, "lift"),
-        ((px, py, carry), turned, 0.0, CLOSED, 0, True, "carry"),
-        ((px, py, release), turned, 0.0, CLOSED, 0, True, "lower"),
+    ]
+    if "approach" not in pair:
+        return reach + [
+            ((px, py, carry), turned, 0.0, CLOSED, 0, True, "carry"),
+            ((px, py, release), turned, 0.0, CLOSED, 0, True, "lower"),
+            ((px, py, release), turned, 0.0, OPEN, gains.grip_steps, False, "release"),
+            ((px, py, carry), turned, 0.0, OPEN, 0, False, "retreat"),
+        ]
+    if len(pair["approach"]) != 2:
+        raise ValueError(f"approach {pair['approach']} of {pair.get('object')}: not [x, y]")
+    outside_x, outside_y = px - pair["approach"][0], py - pair["approach"][1]
+    return reach + [
+        ((outside_x, outside_y, carry), turned, 0.0, CLOSED, 0, True, "carry"),
+        ((outside_x, outside_y, release), turned, 0.0, CLOSED, 0, True, "lower"),
+        ((px, py, release), turned, 0.0, CLOSED, 0, True, "insert"),
         ((px, py, release), turned, 0.0, OPEN, gains.grip_steps, False, "release"),
-        ((px, py, carry), turned, 0.0, OPEN, 0, False, "retreat"),
+        ((outside_x, outside_y, release), turned, 0.0, OPEN, 0, False, "retreat"),
+        ((outside_x, outside_y, carry), turned, 0.0, OPEN, 0, False, "retreat"),
     ]
 
 
@@ -338,11 +368,11 @@ def turn_waypoints(turn: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
 
 
 def close_waypoints(close: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
-    """Push a door or drawer shut, the fingers closed: above the ``path``'s start, down to it,
-    along it (at each point its yaw of ``yaws``), back off from its end by ``gains.back_off_m``
-    the way it came, up. With ``lean`` (radians), the fingertips lean that far towards the
-    path's first stretch the whole way: the arm stays back, clear of what the pushed part goes
-    under (a cabinet's top over its drawers)."""
+    """Push a door or drawer shut (a close) or an object deeper (a push), the fingers closed:
+    above the ``path``'s start, down to it, along it (at each point its yaw of ``yaws``), back
+    off from its end by ``gains.back_off_m`` the way it came, up. With ``lean`` (radians), the
+    fingertips lean that far towards the path's first stretch the whole way: the arm stays back,
+    clear of what the pushed part goes under (a cabinet's top over its drawers, a microwave's)."""
     path = np.asarray(close["path"], dtype=np.float64)
     yaws = [float(yaw) for yaw in close["yaws"]]
     if path.ndim != 2 or path.shape[1] != 3 or len(path) < 2 or len(yaws) != len(path):
@@ -369,7 +399,7 @@ def close_waypoints(close: Mapping[str, Any], gains: Gains) -> list[Waypoint]:
 
 
 def pushing(phases: Sequence[str]) -> np.ndarray:
-    """Which of a script's waypoints (their ``phases``) push a door or drawer."""
+    """Which of a script's waypoints (their ``phases``) push a door, drawer or object."""
     return np.array([name.endswith(":push") for name in phases], dtype=bool)
 
 

@@ -441,6 +441,51 @@ def test_pushing_closed_fingers_is_no_empty_grip_and_waits_longer(scripted) -> N
     assert policy.progress(0) == {"waypoint": 3, "phase": "0:retreat", "empty_grip": None}
 
 
+MUG_IN = {**ROW["pairs"][0], "grip": [0.12, -0.15, 0.48], "release": [0.03, 0.22, 0.5], "approach": [0.0, 0.1]}
+NUDGE = {"path": [[0.03, 0.18, 0.49], [0.03, 0.29, 0.49]], "yaws": [np.pi / 2, np.pi / 2], "lean": 0.785}
+
+
+def test_an_approached_place_goes_down_in_front_then_in_level_and_backs_out(scripted) -> None:
+    gains = scripted.Gains()
+    script = scripted.waypoints({"pairs": [MUG_IN]}, gains)
+    carry = 0.57 + gains.hover_m
+    outside = (0.03, 0.12)  # short of the release by the approach
+    np.testing.assert_allclose(
+        script.positions[4:],
+        [(*outside, carry), (*outside, 0.5), (0.03, 0.22, 0.5), (0.03, 0.22, 0.5), (*outside, 0.5), (*outside, carry)],
+    )
+    assert script.phases[4:] == ("0:carry", "0:lower", "0:insert", "0:release", "0:retreat", "0:retreat")
+    assert script.grips[4:].tolist() == [1, 1, 1, -1, -1, -1]  # let go only once in
+    assert script.carries[4:].tolist() == [True, True, True, False, False, False]
+    with pytest.raises(ValueError, match=r"approach \[0.1\] of can: not \[x, y\]"):
+        scripted.waypoints({"pairs": [{**MUG_IN, "approach": [0.1]}]})
+
+
+def test_a_push_takes_a_placed_object_deeper_before_the_door_closes(scripted) -> None:
+    gains = scripted.Gains()
+    row = {"pairs": [MUG_IN], "pushes": [NUDGE], "closes": [DRAWER]}
+    assert [kind for kind, _ in scripted.steps(row)] == ["place", "push", "close"]
+    script = scripted.waypoints(row, gains)
+    pushing = [i for i, p in enumerate(script.phases) if p.startswith("1:")]
+    assert [script.phases[i] for i in pushing] == ["1:reach", "1:reach", "1:push", "1:retreat", "1:retreat"]
+    np.testing.assert_allclose(script.positions[pushing[2]], (0.03, 0.29, 0.49))
+    assert (script.grips[pushing] == 1).all() and not script.carries[pushing].any()  # closed, holding nothing
+    tips = scripted.gripper_frame(script.yaws[pushing], script.tilts[pushing])[:, :, 2]
+    np.testing.assert_allclose(tips[:, 1], np.sin(0.785), atol=1e-9)  # leaning into the push (+y)
+    assert scripted.pushing(script.phases)[pushing].tolist() == [False, False, True, False, False]
+
+
+def test_a_step_takes_the_yaws_that_turn_the_wrist_least_on_average(scripted) -> None:
+    # A door's arc from yaw -0.1 to 1.5 after a place at 1.5: its first yaw is nearer 1.5 a half
+    # turn on (3.04), but the arc as a whole is nearer as it is (mean 0.7), and stays so.
+    arc = {"path": [[0.0, 0.0, 1.0], [0.1, 0.02, 1.0], [0.18, 0.08, 1.0]], "yaws": [-0.1, 0.7, 1.5]}
+    script = scripted.waypoints({"pairs": [{**ROW["pairs"][0], "yaw": 1.5}], "closes": [arc]})
+    closing = [i for i, p in enumerate(script.phases) if p.startswith("1:")]
+    np.testing.assert_allclose(script.yaws[closing], [-0.1, -0.1, 0.7, 1.5, 1.5, 1.5])
+    script = scripted.waypoints({"pairs": [{**ROW["pairs"][0], "yaw": -1.5}], "closes": [arc]})
+    np.testing.assert_allclose(script.yaws[closing], np.array([-0.1, -0.1, 0.7, 1.5, 1.5, 1.5]) - np.pi)
+
+
 def test_rows_of_unlike_scripts_are_refused(scripted) -> None:
     with pytest.raises(ValueError, match="not one task's"):
         scripted.Script([ROW, {**ROW, "closes": [DRAWER]}])
@@ -627,7 +672,7 @@ def test_carried_rows_are_what_the_table_measures(bench_module, task: str, liber
         row = bench_module.scene_row(env.inner, bench_module.SHARED_GOAL_SPACING_M.get(task, 0.0))
     finally:
         env.close()
-    assert set(row) == set(carried[3])  # a knob to turn (2), a drawer (3) or door (9) to close
+    assert set(row) == set(carried[3])  # a knob to turn (2), a drawer (3) or door (9) to close, a mug to push (9)
     assert all("grip" in pair and "release" in pair for pair in row["pairs"])  # mugs, moka pots, a bowl: held
     for entries in row:
         assert [set(entry) for entry in row[entries]] == [set(entry) for entry in carried[3][entries]]
