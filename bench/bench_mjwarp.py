@@ -63,8 +63,8 @@ from typing import Any
 
 import numpy as np
 from lib.images import ssim
-
-from lib.jobs import one_task_assignment as assignment
+from lib.jobs import one_task_assignment
+from lib.records import write_record
 
 from vecsim.config import CameraConfig
 
@@ -115,11 +115,6 @@ def time_chunks(engine: Any, envs: int, chunk: int, calls: int, deadline: float)
     }
 
 
-def write(record: dict[str, Any], out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=1))
-
-
 def reference(args: argparse.Namespace) -> None:
     """The CPU engine's trajectories, images and (with ``--cpu-envs``) rate (the CPU stack)."""
     from vecsim.engine.base import engine_kind
@@ -147,7 +142,7 @@ def reference(args: argparse.Namespace) -> None:
     env.close()
     record: dict[str, Any] = {"task": args.task, "machine": args.machine, "cores": os.cpu_count()}
     if args.cpu_envs:
-        engine = engine_kind("cpu").build(assignment(args.task, args.cpu_envs, args.cpu_size, "cpu"))
+        engine = engine_kind("cpu").build(one_task_assignment(args.task, args.cpu_envs, args.cpu_size, "cpu"))
         try:
             record["cpu_engine"] = time_chunks(engine, args.cpu_envs, args.chunk, args.calls, time.monotonic() + 600)
         finally:
@@ -254,7 +249,7 @@ def fidelity(args: argparse.Namespace, ref: Any, deterministic: bool = False) ->
     def build() -> Any:
         os.environ["VECSIM_MJWARP_DETERMINISTIC"] = "1" if deterministic else "0"
         try:
-            return engine_kind("mjwarp").build(assignment(args.task, n, size, "mjwarp"))
+            return engine_kind("mjwarp").build(one_task_assignment(args.task, n, size, "mjwarp"))
         finally:
             del os.environ["VECSIM_MJWARP_DETERMINISTIC"]  # the mode is read at the build only
 
@@ -329,15 +324,15 @@ def run(args: argparse.Namespace) -> None:
         record["cpu_reference"] = json.loads(str(ref["record"]))
     if args.cpu_rate:
         record["cpu_rate_elsewhere"] = args.cpu_rate
-    write(record, args.out)
+    write_record(record, args.out)
     for index, (size, worlds) in enumerate(args.runs):
         if time.monotonic() > deadline:
             record["cut_short"] = f"budget of {args.budget_s} s spent"
-            write(record, args.out)
+            write_record(record, args.out)
             return
         free = gpu_free()
         started = time.monotonic()
-        engine = engine_kind("mjwarp").build(assignment(args.task, worlds, size, "mjwarp"))
+        engine = engine_kind("mjwarp").build(one_task_assignment(args.task, worlds, size, "mjwarp"))
         built = time.monotonic() - started
         used = None if free is None else free - (gpu_free() or 0)
         try:
@@ -358,16 +353,16 @@ def run(args: argparse.Namespace) -> None:
         log.info(
             "size %s, %d worlds: %.0f env-steps/s (built in %.0f s)", size, worlds, measured["env_steps_per_s"], built
         )
-        write(record, args.out)
+        write_record(record, args.out)
         if index == 0 and ref is not None:
             # Right after the first run, while the budget lasts: its kernels are compiled.
             record["fidelity"] = fidelity(args, ref)
-            write(record, args.out)
+            write_record(record, args.out)
             if args.deterministic and time.monotonic() < deadline:
                 record["fidelity_deterministic"] = fidelity(args, ref, deterministic=True)
-                write(record, args.out)
+                write_record(record, args.out)
     record["complete"] = True
-    write(record, args.out)
+    write_record(record, args.out)
     print("RESULT", json.dumps(record))
 
 
@@ -542,7 +537,7 @@ def run_layout(
         with tempfile.TemporaryDirectory() as folder:
             env["VECSIM_MJWARP_TURNS"] = str(Path(folder) / "turns") if turns else "off"
             for i in range(pods):
-                spec = assignment(args.task, envs, size, engine).model_copy(update={"pod": f"sim-{i}"})
+                spec = one_task_assignment(args.task, envs, size, engine).model_copy(update={"pod": f"sim-{i}"})
                 path = Path(folder) / f"pod{i}.json"
                 path.write_text(spec.model_dump_json())
                 pinned = set(cores[i * share : (i + 1) * share]) if engine == "cpu" else None
@@ -643,7 +638,7 @@ def side(args: argparse.Namespace) -> None:
         "layouts": [],
         "complete": False,
     }
-    write(record, args.out)
+    write_record(record, args.out)
     plan = [("cpu", *layout, args.cpu_pythonpath) for layout in args.cpu_layouts]
     plan += [("mjwarp", *layout, args.mjwarp_pythonpath) for layout in args.mjwarp_layouts]
     record["rounds"] = args.rounds
@@ -664,7 +659,7 @@ def side(args: argparse.Namespace) -> None:
                 entry = {"engine": engine, "pods": pods, "envs_per_pod": envs, "size": size, "error": str(exc)}
                 log.error("%s %dx%d@%d failed: %s", engine, pods, envs, size, exc)
             record["layouts"].append({**entry, "round": round_index})
-            write(record, args.out)
+            write_record(record, args.out)
         else:
             ratio = round_ratio(record["layouts"], round_index, args.size)
             if ratio is not None:
@@ -676,14 +671,14 @@ def side(args: argparse.Namespace) -> None:
         break
     else:
         record["complete"] = True
-    write(record, args.out)
+    write_record(record, args.out)
     print("RESULT", json.dumps(record))
 
 
 def through_pod(args: argparse.Namespace) -> None:
     """One real pod on ``--engine`` (a layout of one, see :func:`run_layout`)."""
     record = {"machine": args.machine, **run_layout(args, args.engine, 1, args.envs, args.size, None, args.port)}
-    write(record, args.out)
+    write_record(record, args.out)
     print("RESULT", json.dumps(record))
 
 

@@ -22,9 +22,9 @@ turn::
     python bench/bench_mjwarp_refill.py --worlds 8192 --size 256 --share 0.125 --calls 6 \\
         --out out/bench/bench_mjwarp_refill.json
 
-Runs in the ``mjwarp`` extra's environment (on warp's CPU device only with
-``VECSIM_MJWARP_ALLOW_CPU=1``, for the tests). The JSON record is written after every round, so
-a run cut short still leaves one.
+Runs in the ``mjwarp`` extra's environment on a GPU (on warp's CPU device too, with
+``VECSIM_MJWARP_ALLOW_CPU=1``: minutes for a few worlds, to try it). The JSON record is written
+after every round, so a run cut short still leaves one.
 """
 
 from __future__ import annotations
@@ -38,12 +38,11 @@ from typing import Any
 
 import numpy as np
 from lib.jobs import one_task_assignment
-from lib.records import command_line, machine_info
+from lib.records import command_line, machine_info, write_record
 
 log = logging.getLogger("bench_mjwarp_refill")
 
 KINDS = ("step", "refill", "reset_then_step")
-KINDS_RATIO = "refill_over_reset_then_step"
 # LIBERO-10's init states per task: a reset env starts at its id modulo this.
 INIT_STATES = 50
 
@@ -142,22 +141,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if call >= 0:
                 record["kinds"] = {kind: summary(calls[kind]) for kind in KINDS}
                 record.update(ratios(record["kinds"]))
-                write(record, args.out)
-                log.info("round %d of %d: refill %.2fx reset then step", call + 1, args.calls, record[KINDS_RATIO])
+                write_record(record, args.out)
+                log.info(
+                    "round %d of %d: refill %.2fx reset then step",
+                    call + 1,
+                    args.calls,
+                    record["refill_over_reset_then_step"],
+                )
             if time.monotonic() > deadline:
                 record["cut_short"] = f"budget of {args.budget_s} s spent after {call + 1} rounds"
-                write(record, args.out)
+                write_record(record, args.out)
                 return record
     finally:
         engine.close()
     record["complete"] = True
-    write(record, args.out)
+    write_record(record, args.out)
     return record
-
-
-def write(record: dict[str, Any], out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=1))
 
 
 def main() -> None:

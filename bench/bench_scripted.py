@@ -60,7 +60,7 @@ from typing import Any, Protocol
 
 import numpy as np
 from lib.jobs import RLINF_PROTOCOL
-from lib.records import command_line, machine_info
+from lib.records import command_line, machine_info, write_record
 from lib.fixtures import INSERTS, SHUTS, inserted_pair, knob_turn, shut_path
 from lib.scripted import Episodes, Gains, Script, agreement, closing_yaw, summary
 
@@ -563,22 +563,17 @@ def run(args: argparse.Namespace) -> None:
                     {int(k): v.get("success") for k, v in entry[e]["per_state"].items()} for e in ("cpu", "mjwarp")
                 )
                 entry["agreement"] = agreement(first, second)
-            write(record, args.out)
+            write_record(record, args.out)
         if "cut_short" in record:
             break
     else:
         record["complete"] = True
-    write(record, args.out)
+    write_record(record, args.out)
     brief = {
         task: {e: {k: v for k, v in r.items() if k != "per_state"} if isinstance(r, dict) else r for e, r in t.items()}
         for task, t in record["tasks"].items()
     }
     print("RESULT", json.dumps({"name": record["name"], "complete": record["complete"], "tasks": brief}), flush=True)
-
-
-def write(record: dict[str, Any], out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=1) + "\n")
 
 
 LIBERO_HELP = "the LIBERO protocol: published (LIBERO's evaluation) or rlinf (15 settle steps, first_reset fixtures)"

@@ -92,6 +92,13 @@ def command_line() -> str:
     return " ".join(["python", str(script), *sys.argv[1:]])
 
 
+def write_record(record: dict[str, Any], out: Path) -> None:
+    """Write ``record`` as JSON to ``out`` (its folder made), over what an earlier call wrote: a
+    bench that writes after every measurement leaves a record however early it is cut short."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1) + "\n")
+
+
 def write_result(name: str, summary: dict[str, Any], details: dict[str, Any] | None = None) -> Path:
     """Write ``out/bench/<name>.json`` and print the one ``RESULT {json}`` line.
 
